@@ -1,0 +1,252 @@
+"""Stage 2: lark tree -> AST of frozen dataclasses, each node with its source span.
+
+Also loads a file with its includes (resolved relative to the including file,
+cycles refused) into a `Program`: the flat list of statements to compile.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Union
+
+import lark
+
+from . import parse
+from .diagnostics import Diagnostic, Span, WiredslError
+
+
+@dataclass(frozen=True, slots=True)
+class Number:
+    """A number as written, e.g. `0.6m`, `30deg`, `29%`, `3`."""
+
+    text: str
+    value: float
+    unit: str | None
+    span: Span
+
+
+@dataclass(frozen=True, slots=True)
+class String:
+    value: str
+    span: Span
+
+
+@dataclass(frozen=True, slots=True)
+class Ref:
+    """A name or dotted reference, possibly ending in a `*` wildcard."""
+
+    parts: tuple[str, ...]
+    span: Span
+
+    @property
+    def name(self) -> str:
+        return ".".join(self.parts)
+
+
+@dataclass(frozen=True, slots=True)
+class Tuple:
+    items: tuple[Arg, ...]
+    span: Span
+
+
+@dataclass(frozen=True, slots=True)
+class List:
+    items: tuple[Arg, ...]
+    span: Span
+
+
+Arg = Union[Number, String, Ref, Tuple, List]
+
+
+@dataclass(frozen=True, slots=True)
+class Statement:
+    """`keyword arg* { statement* }?`; `block` is None when there are no braces."""
+
+    keyword: str
+    args: tuple[Arg, ...]
+    block: tuple[Statement, ...] | None
+    span: Span
+    keyword_span: Span
+
+
+@dataclass(frozen=True, slots=True)
+class Comment:
+    text: str
+    line: int
+    col: int
+
+
+@dataclass(frozen=True, slots=True)
+class File:
+    path: str
+    text: str
+    statements: tuple[Statement, ...]
+    comments: tuple[Comment, ...]
+
+
+@dataclass
+class Program:
+    """A root file and everything it includes, in include order."""
+
+    root: File
+    files: dict[str, File] = field(default_factory=dict)
+    included_from: dict[str, Span] = field(default_factory=dict)
+    statements: list[Statement] = field(default_factory=list)
+
+    @property
+    def sources(self) -> dict[str, str]:
+        return {p: f.text for p, f in self.files.items()}
+
+    def include_notes(self, path: str) -> tuple[str, ...]:
+        """'included from' notes for a diagnostic in `path`, innermost first."""
+        notes = []
+        while path in self.included_from:
+            span = self.included_from[path]
+            notes.append(f"{path} included from {span}")
+            path = span.file
+        return tuple(notes)
+
+
+def _span(path: str, tok: lark.Token) -> Span:
+    return Span(path, tok.line, tok.column, tok.end_line, tok.end_column)
+
+
+class ToAst(lark.Transformer):
+    """Builds AST nodes while the LALR parser reduces (no intermediate tree)."""
+
+    path = "<string>"
+
+    def number(self, children):
+        (tok,) = children
+        text = str(tok)
+        i = len(text)
+        while i and (text[i - 1].isalpha() or text[i - 1] == "%"):
+            i -= 1
+        unit = text[i:] or None
+        return Number(text, float(text[:i]), unit, _span(self.path, tok))
+
+    def string(self, children):
+        (tok,) = children
+        return String(str(tok)[1:-1], _span(self.path, tok))
+
+    def ref(self, children):
+        first, last = children[0], children[-1]
+        span = Span(self.path, first.line, first.column, last.end_line, last.end_column)
+        return Ref(tuple(str(t) for t in children), span)
+
+    def tuple(self, children):
+        return Tuple(_items(children), _outer(self.path, children))
+
+    def list(self, children):
+        return List(_items(children), _outer(self.path, children))
+
+    def block(self, children):
+        return Block(_items(children), _outer(self.path, children))
+
+    def statement(self, children):
+        kw, *args = children
+        block = None
+        if args and isinstance(args[-1], Block):
+            block = args.pop().statements
+        end = args[-1].span if args and block is None else None
+        last = children[-1]
+        if isinstance(last, Block):
+            end = last.span
+        kw_span = _span(self.path, kw)
+        span = kw_span if end is None else Span(self.path, kw.line, kw.column, end.end_line, end.end_col)
+        return Statement(str(kw), tuple(args), block, span, kw_span)
+
+    def start(self, children):
+        return tuple(children)
+
+
+@dataclass(frozen=True, slots=True)
+class Block:
+    """Transient: a braced block while parsing; stored as Statement.block."""
+
+    statements: tuple[Statement, ...]
+    span: Span
+
+
+def _items(children) -> tuple:
+    return tuple(c for c in children if not isinstance(c, lark.Token))
+
+
+def _outer(path: str, children) -> Span:
+    first, last = children[0], children[-1]
+    return Span(path, first.line, first.column, last.end_line, last.end_column)
+
+
+_TO_AST = ToAst()
+
+
+def parse_text(text: str, path: str = "<string>") -> File:
+    """Parse one file's text into a File AST (includes are not followed)."""
+    _TO_AST.path = path
+    stmts, comments = parse.run(parse.parser(_TO_AST), text, path)
+    return File(path, text, stmts or (), tuple(Comment(str(c), c.line, c.column) for c in comments))
+
+
+def display_path(path: Path) -> str:
+    """A path as the user should see it: relative to the working directory when inside it."""
+    try:
+        return os.path.relpath(path)
+    except ValueError:  # another drive on Windows
+        return str(path)
+
+
+def read_source(path: Path, where: Span | None = None) -> str:
+    """Read a source file, or raise a located diagnostic."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        msg = f"no such file: {display_path(path)}"
+    except IsADirectoryError:
+        msg = f"is a directory: {display_path(path)}"
+    except UnicodeDecodeError as exc:
+        msg = f"{display_path(path)} is not UTF-8 text ({exc.reason} at byte {exc.start})"
+    except OSError as exc:
+        msg = f"cannot read {display_path(path)}: {exc.strerror}"
+    raise WiredslError([Diagnostic("error", "E010", msg, where)])
+
+
+def load(path: str | os.PathLike) -> Program:
+    """Parse a file and, recursively, the files it includes."""
+    root_path = Path(path)
+    text = read_source(root_path)
+    root = parse_text(text, display_path(root_path))
+    program = Program(root)
+    _add(program, root, root_path.resolve(), (root_path.resolve(),))
+    return program
+
+
+def _add(program: Program, file: File, resolved: Path, stack: tuple[Path, ...]) -> None:
+    program.files[file.path] = file
+    for stmt in file.statements:
+        if stmt.keyword != "include":
+            program.statements.append(stmt)
+            continue
+        if len(stmt.args) != 1 or not isinstance(stmt.args[0], String):
+            program.statements.append(stmt)  # the compiler reports the malformed include
+            continue
+        target = (resolved.parent / stmt.args[0].value).resolve()
+        where = stmt.args[0].span
+        if target in stack:
+            chain = " -> ".join(display_path(p) for p in (*stack[stack.index(target):], target))
+            raise WiredslError([Diagnostic("error", "E011", f"include cycle: {chain}", where,
+                                           notes=program.include_notes(file.path))])
+        try:
+            child = parse_text(read_source(target, where), display_path(target))
+        except WiredslError as err:
+            raise WiredslError([_with_notes(d, program, file.path, where) for d in err.diagnostics]) from None
+        program.included_from[child.path] = where
+        _add(program, child, target, (*stack, target))
+
+
+def _with_notes(d: Diagnostic, program: Program, including: str, where: Span) -> Diagnostic:
+    if d.span is not None and d.span.file != including and not d.notes:
+        notes = (f"{d.span.file} included from {where}", *program.include_notes(including))
+        return Diagnostic(d.severity, d.code, d.message, d.span, d.hint, notes)
+    return d

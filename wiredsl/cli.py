@@ -1,0 +1,228 @@
+"""The `wiredsl` command line (click). Data on stdout, diagnostics on stderr.
+
+Exit codes: 0 ok, 1 invalid input, 2 usage error, 3 internal error (a bug).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from collections.abc import Callable
+from functools import wraps
+
+import click
+
+from . import __version__
+
+EXIT_INVALID = 1
+EXIT_INTERNAL = 3
+
+
+def _colour() -> bool:
+    return sys.stderr.isatty() and "NO_COLOR" not in os.environ
+
+
+def report(diags, sources: dict[str, str], fmt: str) -> None:
+    """Print diagnostics to stderr in text or JSON form."""
+    from .diagnostics import render, render_json
+
+    if not diags:
+        return
+    if fmt == "json":
+        sys.stderr.write(render_json(diags))
+    else:
+        sys.stderr.write(render(diags, sources, colour=_colour()))
+
+
+def guarded(fn: Callable) -> Callable:
+    """Turn WiredslError into diagnostics and exit 1; never let a traceback reach a user."""
+
+    @wraps(fn)
+    def wrapper(*args, **kwargs):
+        from .diagnostics import WiredslError
+
+        try:
+            return fn(*args, **kwargs)
+        except WiredslError as err:
+            report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diag_format", "text"))
+            sys.exit(EXIT_INVALID)
+        except (click.exceptions.Exit, click.ClickException, SystemExit, KeyboardInterrupt):
+            raise
+        except Exception as exc:  # a bug: say so plainly, keep the traceback for WIREDSL_DEBUG
+            if os.environ.get("WIREDSL_DEBUG"):
+                raise
+            click.echo(f"wiredsl: internal error ({type(exc).__name__}: {exc}); this is a bug, please report it "
+                       "with the input (set WIREDSL_DEBUG=1 for a traceback)", err=True)
+            sys.exit(EXIT_INTERNAL)
+
+    return wrapper
+
+
+def _sources(diags) -> dict[str, str]:
+    """Source text of the files diagnostics point into, for the caret lines."""
+    out = {}
+    for d in diags:
+        if d.span is not None and d.span.file not in out:
+            try:
+                with open(d.span.file, encoding="utf-8") as fh:
+                    out[d.span.file] = fh.read()
+            except (OSError, UnicodeDecodeError):
+                pass
+    return out
+
+
+diag_format_option = click.option("--format", "diag_format", type=click.Choice(["text", "json"]), default="text",
+                                  show_default=True, help="Form of diagnostics on stderr.")
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="wiredsl")
+def main() -> None:
+    """Simulate what a stereo robot's vision system sees of a wire-frame world."""
+
+
+@main.command()
+@click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@diag_format_option
+@guarded
+def check(files: tuple[str, ...], diag_format: str) -> None:
+    """Check scene FILES; exit 0 when all are valid, 1 with diagnostics."""
+    from .compile import compile_file
+    from .diagnostics import WiredslError
+
+    failed = False
+    all_diags = []
+    for f in files:
+        try:
+            _, warnings, _ = compile_file(f)
+            all_diags += warnings
+        except WiredslError as err:
+            all_diags += err.diagnostics
+            failed = True
+    report(all_diags, _sources(all_diags), diag_format)
+    if failed:
+        sys.exit(EXIT_INVALID)
+    if diag_format == "text":
+        click.echo(f"{len(files)} file{'s' * (len(files) != 1)} ok", err=True)
+
+
+@main.command("compile")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", default="-", show_default=True, help="Output file, or - for stdout.")
+@diag_format_option
+@guarded
+def compile_cmd(file: str, output: str, diag_format: str) -> None:
+    """Compile FILE to the scene JSON (valid against schema/scene.schema.json)."""
+    from .compile import compile_file
+    from .files import write_atomic
+
+    scene, warnings, program = compile_file(file)
+    report(warnings, program.sources, diag_format)
+    text = json.dumps(scene.model_dump(mode="json"), indent=1) + "\n"
+    if output == "-":
+        sys.stdout.write(text)
+    else:
+        write_atomic(output, text)
+
+
+@main.command()
+@click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option("--check", "check_only", is_flag=True, help="Only report files that are not in canonical form.")
+@diag_format_option
+@guarded
+def fmt(files: tuple[str, ...], check_only: bool, diag_format: str) -> None:
+    """Rewrite FILES in canonical form, keeping comments (--check: exit 1 if any would change)."""
+    from pathlib import Path
+
+    from .ast import read_source
+    from .files import write_atomic
+    from .fmt import format_text
+
+    changed = []
+    for f in files:
+        text = read_source(Path(f))
+        new = format_text(text, f)
+        if new != text:
+            changed.append(f)
+            if not check_only:
+                write_atomic(f, new)
+    for f in changed:
+        click.echo(f"{'would reformat' if check_only else 'reformatted'} {f}", err=True)
+    if check_only and changed:
+        sys.exit(EXIT_INVALID)
+
+
+@main.command()
+@click.argument("name", type=click.Choice(["scene", "features"]))
+def schema(name: str) -> None:
+    """Print the JSON Schema of a scene or a features dump."""
+    from .schema import schema_dir
+
+    sys.stdout.write((schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8"))
+
+
+@main.command()
+@click.argument("dumps", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@guarded
+def validate(dumps: tuple[str, ...]) -> None:
+    """Validate scene or feature dumps (JSON, or JSON lines) against the schemas."""
+    from .schema import problems
+
+    bad = 0
+    for path in dumps:
+        try:
+            with open(path, encoding="utf-8") as fh:
+                text = fh.read()
+        except (OSError, UnicodeDecodeError) as exc:
+            click.echo(f"{path}: error: cannot read: {exc}", err=True)
+            bad += 1
+            continue
+        docs = _documents(path, text)
+        for where, doc in docs:
+            msgs = [doc] if isinstance(doc, str) else problems(doc)
+            for m in msgs[:20]:
+                click.echo(f"{where}: error: {m}", err=True)
+            if len(msgs) > 20:
+                click.echo(f"{where}: ... and {len(msgs) - 20} more", err=True)
+            bad += bool(msgs)
+    if bad:
+        sys.exit(EXIT_INVALID)
+    click.echo(f"{len(dumps)} dump{'s' * (len(dumps) != 1)} valid", err=True)
+
+
+def _documents(path: str, text: str) -> list[tuple[str, object]]:
+    """(location, document or error message) for a JSON or JSON-lines file."""
+    try:
+        return [(path, json.loads(text))]
+    except json.JSONDecodeError as exc:
+        if path.endswith(".jsonl"):
+            out = []
+            for i, line in enumerate(text.splitlines(), 1):
+                if line.strip():
+                    try:
+                        out.append((f"{path}:{i}", json.loads(line)))
+                    except json.JSONDecodeError as e:
+                        out.append((f"{path}:{i}:{e.colno}", f"not JSON: {e.msg}"))
+            return out
+        return [(f"{path}:{exc.lineno}:{exc.colno}", f"not JSON: {exc.msg}")]
+
+
+@main.command()
+def reference() -> None:
+    """Print the language reference (Markdown), generated from the statement table."""
+    from .language import CONTEXTS
+
+    out = ["| where | statement | takes | meaning |", "|---|---|---|---|"]
+    for ctx, sigs in CONTEXTS.items():
+        for sig in sigs.values():
+            takes = [f"<{s.label}>" for s in sig.positional]
+            for key, clause in sig.clauses.items():
+                piece = " ".join([key, *(f"<{s.label}>" for s in clause.slots)])
+                takes.append(piece if clause.required else f"[{piece}]" + ("..." if clause.repeat else ""))
+            if sig.block:
+                takes.append("{ ... }" if sig.block_required else "[{ ... }]")
+            where = "top level" if ctx == "top" else f"`{ctx}` block"
+            text = " ".join(takes).replace("|", "\\|")
+            out.append(f"| {where} | `{sig.keyword}` | `{text}` | {sig.doc.splitlines()[0]} |")
+    click.echo("\n".join(out))

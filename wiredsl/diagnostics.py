@@ -1,0 +1,123 @@
+"""Source spans and compiler diagnostics (gcc/rustc form, or JSON)."""
+
+from __future__ import annotations
+
+import difflib
+import json
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+MAX_REPORTED = 20
+
+
+@dataclass(frozen=True, slots=True)
+class Span:
+    """A range in a source file; lines and columns count from 1, end exclusive."""
+
+    file: str
+    line: int
+    col: int
+    end_line: int
+    end_col: int
+
+    def __str__(self) -> str:
+        return f"{self.file}:{self.line}:{self.col}"
+
+
+@dataclass(frozen=True, slots=True)
+class Diagnostic:
+    """One message about the input, pointing at a span."""
+
+    severity: str  # "error" | "warning"
+    code: str
+    message: str
+    span: Span | None
+    hint: str | None = None
+    notes: tuple[str, ...] = ()
+
+    def to_json(self) -> dict:
+        out: dict = {"severity": self.severity, "code": self.code, "message": self.message}
+        if self.span is not None:
+            s = self.span
+            out.update(file=s.file, line=s.line, column=s.col, end_line=s.end_line, end_column=s.end_col)
+        if self.hint:
+            out["hint"] = self.hint
+        if self.notes:
+            out["notes"] = list(self.notes)
+        return out
+
+
+class WiredslError(Exception):
+    """Raised when input cannot be turned into a scene; carries every diagnostic found."""
+
+    def __init__(self, diagnostics: Sequence[Diagnostic]):
+        self.diagnostics = list(diagnostics)
+        super().__init__("\n".join(f"{d.span}: {d.severity}[{d.code}]: {d.message}" for d in self.diagnostics))
+
+
+@dataclass
+class Collector:
+    """Collects diagnostics so that a check reports every error of a file, not just the first."""
+
+    diagnostics: list[Diagnostic] = field(default_factory=list)
+
+    def error(self, code: str, message: str, span: Span | None, hint: str | None = None) -> None:
+        self.diagnostics.append(Diagnostic("error", code, message, span, hint))
+
+    def warning(self, code: str, message: str, span: Span | None, hint: str | None = None) -> None:
+        self.diagnostics.append(Diagnostic("warning", code, message, span, hint))
+
+    @property
+    def errors(self) -> list[Diagnostic]:
+        return [d for d in self.diagnostics if d.severity == "error"]
+
+    def raise_if_errors(self) -> None:
+        if self.errors:
+            raise WiredslError(self.diagnostics)
+
+
+def did_you_mean(word: str, candidates: Iterable[str]) -> str | None:
+    """A 'did you mean' hint for a misspelt name, or None."""
+    match = difflib.get_close_matches(word, list(candidates), n=1, cutoff=0.6)
+    return f"did you mean '{match[0]}'?" if match else None
+
+
+def render(diags: Sequence[Diagnostic], sources: dict[str, str], colour: bool = False) -> str:
+    """Diagnostics in compiler form, at most MAX_REPORTED of them, errors first."""
+    ordered = sorted(diags, key=lambda d: d.severity != "error")
+    shown = ordered[:MAX_REPORTED]
+    parts = [_render_one(d, sources, colour) for d in shown]
+    if len(ordered) > len(shown):
+        parts.append(f"... and {len(ordered) - len(shown)} more")
+    return "\n".join(parts) + "\n"
+
+
+def render_json(diags: Sequence[Diagnostic]) -> str:
+    """Diagnostics as a JSON document for editors and CI."""
+    return json.dumps({"diagnostics": [d.to_json() for d in diags]}, indent=2) + "\n"
+
+
+def _paint(text: str, code: str, colour: bool) -> str:
+    return f"\x1b[{code}m{text}\x1b[0m" if colour else text
+
+
+def _render_one(d: Diagnostic, sources: dict[str, str], colour: bool) -> str:
+    sev = _paint(f"{d.severity}[{d.code}]", "1;31" if d.severity == "error" else "1;33", colour)
+    head = f"{d.span}: {sev}: {d.message}" if d.span else f"wiredsl: {sev}: {d.message}"
+    lines = [head]
+    text = sources.get(d.span.file) if d.span else None
+    if text is not None:
+        src_lines = text.splitlines()
+        if 1 <= d.span.line <= len(src_lines):
+            src = src_lines[d.span.line - 1].expandtabs(1)
+            gutter = " " * len(str(d.span.line))
+            end = d.span.end_col if d.span.end_line == d.span.line else len(src) + 1
+            width = max(1, end - d.span.col)
+            caret = " " * (d.span.col - 1) + _paint("^" * width, "1;32", colour)
+            if d.hint:
+                caret += " " + d.hint
+            lines += [f" {d.span.line} | {src}", f" {gutter} | {caret}"]
+    elif d.hint:
+        lines.append(f"  hint: {d.hint}")
+    lines += [f"  note: {n}" for n in d.notes]
+    return "\n".join(lines)

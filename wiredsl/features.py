@@ -1,0 +1,87 @@
+"""The feature dump (`features.json`): what `wiredsl build` writes, as pydantic models."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from .scene import SCHEMA_VERSION, Camera, Node, Vec2, Vec3
+
+
+class Feature(Node):
+    """Common to every emitted feature: which model feature it came from."""
+
+    source: str = Field(description="placement.feature")
+    segment: int | None = Field(None, description="segment index within a polyline, silhouette side 0 or 1")
+    fragment: int | None = Field(None, description="fragment index after edge loss")
+    clipped: bool = Field(False, description="cut by the image border or the near plane")
+
+
+class ImageLine(Feature):
+    kind: Literal["line"] = "line"
+    points: tuple[Vec2, Vec2]
+
+
+class ImagePolyline(Feature):
+    kind: Literal["polyline"] = "polyline"
+    points: list[Vec2] = Field(min_length=2)
+    closed: bool = False
+
+
+class ImageConic(Feature):
+    """An undistorted ellipse image: centre, semi-axes, angle of the first axis, arc range."""
+
+    kind: Literal["conic"] = "conic"
+    centre: Vec2
+    axes: Vec2
+    angle: float
+    arc: Vec2 | None = Field(None, description="parameter range of a section, None for the whole ellipse")
+
+
+class ImageCorner(Feature):
+    kind: Literal["corner"] = "corner"
+    at: Vec2
+
+
+class View(Node):
+    """What one camera sees at one pose."""
+
+    camera: Camera
+    lines: list[ImageLine] = []
+    polylines: list[ImagePolyline] = []
+    conics: list[ImageConic] = []
+    corners: list[ImageCorner] = []
+
+
+class PoseViews(Node):
+    index: int
+    pose: Vec3 = Field(description="(x, y, heading) of the robot")
+    viewpoint: str | None = Field(None, description="the view-point whose visibility list was used")
+    left: View
+    right: View | None = None
+
+
+class SceneRef(Node):
+    name: str
+    file: str
+    sha256: str
+
+
+class StageRecord(Node):
+    effect: str
+    params: dict[str, float]
+
+
+class Features(Node):
+    """A dump of the (ideal or disturbed) feature sets of every pose."""
+
+    document: Literal["features"] = "features"
+    schema_version: Literal["1"] = SCHEMA_VERSION
+    tool_version: str
+    scene: SceneRef
+    pipeline: str | None = None
+    stages: list[StageRecord] = []
+    seed: int | None = None
+    trial: int | None = None
+    poses: list[PoseViews] = []

@@ -1,0 +1,442 @@
+"""The language: every statement's signature, and binding of AST arguments to it.
+
+One table (`CONTEXTS`) says which statements may appear where and what they
+take. It drives argument binding and its diagnostics, `wiredsl fmt`, and the
+reference in the README (`wiredsl reference`), so a statement is described once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from . import ast
+from .diagnostics import Collector, Span, did_you_mean
+from .effects import REGISTRY
+from .units import KIND_NAMES, UNITS
+
+SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "integer")
+
+
+@dataclass(frozen=True)
+class Slot:
+    """One value a statement takes. `kind` is a scalar kind, `vecN:kind`, or one of
+    name, ref, refs, str, word, pts, matrix, names."""
+
+    kind: str
+    label: str
+    choices: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Clause:
+    slots: tuple[Slot, ...]
+    doc: str
+    required: bool = False
+    repeat: bool = False
+
+
+@dataclass(frozen=True)
+class Sig:
+    keyword: str
+    doc: str
+    positional: tuple[Slot, ...] = ()
+    clauses: dict[str, Clause] = field(default_factory=dict)
+    block: str | None = None  # the context of the statements in its { block }
+    block_required: bool = False
+    example: str = ""
+
+
+def S(kind: str, label: str, *choices: str) -> Slot:
+    return Slot(kind, label, tuple(choices))
+
+
+def C(doc: str, *slots: Slot, required: bool = False, repeat: bool = False) -> Clause:
+    return Clause(tuple(slots), doc, required, repeat)
+
+
+NAME = S("name", "name")
+P3 = S("vec3:length", "point (x, y, z)")
+P2 = S("vec2:length", "floor point (x, y)")
+DIR = S("vec3:number", "direction (x, y, z)")
+
+_TOP = [
+    Sig("wiredsl", "format version of the file; must be 1", (S("integer", "version"),), example="wiredsl 1"),
+    Sig("scene", "the scene's name (default: the file name)", (NAME,), example="scene lab"),
+    Sig("units", "units of bare numbers in this file (default m, deg, px)",
+        clauses={"length": C("length unit", S("word", "unit", "mm", "cm", "m")),
+                 "angle": C("angle unit", S("word", "unit", "deg", "rad"))},
+        example="units length mm angle deg"),
+    Sig("include", "read another file's statements (path relative to this file)", (S("str", "path"),),
+        example='include "models/bin.wd"'),
+    Sig("model", "a named wire-frame object", (NAME,), block="model", block_required=True,
+        example="model bin { ... }"),
+    Sig("place", "an instance of a model in the world",
+        (S("ref", "model"),),
+        {"as": C("the placement's name", NAME, required=True),
+         "at": C("position of the model's origin", P3),
+         "rotate": C("rotation about a world axis, applied in order", S("word", "axis", "x", "y", "z"),
+                     S("angle", "angle"), repeat=True),
+         "ypr": C("yaw about z, then pitch about y, then roll about x", S("vec3:angle", "(yaw, pitch, roll)"))},
+        example="place bin as bin1 at (2m, 1m, 0) rotate z 30deg"),
+    Sig("camera", "a camera model C = F(f, ax, ay, ox, oy, k, R, T)", (NAME,),
+        {"like": C("start from another camera's parameters", S("ref", "camera"))},
+        block="camera", example="camera left { focal 6mm ... }  /  camera right like left { k 0.02 }"),
+    Sig("rig", "the stereo rig on the robot and its calibration uncertainty", (NAME,), block="rig",
+        block_required=True, example="rig head { ... }"),
+    Sig("viewpoints", "the triangular mesh of view-points on the floor", (NAME,), block="viewpoints",
+        block_required=True, example="viewpoints floor { grid from (0, 0) to (6m, 4m) spacing 1m }"),
+    Sig("path", "the robot's poses on the floor", (NAME,), block="path", block_required=True,
+        example="path run { straight from (1, 1) to (5, 1) step 0.5m }"),
+    Sig("pipeline", "an ordered list of uncertainty stages", (NAME,),
+        {"default": C("the pipeline a build runs without --pipeline")},
+        block="pipeline", block_required=True, example="pipeline paper default { edge_loss ... }"),
+]
+
+_MODEL = [
+    Sig("line", "a 3D segment", (NAME,),
+        {"from": C("start point", P3, required=True), "to": C("end point", P3, required=True)},
+        example="line edge from (0, 0, 0) to (1m, 0, 0)"),
+    Sig("polyline", "consecutive segments through points", (NAME,),
+        {"through": C("the points, at least two", S("pts", "points"), required=True),
+         "closed": C("join the last point to the first")},
+        example="polyline top closed through (0, 0, 1) (1, 0, 1) (1, 1, 1)"),
+    Sig("ellipse", "an ellipse or ellipse section (TINA's E record)", (NAME,),
+        {"centre": C("centre", P3, required=True),
+         "normal": C("normal of its plane", DIR, required=True),
+         "axis": C("major-axis direction, perpendicular to the normal", DIR, required=True),
+         "radii": C("semi-axes along `axis` and across it", S("vec2:length", "(a, b)"), required=True),
+         "range": C("parameter range of a section (default full)", S("vec2:angle", "(t1, t2)"))},
+        example="ellipse rim centre (0, 0, 0.6) normal (0, 0, 1) axis (1, 0, 0) radii (0.2, 0.2)"),
+    Sig("silhouette", "occluding side lines of the surface between two ellipses", (NAME,),
+        {"between": C("the two ellipses of this model", S("ref", "ellipse"), S("ref", "ellipse"), required=True)},
+        example="silhouette side between rim base"),
+    Sig("corner", "a 3D corner point", (NAME,),
+        {"at": C("position", P3, required=True),
+         "joins": C("the lines meeting there", S("refs", "lines"))},
+        example="corner c1 at (0, 0, 1) joins top front"),
+    Sig("face", "a planar polygon that occludes but is never emitted", (NAME,),
+        {"through": C("the vertices, at least three, coplanar", S("pts", "vertices"), required=True)},
+        example="face lid through (0, 0, 1) (1, 0, 1) (1, 1, 1) (0, 1, 1)"),
+]
+
+_CAMERA = [
+    Sig("focal", "focal length: a length (with `pixel`) or directly in px", (S("length|image", "focal length"),),
+        example="focal 6mm"),
+    Sig("pixel", "pixel size on the sensor", (S("length", "pixel size"),), example="pixel 0.01mm"),
+    Sig("aspect", "aspect scales (ax, ay)", (S("vec2:number", "(ax, ay)"),), example="aspect (1, 1.02)"),
+    Sig("centre", "optical centre (ox, oy) in pixels (default: image centre)", (S("vec2:image", "(ox, oy)"),),
+        example="centre (320px, 240px)"),
+    Sig("size", "image width and height", (S("vec2:image", "(width, height)"),), example="size (640px, 480px)"),
+    Sig("k", "TINA's radial coefficient: v = (1 - k r^2) w (so OpenCV's k1 = -k)", (S("number", "k"),),
+        example="k 0.05"),
+    Sig("k1", "OpenCV's first radial coefficient (= -k)", (S("number", "k1"),), example="k1 -0.05"),
+    Sig("k2", "OpenCV's second radial coefficient", (S("number", "k2"),), example="k2 0.001"),
+    Sig("p1", "OpenCV's first tangential coefficient", (S("number", "p1"),), example="p1 0"),
+    Sig("p2", "OpenCV's second tangential coefficient", (S("number", "p2"),), example="p2 0"),
+]
+
+_MOUNT = {
+    "at": C("position in the robot frame (x forward, y left, z up)", P3, required=True),
+    "looking": C("viewing direction in the robot frame", DIR, required=True),
+    "roll": C("rotation about the viewing direction", S("angle", "angle")),
+}
+_RIG = [
+    Sig("left", "the left camera and its mount", (S("ref", "camera"),), _MOUNT,
+        example="left cam_l at (0.1, 0.06, 1.2) looking (1, 0, -0.2)"),
+    Sig("right", "the right camera and its mount", (S("ref", "camera"),), _MOUNT,
+        example="right cam_r at (0.1, -0.06, 1.2) looking (1, 0, -0.2)"),
+    Sig("calibration", "calibration uncertainty: information matrix (J^T J) or covariance",
+        (S("word", "kind", "information", "covariance"),),
+        {"order": C("the parameter of each row, e.g. [left.f, left.cx, right.tx]", S("names", "parameters"),
+                    required=True),
+         "matrix": C("the matrix, inline", S("matrix", "rows")),
+         "file": C("read the matrix from a file (plain rows, or TINA's covariance format)", S("str", "path"))},
+        example="calibration covariance order [left.f, right.f] matrix [[4, 0], [0, 4]]"),
+]
+
+_VIEWPOINTS = [
+    Sig("grid", "view-points on a triangulated grid over a rectangle", (),
+        {"from": C("one corner", P2, required=True), "to": C("the opposite corner", P2, required=True),
+         "spacing": C("distance between neighbouring view-points", S("length", "spacing"), required=True)},
+        example="grid from (0, 0) to (6m, 4m) spacing 1m"),
+    Sig("vertex", "one view-point", (NAME,), {"at": C("position on the floor", P2, required=True)},
+        example="vertex v1 at (1m, 2m)"),
+    Sig("triangle", "a mesh triangle over three vertices", (S("ref", "vertex"), S("ref", "vertex"), S("ref", "vertex")),
+        example="triangle v1 v2 v3"),
+    Sig("visibility", "where visibility lists come from",
+        clauses={"auto": C("computed by the engine"), "authored": C("from `visible` statements"),
+                 "file": C("from a view-dependency file", S("str", "path"))},
+        example="visibility auto"),
+    Sig("visible", "the features visible from a view-point", (S("ref", "vertex"), S("refs", "features")),
+        example="visible v1 bin1.* table1.top"),
+]
+
+_PATH = [
+    Sig("pose", "one robot pose", (P2,), {"heading": C("heading from the x axis", S("angle", "heading"))},
+        example="pose (1m, 2m) heading 90deg"),
+    Sig("straight", "poses along a straight run, facing along it", (),
+        {"from": C("start", P2, required=True), "to": C("end", P2, required=True),
+         "step": C("distance between poses", S("length", "step"), required=True)},
+        example="straight from (1, 1) to (5, 1) step 0.5m"),
+]
+
+
+def _effect_sig(name: str) -> Sig:
+    effect = REGISTRY[name]
+    clauses = {
+        key: C(f.description or "", S(f.json_schema_extra["kind"], key))
+        for key, f in effect.Params.model_fields.items()
+    }
+    return Sig(name, (effect.doc or "").strip(), clauses=clauses)
+
+
+CONTEXTS: dict[str, dict[str, Sig]] = {
+    "top": {s.keyword: s for s in _TOP},
+    "model": {s.keyword: s for s in _MODEL},
+    "camera": {s.keyword: s for s in _CAMERA},
+    "rig": {s.keyword: s for s in _RIG},
+    "viewpoints": {s.keyword: s for s in _VIEWPOINTS},
+    "path": {s.keyword: s for s in _PATH},
+    "pipeline": {name: _effect_sig(name) for name in REGISTRY},
+}
+
+
+# --------------------------------------------------------------------------- binding
+
+@dataclass(frozen=True, slots=True)
+class Value:
+    """A bound argument: its converted value and where it was written."""
+
+    value: Any
+    span: Span
+
+
+@dataclass
+class Bound:
+    """A statement matched against its signature."""
+
+    stmt: ast.Statement
+    sig: Sig
+    positional: list[Value]
+    clauses: dict[str, list[list[Value]]]  # key -> occurrences -> slot values
+    clause_spans: dict[str, list[Span]]
+    ok: bool = True
+
+    def has(self, key: str) -> bool:
+        return key in self.clauses
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """The value of a single-slot clause (first occurrence), or default."""
+        occ = self.clauses.get(key)
+        return occ[0][0].value if occ and occ[0] else default
+
+    def span(self, key: str) -> Span:
+        occ = self.clauses.get(key)
+        if occ and occ[0]:
+            return occ[0][0].span
+        spans = self.clause_spans.get(key)
+        return spans[0] if spans else self.stmt.span
+
+    def pos(self, i: int) -> Any:
+        return self.positional[i].value
+
+    @property
+    def name(self) -> str:
+        return self.positional[0].value
+
+    @property
+    def name_span(self) -> Span:
+        return self.positional[0].span
+
+
+def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collector) -> Bound | None:
+    """Match a statement's arguments to its signature in `context`; None if unknown."""
+    sigs = CONTEXTS[context]
+    sig = sigs.get(stmt.keyword)
+    if sig is None:
+        where = "at the top level" if context == "top" else f"in a {context} block"
+        hint = did_you_mean(stmt.keyword, sigs) or _elsewhere(stmt.keyword, context)
+        out.error("E100", f"unknown statement '{stmt.keyword}' {where}", stmt.keyword_span, hint)
+        return None
+    b = Bound(stmt, sig, [], {}, {})
+    n_before = len(out.errors)
+    args = list(stmt.args)
+    i = 0
+    for slot in sig.positional:
+        if i >= len(args):
+            out.error("E102", f"'{sig.keyword}' needs {_a(slot.label)}", stmt.span, f"e.g. {sig.example}")
+            b.ok = False
+            return b
+        val, i = _take(slot, args, i, sig, units, out)
+        b.positional.append(val)
+    while i < len(args):
+        arg = args[i]
+        key = arg.name if isinstance(arg, ast.Ref) and len(arg.parts) == 1 else None
+        if key not in sig.clauses:
+            if sig.clauses:
+                hint = did_you_mean(key, sig.clauses) if key else None
+                hint = hint or "expected one of: " + ", ".join(sig.clauses)
+                what = f"unknown word '{key}'" if key else "unexpected value"
+                out.error("E101", f"{what} in '{sig.keyword}'", arg.span, hint)
+            else:
+                out.error("E101", f"'{sig.keyword}' takes no more arguments", arg.span)
+            b.ok = False
+            return b
+        clause = sig.clauses[key]
+        if key in b.clauses and not clause.repeat:
+            out.error("E103", f"'{key}' given twice in '{sig.keyword}'", arg.span)
+        i += 1
+        values = []
+        for slot in clause.slots:
+            if i >= len(args) or _is_key(args[i], sig, slot):
+                out.error("E102", f"'{key}' needs {_a(slot.label)}", arg.span, f"e.g. {sig.example}")
+                b.ok = False
+                return b
+            val, i = _take(slot, args, i, sig, units, out)
+            values.append(val)
+        b.clauses.setdefault(key, []).append(values)
+        b.clause_spans.setdefault(key, []).append(arg.span)
+    for key, clause in sig.clauses.items():
+        if clause.required and key not in b.clauses:
+            out.error("E102", f"'{sig.keyword}' needs '{key}' ({clause.doc})", stmt.span, f"e.g. {sig.example}")
+    if sig.block is None and stmt.block is not None:
+        out.error("E101", f"'{sig.keyword}' takes no {{ block }}", stmt.span)
+    if sig.block_required and stmt.block is None:
+        out.error("E102", f"'{sig.keyword}' needs a {{ block }}", stmt.span, f"e.g. {sig.example}")
+    b.ok = len(out.errors) == n_before
+    return b
+
+
+def _elsewhere(keyword: str, context: str) -> str | None:
+    for ctx, sigs in CONTEXTS.items():
+        if ctx != context and keyword in sigs:
+            return f"'{keyword}' belongs " + ("at the top level" if ctx == "top" else f"in a {ctx} block")
+    return None
+
+
+def _a(label: str) -> str:
+    return label if label.startswith(("(", "[")) else ("an " if label[0] in "aeiou" else "a ") + label
+
+
+def _is_key(arg: ast.Arg, sig: Sig, slot: Slot) -> bool:
+    """A bare word naming a clause ends a run of values (refs cannot use clause words)."""
+    return isinstance(arg, ast.Ref) and len(arg.parts) == 1 and arg.name in sig.clauses and slot.kind not in (
+        "ref", "name", "word")
+
+
+def _take(slot: Slot, args: list, i: int, sig: Sig, units: dict[str, str], out: Collector) -> tuple[Value, int]:
+    """Convert args[i] (or a run from i, for pts/refs) to `slot`; report what does not fit."""
+    kind = slot.kind
+    if kind in ("pts", "refs"):
+        items = []
+        while i < len(args) and not _is_key(args[i], sig, slot):
+            items.append(_convert(Slot("vec3:length" if kind == "pts" else "ref", slot.label), args[i], units, out))
+            i += 1
+        span = _join(items[0].span, items[-1].span) if items else args[i - 1].span
+        return Value(items, span), i
+    return _convert(slot, args[i], units, out), i + 1
+
+
+def _join(a: Span, b: Span) -> Span:
+    return Span(a.file, a.line, a.col, b.end_line, b.end_col)
+
+
+def _convert(slot: Slot, arg: ast.Arg, units: dict[str, str], out: Collector) -> Value:
+    kind = slot.kind
+    bad = Value(None, arg.span)
+    if kind in SCALARS:
+        if not isinstance(arg, ast.Number):
+            out.error("E106", f"expected {_a(slot.label)} ({KIND_NAMES.get(kind, kind)}), got {_show(arg)}", arg.span)
+            return bad
+        value = quantity(arg, kind, units, out)
+        if "|" in kind:  # say which alternative was written, e.g. focal 6mm or 800px
+            value = (value, UNITS[arg.unit][0] if arg.unit in UNITS else kind.split("|")[0])
+        return Value(value, arg.span)
+    if kind.startswith("vec"):
+        n, elem = int(kind[3]), kind.split(":")[1]
+        if not isinstance(arg, ast.Tuple) or len(arg.items) != n:
+            got = f"{len(arg.items)} values" if isinstance(arg, ast.Tuple) else _show(arg)
+            out.error("E106", f"expected {slot.label}: {n} values in ( ), got {got}", arg.span)
+            return bad
+        vals = []
+        for item in arg.items:
+            if not isinstance(item, ast.Number):
+                out.error("E106", f"expected {KIND_NAMES[elem]}, got {_show(item)}", item.span)
+                return bad
+            vals.append(quantity(item, elem, units, out))
+        return Value(tuple(vals), arg.span)
+    if kind in ("name", "ref", "word"):
+        if not isinstance(arg, ast.Ref) or (kind != "ref" and len(arg.parts) != 1) or (
+                kind == "name" and arg.parts == ("*",)):
+            out.error("E106", f"expected {_a(slot.label)}, got {_show(arg)}", arg.span)
+            return bad
+        if kind == "word" and arg.name not in slot.choices:
+            hint = did_you_mean(arg.name, slot.choices) or "one of: " + ", ".join(slot.choices)
+            out.error("E106", f"'{arg.name}' is not a {slot.label}", arg.span, hint)
+            return bad
+        return Value(arg.name, arg.span)
+    if kind == "str":
+        if not isinstance(arg, ast.String):
+            out.error("E106", f"expected {_a(slot.label)} in double quotes, got {_show(arg)}", arg.span)
+            return bad
+        return Value(arg.value, arg.span)
+    if kind == "names":
+        if not isinstance(arg, ast.List) or not all(isinstance(x, ast.Ref) for x in arg.items):
+            out.error("E106", f"expected a list of names in [ ], got {_show(arg)}", arg.span)
+            return bad
+        return Value([Value(x.name, x.span) for x in arg.items], arg.span)
+    if kind == "matrix":
+        rows = arg.items if isinstance(arg, ast.List) else None
+        if rows is None or not all(isinstance(r, ast.List) for r in rows):
+            out.error("E106", f"expected a matrix as [[...], [...]], got {_show(arg)}", arg.span)
+            return bad
+        matrix = []
+        for row in rows:
+            vals = []
+            for x in row.items:
+                if not isinstance(x, ast.Number):
+                    out.error("E106", f"expected a number, got {_show(x)}", x.span)
+                    return bad
+                vals.append(quantity(x, "number", units, out))
+            matrix.append(vals)
+        return Value(matrix, arg.span)
+    raise AssertionError(f"signature slot kind {kind!r} has no converter")
+
+
+def quantity(num: ast.Number, kind: str, units: dict[str, str], out: Collector) -> float:
+    """A number in SI for the expected kind; a unit of the wrong kind is reported."""
+    if kind == "integer":
+        if num.unit is not None or not num.value.is_integer():
+            out.error("E106", f"expected a whole number, got '{num.text}'", num.span)
+        return num.value
+    if num.unit is None:
+        if kind in ("number", "fraction"):
+            return num.value
+        unit = units[kind.split("|")[0]]
+    else:
+        unit = num.unit
+        if unit not in UNITS:
+            hint = did_you_mean(unit, UNITS) or "units are " + ", ".join(UNITS)
+            out.error("E108", f"unknown unit '{unit}' in '{num.text}'", num.span, hint)
+            return num.value
+    unit_kind, factor = UNITS[unit]
+    allowed = kind.split("|")
+    if unit_kind not in allowed and not (unit_kind == "fraction" and "number" in allowed):
+        expected = " or ".join(KIND_NAMES[k] for k in allowed)
+        out.error("E107", f"expected {expected}, got {KIND_NAMES[unit_kind]} '{num.text}'", num.span)
+        return num.value
+    return num.value * factor
+
+
+def _show(arg: ast.Arg) -> str:
+    if isinstance(arg, ast.Number):
+        return f"'{arg.text}'"
+    if isinstance(arg, ast.String):
+        return f'"{arg.value}"'
+    if isinstance(arg, ast.Ref):
+        return f"'{arg.name}'"
+    if isinstance(arg, ast.Tuple):
+        return f"a tuple of {len(arg.items)}"
+    return f"a list of {len(arg.items)}"
+

@@ -1,0 +1,132 @@
+"""Stage 1: text -> lark tree (LALR), with syntax errors as diagnostics."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import lark
+
+from .diagnostics import Diagnostic, Span, WiredslError
+
+
+def grammar_path() -> Path:
+    """The grammar file: packaged copy when installed, the checkout's `grammar/` otherwise."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here / "grammar" / "wiredsl.lark", here.parent / "grammar" / "wiredsl.lark"):
+        if candidate.is_file():
+            return candidate
+    raise FileNotFoundError("wiredsl.lark not found next to the package")
+
+
+class _CommentSink:
+    """Where the lexer puts comment tokens during one parse; `fmt` needs them."""
+
+    tokens: list[lark.Token] = []
+
+
+class Brackets:
+    """Postlexer: newlines inside ( ) and [ ] are spaces; runs of newlines are one."""
+
+    always_accept = ("_NL",)
+
+    def process(self, stream):
+        depth = 0
+        last_nl = True  # drop newlines at the start of the file too
+        for tok in stream:
+            kind = tok.type
+            if kind == "_NL":
+                if depth or last_nl:
+                    continue
+                last_nl = True
+            else:
+                last_nl = False
+                if kind == "LPAR" or kind == "LSQB":
+                    depth += 1
+                elif kind == "RPAR" or kind == "RSQB":
+                    depth -= 1
+            yield tok
+
+
+def _sink(tok: lark.Token) -> None:
+    _CommentSink.tokens.append(tok)
+
+
+@functools.lru_cache(maxsize=4)
+def parser(transformer: lark.Transformer | None = None) -> lark.Lark:
+    """The one LALR parser; with a transformer, the tree is transformed while parsing."""
+    return lark.Lark(
+        grammar_path().read_text(encoding="utf-8"),
+        parser="lalr",
+        propagate_positions=True,
+        maybe_placeholders=False,
+        transformer=transformer,
+        lexer_callbacks={"COMMENT": _sink},
+        postlex=Brackets(),
+    )
+
+
+def parse_tree(text: str, path: str = "<string>") -> lark.Tree:
+    """Parse text into a lark tree, raising WiredslError with a located diagnostic."""
+    return run(parser(), text, path)[0]
+
+
+def run(p: lark.Lark, text: str, path: str) -> tuple[object, list[lark.Token]]:
+    """Parse with `p`; return the result and the comment tokens met on the way."""
+    _CommentSink.tokens = comments = []
+    try:
+        return p.parse(text), comments
+    except lark.exceptions.UnexpectedInput as exc:
+        raise WiredslError([syntax_diagnostic(exc, text, path)]) from None
+    finally:
+        _CommentSink.tokens = []
+
+
+_TOKEN_WORDS = {
+    "_NL": "end of line",
+    "$END": "end of file",
+    "LBRACE": "'{'",
+    "RBRACE": "'}'",
+    "LPAR": "'('",
+    "RPAR": "')'",
+    "LSQB": "'['",
+    "RSQB": "']'",
+    "COMMA": "','",
+    "DOT": "'.'",
+    "STAR": "'*'",
+    "QUANTITY": "a number",
+    "WORD": "a name",
+    "STRING": "a string",
+}
+
+
+def _describe(names: set[str]) -> str:
+    words = sorted({_TOKEN_WORDS.get(n, n) for n in names})
+    return words[0] if len(words) == 1 else ", ".join(words[:-1]) + " or " + words[-1]
+
+
+def syntax_diagnostic(exc: lark.exceptions.UnexpectedInput, text: str, path: str) -> Diagnostic:
+    """Map a lark error to a friendly, located diagnostic."""
+    line, col = exc.line if exc.line > 0 else 1, exc.column if exc.column > 0 else 1
+    if isinstance(exc, lark.exceptions.UnexpectedCharacters):
+        char = text[exc.pos_in_stream] if exc.pos_in_stream < len(text) else "?"
+        hint = "strings use double quotes" if char == "'" else None
+        return Diagnostic("error", "E002", f"unexpected character {char!r}", Span(path, line, col, line, col + 1), hint)
+    if isinstance(exc, lark.exceptions.UnexpectedEOF) or getattr(exc, "token", None) is not None and exc.token.type == "$END":
+        lines = text.splitlines() or [""]
+        line = len(lines)
+        col = len(lines[-1]) + 1
+        return Diagnostic(
+            "error", "E003", "unexpected end of file", Span(path, line, col, line, col + 1),
+            "a '{', '(' or '[' is not closed",
+        )
+    tok = exc.token
+    expected = set(getattr(exc, "expected", ()) or ())
+    span = Span(path, tok.line, tok.column, tok.end_line or tok.line, tok.end_column or tok.column + 1)
+    if tok.type == "RBRACE" and "RBRACE" not in expected:
+        return Diagnostic("error", "E001", "unmatched '}'", span, "no block is open here")
+    if tok.type == "LBRACE" and tok.type not in expected:
+        return Diagnostic("error", "E001", "a '{' block must follow a statement's keyword and arguments", span)
+    if expected & {"COMMA", "RPAR", "RSQB"} and tok.type not in expected:
+        return Diagnostic("error", "E001", f"unexpected {tok.value!r} in a list", span, f"expected {_describe(expected)}")
+    return Diagnostic("error", "E001", f"unexpected {tok.value!r}", span, f"expected {_describe(expected)}")

@@ -1,0 +1,202 @@
+"""The compiled scene (pydantic): what `compile` produces, in SI units, fully checked."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, create_model
+
+from .effects import REGISTRY
+
+SCHEMA_VERSION = "1"
+
+Vec2 = tuple[float, float]
+Vec3 = tuple[float, float, float]
+Mat3 = tuple[Vec3, Vec3, Vec3]
+
+# Parameters of one camera that a calibration matrix may name, as `left.<p>` or `right.<p>`.
+CALIBRATION_PARAMETERS = {
+    "f": "focal length in pixels (f / pixel)",
+    "ax": "aspect scale x",
+    "ay": "aspect scale y",
+    "cx": "optical centre x (px)",
+    "cy": "optical centre y (px)",
+    "k": "TINA radial coefficient",
+    "k2": "second radial coefficient",
+    "p1": "first tangential coefficient",
+    "p2": "second tangential coefficient",
+    "tx": "mount translation along camera x (m)",
+    "ty": "mount translation along camera y (m)",
+    "tz": "mount translation along camera z (m)",
+    "rx": "mount rotation about camera x (rad)",
+    "ry": "mount rotation about camera y (rad)",
+    "rz": "mount rotation about camera z (rad)",
+}
+
+
+class Node(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class Line(Node):
+    name: str
+    start: Vec3
+    end: Vec3
+
+
+class Polyline(Node):
+    name: str
+    points: list[Vec3] = Field(min_length=2)
+    closed: bool = False
+
+
+class Ellipse(Node):
+    """Points c + a cos(t) u + b sin(t) v for t in [t0, t1]; u = axis, v = normal x axis."""
+
+    name: str
+    centre: Vec3
+    normal: Vec3 = Field(description="unit normal of the ellipse's plane")
+    axis: Vec3 = Field(description="unit direction of semi-axis a, perpendicular to normal")
+    a: float = Field(gt=0)
+    b: float = Field(gt=0)
+    t0: float = 0.0
+    t1: float = Field(6.283185307179586, description="t1 - t0 in (0, 2 pi]")
+
+
+class Silhouette(Node):
+    name: str
+    ellipses: tuple[str, str]
+
+
+class Corner(Node):
+    name: str
+    at: Vec3
+    joins: list[str] = []
+
+
+class Face(Node):
+    name: str
+    vertices: list[Vec3] = Field(min_length=3)
+
+
+class Model(Node):
+    name: str
+    lines: list[Line] = []
+    polylines: list[Polyline] = []
+    ellipses: list[Ellipse] = []
+    silhouettes: list[Silhouette] = []
+    corners: list[Corner] = []
+    faces: list[Face] = []
+
+
+class Placement(Node):
+    """world point = rotation @ model point + position."""
+
+    name: str
+    model: str
+    position: Vec3
+    rotation: Mat3
+
+
+class Camera(Node):
+    """TINA's camera: u = ax*f*x_d + cx, v = ay*f*y_d + cy, f in pixels (f / pixel size)."""
+
+    name: str
+    f: float = Field(gt=0, description="focal length in pixels")
+    ax: float = Field(1.0, gt=0)
+    ay: float = Field(1.0, gt=0)
+    cx: float
+    cy: float
+    k1: float = Field(0.0, description="OpenCV's k1 (= -k of TINA)")
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+
+
+class Mount(Node):
+    """A camera on the robot: robot point = rotation @ camera point + position (OpenCV camera frame)."""
+
+    camera: str
+    position: Vec3
+    rotation: Mat3
+
+
+class Calibration(Node):
+    kind: Literal["information", "covariance"]
+    order: list[str]
+    matrix: list[list[float]]
+
+
+class Rig(Node):
+    name: str
+    left: Mount
+    right: Mount
+    calibration: Calibration | None = None
+
+
+class Viewpoints(Node):
+    name: str
+    names: list[str]
+    points: list[Vec2]
+    triangles: list[tuple[int, int, int]]
+    visibility: Literal["auto", "authored", "file", "all"]
+    file: str | None = Field(None, description="view-dependency file, relative to the scene file")
+    visible: dict[str, list[str]] = Field({}, description="authored: view-point name -> visible feature ids")
+
+
+class Path(Node):
+    name: str
+    poses: list[Vec3] = Field(description="(x, y, heading) in metres and radians")
+
+
+def _stage_model(name: str) -> type[Node]:
+    effect = REGISTRY[name]
+    return create_model(
+        "".join(w.title() for w in name.split("_")) + "Stage",
+        __base__=Node,
+        effect=(Literal[name], ...),
+        params=(effect.Params, effect.Params()),
+    )
+
+
+STAGE_MODELS = {name: _stage_model(name) for name in REGISTRY}
+Stage = Annotated[tuple(STAGE_MODELS.values()), Field(discriminator="effect")]
+
+
+class Pipeline(Node):
+    name: str
+    default: bool = False
+    stages: list[Stage] = []
+
+
+class Scene(Node):
+    """A compiled wiredsl scene."""
+
+    document: Literal["scene"] = "scene"
+    schema_version: Literal["1"] = SCHEMA_VERSION
+    name: str
+    source: str
+    models: list[Model] = []
+    placements: list[Placement] = []
+    cameras: list[Camera] = []
+    rig: Rig | None = None
+    viewpoints: Viewpoints | None = None
+    path: Path | None = None
+    pipelines: list[Pipeline] = []
+
+    def model(self, name: str) -> Model:
+        return next(m for m in self.models if m.name == name)
+
+    def camera(self, name: str) -> Camera:
+        return next(c for c in self.cameras if c.name == name)
+
+    def pipeline(self, name: str | None = None) -> Pipeline | None:
+        """The named pipeline, else the default one, else the only one."""
+        if name is not None:
+            return next((p for p in self.pipelines if p.name == name), None)
+        marked = [p for p in self.pipelines if p.default]
+        if marked:
+            return marked[0]
+        return self.pipelines[0] if len(self.pipelines) == 1 else None

@@ -1,0 +1,56 @@
+"""JSON Schemas (2020-12) generated from the pydantic models, and validation against them."""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+
+from pydantic import BaseModel
+
+DIALECT = "https://json-schema.org/draft/2020-12/schema"
+NAMES = ("scene", "features")
+
+
+def _model(name: str) -> type[BaseModel]:
+    if name == "scene":
+        from .scene import Scene
+        return Scene
+    from .features import Features
+    return Features
+
+
+def generate(name: str) -> dict:
+    """The schema of a document kind, as generated from its model."""
+    body = _model(name).model_json_schema(mode="serialization")
+    return {"$schema": DIALECT, "$id": f"urn:wiredsl:schema:{name}:1", **body}
+
+
+def render(name: str) -> str:
+    return json.dumps(generate(name), indent=2, sort_keys=True) + "\n"
+
+
+def schema_dir() -> Path:
+    """The committed schemas: packaged copy when installed, the checkout's `schema/` otherwise."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here / "schema", here.parent / "schema"):
+        if (candidate / "scene.schema.json").is_file():
+            return candidate
+    raise FileNotFoundError("schema/ not found next to the package")
+
+
+@functools.cache
+def validator(name: str):
+    import jsonschema
+
+    schema = json.loads((schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8"))
+    return jsonschema.Draft202012Validator(schema)
+
+
+def problems(doc: object) -> list[str]:
+    """Why a dump does not validate (empty when it does)."""
+    kind = doc.get("document") if isinstance(doc, dict) else None
+    if kind not in NAMES:
+        return [f"not a wiredsl document: 'document' must be one of {', '.join(NAMES)}"]
+    errors = sorted(validator(kind).iter_errors(doc), key=lambda e: list(e.absolute_path))
+    return [f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {e.message}" for e in errors]

@@ -1,0 +1,27 @@
+"""The fixed unit table: every quantity is normalised to SI (metres, radians, pixels)."""
+
+from __future__ import annotations
+
+import math
+
+# unit -> (kind, factor to the SI value of that kind)
+UNITS: dict[str, tuple[str, float]] = {
+    "mm": ("length", 1e-3),
+    "cm": ("length", 1e-2),
+    "m": ("length", 1.0),
+    "deg": ("angle", math.pi / 180.0),
+    "rad": ("angle", 1.0),
+    "px": ("image", 1.0),
+    "%": ("fraction", 0.01),
+}
+
+# What a bare number means for each kind when the file sets no `units`.
+DEFAULT_UNITS: dict[str, str] = {"length": "m", "angle": "deg", "image": "px"}
+
+KIND_NAMES = {
+    "length": "a length",
+    "angle": "an angle",
+    "image": "an image distance",
+    "number": "a plain number",
+    "fraction": "a fraction",
+}
