@@ -57,7 +57,7 @@ class List:
     span: Span
 
 
-Arg = Union[Number, String, Ref, Tuple, List]
+Arg = Union[Number, String, Ref, Tuple, List]  # noqa: UP007 (a runtime alias)
 
 
 @dataclass(frozen=True, slots=True)

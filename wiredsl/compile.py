@@ -178,7 +178,7 @@ class Compiler:
     def _model(self, b: Bound) -> None:
         feats: dict[str, list] = {k: [] for k in ("lines", "polylines", "ellipses", "silhouettes", "corners", "faces")}
         names: dict[str, _Decl] = {}
-        silhouettes, corners = [], []
+        silhouettes, corners = [], []  # checked once every feature name is known
         for stmt in b.stmt.block:
             fb = bind(stmt, "model", self._units(stmt), self.out)
             if fb is None or not fb.ok:
@@ -193,11 +193,11 @@ class Compiler:
             if stmt.keyword == "silhouette":
                 silhouettes.append((fb, built))
             elif stmt.keyword == "corner":
-                corners.append((fb, built))
+                corners.append(fb)
         kinds = {n: d.value for n, d in names.items()}
         in_model = f" in model '{b.name}'"
         for fb, sil in silhouettes:
-            for ref, value in zip(fb.clauses["between"][0], sil.ellipses):
+            for ref, value in zip(fb.clauses["between"][0], sil.ellipses, strict=True):
                 if "." in value:
                     self.out.error("E130", f"a silhouette joins two ellipses of its own model, not '{value}'",
                                    ref.span, "name an ellipse of this model")
@@ -205,7 +205,7 @@ class Compiler:
                     self.out.error("E130", f"'{value}' is a {kinds[value]}, not an ellipse", ref.span)
             if sil.ellipses[0] == sil.ellipses[1]:
                 self.out.error("E130", "a silhouette needs two different ellipses", fb.span("between"))
-        for fb, corner in corners:
+        for fb in corners:
             for ref in fb.get("joins", []):
                 if self._ref(kinds, "line", ref.value, ref.span, in_model) and kinds[ref.value] not in (
                         "line", "polyline"):
@@ -341,8 +341,8 @@ class Compiler:
             if b.has("like"):
                 parent = b.get("like")
                 if parent in chain:
-                    self.out.error("E104", f"camera '{name}' is declared like itself "
-                                           f"({' -> '.join((*chain, parent))})", b.span("like"))
+                    self.out.error("E104", "cameras are declared like each other in a cycle: "
+                                           + " -> ".join((*chain, parent)), b.span("like"))
                     settings[name] = None
                     return None
                 if not self._ref(self.camera_stmts, "camera", parent, b.span("like")):
@@ -353,10 +353,18 @@ class Compiler:
                     settings[name] = None
                     return None
             own = dict(base)
+            here: set[str] = set()
             for stmt in b.stmt.block or ():
                 sb = bind(stmt, "camera", self._units(stmt), self.out)
-                if sb is not None and sb.ok:
-                    own[stmt.keyword] = (sb.pos(0), sb.positional[0].span)
+                if sb is None or not sb.ok:
+                    continue
+                here.add(stmt.keyword)
+                if stmt.keyword in ("k", "k1"):
+                    if here >= {"k", "k1"}:
+                        self.out.error("E103", "give either TINA's 'k' or OpenCV's 'k1', not both",
+                                       stmt.keyword_span, "k1 = -k")
+                    own.pop("k1" if stmt.keyword == "k" else "k", None)  # one parameter, two spellings
+                own[stmt.keyword] = (sb.pos(0), sb.positional[0].span)
             settings[name] = own
             return own
 
@@ -396,8 +404,6 @@ class Compiler:
         ax, ay = s.get("aspect", ((1.0, 1.0), None))[0]
         for v in (ax, ay):
             self._positive(v, "aspect scale", s.get("aspect", (None, where))[1])
-        if "k" in s and "k1" in s:
-            self.out.error("E103", "give either TINA's 'k' or OpenCV's 'k1', not both", s["k1"][1], "k1 = -k")
         k1 = -s["k"][0] if "k" in s else s.get("k1", (0.0, None))[0]
         cx, cy = s.get("centre", ((w / 2, h / 2), None))[0]
         if len(self.out.errors) != n0:
@@ -545,7 +551,8 @@ class Compiler:
                         idx.append(index[v.value])
                 if len(idx) == 3:
                     p = np.array([points[i] for i in idx])
-                    area = 0.5 * abs(np.cross(p[1] - p[0], p[2] - p[0]))
+                    (ux, uy), (vx, vy) = p[1] - p[0], p[2] - p[0]
+                    area = 0.5 * abs(ux * vy - uy * vx)
                     if area <= GEOM_EPS**2:
                         self.out.error("E120", "triangle has no area", sb.stmt.span)
                     else:
@@ -619,7 +626,8 @@ class Compiler:
         if rest == "*":
             return [f"{head}.{f}" for f in feats]
         if not rest or "." in rest:
-            self.out.error("E104", f"'{ref}' is not a feature reference", span, "write placement.feature or placement.*")
+            self.out.error("E104", f"'{ref}' is not a feature reference", span,
+                           "write placement.feature or placement.*")
             return []
         if self._ref(feats, "feature", rest, span, f" in model '{model}' (placement '{head}')"):
             return [ref]

@@ -54,11 +54,15 @@ def _sink(tok: lark.Token) -> None:
 
 @functools.lru_cache(maxsize=4)
 def parser(transformer: lark.Transformer | None = None) -> lark.Lark:
-    """The one LALR parser; with a transformer, the tree is transformed while parsing."""
+    """The one LALR parser; with a transformer, the tree is transformed while parsing.
+
+    The AST transformer takes every span from tokens (the grammar keeps brackets), so
+    position propagation, a third of the parse time, is on only for the plain tree.
+    """
     return lark.Lark(
         grammar_path().read_text(encoding="utf-8"),
         parser="lalr",
-        propagate_positions=True,
+        propagate_positions=transformer is None,
         maybe_placeholders=False,
         transformer=transformer,
         lexer_callbacks={"COMMENT": _sink},
@@ -112,7 +116,8 @@ def syntax_diagnostic(exc: lark.exceptions.UnexpectedInput, text: str, path: str
         char = text[exc.pos_in_stream] if exc.pos_in_stream < len(text) else "?"
         hint = "strings use double quotes" if char == "'" else None
         return Diagnostic("error", "E002", f"unexpected character {char!r}", Span(path, line, col, line, col + 1), hint)
-    if isinstance(exc, lark.exceptions.UnexpectedEOF) or getattr(exc, "token", None) is not None and exc.token.type == "$END":
+    token = getattr(exc, "token", None)
+    if isinstance(exc, lark.exceptions.UnexpectedEOF) or (token is not None and token.type == "$END"):
         lines = text.splitlines() or [""]
         line = len(lines)
         col = len(lines[-1]) + 1
@@ -128,5 +133,6 @@ def syntax_diagnostic(exc: lark.exceptions.UnexpectedInput, text: str, path: str
     if tok.type == "LBRACE" and tok.type not in expected:
         return Diagnostic("error", "E001", "a '{' block must follow a statement's keyword and arguments", span)
     if expected & {"COMMA", "RPAR", "RSQB"} and tok.type not in expected:
-        return Diagnostic("error", "E001", f"unexpected {tok.value!r} in a list", span, f"expected {_describe(expected)}")
+        hint = f"expected {_describe(expected)}"
+        return Diagnostic("error", "E001", f"unexpected {tok.value!r} in a list", span, hint)
     return Diagnostic("error", "E001", f"unexpected {tok.value!r}", span, f"expected {_describe(expected)}")

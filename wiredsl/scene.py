@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+import operator
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
@@ -162,7 +164,7 @@ def _stage_model(name: str) -> type[Node]:
 
 
 STAGE_MODELS = {name: _stage_model(name) for name in REGISTRY}
-Stage = Annotated[tuple(STAGE_MODELS.values()), Field(discriminator="effect")]
+Stage = Annotated[functools.reduce(operator.or_, STAGE_MODELS.values()), Field(discriminator="effect")]
 
 
 class Pipeline(Node):

@@ -52,5 +52,19 @@ def problems(doc: object) -> list[str]:
     kind = doc.get("document") if isinstance(doc, dict) else None
     if kind not in NAMES:
         return [f"not a wiredsl document: 'document' must be one of {', '.join(NAMES)}"]
-    errors = sorted(validator(kind).iter_errors(doc), key=lambda e: list(e.absolute_path))
+    errors = sorted(validator(kind).iter_errors(doc), key=lambda e: list(map(str, e.absolute_path)))
+    errors = [x for e in errors for x in _explain(e)]
     return [f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {e.message}" for e in errors]
+
+
+def _explain(err) -> list:
+    """A oneOf over tagged variants (pipeline stages) fails as a whole; report the errors of
+    the variant whose tag matched instead."""
+    if err.validator == "oneOf" and err.context:
+        branches: dict[int, list] = {}
+        for sub in err.context:
+            branches.setdefault(sub.relative_schema_path[0], []).append(sub)
+        tagged = [errs for errs in branches.values() if not any(e.validator == "const" for e in errs)]
+        if len(tagged) == 1:
+            return tagged[0]
+    return [err]

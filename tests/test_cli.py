@@ -1,0 +1,136 @@
+"""The command line: exit codes, streams, atomic writes, the installed package."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from wiredsl.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run(*args: str):
+    return CliRunner().invoke(main, list(args))
+
+
+def test_exit_codes():
+    assert run("check", "scenes/lab.wd").exit_code == 0
+    assert run("check", "tests/invalid/zero_line.wd").exit_code == 1
+    assert run("check").exit_code == 2  # usage: no file
+    assert run("frobnicate").exit_code == 2
+    assert run("check", "no/such/file.wd").exit_code == 1
+
+
+def test_missing_file_is_a_diagnostic_not_a_traceback():
+    r = run("check", "no/such/file.wd")
+    assert r.stderr.startswith("wiredsl: error[E010]: no such file: no/such/file.wd")
+
+
+def test_binary_file_is_a_diagnostic(tmp_path):
+    f = tmp_path / "x.wd"
+    f.write_bytes(b"\xff\xfe\x00garbage")
+    r = run("check", str(f))
+    assert r.exit_code == 1 and "is not UTF-8 text" in r.stderr and "Traceback" not in r.output
+
+
+def test_check_reports_every_file_and_json_format():
+    r = run("check", "--format", "json", "tests/invalid/zero_line.wd", "tests/invalid/unknown_model.wd")
+    assert r.exit_code == 1
+    codes = [d["code"] for d in json.loads(r.stderr)["diagnostics"]]
+    assert codes == ["E120", "E104"]
+
+
+def test_compile_writes_stdout_and_keeps_old_output_on_failure(tmp_path):
+    r = run("compile", "scenes/cylinder.wd")
+    assert r.exit_code == 0 and json.loads(r.stdout)["name"] == "cylinder" and r.stderr == ""
+    out = tmp_path / "scene.json"
+    out.write_text("previous")
+    assert run("compile", "tests/invalid/zero_line.wd", "-o", str(out)).exit_code == 1
+    assert out.read_text() == "previous"
+    assert [p.name for p in tmp_path.iterdir()] == ["scene.json"]  # no temporary left behind
+
+
+def test_fmt_check_and_rewrite(tmp_path):
+    f = tmp_path / "s.wd"
+    f.write_text("wiredsl   1\nmodel m {   line a from (0,0,0) to (1,0,0) }\n")
+    assert run("fmt", "--check", str(f)).exit_code == 1
+    assert run("fmt", str(f)).exit_code == 0
+    assert f.read_text() == "wiredsl 1\nmodel m {\n  line a from (0, 0, 0) to (1, 0, 0)\n}\n"
+    assert run("fmt", "--check", str(f)).exit_code == 0
+
+
+def test_fmt_leaves_a_file_with_a_syntax_error_alone(tmp_path):
+    f = tmp_path / "s.wd"
+    f.write_text("wiredsl 1\nmodel m {\n")
+    assert run("fmt", str(f)).exit_code == 1
+    assert f.read_text() == "wiredsl 1\nmodel m {\n"
+
+
+def test_schema_command_prints_the_committed_schema():
+    r = run("schema", "features")
+    assert json.loads(r.stdout)["$id"] == "urn:wiredsl:schema:features:1"
+
+
+def test_validate_rejects_non_json_and_foreign_documents(tmp_path):
+    (tmp_path / "a.json").write_text("{not json")
+    (tmp_path / "b.json").write_text('{"hello": 1}')
+    r = run("validate", str(tmp_path / "a.json"), str(tmp_path / "b.json"))
+    assert r.exit_code == 1
+    assert "a.json:1:2: error: not JSON" in r.stderr and "not a wiredsl document" in r.stderr
+
+
+def test_reference_lists_every_statement():
+    from wiredsl.language import CONTEXTS
+
+    out = run("reference").stdout
+    for sigs in CONTEXTS.values():
+        for kw in sigs:
+            assert f"`{kw}`" in out
+
+
+def test_readme_reference_is_current():
+    """The README carries the generated reference; regenerate it when the table changes."""
+    readme = (ROOT / "README.md").read_text()
+    assert run("reference").stdout.strip() in readme
+
+
+def test_ci_runs_the_readme_test_command():
+    readme = (ROOT / "README.md").read_text()
+    quick = readme.split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    commands = [b.strip() for b in quick.split("```sh")[1:]]
+    commands = [c.split("```")[0].strip() for c in commands]
+    assert len(commands) == 2 and ".venv/bin/wiredsl" in commands[0] and "scenes/lab.wd" in commands[0]
+    assert commands[1] in (ROOT / ".ci/run").read_text()
+
+
+@pytest.mark.skipif(os.environ.get("WIREDSL_SKIP_INSTALL_TEST") == "1", reason="asked to skip the wheel install")
+def test_installed_package_runs_outside_the_checkout(tmp_path):
+    """Build a wheel, install it (not editable) into a fresh environment, run it from elsewhere."""
+    wheels = tmp_path / "wheels"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
+                    str(wheels), str(ROOT)], check=True, capture_output=True)
+    env_dir = tmp_path / "env"
+    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
+    py = env_dir / "bin" / "python"
+    subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", str(next(wheels.glob("*.whl")))],
+                   check=True, capture_output=True)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    clean_env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    r = subprocess.run([str(env_dir / "bin" / "wiredsl"), "check", str(ROOT / "scenes/lab.wd")], cwd=elsewhere,
+                       capture_output=True, text=True, env=clean_env)
+    assert r.returncode == 0, r.stderr
+    where = subprocess.run([str(py), "-c", "import wiredsl, sys; print(wiredsl.__file__)"], cwd=elsewhere,
+                           capture_output=True, text=True, env=clean_env).stdout
+    assert str(env_dir) in where  # the installed copy, not the checkout
+    r = subprocess.run([str(env_dir / "bin" / "wiredsl"), "schema", "scene"], cwd=elsewhere, capture_output=True,
+                       text=True, env=clean_env)
+    assert json.loads(r.stdout)["$id"] == "urn:wiredsl:schema:scene:1"
