@@ -115,8 +115,9 @@ def test_ci_runs_the_readme_test_command():
 def test_installed_package_runs_outside_the_checkout(tmp_path):
     """Build a wheel, install it (not editable) into a fresh environment, run it from elsewhere."""
     wheels = tmp_path / "wheels"
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
-                    str(wheels), str(ROOT)], check=True, capture_output=True)
+    built = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
+                            str(wheels), str(ROOT)], capture_output=True, text=True)
+    assert built.returncode == 0, built.stderr
     env_dir = tmp_path / "env"
     venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
     py = env_dir / "bin" / "python"
