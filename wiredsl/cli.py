@@ -154,9 +154,9 @@ def fmt(files: tuple[str, ...], check_only: bool, diag_format: str) -> None:
 
 
 @main.command()
-@click.argument("name", type=click.Choice(["scene", "features"]))
+@click.argument("name", type=click.Choice(["scene", "features", "viewdep"]))
 def schema(name: str) -> None:
-    """Print the JSON Schema of a scene or a features dump."""
+    """Print the JSON Schema of a scene, a features dump or a view-dependency file."""
     from .schema import schema_dir
 
     sys.stdout.write((schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8"))
@@ -226,3 +226,100 @@ def reference() -> None:
             text = " ".join(takes).replace("|", "\\|")
             out.append(f"| {where} | `{sig.keyword}` | `{text}` | {sig.doc.splitlines()[0]} |")
     click.echo("\n".join(out))
+
+
+def _positive_px(ctx, param, value: float) -> float:
+    if not (0 < value <= 100):
+        raise click.BadParameter("must be in (0, 100] px")
+    return value
+
+
+@main.command()
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", default=None,
+              help="Output directory (default build/<scene name>/), or - for the JSON dump on stdout.")
+@click.option("--pose", "poses", type=int, multiple=True, help="Build only this pose (repeatable).")
+@click.option("--no-effects", is_flag=True, help="The ideal projection, whatever the scene's pipelines.")
+@click.option("--format", "out_format", type=click.Choice(["json"]), default="json", show_default=True,
+              help="Form of the feature dump.")
+@click.option("--svg/--no-svg", default=True, show_default=True, help="Write one SVG a pose.")
+@click.option("--tolerance", type=float, default=0.1, show_default=True, callback=_positive_px,
+              help="Largest deviation (px) of an emitted polyline from the true image curve.")
+@click.option("--visibility", type=click.Choice(["scene", "exact", "all"]), default="scene", show_default=True,
+              help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion.")
+@guarded
+def build(file: str, output: str | None, poses: tuple[int, ...], no_effects: bool, out_format: str, svg: bool,
+          tolerance: float, visibility: str) -> None:
+    """Project the scene for every pose of its path; write features.json and SVGs."""
+    from pathlib import Path
+
+    from . import emit
+    from . import svg as svg_mod
+    from .compile import compile_file
+    from .files import write_atomic
+    from .simulate import Options, simulate
+    from .world import build_world
+
+    scene, warnings, program = compile_file(file)
+    report(warnings, program.sources, "text")
+    if scene.path is not None:
+        n = len(scene.path.poses)
+        for p in poses:
+            if not 0 <= p < n:
+                raise click.BadParameter(f"pose {p} is not in 0..{n - 1}", param_hint="--pose")
+    if not no_effects and scene.pipeline() is not None:
+        click.echo(f"note: pipeline '{scene.pipeline().name}' not applied: uncertainty effects are not implemented "
+                   "yet, so this is the ideal projection", err=True)
+    world = build_world(scene)
+    opts = Options(tolerance=tolerance, visibility=visibility, poses=tuple(sorted(set(poses))) or None)
+    results = simulate(scene, opts, world)
+    doc = emit.features(scene, world, results)
+    text = emit.to_json(doc)
+    if output == "-":
+        sys.stdout.write(text)
+        return
+    out_dir = Path(output) if output else Path("build") / scene.name
+    write_atomic(out_dir / "features.json", text)
+    written = 0
+    if svg:
+        for r in results:
+            write_atomic(out_dir / f"pose_{r.index:03d}.svg", svg_mod.render(scene, world, r))
+            written += 1
+    count = sum(len(v.features) for r in results for v in (r.left, r.right) if v is not None)
+    click.echo(f"wrote {out_dir / 'features.json'} ({len(results)} poses, {count} image features)"
+               + (f" and {written} SVGs" if written else ""), err=True)
+
+
+@main.command()
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", default=None,
+              help="Output file (default: the scene's `visibility file`, else <scene>.viewdep.json beside it).")
+@click.option("--threshold", type=click.FloatRange(0, 1), default=0.3, show_default=True,
+              help="Fraction of a feature's sample points that must be seen for it to count as visible.")
+@guarded
+def viewdep(file: str, output: str | None, threshold: float) -> None:
+    """Compute which features each view-point sees, and write the view-dependency file."""
+    from pathlib import Path
+
+    from . import __version__, emit, visibility
+    from .compile import compile_file
+    from .diagnostics import Diagnostic, WiredslError
+    from .features import ViewDependency
+    from .files import write_atomic
+    from .world import build_world
+
+    scene, warnings, program = compile_file(file)
+    report(warnings, program.sources, "text")
+    vp = scene.viewpoints
+    if vp is None:
+        raise WiredslError([Diagnostic("error", "E102", f"scene '{scene.name}' has no viewpoints mesh", None)])
+    world = build_world(scene)
+    vis = visibility.visible_features(world, visibility.viewpoint_eyes(scene), threshold)
+    doc = ViewDependency(tool_version=__version__, scene=emit.scene_ref(scene), threshold=threshold,
+                         eye_height=visibility.eye_height(scene),
+                         viewpoints=visibility.as_lists(world, vp.names, vis))
+    if output is None:
+        base = Path(scene.source).parent
+        output = str(base / vp.file) if vp.file else str(base / f"{Path(scene.source).stem}.viewdep.json")
+    write_atomic(output, emit.to_json(doc))
+    click.echo(f"wrote {output} ({len(vp.names)} view-points, {world.n_features} features)", err=True)

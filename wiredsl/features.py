@@ -45,9 +45,11 @@ class ImageCorner(Feature):
 
 
 class View(Node):
-    """What one camera sees at one pose."""
+    """What one camera sees at one pose: its parameters, its pose, and its features."""
 
     camera: Camera
+    rotation: tuple[Vec3, Vec3, Vec3] = Field(description="R of P_cam = R P_world + t")
+    translation: Vec3 = Field(description="t of P_cam = R P_world + t")
     lines: list[ImageLine] = []
     polylines: list[ImagePolyline] = []
     conics: list[ImageConic] = []
@@ -55,6 +57,8 @@ class View(Node):
 
 
 class PoseViews(Node):
+    """Both cameras' views at one pose of the path."""
+
     index: int
     pose: Vec3 = Field(description="(x, y, heading) of the robot")
     viewpoint: str | None = Field(None, description="the view-point whose visibility list was used")
@@ -85,3 +89,15 @@ class Features(Node):
     seed: int | None = None
     trial: int | None = None
     poses: list[PoseViews] = []
+
+
+class ViewDependency(Node):
+    """A view-dependency file: the features visible from each view-point (`wiredsl viewdep`)."""
+
+    document: Literal["viewdep"] = "viewdep"
+    schema_version: Literal["1"] = SCHEMA_VERSION
+    tool_version: str
+    scene: SceneRef
+    threshold: float = Field(ge=0, le=1, description="fraction of a feature's samples that must be seen")
+    eye_height: float = Field(description="metres above the floor the view-points see from")
+    viewpoints: dict[str, list[str]]

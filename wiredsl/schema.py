@@ -9,15 +9,15 @@ from pathlib import Path
 from pydantic import BaseModel
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
-NAMES = ("scene", "features")
+NAMES = ("scene", "features", "viewdep")
 
 
 def _model(name: str) -> type[BaseModel]:
     if name == "scene":
         from .scene import Scene
         return Scene
-    from .features import Features
-    return Features
+    from . import features
+    return features.Features if name == "features" else features.ViewDependency
 
 
 def generate(name: str) -> dict:
@@ -54,7 +54,12 @@ def problems(doc: object) -> list[str]:
         return [f"not a wiredsl document: 'document' must be one of {', '.join(NAMES)}"]
     errors = sorted(validator(kind).iter_errors(doc), key=lambda e: list(map(str, e.absolute_path)))
     errors = [x for e in errors for x in _explain(e)]
-    return [f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {e.message}" for e in errors]
+    return [f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {_short(e.message)}" for e in errors]
+
+
+def _short(message: str, limit: int = 160) -> str:
+    """jsonschema quotes whole instances; keep a message to one readable line."""
+    return message if len(message) <= limit else message[:limit - 5] + " ..."
 
 
 def _explain(err) -> list:
@@ -67,4 +72,8 @@ def _explain(err) -> list:
         tagged = [errs for errs in branches.values() if not any(e.validator == "const" for e in errs)]
         if len(tagged) == 1:
             return tagged[0]
+    if err.context:  # anyOf / oneOf without a tag: the most relevant error of the branches
+        import jsonschema
+
+        return [jsonschema.exceptions.best_match(err.context)]
     return [err]

@@ -1,0 +1,327 @@
+"""Stage 4: the ideal projection of a compiled scene, pose by pose, camera by camera.
+
+For every pose of the path the rig is placed on the robot; each camera images
+the features visible from there (the nearest view-point's list, or an exact
+per-camera computation). Everything is clipped in 3D to the near plane and to
+the radius where distortion folds before projection, and to the image
+rectangle [0, width] x [0, height] after it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import conics, geometry, visibility
+from .diagnostics import Diagnostic, WiredslError
+from .scene import Camera, Scene
+from .world import World, build_world, ellipse_points
+
+DEFAULT_TOLERANCE = 0.1  # px: largest deviation of an emitted polyline from the true image curve
+
+
+@dataclass(frozen=True)
+class Options:
+    tolerance: float = DEFAULT_TOLERANCE
+    visibility: str = "scene"  # "scene" (the mesh's lists), "exact" (per camera and pose), "all"
+    poses: tuple[int, ...] | None = None  # None: every pose
+    right: bool = True  # project the right camera too
+
+
+@dataclass
+class ImageFeature:
+    fid: int
+    kind: str  # line | polyline | conic | corner
+    points: np.ndarray  # (k, 2) pixels; a corner has k = 1
+    segment: int = -1
+    clipped: bool = False
+    closed: bool = False
+    conic: tuple | None = None  # (centre (2,), axes (2,), angle, arc or None)
+
+
+@dataclass
+class View:
+    camera: Camera
+    R_cw: np.ndarray
+    t_cw: np.ndarray
+    features: list[ImageFeature] = field(default_factory=list)
+
+
+@dataclass
+class PoseResult:
+    index: int
+    pose: tuple[float, float, float]
+    viewpoint: str | None
+    left: View
+    right: View | None
+
+
+def simulate(scene: Scene, options: Options = Options(), world: World | None = None) -> list[PoseResult]:
+    """Project every selected pose of the scene's path; the ideal (undisturbed) feature sets."""
+    if scene.rig is None or scene.path is None:
+        missing = "a rig" if scene.rig is None else "a path"
+        raise WiredslError([Diagnostic("error", "E102", f"scene '{scene.name}' needs {missing} to be built", None)])
+    world = world or build_world(scene)
+    poses = np.array(scene.path.poses, dtype=float)
+    chosen = range(len(poses)) if options.poses is None else options.poses
+    vp_names, masks = _visibility_masks(scene, world, poses, chosen, options)
+    out = []
+    for i in chosen:
+        pose = tuple(float(v) for v in poses[i])
+        views = []
+        for side, mount in (("left", scene.rig.left), ("right", scene.rig.right)):
+            if side == "right" and not options.right:
+                views.append(None)
+                continue
+            cam = scene.camera(mount.camera)
+            R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
+            mask = masks[(i, side)]
+            views.append(project_view(world, cam, R_cw, t_cw, mask, options.tolerance))
+        out.append(PoseResult(i, pose, vp_names.get(i), views[0], views[1]))
+    return out
+
+
+def _visibility_masks(scene: Scene, world: World, poses: np.ndarray, chosen, options: Options):
+    """Per (pose, camera side) feature masks, and the view-point used for each pose."""
+    everything = world.mask(None)
+    names: dict[int, str] = {}
+    masks: dict[tuple[int, str], np.ndarray] = {}
+    vp = scene.viewpoints
+    if options.visibility == "exact":
+        for i in chosen:
+            pose = tuple(poses[i])
+            for side, mount in (("left", scene.rig.left), ("right", scene.rig.right)):
+                R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
+                eye = -R_cw.T @ t_cw
+                masks[(i, side)] = visibility.visible_features(world, eye[None])[0]
+        return names, masks
+    if vp is None or vp.visibility == "all" or options.visibility == "all":
+        for i in chosen:
+            masks[(i, "left")] = masks[(i, "right")] = everything
+        return names, masks
+    points = np.array(vp.points, dtype=float)
+    nearest = visibility.nearest_viewpoint(points, poses[list(chosen), :2]) if len(list(chosen)) else []
+    lists = viewpoint_lists(scene, world, sorted(set(int(k) for k in nearest)))
+    for i, k in zip(chosen, nearest, strict=True):
+        names[i] = vp.names[k]
+        masks[(i, "left")] = masks[(i, "right")] = lists[int(k)]
+    return names, masks
+
+
+def viewpoint_lists(scene: Scene, world: World, which: list[int]) -> dict[int, np.ndarray]:
+    """Visibility masks of the given view-point indices, from wherever the scene says they come."""
+    vp = scene.viewpoints
+    if vp.visibility == "authored":
+        return {k: world.mask(set(vp.visible.get(vp.names[k], []))) for k in which}
+    if vp.visibility == "file":
+        data = read_viewdep(Path(scene.source).parent / vp.file, scene)
+        return {k: world.mask(set(data.get(vp.names[k], []))) for k in which}
+    eyes = visibility.viewpoint_eyes(scene)[which]
+    vis = visibility.visible_features(world, eyes)
+    return {k: vis[j] for j, k in enumerate(which)}
+
+
+def read_viewdep(path: Path, scene: Scene) -> dict[str, list[str]]:
+    """View-point -> visible feature ids, from a view-dependency file (schema/viewdep.schema.json)."""
+    from .schema import problems
+
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise WiredslError([Diagnostic("error", "E010", f"cannot read view-dependency file {path}: {exc}", None,
+                                       "run 'wiredsl viewdep' on the scene to write it")]) from None
+    bad = problems(doc)
+    if bad:
+        raise WiredslError([Diagnostic("error", "E142", f"{path}: {bad[0]}", None)])
+    return doc["viewpoints"]
+
+
+# --------------------------------------------------------------------------- projection
+
+def project_view(world: World, cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, mask: np.ndarray,
+                 tol: float = DEFAULT_TOLERANCE) -> View:
+    """What one camera sees of the features in `mask`."""
+    view = View(cam, R_cw, t_cw)
+    r_fold = geometry.fold_radius(cam.k1, cam.k2)
+    distorted = geometry.is_distorted(cam)
+
+    # straight 3D segments: lines, polyline segments, then silhouette generators (camera frame)
+    sel = mask[world.line_fid]
+    A = geometry.world_to_cam(world.lines[sel, 0], R_cw, t_cw)
+    B = geometry.world_to_cam(world.lines[sel, 1], R_cw, t_cw)
+    fid = world.line_fid[sel]
+    seg = world.line_segment[sel]
+    sA, sB, sfid, sseg = silhouettes_cam(world, mask, R_cw, t_cw)
+    A, B = np.concatenate([A, sA]), np.concatenate([B, sB])
+    fid, seg = np.concatenate([fid, sfid]).astype(int), np.concatenate([seg, sseg]).astype(int)
+    view.features += _segments(A, B, fid, seg, cam, r_fold, distorted, tol)
+
+    sel = np.flatnonzero(mask[world.ell_fid])
+    for e in sel:
+        view.features += _ellipse(world, e, cam, R_cw, t_cw, r_fold, distorted, tol)
+
+    sel = mask[world.corner_fid]
+    if sel.any():
+        P = geometry.world_to_cam(world.corners[sel], R_cw, t_cw)
+        ok = P[:, 2] > geometry.NEAR
+        xy = np.where(ok[:, None], P[:, :2] / np.where(ok, P[:, 2], 1.0)[:, None], 0.0)
+        ok &= np.hypot(xy[:, 0], xy[:, 1]) < r_fold
+        uv = geometry.plane_to_pixels(geometry.distort(xy, cam.k1, cam.k2, cam.p1, cam.p2),
+                                      cam.f, cam.ax, cam.ay, cam.cx, cam.cy)
+        ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
+        for f, p in zip(world.corner_fid[sel][ok], uv[ok], strict=True):
+            view.features.append(ImageFeature(int(f), "corner", p[None, :]))
+    return view
+
+
+def silhouettes_cam(world: World, mask: np.ndarray, R_cw, t_cw):
+    """Camera-frame contour generators of the visible silhouettes, with feature ids and side index."""
+    A, B, fids, sides = [], [], [], []
+    for fid, (a, b) in zip(world.sil_fid, world.sil_pair, strict=True):
+        if not mask[fid]:
+            continue
+        args = []
+        for e in (a, b):
+            args += [R_cw @ world.ell_c[e] + t_cw, R_cw @ world.ell_U[e], R_cw @ world.ell_V[e]]
+        arcs = [None if world.ell_full[e] else tuple(world.ell_arc[e]) for e in (a, b)]
+        segs = conics.silhouette_segments(*args, arc_a=arcs[0], arc_b=arcs[1])
+        # order the two sides by where they appear (left to right in the image) for stable indices
+        segs.sort(key=lambda s: (s[0][0] / s[0][2] if s[0][2] > 0 else math.inf))
+        for side, (p, q) in enumerate(segs):
+            A.append(p)
+            B.append(q)
+            fids.append(fid)
+            sides.append(side)
+    z = np.zeros((0, 3))
+    return (np.array(A).reshape(-1, 3) if A else z, np.array(B).reshape(-1, 3) if B else z,
+            np.array(fids, dtype=int), np.array(sides, dtype=int))
+
+
+def _segments(A, B, fid, seg, cam: Camera, r_fold: float, distorted: bool, tol: float) -> list[ImageFeature]:
+    out: list[ImageFeature] = []
+    if len(A) == 0:
+        return out
+    t0, t1, keep = geometry.clip_segments_cone(A, B, geometry.NEAR, r_fold * (1 - 1e-9))
+    cut3d = (t0 > 0) | (t1 < 1)
+    D = B - A
+    idx = np.flatnonzero(keep)
+    if not distorted:
+        a = geometry.cam_to_pixels(A[idx] + t0[idx, None] * D[idx], cam)
+        b = geometry.cam_to_pixels(A[idx] + t1[idx, None] * D[idx], cam)
+        r0, r1, ok = geometry.clip_segments_rect(a, b, cam.width, cam.height)
+        d = b - a
+        for j in np.flatnonzero(ok & (r1 > r0)):
+            i = idx[j]
+            pts = np.stack([a[j] + r0[j] * d[j], a[j] + r1[j] * d[j]])
+            cut = bool(cut3d[i] or r0[j] > 0 or r1[j] < 1)
+            out.append(ImageFeature(int(fid[i]), "line", pts, int(seg[i]), cut))
+        return out
+
+    def point(c, t):
+        return geometry.cam_to_pixels(A[idx][c] + t[:, None] * D[idx][c], cam)
+
+    params = geometry.adaptive_samples(point, t0[idx], t1[idx], tol, start=2)
+    for j, ts in enumerate(params):
+        i = idx[j]
+        pts = point(np.full(len(ts), j), ts)
+        for piece, cut in geometry.clip_polyline_rect(pts, cam.width, cam.height):
+            out.append(ImageFeature(int(fid[i]), "polyline", piece, int(seg[i]), bool(cut or cut3d[i])))
+    return out
+
+
+def _front_intervals(cz: float, Az: float, Bz: float, arc: tuple[float, float]) -> list[tuple[float, float]]:
+    """Parts of [t0, t1] where cz + Az cos t + Bz sin t > NEAR."""
+    t0, t1 = arc
+    R = math.hypot(Az, Bz)
+    level = geometry.NEAR - cz
+    if R <= 1e-15 * max(abs(cz), 1.0) or level / R <= -1:
+        return [(t0, t1)] if level < 0 or level / max(R, 1e-300) <= -1 else []
+    if level / R >= 1:
+        return []
+    phi, alpha = math.atan2(Bz, Az), math.acos(level / R)
+    out = []
+    # visible where |t - phi| < alpha (mod 2 pi); intersect with [t0, t1]
+    k0 = math.floor((t0 - phi - alpha) / (2 * math.pi))
+    for k in range(k0, k0 + 3):
+        lo, hi = phi - alpha + 2 * math.pi * k, phi + alpha + 2 * math.pi * k
+        a, b = max(lo, t0), min(hi, t1)
+        if b > a:
+            out.append((a, b))
+    return out
+
+
+def _ellipse(world: World, e: int, cam: Camera, R_cw, t_cw, r_fold, distorted, tol) -> list[ImageFeature]:
+    fid = int(world.ell_fid[e])
+    c = R_cw @ world.ell_c[e] + t_cw
+    U = R_cw @ world.ell_U[e]
+    V = R_cw @ world.ell_V[e]
+    arc = tuple(world.ell_arc[e])
+    full = bool(world.ell_full[e])
+    intervals = _front_intervals(c[2], U[2], V[2], arc)
+    whole = len(intervals) == 1 and intervals[0] == arc
+    out: list[ImageFeature] = []
+    if not intervals:
+        return out
+
+    def point(cid, t):
+        P = ellipse_points(np.broadcast_to(c, (len(t), 3)), np.broadcast_to(U, (len(t), 3)),
+                           np.broadcast_to(V, (len(t), 3)), t)
+        return geometry.cam_to_pixels(P, cam)
+
+    lo = np.array([a for a, _ in intervals])
+    hi = np.array([b for _, b in intervals])
+    params = geometry.adaptive_samples(point, lo, hi, tol, start=16)
+    any_cut = not whole
+    pieces = []
+    for ts in params:
+        P = ellipse_points(np.broadcast_to(c, (len(ts), 3)), np.broadcast_to(U, (len(ts), 3)),
+                           np.broadcast_to(V, (len(ts), 3)), ts)
+        inside = np.hypot(P[:, 0] / P[:, 2], P[:, 1] / P[:, 2]) < r_fold
+        any_cut |= not inside.all()
+        for run in _runs(inside):
+            pts = geometry.cam_to_pixels(P[run], cam)
+            for piece, cut in geometry.clip_polyline_rect(pts, cam.width, cam.height):
+                pieces.append((piece, cut))
+    closed = full and whole and len(pieces) == 1 and not pieces[0][1]
+    for piece, cut in pieces:
+        out.append(ImageFeature(fid, "polyline", piece, -1, bool(cut or not whole or any_cut), closed))
+    if not distorted and whole:
+        K = np.array([[cam.f * cam.ax, 0, cam.cx], [0, cam.f * cam.ay, cam.cy], [0, 0, 1.0]])
+        H = K @ conics.homography(c, U, V)
+        params_ = conics.ellipse_params(conics.dual_conic(H))
+        if params_ is not None:
+            centre, axes, angle = params_
+            arc_img = None if full else _image_arc(H, centre, axes, angle, arc)
+            clipped = any(cut for _, cut in pieces) or not pieces
+            out.append(ImageFeature(fid, "conic", centre[None, :], -1, clipped, full,
+                                    (centre, axes, angle, arc_img)))
+    return out
+
+
+def _runs(mask: np.ndarray) -> list[slice]:
+    """Slices of consecutive True values."""
+    d = np.diff(np.concatenate([[0], mask.astype(int), [0]]))
+    return [slice(a, b) for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True)]
+
+
+def _image_arc(H, centre, axes, angle, arc) -> tuple[float, float]:
+    """The section's range in the image ellipse's own parameter s (centre + A cos s e1 + B sin s e2)."""
+    e1 = np.array([math.cos(angle), math.sin(angle)])
+    e2 = np.array([-e1[1], e1[0]])
+
+    def s_of(t):
+        p = H @ np.array([math.cos(t), math.sin(t), 1.0])
+        q = p[:2] / p[2] - centre
+        return math.atan2(q @ e2 / axes[1], q @ e1 / axes[0])
+
+    t0, t1 = arc
+    s0, s1, sm = s_of(t0), s_of(t1), s_of((t0 + t1) / 2)
+    forward = (sm - s0) % (2 * math.pi) <= (s1 - s0) % (2 * math.pi)
+    if not forward:
+        s0, s1 = s1, s0
+    span = (s1 - s0) % (2 * math.pi)
+    return s0, s0 + span

@@ -1,0 +1,141 @@
+"""The compiled scene as world-frame arrays: what the engine projects.
+
+Every emitted feature (`placement.feature`) gets an integer id; each array row
+carries the id of the feature it belongs to, so a visibility list becomes a
+boolean mask in one indexing step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .scene import Scene
+
+
+@dataclass
+class World:
+    """World-frame geometry. Shapes: lines (n, 2, 3); ellipses centre/U/V (m, 3), arc (m, 2)."""
+
+    feature_ids: list[str] = field(default_factory=list)  # id -> "placement.feature"
+    feature_kind: list[str] = field(default_factory=list)
+    line_fid: np.ndarray = None
+    line_segment: np.ndarray = None  # segment index within a polyline, -1 for a plain line
+    lines: np.ndarray = None
+    ell_fid: np.ndarray = None
+    ell_c: np.ndarray = None
+    ell_U: np.ndarray = None
+    ell_V: np.ndarray = None
+    ell_arc: np.ndarray = None
+    ell_full: np.ndarray = None  # bool: the whole ellipse, not a section
+    sil_fid: np.ndarray = None
+    sil_pair: np.ndarray = None  # (k, 2) indices into the ellipse arrays
+    corner_fid: np.ndarray = None
+    corners: np.ndarray = None
+    face_src: list[str] = field(default_factory=list)
+    triangles: np.ndarray = None  # (T, 3, 3) occluding triangles (faces, fanned)
+    triangle_face: np.ndarray = None  # (T,) index into face_src
+
+    @property
+    def n_features(self) -> int:
+        return len(self.feature_ids)
+
+    def mask(self, visible: set[str] | None) -> np.ndarray:
+        """Boolean over feature ids; None means everything is visible."""
+        if visible is None:
+            return np.ones(self.n_features, dtype=bool)
+        return np.array([f in visible for f in self.feature_ids], dtype=bool)
+
+
+def build_world(scene: Scene) -> World:
+    """World-frame arrays of every placement's features."""
+    w = World()
+    lines, line_fid, line_seg = [], [], []
+    ec, eU, eV, earc, efull, efid = [], [], [], [], [], []
+    sil_fid, sil_pair = [], []
+    corners, corner_fid = [], []
+    tris, tri_face = [], []
+    for p in scene.placements:
+        model = scene.model(p.model)
+        R = np.array(p.rotation)
+        t = np.array(p.position)
+
+        def to_world(points, R=R, t=t):
+            return np.asarray(points, dtype=float) @ R.T + t
+
+        def new_id(name: str, kind: str, placement=p.name) -> int:
+            w.feature_ids.append(f"{placement}.{name}")
+            w.feature_kind.append(kind)
+            return len(w.feature_ids) - 1
+
+        for ln in model.lines:
+            lines.append(to_world([ln.start, ln.end]))
+            line_fid.append(new_id(ln.name, "line"))
+            line_seg.append(-1)
+        for pl in model.polylines:
+            fid = new_id(pl.name, "polyline")
+            pts = to_world(pl.points)
+            if pl.closed:
+                pts = np.vstack([pts, pts[:1]])
+            for i in range(len(pts) - 1):
+                lines.append(pts[i:i + 2])
+                line_fid.append(fid)
+                line_seg.append(i)
+        index_of = {}
+        for el in model.ellipses:
+            index_of[el.name] = len(ec)
+            ec.append(to_world([el.centre])[0])
+            eU.append(R @ (np.array(el.axis) * el.a))
+            eV.append(R @ (np.cross(el.normal, el.axis) * el.b))
+            earc.append((el.t0, el.t1))
+            efull.append(el.t1 - el.t0 >= 2 * math.pi - 1e-12)
+            efid.append(new_id(el.name, "ellipse"))
+        for sl in model.silhouettes:
+            sil_pair.append((index_of[sl.ellipses[0]], index_of[sl.ellipses[1]]))
+            sil_fid.append(new_id(sl.name, "silhouette"))
+        for cn in model.corners:
+            corners.append(to_world([cn.at])[0])
+            corner_fid.append(new_id(cn.name, "corner"))
+        for fc in model.faces:
+            w.face_src.append(f"{p.name}.{fc.name}")
+            v = to_world(fc.vertices)
+            for i in range(1, len(v) - 1):  # a fan: faces are convex polygons
+                tris.append(np.stack([v[0], v[i], v[i + 1]]))
+                tri_face.append(len(w.face_src) - 1)
+    w.lines = np.array(lines, dtype=float).reshape(-1, 2, 3)
+    w.line_fid = np.array(line_fid, dtype=int)
+    w.line_segment = np.array(line_seg, dtype=int)
+    w.ell_c = np.array(ec, dtype=float).reshape(-1, 3)
+    w.ell_U = np.array(eU, dtype=float).reshape(-1, 3)
+    w.ell_V = np.array(eV, dtype=float).reshape(-1, 3)
+    w.ell_arc = np.array(earc, dtype=float).reshape(-1, 2)
+    w.ell_full = np.array(efull, dtype=bool)
+    w.ell_fid = np.array(efid, dtype=int)
+    w.sil_fid = np.array(sil_fid, dtype=int)
+    w.sil_pair = np.array(sil_pair, dtype=int).reshape(-1, 2)
+    w.corners = np.array(corners, dtype=float).reshape(-1, 3)
+    w.corner_fid = np.array(corner_fid, dtype=int)
+    w.triangles = np.array(tris, dtype=float).reshape(-1, 3, 3)
+    w.triangle_face = np.array(tri_face, dtype=int)
+    return w
+
+
+def ellipse_points(c: np.ndarray, U: np.ndarray, V: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Points c + cos(t) U + sin(t) V for per-point ellipse rows: shapes (n, 3) and t (n,)."""
+    return c + np.cos(t)[:, None] * U + np.sin(t)[:, None] * V
+
+
+def surface_triangles(w: World, segments: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles of the ruled surfaces between silhouette ellipse pairs (cylinder and cone sides)."""
+    tris, owner = [], []
+    t = np.linspace(0.0, 2 * math.pi, segments + 1)
+    for k, (a, b) in enumerate(w.sil_pair):
+        ring_a = w.ell_c[a] + np.cos(t)[:, None] * w.ell_U[a] + np.sin(t)[:, None] * w.ell_V[a]
+        ring_b = w.ell_c[b] + np.cos(t)[:, None] * w.ell_U[b] + np.sin(t)[:, None] * w.ell_V[b]
+        for i in range(segments):
+            tris.append((ring_a[i], ring_a[i + 1], ring_b[i + 1]))
+            tris.append((ring_a[i], ring_b[i + 1], ring_b[i]))
+            owner += [k, k]
+    return np.array(tris, dtype=float).reshape(-1, 3, 3), np.array(owner, dtype=int)
