@@ -58,11 +58,31 @@ def ellipse_params(Cstar: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | 
 
 
 def parameter_on(H: np.ndarray, P: np.ndarray) -> float:
-    """The ellipse parameter t with H (cos t, sin t, 1) ~ P: the null vector of [P]x H."""
+    """The ellipse parameter t whose image H (cos t, sin t, 1) is the point P (homogeneous).
+
+    Minimises |[P]x H (cos t, sin t, 1)| over the circle itself, so it also holds when
+    the ellipse is seen edge-on and H has rank 2 (a plain null vector of [P]x H could
+    then be H's own null vector, which is not on the circle).
+    """
     Px = np.array([[0.0, -P[2], P[1]], [P[2], 0.0, -P[0]], [-P[1], P[0], 0.0]])
-    _, _, Vt = np.linalg.svd(Px @ H)
-    w = Vt[-1]
-    return math.atan2(w[1] * np.sign(w[2] or 1.0), w[0] * np.sign(w[2] or 1.0))
+    M = Px @ H
+    M = M / (np.abs(M).max() or 1.0)
+
+    def g(t):
+        r = M[:, 0, None] * np.cos(t) + M[:, 1, None] * np.sin(t) + M[:, 2, None]
+        return (r * r).sum(axis=0)
+
+    grid = np.linspace(-math.pi, math.pi, 721)
+    t = grid[int(np.argmin(g(grid)))]
+    step = grid[1] - grid[0]
+    lo, hi = t - step, t + step
+    for _ in range(60):  # golden-section refinement: the minimum is isolated within one grid step
+        a, b = lo + 0.382 * (hi - lo), lo + 0.618 * (hi - lo)
+        if g(np.array([a]))[0] < g(np.array([b]))[0]:
+            hi = b
+        else:
+            lo = a
+    return float((lo + hi) / 2)
 
 
 def _conditioning(H: np.ndarray) -> float:

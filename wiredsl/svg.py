@@ -61,7 +61,7 @@ def _map(scene: Scene, world: World, result: PoseResult, ox: float, oy: float, h
         pts.append(np.array(scene.viewpoints.points))
     pts.append(np.array(scene.path.poses)[:, :2])
     allp = np.concatenate(pts)
-    lo, hi = allp.min(0) - 0.3, allp.max(0) + 0.3
+    lo, hi = allp.min(0) - 0.5, allp.max(0) + 0.5  # room for the robot and its tail
     scale = height / max(hi[1] - lo[1], 1e-9)
     width = (hi[0] - lo[0]) * scale
 

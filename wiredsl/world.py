@@ -15,28 +15,32 @@ import numpy as np
 from .scene import Scene
 
 
+def _empty(shape, dtype=float) -> np.ndarray:
+    return np.zeros(shape, dtype=dtype)
+
+
 @dataclass
 class World:
     """World-frame geometry. Shapes: lines (n, 2, 3); ellipses centre/U/V (m, 3), arc (m, 2)."""
 
     feature_ids: list[str] = field(default_factory=list)  # id -> "placement.feature"
     feature_kind: list[str] = field(default_factory=list)
-    line_fid: np.ndarray = None
-    line_segment: np.ndarray = None  # segment index within a polyline, -1 for a plain line
-    lines: np.ndarray = None
-    ell_fid: np.ndarray = None
-    ell_c: np.ndarray = None
-    ell_U: np.ndarray = None
-    ell_V: np.ndarray = None
-    ell_arc: np.ndarray = None
-    ell_full: np.ndarray = None  # bool: the whole ellipse, not a section
-    sil_fid: np.ndarray = None
-    sil_pair: np.ndarray = None  # (k, 2) indices into the ellipse arrays
-    corner_fid: np.ndarray = None
-    corners: np.ndarray = None
+    line_fid: np.ndarray = field(default_factory=lambda: _empty(0, int))
+    line_segment: np.ndarray = field(default_factory=lambda: _empty(0, int))  # in a polyline; -1 for a line
+    lines: np.ndarray = field(default_factory=lambda: _empty((0, 2, 3)))
+    ell_fid: np.ndarray = field(default_factory=lambda: _empty(0, int))
+    ell_c: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
+    ell_U: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
+    ell_V: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
+    ell_arc: np.ndarray = field(default_factory=lambda: _empty((0, 2)))
+    ell_full: np.ndarray = field(default_factory=lambda: _empty(0, bool))  # the whole ellipse, not a section
+    sil_fid: np.ndarray = field(default_factory=lambda: _empty(0, int))
+    sil_pair: np.ndarray = field(default_factory=lambda: _empty((0, 2), int))  # indices into the ellipses
+    corner_fid: np.ndarray = field(default_factory=lambda: _empty(0, int))
+    corners: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
     face_src: list[str] = field(default_factory=list)
-    triangles: np.ndarray = None  # (T, 3, 3) occluding triangles (faces, fanned)
-    triangle_face: np.ndarray = None  # (T,) index into face_src
+    triangles: np.ndarray = field(default_factory=lambda: _empty((0, 3, 3)))  # occluders (faces, fanned)
+    triangle_face: np.ndarray = field(default_factory=lambda: _empty(0, int))  # index into face_src
 
     @property
     def n_features(self) -> int:
