@@ -64,7 +64,7 @@ def test_dump_validates_against_the_features_schema(scene):
 
 def test_build_writes_dump_and_one_svg_a_pose(tmp_path):
     out = tmp_path / "out"
-    r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "-o", str(out)])
+    r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "-o", str(out), "--no-effects"])
     assert r.exit_code == 0, r.output
     dump = json.loads((out / "features.json").read_text())
     svgs = sorted(out.glob("pose_*.svg"))
@@ -74,7 +74,7 @@ def test_build_writes_dump_and_one_svg_a_pose(tmp_path):
     panes = [t.text for t in root.iter("{http://www.w3.org/2000/svg}text")]
     assert "left: cam_l" in panes and "right: cam_r" in panes and "top view" in panes
     first = {p.name: p.read_bytes() for p in out.iterdir()}
-    assert CliRunner().invoke(main, ["build", "scenes/lab.wd", "-o", str(out)]).exit_code == 0
+    assert CliRunner().invoke(main, ["build", "scenes/lab.wd", "-o", str(out), "--no-effects"]).exit_code == 0
     assert {p.name: p.read_bytes() for p in out.iterdir()} == first  # byte-identical, no stray temp files
 
 

@@ -237,27 +237,39 @@ def _positive_px(ctx, param, value: float) -> float:
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", default=None,
-              help="Output directory (default build/<scene name>/), or - for the JSON dump on stdout.")
-@click.option("--pose", "poses", type=int, multiple=True, help="Build only this pose (repeatable).")
+              help="Output directory (default build/<scene name>/), or - for the dump on stdout.")
+@click.option("--pipeline", "pipeline_name", default=None, help="The pipeline to run (default: the scene's default).")
 @click.option("--no-effects", is_flag=True, help="The ideal projection, whatever the scene's pipelines.")
-@click.option("--format", "out_format", type=click.Choice(["json"]), default="json", show_default=True,
-              help="Form of the feature dump.")
-@click.option("--svg/--no-svg", default=True, show_default=True, help="Write one SVG a pose.")
+@click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=None,
+              help="Seed of every random stream (default: drawn at random and recorded).")
+@click.option("--trials", type=click.IntRange(1, 10**8), default=1, show_default=True, help="Monte-Carlo trials.")
+@click.option("--trial", "only_trial", type=click.IntRange(0, None), default=None,
+              help="Replay trial K of a run alone (same seed): exactly that trial's output.")
+@click.option("--pose", "poses", type=int, multiple=True, help="Build only this pose (repeatable).")
+@click.option("--format", "out_format", type=click.Choice(["json", "jsonl", "npz"]), default="json",
+              show_default=True, help="json: one dump (one trial); jsonl: a line a trial and pose; npz: bulk arrays.")
+@click.option("--svg/--no-svg", default=True, show_default=True, help="Write one SVG a pose (json format).")
+@click.option("--cameras", type=click.Choice(["both", "left"]), default="both", show_default=True,
+              help="Project the right camera too, or only the left.")
 @click.option("--tolerance", type=float, default=0.1, show_default=True, callback=_positive_px,
               help="Largest deviation (px) of an emitted polyline from the true image curve.")
 @click.option("--visibility", type=click.Choice(["scene", "exact", "all"]), default="scene", show_default=True,
               help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion.")
 @guarded
-def build(file: str, output: str | None, poses: tuple[int, ...], no_effects: bool, out_format: str, svg: bool,
-          tolerance: float, visibility: str) -> None:
-    """Project the scene for every pose of its path; write features.json and SVGs."""
+def build(file: str, output: str | None, pipeline_name: str | None, no_effects: bool, seed: int | None, trials: int,
+          only_trial: int | None, poses: tuple[int, ...], out_format: str, svg: bool, cameras: str, tolerance: float,
+          visibility: str) -> None:
+    """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
+    import secrets
+    import time
     from pathlib import Path
 
     from . import emit
     from . import svg as svg_mod
     from .compile import compile_file
     from .files import write_atomic
-    from .simulate import Options, simulate
+    from .montecarlo import Run
+    from .simulate import Options
     from .world import build_world
 
     scene, warnings, program = compile_file(file)
@@ -267,27 +279,118 @@ def build(file: str, output: str | None, poses: tuple[int, ...], no_effects: boo
         for p in poses:
             if not 0 <= p < n:
                 raise click.BadParameter(f"pose {p} is not in 0..{n - 1}", param_hint="--pose")
-    if not no_effects and scene.pipeline() is not None:
-        click.echo(f"note: pipeline '{scene.pipeline().name}' not applied: uncertainty effects are not implemented "
-                   "yet, so this is the ideal projection", err=True)
+    pipeline = None
+    if pipeline_name is not None and not no_effects:
+        pipeline = scene.pipeline(pipeline_name)
+        if pipeline is None:
+            names = ", ".join(p.name for p in scene.pipelines) or "none"
+            raise click.BadParameter(f"no pipeline '{pipeline_name}' in {file} (it has: {names})",
+                                     param_hint="--pipeline")
+    elif not no_effects:
+        pipeline = scene.pipeline()
+        if pipeline is None and scene.pipelines:
+            click.echo("note: no pipeline is marked default; building the ideal projection (choose one with "
+                       "--pipeline: " + ", ".join(p.name for p in scene.pipelines) + ")", err=True)
+    trial_list = [only_trial] if only_trial is not None else list(range(trials))
+    if out_format == "json" and len(trial_list) > 1:
+        raise click.BadParameter("one JSON dump holds one trial: use --format jsonl or npz for several",
+                                 param_hint="--trials")
+    if seed is None:
+        seed = secrets.randbits(63)
     world = build_world(scene)
-    opts = Options(tolerance=tolerance, visibility=visibility, poses=tuple(sorted(set(poses))) or None)
-    results = simulate(scene, opts, world)
-    doc = emit.features(scene, world, results)
+    opts = Options(tolerance=tolerance, visibility=visibility, poses=tuple(sorted(set(poses))) or None,
+                   right=cameras == "both")
+    run = Run.create(scene, world, pipeline, seed, opts)
+    effects = bool(run.stages)
+    out_dir = None if output == "-" else (Path(output) if output else Path("build") / scene.name)
+    records = emit.stage_records(run)
+
+    def doc_for(results, k):
+        return emit.features(scene, world, results, pipeline=pipeline.name if pipeline else None, stages=records,
+                             seed=seed if effects else None, trial=k if effects else None)
+
+    started = time.perf_counter()
+    if not effects:
+        results = run.ideal()
+        batches = [(trial_list, [(r, None, None) for r in results])]
+    else:
+        batches = run.batches(trial_list)
+    writer = None
+    if out_format == "jsonl":
+        writer = emit.JsonLines(out_dir / "features.jsonl") if out_dir is not None else None
+    elif out_format == "npz":
+        if out_dir is None:
+            raise click.BadParameter("npz cannot go to stdout", param_hint="-o")
+        writer = emit.NpzStream(out_dir / "features.npz")
+    show = sys.stderr.isatty() and len(trial_list) > 1
+    try:
+        with click.progressbar(length=len(trial_list), label="trials", file=sys.stderr if show else _Null()) as bar:
+            for batch, batch_out in batches:
+                if out_format == "npz":
+                    if effects:
+                        writer.write_batch(batch, batch_out)
+                    else:
+                        raise click.BadParameter("npz holds Monte-Carlo trials: give a pipeline", param_hint="--format")
+                else:
+                    for k, t in enumerate(batch):
+                        res = emit.disturbed_results(batch_out, k) if effects else [r for r, _, _ in batch_out]
+                        if out_format == "jsonl":
+                            for r in res:
+                                line = doc_for([r], t)
+                                if writer is None:
+                                    sys.stdout.write(emit.to_json(line, indent=None))
+                                else:
+                                    writer.write(line)
+                        else:
+                            _write_json(doc_for(res, t), res, out_dir, svg, scene, world, run, effects, write_atomic,
+                                        emit, svg_mod)
+                bar.update(len(batch))
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    manifest = {"scene": emit.scene_ref(scene).model_dump(), "pipeline": pipeline.name if pipeline else None,
+                "seed": seed, "trials": len(trial_list), "first_trial": trial_list[0],
+                "seconds": round(time.perf_counter() - started, 3), **run.manifest()}
+    if out_format == "npz":
+        writer.close(world.feature_ids, manifest)
+    elif writer is not None:
+        writer.close()
+    for w in run.warnings:
+        click.echo(f"warning: {w}", err=True)
+    if out_dir is not None:
+        if effects:
+            write_atomic(out_dir / "manifest.json", json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+        what = {"json": "features.json", "jsonl": "features.jsonl", "npz": "features.npz"}[out_format]
+        click.echo(f"wrote {out_dir / what} ({len(trial_list)} trial{'s' * (len(trial_list) != 1)}, "
+                   f"seed {seed if effects else '-'}"
+                   + (f", pipeline {pipeline.name}: {', '.join(e.name for e, _ in run.stages)}" if effects else
+                      ", ideal projection") + ")", err=True)
+
+
+class _Null:
+    """A file that swallows the progress bar when stderr is not a terminal."""
+
+    def write(self, _):
+        pass
+
+    def flush(self):
+        pass
+
+    def isatty(self):
+        return False
+
+
+def _write_json(doc, results, out_dir, svg, scene, world, run, effects, write_atomic, emit, svg_mod) -> None:
     text = emit.to_json(doc)
-    if output == "-":
+    if out_dir is None:
         sys.stdout.write(text)
         return
-    out_dir = Path(output) if output else Path("build") / scene.name
     write_atomic(out_dir / "features.json", text)
-    written = 0
     if svg:
+        ideal = {r.index: r for r in run.ideal()} if effects else {}
         for r in results:
-            write_atomic(out_dir / f"pose_{r.index:03d}.svg", svg_mod.render(scene, world, r))
-            written += 1
-    count = sum(len(v.features) for r in results for v in (r.left, r.right) if v is not None)
-    click.echo(f"wrote {out_dir / 'features.json'} ({len(results)} poses, {count} image features)"
-               + (f" and {written} SVGs" if written else ""), err=True)
+            write_atomic(out_dir / f"pose_{r.index:03d}.svg", svg_mod.render(scene, world, r, ideal.get(r.index)))
 
 
 @main.command()

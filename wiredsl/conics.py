@@ -68,21 +68,21 @@ def parameter_on(H: np.ndarray, P: np.ndarray) -> float:
     M = Px @ H
     M = M / (np.abs(M).max() or 1.0)
 
-    def g(t):
-        r = M[:, 0, None] * np.cos(t) + M[:, 1, None] * np.sin(t) + M[:, 2, None]
-        return (r * r).sum(axis=0)
-
-    grid = np.linspace(-math.pi, math.pi, 721)
-    t = grid[int(np.argmin(g(grid)))]
-    step = grid[1] - grid[0]
-    lo, hi = t - step, t + step
-    for _ in range(60):  # golden-section refinement: the minimum is isolated within one grid step
-        a, b = lo + 0.382 * (hi - lo), lo + 0.618 * (hi - lo)
-        if g(np.array([a]))[0] < g(np.array([b]))[0]:
-            hi = b
-        else:
-            lo = a
-    return float((lo + hi) / 2)
+    a, b, m = M[:, 0], M[:, 1], M[:, 2]
+    grid = np.linspace(-math.pi, math.pi, 361)
+    r = a[:, None] * np.cos(grid) + b[:, None] * np.sin(grid) + m[:, None]
+    t = float(grid[int(np.argmin((r * r).sum(axis=0)))])
+    for _ in range(8):  # Newton on g'(t) = 2 r.r', from within one grid step of the minimum
+        c, s = math.cos(t), math.sin(t)
+        r0, r1, r2 = a * c + b * s + m, -a * s + b * c, -a * c - b * s
+        g1, g2 = 2 * (r0 @ r1), 2 * (r1 @ r1 + r0 @ r2)
+        if g2 <= 0:
+            break
+        step = g1 / g2
+        t -= step
+        if abs(step) < 1e-15:
+            break
+    return t
 
 
 def _conditioning(H: np.ndarray) -> float:

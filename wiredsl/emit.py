@@ -49,7 +49,7 @@ def _view(v: SimView, world: World) -> View:
     lines, polylines, conics_, corners = [], [], [], []
     for f in v.features:
         common = {"source": world.feature_ids[f.fid], "segment": None if f.segment < 0 else f.segment,
-                  "clipped": f.clipped}
+                  "fragment": None if f.fragment < 0 else f.fragment, "clipped": f.clipped}
         if f.kind == "line":
             lines.append(ImageLine(points=tuple(_pts(f.points)), **common))
         elif f.kind == "polyline":
@@ -80,3 +80,121 @@ def features(scene: Scene, world: World, results: list[PoseResult], *, pipeline:
 
 def to_json(doc, indent: int | None = 1) -> str:
     return json.dumps(doc.model_dump(mode="json"), indent=indent, allow_nan=False) + "\n"
+
+
+# --------------------------------------------------------------------------- disturbed output
+
+def stage_records(run) -> list[StageRecord]:
+    return [StageRecord(effect=e.name, params=p.model_dump()) for e, p in run.stages]
+
+
+def disturbed_results(batch_out, k: int) -> list[PoseResult]:
+    """Batch trial k's disturbed PoseResults (cameras as perturbed for that trial)."""
+    from .montecarlo import features_of
+
+    out = []
+    for result, disturbed, views in batch_out:
+        sides = {}
+        for side in ("left", "right"):
+            if side not in disturbed:
+                sides[side] = None
+                continue
+            base = views[side][k] if views[side] is not None else getattr(result, side)
+            sides[side] = SimView(base.camera, base.R_cw, base.t_cw, features_of(disturbed[side], k))
+        out.append(PoseResult(result.index, result.pose, result.viewpoint, sides["left"], sides["right"]))
+    return out
+
+
+class JsonLines:
+    """One features document per (trial, pose) a line, streamed to a temporary file, renamed at the end."""
+
+    def __init__(self, path: Path):
+        import tempfile
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, self.tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
+        self.fh = open(fd, "w", encoding="utf-8")  # noqa: SIM115 - closed in close()/abort()
+
+    def write(self, doc: Features) -> None:
+        self.fh.write(to_json(doc, indent=None))
+
+    def close(self) -> None:
+        import os
+
+        self.fh.close()
+        os.replace(self.tmp, self.path)
+
+    def abort(self) -> None:
+        import os
+
+        self.fh.close()
+        os.unlink(self.tmp)
+
+
+class NpzStream:
+    """Bulk arrays, one group of members a batch, written into a zip as they come (an .npz numpy reads).
+
+    Members of batch b: b{b}_pts (N, 2) float32 vertices; b{b}_start (S + 1,) offsets; b{b}_strokes (S, 7)
+    int32 rows (trial, pose, camera 0/1, feature id, segment, kind, clipped); b{b}_corners (C, 2) float32;
+    b{b}_corner_rows (C, 4) int32 (trial, pose, camera, feature id). `feature_ids` names the ids;
+    `manifest` is the run manifest as JSON text.
+    """
+
+    def __init__(self, path: Path):
+        import tempfile
+        import zipfile
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, self.tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
+        self.zf = zipfile.ZipFile(open(fd, "wb"), "w", zipfile.ZIP_STORED)  # noqa: SIM115
+        self.n = 0
+
+    def _array(self, name: str, a: np.ndarray) -> None:
+        with self.zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
+            np.lib.format.write_array(fh, np.ascontiguousarray(a), allow_pickle=False)
+
+    def write_batch(self, batch: list[int], batch_out) -> None:
+        pts, starts, rows, corners, crows = [], [], [], [], []
+        offset = 0
+        for result, disturbed, _ in batch_out:
+            for cam, side in enumerate(("left", "right")):
+                s = disturbed.get(side)
+                if s is None:
+                    continue
+                trials = np.asarray(batch)[s.trial]
+                pts.append(s.pts)
+                starts.append(s.start[:-1] + offset)
+                offset += len(s.pts)
+                rows.append(np.column_stack([trials, np.full(s.n_strokes, result.index), np.full(s.n_strokes, cam),
+                                             s.fid, s.segment, s.kind, s.clipped]))
+                ctrials = np.asarray(batch)[s.corner_trial]
+                corners.append(s.corners)
+                crows.append(np.column_stack([ctrials, np.full(len(ctrials), result.index),
+                                              np.full(len(ctrials), cam), s.corner_fid]))
+        b = f"b{self.n:05d}"
+        self._array(f"{b}_pts", np.concatenate(pts).astype(np.float32) if pts else np.zeros((0, 2), np.float32))
+        self._array(f"{b}_start", np.concatenate([*starts, [offset]]).astype(np.int64))
+        self._array(f"{b}_strokes", np.concatenate(rows).astype(np.int32) if rows else np.zeros((0, 7), np.int32))
+        self._array(f"{b}_corners", np.concatenate(corners).astype(np.float32).reshape(-1, 2))
+        self._array(f"{b}_corner_rows", np.concatenate(crows).astype(np.int32).reshape(-1, 4))
+        self.n += 1
+
+    def close(self, feature_ids: list[str], manifest: dict) -> None:
+        import os
+
+        self._array("feature_ids", np.array(feature_ids))
+        self._array("manifest", np.array(json.dumps(manifest, sort_keys=True)))
+        fh = self.zf.fp
+        self.zf.close()
+        fh.close()
+        os.replace(self.tmp, self.path)
+
+    def abort(self) -> None:
+        import os
+
+        fh = self.zf.fp
+        self.zf.close()
+        fh.close()
+        os.unlink(self.tmp)

@@ -222,6 +222,9 @@ def clip_polyline_rect(points: np.ndarray, width: float, height: float) -> list[
     """Cut a 2D polyline (k, 2) to the image rectangle: the visible pieces, each flagged if cut."""
     if len(points) < 2:
         return []
+    x, y = points[:, 0], points[:, 1]
+    if x.min() >= 0 and y.min() >= 0 and x.max() <= width and y.max() <= height:
+        return [(points, False)] if np.ptp(points, axis=0).max() > 0 else []
     a, b = points[:-1], points[1:]
     t0, t1, keep = clip_segments_rect(a, b, width, height)
     d = b - a

@@ -41,6 +41,7 @@ class ImageFeature:
     clipped: bool = False
     closed: bool = False
     conic: tuple | None = None  # (centre (2,), axes (2,), angle, arc or None)
+    fragment: int = -1  # piece number after a stage cut the feature, -1 when whole
 
 
 @dataclass
@@ -60,15 +61,17 @@ class PoseResult:
     right: View | None
 
 
-def simulate(scene: Scene, options: Options = Options(), world: World | None = None) -> list[PoseResult]:
-    """Project every selected pose of the scene's path; the ideal (undisturbed) feature sets."""
-    if scene.rig is None or scene.path is None:
-        missing = "a rig" if scene.rig is None else "a path"
-        raise WiredslError([Diagnostic("error", "E102", f"scene '{scene.name}' needs {missing} to be built", None)])
+def simulate(scene: Scene, options: Options = Options(), world: World | None = None,
+             visible: tuple | None = None) -> list[PoseResult]:
+    """Project every selected pose of the scene's path; the ideal (undisturbed) feature sets.
+
+    `visible` is `visibility_masks(...)` computed beforehand (e.g. once for many trials).
+    """
+    require_buildable(scene)
     world = world or build_world(scene)
     poses = np.array(scene.path.poses, dtype=float)
     chosen = range(len(poses)) if options.poses is None else options.poses
-    vp_names, masks = _visibility_masks(scene, world, poses, chosen, options)
+    vp_names, masks = visible if visible is not None else visibility_masks(scene, world, options)
     out = []
     for i in chosen:
         pose = tuple(float(v) for v in poses[i])
@@ -85,8 +88,17 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
     return out
 
 
-def _visibility_masks(scene: Scene, world: World, poses: np.ndarray, chosen, options: Options):
+def require_buildable(scene: Scene) -> None:
+    """A scene needs a rig and a path to be projected."""
+    if scene.rig is None or scene.path is None:
+        missing = "a rig" if scene.rig is None else "a path"
+        raise WiredslError([Diagnostic("error", "E102", f"scene '{scene.name}' needs {missing} to be built", None)])
+
+
+def visibility_masks(scene: Scene, world: World, options: Options):
     """Per (pose, camera side) feature masks, and the view-point used for each pose."""
+    poses = np.array(scene.path.poses, dtype=float)
+    chosen = range(len(poses)) if options.poses is None else options.poses
     everything = world.mask(None)
     names: dict[int, str] = {}
     masks: dict[tuple[int, str], np.ndarray] = {}

@@ -33,11 +33,13 @@ def _poly(points, colour: str, width: float = 1.2, closed: bool = False, extra: 
     return f'<{tag} points="{pts}" fill="none" stroke="{colour}" stroke-width="{width}"{extra}/>'
 
 
-def _pane(view: View, world: World, ox: float, oy: float, title: str, grey: bool = False) -> list[str]:
+def _pane(view: View, world: World, ox: float, oy: float, title: str, grey: bool = False,
+          background: bool = True) -> list[str]:
     cam = view.camera
-    out = [f'<g transform="translate({_f(ox)},{_f(oy)})">',
-           f'<text x="0" y="-6" font-family="sans-serif" font-size="13">{escape(title)}</text>',
-           f'<rect x="0" y="0" width="{cam.width}" height="{cam.height}" fill="#fafafa" stroke="#333"/>']
+    out = [f'<g transform="translate({_f(ox)},{_f(oy)})">']
+    if background:
+        out += [f'<text x="0" y="-6" font-family="sans-serif" font-size="13">{escape(title)}</text>',
+                f'<rect x="0" y="0" width="{cam.width}" height="{cam.height}" fill="#fafafa" stroke="#333"/>']
     for f in view.features:
         kind = world.feature_kind[f.fid]
         colour = "#9e9e9e" if grey else COLOURS.get(kind, "#000")
@@ -105,9 +107,10 @@ def render(scene: Scene, world: World, result: PoseResult, underlay: PoseResult 
     body: list[str] = []
     x = MARGIN
     for i, (side, view) in enumerate(panes):
-        if under and under[i] is not None:
-            body += _pane(under[i], world, x, MARGIN + TITLE, "", grey=True)
-        body += _pane(view, world, x, MARGIN + TITLE, f"{side}: {view.camera.name}")
+        title = f"{side}: {view.camera.name}"
+        if under and under[i] is not None:  # the ideal features in grey beneath the disturbed ones
+            body += _pane(under[i], world, x, MARGIN + TITLE, title, grey=True)
+        body += _pane(view, world, x, MARGIN + TITLE, title, background=not under)
         x += view.camera.width + GAP
     map_parts, map_w = _map(scene, world, result, x, MARGIN + TITLE, height)
     body += map_parts

@@ -1,8 +1,16 @@
-"""Geometric approximation error: line end points move by a 2D Gaussian (poly_prox threshold)."""
+"""Geometric approximation error: fitted end points and vertices move by a 2D Gaussian.
+
+Every vertex of every stroke (the two end points of a line, each vertex of a
+polyline, including fragment ends made by earlier stages) moves by an
+isotropic 2D Gaussian with the poly_prox threshold as its standard deviation.
+"""
 
 from __future__ import annotations
 
-from .base import Effect, Params, param
+import numpy as np
+
+from .. import imageset as im
+from .base import Context, Effect, Params, Stats, param
 
 
 class ApproxErrorParams(Params):
@@ -14,3 +22,19 @@ class ApproxError(Effect):
     acts_on = "fitting"
     Params = ApproxErrorParams
     doc = __doc__
+
+    @classmethod
+    def is_identity(cls, p: ApproxErrorParams) -> bool:
+        return p.sigma == 0
+
+    @classmethod
+    def apply(cls, p: ApproxErrorParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+        vtrial = np.repeat(s.trial, s.counts)
+        noise = ctx.per_trial(cls.name, vtrial, lambda rng, n: rng.normal(0.0, p.sigma, 2 * n)).reshape(-1, 2)
+        ctx.stats.add(cls.name, count=2 * len(noise), sum_sq=(noise**2).sum())
+        return im.replace(s, pts=s.pts + noise)
+
+    @classmethod
+    def report(cls, p: ApproxErrorParams, stats: Stats) -> dict:
+        s = stats.sums[cls.name]
+        return {"sigma_px": {"declared": p.sigma, "measured": float(np.sqrt(s["sum_sq"] / max(s["count"], 1)))}}

@@ -1,8 +1,9 @@
-"""Corner detection loss: each camera keeps each corner with the same probability."""
+"""Corner detection loss: each camera keeps each corner with the same probability, independently."""
 
 from __future__ import annotations
 
-from .base import Effect, Params, param
+from .. import imageset as im
+from .base import Context, Effect, Params, Stats, param
 
 
 class CornerLossParams(Params):
@@ -14,3 +15,18 @@ class CornerLoss(Effect):
     acts_on = "corner detection"
     Params = CornerLossParams
     doc = __doc__
+
+    @classmethod
+    def is_identity(cls, p: CornerLossParams) -> bool:
+        return p.keep == 1
+
+    @classmethod
+    def apply(cls, p: CornerLossParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+        keep = ctx.per_trial(cls.name, s.corner_trial, lambda rng, n: rng.random(n)) < p.keep
+        ctx.stats.add(cls.name, total=len(keep), kept=keep.sum())
+        return s.take_corners(keep)
+
+    @classmethod
+    def report(cls, p: CornerLossParams, stats: Stats) -> dict:
+        s = stats.sums[cls.name]
+        return {"keep_rate": {"declared": p.keep, "measured": s["kept"] / s["total"] if s["total"] else None}}

@@ -1,8 +1,11 @@
-"""Corner match error: a fraction of corners jump to a random point in the match search disc."""
+"""Corner match error: a fraction of corners jump to a uniform random point in the match search disc."""
 
 from __future__ import annotations
 
-from .base import Effect, Params, param
+import numpy as np
+
+from .. import imageset as im
+from .base import Context, Effect, Params, Stats, param
 
 
 class CornerMismatchParams(Params):
@@ -15,3 +18,25 @@ class CornerMismatch(Effect):
     acts_on = "corner matching"
     Params = CornerMismatchParams
     doc = __doc__
+
+    @classmethod
+    def is_identity(cls, p: CornerMismatchParams) -> bool:
+        return p.fraction == 0 or p.radius == 0
+
+    @classmethod
+    def apply(cls, p: CornerMismatchParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+        draws = ctx.per_trial(cls.name, s.corner_trial, lambda rng, n: rng.random(3 * n)).reshape(-1, 3)
+        hit = draws[:, 0] < p.fraction
+        r = p.radius * np.sqrt(draws[:, 1])  # uniform over the disc
+        theta = 2 * np.pi * draws[:, 2]
+        move = np.where(hit[:, None], np.column_stack([r * np.cos(theta), r * np.sin(theta)]), 0.0)
+        ctx.stats.add(cls.name, total=len(hit), shifted=hit.sum())
+        ctx.stats.peak(cls.name, max_distance=np.linalg.norm(move, axis=1).max(initial=0.0))
+        return im.replace(s, corners=s.corners + move)
+
+    @classmethod
+    def report(cls, p: CornerMismatchParams, stats: Stats) -> dict:
+        s = stats.sums[cls.name]
+        rate = s["shifted"] / s["total"] if s["total"] else None
+        return {"mismatch_rate": {"declared": p.fraction, "measured": rate},
+                "max_distance_px": {"declared_bound": p.radius, "measured": stats.maxima[cls.name]["max_distance"]}}

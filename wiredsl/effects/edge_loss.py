@@ -1,8 +1,16 @@
-"""Edge detection loss: a fraction of every visible feature's length goes undetected."""
+"""Edge detection loss: a fraction of every visible feature's length goes undetected.
+
+Each feature loses exactly `fraction` of its length as one gap placed uniformly
+at random along it, leaving up to two fragments (`fragment` 0 and 1). A closed
+curve loses one arc and remains one fragment. Corners are untouched.
+"""
 
 from __future__ import annotations
 
-from .base import Effect, Params, param
+import numpy as np
+
+from .. import imageset as im
+from .base import Context, Effect, Params, Stats, param
 
 
 class EdgeLossParams(Params):
@@ -14,3 +22,35 @@ class EdgeLoss(Effect):
     acts_on = "edges"
     Params = EdgeLossParams
     doc = __doc__
+
+    @classmethod
+    def is_identity(cls, p: EdgeLossParams) -> bool:
+        return p.fraction == 0
+
+    @classmethod
+    def apply(cls, p: EdgeLossParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+        closed = s.closed.copy()
+        s = im.unroll_closed(s)
+        _, L = im.arc_lengths(s)
+        L = np.where(closed, L / 2, L)  # an unrolled closed stroke is traversed twice
+        u = ctx.per_trial(cls.name, s.trial, lambda rng, n: rng.random(n))
+        gap = p.fraction * L
+        g0 = u * np.where(closed, L, L - gap)  # where the gap starts
+        k = np.arange(s.n_strokes)
+        # open: [0, g0] and [g0 + gap, L]; closed: the single arc [g0 + gap, g0 + L]
+        stroke = np.concatenate([k[~closed], k[~closed], k[closed]])
+        a = np.concatenate([np.zeros((~closed).sum()), (g0 + gap)[~closed], (g0 + gap)[closed]])
+        b = np.concatenate([g0[~closed], L[~closed], (g0 + L)[closed]])
+        frag = np.concatenate([np.zeros((~closed).sum(), int), np.ones((~closed).sum(), int),
+                               np.zeros(closed.sum(), int)])
+        order = np.lexsort((frag, stroke))
+        out = im.keep_intervals(s, stroke[order], a[order], b[order], frag[order])
+        _, kept = im.arc_lengths(out)
+        ctx.stats.add(cls.name, total_length=L.sum(), kept_length=kept.sum())
+        return out
+
+    @classmethod
+    def report(cls, p: EdgeLossParams, stats: Stats) -> dict:
+        s = stats.sums[cls.name]
+        removed = 1 - s["kept_length"] / s["total_length"] if s["total_length"] else 0.0
+        return {"removed_length_fraction": {"declared": p.fraction, "measured": removed}}

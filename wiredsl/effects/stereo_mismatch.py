@@ -1,10 +1,22 @@
-"""Stereo match error: features near-parallel to epipolar lines are lost, a few of the rest shift along them."""
+"""Stereo match error: features near-parallel to epipolar lines are lost, a few of the rest shift along them.
+
+In both cameras, every part of a stroke whose direction is within `band` of the
+epipolar line through it is removed (a straight segment as a whole; a curve
+segment by segment, leaving fragments). Then, in the right image (the matched
+one; the left is the reference), each remaining stroke is mismatched with
+probability `fraction` and moves along its epipolar line by a uniform amount in
+[-disparity, disparity]. The epipolar geometry is the nominal rig's (the one a
+matcher would use), as a pinhole model.
+"""
 
 from __future__ import annotations
 
 import math
 
-from .base import Effect, Params, param
+import numpy as np
+
+from .. import imageset as im
+from .base import Context, Effect, Params, Stats, param
 
 
 class StereoMismatchParams(Params):
@@ -14,8 +26,80 @@ class StereoMismatchParams(Params):
     disparity: float = param(20.0, "image", "disparity search range either side", ge=0, le=10000)
 
 
+def epipolar_directions(points: np.ndarray, epipole: np.ndarray) -> np.ndarray:
+    """Unit direction of the epipolar line through each point (n, 2), from a homogeneous epipole."""
+    ex, ey, ew = epipole
+    d = points * ew - np.array([ex, ey])
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    return np.divide(d, norm, out=np.tile([1.0, 0.0], (len(d), 1)), where=norm > 0)
+
+
+def angle_to_epipolar(a: np.ndarray, b: np.ndarray, epipole: np.ndarray) -> np.ndarray:
+    """Angle in [0, pi/2] between segments a->b (n, 2) and the epipolar line through their midpoints."""
+    d = b - a
+    e = epipolar_directions((a + b) / 2, epipole)
+    return np.arctan2(np.abs(d[:, 0] * e[:, 1] - d[:, 1] * e[:, 0]), np.abs((d * e).sum(axis=1)))
+
+
 class StereoMismatch(Effect):
     name = "stereo_mismatch"
     acts_on = "stereo"
     Params = StereoMismatchParams
     doc = __doc__
+
+    @classmethod
+    def is_identity(cls, p: StereoMismatchParams) -> bool:
+        return p.band == 0 and (p.fraction == 0 or p.disparity == 0)
+
+    @classmethod
+    def apply(cls, p: StereoMismatchParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+        epipole = ctx.epipole()
+        before = im.arc_lengths(s)[1].sum()
+        if p.band > 0 and s.n_strokes:
+            s = _drop_band(s, epipole, p.band)
+        ctx.stats.add(cls.name, length_in=before, length_after_band=im.arc_lengths(s)[1].sum())
+        if ctx.side != "right" or p.fraction == 0 or p.disparity == 0:
+            return s
+        draws = ctx.per_trial(cls.name, s.trial, lambda rng, n: rng.random(2 * n)).reshape(-1, 2)
+        hit = draws[:, 0] < p.fraction
+        shift = np.where(hit, p.disparity * (2 * draws[:, 1] - 1), 0.0)
+        mid = np.add.reduceat(s.pts, s.start[:-1], axis=0) / s.counts[:, None] if s.n_strokes else np.zeros((0, 2))
+        direction = epipolar_directions(mid, epipole)
+        move = np.repeat(shift[:, None] * direction, s.counts, axis=0)
+        ctx.stats.add(cls.name, right_strokes=len(hit), shifted=hit.sum())
+        ctx.stats.peak(cls.name, max_shift=np.abs(shift).max(initial=0.0))
+        return im.replace(s, pts=s.pts + move)
+
+    @classmethod
+    def report(cls, p: StereoMismatchParams, stats: Stats) -> dict:
+        s = stats.sums[cls.name]
+        return {"band_removed_length_fraction": {"measured": 1 - s["length_after_band"] / s["length_in"]
+                                                 if s["length_in"] else None},
+                "mismatch_rate": {"declared": p.fraction,
+                                  "measured": s["shifted"] / s["right_strokes"] if s["right_strokes"] else None},
+                "max_shift_px": {"declared_bound": p.disparity, "measured": stats.maxima[cls.name]["max_shift"]}}
+
+
+def _drop_band(s: im.ImageSet, epipole: np.ndarray, band: float) -> im.ImageSet:
+    """Remove every stroke segment within `band` of its epipolar line; keep the rest as fragments."""
+    s = im.unroll_closed(s) if s.closed.any() else s
+    a, b = s.pts[:-1], s.pts[1:]
+    inside = angle_to_epipolar(a, b, epipole) <= band  # per consecutive vertex pair
+    last = s.start[1:] - 1
+    real = np.ones(len(a), dtype=bool)
+    real[last[last < len(a)]] = False  # pairs that straddle two strokes
+    arc, _ = im.arc_lengths(s)
+    strokes, lo, hi = [], [], []
+    keep_pair = real & ~inside
+    stroke_of = s.vertex_stroke()[:-1] if len(a) else np.zeros(0, int)
+    # runs of kept pairs within each stroke become fragments
+    change = np.flatnonzero(np.diff(np.concatenate([[False], keep_pair, [False]]).astype(int)))
+    starts, ends = change[::2], change[1::2]  # pair index ranges [starts, ends)
+    for st, en in zip(starts, ends, strict=True):
+        k = stroke_of[st]
+        strokes.append(k)
+        lo.append(arc[st])
+        hi.append(arc[en])
+    strokes = np.array(strokes, int)
+    frag = np.zeros(len(strokes), int)  # fragments are numbered when the dump is written
+    return im.keep_intervals(s, strokes, np.array(lo), np.array(hi), frag)

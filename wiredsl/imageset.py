@@ -1,0 +1,181 @@
+"""A batch of image features in packed arrays: what the uncertainty effects act on.
+
+Edge features are *strokes*: polylines in a CSR layout (all vertices in `pts`,
+stroke k's vertices are pts[start[k]:start[k+1]]), with per-stroke metadata.
+A straight image segment is a 2-vertex stroke. Strokes of every trial of a
+batch are packed together (`trial` says whose), so each effect is a handful of
+vectorised operations over all strokes of all trials.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+STRAIGHT, CURVE, ELLIPSE = 0, 1, 2  # stroke kinds: a segment; a curved image of a line; an ellipse (arc)
+
+
+@dataclass(frozen=True)
+class ImageSet:
+    pts: np.ndarray  # (N, 2) float
+    start: np.ndarray  # (S + 1,) int
+    fid: np.ndarray  # (S,) feature id (World.feature_ids)
+    segment: np.ndarray  # (S,) segment within a polyline / silhouette side, -1 if none
+    fragment: np.ndarray  # (S,) fragment index after edge loss / splits, -1 if whole
+    kind: np.ndarray  # (S,) STRAIGHT | CURVE | ELLIPSE
+    clipped: np.ndarray  # (S,) bool
+    closed: np.ndarray  # (S,) bool: last vertex joins the first
+    trial: np.ndarray  # (S,) trial index within the batch
+    corners: np.ndarray  # (C, 2)
+    corner_fid: np.ndarray  # (C,)
+    corner_trial: np.ndarray  # (C,)
+
+    @property
+    def n_strokes(self) -> int:
+        return len(self.start) - 1
+
+    @property
+    def counts(self) -> np.ndarray:
+        return np.diff(self.start)
+
+    def vertex_stroke(self) -> np.ndarray:
+        """Stroke index of every vertex, (N,)."""
+        return np.repeat(np.arange(self.n_strokes), self.counts)
+
+    def take(self, keep: np.ndarray) -> ImageSet:
+        """Only the strokes where keep (S,) is True."""
+        keep = np.asarray(keep, dtype=bool)
+        counts = self.counts[keep]
+        vkeep = np.repeat(keep, self.counts)
+        start = np.concatenate([[0], np.cumsum(counts)]).astype(int)
+        return replace(self, pts=self.pts[vkeep], start=start, **_meta(self, keep))
+
+    def take_corners(self, keep: np.ndarray) -> ImageSet:
+        return replace(self, corners=self.corners[keep], corner_fid=self.corner_fid[keep],
+                       corner_trial=self.corner_trial[keep])
+
+    def repeat_trials(self, n: int) -> ImageSet:
+        """The same features for n trials (0..n-1), strokes ordered by trial."""
+        S, N, C = self.n_strokes, len(self.pts), len(self.corners)
+        start = (self.start[:-1][None, :] + N * np.arange(n)[:, None]).ravel()
+        return ImageSet(
+            pts=np.tile(self.pts, (n, 1)), start=np.concatenate([start, [N * n]]).astype(int),
+            fid=np.tile(self.fid, n), segment=np.tile(self.segment, n), fragment=np.tile(self.fragment, n),
+            kind=np.tile(self.kind, n), clipped=np.tile(self.clipped, n), closed=np.tile(self.closed, n),
+            trial=np.repeat(np.arange(n), S), corners=np.tile(self.corners, (n, 1)),
+            corner_fid=np.tile(self.corner_fid, n), corner_trial=np.repeat(np.arange(n), C))
+
+
+_META = ("fid", "segment", "fragment", "kind", "clipped", "closed", "trial")
+
+
+def _meta(s: ImageSet, index) -> dict:
+    return {k: getattr(s, k)[index] for k in _META}
+
+
+def empty() -> ImageSet:
+    z = np.zeros(0, dtype=int)
+    return ImageSet(np.zeros((0, 2)), np.zeros(1, dtype=int), z, z, z, z, z.astype(bool), z.astype(bool), z,
+                    np.zeros((0, 2)), z, z)
+
+
+def arc_lengths(s: ImageSet) -> tuple[np.ndarray, np.ndarray]:
+    """Cumulative arc length at each vertex from its stroke's start (N,), and stroke lengths (S,)."""
+    if len(s.pts) == 0:
+        return np.zeros(0), np.zeros(s.n_strokes)
+    seg = np.linalg.norm(np.diff(s.pts, axis=0), axis=1)
+    first = s.start[:-1]
+    seg_len = np.concatenate([[0.0], seg])
+    seg_len[first[s.counts > 0]] = 0.0  # no length across a stroke boundary
+    cum = np.cumsum(seg_len)
+    base = np.repeat(cum[first[s.counts > 0]] if len(first) else [], s.counts[s.counts > 0])
+    arc = cum - base
+    lengths = np.zeros(s.n_strokes)
+    nonempty = s.counts > 0
+    lengths[nonempty] = arc[s.start[1:][nonempty] - 1]
+    return arc, lengths
+
+
+def unroll_closed(s: ImageSet) -> ImageSet:
+    """Closed strokes as open ones traversed twice (vertex 0 .. last, 0 .. last, 0), so that any
+    arc of length <= L starting in [0, L) is a single interval."""
+    if not s.closed.any():
+        return s
+    pieces, counts = [], []
+    for k in range(s.n_strokes):
+        p = s.pts[s.start[k]:s.start[k + 1]]
+        if s.closed[k]:
+            p = np.vstack([p, p, p[:1]])
+        pieces.append(p)
+        counts.append(len(p))
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(int)
+    return replace(s, pts=np.concatenate(pieces) if pieces else s.pts, start=start,
+                   closed=np.zeros_like(s.closed))
+
+
+def keep_intervals(s: ImageSet, stroke: np.ndarray, a: np.ndarray, b: np.ndarray, fragment: np.ndarray) -> ImageSet:
+    """New strokes: the parts of strokes `stroke` (K,) between arc lengths a and b (K,).
+
+    Each part starts and ends at interpolated points and keeps the stroke's metadata,
+    with `fragment` set; parts shorter than 1e-9 px are dropped.
+    """
+    arc, lengths = arc_lengths(s)
+    a = np.clip(a, 0.0, lengths[stroke])
+    b = np.clip(b, 0.0, lengths[stroke])
+    ok = b - a > 1e-9
+    stroke, a, b, fragment = stroke[ok], a[ok], b[ok], fragment[ok]
+    if len(stroke) == 0:
+        out = empty()
+        return replace(out, corners=s.corners, corner_fid=s.corner_fid, corner_trial=s.corner_trial)
+    # a global, increasing key: arc length plus a per-stroke offset larger than any stroke
+    offset = np.concatenate([[0.0], np.cumsum(lengths + 1.0)])[:-1]
+    key = arc + np.repeat(offset, s.counts)
+    ka, kb = a + offset[stroke], b + offset[stroke]
+    lo = np.searchsorted(key, ka, side="right")  # first vertex strictly after a
+    hi = np.searchsorted(key, kb, side="left")  # first vertex at or after b
+    first, last = s.start[stroke], s.start[stroke + 1] - 1
+
+    def point_at(k, target):
+        j = np.clip(np.searchsorted(key, target, side="right") - 1, first, np.maximum(last - 1, first))
+        j1 = np.minimum(j + 1, last)
+        span = key[j1] - key[j]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(span > 0, (target - key[j]) / span, 0.0)
+        return s.pts[j] + t[:, None] * (s.pts[j1] - s.pts[j])
+
+    pa, pb = point_at(stroke, ka), point_at(stroke, kb)
+    inner = np.maximum(hi - lo, 0)
+    counts = inner + 2
+    start = np.concatenate([[0], np.cumsum(counts)]).astype(int)
+    out = np.empty((start[-1], 2))
+    out[start[:-1]] = pa
+    out[start[1:] - 1] = pb
+    if inner.sum():
+        src = np.repeat(lo, inner) + (np.arange(inner.sum()) - np.repeat(np.cumsum(inner) - inner, inner))
+        dst = np.repeat(start[:-1] + 1, inner) + (np.arange(inner.sum()) - np.repeat(np.cumsum(inner) - inner, inner))
+        out[dst] = s.pts[src]
+    meta = _meta(s, stroke)
+    meta["fragment"] = fragment
+    meta["closed"] = np.zeros(len(stroke), dtype=bool)
+    return replace(s, pts=out, start=start, **meta)
+
+
+def vertex_normals(s: ImageSet) -> np.ndarray:
+    """Unit normal at each vertex (N, 2): the direction of travel turned +90 deg, averaged at joins."""
+    n = len(s.pts)
+    if n == 0:
+        return np.zeros((0, 2))
+    d = np.diff(s.pts, axis=0)
+    length = np.linalg.norm(d, axis=1, keepdims=True)
+    u = np.divide(d, length, out=np.zeros_like(d), where=length > 0)
+    last = s.start[1:] - 1
+    valid = np.ones(n - 1, dtype=bool)
+    valid[last[last < n - 1]] = False  # the step from one stroke's end to the next stroke's start
+    u[~valid] = 0.0
+    tangent = np.zeros((n, 2))
+    tangent[:-1] += u
+    tangent[1:] += u
+    norm = np.linalg.norm(tangent, axis=1, keepdims=True)
+    tangent = np.divide(tangent, norm, out=np.zeros_like(tangent), where=norm > 0)
+    return np.column_stack([-tangent[:, 1], tangent[:, 0]])
