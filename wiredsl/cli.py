@@ -350,8 +350,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
             writer.abort()
         raise
     manifest = {"scene": emit.scene_ref(scene).model_dump(), "pipeline": pipeline.name if pipeline else None,
-                "seed": seed, "trials": len(trial_list), "first_trial": trial_list[0],
-                "seconds": round(time.perf_counter() - started, 3), **run.manifest()}
+                "seed": seed, "trials": len(trial_list), "first_trial": trial_list[0], **run.manifest()}
+    seconds = time.perf_counter() - started
     if out_format == "npz":
         writer.close(world.feature_ids, manifest)
     elif writer is not None:
@@ -362,7 +362,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         if effects:
             write_atomic(out_dir / "manifest.json", json.dumps(manifest, indent=1, sort_keys=True) + "\n")
         what = {"json": "features.json", "jsonl": "features.jsonl", "npz": "features.npz"}[out_format]
-        click.echo(f"wrote {out_dir / what} ({len(trial_list)} trial{'s' * (len(trial_list) != 1)}, "
+        click.echo(f"wrote {out_dir / what} in {seconds:.1f} s ({len(trial_list)} trial{'s' * (len(trial_list) != 1)}, "
                    f"seed {seed if effects else '-'}"
                    + (f", pipeline {pipeline.name}: {', '.join(e.name for e, _ in run.stages)}" if effects else
                       ", ideal projection") + ")", err=True)

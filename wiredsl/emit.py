@@ -153,7 +153,8 @@ class NpzStream:
 
     def _array(self, name: str, a: np.ndarray) -> None:
         with self.zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
-            np.lib.format.write_array(fh, np.ascontiguousarray(a), allow_pickle=False)
+            a = np.asarray(a)  # (ascontiguousarray would turn the 0-d manifest into shape (1,))
+            np.lib.format.write_array(fh, a if a.flags.c_contiguous else a.copy(order="C"), allow_pickle=False)
 
     def write_batch(self, batch: list[int], batch_out) -> None:
         pts, starts, rows, corners, crows = [], [], [], [], []

@@ -28,7 +28,7 @@ class ApproxError(Effect):
         return p.sigma == 0
 
     @classmethod
-    def apply(cls, p: ApproxErrorParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+    def disturb(cls, p: ApproxErrorParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         vtrial = np.repeat(s.trial, s.counts)
         noise = ctx.per_trial(cls.name, vtrial, lambda rng, n: rng.normal(0.0, p.sigma, 2 * n)).reshape(-1, 2)
         ctx.stats.add(cls.name, count=2 * len(noise), sum_sq=(noise**2).sum())

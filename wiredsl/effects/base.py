@@ -93,7 +93,12 @@ class Effect:
 
     @classmethod
     def apply(cls, params: Params, features, ctx: Context):
-        """Draw this stage's randomness from ctx and return the disturbed features."""
+        """The disturbed features; exactly the input when the parameters change nothing."""
+        return features if cls.is_identity(params) else cls.disturb(params, features, ctx)
+
+    @classmethod
+    def disturb(cls, params: Params, features, ctx: Context):
+        """Draw this stage's randomness from ctx and apply it."""
         raise NotImplementedError
 
     @classmethod

@@ -21,7 +21,7 @@ class CornerLoss(Effect):
         return p.keep == 1
 
     @classmethod
-    def apply(cls, p: CornerLossParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+    def disturb(cls, p: CornerLossParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         keep = ctx.per_trial(cls.name, s.corner_trial, lambda rng, n: rng.random(n)) < p.keep
         ctx.stats.add(cls.name, total=len(keep), kept=keep.sum())
         return s.take_corners(keep)

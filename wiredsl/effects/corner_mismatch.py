@@ -24,7 +24,7 @@ class CornerMismatch(Effect):
         return p.fraction == 0 or p.radius == 0
 
     @classmethod
-    def apply(cls, p: CornerMismatchParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+    def disturb(cls, p: CornerMismatchParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         draws = ctx.per_trial(cls.name, s.corner_trial, lambda rng, n: rng.random(3 * n)).reshape(-1, 3)
         hit = draws[:, 0] < p.fraction
         r = p.radius * np.sqrt(draws[:, 1])  # uniform over the disc

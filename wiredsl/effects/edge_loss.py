@@ -28,7 +28,7 @@ class EdgeLoss(Effect):
         return p.fraction == 0
 
     @classmethod
-    def apply(cls, p: EdgeLossParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+    def disturb(cls, p: EdgeLossParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         closed = s.closed.copy()
         s = im.unroll_closed(s)
         _, L = im.arc_lengths(s)

@@ -28,7 +28,7 @@ class LateralShift(Effect):
         return p.range == 0
 
     @classmethod
-    def apply(cls, p: LateralShiftParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+    def disturb(cls, p: LateralShiftParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         s = split_ellipses(s)
         d = ctx.per_trial(cls.name, s.trial, lambda rng, n: rng.uniform(-p.range, p.range, n))
         normals = im.vertex_normals(s)

@@ -52,7 +52,7 @@ class StereoMismatch(Effect):
         return p.band == 0 and (p.fraction == 0 or p.disparity == 0)
 
     @classmethod
-    def apply(cls, p: StereoMismatchParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+    def disturb(cls, p: StereoMismatchParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         epipole = ctx.epipole()
         before = im.arc_lengths(s)[1].sum()
         if p.band > 0 and s.n_strokes:

@@ -1,0 +1,297 @@
+"""The uncertainty effects: a registry-wide battery, statistics over many trials, exact band edges,
+independent streams, replay, and nothing simulated that a scene does not call for."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from helpers import compile_text, errors_of
+
+from wiredsl import imageset as im
+from wiredsl.cli import main
+from wiredsl.compile import compile_file
+from wiredsl.effects import REGISTRY
+from wiredsl.effects import calibration_error as calib
+from wiredsl.effects.base import Context, Stats
+from wiredsl.effects.stereo_mismatch import angle_to_epipolar
+from wiredsl.montecarlo import Run, to_imageset
+from wiredsl.scene import Pipeline
+from wiredsl.simulate import Options
+from wiredsl.world import build_world
+
+LAB, _, _ = compile_file("scenes/lab.wd")
+WORLD = build_world(LAB)
+ZERO = {"edge_loss": {"fraction": 0}, "lateral_shift": {"range": 0}, "approx_error": {"sigma": 0},
+        "corner_loss": {"keep": 1}, "corner_mismatch": {"fraction": 0}, "stereo_mismatch": {"band": 0, "fraction": 0},
+        "calibration_error": {"sigma": 0}}
+IMAGE_EFFECTS = [n for n in REGISTRY if n != "calibration_error"]
+
+
+def lab_view(pose: int = 3, side: str = "left", trials: int = 1) -> im.ImageSet:
+    run = Run.create(LAB, WORLD, None, 0, Options())
+    return to_imageset(getattr(run.ideal()[pose], side), WORLD).repeat_trials(trials)
+
+
+def ctx(seed=1, side="left", trials=1, pose=3) -> Context:
+    run = Run.create(LAB, WORLD, None, seed, Options())
+    return Context(pose=pose, side=side, trials=np.arange(trials), seed=seed, stats=Stats(),
+                   epipole=lambda: run.epipole(tuple(LAB.path.poses[pose]), side))
+
+
+def same(a: im.ImageSet, b: im.ImageSet) -> bool:
+    return (np.array_equal(a.pts, b.pts) and np.array_equal(a.start, b.start) and np.array_equal(a.fid, b.fid)
+            and np.array_equal(a.corners, b.corners))
+
+
+def run_pipeline(text_stages: str, trials: int = 1, seed: int = 5, **opts) -> tuple[Run, list]:
+    scene, _ = compile_text(f"wiredsl 1\npipeline p {{\n{text_stages}\n}}\n")
+    pipe = Pipeline(name="p", stages=scene.pipelines[0].stages)
+    run = Run.create(LAB, WORLD, pipe, seed, Options(**opts))
+    return run, list(run.batches(list(range(trials))))
+
+
+# ----------------------------------------------------------------------------- registry battery
+
+def test_every_effect_has_a_zero_setting_here():
+    assert set(ZERO) == set(REGISTRY)
+
+
+@pytest.mark.parametrize("name", IMAGE_EFFECTS)
+def test_zero_magnitude_changes_nothing(name):
+    effect = REGISTRY[name]
+    params = effect.Params(**ZERO[name])
+    assert effect.is_identity(params)
+    s = lab_view(side="right", trials=2)
+    assert same(effect.apply(params, s, ctx(side="right", trials=2)), s)
+
+
+@pytest.mark.parametrize("name", IMAGE_EFFECTS)
+def test_same_seed_same_output_other_seed_other_output(name):
+    effect = REGISTRY[name]
+    params = effect.Params()
+    s = lab_view(side="right", trials=3)
+    a = effect.apply(params, s, ctx(seed=11, side="right", trials=3))
+    b = effect.apply(params, s, ctx(seed=11, side="right", trials=3))
+    assert same(a, b)
+    if name in ("edge_loss", "lateral_shift", "approx_error", "corner_loss"):
+        assert not same(a, effect.apply(params, s, ctx(seed=12, side="right", trials=3)))
+
+
+def _out_of_range(field) -> list[float]:
+    bad = []
+    for m in field.metadata:
+        for attr, delta in (("ge", -1), ("gt", 0), ("le", 1), ("lt", 0)):
+            v = getattr(m, attr, None)
+            if v is not None:
+                bad.append(v + delta * max(abs(v), 1.0) if delta else v)
+    return bad
+
+
+@pytest.mark.parametrize("name", list(REGISTRY))
+def test_out_of_range_parameters_are_refused_at_their_line(name):
+    effect = REGISTRY[name]
+    for key, field in effect.Params.model_fields.items():
+        unit = {"image": "px", "angle": "rad"}.get(field.json_schema_extra["kind"], "")
+        for value in _out_of_range(field):
+            text = f"wiredsl 1\npipeline p {{\n  {name} {key} {value!r}{unit}\n}}\n"
+            errs = errors_of(text)
+            col = 4 + len(name) + len(key) + 1
+            assert errs and errs[0].startswith(f"3:{col}: E110 {name} {key}: must be"), (text, errs)
+
+
+# ----------------------------------------------------------------------------- statistics
+
+def test_measured_statistics_match_the_declared_values_over_many_trials():
+    run, batches = run_pipeline("edge_loss\nlateral_shift\napprox_error\ncorner_loss\ncorner_mismatch fraction 5%\n"
+                                "stereo_mismatch fraction 5%", trials=300)
+    report = {st["effect"]: st["measured"] for st in run.manifest()["stages"]}
+    assert report["edge_loss"]["removed_length_fraction"]["measured"] == pytest.approx(0.29, abs=0.01)
+    assert report["corner_loss"]["keep_rate"]["measured"] == pytest.approx(0.85, abs=0.01)
+    assert report["lateral_shift"]["max_abs_shift_px"]["measured"] <= 3.0
+    assert report["lateral_shift"]["mean_abs_shift_px"]["measured"] == pytest.approx(1.5, abs=0.05)
+    assert report["approx_error"]["sigma_px"]["measured"] == pytest.approx(0.15, rel=0.02)
+    assert report["corner_mismatch"]["mismatch_rate"]["measured"] == pytest.approx(0.05, abs=0.01)
+    assert report["corner_mismatch"]["max_distance_px"]["measured"] <= 10.0
+    assert report["stereo_mismatch"]["mismatch_rate"]["measured"] == pytest.approx(0.05, abs=0.01)
+    assert report["stereo_mismatch"]["max_shift_px"]["measured"] <= 20.0
+
+
+def segments(n: int, trials: int = 1, seed: int = 0) -> im.ImageSet:
+    """n random straight strokes, repeated for `trials` trials."""
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(0, 600, size=(n, 2, 2)).reshape(-1, 2)
+    z = np.zeros(n, int)
+    one = im.ImageSet(pts=pts, start=np.arange(0, 2 * n + 1, 2), fid=np.arange(n), segment=z - 1, fragment=z - 1,
+                      kind=z, clipped=z.astype(bool), closed=z.astype(bool), trial=z, corners=np.zeros((0, 2)),
+                      corner_fid=np.zeros(0, int), corner_trial=np.zeros(0, int))
+    return one.repeat_trials(trials)
+
+
+def test_lateral_shift_moves_straight_lines_perpendicular_within_range():
+    straight = segments(40, trials=50)
+    out = REGISTRY["lateral_shift"].apply(REGISTRY["lateral_shift"].Params(range=2.0), straight, ctx(trials=50))
+    d = out.pts - straight.pts
+    direction = straight.pts[1::2] - straight.pts[::2]
+    along = np.abs((d[::2] * direction).sum(1)) / np.linalg.norm(direction, axis=1)
+    assert along.max() < 1e-9 and np.linalg.norm(d, axis=1).max() <= 2.0 + 1e-12
+    assert np.allclose(d[::2], d[1::2])  # both ends move together
+
+
+def test_edge_loss_removes_its_fraction_of_every_feature():
+    s = lab_view(trials=4)
+    out = REGISTRY["edge_loss"].apply(REGISTRY["edge_loss"].Params(fraction=0.4), s, ctx(trials=4))
+    _, before = im.arc_lengths(s)
+    _, after = im.arc_lengths(out)
+    key_b = {}
+    for L, f, g, t in zip(before, s.fid, s.segment, s.trial, strict=True):
+        key_b[(f, g, t)] = key_b.get((f, g, t), 0) + L
+    key_a = {}
+    for L, f, g, t in zip(after, out.fid, out.segment, out.trial, strict=True):
+        key_a[(f, g, t)] = key_a.get((f, g, t), 0) + L
+    for k, L in key_b.items():
+        assert key_a.get(k, 0.0) == pytest.approx(0.6 * L, rel=1e-6, abs=1e-9)
+
+
+def test_calibration_draws_have_the_declared_covariance():
+    C = np.array([[4.0, 1.2, 0], [1.2, 1.0, 0.1], [0, 0.1, 0.25]])
+    for kind, M, sigma in (("covariance", C, 1.0), ("information", np.linalg.inv(C) * 0.01**2, 0.01)):
+        p = REGISTRY["calibration_error"].Params(sigma=sigma)
+        smp = calib.sampler(p, kind, M.tolist(), ["left.f", "left.cx", "left.cy"])
+        draws = np.array([calib.draw(smp, t, 3) for t in range(20000)])
+        S = np.cov(draws, rowvar=False)
+        scale = np.sqrt(np.outer(np.diag(C), np.diag(C)))
+        assert np.all(np.abs(S - C) <= 0.05 * scale), (kind, S, C)  # 20,000 draws: ~1% sampling error
+
+
+@pytest.mark.parametrize("eigs", [[1.0, 1e-3, 0.0], [1.0, 1e-14, 1e-16], [1.0, 1e-12, -1e-15]])
+def test_near_singular_information_gives_finite_bounded_draws_and_names_the_loose_direction(eigs):
+    rng = np.random.default_rng(0)
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    M = Q @ np.diag(eigs) @ Q.T
+    p = REGISTRY["calibration_error"].Params(sigma=1.0, cutoff=1e-9)
+    smp = calib.sampler(p, "information", M.tolist(), ["left.f", "left.cx", "right.tz"])
+    draws = np.array([calib.draw(smp, t, 1) for t in range(200)])
+    assert np.isfinite(draws).all() and np.abs(draws).max() < 1e4
+    loose = sum(e <= 1e-9 for e in eigs)
+    assert len(smp.unconstrained) == loose
+
+
+# ----------------------------------------------------------------------------- the epipolar band
+
+def test_the_band_edge_is_exact():
+    horizontal = np.array([1.0, 0.0, 0.0])  # epipole at infinity along x: horizontal epipolar lines
+    angles = np.radians([4.9, 5.0 - 1e-9, 5.1, 90.0, 0.0])
+    a = np.tile([100.0, 100.0], (len(angles), 1))
+    b = a + 50 * np.column_stack([np.cos(angles), np.sin(angles)])
+    got = np.degrees(angle_to_epipolar(a, b, horizontal))
+    assert got == pytest.approx(np.degrees(angles), abs=1e-9)
+    s = im.ImageSet(pts=np.stack([a, b], 1).reshape(-1, 2), start=np.arange(0, 2 * len(a) + 1, 2),
+                    fid=np.arange(len(a)), segment=-np.ones(len(a), int), fragment=-np.ones(len(a), int),
+                    kind=np.zeros(len(a), int), clipped=np.zeros(len(a), bool), closed=np.zeros(len(a), bool),
+                    trial=np.zeros(len(a), int), corners=np.zeros((0, 2)), corner_fid=np.zeros(0, int),
+                    corner_trial=np.zeros(0, int))
+    c = Context(pose=0, side="left", trials=np.array([0]), seed=0, stats=Stats(), epipole=lambda: horizontal)
+    out = REGISTRY["stereo_mismatch"].apply(REGISTRY["stereo_mismatch"].Params(fraction=0), s, c)
+    assert sorted(out.fid.tolist()) == [2, 3]  # 4.9, 5.0- and 0 deg dropped; 5.1 and 90 kept
+
+
+# ----------------------------------------------------------------------------- streams, replay, seeds
+
+def _corners(batches):
+    return [(r.index, side, s.corners.tobytes(), s.corner_trial.tobytes())
+            for _, out in batches for r, d, _ in out for side, s in sorted(d.items())]
+
+
+def test_a_stage_draws_the_same_whatever_other_stages_run():
+    _, alone = run_pipeline("corner_loss", trials=4)
+    _, with_edges = run_pipeline("edge_loss\nlateral_shift\ncorner_loss\napprox_error", trials=4)
+    _, reordered = run_pipeline("approx_error\ncorner_loss\nedge_loss", trials=4)
+    assert _corners(alone) == _corners(with_edges) == _corners(reordered)
+
+
+def test_replaying_a_trial_alone_gives_exactly_its_output(tmp_path):
+    args = ["build", "scenes/lab.wd", "--pipeline", "edges", "--seed", "42", "--no-svg"]
+    r = CliRunner().invoke(main, [*args, "--trials", "4", "--format", "jsonl", "-o", str(tmp_path / "all")])
+    assert r.exit_code == 0, r.output
+    lines = [json.loads(x) for x in (tmp_path / "all" / "features.jsonl").read_text().splitlines()]
+    assert len(lines) == 4 * 7
+    trial2 = [doc["poses"][0] for doc in lines if doc["trial"] == 2]
+    r = CliRunner().invoke(main, [*args, "--trial", "2", "-o", "-"])
+    replay = json.loads(r.stdout)
+    assert replay["trial"] == 2 and replay["poses"] == trial2
+
+
+def test_same_seed_gives_byte_identical_dumps_and_the_seed_is_recorded(tmp_path):
+    outs = []
+    for d in ("a", "b"):
+        r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "--seed", "9", "--pose", "1", "-o", str(tmp_path / d)])
+        assert r.exit_code == 0, r.output
+        outs.append({p.name: p.read_bytes() for p in (tmp_path / d).iterdir()})
+    assert outs[0] == outs[1]
+    doc = json.loads(outs[0]["features.json"])
+    assert doc["seed"] == 9 and doc["pipeline"] == "paper"
+    r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "--pose", "1", "-o", "-"])
+    assert isinstance(json.loads(r.stdout)["seed"], int)  # drawn and recorded when omitted
+
+
+# ----------------------------------------------------------------------------- only what is called for
+
+def test_only_the_stages_called_for_run():
+    run, _ = run_pipeline("edge_loss\nlateral_shift", trials=3)
+    assert set(run.trace) == {"project", "project:right", "edge_loss", "lateral_shift"}
+    assert run.trace["project"] == 1  # no calibration error: one projection shared by every trial
+    assert [s["effect"] for s in run.manifest()["stages"]] == ["edge_loss", "lateral_shift"]
+
+
+def test_no_epipolar_geometry_without_stereo_and_no_decomposition_without_calibration():
+    run, _ = run_pipeline("corner_loss\napprox_error", trials=2)
+    assert "epipole" not in run.trace and "decompose" not in run.trace
+    run, _ = run_pipeline("stereo_mismatch", trials=2)
+    assert run.trace["epipole"] > 0 and "decompose" not in run.trace
+    run, _ = run_pipeline("calibration_error", trials=2)
+    assert run.trace["decompose"] == 1 and run.trace["project"] == 2 and "epipole" not in run.trace
+
+
+def test_no_right_camera_projection_when_only_the_left_is_asked_for():
+    run, batches = run_pipeline("edge_loss", trials=2, right=False)
+    assert run.trace["project:right"] == 0
+    assert all(set(d) == {"left"} for _, out in batches for _, d, _ in out)
+
+
+def test_stages_at_zero_are_not_run_and_not_listed():
+    run, _ = run_pipeline("edge_loss fraction 0\nlateral_shift", trials=1)
+    assert "edge_loss" not in run.trace and [e.name for e, _ in run.stages] == ["lateral_shift"]
+
+
+def test_dump_lists_exactly_the_stages_that_ran(tmp_path):
+    r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "--pipeline", "edges", "--seed", "1", "--pose", "0",
+                                  "-o", "-"])
+    doc = json.loads(r.stdout)
+    assert [s["effect"] for s in doc["stages"]] == ["edge_loss", "lateral_shift"]
+    assert doc["stages"][0]["params"] == {"fraction": 0.29}
+    r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "--no-effects", "--pose", "0", "-o", "-"])
+    doc = json.loads(r.stdout)
+    assert doc["stages"] == [] and doc["seed"] is None and doc["pipeline"] is None
+
+
+def test_unknown_pipeline_is_a_usage_error():
+    r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "--pipeline", "papr", "-o", "-"])
+    assert r.exit_code == 2 and "no pipeline 'papr'" in r.output and "paper, edges" in r.output
+
+
+def test_npz_streams_batches_and_carries_the_manifest(tmp_path):
+    r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "--pipeline", "edges", "--trials", "300", "--format",
+                                  "npz", "--seed", "3", "-o", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    z = np.load(tmp_path / "features.npz")
+    batches = sorted({k.split("_")[0] for k in z.files if k.startswith("b")})
+    assert len(batches) == math.ceil(300 / 256)
+    rows = np.concatenate([z[f"{b}_strokes"] for b in batches])
+    assert sorted(set(rows[:, 0].tolist())) == list(range(300))
+    manifest = json.loads(str(z["manifest"]))
+    assert manifest["trials"] == 300 and manifest["seed"] == 3
+    assert json.loads((tmp_path / "manifest.json").read_text())["stages"][0]["effect"] == "edge_loss"
