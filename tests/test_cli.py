@@ -58,6 +58,14 @@ def test_compile_writes_stdout_and_keeps_old_output_on_failure(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["scene.json"]  # no temporary left behind
 
 
+def test_outputs_have_ordinary_permissions(tmp_path):
+    out = tmp_path / "scene.json"
+    assert run("compile", "scenes/cylinder.wd", "-o", str(out)).exit_code == 0
+    mask = os.umask(0)
+    os.umask(mask)
+    assert out.stat().st_mode & 0o777 == 0o666 & ~mask
+
+
 def test_fmt_check_and_rewrite(tmp_path):
     f = tmp_path / "s.wd"
     f.write_text("wiredsl   1\nmodel m {   line a from (0,0,0) to (1,0,0) }\n")

@@ -21,6 +21,7 @@ from .features import (
     StageRecord,
     View,
 )
+from .files import publish
 from .scene import Scene
 from .simulate import PoseResult
 from .simulate import View as SimView
@@ -120,10 +121,8 @@ class JsonLines:
         self.fh.write(to_json(doc, indent=None))
 
     def close(self) -> None:
-        import os
-
         self.fh.close()
-        os.replace(self.tmp, self.path)
+        publish(self.tmp, self.path)
 
     def abort(self) -> None:
         import os
@@ -183,14 +182,13 @@ class NpzStream:
         self.n += 1
 
     def close(self, feature_ids: list[str], manifest: dict) -> None:
-        import os
 
         self._array("feature_ids", np.array(feature_ids))
         self._array("manifest", np.array(json.dumps(manifest, sort_keys=True)))
         fh = self.zf.fp
         self.zf.close()
         fh.close()
-        os.replace(self.tmp, self.path)
+        publish(self.tmp, self.path)
 
     def abort(self) -> None:
         import os
