@@ -85,9 +85,17 @@ def fold_radius(k1: float, k2: float = 0.0) -> float:
     Beyond it the radial mapping folds back and is no longer one-to-one, so nothing
     there is projected (tangential terms, small in practice, are not considered).
     """
-    # d/dr = 1 + 3 k1 r^2 + 5 k2 r^4 = 0, a quadratic in s = r^2
-    roots = np.roots([5.0 * k2, 3.0 * k1, 1.0]) if k2 != 0.0 else ([-1.0 / (3.0 * k1)] if k1 != 0.0 else [])
-    positive = [float(r.real) for r in np.atleast_1d(roots) if abs(complex(r).imag) < 1e-12 and r.real > 0]
+    # d/dr = 1 + 3 k1 r^2 + 5 k2 r^4 = 0: a s^2 + b s + 1 = 0 in s = r^2, solved in the stable form
+    # (q = -(b + sign(b) sqrt(disc)) / 2, roots q / a and 1 / q) so that a tiny a cannot overflow
+    a, b = 5.0 * k2, 3.0 * k1
+    disc = b * b - 4.0 * a
+    if disc < 0:
+        return math.inf
+    q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
+    roots = [1.0 / q if q != 0 else math.inf]
+    if a != 0:
+        roots.append(q / a)
+    positive = [s for s in roots if math.isfinite(s) and s > 0]
     return math.sqrt(min(positive)) if positive else math.inf
 
 
@@ -101,14 +109,14 @@ def clip_segments_cone(A: np.ndarray, B: np.ndarray, near: float, r_max: float):
     t1 = np.ones(len(A))
     # z(t) = Az + t Dz >= near
     dz, az = D[:, 2], A[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         tz = (near - az) / dz
     rising = dz > 0
     falling = dz < 0
     t0 = np.where(rising, np.maximum(t0, tz), t0)
     t1 = np.where(falling, np.minimum(t1, tz), t1)
     keep = ~((dz == 0) & (az < near))
-    if math.isfinite(r_max):
+    if r_max < 1e6:  # beyond that (89.99994 deg off-axis) nothing can be imaged anyway; avoids overflow
         # q(t) = a t^2 + b t + c <= 0 with q = x^2 + y^2 - r^2 z^2; a convex region meets a line in one interval
         r2 = r_max * r_max
         a = D[:, 0] ** 2 + D[:, 1] ** 2 - r2 * D[:, 2] ** 2
@@ -136,7 +144,7 @@ def _quadratic_nonpositive(a, b, c, dz):
     scale = np.maximum(np.maximum(np.abs(a), np.abs(b)), np.abs(c)) + 1e-300
     lin = np.abs(a) <= 1e-12 * scale
     disc = b * b - 4 * a * c
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         sq = np.sqrt(np.maximum(disc, 0.0))
         q = -0.5 * (b + np.where(b >= 0, sq, -sq))  # stable roots: q / a and c / q
         r1, r2 = q / a, c / q
@@ -166,7 +174,7 @@ def clip_segments_rect(a: np.ndarray, b: np.ndarray, width: float, height: float
     for p, q in ((-d[:, 0], a[:, 0]), (d[:, 0], width - a[:, 0]), (-d[:, 1], a[:, 1]), (d[:, 1], height - a[:, 1])):
         parallel = p == 0
         keep &= ~(parallel & (q < 0))
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             r = q / p
         t0 = np.where(~parallel & (p < 0), np.maximum(t0, r), t0)
         t1 = np.where(~parallel & (p > 0), np.minimum(t1, r), t1)
@@ -213,7 +221,7 @@ def _distance_to_chord(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarra
     d = b - a
     length = np.hypot(d[:, 0], d[:, 1])
     cross = np.abs(d[:, 0] * (p[:, 1] - a[:, 1]) - d[:, 1] * (p[:, 0] - a[:, 0]))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         perp = cross / length
     return np.where(length > 0, perp, np.hypot(p[:, 0] - a[:, 0], p[:, 1] - a[:, 1]))
 

@@ -226,7 +226,8 @@ def _segments(A, B, fid, seg, cam: Camera, r_fold: float, distorted: bool, tol: 
         b = geometry.cam_to_pixels(A[idx] + t1[idx, None] * D[idx], cam)
         r0, r1, ok = geometry.clip_segments_rect(a, b, cam.width, cam.height)
         d = b - a
-        for j in np.flatnonzero(ok & (r1 > r0)):
+        long_enough = np.linalg.norm(d, axis=1) * (r1 - r0) > 1e-9  # a line seen end-on has no image
+        for j in np.flatnonzero(ok & (r1 > r0) & long_enough):
             i = idx[j]
             pts = np.stack([a[j] + r0[j] * d[j], a[j] + r1[j] * d[j]])
             cut = bool(cut3d[i] or r0[j] > 0 or r1[j] < 1)
