@@ -253,7 +253,8 @@ def test_no_epipolar_geometry_without_stereo_and_no_decomposition_without_calibr
     run, _ = run_pipeline("stereo_mismatch", trials=2)
     assert run.trace["epipole"] > 0 and "decompose" not in run.trace
     run, _ = run_pipeline("calibration_error", trials=2)
-    assert run.trace["decompose"] == 1 and run.trace["project"] == 2 and "epipole" not in run.trace
+    assert run.trace["decompose"] == 1 and run.trace["project"] == 1 and run.trace["reproject"] == 1
+    assert "epipole" not in run.trace
 
 
 def test_no_right_camera_projection_when_only_the_left_is_asked_for():
@@ -295,3 +296,34 @@ def test_npz_streams_batches_and_carries_the_manifest(tmp_path):
     manifest = json.loads(str(z["manifest"]))
     assert manifest["trials"] == 300 and manifest["seed"] == 3
     assert json.loads((tmp_path / "manifest.json").read_text())["stages"][0]["effect"] == "edge_loss"
+
+
+def test_batched_calibration_reprojection_agrees_with_exact_projection():
+    """Re-projecting the ideal strokes with every trial's perturbed cameras (the fast path) against
+    projecting each trial's rig from scratch: corners agree exactly, strokes within the tolerance."""
+    from wiredsl.bench import _distance_to_polylines
+
+    outs = {}
+    for exact in (False, True):
+        run, _ = run_pipeline("calibration_error", trials=0)
+        run.exact_calibration = exact
+        outs[exact] = [o for _, o in run.batches(list(range(6)))][0]
+        assert ("reproject" in run.trace) != exact
+    worst_corner = worst_stroke = 0.0
+    for (_, fast, _), (_, ref, _) in zip(outs[False], outs[True], strict=True):
+        for side in ref:
+            a, b = fast[side], ref[side]
+            ka = {(f, t): p for p, f, t in zip(a.corners, a.corner_fid, a.corner_trial, strict=True)}
+            for p, f, t in zip(b.corners, b.corner_fid, b.corner_trial, strict=True):
+                worst_corner = max(worst_corner, float(np.abs(ka[(f, t)] - p).max()))
+            for k in range(b.n_strokes):
+                key = (b.fid[k], b.segment[k], b.trial[k])
+                mine = [a.pts[a.start[i]:a.start[i + 1]] for i in range(a.n_strokes)
+                        if (a.fid[i], a.segment[i], a.trial[i]) == key]
+                pts = b.pts[b.start[k]:b.start[k + 1]]
+                inside = (pts[:, 0] > 1) & (pts[:, 0] < 639) & (pts[:, 1] > 1) & (pts[:, 1] < 479)
+                assert mine or not inside.any()
+                if inside.any():
+                    worst_stroke = max(worst_stroke, float(_distance_to_polylines(pts[inside], mine).max()))
+    assert worst_corner < 1e-9
+    assert worst_stroke < 0.1 + 0.05  # the polyline tolerance, plus the nominal view's sampling

@@ -255,10 +255,13 @@ def _positive_px(ctx, param, value: float) -> float:
               help="Largest deviation (px) of an emitted polyline from the true image curve.")
 @click.option("--visibility", type=click.Choice(["scene", "exact", "all"]), default="scene", show_default=True,
               help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion.")
+@click.option("--exact-calibration", is_flag=True,
+              help="Project each trial's perturbed rig from scratch (slow) instead of re-projecting the ideal "
+                   "strokes with every trial's cameras at once.")
 @guarded
 def build(file: str, output: str | None, pipeline_name: str | None, no_effects: bool, seed: int | None, trials: int,
           only_trial: int | None, poses: tuple[int, ...], out_format: str, svg: bool, cameras: str, tolerance: float,
-          visibility: str) -> None:
+          visibility: str, exact_calibration: bool) -> None:
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
     import secrets
     import time
@@ -301,6 +304,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     opts = Options(tolerance=tolerance, visibility=visibility, poses=tuple(sorted(set(poses))) or None,
                    right=cameras == "both")
     run = Run.create(scene, world, pipeline, seed, opts)
+    run.exact_calibration = exact_calibration
     effects = bool(run.stages)
     out_dir = None if output == "-" else (Path(output) if output else Path("build") / scene.name)
     records = emit.stage_records(run)
@@ -426,3 +430,34 @@ def viewdep(file: str, output: str | None, threshold: float) -> None:
         output = str(base / vp.file) if vp.file else str(base / f"{Path(scene.source).stem}.viewdep.json")
     write_atomic(output, emit.to_json(doc))
     click.echo(f"wrote {output} ({len(vp.names)} view-points, {world.n_features} features)", err=True)
+
+
+@main.command()
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", default=None, help="The plot (default build/<scene name>/bench.svg).")
+@click.option("--budget", type=click.FloatRange(1, None), default=60.0, show_default=True,
+              help="Seconds the Monte-Carlo table may spend; rows beyond it are not run.")
+@guarded
+def bench(file: str, output: str | None, budget: float) -> None:
+    """Measure what each accuracy knob costs in time on a scene: four tables (stdout) and a plot."""
+    import platform
+    from pathlib import Path
+
+    from . import bench as bench_mod
+    from .compile import compile_file
+    from .files import write_atomic
+    from .simulate import require_buildable
+    from .world import build_world
+
+    scene, warnings, program = compile_file(file)
+    report(warnings, program.sources, "text")
+    require_buildable(scene)
+    world = build_world(scene)
+    tables = bench_mod.run_all(scene, world, budget, progress=lambda m: click.echo(m, err=True))
+    click.echo(f"## wiredsl bench {file}\n\nMachine: {platform.machine()}, {os.cpu_count()} cores, "
+               f"Python {platform.python_version()}, numpy {__import__('numpy').__version__}.\n")
+    for t in tables:
+        click.echo(t.markdown())
+    out = Path(output) if output else Path("build") / scene.name / "bench.svg"
+    write_atomic(out, bench_mod.plot_svg(tables))
+    click.echo(f"wrote {out}", err=True)

@@ -100,7 +100,8 @@ def disturbed_results(batch_out, k: int) -> list[PoseResult]:
             if side not in disturbed:
                 sides[side] = None
                 continue
-            base = views[side][k] if views[side] is not None else getattr(result, side)
+            v = views[side]
+            base = getattr(result, side) if v is None else v(k) if callable(v) else v[k]
             sides[side] = SimView(base.camera, base.R_cw, base.t_cw, features_of(disturbed[side], k))
         out.append(PoseResult(result.index, result.pose, result.viewpoint, sides["left"], sides["right"]))
     return out

@@ -114,17 +114,20 @@ def unroll_closed(s: ImageSet) -> ImageSet:
                    closed=np.zeros_like(s.closed))
 
 
-def keep_intervals(s: ImageSet, stroke: np.ndarray, a: np.ndarray, b: np.ndarray, fragment: np.ndarray) -> ImageSet:
+def keep_intervals(s: ImageSet, stroke: np.ndarray, a: np.ndarray, b: np.ndarray, fragment: np.ndarray,
+                   closed: np.ndarray | None = None, cut: np.ndarray | None = None) -> ImageSet:
     """New strokes: the parts of strokes `stroke` (K,) between arc lengths a and b (K,).
 
-    Each part starts and ends at interpolated points and keeps the stroke's metadata,
-    with `fragment` set; parts shorter than 1e-9 px are dropped.
+    Each part starts and ends at interpolated points and keeps the stroke's metadata, with `fragment`
+    and `closed` set and `clipped` or-ed with `cut`; parts shorter than 1e-9 px are dropped.
     """
     arc, lengths = arc_lengths(s)
     a = np.clip(a, 0.0, lengths[stroke])
     b = np.clip(b, 0.0, lengths[stroke])
     ok = b - a > 1e-9
     stroke, a, b, fragment = stroke[ok], a[ok], b[ok], fragment[ok]
+    closed = np.zeros(len(stroke), dtype=bool) if closed is None else np.asarray(closed, dtype=bool)[ok]
+    cut = np.zeros(len(stroke), dtype=bool) if cut is None else np.asarray(cut, dtype=bool)[ok]
     if len(stroke) == 0:
         out = empty()
         return replace(out, corners=s.corners, corner_fid=s.corner_fid, corner_trial=s.corner_trial)
@@ -157,8 +160,62 @@ def keep_intervals(s: ImageSet, stroke: np.ndarray, a: np.ndarray, b: np.ndarray
         out[dst] = s.pts[src]
     meta = _meta(s, stroke)
     meta["fragment"] = fragment
-    meta["closed"] = np.zeros(len(stroke), dtype=bool)
+    meta["closed"] = closed
+    meta["clipped"] = meta["clipped"] | cut
     return replace(s, pts=out, start=start, **meta)
+
+
+def keep_vertex_runs(s: ImageSet, ok: np.ndarray) -> ImageSet:
+    """Strokes cut to their runs of vertices where ok (N,) holds; cut strokes are flagged `clipped`."""
+    if ok.all():
+        return s
+    n = len(ok)
+    stroke_of = s.vertex_stroke()
+    first = np.zeros(n, dtype=bool)
+    first[s.start[:-1][s.counts > 0]] = True
+    last = np.zeros(n, dtype=bool)
+    last[s.start[1:][s.counts > 0] - 1] = True
+    begins = ok & (first | ~np.concatenate([[False], ok[:-1]]))
+    ends = ok & (last | ~np.concatenate([ok[1:], [False]]))
+    b_idx, e_idx = np.flatnonzero(begins), np.flatnonzero(ends)
+    arc, _ = arc_lengths(s)  # the same measure keep_intervals uses (invalid vertices only need be finite)
+    stroke = stroke_of[b_idx]
+    whole = first[b_idx] & last[e_idx]
+    return keep_intervals(s, stroke, arc[b_idx], arc[e_idx], np.where(whole, s.fragment[stroke], 0),
+                          closed=whole & s.closed[stroke], cut=~whole)
+
+
+def clip_rect(s: ImageSet, width: float, height: float) -> ImageSet:
+    """Strokes cut to the image rectangle [0, width] x [0, height]; cut strokes are flagged `clipped`."""
+    x, y = s.pts[:, 0], s.pts[:, 1]
+    if len(x) == 0 or (x.min() >= 0 and y.min() >= 0 and x.max() <= width and y.max() <= height):
+        return s
+    from .geometry import clip_segments_rect
+
+    n = len(s.pts)
+    t0, t1, keep = clip_segments_rect(s.pts[:-1], s.pts[1:], width, height)
+    last = s.start[1:] - 1
+    real = np.ones(n - 1, dtype=bool)
+    real[last[last < n - 1]] = False  # pairs that straddle two strokes
+    keep &= real & (t1 > t0)
+    first_pair = np.zeros(n - 1, dtype=bool)
+    first_pair[s.start[:-1][s.start[:-1] < n - 1]] = True
+    last_pair = np.zeros(n - 1, dtype=bool)
+    lp = last - 1
+    last_pair[lp[(lp >= 0) & (lp < n - 1)]] = True
+    prev_joins = np.zeros(n - 1, dtype=bool)  # pair j continues pair j - 1 without a cut
+    prev_joins[1:] = keep[:-1] & keep[1:] & (t1[:-1] >= 1) & (t0[1:] <= 0) & ~first_pair[1:]
+    begins = keep & ~prev_joins
+    ends = keep & ~np.concatenate([prev_joins[1:], [False]])
+    j, k = np.flatnonzero(begins), np.flatnonzero(ends)
+    arc, lengths = arc_lengths(s)
+    seg_len = np.linalg.norm(s.pts[1:] - s.pts[:-1], axis=1)
+    stroke = s.vertex_stroke()[j]
+    a = arc[j] + t0[j] * seg_len[j]
+    b = arc[k] + t1[k] * seg_len[k]
+    whole = first_pair[j] & (t0[j] <= 0) & last_pair[k] & (t1[k] >= 1)
+    return keep_intervals(s, stroke, a, b, np.where(whole, s.fragment[stroke], np.maximum(s.fragment[stroke], 0)),
+                          closed=whole & s.closed[stroke], cut=~whole)
 
 
 def vertex_normals(s: ImageSet) -> np.ndarray:

@@ -45,6 +45,7 @@ class Run:
     _ideal: list[PoseResult] | None = None
     _epipoles: dict = field(default_factory=dict)
     _visible: tuple | None = None
+    exact_calibration: bool = False  # project each trial's perturbed rig from scratch (slow reference)
 
     @classmethod
     def create(cls, scene: Scene, world: World, pipeline, seed: int, options: Options) -> Run:
@@ -115,34 +116,38 @@ class Run:
 
     def _batch(self, batch: list[int]):
         sampler = self.sampler()
-        if sampler is None:
-            per_trial = None
-            base = self.ideal()
-        else:
+        per_trial = rigs = None
+        base = self.ideal()
+        if sampler is not None:
             order = self.scene.rig.calibration.order
-            per_trial = []
-            for t in batch:
-                phi = calib.draw(sampler, t, self.seed)
-                self.stats.samples["calibration_error"].append(phi)
-                per_trial.append(self.project(calib.perturb(self.scene, phi, order)))
-            base = per_trial[0]
+            phis = np.array([calib.draw(sampler, t, self.seed) for t in batch])
+            self.stats.samples["calibration_error"].extend(phis)
+            if self.exact_calibration:  # each trial's rig projected from scratch: the reference
+                per_trial = [self.project(calib.perturb(self.scene, phi, order)) for phi in phis]
+                base = per_trial[0]
+            else:
+                self.trace["reproject"] += 1
+                rigs = calib.perturbed_rigs(self.scene, phis, order)
         out = []
         for j, result in enumerate(base):
             disturbed = {}
+            views = {"left": None, "right": None}
             for side in ("left", "right"):
                 if getattr(result, side) is None:
                     continue
-                if per_trial is None:
-                    sets = to_imageset(getattr(result, side), self.world).repeat_trials(len(batch))
-                else:
+                if per_trial is not None:
                     sets = concat_trials([to_imageset(getattr(r[j], side), self.world) for r in per_trial])
+                    views[side] = [getattr(r[j], side) for r in per_trial]
+                elif rigs is not None:
+                    sets, views[side] = reproject(getattr(result, side), self.world, rigs[side], result.pose, side)
+                else:
+                    sets = to_imageset(getattr(result, side), self.world).repeat_trials(len(batch))
                 ctx = Context(pose=result.index, side=side, trials=np.array(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s))
                 for effect, params in self.image_stages:
                     self.trace[effect.name] += 1
                     sets = effect.apply(params, sets, ctx)
                 disturbed[side] = sets
-            views = {s: [getattr(r[j], s) for r in per_trial] if per_trial else None for s in ("left", "right")}
             out.append((result, disturbed, views))
         return out
 
@@ -204,3 +209,62 @@ def features_of(s: im.ImageSet, k: int) -> list[ImageFeature]:
     for i in np.flatnonzero(s.corner_trial == k):
         out.append(ImageFeature(int(s.corner_fid[i]), "corner", s.corners[i][None, :]))
     return out
+
+
+def reproject(view: View, world: World, rig: dict, pose: tuple, side: str):
+    """Every trial's view under its perturbed camera, at once: the ideal view's strokes before image
+    clipping (their world points) projected with per-trial parameters, then cut to the image.
+
+    The strokes keep the ideal view's sampling and silhouette generators; vertices a perturbation takes
+    behind the near plane or past the fold radius are cut away. Returns the ImageSet and
+    a function giving trial k's View (its camera and pose) for the dump.
+    """
+    p = rig["params"]
+    T = len(p["f"])
+    R_wr = geometry.rot_z(pose[2])
+    R_wc = R_wr[None] @ rig["rotation"]
+    t_wc = rig["position"] @ R_wr.T + np.array([pose[0], pose[1], 0.0])
+    R_cw = np.transpose(R_wc, (0, 2, 1))
+    t_cw = -np.einsum("tij,tj->ti", R_cw, t_wc)
+    raw = view.raw
+    counts = np.array([len(r.world) for r in raw], dtype=int)
+    W = np.concatenate([r.world for r in raw]) if raw else np.zeros((0, 3))
+    kinds = np.array([im.STRAIGHT if r.kind == "line" else
+                      im.ELLIPSE if world.feature_kind[r.fid] == "ellipse" else im.CURVE for r in raw], dtype=int)
+    cw = view.corner_world if view.corner_world is not None else np.zeros((0, 3))
+    cf = view.corner_fid if view.corner_fid is not None else np.zeros(0, dtype=int)
+    z = np.zeros(len(raw), dtype=int)
+    template = im.ImageSet(
+        pts=np.zeros((len(W), 2)), start=np.concatenate([[0], np.cumsum(counts)]).astype(int),
+        fid=np.array([r.fid for r in raw], dtype=int), segment=np.array([r.segment for r in raw], dtype=int),
+        fragment=z - 1, kind=kinds, clipped=np.array([r.clipped for r in raw], dtype=bool),
+        closed=np.array([r.closed for r in raw], dtype=bool), trial=z, corners=np.zeros((len(cw), 2)),
+        corner_fid=np.asarray(cf, dtype=int), corner_trial=np.zeros(len(cw), dtype=int))
+    rep = template.repeat_trials(T)
+    folds = np.array([geometry.fold_radius(k1, k2) for k1, k2 in zip(p["k1"], p["k2"], strict=True)])
+
+    def project(points, trial):
+        P = np.einsum("nij,nj->ni", R_cw[trial], points) + t_cw[trial]
+        ok = P[:, 2] > geometry.NEAR
+        xy = P[:, :2] / np.where(ok, P[:, 2], 1.0)[:, None]
+        ok &= np.hypot(xy[:, 0], xy[:, 1]) < folds[trial]
+        g = {k: p[k][trial] for k in p}
+        uv = geometry.plane_to_pixels(geometry.distort(xy, g["k1"], g["k2"], g["p1"], g["p2"]),
+                                      g["f"], g["ax"], g["ay"], g["cx"], g["cy"])
+        return uv, ok
+
+    uv, ok = project(np.tile(W, (T, 1)), np.repeat(rep.trial, rep.counts))
+    # a vertex the perturbation takes behind the near plane or past the fold (a stroke cut there in the
+    # ideal view) is cut away with its neighbours' span, as the ideal path cuts in 3D
+    rep = im.keep_vertex_runs(im.replace(rep, pts=np.where(ok[:, None], uv, 0.0)), ok)
+    cam = rig["camera"]
+    rep = im.clip_rect(rep, cam.width, cam.height)
+    cuv, cok = project(np.tile(cw, (T, 1)), rep.corner_trial)
+    cok &= (cuv[:, 0] >= 0) & (cuv[:, 0] <= cam.width) & (cuv[:, 1] >= 0) & (cuv[:, 1] <= cam.height)
+    rep = im.replace(rep, corners=cuv).take_corners(cok)
+
+    def view_of(k: int) -> View:
+        fields = {key: float(p[key][k]) for key in p}
+        return View(cam.model_copy(update={**fields, "name": f"{cam.name}:{side}"}), R_cw[k], t_cw[k])
+
+    return rep, view_of

@@ -45,11 +45,26 @@ class ImageFeature:
 
 
 @dataclass
+class Raw:
+    """A stroke before image clipping: the world points its vertices image, for re-projection."""
+
+    fid: int
+    segment: int
+    kind: str  # "line" (straight in the image), "polyline"
+    closed: bool
+    clipped: bool  # already cut in 3D (near plane, fold)
+    world: np.ndarray  # (k, 3)
+
+
+@dataclass
 class View:
     camera: Camera
     R_cw: np.ndarray
     t_cw: np.ndarray
     features: list[ImageFeature] = field(default_factory=list)
+    raw: list[Raw] = field(default_factory=list)  # the strokes before image clipping
+    corner_world: np.ndarray | None = None  # (C, 3) the corners in front of the camera, before image clipping
+    corner_fid: np.ndarray | None = None
 
 
 @dataclass
@@ -170,11 +185,11 @@ def project_view(world: World, cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, 
     sA, sB, sfid, sseg = silhouettes_cam(world, mask, R_cw, t_cw)
     A, B = np.concatenate([A, sA]), np.concatenate([B, sB])
     fid, seg = np.concatenate([fid, sfid]).astype(int), np.concatenate([seg, sseg]).astype(int)
-    view.features += _segments(A, B, fid, seg, cam, r_fold, distorted, tol)
+    view.features += _segments(A, B, fid, seg, cam, r_fold, distorted, tol, view.raw, R_cw, t_cw)
 
     sel = np.flatnonzero(mask[world.ell_fid])
     for e in sel:
-        view.features += _ellipse(world, e, cam, R_cw, t_cw, r_fold, distorted, tol)
+        view.features += _ellipse(world, e, cam, R_cw, t_cw, r_fold, distorted, tol, view.raw)
 
     sel = mask[world.corner_fid]
     if sel.any():
@@ -184,6 +199,7 @@ def project_view(world: World, cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, 
         ok &= np.hypot(xy[:, 0], xy[:, 1]) < r_fold
         uv = geometry.plane_to_pixels(geometry.distort(xy, cam.k1, cam.k2, cam.p1, cam.p2),
                                       cam.f, cam.ax, cam.ay, cam.cx, cam.cy)
+        view.corner_world, view.corner_fid = world.corners[sel][ok], world.corner_fid[sel][ok]
         ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
         for f, p in zip(world.corner_fid[sel][ok], uv[ok], strict=True):
             view.features.append(ImageFeature(int(f), "corner", p[None, :]))
@@ -213,7 +229,12 @@ def silhouettes_cam(world: World, mask: np.ndarray, R_cw, t_cw):
             np.array(fids, dtype=int), np.array(sides, dtype=int))
 
 
-def _segments(A, B, fid, seg, cam: Camera, r_fold: float, distorted: bool, tol: float) -> list[ImageFeature]:
+def _to_world(P_cam: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
+    return (P_cam - t_cw) @ R_cw
+
+
+def _segments(A, B, fid, seg, cam: Camera, r_fold: float, distorted: bool, tol: float, raw: list[Raw],
+              R_cw, t_cw) -> list[ImageFeature]:
     out: list[ImageFeature] = []
     if len(A) == 0:
         return out
@@ -222,8 +243,12 @@ def _segments(A, B, fid, seg, cam: Camera, r_fold: float, distorted: bool, tol: 
     D = B - A
     idx = np.flatnonzero(keep)
     if not distorted:
-        a = geometry.cam_to_pixels(A[idx] + t0[idx, None] * D[idx], cam)
-        b = geometry.cam_to_pixels(A[idx] + t1[idx, None] * D[idx], cam)
+        Pa, Pb = A[idx] + t0[idx, None] * D[idx], A[idx] + t1[idx, None] * D[idx]
+        for j, i in enumerate(idx):
+            raw.append(Raw(int(fid[i]), int(seg[i]), "line", False, bool(cut3d[i]),
+                           _to_world(np.stack([Pa[j], Pb[j]]), R_cw, t_cw)))
+        a = geometry.cam_to_pixels(Pa, cam)
+        b = geometry.cam_to_pixels(Pb, cam)
         r0, r1, ok = geometry.clip_segments_rect(a, b, cam.width, cam.height)
         d = b - a
         long_enough = np.linalg.norm(d, axis=1) * (r1 - r0) > 1e-9  # a line seen end-on has no image
@@ -241,6 +266,8 @@ def _segments(A, B, fid, seg, cam: Camera, r_fold: float, distorted: bool, tol: 
     for j, ts in enumerate(params):
         i = idx[j]
         pts = point(np.full(len(ts), j), ts)
+        raw.append(Raw(int(fid[i]), int(seg[i]), "polyline", False, bool(cut3d[i]),
+                       _to_world(A[i] + ts[:, None] * D[i], R_cw, t_cw)))
         for piece, cut in geometry.clip_polyline_rect(pts, cam.width, cam.height):
             out.append(ImageFeature(int(fid[i]), "polyline", piece, int(seg[i]), bool(cut or cut3d[i])))
     return out
@@ -267,7 +294,8 @@ def _front_intervals(cz: float, Az: float, Bz: float, arc: tuple[float, float]) 
     return out
 
 
-def _ellipse(world: World, e: int, cam: Camera, R_cw, t_cw, r_fold, distorted, tol) -> list[ImageFeature]:
+def _ellipse(world: World, e: int, cam: Camera, R_cw, t_cw, r_fold, distorted, tol, raw: list[Raw]
+             ) -> list[ImageFeature]:
     fid = int(world.ell_fid[e])
     c = R_cw @ world.ell_c[e] + t_cw
     U = R_cw @ world.ell_U[e]
@@ -295,7 +323,10 @@ def _ellipse(world: World, e: int, cam: Camera, R_cw, t_cw, r_fold, distorted, t
                            np.broadcast_to(V, (len(ts), 3)), ts)
         inside = np.hypot(P[:, 0] / P[:, 2], P[:, 1] / P[:, 2]) < r_fold
         any_cut |= not inside.all()
-        for run in _runs(inside):
+        runs = _runs(inside)
+        for run in runs:
+            raw.append(Raw(fid, -1, "polyline", full and whole and len(runs) == 1 and inside.all(),
+                           not (whole and inside.all()), _to_world(P[run], R_cw, t_cw)))
             pts = geometry.cam_to_pixels(P[run], cam)
             for piece, cut in geometry.clip_polyline_rect(pts, cam.width, cam.height):
                 pieces.append((piece, cut))

@@ -98,6 +98,44 @@ def perturb(scene, phi: np.ndarray, order: list[str]):
     return scene.model_copy(update={"rig": new_rig, "cameras": [*scene.cameras, *renamed]})
 
 
+def rotation_vectors(r: np.ndarray) -> np.ndarray:
+    """Rodrigues for many rotation vectors (T, 3) -> (T, 3, 3)."""
+    theta = np.linalg.norm(r, axis=1)
+    k = np.divide(r, theta[:, None], out=np.zeros_like(r), where=theta[:, None] > 0)
+    K = np.zeros((len(r), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
+    return np.eye(3)[None] + s * K + (1 - c) * (K @ K)
+
+
+CAMERA_KEYS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2")
+
+
+def perturbed_rigs(scene, phis: np.ndarray, order: list[str]) -> dict:
+    """Every trial's perturbed rig at once: for each side, camera parameter arrays (T,) and the mount
+    rotation (T, 3, 3) and position (T, 3). The same arithmetic as `perturb`, vectorised over trials."""
+    col = {name: i for i, name in enumerate(order)}
+    T = len(phis)
+    out = {}
+    for side in ("left", "right"):
+        mount = getattr(scene.rig, side)
+        cam = scene.camera(mount.camera)
+
+        def delta(key, side=side):
+            i = col.get(f"{side}.{key}")
+            return phis[:, i] if i is not None else np.zeros(T)
+
+        params = {k: getattr(cam, k) + (delta(k) if k not in ("k1",) else 0.0) for k in CAMERA_KEYS}
+        params["k1"] = cam.k1 - delta("k")  # TINA's k = -k1
+        R = np.array(mount.rotation)
+        dt = np.column_stack([delta("tx"), delta("ty"), delta("tz")])
+        position = np.array(mount.position)[None] + dt @ R.T
+        rotation = R[None] @ rotation_vectors(np.column_stack([delta("rx"), delta("ry"), delta("rz")]))
+        out[side] = {"params": params, "rotation": rotation, "position": position, "camera": cam}
+    return out
+
+
 class CalibrationError(Effect):
     name = "calibration_error"
     acts_on = "cameras"

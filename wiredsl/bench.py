@@ -1,0 +1,313 @@
+"""`wiredsl bench`: what each accuracy knob costs in time, measured on the user's own scene.
+
+Four tables, every row measured in this run:
+1. polyline tolerance: largest distance from the true image curve (densely sampled, independently of
+   the adaptive sampler) to the emitted polylines, time per view, vertices per view;
+2. view-dependency: meshes of several spacings (and the scene's own) against exact per-camera
+   visibility: fraction of (pose, camera, feature) visibilities that differ, and the time each takes;
+3. Monte-Carlo trials: standard error of a headline statistic (mean displacement of the corners that
+   survive, ideal to disturbed, under the scene's pipeline) against wall time;
+4. float32 against float64 projection: largest pixel difference, and time.
+Rows that would not fit the time budget are not run, and say so.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import geometry, visibility
+from .montecarlo import Run
+from .scene import Scene
+from .simulate import Options, simulate, visibility_masks
+from .world import World, ellipse_points
+
+TOLERANCES = (0.01, 0.03, 0.1, 0.3, 1.0, 2.0)
+SPACINGS = (0.25, 0.5, 1.0, 2.0)
+TRIALS = (10, 100, 1000, 10_000, 100_000)
+
+
+@dataclass
+class Table:
+    title: str
+    columns: list[str]
+    rows: list[list] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    plot: tuple[int, int] | None = None  # (x column, y column) for the figure: time against error
+
+    def markdown(self) -> str:
+        out = [f"### {self.title}", "", "| " + " | ".join(self.columns) + " |",
+               "|" + "---|" * len(self.columns)]
+        out += ["| " + " | ".join(_fmt(v) for v in row) + " |" for row in self.rows]
+        out += [""] + [f"{n}" for n in self.notes]
+        return "\n".join(out).rstrip() + "\n"
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        if v == 0:
+            return "0"
+        return f"{v:.3g}" if abs(v) < 1e4 else f"{v:,.0f}"
+    if isinstance(v, int):
+        return f"{v:,}"
+    return str(v)
+
+
+def _timed(fn, min_seconds: float = 0.3):
+    """(result, seconds per call), repeating fast calls to measure them above timer noise."""
+    t0 = time.perf_counter()
+    result = fn()
+    elapsed = time.perf_counter() - t0
+    reps = 1
+    while elapsed < min_seconds and reps < 50:
+        fn()
+        reps += 1
+        elapsed = time.perf_counter() - t0
+    return result, elapsed / reps
+
+
+# --------------------------------------------------------------------------- 1. tolerance
+
+def _true_curves(world: World, view, fid: int, segment: int) -> np.ndarray:
+    """Dense true image points (inside the image, in front, within the fold) of one feature."""
+    cam = view.camera
+    if world.feature_kind[fid] == "ellipse":
+        e = int(np.flatnonzero(world.ell_fid == fid)[0])
+        t = np.linspace(world.ell_arc[e, 0], world.ell_arc[e, 1], 20001)
+        P = ellipse_points(np.broadcast_to(world.ell_c[e], (len(t), 3)), np.broadcast_to(world.ell_U[e], (len(t), 3)),
+                           np.broadcast_to(world.ell_V[e], (len(t), 3)), t)
+    else:
+        rows = np.flatnonzero((world.line_fid == fid) & (world.line_segment == segment))
+        if len(rows) == 0:
+            return np.zeros((0, 2))
+        A, B = world.lines[rows[0]]
+        t = np.linspace(0, 1, 20001)[:, None]
+        P = A + t * (B - A)
+    Pc = geometry.world_to_cam(P, view.R_cw, view.t_cw)
+    front = Pc[:, 2] > geometry.NEAR * 1.01
+    Pc = Pc[front]
+    xy = geometry.cam_to_plane(Pc)
+    ok = np.hypot(xy[:, 0], xy[:, 1]) < geometry.fold_radius(cam.k1, cam.k2) * 0.999
+    uv = geometry.cam_to_pixels(Pc[ok], cam)
+    inside = (uv[:, 0] > 0.5) & (uv[:, 0] < cam.width - 0.5) & (uv[:, 1] > 0.5) & (uv[:, 1] < cam.height - 0.5)
+    return uv[inside]
+
+
+def _distance_to_polylines(points: np.ndarray, polylines: list[np.ndarray]) -> np.ndarray:
+    best = np.full(len(points), np.inf)
+    for poly in polylines:
+        a, b = poly[:-1], poly[1:]
+        d = b - a
+        for lo in range(0, len(points), 4096):
+            p = points[lo:lo + 4096]
+            t = np.clip(((p[:, None] - a[None]) * d[None]).sum(-1) / np.maximum((d * d).sum(-1), 1e-300), 0, 1)
+            dist = np.linalg.norm(p[:, None] - (a[None] + t[..., None] * d[None]), axis=-1).min(axis=1)
+            best[lo:lo + 4096] = np.minimum(best[lo:lo + 4096], dist)
+    return best
+
+
+def tolerance_table(scene: Scene, world: World) -> Table:
+    table = Table("Polyline tolerance: accuracy of curved features against time",
+                  ["tolerance (px)", "max deviation (px)", "time per view (ms)", "vertices per view"], plot=(2, 1))
+    opts = Options(visibility="all")
+    vis = visibility_masks(scene, world, opts)
+    for tol in TOLERANCES:
+        o = Options(tolerance=tol, visibility="all")
+        results, seconds = _timed(lambda o=o: simulate(scene, o, world, vis))
+        views = [v for r in results for v in (r.left, r.right) if v is not None]
+        worst = 0.0
+        vertices = 0
+        for v in views:
+            groups: dict[tuple[int, int], list[np.ndarray]] = {}
+            for f in v.features:
+                if f.kind == "polyline":
+                    groups.setdefault((f.fid, f.segment), []).append(f.points)
+                    vertices += len(f.points)
+            for (fid, seg), polys in groups.items():
+                truth = _true_curves(world, v, fid, seg)
+                if len(truth):
+                    worst = max(worst, float(_distance_to_polylines(truth, polys).max()))
+        table.rows.append([tol, worst, 1000 * seconds / len(views), round(vertices / len(views))])
+    table.notes.append("Deviation: every one of 20,001 true curve points a feature (projected exactly, inside the "
+                       "image) to the nearest emitted polyline of that feature.")
+    return table
+
+
+# --------------------------------------------------------------------------- 2. view-dependency
+
+def _grid(lo, hi, spacing):
+    xs = np.arange(lo[0], hi[0] + 1e-9, spacing)
+    ys = np.arange(lo[1], hi[1] + 1e-9, spacing)
+    return np.array([(x, y) for y in ys for x in xs])
+
+
+def viewdep_table(scene: Scene, world: World) -> Table:
+    table = Table("View-dependency: manifold against exact per-camera visibility",
+                  ["visibility from", "view-points", "wrong visibility", "time for the path (s)"], plot=(3, 2))
+    poses = np.array(scene.path.poses, dtype=float)
+    rig = scene.rig
+    eyes, keys = [], []
+    for i, pose in enumerate(poses):
+        for mount in (rig.left, rig.right):
+            R_cw, t_cw = geometry.camera_from_world(tuple(pose), mount.rotation, mount.position)
+            eyes.append(-R_cw.T @ t_cw)
+            keys.append(i)
+    t0 = time.perf_counter()
+    exact = visibility.visible_features(world, np.array(eyes))
+    exact_seconds = time.perf_counter() - t0
+    table.rows.append(["exact (each camera at each pose)", "-", 0.0, exact_seconds])
+    meshes = []
+    if scene.viewpoints is not None:
+        meshes.append((f"scene's mesh '{scene.viewpoints.name}'", np.array(scene.viewpoints.points, dtype=float)))
+        lo, hi = meshes[0][1].min(axis=0), meshes[0][1].max(axis=0)
+    else:
+        lo, hi = poses[:, :2].min(axis=0) - 1, poses[:, :2].max(axis=0) + 1
+    for s in SPACINGS:
+        meshes.append((f"grid {s:g} m", _grid(lo, hi, s)))
+    h = visibility.eye_height(scene)
+    for name, pts in meshes:
+        t0 = time.perf_counter()
+        nearest = visibility.nearest_viewpoint(pts, poses[:, :2])
+        needed = sorted(set(nearest.tolist()))
+        vis = visibility.visible_features(world, np.column_stack([pts[needed], np.full(len(needed), h)]))
+        seconds = time.perf_counter() - t0
+        row_of = {k: j for j, k in enumerate(needed)}
+        approx = np.array([vis[row_of[int(nearest[i])]] for i in keys])
+        wrong = float((approx != exact).mean())
+        table.rows.append([name, len(pts), wrong, seconds])
+    table.notes.append("Wrong visibility: the fraction of (pose, camera, feature) visibilities that differ from the "
+                       "exact ones. Time: computing the lists of the view-points this path's poses are nearest to "
+                       "(a view-dependency file computes them once for every view-point and is then free).")
+    return table
+
+
+# --------------------------------------------------------------------------- 3. trials
+
+def headline(run: Run, batch_out) -> np.ndarray:
+    """Per trial of a batch: mean displacement (px) of the corners that survive, ideal to disturbed."""
+    sums, counts = None, None
+    for result, disturbed, _ in batch_out:
+        for side, s in disturbed.items():
+            ideal = getattr(run.ideal()[[r.index for r in run.ideal()].index(result.index)], side)
+            ref = {f.fid: f.points[0] for f in ideal.features if f.kind == "corner"}
+            n = int(s.corner_trial.max(initial=-1)) + 1
+            if sums is None or len(sums) < n:
+                grow = n - (0 if sums is None else len(sums))
+                sums = np.concatenate([[] if sums is None else sums, np.zeros(grow)])
+                counts = np.concatenate([[] if counts is None else counts, np.zeros(grow)])
+            for p, fid, t in zip(s.corners, s.corner_fid, s.corner_trial, strict=True):
+                if fid in ref:
+                    sums[t] += np.linalg.norm(p - ref[fid])
+                    counts[t] += 1
+    return sums / np.maximum(counts, 1) if sums is not None else np.zeros(0)
+
+
+def trials_table(scene: Scene, world: World, budget: float, seed: int = 1) -> Table:
+    pipeline = scene.pipeline()
+    name = pipeline.name if pipeline else "none"
+    table = Table(f"Monte-Carlo trials: standard error of the mean corner displacement (pipeline '{name}') "
+                  "against time", ["trials", "mean displacement (px)", "standard error (px)", "wall time (s)"],
+                  plot=(3, 2))
+    if pipeline is None:
+        table.notes.append("The scene has no default pipeline: nothing to measure.")
+        return table
+    spent = 0.0
+    rate = None
+    for n in TRIALS:
+        if rate is not None and spent + n / rate > budget:
+            table.notes.append(f"{n:,} trials not run: at the measured {rate:,.0f} trials/s they would take "
+                               f"{n / rate:,.0f} s, over the budget of {budget:g} s (--budget).")
+            continue
+        run = Run.create(scene, world, pipeline, seed, Options())
+        t0 = time.perf_counter()
+        values = np.concatenate([headline(run, out) for _, out in run.batches(list(range(n)))])
+        seconds = time.perf_counter() - t0
+        spent += seconds
+        rate = n / seconds
+        table.rows.append([n, float(values.mean()), float(values.std(ddof=1) / math.sqrt(n)), seconds])
+    return table
+
+
+# --------------------------------------------------------------------------- 4. float32
+
+def precision_table(scene: Scene, world: World) -> Table:
+    table = Table("float32 against float64: projection of 1,000,000 scene points",
+                  ["arithmetic", "max difference (px)", "time (ms)"], plot=(2, 1))
+    rng = np.random.default_rng(0)
+    pts = world.lines.reshape(-1, 3) if len(world.lines) else np.zeros((1, 3))
+    idx = rng.integers(0, len(pts), 1_000_000)
+    other = rng.integers(0, len(pts), 1_000_000)
+    t = rng.random((1_000_000, 1))
+    P = pts[idx] + t * (pts[other] - pts[idx])  # points on and between the scene's edges
+    mount = scene.rig.left
+    R_cw, t_cw = geometry.camera_from_world(tuple(scene.path.poses[0]), mount.rotation, mount.position)
+    cam = scene.camera(mount.camera)
+
+    def project(dtype):
+        Pc = geometry.world_to_cam(P.astype(dtype), R_cw.astype(dtype), t_cw.astype(dtype))
+        Pc = Pc[Pc[:, 2] > 0.1]
+        return geometry.cam_to_pixels(Pc, cam)
+
+    ref, t64 = _timed(lambda: project(np.float64))
+    got, t32 = _timed(lambda: project(np.float32))
+    inside = (np.abs(ref[:, 0] - cam.width / 2) < cam.width) & (np.abs(ref[:, 1] - cam.height / 2) < cam.height)
+    diff = float(np.abs(got.astype(np.float64) - ref)[inside].max())
+    table.rows.append(["float64", 0.0, 1000 * t64])
+    table.rows.append(["float32", diff, 1000 * t32])
+    table.notes.append("Points within one image size of the image. The engine keeps float64 throughout: the "
+                       "float32 error is shown against the time it would save.")
+    return table
+
+
+# --------------------------------------------------------------------------- the figure
+
+def plot_svg(tables: list[Table]) -> str:
+    """Four small log-log panels, error against time, hand-written SVG."""
+    W, H, M = 300, 220, 46
+    parts = []
+    for i, t in enumerate(tables):
+        ox, oy = 10 + (i % 2) * (W + 20), 10 + (i // 2) * (H + 30)
+        parts.append(f'<g transform="translate({ox},{oy})">')
+        parts.append(f'<text x="0" y="12" font-family="sans-serif" font-size="11">{_esc(t.title[:58])}</text>')
+        parts.append(f'<rect x="{M}" y="20" width="{W - M - 8}" height="{H - 60}" fill="#fafafa" stroke="#333"/>')
+        pts = [(row[t.plot[0]], row[t.plot[1]]) for row in t.rows
+               if t.plot and isinstance(row[t.plot[0]], float | int) and isinstance(row[t.plot[1]], float | int)
+               and row[t.plot[0]] > 0 and row[t.plot[1]] > 0]
+        if len(pts) >= 1:
+            xs, ys = np.log10([p[0] for p in pts]), np.log10([p[1] for p in pts])
+            x0, x1 = xs.min() - 0.1, xs.max() + 0.1
+            y0, y1 = ys.min() - 0.1, ys.max() + 0.1
+            sx = (W - M - 8) / (x1 - x0)
+            sy = (H - 60) / (y1 - y0)
+            coords = [(M + (x - x0) * sx, 20 + (H - 60) - (y - y0) * sy) for x, y in zip(xs, ys, strict=True)]
+            parts.append('<polyline points="' + " ".join(f"{x:.1f},{y:.1f}" for x, y in coords) +
+                         '" fill="none" stroke="#1f4e79" stroke-width="1.5"/>')
+            parts += [f'<circle cx="{x:.1f}" cy="{y:.1f}" r="3" fill="#1f4e79"/>' for x, y in coords]
+            parts.append(f'<text x="{M}" y="{H - 26}" font-family="sans-serif" font-size="9">'
+                         f'{_esc(t.columns[t.plot[0]])} (log, {10**x0:.3g} .. {10**x1:.3g})</text>')
+            parts.append(f'<text x="0" y="{H - 12}" font-family="sans-serif" font-size="9">'
+                         f'up: {_esc(t.columns[t.plot[1]])} (log, {10**y0:.3g} .. {10**y1:.3g})</text>')
+        else:
+            parts.append(f'<text x="{M + 10}" y="80" font-family="sans-serif" font-size="10">nothing to plot</text>')
+        parts.append("</g>")
+    w, h = 2 * (W + 20) + 10, 2 * (H + 30) + 10
+    return (f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {w} {h}" width="{w}" height="{h}">\n'
+            + "\n".join(parts) + "\n</svg>\n")
+
+
+def _esc(s: str) -> str:
+    return s.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+
+
+def run_all(scene: Scene, world: World, budget: float, progress=lambda msg: None) -> list[Table]:
+    tables = []
+    for name, make in (("tolerance", lambda: tolerance_table(scene, world)),
+                       ("view-dependency", lambda: viewdep_table(scene, world)),
+                       ("trials", lambda: trials_table(scene, world, budget)),
+                       ("float32", lambda: precision_table(scene, world))):
+        progress(f"measuring {name} ...")
+        tables.append(make())
+    return tables
