@@ -327,3 +327,24 @@ def test_batched_calibration_reprojection_agrees_with_exact_projection():
                     worst_stroke = max(worst_stroke, float(_distance_to_polylines(pts[inside], mine).max()))
     assert worst_corner < 1e-9
     assert worst_stroke < 0.1 + 0.05  # the polyline tolerance, plus the nominal view's sampling
+
+
+def test_ellipses_split_into_two_halves_across_the_major_axis():
+    """Checked against the analytic conic of an undistorted camera (the cylinder scene)."""
+    from wiredsl.effects.lateral_shift import split_ellipses
+
+    scene, _, _ = compile_file("scenes/cylinder.wd")
+    w = build_world(scene)
+    view = Run.create(scene, w, None, 0, Options()).ideal()[0].left
+    s = to_imageset(view, w)
+    ell = s.take((s.kind == im.ELLIPSE) & s.closed)
+    conic = {f.fid: f.conic for f in view.features if f.kind == "conic"}
+    assert ell.n_strokes == 2 and set(ell.fid) == set(conic)
+    out = split_ellipses(ell)
+    assert out.n_strokes == 4 and not out.closed.any()
+    assert im.arc_lengths(out)[1].sum() == pytest.approx(im.arc_lengths(ell)[1].sum(), rel=1e-9)
+    for h in range(4):
+        centre, axes, angle, _ = conic[out.fid[h]]
+        minor = np.array([-math.sin(angle), math.cos(angle)])
+        side = (out.pts[out.start[h]:out.start[h + 1]] - centre) @ minor
+        assert side.min() > -0.05 or side.max() < 0.05  # each half on one side of the major axis

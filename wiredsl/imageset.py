@@ -102,16 +102,13 @@ def unroll_closed(s: ImageSet) -> ImageSet:
     arc of length <= L starting in [0, L) is a single interval."""
     if not s.closed.any():
         return s
-    pieces, counts = [], []
-    for k in range(s.n_strokes):
-        p = s.pts[s.start[k]:s.start[k + 1]]
-        if s.closed[k]:
-            p = np.vstack([p, p, p[:1]])
-        pieces.append(p)
-        counts.append(len(p))
-    start = np.concatenate([[0], np.cumsum(counts)]).astype(int)
-    return replace(s, pts=np.concatenate(pieces) if pieces else s.pts, start=start,
-                   closed=np.zeros_like(s.closed))
+    counts = s.counts
+    new_counts = np.where(s.closed, 2 * counts + 1, counts)
+    start = np.concatenate([[0], np.cumsum(new_counts)]).astype(int)
+    k = np.repeat(np.arange(s.n_strokes), new_counts)  # the stroke of every output vertex
+    i = np.arange(start[-1]) - start[:-1][k]  # its position within the output stroke
+    src = s.start[:-1][k] + i % np.maximum(counts[k], 1)
+    return replace(s, pts=s.pts[src], start=start, closed=np.zeros_like(s.closed))
 
 
 def keep_intervals(s: ImageSet, stroke: np.ndarray, a: np.ndarray, b: np.ndarray, fragment: np.ndarray,

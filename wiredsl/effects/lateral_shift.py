@@ -45,7 +45,8 @@ class LateralShift(Effect):
 
 
 def split_ellipses(s: im.ImageSet) -> im.ImageSet:
-    """Ellipse strokes cut where they cross their own major axis (principal axis of the vertices)."""
+    """Ellipse strokes cut where they cross their own major axis (principal axis of their vertices);
+    a closed ellipse becomes its two halves, an open arc its pieces between crossings."""
     ell = s.kind == im.ELLIPSE
     if not ell.any():
         return s
@@ -53,32 +54,40 @@ def split_ellipses(s: im.ImageSet) -> im.ImageSet:
     s = im.unroll_closed(s)
     arc, L = im.arc_lengths(s)
     L = np.where(closed, L / 2, L)
-    strokes, a, b, frag = [], [], [], []
-    for k in range(s.n_strokes):
-        if not ell[k]:
-            strokes.append(k)
-            a.append(0.0)
-            b.append(L[k])
-            frag.append(-1 if s.fragment[k] < 0 else 0)
-            continue
-        lo, hi = s.start[k], s.start[k + 1]
-        P = s.pts[lo:hi]
-        n_one = (hi - lo - 1) // 2 + 1 if closed[k] else hi - lo
-        centre = P[:n_one].mean(axis=0)
-        _, _, Vt = np.linalg.svd(P[:n_one] - centre, full_matrices=False)
-        side = (P - centre) @ Vt[1]  # signed distance across the major axis
-        cross = np.flatnonzero(np.sign(side[:-1]) * np.sign(side[1:]) < 0)
-        t = side[cross] / (side[cross] - side[cross + 1])
-        s_cross = arc[lo + cross] + t * (arc[lo + cross + 1] - arc[lo + cross])
-        if closed[k]:
-            cuts = s_cross[s_cross < L[k]][:2]
-            bounds = [(cuts[0], cuts[1]), (cuts[1], cuts[0] + L[k])] if len(cuts) == 2 else [(0.0, L[k])]
-        else:
-            edges = [0.0, *s_cross.tolist(), L[k]]
-            bounds = list(zip(edges[:-1], edges[1:], strict=True))
-        for x, y in bounds:
-            strokes.append(k)
-            a.append(x)
-            b.append(y)
-            frag.append(0)
-    return im.keep_intervals(s, np.array(strokes, int), np.array(a), np.array(b), np.array(frag, int))
+    S = s.n_strokes
+    # principal axes of each stroke as a curve: segment midpoints weighted by length, which does not
+    # depend on how densely the sampler placed vertices (an unrolled loop counts each segment twice)
+    stroke_of = s.vertex_stroke()
+    same = stroke_of[:-1] == stroke_of[1:]
+    mid = (s.pts[:-1] + s.pts[1:]) / 2
+    w = np.where(same, np.linalg.norm(s.pts[1:] - s.pts[:-1], axis=1), 0.0)
+    seg_stroke = stroke_of[:-1]
+    total = np.maximum(np.bincount(seg_stroke, weights=w, minlength=S), 1e-300)
+    centre = np.column_stack([np.bincount(seg_stroke, weights=w * mid[:, i], minlength=S) for i in (0, 1)])
+    centre /= total[:, None]
+    dm = mid - centre[seg_stroke]
+    sxx, sxy, syy = (np.bincount(seg_stroke, weights=w * v, minlength=S)
+                     for v in (dm[:, 0] ** 2, dm[:, 0] * dm[:, 1], dm[:, 1] ** 2))
+    theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # the major axis
+    minor = np.column_stack([-np.sin(theta), np.cos(theta)])
+    side = ((s.pts - centre[stroke_of]) * minor[stroke_of]).sum(axis=1)
+    pair = np.flatnonzero((stroke_of[:-1] == stroke_of[1:]) & (side[:-1] * side[1:] < 0) & ell[stroke_of[:-1]])
+    t = side[pair] / (side[pair] - side[pair + 1])
+    sc = arc[pair] + t * (arc[pair + 1] - arc[pair])
+    kc = stroke_of[pair]
+    first_lap = ~closed[kc] | (sc < L[kc])
+    sc, kc = sc[first_lap], kc[first_lap]
+    cnt = np.bincount(kc, minlength=S)
+    off = np.cumsum(cnt) - cnt
+    # open strokes: [0, c1], [c1, c2], ..., [ck, L]; a closed ellipse with two crossings: [c1, c2], [c2, c1 + L]
+    halves = closed & (cnt >= 2)
+    m = np.where(halves, 2, np.where(closed, 1, cnt + 1))
+    k = np.repeat(np.arange(S), m)
+    j = np.arange(m.sum()) - np.repeat(np.cumsum(m) - m, m)
+    c = lambda i: sc[np.clip(off[k] + i, 0, max(len(sc) - 1, 0))] if len(sc) else np.zeros(len(k))  # noqa: E731
+    a = np.where(halves[k], np.where(j == 0, c(0), c(1)), np.where(j == 0, 0.0, c(j - 1)))
+    b = np.where(halves[k], np.where(j == 0, c(1), c(0) + L[k]),
+                 np.where(closed[k] | (j == cnt[k]), L[k], c(j)))
+    split = m[k] > 1
+    frag = np.where(split, 0, np.where(s.fragment[k] < 0, -1, 0))
+    return im.keep_intervals(s, k, a, b, frag, closed=~split & closed[k])

@@ -89,17 +89,11 @@ def _drop_band(s: im.ImageSet, epipole: np.ndarray, band: float) -> im.ImageSet:
     real = np.ones(len(a), dtype=bool)
     real[last[last < len(a)]] = False  # pairs that straddle two strokes
     arc, _ = im.arc_lengths(s)
-    strokes, lo, hi = [], [], []
     keep_pair = real & ~inside
     stroke_of = s.vertex_stroke()[:-1] if len(a) else np.zeros(0, int)
-    # runs of kept pairs within each stroke become fragments
+    # runs of kept pairs within each stroke become fragments (vertex ranges [starts, ends])
     change = np.flatnonzero(np.diff(np.concatenate([[False], keep_pair, [False]]).astype(int)))
-    starts, ends = change[::2], change[1::2]  # pair index ranges [starts, ends)
-    for st, en in zip(starts, ends, strict=True):
-        k = stroke_of[st]
-        strokes.append(k)
-        lo.append(arc[st])
-        hi.append(arc[en])
-    strokes = np.array(strokes, int)
+    starts, ends = change[::2], change[1::2]
+    strokes, lo, hi = stroke_of[starts], arc[starts], arc[ends]
     frag = np.zeros(len(strokes), int)  # fragments are numbered when the dump is written
-    return im.keep_intervals(s, strokes, np.array(lo), np.array(hi), frag)
+    return im.keep_intervals(s, strokes, lo, hi, frag)
