@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from wiredsl.ast import Program, parse_text
 from wiredsl.compile import compile_program
 from wiredsl.diagnostics import WiredslError
@@ -21,3 +23,12 @@ def errors_of(text: str) -> list[str]:
     except WiredslError as err:
         return [f"{d.span.line}:{d.span.col}: {d.code} {d.message}" for d in err.diagnostics if d.severity == "error"]
     return []
+
+
+def circle(centre, normal, radius):
+    """(centre, U, V) of a circle: points centre + cos(t) U + sin(t) V."""
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
+    helper = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u)
+    return np.asarray(centre, float), radius * u, radius * np.cross(n, u)

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import circle
 from test_projection import _dist_to_polyline
 
 from wiredsl import conics, geometry
@@ -15,14 +16,6 @@ from wiredsl.world import World
 
 CAM = Camera(name="c", f=600, cx=320, cy=240, width=640, height=480)
 K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
-
-
-def circle(centre, normal, radius):
-    n = np.asarray(normal, float) / np.linalg.norm(normal)
-    helper = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
-    u = np.cross(n, helper)
-    u /= np.linalg.norm(u)
-    return np.asarray(centre, float), radius * u, radius * np.cross(n, u)
 
 
 def conic_matrix(centre, axes, angle):

@@ -268,7 +268,6 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     from pathlib import Path
 
     from . import emit
-    from . import svg as svg_mod
     from .compile import compile_file
     from .files import write_atomic
     from .montecarlo import Run
@@ -346,8 +345,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                                 else:
                                     writer.write(line)
                         else:
-                            _write_json(doc_for(res, t), res, out_dir, svg, scene, world, run, effects, write_atomic,
-                                        emit, svg_mod)
+                            _write_json(doc_for(res, t), res, out_dir, svg, run)
                 bar.update(len(batch))
     except BaseException:
         if writer is not None:
@@ -385,16 +383,22 @@ class _Null:
         return False
 
 
-def _write_json(doc, results, out_dir, svg, scene, world, run, effects, write_atomic, emit, svg_mod) -> None:
+def _write_json(doc, results, out_dir, svg: bool, run) -> None:
+    """One trial's dump, and its SVGs (disturbed over ideal when the pipeline ran)."""
+    from . import emit
+    from . import svg as svg_mod
+    from .files import write_atomic
+
     text = emit.to_json(doc)
     if out_dir is None:
         sys.stdout.write(text)
         return
     write_atomic(out_dir / "features.json", text)
     if svg:
-        ideal = {r.index: r for r in run.ideal()} if effects else {}
+        ideal = {r.index: r for r in run.ideal()} if run.stages else {}
         for r in results:
-            write_atomic(out_dir / f"pose_{r.index:03d}.svg", svg_mod.render(scene, world, r, ideal.get(r.index)))
+            write_atomic(out_dir / f"pose_{r.index:03d}.svg", svg_mod.render(run.scene, run.world, r,
+                                                                             ideal.get(r.index)))
 
 
 @main.command()

@@ -48,6 +48,14 @@ class Brackets:
             yield tok
 
 
+def _cache_ok() -> bool:
+    """lark caches tables in the temporary directory; skip the cache where that is not writable."""
+    import os
+    import tempfile
+
+    return os.access(tempfile.gettempdir(), os.W_OK)
+
+
 def _sink(tok: lark.Token) -> None:
     _CommentSink.tokens.append(tok)
 
@@ -62,6 +70,7 @@ def parser(transformer: lark.Transformer | None = None) -> lark.Lark:
     return lark.Lark(
         grammar_path().read_text(encoding="utf-8"),
         parser="lalr",
+        cache=transformer is None or _cache_ok(),  # LALR tables keyed by the grammar's hash: fast cold starts
         propagate_positions=transformer is None,
         maybe_placeholders=False,
         transformer=transformer,

@@ -8,7 +8,7 @@ import math
 import mpmath as mp
 import numpy as np
 import pytest
-from helpers import compile_text, errors_of
+from helpers import circle, compile_text, errors_of
 
 from wiredsl import conics, geometry
 from wiredsl import imageset as im
@@ -178,14 +178,6 @@ def case_corner_beyond_the_fold_is_dropped():
 
 
 # ------------------------------------------------------------------ ellipses and conics
-
-def circle(centre, normal, r):
-    n = np.asarray(normal, float) / np.linalg.norm(normal)
-    helper = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
-    u = np.cross(n, helper)
-    u /= np.linalg.norm(u)
-    return np.asarray(centre, float), r * u, r * np.cross(n, u)
-
 
 def _conic_points_ok(c, U, V, cam=PINHOLE):
     (conic,) = [f for f in view(ellipse_world(c, U, V), cam=cam).features if f.kind == "conic"]
