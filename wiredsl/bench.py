@@ -37,6 +37,7 @@ class Table:
     rows: list[list] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     plot: tuple[int, int] | None = None  # (x column, y column) for the figure: time against error
+    short: str = ""  # the figure's panel title
 
     def markdown(self) -> str:
         out = [f"### {self.title}", "", "| " + " | ".join(self.columns) + " |",
@@ -111,7 +112,8 @@ def _distance_to_polylines(points: np.ndarray, polylines: list[np.ndarray]) -> n
 
 def tolerance_table(scene: Scene, world: World) -> Table:
     table = Table("Polyline tolerance: accuracy of curved features against time",
-                  ["tolerance (px)", "max deviation (px)", "time per view (ms)", "vertices per view"], plot=(2, 1))
+                  ["tolerance (px)", "max deviation (px)", "time per view (ms)", "vertices per view"], plot=(2, 1),
+                  short="polyline tolerance")
     opts = Options(visibility="all")
     vis = visibility_masks(scene, world, opts)
     for tol in TOLERANCES:
@@ -146,7 +148,8 @@ def _grid(lo, hi, spacing):
 
 def viewdep_table(scene: Scene, world: World) -> Table:
     table = Table("View-dependency: manifold against exact per-camera visibility",
-                  ["visibility from", "view-points", "wrong visibility", "time for the path (s)"], plot=(3, 2))
+                  ["visibility from", "view-points", "wrong visibility", "time for the path (s)"], plot=(3, 2),
+                  short="view-point mesh spacing")
     poses = np.array(scene.path.poses, dtype=float)
     rig = scene.rig
     eyes, keys = [], []
@@ -210,7 +213,7 @@ def trials_table(scene: Scene, world: World, budget: float, seed: int = 1) -> Ta
     name = pipeline.name if pipeline else "none"
     table = Table(f"Monte-Carlo trials: standard error of the mean corner displacement (pipeline '{name}') "
                   "against time", ["trials", "mean displacement (px)", "standard error (px)", "wall time (s)"],
-                  plot=(3, 2))
+                  plot=(3, 2), short="Monte-Carlo trials")
     if pipeline is None:
         table.notes.append("The scene has no default pipeline: nothing to measure.")
         return table
@@ -235,9 +238,12 @@ def trials_table(scene: Scene, world: World, budget: float, seed: int = 1) -> Ta
 
 def precision_table(scene: Scene, world: World) -> Table:
     table = Table("float32 against float64: projection of 1,000,000 scene points",
-                  ["arithmetic", "max difference (px)", "time (ms)"], plot=(2, 1))
+                  ["arithmetic", "max difference (px)", "time (ms)"], plot=(2, 1), short="float32 against float64")
     rng = np.random.default_rng(0)
-    pts = world.lines.reshape(-1, 3) if len(world.lines) else np.zeros((1, 3))
+    pts, _ = visibility.samples(world)  # points on every feature of the scene
+    if len(pts) == 0:
+        table.notes.append("The scene has no features: nothing to measure.")
+        return table
     idx = rng.integers(0, len(pts), 1_000_000)
     other = rng.integers(0, len(pts), 1_000_000)
     t = rng.random((1_000_000, 1))
@@ -253,6 +259,9 @@ def precision_table(scene: Scene, world: World) -> Table:
 
     ref, t64 = _timed(lambda: project(np.float64))
     got, t32 = _timed(lambda: project(np.float32))
+    if len(ref) == 0:
+        table.notes.append("No scene point is in front of the first pose's left camera: nothing to measure.")
+        return table
     inside = (np.abs(ref[:, 0] - cam.width / 2) < cam.width) & (np.abs(ref[:, 1] - cam.height / 2) < cam.height)
     diff = float(np.abs(got.astype(np.float64) - ref)[inside].max())
     table.rows.append(["float64", 0.0, 1000 * t64])
@@ -271,11 +280,12 @@ def plot_svg(tables: list[Table]) -> str:
     for i, t in enumerate(tables):
         ox, oy = 10 + (i % 2) * (W + 20), 10 + (i // 2) * (H + 30)
         parts.append(f'<g transform="translate({ox},{oy})">')
-        parts.append(f'<text x="0" y="12" font-family="sans-serif" font-size="11">{_esc(t.title[:58])}</text>')
+        parts.append(f'<text x="0" y="12" font-family="sans-serif" font-size="11">{_esc(t.short or t.title)}</text>')
         parts.append(f'<rect x="{M}" y="20" width="{W - M - 8}" height="{H - 60}" fill="#fafafa" stroke="#333"/>')
         pts = [(row[t.plot[0]], row[t.plot[1]]) for row in t.rows
                if t.plot and isinstance(row[t.plot[0]], float | int) and isinstance(row[t.plot[1]], float | int)
                and row[t.plot[0]] > 0 and row[t.plot[1]] > 0]
+        pts.sort()
         if len(pts) >= 1:
             xs, ys = np.log10([p[0] for p in pts]), np.log10([p[1] for p in pts])
             x0, x1 = xs.min() - 0.1, xs.max() + 0.1
