@@ -66,6 +66,13 @@ def test_outputs_have_ordinary_permissions(tmp_path):
     assert out.stat().st_mode & 0o777 == 0o666 & ~mask
 
 
+def test_unwritable_output_is_a_clean_error(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    r = run("build", "scenes/cylinder.wd", "-o", str(blocker / "out"))
+    assert r.exit_code == 1 and "cannot write" in r.stderr and "internal error" not in r.stderr
+
+
 def test_fmt_check_and_rewrite(tmp_path):
     f = tmp_path / "s.wd"
     f.write_text("wiredsl   1\nmodel m {   line a from (0,0,0) to (1,0,0) }\n")

@@ -49,6 +49,10 @@ def guarded(fn: Callable) -> Callable:
             sys.exit(EXIT_INVALID)
         except (click.exceptions.Exit, click.ClickException, SystemExit, KeyboardInterrupt):
             raise
+        except OSError as exc:  # the disk, not the input or a bug: say which file and why
+            where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+            click.echo(f"wiredsl: error: cannot write{where}: {exc.strerror or exc}", err=True)
+            sys.exit(EXIT_INVALID)
         except Exception as exc:  # a bug: say so plainly, keep the traceback for WIREDSL_DEBUG
             if os.environ.get("WIREDSL_DEBUG"):
                 raise
