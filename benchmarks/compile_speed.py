@@ -14,9 +14,9 @@ import time
 
 import lark
 
-from wiredsl import parse
-from wiredsl.ast import Program, parse_text
-from wiredsl.compile import compile_program
+from wiredsl.language import parse
+from wiredsl.language.ast import Program, parse_text
+from wiredsl.language.compile import compile_program
 
 
 def generate(n_statements: int, light: bool = False) -> tuple[str, int]:

@@ -16,10 +16,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from wiredsl.compile import compile_file  # noqa: E402
-from wiredsl.montecarlo import Run  # noqa: E402
-from wiredsl.simulate import Options  # noqa: E402
-from wiredsl.world import build_world  # noqa: E402
+from wiredsl.engine.montecarlo import Run  # noqa: E402
+from wiredsl.engine.simulate import Options  # noqa: E402
+from wiredsl.engine.world import build_world  # noqa: E402
+from wiredsl.language.compile import compile_file  # noqa: E402
 
 
 def wiredsl_rate(trials: int) -> tuple[float, int]:

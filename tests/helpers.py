@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from wiredsl.ast import Program, parse_text
-from wiredsl.compile import compile_program
 from wiredsl.diagnostics import WiredslError
+from wiredsl.language.ast import Program, parse_text
+from wiredsl.language.compile import compile_program
 
 
 def compile_text(text: str, path: str = "t.wd"):

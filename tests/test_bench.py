@@ -8,8 +8,8 @@ from click.testing import CliRunner
 
 from wiredsl import bench
 from wiredsl.cli import main
-from wiredsl.compile import compile_file
-from wiredsl.world import build_world
+from wiredsl.engine.world import build_world
+from wiredsl.language.compile import compile_file
 
 
 def test_bench_command_prints_four_tables_and_writes_the_plot(tmp_path):

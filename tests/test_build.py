@@ -14,11 +14,11 @@ from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from wiredsl import emit, schema
 from wiredsl.cli import main
-from wiredsl.compile import compile_file
-from wiredsl.simulate import Options, simulate
-from wiredsl.world import build_world
+from wiredsl.engine.simulate import Options, simulate
+from wiredsl.engine.world import build_world
+from wiredsl.io import emit, schema
+from wiredsl.language.compile import compile_file
 
 BUILDABLE = ["lab", "cylinder", "box"]
 GOLDEN = Path("tests/golden")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from helpers import compile_text, errors_of
 
-from wiredsl.compile import compile_file
+from wiredsl.language.compile import compile_file
 
 SCENES = sorted(Path("scenes").glob("*.wd"))
 

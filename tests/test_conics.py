@@ -9,10 +9,10 @@ import pytest
 from helpers import circle
 from test_projection import _dist_to_polyline
 
-from wiredsl import conics, geometry
+from wiredsl.engine import conics, geometry
+from wiredsl.engine.simulate import _ellipse, project_view
+from wiredsl.engine.world import World
 from wiredsl.scene import Camera
-from wiredsl.simulate import _ellipse, project_view
-from wiredsl.world import World
 
 CAM = Camera(name="c", f=600, cx=320, cy=240, width=640, height=480)
 K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])

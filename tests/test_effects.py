@@ -11,17 +11,17 @@ import pytest
 from click.testing import CliRunner
 from helpers import compile_text, errors_of
 
-from wiredsl import imageset as im
 from wiredsl.cli import main
-from wiredsl.compile import compile_file
 from wiredsl.effects import REGISTRY
 from wiredsl.effects import calibration_error as calib
 from wiredsl.effects.base import Context, Stats
 from wiredsl.effects.stereo_mismatch import angle_to_epipolar
-from wiredsl.montecarlo import Run, to_imageset
+from wiredsl.engine import imageset as im
+from wiredsl.engine.montecarlo import Run, to_imageset
+from wiredsl.engine.simulate import Options
+from wiredsl.engine.world import build_world
+from wiredsl.language.compile import compile_file
 from wiredsl.scene import Pipeline
-from wiredsl.simulate import Options
-from wiredsl.world import build_world
 
 LAB, _, _ = compile_file("scenes/lab.wd")
 WORLD = build_world(LAB)

@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 from helpers import compile_text
 
-from wiredsl.ast import parse_text
-from wiredsl.compile import compile_file
-from wiredsl.fmt import format_text
+from wiredsl.language.ast import parse_text
+from wiredsl.language.compile import compile_file
+from wiredsl.language.fmt import format_text
 
 FILES = sorted(Path("scenes").rglob("*.wd"))
 

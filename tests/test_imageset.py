@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from wiredsl import geometry
-from wiredsl import imageset as im
+from wiredsl.engine import geometry
+from wiredsl.engine import imageset as im
 
 
 def pack(polys: list[np.ndarray], closed=None) -> im.ImageSet:

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from wiredsl import geometry
+from wiredsl.engine import geometry
 from wiredsl.scene import Camera
 
 

@@ -9,8 +9,8 @@ import jsonschema
 import pytest
 from click.testing import CliRunner
 
-from wiredsl import schema
 from wiredsl.cli import main
+from wiredsl.io import schema
 
 
 @pytest.mark.parametrize("name", schema.NAMES)

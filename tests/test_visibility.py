@@ -9,8 +9,8 @@ from click.testing import CliRunner
 from helpers import compile_text
 
 from wiredsl.cli import main
-from wiredsl.visibility import nearest_viewpoint, visible_features
-from wiredsl.world import build_world
+from wiredsl.engine.visibility import nearest_viewpoint, visible_features
+from wiredsl.engine.world import build_world
 
 # A closed 1 m box at the origin, each edge its own line so visibility is per edge.
 BOX = """wiredsl 1

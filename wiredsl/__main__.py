@@ -1,3 +1,3 @@
-from .cli import main
+from wiredsl.cli import main
 
 main()

@@ -19,11 +19,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import geometry, visibility
-from .montecarlo import Run
-from .scene import Scene
-from .simulate import Options, simulate, visibility_masks
-from .world import World, ellipse_points
+from wiredsl.engine import geometry, visibility
+from wiredsl.engine.montecarlo import Run
+from wiredsl.engine.simulate import Options, simulate, visibility_masks
+from wiredsl.engine.world import World, ellipse_points
+from wiredsl.scene import Scene
 
 TOLERANCES = (0.01, 0.03, 0.1, 0.3, 1.0, 2.0)
 SPACINGS = (0.25, 0.5, 1.0, 2.0)

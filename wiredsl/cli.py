@@ -13,7 +13,7 @@ from functools import wraps
 
 import click
 
-from . import __version__
+from wiredsl import __version__
 
 EXIT_INVALID = 1
 EXIT_INTERNAL = 3
@@ -25,7 +25,7 @@ def _colour() -> bool:
 
 def report(diags, sources: dict[str, str], fmt: str) -> None:
     """Print diagnostics to stderr in text or JSON form."""
-    from .diagnostics import render, render_json
+    from wiredsl.diagnostics import render, render_json
 
     if not diags:
         return
@@ -40,7 +40,7 @@ def guarded(fn: Callable) -> Callable:
 
     @wraps(fn)
     def wrapper(*args, **kwargs):
-        from .diagnostics import WiredslError
+        from wiredsl.diagnostics import WiredslError
 
         try:
             return fn(*args, **kwargs)
@@ -92,8 +92,8 @@ def main() -> None:
 @guarded
 def check(files: tuple[str, ...], diag_format: str) -> None:
     """Check scene FILES; exit 0 when all are valid, 1 with diagnostics."""
-    from .compile import compile_file
-    from .diagnostics import WiredslError
+    from wiredsl.diagnostics import WiredslError
+    from wiredsl.language.compile import compile_file
 
     failed = False
     all_diags = []
@@ -118,8 +118,8 @@ def check(files: tuple[str, ...], diag_format: str) -> None:
 @guarded
 def compile_cmd(file: str, output: str, diag_format: str) -> None:
     """Compile FILE to the scene JSON (valid against schema/scene.schema.json)."""
-    from .compile import compile_file
-    from .files import write_atomic
+    from wiredsl.io.files import write_atomic
+    from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diag_format)
@@ -139,9 +139,9 @@ def fmt(files: tuple[str, ...], check_only: bool, diag_format: str) -> None:
     """Rewrite FILES in canonical form, keeping comments (--check: exit 1 if any would change)."""
     from pathlib import Path
 
-    from .ast import read_source
-    from .files import write_atomic
-    from .fmt import format_text
+    from wiredsl.io.files import write_atomic
+    from wiredsl.language.ast import read_source
+    from wiredsl.language.fmt import format_text
 
     changed = []
     for f in files:
@@ -161,7 +161,7 @@ def fmt(files: tuple[str, ...], check_only: bool, diag_format: str) -> None:
 @click.argument("name", type=click.Choice(["scene", "features", "viewdep"]))
 def schema(name: str) -> None:
     """Print the JSON Schema of a scene, a features dump or a view-dependency file."""
-    from .schema import schema_dir
+    from wiredsl.io.schema import schema_dir
 
     sys.stdout.write((schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8"))
 
@@ -171,7 +171,7 @@ def schema(name: str) -> None:
 @guarded
 def validate(dumps: tuple[str, ...]) -> None:
     """Validate scene or feature dumps (JSON, or JSON lines) against the schemas."""
-    from .schema import problems
+    from wiredsl.io.schema import problems
 
     bad = 0
     for path in dumps:
@@ -215,7 +215,7 @@ def _documents(path: str, text: str) -> list[tuple[str, object]]:
 @main.command()
 def reference() -> None:
     """Print the language reference (Markdown), generated from the statement table."""
-    from .language import CONTEXTS
+    from wiredsl.language.statements import CONTEXTS
 
     out = ["| where | statement | takes | meaning |", "|---|---|---|---|"]
     for ctx, sigs in CONTEXTS.items():
@@ -271,12 +271,12 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     import time
     from pathlib import Path
 
-    from . import emit
-    from .compile import compile_file
-    from .files import write_atomic
-    from .montecarlo import Run
-    from .simulate import Options
-    from .world import build_world
+    from wiredsl.engine.montecarlo import Run
+    from wiredsl.engine.simulate import Options
+    from wiredsl.engine.world import build_world
+    from wiredsl.io import emit
+    from wiredsl.io.files import write_atomic
+    from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, "text")
@@ -389,9 +389,9 @@ class _Null:
 
 def _write_json(doc, results, out_dir, svg: bool, run) -> None:
     """One trial's dump, and its SVGs (disturbed over ideal when the pipeline ran)."""
-    from . import emit
-    from . import svg as svg_mod
-    from .files import write_atomic
+    from wiredsl.io import emit
+    from wiredsl.io import svg as svg_mod
+    from wiredsl.io.files import write_atomic
 
     text = emit.to_json(doc)
     if out_dir is None:
@@ -416,12 +416,14 @@ def viewdep(file: str, output: str | None, threshold: float) -> None:
     """Compute which features each view-point sees, and write the view-dependency file."""
     from pathlib import Path
 
-    from . import __version__, emit, visibility
-    from .compile import compile_file
-    from .diagnostics import Diagnostic, WiredslError
-    from .features import ViewDependency
-    from .files import write_atomic
-    from .world import build_world
+    from wiredsl import __version__
+    from wiredsl.diagnostics import Diagnostic, WiredslError
+    from wiredsl.engine import visibility
+    from wiredsl.engine.world import build_world
+    from wiredsl.io import emit
+    from wiredsl.io.features import ViewDependency
+    from wiredsl.io.files import write_atomic
+    from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, "text")
@@ -451,11 +453,11 @@ def bench(file: str, output: str | None, budget: float) -> None:
     import platform
     from pathlib import Path
 
-    from . import bench as bench_mod
-    from .compile import compile_file
-    from .files import write_atomic
-    from .simulate import require_buildable
-    from .world import build_world
+    from wiredsl import bench as bench_mod
+    from wiredsl.engine.simulate import require_buildable
+    from wiredsl.engine.world import build_world
+    from wiredsl.io.files import write_atomic
+    from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, "text")

@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from .effects import REGISTRY
+from wiredsl.effects import REGISTRY
 
 SCHEMA_VERSION = "1"
 

@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 from helpers import circle, compile_text, errors_of
 
-from wiredsl import conics, geometry
-from wiredsl import imageset as im
 from wiredsl.effects import REGISTRY
 from wiredsl.effects import calibration_error as calib
 from wiredsl.effects.stereo_mismatch import angle_to_epipolar
-from wiredsl.montecarlo import Run
+from wiredsl.engine import conics, geometry
+from wiredsl.engine import imageset as im
+from wiredsl.engine.montecarlo import Run
+from wiredsl.engine.simulate import Options, project_view, simulate
+from wiredsl.engine.visibility import nearest_viewpoint
+from wiredsl.engine.world import World, build_world
 from wiredsl.scene import Camera, Pipeline
-from wiredsl.simulate import Options, project_view, simulate
-from wiredsl.visibility import nearest_viewpoint
-from wiredsl.world import World, build_world
 
 mp.mp.dps = 50
 PX = 1e-6  # agreement required with the reference, in pixels
@@ -341,7 +341,7 @@ def case_calibration_slightly_indefinite_from_rounding():
 
 
 def case_calibration_perturbed_rig_projects_finitely():
-    from wiredsl.compile import compile_file
+    from wiredsl.language.compile import compile_file
 
     scene, _, _ = compile_file("scenes/lab.wd")
     order = scene.rig.calibration.order

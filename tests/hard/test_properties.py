@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from wiredsl import geometry
+from wiredsl.engine import geometry
 from wiredsl.scene import Camera
 
 cameras = st.builds(

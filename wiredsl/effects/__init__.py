@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from .approx_error import ApproxError
-from .base import FLOW, Effect, Params
-from .calibration_error import CalibrationError
-from .corner_loss import CornerLoss
-from .corner_mismatch import CornerMismatch
-from .edge_loss import EdgeLoss
-from .lateral_shift import LateralShift
-from .stereo_mismatch import StereoMismatch
+from wiredsl.effects.approx_error import ApproxError
+from wiredsl.effects.base import FLOW, Effect, Params
+from wiredsl.effects.calibration_error import CalibrationError
+from wiredsl.effects.corner_loss import CornerLoss
+from wiredsl.effects.corner_mismatch import CornerMismatch
+from wiredsl.effects.edge_loss import EdgeLoss
+from wiredsl.effects.lateral_shift import LateralShift
+from wiredsl.effects.stereo_mismatch import StereoMismatch
 
 REGISTRY: dict[str, type[Effect]] = {
     e.name: e

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .base import Effect, Params, Stats, param, stream
+from wiredsl.effects.base import Effect, Params, Stats, param, stream
 
 
 class CalibrationErrorParams(Params):

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from .. import imageset as im
-from .base import Context, Effect, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, Params, Stats, param
+from wiredsl.engine import imageset as im
 
 
 class CornerLossParams(Params):

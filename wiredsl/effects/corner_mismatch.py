@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import imageset as im
-from .base import Context, Effect, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, Params, Stats, param
+from wiredsl.engine import imageset as im
 
 
 class CornerMismatchParams(Params):

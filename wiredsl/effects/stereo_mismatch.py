@@ -15,8 +15,8 @@ import math
 
 import numpy as np
 
-from .. import imageset as im
-from .base import Context, Effect, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, Params, Stats, param
+from wiredsl.engine import imageset as im
 
 
 class StereoMismatchParams(Params):

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import lark
 
-from .diagnostics import Diagnostic, Span, WiredslError
+from wiredsl.diagnostics import Diagnostic, Span, WiredslError
 
 
 def grammar_path() -> Path:
     """The grammar file: packaged copy when installed, the checkout's `grammar/` otherwise."""
-    here = Path(__file__).resolve().parent
+    here = Path(__file__).resolve().parent.parent  # the package folder
     for candidate in (here / "grammar" / "wiredsl.lark", here.parent / "grammar" / "wiredsl.lark"):
         if candidate.is_file():
             return candidate

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .world import World, ellipse_points, surface_triangles
+from wiredsl.engine.world import World, ellipse_points, surface_triangles
 
 THRESHOLD = 0.3
 RAY_END = 1e-4  # fraction of the eye-to-sample distance treated as touching the sample

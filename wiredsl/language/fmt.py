@@ -9,7 +9,7 @@ same scene) and formatting it again changes nothing.
 
 from __future__ import annotations
 
-from . import ast
+from wiredsl.language import ast
 
 WIDTH = 100
 INDENT = "  "

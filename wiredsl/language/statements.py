@@ -10,10 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from . import ast
-from .diagnostics import Collector, Span, did_you_mean
-from .effects import REGISTRY
-from .units import KIND_NAMES, UNITS
+from wiredsl.diagnostics import Collector, Span, did_you_mean
+from wiredsl.effects import REGISTRY
+from wiredsl.language import ast
+from wiredsl.language.units import KIND_NAMES, UNITS
 
 SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "integer")
 

@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from .scene import SCHEMA_VERSION, Camera, Node, Vec2, Vec3
+from wiredsl.scene import SCHEMA_VERSION, Camera, Node, Vec2, Vec3
 
 
 class Feature(Node):

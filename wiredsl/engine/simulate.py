@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import conics, geometry, visibility
-from .diagnostics import Diagnostic, WiredslError
-from .scene import Camera, Scene
-from .world import World, build_world, ellipse_points
+from wiredsl.diagnostics import Diagnostic, WiredslError
+from wiredsl.engine import conics, geometry, visibility
+from wiredsl.engine.world import World, build_world, ellipse_points
+from wiredsl.scene import Camera, Scene
 
 DEFAULT_TOLERANCE = 0.1  # px: largest deviation of an emitted polyline from the true image curve
 
@@ -154,7 +154,7 @@ def viewpoint_lists(scene: Scene, world: World, which: list[int]) -> dict[int, n
 
 def read_viewdep(path: Path, scene: Scene) -> dict[str, list[str]]:
     """View-point -> visible feature ids, from a view-dependency file (schema/viewdep.schema.json)."""
-    from .schema import problems
+    from wiredsl.io.schema import problems
 
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))

@@ -13,8 +13,8 @@ from typing import Union
 
 import lark
 
-from . import parse
-from .diagnostics import Diagnostic, Span, WiredslError
+from wiredsl.diagnostics import Diagnostic, Span, WiredslError
+from wiredsl.language import parse
 
 
 @dataclass(frozen=True, slots=True)

@@ -14,9 +14,9 @@ NAMES = ("scene", "features", "viewdep")
 
 def _model(name: str) -> type[BaseModel]:
     if name == "scene":
-        from .scene import Scene
+        from wiredsl.scene import Scene
         return Scene
-    from . import features
+    from wiredsl.io import features
     return features.Features if name == "features" else features.ViewDependency
 
 
@@ -32,7 +32,7 @@ def render(name: str) -> str:
 
 def schema_dir() -> Path:
     """The committed schemas: packaged copy when installed, the checkout's `schema/` otherwise."""
-    here = Path(__file__).resolve().parent
+    here = Path(__file__).resolve().parent.parent  # the package folder
     for candidate in (here / "schema", here.parent / "schema"):
         if (candidate / "scene.schema.json").is_file():
             return candidate

@@ -187,7 +187,7 @@ def clip_rect(s: ImageSet, width: float, height: float) -> ImageSet:
     x, y = s.pts[:, 0], s.pts[:, 1]
     if len(x) == 0 or (x.min() >= 0 and y.min() >= 0 and x.max() <= width and y.max() <= height):
         return s
-    from .geometry import clip_segments_rect
+    from wiredsl.engine.geometry import clip_segments_rect
 
     n = len(s.pts)
     t0, t1, keep = clip_segments_rect(s.pts[:-1], s.pts[1:], width, height)

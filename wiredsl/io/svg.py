@@ -11,9 +11,9 @@ from html import escape
 
 import numpy as np
 
-from .scene import Scene
-from .simulate import PoseResult, View
-from .world import World
+from wiredsl.engine.simulate import PoseResult, View
+from wiredsl.engine.world import World
+from wiredsl.scene import Scene
 
 GAP = 20
 MARGIN = 10

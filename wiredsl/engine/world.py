@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .scene import Scene
+from wiredsl.scene import Scene
 
 
 def _empty(shape, dtype=float) -> np.ndarray:

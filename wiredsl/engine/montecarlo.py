@@ -19,14 +19,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import geometry
-from . import imageset as im
-from .effects import REGISTRY
-from .effects import calibration_error as calib
-from .effects.base import Context, Stats
-from .scene import Scene
-from .simulate import ImageFeature, Options, PoseResult, View, require_buildable, simulate, visibility_masks
-from .world import World
+from wiredsl.effects import REGISTRY
+from wiredsl.effects import calibration_error as calib
+from wiredsl.effects.base import Context, Stats
+from wiredsl.engine import geometry
+from wiredsl.engine import imageset as im
+from wiredsl.engine.simulate import (
+    ImageFeature,
+    Options,
+    PoseResult,
+    View,
+    require_buildable,
+    simulate,
+    visibility_masks,
+)
+from wiredsl.engine.world import World
+from wiredsl.scene import Scene
 
 BATCH = 256  # trials per batch: bounds memory whatever the number of trials
 

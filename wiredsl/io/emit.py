@@ -9,8 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .features import (
+from wiredsl import __version__
+from wiredsl.engine.simulate import PoseResult
+from wiredsl.engine.simulate import View as SimView
+from wiredsl.engine.world import World
+from wiredsl.io.features import (
     Features,
     ImageConic,
     ImageCorner,
@@ -21,11 +24,8 @@ from .features import (
     StageRecord,
     View,
 )
-from .files import publish
-from .scene import Scene
-from .simulate import PoseResult
-from .simulate import View as SimView
-from .world import World
+from wiredsl.io.files import publish
+from wiredsl.scene import Scene
 
 DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable across platforms
 
@@ -91,7 +91,7 @@ def stage_records(run) -> list[StageRecord]:
 
 def disturbed_results(batch_out, k: int) -> list[PoseResult]:
     """Batch trial k's disturbed PoseResults (cameras as perturbed for that trial)."""
-    from .montecarlo import features_of
+    from wiredsl.engine.montecarlo import features_of
 
     out = []
     for result, disturbed, views in batch_out:

@@ -15,11 +15,12 @@ from pathlib import Path as FsPath
 import numpy as np
 import pydantic
 
-from . import ast
-from .diagnostics import Collector, Diagnostic, Span, did_you_mean
-from .effects import REGISTRY
-from .language import Bound, bind
-from .scene import (
+from wiredsl.diagnostics import Collector, Diagnostic, Span, did_you_mean
+from wiredsl.effects import REGISTRY
+from wiredsl.language import ast
+from wiredsl.language.statements import Bound, bind
+from wiredsl.language.units import DEFAULT_UNITS
+from wiredsl.scene import (
     CALIBRATION_PARAMETERS,
     STAGE_MODELS,
     Calibration,
@@ -39,7 +40,6 @@ from .scene import (
     Silhouette,
     Viewpoints,
 )
-from .units import DEFAULT_UNITS
 
 FORMAT_VERSION = 1
 MAX_VIEWPOINTS = 100_000

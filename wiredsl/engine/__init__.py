@@ -1,0 +1,1 @@
+"""What turns a Scene into image features: geometry, world arrays, visibility, projection, trials."""

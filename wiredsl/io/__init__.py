@@ -1,0 +1,1 @@
+"""What goes in and out of files: dumps, figures, schemas, atomic writes."""

@@ -1,0 +1,1 @@
+"""What turns text into a Scene: grammar loading, parse, ast, the statement table, compile, fmt."""
