@@ -11,3 +11,20 @@ ROOT = Path(__file__).resolve().parent.parent
 def _at_root(monkeypatch):
     """Run every test from the checkout's root, so that reported paths are stable."""
     monkeypatch.chdir(ROOT)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _study_measures():
+    """The studies' test measure (tests/study_measures.py) joins whatever measures are installed."""
+    import sys
+
+    if str(ROOT / "tests") not in sys.path:  # worker processes find the test measure by module name
+        sys.path.insert(0, str(ROOT / "tests"))
+    import study_measures
+
+    from wiredsl.language import compile_study
+
+    installed = compile_study.measure_registry
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(compile_study, "measure_registry", lambda: {**installed(), **study_measures.REGISTRY})
+        yield

@@ -158,9 +158,9 @@ def fmt(files: tuple[str, ...], check_only: bool, diag_format: str) -> None:
 
 
 @main.command()
-@click.argument("name", type=click.Choice(["scene", "features", "viewdep"]))
+@click.argument("name", type=click.Choice(["scene", "features", "viewdep", "study"]))
 def schema(name: str) -> None:
-    """Print the JSON Schema of a scene, a features dump or a view-dependency file."""
+    """Print the JSON Schema of a scene, a features dump, a view-dependency file or a study table."""
     from wiredsl.io.schema import schema_dir
 
     sys.stdout.write((schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8"))
@@ -262,10 +262,13 @@ def _positive_px(ctx, param, value: float) -> float:
 @click.option("--exact-calibration", is_flag=True,
               help="Project each trial's perturbed rig from scratch (slow) instead of re-projecting the ideal "
                    "strokes with every trial's cameras at once.")
+@click.option("--study", "study_name", default=None,
+              help="Replay a study's design point (--point I) and trial (--trial K): its pipeline and seed.")
+@click.option("--point", type=click.IntRange(0, None), default=None, help="With --study: the design point I.")
 @guarded
 def build(file: str, output: str | None, pipeline_name: str | None, no_effects: bool, seed: int | None, trials: int,
           only_trial: int | None, poses: tuple[int, ...], out_format: str, svg: bool, cameras: str, tolerance: float,
-          visibility: str, exact_calibration: bool) -> None:
+          visibility: str, exact_calibration: bool, study_name: str | None = None, point: int | None = None) -> None:
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
     import secrets
     import time
@@ -301,12 +304,17 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     if out_format == "json" and len(trial_list) > 1:
         raise click.BadParameter("one JSON dump holds one trial: use --format jsonl or npz for several",
                                  param_hint="--trials")
-    if seed is None:
-        seed = secrets.randbits(63)
     world = build_world(scene)
     opts = Options(tolerance=tolerance, visibility=visibility, poses=tuple(sorted(set(poses))) or None,
                    right=cameras == "both")
-    run = Run.create(scene, world, pipeline, seed, opts)
+    if study_name is not None or point is not None:
+        run, pipeline, trial_list = _study_point(scene, world, study_name, point, only_trial, seed, pipeline_name,
+                                                 no_effects, opts, poses, out_format)
+        seed = run.seed
+    else:
+        if seed is None:
+            seed = secrets.randbits(63)
+        run = Run.create(scene, world, pipeline, seed, opts)
     run.exact_calibration = exact_calibration
     effects = bool(run.stages)
     out_dir = None if output == "-" else (Path(output) if output else Path("build") / scene.name)
@@ -340,6 +348,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                         raise click.BadParameter("npz holds Monte-Carlo trials: give a pipeline", param_hint="--format")
                 else:
                     for k, t in enumerate(batch):
+                        if only_trial is not None and t != only_trial:  # a study replay runs its whole shard
+                            continue
                         res = emit.disturbed_results(batch_out, k) if effects else [r for r, _, _ in batch_out]
                         if out_format == "jsonl":
                             for r in res:
@@ -356,7 +366,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
             writer.abort()
         raise
     manifest = {"scene": emit.scene_ref(scene).model_dump(), "pipeline": pipeline.name if pipeline else None,
-                "seed": seed, "trials": len(trial_list), "first_trial": trial_list[0], **run.manifest()}
+                "seed": seed, "trials": 1 if only_trial is not None else len(trial_list),
+                "first_trial": only_trial if only_trial is not None else trial_list[0], **run.manifest()}
     seconds = time.perf_counter() - started
     if out_format == "npz":
         writer.close(world.feature_ids, manifest)
@@ -372,6 +383,35 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                    f"seed {seed if effects else '-'}"
                    + (f", pipeline {pipeline.name}: {', '.join(e.name for e, _ in run.stages)}" if effects else
                       ", ideal projection") + ")", err=True)
+
+
+def _study_point(scene, world, study_name, point, only_trial, seed, pipeline_name, no_effects, opts, poses,
+                 out_format):
+    """The Run of a study's design point, as the study runs it (`build --study NAME --point I --trial K`)."""
+    import dataclasses
+
+    from wiredsl.study import design, shards
+
+    if study_name is None or point is None or only_trial is None:
+        raise click.UsageError("replaying a study needs --study NAME, --point I and --trial K together")
+    if seed is not None or pipeline_name is not None or no_effects or out_format == "npz":
+        if out_format == "npz":
+            raise click.UsageError("a study replay is one trial: use --format json or jsonl")
+        raise click.UsageError("--study sets the pipeline and the seed: leave out --seed, --pipeline, --no-effects")
+    study = scene.study(study_name)
+    if study is None:
+        names = ", ".join(s.name for s in scene.studies) or "none"
+        raise click.BadParameter(f"no study '{study_name}' in the scene (it has: {names})", param_hint="--study")
+    X = design.matrix(study)
+    if point >= len(X):
+        raise click.BadParameter(f"point {point} is not in 0..{len(X) - 1}", param_hint="--point")
+    if only_trial >= study.trials:
+        raise click.BadParameter(f"trial {only_trial} is not in 0..{study.trials - 1}", param_hint="--trial")
+    study_opts = shards.options(study)
+    opts = dataclasses.replace(opts, poses=tuple(sorted(set(poses))) or study_opts.poses)
+    run = shards.point_run(scene, world, study, point, X[point], opts)
+    lo, hi = shards.span_of(only_trial, study.trials)
+    return run, design.pipeline_at(scene, study, X[point]), list(range(lo, hi))
 
 
 class _Null:
@@ -471,3 +511,43 @@ def bench(file: str, output: str | None, budget: float) -> None:
     out = Path(output) if output else Path("build") / scene.name / "bench.svg"
     write_atomic(out, bench_mod.plot_svg(tables))
     click.echo(f"wrote {out}", err=True)
+
+
+@main.command()
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.argument("name", required=False)
+@click.option("-o", "--output", default=None, help="Output directory (default build/<scene name>/study_<name>/).")
+@click.option("--executor", type=click.Choice(["processes", "inprocess", "dask"]), default="processes",
+              show_default=True, help="processes: local processes on every core; dask: a Dask cluster.")
+@click.option("--workers", type=click.IntRange(1, None), default=None, help="Local processes (default: every core).")
+@click.option("--scheduler", default=None, help="With --executor dask: the scheduler's address (tcp://host:8786).")
+@click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots (needs matplotlib).")
+@guarded
+def study(file: str, name: str | None, output: str | None, executor: str, workers: int | None,
+          scheduler: str | None, plots: bool) -> None:
+    """Run a study of FILE (NAME, or its only one): shards, then table.csv/json, manifest.json and plots."""
+    from pathlib import Path
+
+    from wiredsl.engine.simulate import require_buildable
+    from wiredsl.language.compile import compile_file
+    from wiredsl.study import run_study
+
+    scene, warnings, program = compile_file(file)
+    report(warnings, program.sources, "text")
+    found = scene.study(name)
+    if found is None:
+        names = ", ".join(s.name for s in scene.studies) or "none"
+        raise click.BadParameter(f"no study {f'{name!r} ' if name else ''}to run in {file} "
+                                 f"({'name one: ' if scene.studies else 'it has '}{names})", param_hint="NAME")
+    if executor == "dask" and not scheduler:
+        raise click.BadParameter("--executor dask needs --scheduler ADDRESS", param_hint="--scheduler")
+    require_buildable(scene)
+    out = Path(output) if output else Path("build") / scene.name / f"study_{found.name}"
+    table = run_study(scene, found, out, executor=executor, workers=workers, scheduler=scheduler,
+                      echo=lambda m: click.echo(m, err=True))
+    written = ["table.csv", "table.json", "manifest.json"]
+    if plots:
+        from wiredsl.study import plots as plots_mod
+
+        written += plots_mod.write_all(table, found, out / "plots")
+    click.echo(f"wrote {out}: " + ", ".join(written), err=True)

@@ -164,6 +164,7 @@ def _stage_model(name: str) -> type[Node]:
 
 
 STAGE_MODELS = {name: _stage_model(name) for name in REGISTRY}
+globals().update({m.__name__: m for m in STAGE_MODELS.values()})  # picklable by name: scenes go to worker processes
 Stage = Annotated[functools.reduce(operator.or_, STAGE_MODELS.values()), Field(discriminator="effect")]
 
 
@@ -171,6 +172,43 @@ class Pipeline(Node):
     name: str
     default: bool = False
     stages: list[Stage] = []
+
+
+class Factor(Node):
+    """One varied parameter of a study: `stage.param` over a list of values or a range."""
+
+    stage: str
+    param: str
+    values: list[float] | None = Field(None, description="explicit values (a grid axis)")
+    low: float | None = Field(None, description="range start (SI units)")
+    high: float | None = Field(None, description="range end (SI units)")
+    steps: int | None = Field(None, ge=1, description="grid: evenly spaced values over [low, high]")
+
+    @property
+    def label(self) -> str:
+        return f"{self.stage}.{self.param}"
+
+
+class MeasureUse(Node):
+    """A measure a study computes, with its parameters (validated against the measure's model)."""
+
+    name: str
+    params: dict[str, float | str] = {}
+
+
+class Study(Node):
+    """A declared sensitivity study: a design over pipeline parameters, trials per point, measures."""
+
+    name: str
+    pipeline: str | None = Field(None, description="the pipeline it starts from (None: no stages)")
+    factors: list[Factor] = []
+    design: Literal["grid", "lhs", "sobol"] = "grid"
+    points: int | None = Field(None, ge=1, description="lhs/sobol: base samples n (the design has n (d + 2))")
+    design_seed: int = 0
+    seed: int = 0
+    trials: int = Field(16, ge=1)
+    poses: list[int] | None = Field(None, description="pose indices (None: every pose)")
+    measures: list[MeasureUse] = []
 
 
 class Scene(Node):
@@ -187,6 +225,13 @@ class Scene(Node):
     viewpoints: Viewpoints | None = None
     path: Path | None = None
     pipelines: list[Pipeline] = []
+    studies: list[Study] = []
+
+    def study(self, name: str | None = None) -> Study | None:
+        """The named study, else the only one."""
+        if name is not None:
+            return next((s for s in self.studies if s.name == name), None)
+        return self.studies[0] if len(self.studies) == 1 else None
 
     def model(self, name: str) -> Model:
         return next(m for m in self.models if m.name == name)

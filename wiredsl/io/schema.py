@@ -9,13 +9,16 @@ from pathlib import Path
 from pydantic import BaseModel
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
-NAMES = ("scene", "features", "viewdep")
+NAMES = ("scene", "features", "viewdep", "study")
 
 
 def _model(name: str) -> type[BaseModel]:
     if name == "scene":
         from wiredsl.scene import Scene
         return Scene
+    if name == "study":
+        from wiredsl.study.report import StudyTable
+        return StudyTable
     from wiredsl.io import features
     return features.Features if name == "features" else features.ViewDependency
 

@@ -92,6 +92,7 @@ class Compiler:
         self.cameras: dict[str, Camera] = {}
         self.singles: dict[str, Bound] = {}  # rig, viewpoints, path
         self.pipelines: dict[str, _Decl] = {}
+        self.study_stmts: list[Bound] = []
         self.scene_name: str | None = None
 
     # ------------------------------------------------------------------ driver
@@ -101,7 +102,7 @@ class Compiler:
             "model": self._model, "place": self._place, "camera": self._camera_decl,
             "rig": self._single, "viewpoints": self._single, "path": self._single,
             "pipeline": self._pipeline, "scene": self._scene, "wiredsl": _ignore, "units": _ignore,
-            "include": self._include,
+            "include": self._include, "study": self.study_stmts.append,
         }
         for stmt in self.program.statements:
             b = bind(stmt, "top", self._units(stmt), self.out)
@@ -112,6 +113,7 @@ class Compiler:
         viewpoints = self._viewpoints(self.singles["viewpoints"]) if "viewpoints" in self.singles else None
         path = self._path(self.singles["path"]) if "path" in self.singles else None
         self._check_defaults()
+        studies = self._studies(path)
         root = self.program.root
         name = self.scene_name or FsPath(root.path).stem
         if self.out.errors:
@@ -127,6 +129,7 @@ class Compiler:
             viewpoints=viewpoints,
             path=path,
             pipelines=[d.value for d in self.pipelines.values()],
+            studies=studies,
         )
 
     def _units(self, stmt: ast.Statement) -> dict[str, str]:
@@ -705,6 +708,18 @@ class Compiler:
                                    sb.span(key) if key in sb.clauses else stmt.span)
         pipeline = Pipeline(name=b.name, default=b.has("default"), stages=stages)
         self._declare(self.pipelines, "pipeline", b.name, b.name_span, pipeline)
+
+    def _studies(self, path: Path | None) -> list:
+        from wiredsl.language.compile_study import compile_study
+
+        pipelines = {name: d.value for name, d in self.pipelines.items()}
+        n_poses = len(path.poses) if path is not None else None
+        studies: dict[str, _Decl] = {}
+        for b in self.study_stmts:
+            study = compile_study(b, pipelines, n_poses, self._units, self.out)
+            if study is not None:
+                self._declare(studies, "study", b.name, b.name_span, study)
+        return [d.value for d in studies.values()]
 
     def _check_defaults(self) -> None:
         marked = [d for d in self.pipelines.values() if d.value.default]

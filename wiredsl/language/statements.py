@@ -91,6 +91,8 @@ _TOP = [
     Sig("pipeline", "an ordered list of uncertainty stages", (NAME,),
         {"default": C("the pipeline a build runs without --pipeline")},
         block="pipeline", block_required=True, example="pipeline paper default { edge_loss ... }"),
+    Sig("study", "a sensitivity study: a design over pipeline parameters, trials, measures", (NAME,),
+        block="study", block_required=True, example="study shift { vary lateral_shift.range ... }"),
 ]
 
 _MODEL = [
@@ -182,6 +184,31 @@ _PATH = [
 ]
 
 
+_STUDY = [
+    Sig("pipeline", "the pipeline the study starts from (default: the scene's default)", (S("ref", "pipeline"),),
+        example="pipeline paper"),
+    Sig("vary", "a parameter to vary, `stage.param`: a list of values, or a range (grid: with steps)",
+        (S("ref", "stage.param"),),
+        {"values": C("the values, in the parameter's units", S("rawlist", "[values]")),
+         "from": C("range start", S("raw", "value")),
+         "to": C("range end", S("raw", "value")),
+         "steps": C("grid: evenly spaced values from..to, ends included", S("integer", "n"))},
+        example="vary lateral_shift.range from 0 to 6px steps 4"),
+    Sig("design", "grid (every combination), or lhs / sobol: space-filling over the ranges",
+        (S("word", "kind", "grid", "lhs", "sobol"),),
+        {"points": C("lhs/sobol: base samples n; the design runs n (d + 2) points", S("integer", "n")),
+         "seed": C("seed of the space-filling sampler (default 0)", S("integer", "seed"))},
+        example="design sobol points 16 seed 7"),
+    Sig("trials", "Monte-Carlo trials per design point", (S("integer", "n"),), example="trials 64"),
+    Sig("poses", "the poses of the path to run (default: all)", (S("ints", "[pose indices]"),),
+        example="poses [0, 3, 6]"),
+    Sig("seed", "seed of every trial's random streams (with the point's index; default 0)",
+        (S("integer", "seed"),), example="seed 1"),
+    Sig("measure", "a measure to compute on every trial, with its parameters",
+        (S("ref", "measure"), S("rest", "parameter value ...")), example="measure pgh limit 80px"),
+]
+
+
 def _effect_sig(name: str) -> Sig:
     effect = REGISTRY[name]
     clauses = {
@@ -199,6 +226,7 @@ CONTEXTS: dict[str, dict[str, Sig]] = {
     "viewpoints": {s.keyword: s for s in _VIEWPOINTS},
     "path": {s.keyword: s for s in _PATH},
     "pipeline": {name: _effect_sig(name) for name in REGISTRY},
+    "study": {s.keyword: s for s in _STUDY},
 }
 
 
@@ -264,6 +292,10 @@ def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collecto
     args = list(stmt.args)
     i = 0
     for slot in sig.positional:
+        if slot.kind == "rest":  # everything left, converted later by whoever knows its kinds
+            b.positional.append(Value(args[i:], _join(args[i].span, args[-1].span) if i < len(args) else stmt.span))
+            i = len(args)
+            continue
         if i >= len(args):
             out.error("E102", f"'{sig.keyword}' needs {_a(slot.label)}", stmt.span, f"e.g. {sig.example}")
             b.ok = False
@@ -381,6 +413,24 @@ def _convert(slot: Slot, arg: ast.Arg, units: dict[str, str], out: Collector) ->
             out.error("E106", f"expected {_a(slot.label)} in double quotes, got {_show(arg)}", arg.span)
             return bad
         return Value(arg.value, arg.span)
+    if kind == "raw":  # converted by the compiler, which knows the kind (e.g. a stage parameter's)
+        return Value(arg, arg.span)
+    if kind == "rawlist":
+        if not isinstance(arg, ast.List):
+            out.error("E106", f"expected a list in [ ], got {_show(arg)}", arg.span)
+            return bad
+        return Value(list(arg.items), arg.span)
+    if kind == "ints":
+        if not isinstance(arg, ast.List):
+            out.error("E106", f"expected a list of whole numbers in [ ], got {_show(arg)}", arg.span)
+            return bad
+        vals = []
+        for x in arg.items:
+            if not isinstance(x, ast.Number) or x.unit is not None or not x.value.is_integer():
+                out.error("E106", f"expected a whole number, got {_show(x)}", x.span)
+                return bad
+            vals.append(Value(int(x.value), x.span))
+        return Value(vals, arg.span)
     if kind == "names":
         if not isinstance(arg, ast.List) or not all(isinstance(x, ast.Ref) for x in arg.items):
             out.error("E106", f"expected a list of names in [ ], got {_show(arg)}", arg.span)

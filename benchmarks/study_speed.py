@@ -1,0 +1,92 @@
+"""Study speed: local processes on 2 cores against in-process, and the study's overhead against the
+same trials run bare (the engine's batches alone, as `build` runs them, without measures or shards).
+
+    python benchmarks/study_speed.py [--trials 128]
+
+Uses the installed `survival` measure when there is one, else the tests' `kept` measure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tests"))
+
+STUDY = """wiredsl 1
+include "{lab}"
+study speed {{
+  pipeline paper
+  vary lateral_shift.range values [1px, 4px]
+  vary calibration_error.sigma values [0.005, 0.02]
+  trials {trials}
+  poses [0, 3, 6]
+  measure {measure}
+}}
+"""
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--trials", type=int, default=128)
+    args = ap.parse_args()
+    from wiredsl.engine.world import build_world
+    from wiredsl.language import compile_study
+    from wiredsl.language.compile import compile_file
+    from wiredsl.study import design, run_study, shards
+
+    installed = compile_study.measure_registry()
+    if "survival" in installed:
+        registry, measure = installed, "survival"
+    else:
+        import study_measures
+
+        registry, measure = study_measures.REGISTRY, "kept"
+        compile_study.measure_registry = lambda: registry
+    tmp = Path(tempfile.mkdtemp())
+    try:
+        path = tmp / "speed.wd"
+        path.write_text(STUDY.format(lab=(ROOT / "scenes/lab.wd").as_posix(), trials=args.trials, measure=measure))
+        scene = compile_file(path)[0]
+        study = scene.study("speed")
+        n_trials = len(design.matrix(study)) * study.trials
+
+        def timed(executor: str, **kw) -> float:
+            out = tmp / executor
+            shutil.rmtree(out, ignore_errors=True)
+            t = time.perf_counter()
+            run_study(scene, study, out, executor=executor, registry=registry, **kw)
+            return time.perf_counter() - t
+
+        def bare() -> float:
+            t = time.perf_counter()
+            world = build_world(scene)
+            X = design.matrix(study)
+            for p in range(len(X)):
+                run = shards.point_run(scene, world, study, p, X[p])
+                for _ in run.batches(list(range(study.trials))):
+                    pass
+            return time.perf_counter() - t
+
+        inproc = timed("inprocess")
+        procs = timed("processes", workers=2)
+        engine = bare()
+        print(f"study: lab, pipeline paper, {len(design.matrix(study))} points x {study.trials} trials x 3 poses "
+              f"({n_trials} trials), measure {measure}")
+        print(f"in-process:            {inproc:6.2f} s  ({n_trials / inproc:,.0f} trials/s)")
+        print(f"processes, 2 workers:  {procs:6.2f} s  ({n_trials / procs:,.0f} trials/s)  "
+              f"speed-up {inproc / procs:.2f}x (target >= 1.7x)")
+        print(f"bare engine batches:   {engine:6.2f} s  ({n_trials / engine:,.0f} trials/s)")
+        print(f"study overhead (in-process against bare batches): {100 * (inproc / engine - 1):.1f}% "
+              "(target < 20%; includes the measure)")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,40 @@
+"""A tiny measure for the study tests, written against the agreed measure interface
+(`wiredsl.measures.base.Measure`): strokes and stroke length that remain in the left image."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class KeptParams(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+    scale: float = Field(1.0, gt=0, json_schema_extra={"kind": "number"}, description="multiplies the length")
+
+
+class Kept:
+    """Strokes and their total length per trial in the left image, relative to the ideal view."""
+
+    name: ClassVar[str] = "kept"
+    Params: ClassVar[type[BaseModel]] = KeptParams
+    statistics: ClassVar[tuple[str, ...]] = ("strokes", "length")
+
+    @classmethod
+    def prepare(cls, params, run) -> object:
+        return {r.index: max(1, len(r.left.features)) for r in run.ideal()}
+
+    @classmethod
+    def measure(cls, params, prepared, pose, disturbed, n_trials: int) -> dict[str, np.ndarray]:
+        s = disturbed["left"]
+        seg = np.diff(s.pts, axis=0)
+        inner = np.ones(len(seg), dtype=bool)
+        inner[s.start[1:-1] - 1] = False  # steps between strokes are not lengths
+        owner = np.searchsorted(s.start, np.arange(len(seg)), side="right") - 1
+        length = np.bincount(s.trial[owner[inner]], np.hypot(*seg[inner].T), minlength=n_trials)
+        strokes = np.bincount(s.trial, minlength=n_trials) / prepared[pose.index]
+        return {"strokes": strokes.astype(float), "length": params.scale * length}
+
+
+REGISTRY = {"kept": Kept}

@@ -1,0 +1,231 @@
+"""Studies: the `study` block, the design, shards that resume, executors that agree, replay, Sobol' indices."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from study_measures import REGISTRY
+
+from wiredsl.cli import main
+from wiredsl.engine.world import build_world
+from wiredsl.io import emit, schema
+from wiredsl.language.compile import compile_file
+from wiredsl.scene import Factor, Study
+from wiredsl.study import design, jobs, run_study, shards
+
+SCENE_TEXT = """wiredsl 1
+include "{lab}"
+study shift {{
+  pipeline edges
+  vary lateral_shift.range from 0 to 4px steps 2
+  vary calibration_error.sigma values [0, 0.03]
+  trials 10
+  poses [0, 4]
+  seed 5
+  measure kept scale 2
+}}
+study sources {{
+  vary edge_loss.fraction from 0 to 40%
+  vary approx_error.sigma from 0 to 1px
+  design lhs points 4 seed 2
+  trials 4
+  poses [2]
+  measure kept
+}}
+"""
+
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("study") / "s.wd"
+    path.write_text(SCENE_TEXT.format(lab=Path("scenes/lab.wd").resolve().as_posix()))
+    return path
+
+
+@pytest.fixture(scope="module")
+def scene(scene_file):
+    return compile_file(scene_file)[0]
+
+
+def _run(scene, name, folder, **kw):
+    return run_study(scene, scene.study(name), folder, registry=REGISTRY, **kw)
+
+
+def test_study_block_compiles_to_its_design(scene):
+    s = scene.study("shift")
+    assert [f.label for f in s.factors] == ["lateral_shift.range", "calibration_error.sigma"]
+    assert s.factors[0].values == [0.0, 4.0] and s.factors[1].values == [0.0, 0.03]
+    assert (s.pipeline, s.trials, s.poses, s.seed, s.measures[0].params) == ("edges", 10, [0, 4], 5, {"scale": 2.0})
+    X = design.matrix(s)
+    assert X.tolist() == [[0, 0], [0, 0.03], [4, 0], [4, 0.03]]
+    # calibration_error is not in 'edges': it is inserted first (its data-flow place), the rest kept in order
+    p = design.pipeline_at(scene, s, X[3])
+    assert [st.effect for st in p.stages] == ["calibration_error", "edge_loss", "lateral_shift"]
+    assert p.stages[0].params.sigma == 0.03 and p.stages[2].params.range == 4.0
+
+
+def test_space_filling_design_is_saltelli_within_ranges(scene):
+    s = scene.study("sources")
+    X = design.matrix(s)
+    n, d = 4, 2
+    assert X.shape == (n * (d + 2), d)
+    assert (X[:, 0] >= 0).all() and (X[:, 0] <= 0.4).all() and (X[:, 1] <= 1).all()
+    A, B = X[:n], X[n:2 * n]
+    for i in range(d):  # AB_i is A with column i from B
+        AB = X[(2 + i) * n:(3 + i) * n]
+        assert np.array_equal(AB[:, i], B[:, i]) and np.array_equal(np.delete(AB, i, 1), np.delete(A, i, 1))
+
+
+def test_point_seeds_are_distinct_and_stable():
+    seeds = [design.point_seed(5, p) for p in range(1000)]
+    assert len(set(seeds)) == 1000 and all(0 <= x < 2**63 for x in seeds)
+    assert seeds == [design.point_seed(5, p) for p in range(1000)]
+    assert design.point_seed(6, 0) != seeds[0]
+
+
+def test_sobol_indices_of_ishigami_match_the_analytic_values():
+    """Ishigami (a=7, b=0.1): S = (0.3139, 0.4424, 0), ST = (0.5576, 0.4424, 0.2437)."""
+    s = Study(name="ishigami", design="sobol", points=4096, design_seed=1,
+              factors=[Factor(stage="edge_loss", param="fraction", low=-math.pi, high=math.pi) for _ in range(3)])
+    X = design.matrix(s)
+    y = np.sin(X[:, 0]) + 7 * np.sin(X[:, 1]) ** 2 + 0.1 * X[:, 2] ** 4 * np.sin(X[:, 0])
+    got = design.sobol_indices(y, 4096, 3)
+    assert np.allclose(got["first_order"], [0.3139, 0.4424, 0.0], atol=0.03)
+    assert np.allclose(got["total_order"], [0.5576, 0.4424, 0.2437], atol=0.03)
+    lo, hi = got["total_order_ci"]
+    assert (lo <= got["total_order"]).all() and (got["total_order"] <= hi).all()
+
+
+def test_table_rows_and_schema(scene, tmp_path):
+    table = _run(scene, "shift", tmp_path, executor="inprocess")
+    rows = table.rows
+    assert len(rows) == 4 * 2  # points x statistics
+    r = rows[0]
+    assert (r.n, r.n_values, r.values) == (10, 20, {"lateral_shift.range": 0.0, "calibration_error.sigma": 0.0})
+    assert r.q05 <= r.q25 <= r.q50 <= r.q75 <= r.q95 and r.sem > 0
+    doc = json.loads((tmp_path / "table.json").read_text())
+    assert schema.problems(doc) == []
+    csv_lines = (tmp_path / "table.csv").read_text().splitlines()
+    assert csv_lines[0].startswith("lateral_shift.range,calibration_error.sigma,point,measure,statistic,n,")
+    assert len(csv_lines) == 1 + len(rows)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert manifest["seed"] == 5 and manifest["points"] == design.matrix(scene.study("shift")).tolist()
+    # a larger lateral shift keeps more stroke pieces per view (ellipses split in halves): the measure sees it
+    strokes = {(r.values["lateral_shift.range"], r.values["calibration_error.sigma"]): r.mean for r in rows
+               if r.statistic == "strokes"}
+    assert strokes[(4.0, 0.0)] > strokes[(0.0, 0.0)]
+
+
+def test_results_do_not_depend_on_workers(scene, tmp_path):
+    _run(scene, "shift", tmp_path / "a", executor="inprocess", shard_trials=4)
+    _run(scene, "shift", tmp_path / "b", executor="processes", workers=2, shard_trials=4)
+    for name in ("table.csv", "table.json", "manifest.json"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+    # another shard size batches trials differently: equal to rounding (the engine's packed sums)
+    _run(scene, "shift", tmp_path / "c", executor="inprocess", shard_trials=3)
+    a = json.loads((tmp_path / "a" / "table.json").read_text())["rows"]
+    c = json.loads((tmp_path / "c" / "table.json").read_text())["rows"]
+    assert [r["mean"] for r in a] == pytest.approx([r["mean"] for r in c], rel=1e-12)
+
+
+def test_interrupted_study_resumes_to_the_same_table(scene, tmp_path):
+    _run(scene, "shift", tmp_path / "whole", executor="inprocess", shard_trials=4)
+    part = tmp_path / "part"
+    assert _run(scene, "shift", part, executor="inprocess", shard_trials=4, limit=5) is None
+    done = sorted((part / "shards").glob("*.npz"))
+    assert len(done) == 5 and not (part / "table.csv").exists()
+    stamp = {p: p.stat().st_mtime_ns for p in done}
+    # one finished shard is damaged on disk, one is from another study: both are recomputed
+    done[0].write_bytes(done[0].read_bytes()[:-20])
+    X, js = jobs(scene, scene.study("shift"), part, REGISTRY, shard_trials=4)
+    other = shards.Job(*[getattr(js[1], f) for f in ("scene", "study")], "0" * 64, *[getattr(js[1], f) for f in (
+        "values", "shard", "folder", "registry")])
+    shards.write(other, {"kept.strokes": np.zeros((2, 4))})
+    assert shards.read(js[1]) is None and shards.read(js[2]) is not None
+    messages = []
+    _run(scene, "shift", part, executor="inprocess", shard_trials=4, echo=messages.append)
+    assert "3 done before" in messages[0]
+    assert all(p.stat().st_mtime_ns == stamp[p] for p in done[2:])  # finished shards were not redone
+    for name in ("table.csv", "table.json", "manifest.json"):
+        assert (part / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+
+
+def test_replayed_trial_gives_its_shard_values_exactly(scene, tmp_path):
+    study = scene.study("shift")
+    _run(scene, "shift", tmp_path, executor="processes", workers=2)
+    X, js = jobs(scene, study, tmp_path, REGISTRY)
+    world = build_world(scene)
+    for point, trial in ((3, 6), (1, 9), (2, 0)):
+        job = next(j for j in js if j.shard.point == point and j.shard.lo <= trial < j.shard.hi)
+        stored = shards.read(job)
+        run = shards.point_run(scene, world, study, point, X[point])
+        kept = REGISTRY["kept"]
+        params = kept.Params(**study.measures[0].params)
+        lo, hi = shards.span_of(trial, study.trials)
+        replayed = shards.measure_batches(run, [(kept, params, kept.prepare(params, run))], list(range(lo, hi)))
+        for name, V in replayed.items():
+            assert np.array_equal(V[:, trial - lo], stored[name][:, trial - job.shard.lo])
+
+
+def test_build_study_point_trial_dumps_the_studys_trial(scene, scene_file, tmp_path):
+    study = scene.study("shift")
+    r = CliRunner().invoke(main, ["build", str(scene_file), "--study", "shift", "--point", "3", "--trial", "6",
+                                  "-o", "-"])
+    assert r.exit_code == 0, r.output
+    world = build_world(scene)
+    X = design.matrix(study)
+    run = shards.point_run(scene, world, study, 3, X[3])
+    (batch, batch_out), = run.batches(list(range(*shards.span_of(6, study.trials))))
+    res = emit.disturbed_results(batch_out, batch.index(6))
+    want = emit.features(scene, world, res, pipeline=study.name, stages=emit.stage_records(run), seed=run.seed,
+                         trial=6)
+    assert r.stdout == emit.to_json(want)
+    assert json.loads(r.stdout)["trial"] == 6 and json.loads(r.stdout)["seed"] == design.point_seed(5, 3)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--study", "shift", "--trial", "1"], "needs --study NAME, --point I and --trial K together"),
+    (["--study", "shift", "--point", "4", "--trial", "1"], "point 4 is not in 0..3"),
+    (["--study", "shift", "--point", "0", "--trial", "10"], "trial 10 is not in 0..9"),
+    (["--study", "shfit", "--point", "0", "--trial", "1"], "no study 'shfit'"),
+    (["--study", "shift", "--point", "0", "--trial", "1", "--seed", "3"], "--study sets the pipeline and the seed"),
+])
+def test_build_study_usage_errors(scene_file, args, message):
+    r = CliRunner().invoke(main, ["build", str(scene_file), "-o", "-", *args])
+    assert r.exit_code == 2 and message in r.output and "Traceback" not in r.output
+
+
+def test_dask_local_cluster_gives_the_same_table(scene, tmp_path):
+    from distributed import LocalCluster
+
+    _run(scene, "sources", tmp_path / "local", executor="inprocess", shard_trials=2)
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster:
+        table = _run(scene, "sources", tmp_path / "dask", executor="dask", scheduler=cluster.scheduler_address,
+                     shard_trials=2)
+    assert len(table.rows) == 4 * 4 * 2 and len(table.sobol) == 2 * 2
+    assert (tmp_path / "dask" / "table.csv").read_bytes() == (tmp_path / "local" / "table.csv").read_bytes()
+
+
+def test_study_command_writes_table_manifest_and_plots(scene_file, tmp_path):
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["study", str(scene_file), "sources", "-o", str(out), "--executor", "inprocess"])
+    assert r.exit_code == 0, r.output
+    assert "points" in r.stderr and "trials/s" in r.stderr and "ETA" in r.stderr
+    for name in ("table.csv", "table.json", "manifest.json", "plots/kept.strokes.png", "plots/kept.length.png",
+                 "plots/sobol.png"):
+        assert (out / name).is_file(), name
+    assert (out / "plots" / "sobol.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    r = CliRunner().invoke(main, ["study", str(scene_file), "-o", str(out)])
+    assert r.exit_code == 2 and "name one: shift, sources" in r.output
+    r = CliRunner().invoke(main, ["validate", str(out / "table.json")])
+    assert r.exit_code == 0, r.output
+
+
+def test_schema_command_prints_the_study_schema():
+    r = CliRunner().invoke(main, ["schema", "study"])
+    assert r.exit_code == 0 and json.loads(r.stdout)["$id"] == "urn:wiredsl:schema:study:1"

@@ -1,0 +1,118 @@
+"""`wiredsl study`: a declared sensitivity study run shard by shard and reported as a tidy table.
+
+design.py (points, seeds, pipelines, Sobol' indices) -> shards.py (one (point, trials) unit of
+work, its file) -> executors.py (where shards run) -> report.py (table, manifest) -> plots.py.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from wiredsl import __version__
+from wiredsl.io.files import write_atomic
+from wiredsl.scene import Scene, Study
+from wiredsl.study import design, report, shards
+from wiredsl.study.executors import EXECUTORS, execute
+
+__all__ = ["EXECUTORS", "digest", "jobs", "run_study"]
+
+
+def digest(scene: Scene, study: Study) -> str:
+    """Identity of a study's results: the scene (less its file name and studies), the study, the tool."""
+    body = {"scene": scene.model_dump(mode="json", exclude={"source", "studies"}),
+            "study": study.model_dump(mode="json"), "wiredsl": __version__}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
+def jobs(scene: Scene, study: Study, folder: str | Path, registry: dict | None = None,
+         shard_trials: int = shards.SHARD_TRIALS) -> tuple[np.ndarray, list[shards.Job]]:
+    """The design matrix and every shard's job, in (point, trials) order."""
+    X = design.matrix(study)
+    key = digest(scene, study)
+    return X, [shards.Job(scene, study, key, tuple(float(v) for v in X[s.point]), s, str(folder), registry)
+               for s in shards.shards(len(X), study.trials, shard_trials)]
+
+
+class Progress:
+    """Points done, trials/s and the estimated time left, on stderr at most once a second."""
+
+    def __init__(self, total: list[shards.Job], todo: int, echo: Callable[[str], None] | None):
+        self.echo = echo
+        self.left = {}
+        for j in total:
+            self.left[j.shard.point] = self.left.get(j.shard.point, 0)
+        self.todo_trials = 0
+        self.points = len(self.left)
+        self.started = time.perf_counter()
+        self.last = 0.0
+        self.trials = 0
+
+    def pending(self, job: shards.Job) -> None:
+        self.left[job.shard.point] += 1
+        self.todo_trials += job.shard.hi - job.shard.lo
+
+    def __call__(self, shard: shards.Shard, trials: int) -> None:
+        self.left[shard.point] -= 1
+        self.trials += trials
+        now = time.perf_counter()
+        if self.echo is not None and (now - self.last >= 1.0 or self.trials == self.todo_trials):
+            self.last = now
+            rate = self.trials / max(now - self.started, 1e-9)
+            eta = (self.todo_trials - self.trials) / rate if rate > 0 else float("inf")
+            done = sum(v == 0 for v in self.left.values())
+            self.echo(f"study: {done}/{self.points} points, {self.trials}/{self.todo_trials} trials, "
+                      f"{rate:,.0f} trials/s, ETA {eta:,.0f} s")
+
+
+def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "processes", workers: int | None = None,
+              scheduler: str | None = None, registry: dict | None = None, echo: Callable[[str], None] | None = None,
+              shard_trials: int = shards.SHARD_TRIALS, limit: int | None = None) -> report.StudyTable | None:
+    """Run what is not yet done of a study into `folder`, then write table.csv, table.json and
+    manifest.json there. `limit` stops after that many new shards (no table): an interrupted run."""
+    from wiredsl.io import emit
+
+    folder = Path(folder)
+    X, all_jobs = jobs(scene, study, folder, registry, shard_trials)
+    todo = [j for j in all_jobs if shards.read(j) is None]
+    progress = Progress(all_jobs, len(todo), echo)
+    if limit is not None:
+        todo = todo[:limit]
+    for j in todo:
+        progress.pending(j)
+    if echo is not None:
+        echo(f"study {study.name}: {len(X)} points x {study.trials} trials in {len(all_jobs)} shards, "
+             f"{len(all_jobs) - len(todo)} done before; executor {executor}")
+    execute(todo, executor, progress, workers, scheduler)
+    if limit is not None:
+        return None
+    per_point: list[dict[str, list[np.ndarray]]] = [{} for _ in range(len(X))]
+    for j in all_jobs:
+        arrays = shards.read(j)
+        if arrays is None:
+            raise RuntimeError(f"shard {shards.path(j)} is missing or damaged after its run")
+        for name, V in arrays.items():
+            per_point[j.shard.point].setdefault(name, []).append(V)
+    order = [f"{m.name}.{s}" for m in study.measures for s in _statistics(m.name, registry)]
+    merged = [{k: np.concatenate(p[k], axis=1) for k in order if k in p} for p in per_point]
+    rows = report.rows(study, X, merged)
+    ref = emit.scene_ref(scene)
+    table = report.StudyTable(tool_version=__version__, scene=ref, study=study.name, design=study.design,
+                              factors=[f.label for f in study.factors], seed=study.seed, trials=study.trials,
+                              rows=rows, sobol=report.sobol(study, rows))
+    write_atomic(folder / "table.csv", report.to_csv(table))
+    write_atomic(folder / "table.json", report.to_json(table))
+    write_atomic(folder / "manifest.json", json.dumps(report.manifest(ref, study, all_jobs[0].digest, X, shard_trials),
+                                                      indent=1) + "\n")
+    return table
+
+
+def _statistics(name: str, registry: dict | None) -> tuple[str, ...]:
+    from wiredsl.language.compile_study import measure_registry
+
+    return (registry if registry is not None else measure_registry())[name].statistics

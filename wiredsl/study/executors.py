@@ -1,0 +1,66 @@
+"""Where shards run: in this process, in local processes on every core, or on a Dask cluster.
+
+Every executor calls the same spawn-safe function, `shards.run_job`, which writes its shard's
+file; the caller hears of each finished shard (in whatever order) and reads the files at the end.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+
+from wiredsl.study.shards import Job, Shard, run_job
+
+EXECUTORS = ("processes", "inprocess", "dask")
+Done = Callable[[Shard, int], None]
+
+
+def execute(jobs: Sequence[Job], executor: str, done: Done, workers: int | None = None,
+            scheduler: str | None = None) -> None:
+    """Run every job, calling done(shard, trials) as each finishes."""
+    if not jobs:
+        return
+    if executor == "inprocess":
+        for job in jobs:
+            done(*run_job(job))
+    elif executor == "processes":
+        _processes(jobs, done, workers or os.cpu_count() or 1)
+    elif executor == "dask":
+        _dask(jobs, done, scheduler)
+    else:
+        raise ValueError(f"unknown executor {executor!r} (one of {', '.join(EXECUTORS)})")
+
+
+def _processes(jobs: Sequence[Job], done: Done, workers: int) -> None:
+    import multiprocessing
+    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+
+    ctx = multiprocessing.get_context("spawn")  # fork would copy threads and locks of the parent
+    with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx) as pool:
+        pending = {pool.submit(run_job, job) for job in jobs}
+        try:
+            while pending:
+                finished, pending = wait(pending, return_when=FIRST_EXCEPTION)
+                for f in finished:
+                    done(*f.result())
+        except BaseException:
+            for f in pending:
+                f.cancel()
+            raise
+
+
+def _dask(jobs: Sequence[Job], done: Done, scheduler: str | None) -> None:
+    try:
+        from distributed import Client, as_completed
+    except ImportError as exc:
+        raise RuntimeError("the dask executor needs Dask distributed: pip install 'wiredsl[dask]'") from exc
+    if not scheduler:
+        raise ValueError("the dask executor needs --scheduler ADDRESS (e.g. tcp://host:8786)")
+    with Client(scheduler) as client:
+        futures = client.map(run_job, list(jobs), pure=False)
+        try:
+            for f in as_completed(futures):
+                done(*f.result())
+        except BaseException:
+            client.cancel(futures)
+            raise

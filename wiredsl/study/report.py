@@ -1,0 +1,143 @@
+"""A study's tidy table (one row per design point and measure statistic), its JSON and CSV forms,
+the manifest, and Sobol' indices for space-filling designs.
+
+Statistics of a row pool the study's poses and trials: `mean` and the quantiles are over every
+(trial, pose) value; `sem` is the standard error of the mean over trials (each trial's values
+averaged over the poses first), because a trial's poses share its calibration draw.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import platform
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from wiredsl import __version__
+from wiredsl.io.features import SceneRef
+from wiredsl.scene import Study
+from wiredsl.study import design
+
+QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
+
+
+class _Node(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class Row(_Node):
+    point: int = Field(ge=0)
+    values: dict[str, float] = Field(description="the varied parameters at this point, `stage.param` -> SI value")
+    measure: str
+    statistic: str
+    n: int = Field(ge=1, description="trials")
+    n_values: int = Field(ge=1, description="trials x poses pooled")
+    mean: float
+    sem: float | None = Field(description="standard error of the mean over trials (None with one trial)")
+    q05: float
+    q25: float
+    q50: float
+    q75: float
+    q95: float
+
+
+class SobolIndex(_Node):
+    measure: str
+    statistic: str
+    factor: str
+    first_order: float
+    total_order: float
+    first_order_ci: tuple[float, float] | None = None
+    total_order_ci: tuple[float, float] | None = None
+
+
+class StudyTable(_Node):
+    """The result of `wiredsl study`: one row per design point and measure statistic."""
+
+    document: Literal["study"] = "study"
+    schema_version: Literal["1"] = "1"
+    tool_version: str
+    scene: SceneRef
+    study: str
+    design: Literal["grid", "lhs", "sobol"]
+    factors: list[str]
+    seed: int
+    trials: int
+    rows: list[Row]
+    sobol: list[SobolIndex] = []
+
+
+def _f(x: float) -> float:
+    return float(np.float64(x))
+
+
+def rows(study: Study, X: np.ndarray, per_point: list[dict[str, np.ndarray]]) -> list[Row]:
+    """Rows from each point's values {"measure.statistic": (n_poses, trials)}."""
+    out = []
+    labels = [f.label for f in study.factors]
+    for p, arrays in enumerate(per_point):
+        for name, V in arrays.items():
+            measure, stat = name.split(".", 1)
+            per_trial = V.mean(axis=0)
+            n = len(per_trial)
+            sem = _f(per_trial.std(ddof=1) / math.sqrt(n)) if n > 1 else None
+            q = np.quantile(V.ravel(), QUANTILES)
+            out.append(Row(point=p, values={k: _f(v) for k, v in zip(labels, X[p], strict=True)}, measure=measure,
+                           statistic=stat, n=n, n_values=V.size, mean=_f(V.mean()), sem=sem,
+                           **{f"q{int(round(a * 100)):02d}": _f(v) for a, v in zip(QUANTILES, q, strict=True)}))
+    return out
+
+
+def sobol(study: Study, table: list[Row]) -> list[SobolIndex]:
+    """First-order and total indices of every statistic's per-point mean (space-filling designs)."""
+    if study.design == "grid" or not study.factors:
+        return []
+    n, d = study.points, len(study.factors)
+    out = []
+    for measure, stat in dict.fromkeys((r.measure, r.statistic) for r in table):
+        y = np.array([r.mean for r in table if (r.measure, r.statistic) == (measure, stat)])
+        s = design.sobol_indices(y, n, d, seed=study.design_seed)
+        for i, f in enumerate(study.factors):
+            ci = {k: (_f(s[k][0][i]), _f(s[k][1][i])) for k in ("first_order_ci", "total_order_ci") if k in s
+                  and np.isfinite(s[k][:, i]).all()}
+            out.append(SobolIndex(measure=measure, statistic=stat, factor=f.label,
+                                  first_order=_f(s["first_order"][i]), total_order=_f(s["total_order"][i]), **ci))
+    return out
+
+
+COLUMNS = ("point", "measure", "statistic", "n", "n_values", "mean", "sem", "q05", "q25", "q50", "q75", "q95")
+
+
+def to_csv(table: StudyTable) -> str:
+    """The table as CSV: the varied parameters' columns first, then COLUMNS; floats in full precision."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow([*table.factors, *COLUMNS])
+    for r in table.rows:
+        d = r.model_dump()
+        w.writerow([repr(r.values[f]) for f in table.factors]
+                   + ["" if d[c] is None else repr(d[c]) if isinstance(d[c], float) else d[c] for c in COLUMNS])
+    return buf.getvalue()
+
+
+def to_json(doc: BaseModel) -> str:
+    return json.dumps(doc.model_dump(mode="json"), indent=1, sort_keys=False, allow_nan=False) + "\n"
+
+
+def manifest(scene_ref: SceneRef, study: Study, digest: str, X: np.ndarray, shard_trials: int) -> dict:
+    """What the table was made from: the study, the seeds, the design, the scene, the versions."""
+    import scipy
+
+    return {
+        "document": "study-manifest", "study": study.model_dump(mode="json"), "digest": digest,
+        "scene": scene_ref.model_dump(), "seed": study.seed, "design_seed": study.design_seed,
+        "point_seeds": "numpy SeedSequence([seed, point, crc32('study-point')]), first 63 bits",
+        "points": [[_f(v) for v in row] for row in X], "shard_trials": shard_trials,
+        "versions": {"wiredsl": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
+                     "python": platform.python_version()},
+    }

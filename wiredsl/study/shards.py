@@ -1,0 +1,174 @@
+"""Shards: one (design point, trial range) of a study, computed alone and written as one file.
+
+A shard's values depend only on the scene, the study, the point and the trials, never on which
+worker ran it or when, so a study's table is the same whatever the executor and however often it
+was interrupted. A shard file carries its key and a checksum of its arrays; a rerun skips a shard
+whose file has the expected key and checksum, and recomputes any other.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from wiredsl.engine.montecarlo import Run
+from wiredsl.engine.simulate import Options
+from wiredsl.engine.world import World, build_world
+from wiredsl.io.files import write_atomic
+from wiredsl.scene import Scene, Study
+from wiredsl.study import design
+
+SHARD_TRIALS = 32  # trials a shard: small enough to spread a point over the cores, big enough to batch
+
+
+@dataclass(frozen=True)
+class Shard:
+    point: int
+    lo: int  # first trial
+    hi: int  # one past the last trial
+
+    @property
+    def name(self) -> str:
+        return f"p{self.point:05d}_t{self.lo:07d}-{self.hi:07d}"
+
+
+@dataclass(frozen=True)
+class Job:
+    """Everything a worker needs to compute one shard (picklable, for processes and Dask)."""
+
+    scene: Scene
+    study: Study
+    digest: str  # of the scene and the study: a shard from another study is never reused
+    values: tuple[float, ...]  # the point's factor values
+    shard: Shard
+    folder: str
+    registry: dict | None  # measure name -> class; None: the installed measures
+
+
+def shards(n_points: int, trials: int, size: int = SHARD_TRIALS) -> list[Shard]:
+    return [Shard(p, lo, min(lo + size, trials)) for p in range(n_points) for lo in range(0, trials, size)]
+
+
+def options(study: Study) -> Options:
+    return Options(poses=tuple(study.poses) if study.poses is not None else None)
+
+
+def point_run(scene: Scene, world: World, study: Study, point: int, values, opts: Options | None = None,
+              base: Run | None = None) -> Run:
+    """The Run of one design point: its pipeline substituted, its seed keyed by the point's index.
+
+    `base` (a run of the same scene and options) lends its ideal projection and visibility, which no
+    pipeline parameter changes.
+    """
+    pipeline = design.pipeline_at(scene, study, np.asarray(values, dtype=float))
+    run = Run.create(scene, world, pipeline, design.point_seed(study.seed, point), opts or options(study))
+    for cache in ("_ideal", "_visible", "_epipoles"):  # an optimisation only: absent caches just cost time
+        if base is not None and getattr(base, cache, None) is not None and hasattr(run, cache):
+            setattr(run, cache, getattr(base, cache))
+    return run
+
+
+_WORKER: dict = {}  # per process: digest -> (world, base run); (digest, point) -> (run, prepared measures)
+
+
+def compute(job: Job) -> dict[str, np.ndarray]:
+    """One shard's per-trial values: {"measure.statistic": (n_poses, n_trials)}."""
+    from wiredsl.language.compile_study import measure_registry
+
+    registry = job.registry if job.registry is not None else measure_registry()
+    study, scene = job.study, job.scene
+    if job.digest not in _WORKER:
+        world = build_world(scene)
+        _WORKER.clear()  # one study at a time per worker
+        base = Run.create(scene, world, None, 0, options(study))
+        base.ideal()
+        _WORKER[job.digest] = (world, base)
+    world, base = _WORKER[job.digest]
+    key = (job.digest, job.shard.point)
+    if key not in _WORKER:
+        run = point_run(scene, world, study, job.shard.point, job.values, base=base)
+        prepared = [(registry[m.name], p := registry[m.name].Params(**m.params), registry[m.name].prepare(p, run))
+                    for m in study.measures]
+        _WORKER[key] = (run, prepared)
+    run, prepared = _WORKER[key]
+    return measure_batches(run, prepared, list(range(job.shard.lo, job.shard.hi)))
+
+
+def measure_batches(run: Run, prepared, trials: list[int]) -> dict[str, np.ndarray]:
+    """Every measure on every pose of the given trials: {"measure.statistic": (n_poses, n_trials)}."""
+    parts: dict[str, list[list[np.ndarray]]] = {}
+    for batch, batch_out in run.batches(trials):
+        for j, (result, disturbed, _views) in enumerate(batch_out):
+            for measure, params, prep in prepared:
+                got = measure.measure(params, prep, result, disturbed, len(batch))
+                for stat in measure.statistics:
+                    v = np.asarray(got[stat], dtype=float)
+                    if v.shape != (len(batch),) or not np.all(np.isfinite(v)):
+                        raise ValueError(f"measure '{measure.name}' statistic '{stat}' gave shape {v.shape} "
+                                         f"or non-finite values for {len(batch)} trials")
+                    rows = parts.setdefault(f"{measure.name}.{stat}", [])
+                    if len(rows) <= j:
+                        rows.append([])
+                    rows[j].append(v)
+    return {k: np.stack([np.concatenate(r) for r in rows]) for k, rows in parts.items()}
+
+
+def span_of(trial: int, trials: int, size: int = SHARD_TRIALS) -> tuple[int, int]:
+    """The trials of the shard that holds `trial`: a replay runs them as one batch, as the study did,
+    because the engine's packed arithmetic (cumulative arc lengths over the batch) rounds differently
+    in the last bits when a trial is batched with others."""
+    lo = trial - trial % size
+    return lo, min(lo + size, trials)
+
+
+def key(job: Job) -> str:
+    return json.dumps({"study": job.digest, "point": job.shard.point, "lo": job.shard.lo, "hi": job.shard.hi},
+                      sort_keys=True)
+
+
+def checksum(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name], dtype="<f8")
+        h.update(name.encode() + b"\0" + repr(a.shape).encode() + b"\0" + a.tobytes())
+    return h.hexdigest()
+
+
+def path(job: Job) -> Path:
+    return Path(job.folder) / "shards" / f"{job.shard.name}.npz"
+
+
+def write(job: Job, arrays: dict[str, np.ndarray]) -> None:
+    """The shard's file, atomically: its arrays, its key and their checksum."""
+    buf = io.BytesIO()
+    meta = json.dumps({"key": key(job), "checksum": checksum(arrays)})
+    np.savez(buf, __meta__=np.array(meta), **arrays)
+    write_atomic(path(job), buf.getvalue())
+
+
+def read(job: Job) -> dict[str, np.ndarray] | None:
+    """The shard's arrays if its file is there, whole, of this study and intact; else None."""
+    p = path(job)
+    if not p.is_file():
+        return None
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        meta = json.loads(str(arrays.pop("__meta__")))
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, json.JSONDecodeError):
+        return None
+    if meta.get("key") != key(job) or meta.get("checksum") != checksum(arrays):
+        return None
+    return arrays
+
+
+def run_job(job: Job) -> tuple[Shard, int]:
+    """Compute and write one shard (the function every executor calls); returns it and its trials."""
+    write(job, compute(job))
+    return job.shard, job.shard.hi - job.shard.lo
