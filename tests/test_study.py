@@ -229,3 +229,53 @@ def test_study_command_writes_table_manifest_and_plots(scene_file, tmp_path):
 def test_schema_command_prints_the_study_schema():
     r = CliRunner().invoke(main, ["schema", "study"])
     assert r.exit_code == 0 and json.loads(r.stdout)["$id"] == "urn:wiredsl:schema:study:1"
+
+
+KILLABLE = """import sys
+sys.path.insert(0, "tests")
+import study_measures
+from wiredsl.language import compile_study
+compile_study.measure_registry = lambda: study_measures.REGISTRY
+from wiredsl.language.compile import compile_file
+from wiredsl.study import run_study
+scene = compile_file(sys.argv[1])[0]
+run_study(scene, scene.study("shift"), sys.argv[2], executor="inprocess", registry=study_measures.REGISTRY,
+          shard_trials=2)
+"""
+
+
+def test_study_killed_by_sigterm_resumes_to_the_uninterrupted_table(scene, scene_file, tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-c", KILLABLE, str(scene_file), str(out)])
+    deadline = time.monotonic() + 120
+    while len(list((out / "shards").glob("*.npz"))) < 3 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(60) == -signal.SIGTERM  # killed mid-study, not finished
+    finished = len(list((out / "shards").glob("*.npz")))
+    assert 3 <= finished < 20 and not (out / "table.csv").exists()
+    messages = []
+    _run(scene, "shift", out, executor="inprocess", shard_trials=2, echo=messages.append)
+    assert f"{finished} done before" in messages[0]
+    _run(scene, "shift", tmp_path / "whole", executor="inprocess", shard_trials=2)
+    for name in ("table.csv", "table.json", "manifest.json"):
+        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
+
+
+def test_weighted_statistics_leave_out_views_without_a_value():
+    from wiredsl.study import report
+
+    s = Study(name="w", factors=[Factor(stage="edge_loss", param="fraction", values=[0.1])])
+    V = np.array([[1.0, 5.0, 0.0], [3.0, 0.0, 0.0]])  # (poses, trials); 0 where the weight is 0
+    W = np.array([[1.0, 2.0, 0.0], [4.0, 0.0, 0.0]])
+    rows = report.rows(s, np.array([[0.1]]), [{"m.err": V, "m.count": W}], {"m.err": "m.count"})
+    err = next(r for r in rows if r.statistic == "err")
+    assert (err.n, err.n_values, err.mean, err.q50) == (2, 3, 3.0, 3.0)  # trial 2 has no value at all
+    assert err.sem == pytest.approx(np.std([2.0, 5.0], ddof=1) / np.sqrt(2))
+    count = next(r for r in rows if r.statistic == "count")
+    assert (count.n, count.n_values) == (3, 6)

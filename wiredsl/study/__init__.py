@@ -98,9 +98,14 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
             raise RuntimeError(f"shard {shards.path(j)} is missing or damaged after its run")
         for name, V in arrays.items():
             per_point[j.shard.point].setdefault(name, []).append(V)
-    order = [f"{m.name}.{s}" for m in study.measures for s in _statistics(m.name, registry)]
+    from wiredsl.language.compile_study import measure_registry
+
+    measures = {m.name: (registry if registry is not None else measure_registry())[m.name] for m in study.measures}
+    order = [f"{name}.{s}" for name, m in measures.items() for s in m.statistics]
+    weights = {f"{name}.{s}": f"{name}.{w}" for name, m in measures.items()
+               for s, w in (getattr(m, "weights", None) or {}).items()}
     merged = [{k: np.concatenate(p[k], axis=1) for k in order if k in p} for p in per_point]
-    rows = report.rows(study, X, merged)
+    rows = report.rows(study, X, merged, weights)
     ref = emit.scene_ref(scene)
     table = report.StudyTable(tool_version=__version__, scene=ref, study=study.name, design=study.design,
                               factors=[f.label for f in study.factors], seed=study.seed, trials=study.trials,
@@ -110,9 +115,3 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
     write_atomic(folder / "manifest.json", json.dumps(report.manifest(ref, study, all_jobs[0].digest, X, shard_trials),
                                                       indent=1) + "\n")
     return table
-
-
-def _statistics(name: str, registry: dict | None) -> tuple[str, ...]:
-    from wiredsl.language.compile_study import measure_registry
-
-    return (registry if registry is not None else measure_registry())[name].statistics

@@ -33,18 +33,16 @@ def execute(jobs: Sequence[Job], executor: str, done: Done, workers: int | None 
 
 def _processes(jobs: Sequence[Job], done: Done, workers: int) -> None:
     import multiprocessing
-    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+    from concurrent.futures import ProcessPoolExecutor, as_completed
 
     ctx = multiprocessing.get_context("spawn")  # fork would copy threads and locks of the parent
     with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx) as pool:
-        pending = {pool.submit(run_job, job) for job in jobs}
+        futures = [pool.submit(run_job, job) for job in jobs]
         try:
-            while pending:
-                finished, pending = wait(pending, return_when=FIRST_EXCEPTION)
-                for f in finished:
-                    done(*f.result())
+            for f in as_completed(futures):
+                done(*f.result())
         except BaseException:
-            for f in pending:
+            for f in futures:
                 f.cancel()
             raise
 

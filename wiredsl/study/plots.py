@@ -44,8 +44,13 @@ def write_all(table: StudyTable, study: Study, folder: Path) -> list[str]:
         if not table.factors:
             break
         rows = [r for r in table.rows if (r.measure, r.statistic) == (measure, stat)]
-        fig, axes = plt.subplots(1, len(table.factors), figsize=(4.2 * len(table.factors), 3.4), squeeze=False)
-        for ax, f in zip(axes[0], table.factors, strict=True):
+        d = len(table.factors)
+        cols = min(d, 4)
+        fig, axes = plt.subplots(-(-d // cols), cols, figsize=(4.2 * cols, 3.3 * -(-d // cols)), squeeze=False)
+        for ax, f in itertools.zip_longest(axes.ravel(), table.factors):
+            if f is None:
+                ax.axis("off")
+                continue
             (_grid if study.design == "grid" else _scatter)(ax, rows, f, table.factors)
             ax.set_xlabel(_label(f))
             ax.set_ylabel(f"{measure}.{stat}")
@@ -62,8 +67,12 @@ def write_all(table: StudyTable, study: Study, folder: Path) -> list[str]:
 
 
 def _label(factor: str) -> str:
-    unit = {"range": "px", "sigma": "", "fraction": "", "keep": "", "radius": "px", "disparity": "px",
-            "band": "rad", "cutoff": ""}.get(factor.split(".")[1], "")
+    """The factor with the SI unit of its kind (the unit the table's values are in)."""
+    from wiredsl.effects import REGISTRY
+
+    stage, param = factor.split(".", 1)
+    field = REGISTRY[stage].Params.model_fields[param]
+    unit = {"image": "px", "angle": "rad", "length": "m"}.get((field.json_schema_extra or {}).get("kind"), "")
     return f"{factor} ({unit})" if unit else factor
 
 
@@ -127,6 +136,8 @@ def _sobol(plt, table: StudyTable, stats, folder: Path) -> str:
                 err = np.stack([np.clip(vals - lo, 0, None), np.clip(hi - vals, 0, None)])
             ax.bar(pos + shift, vals, 0.4, yerr=err, color=colour, capsize=2,
                    label="first order" if key == "first_order" else "total")
+        lo, hi = ax.get_ylim()  # indices are shares of variance: a heavy-tailed statistic's wild interval is cut
+        ax.set_ylim(max(lo, -0.5), min(hi, 1.5))
         ax.set_xticks(pos, [f.split(".")[0] for f in table.factors], rotation=35, ha="right", fontsize=7)
         ax.set_title(f"{measure}.{stat}", fontsize=9)
         ax.axhline(0, color="0.5", lw=0.5)

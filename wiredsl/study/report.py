@@ -3,7 +3,9 @@ the manifest, and Sobol' indices for space-filling designs.
 
 Statistics of a row pool the study's poses and trials: `mean` and the quantiles are over every
 (trial, pose) value; `sem` is the standard error of the mean over trials (each trial's values
-averaged over the poses first), because a trial's poses share its calibration draw.
+averaged over the poses first), because a trial's poses share its calibration draw. A statistic
+a measure weights (`weights`: statistic -> the statistic that counts its points) leaves out the
+views of weight 0, where it has no value.
 """
 
 from __future__ import annotations
@@ -35,8 +37,8 @@ class Row(_Node):
     values: dict[str, float] = Field(description="the varied parameters at this point, `stage.param` -> SI value")
     measure: str
     statistic: str
-    n: int = Field(ge=1, description="trials")
-    n_values: int = Field(ge=1, description="trials x poses pooled")
+    n: int = Field(ge=1, description="trials with a value")
+    n_values: int = Field(ge=1, description="(trial, pose) values pooled")
     mean: float
     sem: float | None = Field(description="standard error of the mean over trials (None with one trial)")
     q05: float
@@ -76,19 +78,26 @@ def _f(x: float) -> float:
     return float(np.float64(x))
 
 
-def rows(study: Study, X: np.ndarray, per_point: list[dict[str, np.ndarray]]) -> list[Row]:
-    """Rows from each point's values {"measure.statistic": (n_poses, trials)}."""
+def rows(study: Study, X: np.ndarray, per_point: list[dict[str, np.ndarray]],
+         weights: dict[str, str] | None = None) -> list[Row]:
+    """Rows from each point's values {"measure.statistic": (n_poses, trials)}. A statistic with a
+    weight (a measure's `weights`, e.g. an error with its point count) leaves out views of weight 0,
+    where it has no value; a point where none has one gets no row."""
     out = []
     labels = [f.label for f in study.factors]
     for p, arrays in enumerate(per_point):
         for name, V in arrays.items():
             measure, stat = name.split(".", 1)
-            per_trial = V.mean(axis=0)
+            w = (weights or {}).get(name)
+            valid = arrays[w] > 0 if w in arrays else np.ones(V.shape, dtype=bool)
+            per_trial = np.array([V[valid[:, k], k].mean() for k in range(V.shape[1]) if valid[:, k].any()])
             n = len(per_trial)
+            if n == 0:
+                continue
             sem = _f(per_trial.std(ddof=1) / math.sqrt(n)) if n > 1 else None
-            q = np.quantile(V.ravel(), QUANTILES)
+            q = np.quantile(V[valid], QUANTILES)
             out.append(Row(point=p, values={k: _f(v) for k, v in zip(labels, X[p], strict=True)}, measure=measure,
-                           statistic=stat, n=n, n_values=V.size, mean=_f(V.mean()), sem=sem,
+                           statistic=stat, n=n, n_values=int(valid.sum()), mean=_f(V[valid].mean()), sem=sem,
                            **{f"q{int(round(a * 100)):02d}": _f(v) for a, v in zip(QUANTILES, q, strict=True)}))
     return out
 
@@ -101,6 +110,8 @@ def sobol(study: Study, table: list[Row]) -> list[SobolIndex]:
     out = []
     for measure, stat in dict.fromkeys((r.measure, r.statistic) for r in table):
         y = np.array([r.mean for r in table if (r.measure, r.statistic) == (measure, stat)])
+        if len(y) != n * (d + 2):  # some point had no value of it: no indices
+            continue
         s = design.sobol_indices(y, n, d, seed=study.design_seed)
         for i, f in enumerate(study.factors):
             ci = {k: (_f(s[k][0][i]), _f(s[k][1][i])) for k in ("first_order_ci", "total_order_ci") if k in s

@@ -74,7 +74,7 @@ def point_run(scene: Scene, world: World, study: Study, point: int, values, opts
     return run
 
 
-_WORKER: dict = {}  # per process: digest -> (world, base run); (digest, point) -> (run, prepared measures)
+_WORKER: dict = {}  # per process: digest -> (world, base run, prepared measures); (digest, point) -> its run
 
 
 def compute(job: Job) -> dict[str, np.ndarray]:
@@ -88,16 +88,18 @@ def compute(job: Job) -> dict[str, np.ndarray]:
         _WORKER.clear()  # one study at a time per worker
         base = Run.create(scene, world, None, 0, options(study))
         base.ideal()
-        _WORKER[job.digest] = (world, base)
-    world, base = _WORKER[job.digest]
+        # a measure's reference data come from the ideal scene, which no pipeline parameter changes:
+        # prepared once per study (with the run of no stages), not once per design point
+        prepared = [(registry[m.name], p := registry[m.name].Params(**m.params), registry[m.name].prepare(p, base))
+                    for m in study.measures]
+        _WORKER[job.digest] = (world, base, prepared)
+    world, base, prepared = _WORKER[job.digest]
     key = (job.digest, job.shard.point)
     if key not in _WORKER:
-        run = point_run(scene, world, study, job.shard.point, job.values, base=base)
-        prepared = [(registry[m.name], p := registry[m.name].Params(**m.params), registry[m.name].prepare(p, run))
-                    for m in study.measures]
-        _WORKER[key] = (run, prepared)
-    run, prepared = _WORKER[key]
-    return measure_batches(run, prepared, list(range(job.shard.lo, job.shard.hi)))
+        for old in [k for k in _WORKER if isinstance(k, tuple)]:  # a point's shards come together: keep one
+            del _WORKER[old]
+        _WORKER[key] = point_run(scene, world, study, job.shard.point, job.values, base=base)
+    return measure_batches(_WORKER[key], prepared, list(range(job.shard.lo, job.shard.hi)))
 
 
 def measure_batches(run: Run, prepared, trials: list[int]) -> dict[str, np.ndarray]:
