@@ -288,7 +288,8 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
         else:
             colour_of[n] = PALETTE[k % len(PALETTE)]
             k += 1
-    labels = []
+    labels: list[tuple[float, float, str, str, str]] = []
+    placed: list[tuple[float, float, float, float]] = []
     for n in order:
         colour = keys.use("top view", colour_of[n], n)
         width = 3.0 if n == room else 2.0
@@ -297,11 +298,13 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
                        f'stroke-width="{width}" stroke-linecap="round"><title>{escape(n)}</title></polyline>')
         q = m(np.concatenate(foot[n]))
         qlo, qhi = q.min(0), q.max(0)
-        if n == room:
-            labels.append((qlo[0], qlo[1] - 6, "start", n, colour))  # above its top-left corner, off the objects
-        else:
-            tx = float(np.clip((qlo[0] + qhi[0]) / 2, X0 + 30, X0 + bw - 30))
-            labels.append((tx, qlo[1] - 6, "middle", n, colour))
+        mid = (qlo + qhi) / 2
+        if n == room:  # above its top-left corner, off the objects inside
+            tries = [(qlo[0], qlo[1] - 6, "start")]
+        else:  # above, below, right, left of the outline: the first that overlaps no earlier name
+            tries = [(mid[0], qlo[1] - 6, "middle"), (mid[0], qhi[1] + 15, "middle"),
+                     (qhi[0] + 5, mid[1] + 4, "start"), (qlo[0] - 5, mid[1] + 4, "end")]
+        labels.append(_place_label(n, colour, tries, placed, (X0, Y0, X0 + bw, Y0 + bh)))
     path = keys.use("top view", PATH, f"path '{scene.path.name}'", "dash")
     out.append(f'<polyline class="map" points="{_pts(m(np.array(scene.path.poses, dtype=float)[:, :2]))}" '
                f'fill="none" stroke="{path}" stroke-width="1.6" stroke-dasharray="6 4"/>')
@@ -325,6 +328,23 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
     out.append(f'<rect class="axis" x="{_f(X0)}" y="{_f(Y0)}" width="{_f(bw)}" height="{_f(bh)}" fill="none" '
                'stroke="#333333" stroke-width="1.2"/>')
     return out
+
+
+def _place_label(name: str, colour: str, tries, placed: list, box) -> tuple[float, float, str, str, str]:
+    """The first candidate position whose text lies in the box and clear of the names placed so far."""
+    w = 0.66 * SMALL * len(name)  # bold sans: about 0.66 em a character
+
+    def rect(x, y, anchor):
+        x0 = x - {"start": 0.0, "middle": w / 2, "end": w}[anchor]
+        return x0, y - 0.8 * SMALL, x0 + w, y + 0.25 * SMALL
+
+    def free(r):
+        inside = r[0] >= box[0] and r[1] >= box[1] and r[2] <= box[2] and r[3] <= box[3]
+        return inside and all(r[2] < q[0] or q[2] < r[0] or r[3] < q[1] or q[3] < r[1] for q in placed)
+
+    x, y, anchor = next((t for t in tries if free(rect(*t))), tries[0])
+    placed.append(rect(x, y, anchor))
+    return x, y, anchor, name, colour
 
 
 def _scale_bar(right: float, base: float, s: float, bw: float) -> list[str]:
