@@ -85,7 +85,7 @@ def _check_figure(data: bytes, sources: set[str]) -> ET.Element:
         assert float(e.get("font-size")) >= 11
     for e in root.iter():
         if e.get("class") in ("feature", "map") and e.get("stroke-width"):
-            assert float(e.get("stroke-width")) >= 1.0
+            assert float(e.get("stroke-width")) >= 1.3
         if e.get("class") == "feature":
             assert float(e.get("stroke-width")) >= 1.5
     return root

@@ -267,7 +267,7 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
         mesh = keys.use("top view", MESH, f"view-point mesh '{vp.name}'")
         for a, b, c in vp.triangles:
             out.append(f'<polygon class="map" points="{_pts(P[[a, b, c]])}" fill="none" stroke="{mesh}" '
-                       'stroke-width="1"/>')
+                       'stroke-width="1.3"/>')
         keys.use("top view", MESH_POINT, "view-point", "dot")
         for name, p in zip(vp.names, P, strict=True):
             out.append(f'<circle class="map" cx="{_f(p[0])}" cy="{_f(p[1])}" r="2.5" fill="{MESH_POINT}">'
