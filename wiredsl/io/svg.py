@@ -481,12 +481,6 @@ def visibility_pair(scene: Scene, world: World, without: PoseResult, with_: Pose
     return _compose(scene, world, with_, panes, info)
 
 
-def render(scene: Scene, world: World, result: PoseResult, underlay: PoseResult | None = None,
-           info: Info = Info()) -> str:
-    """The default figure of one pose: the overlay layout."""
-    return overlay(scene, world, result, underlay, info)
-
-
 def pose_figures(run, results: list[PoseResult], layout: str, info: Info) -> dict[str, str]:
     """File name -> SVG of every pose of one trial's results, in the chosen layout."""
     from dataclasses import replace
