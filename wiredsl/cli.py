@@ -215,19 +215,13 @@ def _documents(path: str, text: str) -> list[tuple[str, object]]:
 @main.command()
 def reference() -> None:
     """Print the language reference (Markdown), generated from the statement table."""
-    from wiredsl.language.statements import CONTEXTS
+    from wiredsl.language.statements import CONTEXTS, takes
 
     out = ["| where | statement | takes | meaning |", "|---|---|---|---|"]
     for ctx, sigs in CONTEXTS.items():
         for sig in sigs.values():
-            takes = [f"<{s.label}>" for s in sig.positional]
-            for key, clause in sig.clauses.items():
-                piece = " ".join([key, *(f"<{s.label}>" for s in clause.slots)])
-                takes.append(piece if clause.required else f"[{piece}]" + ("..." if clause.repeat else ""))
-            if sig.block:
-                takes.append("{ ... }" if sig.block_required else "[{ ... }]")
             where = "top level" if ctx == "top" else f"`{ctx}` block"
-            text = " ".join(takes).replace("|", "\\|")
+            text = takes(sig).replace("|", "\\|")
             out.append(f"| {where} | `{sig.keyword}` | `{text}` | {sig.doc.splitlines()[0]} |")
     click.echo("\n".join(out))
 
@@ -490,3 +484,21 @@ def bench(file: str, output: str | None, budget: float) -> None:
         click.echo(t.markdown())
     write_atomic(out, bench_mod.plot(tables, out.suffix.lower()[1:]))
     click.echo(f"wrote {out}", err=True)
+
+
+@main.command()
+@click.option("--print-grammar", is_flag=True,
+              help="Print the TextMate grammar for syntax highlighting (editors/wiredsl.tmLanguage.json) and exit.")
+@guarded
+def lsp(print_grammar: bool) -> None:
+    """Run the language server on stdin/stdout (needs the `lsp` extra: pip install 'wiredsl[lsp]')."""
+    from wiredsl import lsp as server
+
+    if print_grammar:
+        click.echo(json.dumps(server.textmate_grammar(), indent=2))
+        return
+    try:
+        import pygls  # noqa: F401
+    except ImportError:
+        raise click.UsageError("the language server needs pygls: pip install 'wiredsl[lsp]'") from None
+    server.serve()

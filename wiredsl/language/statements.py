@@ -202,6 +202,17 @@ CONTEXTS: dict[str, dict[str, Sig]] = {
 }
 
 
+def takes(sig: Sig) -> str:
+    """What a statement takes, as the reference writes it: `<model> as <name> [at <point>]...`."""
+    out = [f"<{s.label}>" for s in sig.positional]
+    for key, clause in sig.clauses.items():
+        piece = " ".join([key, *(f"<{s.label}>" for s in clause.slots)])
+        out.append(piece if clause.required else f"[{piece}]" + ("..." if clause.repeat else ""))
+    if sig.block:
+        out.append("{ ... }" if sig.block_required else "[{ ... }]")
+    return " ".join(out)
+
+
 # --------------------------------------------------------------------------- binding
 
 @dataclass(frozen=True, slots=True)
