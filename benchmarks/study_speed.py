@@ -1,7 +1,7 @@
 """Study speed: local processes on 2 cores against in-process, and the study's overhead against the
 same trials run bare (the engine's batches alone, as `build` runs them, without measures or shards).
 
-    python benchmarks/study_speed.py [--trials 128]
+    python benchmarks/study_speed.py [--trials 256] [--repeat 2]
 
 Uses the installed `survival` measure when there is one, else the tests' `kept` measure.
 """
@@ -33,7 +33,8 @@ study speed {{
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--trials", type=int, default=128)
+    ap.add_argument("--trials", type=int, default=256)
+    ap.add_argument("--repeat", type=int, default=2, help="interleaved repetitions; the best of each is reported")
     args = ap.parse_args()
     from wiredsl.engine.world import build_world
     from wiredsl.language import compile_study
@@ -73,9 +74,16 @@ def main() -> None:
                     pass
             return time.perf_counter() - t
 
-        inproc = timed("inprocess")
-        procs = timed("processes", workers=2)
-        engine = bare()
+        times: dict[str, list[float]] = {"inprocess": [], "processes": [], "bare": []}
+        for _ in range(args.repeat):  # interleaved, so that the machine's other load hits each alike
+            times["inprocess"].append(timed("inprocess"))
+            times["processes"].append(timed("processes", workers=2))
+            times["bare"].append(bare())
+        inproc, procs, engine = (min(times[k]) for k in ("inprocess", "processes", "bare"))
+        import os
+
+        print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at the end; best of "
+              f"{args.repeat} interleaved runs")
         print(f"study: lab, pipeline paper, {len(design.matrix(study))} points x {study.trials} trials x 3 poses "
               f"({n_trials} trials), measure {measure}")
         print(f"in-process:            {inproc:6.2f} s  ({n_trials / inproc:,.0f} trials/s)")

@@ -35,7 +35,12 @@ def _processes(jobs: Sequence[Job], done: Done, workers: int) -> None:
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    ctx = multiprocessing.get_context("spawn")  # fork would copy threads and locks of the parent
+    # fork would copy the parent's threads and locks; a fork server is started clean, imports the engine once
+    # and forks every worker from it, ready (spawn would import it again in each worker)
+    method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+    ctx = multiprocessing.get_context(method)
+    if method == "forkserver":
+        ctx.set_forkserver_preload(["wiredsl.study.shards"])
     with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx) as pool:
         futures = [pool.submit(run_job, job) for job in jobs]
         try:
