@@ -213,8 +213,10 @@ def test_dask_local_cluster_gives_the_same_table(scene, tmp_path):
 
 def test_study_command_writes_table_manifest_and_plots(scene_file, tmp_path):
     out = tmp_path / "out"
-    r = CliRunner().invoke(main, ["study", str(scene_file), "sources", "-o", str(out), "--executor", "inprocess"])
+    r = CliRunner().invoke(main, ["study", str(scene_file), "sources", "-o", str(out), "--workers", "2"])
     assert r.exit_code == 0, r.output
+    assert "executor processes" in r.stderr
+    assert (out / "sobol.csv").read_text().splitlines()[1].startswith("kept,strokes,edge_loss.fraction,")
     assert "points" in r.stderr and "trials/s" in r.stderr and "ETA" in r.stderr
     for name in ("table.csv", "table.json", "manifest.json", "plots/kept.strokes.png", "plots/kept.length.png",
                  "plots/sobol.png"):

@@ -616,7 +616,7 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
     out = Path(output) if output else Path("build") / scene.name / f"study_{found.name}"
     table = run_study(scene, found, out, executor=executor, workers=workers, scheduler=scheduler,
                       echo=lambda m: click.echo(m, err=True))
-    written = ["table.csv", "table.json", "manifest.json"]
+    written = ["table.csv", "table.json", "manifest.json"] + (["sobol.csv"] if table.sobol else [])
     if plots:
         from wiredsl.study import plots as plots_mod
 

@@ -76,8 +76,13 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
     """Run what is not yet done of a study into `folder`, then write table.csv, table.json and
     manifest.json there. `limit` stops after that many new shards (no table): an interrupted run."""
     from wiredsl.io import emit
+    from wiredsl.language.compile_study import measure_registry
 
     folder = Path(folder)
+    if registry is None:  # resolved here, and sent to the workers with each job
+        registry = {m.name: measure_registry()[m.name] for m in study.measures}
+    for stale in (folder / "shards").glob(".*.tmp"):  # a shard being written when a run was killed
+        stale.unlink(missing_ok=True)
     X, all_jobs = jobs(scene, study, folder, registry, shard_trials)
     todo = [j for j in all_jobs if shards.read(j) is None]
     progress = Progress(all_jobs, len(todo), echo)
@@ -98,9 +103,7 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
             raise RuntimeError(f"shard {shards.path(j)} is missing or damaged after its run")
         for name, V in arrays.items():
             per_point[j.shard.point].setdefault(name, []).append(V)
-    from wiredsl.language.compile_study import measure_registry
-
-    measures = {m.name: (registry if registry is not None else measure_registry())[m.name] for m in study.measures}
+    measures = {m.name: registry[m.name] for m in study.measures}
     order = [f"{name}.{s}" for name, m in measures.items() for s in m.statistics]
     weights = {f"{name}.{s}": f"{name}.{w}" for name, m in measures.items()
                for s, w in (getattr(m, "weights", None) or {}).items()}
@@ -112,6 +115,8 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
                               rows=rows, sobol=report.sobol(study, rows))
     write_atomic(folder / "table.csv", report.to_csv(table))
     write_atomic(folder / "table.json", report.to_json(table))
+    if table.sobol:
+        write_atomic(folder / "sobol.csv", report.sobol_csv(table))
     write_atomic(folder / "manifest.json", json.dumps(report.manifest(ref, study, all_jobs[0].digest, X, shard_trials),
                                                       indent=1) + "\n")
     return table

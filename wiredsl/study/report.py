@@ -136,6 +136,19 @@ def to_csv(table: StudyTable) -> str:
     return buf.getvalue()
 
 
+def sobol_csv(table: StudyTable) -> str:
+    """The Sobol' indices as CSV: one row per statistic and factor, with the bootstrap intervals."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["measure", "statistic", "factor", "first_order", "first_order_lo", "first_order_hi", "total_order",
+                "total_order_lo", "total_order_hi"])
+    for s in table.sobol:
+        ci1, cit = s.first_order_ci or ("", ""), s.total_order_ci or ("", "")
+        w.writerow([s.measure, s.statistic, s.factor, repr(s.first_order), *map(str, ci1), repr(s.total_order),
+                    *map(str, cit)])
+    return buf.getvalue()
+
+
 def to_json(doc: BaseModel) -> str:
     return json.dumps(doc.model_dump(mode="json"), indent=1, sort_keys=False, allow_nan=False) + "\n"
 
