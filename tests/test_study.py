@@ -94,11 +94,14 @@ def test_sobol_indices_of_ishigami_match_the_analytic_values():
               factors=[Factor(stage="edge_loss", param="fraction", low=-math.pi, high=math.pi) for _ in range(3)])
     X = design.matrix(s)
     y = np.sin(X[:, 0]) + 7 * np.sin(X[:, 1]) ** 2 + 0.1 * X[:, 2] ** 4 * np.sin(X[:, 0])
-    got = design.sobol_indices(y, 4096, 3)
+    got = design.sobol_indices(y, 4096, 3, resamples=0)
     assert np.allclose(got["first_order"], [0.3139, 0.4424, 0.0], atol=0.03)
     assert np.allclose(got["total_order"], [0.5576, 0.4424, 0.2437], atol=0.03)
-    lo, hi = got["total_order_ci"]
-    assert (lo <= got["total_order"]).all() and (got["total_order"] <= hi).all()
+    # with 64 base samples the bootstrap intervals hold the analytic total indices
+    small = design.matrix(s.model_copy(update={"points": 64}))
+    y = np.sin(small[:, 0]) + 7 * np.sin(small[:, 1]) ** 2 + 0.1 * small[:, 2] ** 4 * np.sin(small[:, 0])
+    lo, hi = design.sobol_indices(y, 64, 3)["total_order_ci"]
+    assert (lo <= [0.5576, 0.4424, 0.2437]).all() and ([0.5576, 0.4424, 0.2437] <= hi).all()
 
 
 def test_table_rows_and_schema(scene, tmp_path):

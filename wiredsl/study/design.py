@@ -65,7 +65,7 @@ def pipeline_at(scene: Scene, study: Study, values: np.ndarray) -> Pipeline:
                                                   for e in order])
 
 
-def sobol_indices(y: np.ndarray, n: int, d: int, seed: int = 0) -> dict[str, np.ndarray]:
+def sobol_indices(y: np.ndarray, n: int, d: int, seed: int = 0, resamples: int = 199) -> dict[str, np.ndarray]:
     """First-order and total Sobol' indices of outputs y (n (d + 2) values in the design's order), with
     bootstrap 95% intervals: scipy.stats.sobol_indices (Saltelli 2010 first order, Jansen 1999 total)."""
     from scipy.stats import sobol_indices as scipy_sobol
@@ -75,8 +75,8 @@ def sobol_indices(y: np.ndarray, n: int, d: int, seed: int = 0) -> dict[str, np.
     f_AB = y[2 * n:].reshape(d, 1, n)
     res = scipy_sobol(func={"f_A": f_A, "f_B": f_B, "f_AB": f_AB}, n=n, rng=np.random.default_rng(seed))
     out = {"first_order": np.atleast_1d(res.first_order), "total_order": np.atleast_1d(res.total_order)}
-    if n >= 4:
-        ci = res.bootstrap(confidence_level=0.95, n_resamples=199)  # resamples with the rng above
+    if n >= 4 and resamples > 0:
+        ci = res.bootstrap(confidence_level=0.95, n_resamples=resamples)  # resamples with the rng above
         out["first_order_ci"] = np.stack([np.atleast_1d(ci.first_order.confidence_interval.low),
                                           np.atleast_1d(ci.first_order.confidence_interval.high)])
         out["total_order_ci"] = np.stack([np.atleast_1d(ci.total_order.confidence_interval.low),
