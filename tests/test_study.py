@@ -243,25 +243,30 @@ from wiredsl.language import compile_study
 compile_study.measure_registry = lambda: study_measures.REGISTRY
 from wiredsl.language.compile import compile_file
 from wiredsl.study import run_study
-scene = compile_file(sys.argv[1])[0]
-run_study(scene, scene.study("shift"), sys.argv[2], executor="inprocess", registry=study_measures.REGISTRY,
-          shard_trials=2)
+
+if __name__ == "__main__":
+    scene = compile_file(sys.argv[1])[0]
+    run_study(scene, scene.study("shift"), sys.argv[2], executor=sys.argv[3], registry=study_measures.REGISTRY,
+              shard_trials=2, workers=2)
 """
 
 
-def test_study_killed_by_sigterm_resumes_to_the_uninterrupted_table(scene, scene_file, tmp_path):
+@pytest.mark.parametrize("executor", ["inprocess", "processes"])
+def test_study_killed_by_sigterm_resumes_to_the_uninterrupted_table(scene, scene_file, tmp_path, executor):
     import signal
     import subprocess
     import sys
     import time
 
     out = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, "-c", KILLABLE, str(scene_file), str(out)])
+    script = tmp_path / "killable.py"
+    script.write_text(KILLABLE)
+    proc = subprocess.Popen([sys.executable, str(script), str(scene_file), str(out), executor])
     deadline = time.monotonic() + 120
     while len(list((out / "shards").glob("*.npz"))) < 3 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     proc.send_signal(signal.SIGTERM)
-    assert proc.wait(60) == -signal.SIGTERM  # killed mid-study, not finished
+    assert proc.wait(60) == 128 + signal.SIGTERM  # stopped mid-study, its workers shut down
     finished = len(list((out / "shards").glob("*.npz")))
     assert 3 <= finished < 20 and not (out / "table.csv").exists()
     messages = []

@@ -6,6 +6,7 @@ file; the caller hears of each finished shard (in whatever order) and reads the 
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable, Sequence
 
@@ -20,6 +21,32 @@ def execute(jobs: Sequence[Job], executor: str, done: Done, workers: int | None 
     """Run every job, calling done(shard, trials) as each finishes."""
     if not jobs:
         return
+    with _terminable():
+        _execute(jobs, executor, done, workers, scheduler)
+
+
+@contextlib.contextmanager
+def _terminable():
+    """SIGTERM unwinds like Ctrl-C: workers are shut down and the finished shards stay (exit status 143)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield
+        return
+
+    def stop(signum, frame):
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _execute(jobs: Sequence[Job], executor: str, done: Done, workers: int | None, scheduler: str | None) -> None:
     if executor == "inprocess":
         for job in jobs:
             done(*run_job(job))
@@ -46,9 +73,8 @@ def _processes(jobs: Sequence[Job], done: Done, workers: int) -> None:
         try:
             for f in as_completed(futures):
                 done(*f.result())
-        except BaseException:
-            for f in futures:
-                f.cancel()
+        except BaseException:  # the shards running finish and are written; the rest are not started
+            pool.shutdown(wait=True, cancel_futures=True)
             raise
 
 
