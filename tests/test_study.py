@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from pathlib import Path
@@ -289,3 +290,38 @@ def test_weighted_statistics_leave_out_views_without_a_value():
     assert err.sem == pytest.approx(np.std([2.0, 5.0], ddof=1) / np.sqrt(2))
     count = next(r for r in rows if r.statistic == "count")
     assert (count.n, count.n_values) == (3, 6)
+
+
+def test_camera_factors_change_the_projection_at_their_points(tmp_path):
+    path = tmp_path / "cam.wd"
+    path.write_text(f'wiredsl 1\ninclude "{Path("scenes/lab.wd").resolve().as_posix()}"\n'
+                    "study lens {\n  pipeline edges\n  vary camera.cam_l.k values [0, 0.05]\n"
+                    "  vary camera.cam_l.f values [500px, 600px]\n  trials 2\n  poses [3]\n  measure kept\n}\n")
+    scene = compile_file(path)[0]
+    study = scene.study("lens")
+    assert [f.label for f in study.factors] == ["camera.cam_l.k", "camera.cam_l.f"]
+    X = design.matrix(study)
+    world = build_world(scene)
+    runs = [shards.point_run(scene, world, study, p, X[p]) for p in range(len(X))]
+    assert [r.scene.camera("cam_l").k1 for r in runs] == [0.0, 0.0, -0.05, -0.05]
+    assert [r.scene.camera("cam_l").f for r in runs] == [500.0, 600.0, 500.0, 600.0]
+    assert runs[0].scene.camera("cam_r") == scene.camera("cam_r")
+    first = [r.ideal()[0].left.features[0].points for r in runs]
+    # each point projects its own camera
+    assert all(a.shape != b.shape or not np.allclose(a, b) for a, b in itertools.combinations(first, 2))
+    table = _run(scene, "lens", tmp_path / "out", executor="inprocess")
+    assert len(table.rows) == 4 * 2
+
+
+@pytest.mark.parametrize("line, message", [
+    ("vary camera.cam_x.k values [0]", "4:8: error[E104]: unknown camera 'cam_x'"),
+    ("vary camera.cam_l.kk values [0]", "4:8: error[E104]: unknown camera parameter 'kk'"),
+    ("vary camera.cam_l.f values [0px]", "4:31: error[E110]: camera.cam_l f: must be > 0, got 0px"),
+    ("vary lateral_shift values [0]", "4:8: error[E106]: expected 'stage.param' or 'camera.<name>.<param>'"),
+])
+def test_factor_diagnostics(tmp_path, line, message):
+    path = tmp_path / "bad.wd"
+    path.write_text(f'wiredsl 1\ninclude "{Path("scenes/lab.wd").resolve().as_posix()}"\n'
+                    f"study s {{\n  {line}\n  measure kept\n}}\n")
+    r = CliRunner().invoke(main, ["check", str(path)])
+    assert r.exit_code == 1 and message in r.stderr.splitlines()[0], r.stderr

@@ -175,9 +175,10 @@ class Pipeline(Node):
 
 
 class Factor(Node):
-    """One varied parameter of a study: `stage.param` over a list of values or a range."""
+    """One varied parameter of a study: `stage.param` (or `camera.<name>.param`) over a list of values or a
+    range."""
 
-    stage: str
+    stage: str = Field(description="a pipeline stage, or camera.<name>")
     param: str
     values: list[float] | None = Field(None, description="explicit values (a grid axis)")
     low: float | None = Field(None, description="range start (SI units)")

@@ -830,7 +830,7 @@ class Compiler:
         n_poses = len(path.poses) if path is not None else None
         studies: dict[str, _Decl] = {}
         for b in self.study_stmts:
-            study = compile_study(b, pipelines, n_poses, self._units, self.out)
+            study = compile_study(b, pipelines, n_poses, self._units, self.out, tuple(self.cameras))
             if study is not None:
                 self._declare(studies, "study", b.name, b.name_span, study)
         return [d.value for d in studies.values()]

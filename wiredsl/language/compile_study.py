@@ -19,6 +19,14 @@ from wiredsl.language.statements import Bound, Value, bind, quantity
 from wiredsl.scene import Factor, MeasureUse, Pipeline, Study
 
 MAX_POINTS = 100_000  # design points of one study
+# Camera parameters a study may vary as `camera.<name>.<param>`: (unit kind, lower bound, doc).
+CAMERA_FACTORS = {
+    "f": ("image", 0.0, "focal length in pixels"), "ax": ("number", 0.0, "aspect scale x"),
+    "ay": ("number", 0.0, "aspect scale y"), "cx": ("image", None, "optical centre x"),
+    "cy": ("image", None, "optical centre y"), "k": ("number", None, "TINA's radial coefficient (k1 = -k)"),
+    "k1": ("number", None, "OpenCV's k1"), "k2": ("number", None, "OpenCV's k2"),
+    "p1": ("number", None, "OpenCV's p1"), "p2": ("number", None, "OpenCV's p2"),
+}
 MAX_TRIALS = 10**9  # design points x trials
 
 
@@ -31,8 +39,8 @@ def measure_registry() -> dict:
     return measures
 
 
-def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None, units_of, out: Collector
-                  ) -> Study | None:
+def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None, units_of, out: Collector,
+                  cameras: tuple[str, ...] = ()) -> Study | None:
     """One `study NAME { ... }` block as a Study; None after reporting its errors."""
     n_errors = len(out.errors)
     seen: dict[str, Span] = {}
@@ -67,7 +75,7 @@ def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None,
     labels: dict[str, Span] = {}
     for sb in bounds:
         if sb.stmt.keyword == "vary":
-            f = _factor(sb, kind, units_of(sb.stmt), out)
+            f = _factor(sb, kind, units_of(sb.stmt), out, cameras)
             if f is not None:
                 if f.label in labels:
                     out.error("E103", f"'{f.label}' varied twice in study '{b.name}'", sb.positional[0].span,
@@ -146,12 +154,17 @@ def _size(kind: str, factors: list[Factor], points: int | None) -> int:
     return points * (len(factors) + 2)
 
 
-def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector) -> Factor | None:
-    """A `vary stage.param ...` statement: the stage and parameter known, the values in range."""
+def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras: tuple[str, ...] = ()
+            ) -> Factor | None:
+    """A `vary stage.param ...` (or `camera.<name>.<param>`) statement: the target and parameter known,
+    the values in range."""
     ref = sb.stmt.args[0]
     span = sb.positional[0].span
+    if isinstance(ref, ast.Ref) and len(ref.parts) == 3 and ref.parts[0] == "camera":
+        return _camera_factor(sb, ref, kind, units, out, cameras)
     if not isinstance(ref, ast.Ref) or len(ref.parts) != 2 or "*" in ref.parts:
-        out.error("E106", f"expected 'stage.param', got '{sb.pos(0)}'", span, "e.g. lateral_shift.range")
+        out.error("E106", f"expected 'stage.param' or 'camera.<name>.<param>', got '{sb.pos(0)}'", span,
+                  "e.g. lateral_shift.range")
         return None
     stage, param = ref.parts
     effect = REGISTRY.get(stage)
@@ -165,6 +178,41 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector) -> Fact
                   did_you_mean(param, fields) or "parameters: " + ", ".join(fields))
         return None
     value_kind = (fields[param].json_schema_extra or {}).get("kind", "number")
+
+    def check(v: float) -> str | None:
+        try:
+            effect.Params(**{param: v})
+        except pydantic.ValidationError as exc:
+            err = exc.errors()[0]
+            ctx = err.get("ctx", {})
+            return next((f"{w} {ctx[k]:g}" for k, w in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<"))
+                         if k in ctx), err["msg"])
+        return None
+
+    return _values(sb, stage, param, value_kind, check, kind, units, out)
+
+
+def _camera_factor(sb: Bound, ref: ast.Ref, kind: str, units: dict[str, str], out: Collector,
+                   cameras: tuple[str, ...]) -> Factor | None:
+    """`camera.<name>.<param>`: a camera's own parameter (what the robot has and believes), not an error."""
+    _, name, param = ref.parts
+    span = sb.positional[0].span
+    if name not in cameras:
+        out.error("E104", f"unknown camera '{name}'", span, did_you_mean(name, cameras)
+                  or "cameras: " + (", ".join(cameras) or "none"))
+        return None
+    if param not in CAMERA_FACTORS:
+        out.error("E104", f"unknown camera parameter '{param}'", span,
+                  did_you_mean(param, CAMERA_FACTORS) or "parameters: " + ", ".join(CAMERA_FACTORS))
+        return None
+    value_kind, low, _ = CAMERA_FACTORS[param]
+    return _values(sb, f"camera.{name}", param, value_kind,
+                   lambda v: f"> {low:g}" if low is not None and not v > low else None, kind, units, out)
+
+
+def _values(sb: Bound, stage: str, param: str, value_kind: str, check, kind: str, units: dict[str, str],
+            out: Collector) -> Factor | None:
+    """The factor's values (a list, or a range with steps for a grid), converted and range-checked."""
     has_values, has_range = sb.has("values"), sb.has("from") or sb.has("to")
     if has_values and has_range:
         out.error("E103", "give either 'values' or 'from ... to', not both", sb.span("values"))
@@ -182,13 +230,8 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector) -> Fact
         v = quantity(arg, value_kind, units, out)
         if len(out.errors) != n_before:
             return None
-        try:
-            effect.Params(**{param: v})
-        except pydantic.ValidationError as exc:
-            err = exc.errors()[0]
-            ctx = err.get("ctx", {})
-            bound = next((f"{w} {ctx[k]:g}" for k, w in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<"))
-                          if k in ctx), err["msg"])
+        bound = check(v)
+        if bound is not None:
             out.error("E110", f"{stage} {param}: must be {bound}, got {arg.text}", arg.span)
             return None
         return v

@@ -197,7 +197,7 @@ _PATH = [
 _STUDY = [
     Sig("pipeline", "the pipeline the study starts from (default: the scene's default)", (S("ref", "pipeline"),),
         example="pipeline paper"),
-    Sig("vary", "a parameter to vary, `stage.param`: a list of values, or a range (grid: with steps)",
+    Sig("vary", "a parameter to vary, `stage.param` or `camera.<name>.<param>`: a list of values, or a range",
         (S("ref", "stage.param"),),
         {"values": C("the values, in the parameter's units", S("rawlist", "[values]")),
          "from": C("range start", S("raw", "value")),

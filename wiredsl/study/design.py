@@ -55,6 +55,8 @@ def pipeline_at(scene: Scene, study: Study, values: np.ndarray) -> Pipeline:
     stages = {s.effect: dict(s.params.model_dump()) for s in (base.stages if base else [])}
     order = [s.effect for s in (base.stages if base else [])]
     for f, v in zip(study.factors, values, strict=True):
+        if f.stage.startswith("camera."):
+            continue
         if f.stage not in stages:
             stages[f.stage] = {}
             rank = REGISTRY[f.stage].flow_rank()
@@ -82,3 +84,22 @@ def sobol_indices(y: np.ndarray, n: int, d: int, seed: int = 0, resamples: int =
         out["total_order_ci"] = np.stack([np.atleast_1d(ci.total_order.confidence_interval.low),
                                           np.atleast_1d(ci.total_order.confidence_interval.high)])
     return out
+
+
+def varies_scene(study: Study) -> bool:
+    """True when a factor changes the scene itself (a camera), not only the pipeline."""
+    return any(f.stage.startswith("camera.") for f in study.factors)
+
+
+def scene_at(scene: Scene, study: Study, values: np.ndarray) -> Scene:
+    """The scene with one design point's camera factors substituted (`k` is TINA's: k1 = -k)."""
+    updates: dict[str, dict[str, float]] = {}
+    for f, v in zip(study.factors, values, strict=True):
+        if f.stage.startswith("camera."):
+            name = f.stage.split(".", 1)[1]
+            key, value = ("k1", -float(v)) if f.param == "k" else (f.param, float(v))
+            updates.setdefault(name, {})[key] = value
+    if not updates:
+        return scene
+    cameras = [c.model_copy(update=updates[c.name]) if c.name in updates else c for c in scene.cameras]
+    return scene.model_copy(update={"cameras": cameras})

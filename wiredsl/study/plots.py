@@ -70,9 +70,14 @@ def _label(factor: str) -> str:
     """The factor with the SI unit of its kind (the unit the table's values are in)."""
     from wiredsl.effects import REGISTRY
 
-    stage, param = factor.split(".", 1)
-    field = REGISTRY[stage].Params.model_fields[param]
-    unit = {"image": "px", "angle": "rad", "length": "m"}.get((field.json_schema_extra or {}).get("kind"), "")
+    stage, param = factor.rsplit(".", 1)
+    if stage.startswith("camera."):
+        from wiredsl.language.compile_study import CAMERA_FACTORS
+
+        kind = CAMERA_FACTORS[param][0]
+    else:
+        kind = (REGISTRY[stage].Params.model_fields[param].json_schema_extra or {}).get("kind")
+    unit = {"image": "px", "angle": "rad", "length": "m"}.get(kind, "")
     return f"{factor} ({unit})" if unit else factor
 
 
@@ -87,7 +92,7 @@ def _grid(ax, rows, f: str, factors: list[str]) -> None:
         xs = sorted({r.values[f] for r in sel})
         mean = np.array([np.mean([r.mean for r in sel if r.values[f] == x]) for x in xs])
         sem = np.array([np.sqrt(np.mean([(r.sem or 0.0) ** 2 for r in sel if r.values[f] == x])) for x in xs])
-        label = ", ".join(f"{g.split('.')[0]}={v:g}" for g, v in zip(others, combo, strict=True)) or None
+        label = ", ".join(f"{g.rsplit('.', 1)[0]}={v:g}" for g, v in zip(others, combo, strict=True)) or None
         line, = ax.plot(xs, mean, marker="o", ms=3, label=label)
         ax.fill_between(xs, mean - Z95 * sem, mean + Z95 * sem, color=line.get_color(), alpha=0.2, lw=0)
     if others:
@@ -138,7 +143,7 @@ def _sobol(plt, table: StudyTable, stats, folder: Path) -> str:
                    label="first order" if key == "first_order" else "total")
         lo, hi = ax.get_ylim()  # indices are shares of variance: a heavy-tailed statistic's wild interval is cut
         ax.set_ylim(max(lo, -0.5), min(hi, 1.5))
-        ax.set_xticks(pos, [f.split(".")[0] for f in table.factors], rotation=35, ha="right", fontsize=7)
+        ax.set_xticks(pos, [f.rsplit(".", 1)[0] for f in table.factors], rotation=35, ha="right", fontsize=7)
         ax.set_title(f"{measure}.{stat}", fontsize=9)
         ax.axhline(0, color="0.5", lw=0.5)
         ax.grid(axis="y", alpha=0.3)

@@ -66,15 +66,19 @@ def point_run(scene: Scene, world: World, study: Study, point: int, values, opts
     `base` (a run of the same scene and options) lends its ideal projection and visibility, which no
     pipeline parameter changes.
     """
-    pipeline = design.pipeline_at(scene, study, np.asarray(values, dtype=float))
-    run = Run.create(scene, world, pipeline, design.point_seed(study.seed, point), opts or options(study))
+    values = np.asarray(values, dtype=float)
+    pipeline = design.pipeline_at(scene, study, values)
+    run = Run.create(design.scene_at(scene, study, values), world, pipeline, design.point_seed(study.seed, point),
+                     opts or options(study))
+    if design.varies_scene(study):  # each point projects its own cameras
+        return run
     for cache in ("_ideal", "_visible", "_epipoles"):  # an optimisation only: absent caches just cost time
         if base is not None and getattr(base, cache, None) is not None and hasattr(run, cache):
             setattr(run, cache, getattr(base, cache))
     return run
 
 
-_WORKER: dict = {}  # per process: digest -> (world, base run, prepared measures); (digest, point) -> its run
+_WORKER: dict = {}  # per process: digest -> (world, base run, prepared); (digest, point) -> (run, prepared)
 
 
 def compute(job: Job) -> dict[str, np.ndarray]:
@@ -89,17 +93,22 @@ def compute(job: Job) -> dict[str, np.ndarray]:
         base = Run.create(scene, world, None, 0, options(study))
         base.ideal()
         # a measure's reference data come from the ideal scene, which no pipeline parameter changes:
-        # prepared once per study (with the run of no stages), not once per design point
-        prepared = [(registry[m.name], p := registry[m.name].Params(**m.params), registry[m.name].prepare(p, base))
-                    for m in study.measures]
-        _WORKER[job.digest] = (world, base, prepared)
+        # prepared once per study (with the run of no stages), unless the study varies the cameras
+        _WORKER[job.digest] = (world, base, None if design.varies_scene(study) else _prepare(study, registry, base))
     world, base, prepared = _WORKER[job.digest]
     key = (job.digest, job.shard.point)
     if key not in _WORKER:
         for old in [k for k in _WORKER if isinstance(k, tuple)]:  # a point's shards come together: keep one
             del _WORKER[old]
-        _WORKER[key] = point_run(scene, world, study, job.shard.point, job.values, base=base)
-    return measure_batches(_WORKER[key], prepared, list(range(job.shard.lo, job.shard.hi)))
+        run = point_run(scene, world, study, job.shard.point, job.values, base=base)
+        _WORKER[key] = (run, prepared if prepared is not None else _prepare(study, registry, run))
+    run, prepared = _WORKER[key]
+    return measure_batches(run, prepared, list(range(job.shard.lo, job.shard.hi)))
+
+
+def _prepare(study: Study, registry: dict, run: Run) -> list:
+    return [(registry[m.name], p := registry[m.name].Params(**m.params), registry[m.name].prepare(p, run))
+            for m in study.measures]
 
 
 def measure_batches(run: Run, prepared, trials: list[int]) -> dict[str, np.ndarray]:
