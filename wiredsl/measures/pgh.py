@@ -41,8 +41,8 @@ PAIRS_PER_CHUNK = 1 << 20
 
 class PGHParams(Params):
     d_max: float = param(100.0, "image", "distance limit from the reference line", gt=0, le=100000)
-    n_dist: int = param(20, "number", "distance bins over 0..d_max", ge=1, le=1000)
-    n_angle: int = param(18, "number", "angle steps over 0..pi (bins centred on multiples of pi / n_angle)",
+    n_dist: int = param(10, "number", "distance bins over 0..d_max", ge=1, le=1000)
+    n_angle: int = param(12, "number", "angle steps over 0..pi (bins centred on multiples of pi / n_angle)",
                          ge=1, le=720)
     directed: bool = param(False, "number", "signed angles over -pi..pi instead of mirror-symmetric 0..pi")
     blur_angle: float = param(0.0, "angle", "standard deviation of the Gaussian angle blur", ge=0, le=math.pi)
@@ -56,20 +56,37 @@ def angle_bins(p: PGHParams) -> int:
     return 2 * p.n_angle if p.directed else p.n_angle + 1
 
 
-def histograms(segs: np.ndarray, p: PGHParams, group: np.ndarray | None = None) -> np.ndarray:
+def histograms(segs: np.ndarray, p: PGHParams, group: np.ndarray | None = None, engine: str = "auto") -> np.ndarray:
     """Normalised PGHs, shape (n, angle_bins, n_dist), of segments (n, 2, 2) (end points a, b).
 
     With `group` (n,) only segments of the same group see each other (e.g. the trials of a batch).
+    `engine`: "numpy", "numba" (the compiled pair loop, `wiredsl[fast]`), or "auto" (numba when installed).
     """
     segs = np.asarray(segs, dtype=float).reshape(-1, 2, 2)
     group = np.zeros(len(segs), dtype=int) if group is None else np.asarray(group)
-    h = raw_histograms(segs[:, 0], segs[:, 1], group, p)
+    h = raw_histograms(segs[:, 0], segs[:, 1], group, p, engine)
     h = blur(h, p)
     total = h.sum(axis=(1, 2), keepdims=True)
     return h / np.where(total > 0, total, 1.0)
 
 
-def raw_histograms(a: np.ndarray, b: np.ndarray, group: np.ndarray, p: PGHParams) -> np.ndarray:
+def kernel():
+    """The numba pair loop, or None without numba (imported on first use: it is slow to import)."""
+    global _KERNEL
+    if _KERNEL is None:
+        try:
+            from wiredsl.measures import pgh_kernel
+        except ImportError:
+            pgh_kernel = False
+        _KERNEL = pgh_kernel
+    return _KERNEL or None
+
+
+_KERNEL = None
+
+
+def raw_histograms(a: np.ndarray, b: np.ndarray, group: np.ndarray, p: PGHParams, engine: str = "auto"
+                   ) -> np.ndarray:
     """Un-normalised, un-blurred PGHs (n, angle_bins, n_dist): the length of segment in each bin."""
     n = len(a)
     out = np.zeros((n, angle_bins(p), p.n_dist))
@@ -78,6 +95,13 @@ def raw_histograms(a: np.ndarray, b: np.ndarray, group: np.ndarray, p: PGHParams
     order = np.argsort(group, kind="stable")
     g = np.asarray(group)[order]
     bounds = np.flatnonzero(np.concatenate([[True], g[1:] != g[:-1], [True]]))
+    compiled = kernel() if engine != "numpy" else None
+    if engine == "numba" and compiled is None:
+        raise ImportError("the numba engine needs numba: pip install 'wiredsl[fast]'")
+    if compiled is not None:
+        out[order] = compiled.histograms(np.ascontiguousarray(a[order]), np.ascontiguousarray(b[order]), bounds,
+                                         p.n_angle, p.directed, p.n_dist, p.d_max, POINT_SPAN)
+        return out
     sizes = np.diff(bounds)
     # chunks of whole groups, padded to the chunk's largest group, of at most PAIRS_PER_CHUNK pairs
     lo = 0
@@ -122,42 +146,44 @@ def _padded(a: np.ndarray, b: np.ndarray, valid: np.ndarray, p: PGHParams) -> np
     theta = np.arctan2(sin, cos)
     step = math.pi / p.n_angle
     if p.directed:
-        abin = np.rint(theta / step).astype(int) % (2 * p.n_angle)
+        abin = np.floor(theta / step + 0.5).astype(int) % (2 * p.n_angle)
     else:
-        abin = np.rint(np.abs(theta) / step).astype(int)
+        abin = np.floor(np.abs(theta) / step + 0.5).astype(int)
     span = hi - lo
     L = length[gi, j]
-    row = (gi * m + i) * na + abin  # the pair's (reference, angle) row
-    size = G * m * na
-    idx, wts, didx, dwts = [], [], [], []
+    row = ((gi * m + i) * na + abin) * nd  # flat index of distance bin 0 of the pair's (reference, angle) row
+    idx, wts = [], []
     # a segment parallel to the reference: its whole length at one distance
     point = span < POINT_SPAN
     x = np.abs(0.5 * (lo + hi))[point]
     inside = x <= D
-    idx.append(np.minimum((x[inside] / w).astype(int), nd - 1) * size + row[point][inside])
+    idx.append(row[point][inside] + np.minimum((x[inside] / w).astype(int), nd - 1))
     wts.append(L[point][inside])
-    # otherwise a uniform density of length over [lo, hi], folded at 0: the parts on each side of the line
+    # otherwise a uniform density of length over [lo, hi], folded at 0: a segment crossing the line covers
+    # [0, max |d|] once and [0, min |d|] a second time; one that does not, [min |d|, max |d|]
     sp = ~point
     rho, lo, hi, row = L[sp] / span[sp], lo[sp], hi[sp], row[sp]
-    for x0, x1 in ((np.maximum(lo, 0.0), np.maximum(hi, 0.0)), (np.maximum(-hi, 0.0), np.maximum(-lo, 0.0))):
+    near_end, far_end = np.minimum(np.abs(lo), np.abs(hi)), np.maximum(np.abs(lo), np.abs(hi))
+    crossing = (lo < 0) & (hi > 0)
+    parts = ((np.where(crossing, 0.0, near_end), far_end, rho, row),
+             (np.zeros(crossing.sum()), near_end[crossing], rho[crossing], row[crossing]))
+    for x0, x1, r, rw in parts:
         x0, x1 = np.minimum(x0, D), np.minimum(x1, D)
         ok = x1 > x0
-        x0, x1, r, rw = x0[ok], x1[ok], rho[ok], row[ok]
+        x0, x1, r, rw = x0[ok], x1[ok], r[ok], rw[ok]
         ka = np.minimum((x0 / w).astype(int), nd - 1)
         kb = np.minimum((x1 / w).astype(int), nd - 1)
         one = ka == kb
         k = ~one
-        idx += [ka[one] * size + rw[one], ka[k] * size + rw[k], kb[k] * size + rw[k]]
+        idx += [rw[one] + ka[one], rw[k] + ka[k], rw[k] + kb[k]]
         wts += [r[one] * (x1[one] - x0[one]), r[k] * ((ka[k] + 1) * w - x0[k]), r[k] * (x1[k] - kb[k] * w)]
-        full = k & (kb > ka + 1)  # bins strictly between get the density times the bin width
-        didx += [(ka[full] + 1) * size + rw[full], kb[full] * size + rw[full]]
-        dwts += [r[full] * w, -r[full] * w]
-    # laid out (distance bin, reference and angle) so the running sum over distance bins is contiguous
-    h = np.bincount(np.concatenate(idx), weights=np.concatenate(wts), minlength=nd * size).reshape(nd, size)
-    if sum(len(x) for x in didx):
-        h += np.cumsum(np.bincount(np.concatenate(didx), weights=np.concatenate(dwts),
-                                   minlength=nd * size).reshape(nd, size), axis=0)
-    return np.maximum(h, 0.0).T.reshape(G * m, na, nd)  # running sums can leave -1e-12 where nothing is
+        between = np.where(k, kb - ka - 1, 0)  # bins strictly between get the density times the bin width
+        if between.any():
+            first = np.repeat(rw + ka + 1, between)
+            idx.append(first + (np.arange(len(first)) - np.repeat(np.cumsum(between) - between, between)))
+            wts.append(np.repeat(r * w, between))
+    return np.bincount(np.concatenate(idx), weights=np.concatenate(wts), minlength=G * m * na * nd
+                       ).reshape(G * m, na, nd)
 
 
 def _normal_cdf(x: np.ndarray) -> np.ndarray:
@@ -211,16 +237,21 @@ def bhattacharyya(h1: np.ndarray, h2: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Reference:
-    """The ideal PGHs of one view: square roots of the histograms (n, bins) and their sources."""
+    """The ideal PGHs of one view, ordered by source: square roots of the histograms (n, bins), the
+    sources present (sorted) and where each one's rows start."""
 
     root: np.ndarray
-    key: np.ndarray
+    sources: np.ndarray
+    starts: np.ndarray
 
     @classmethod
     def of(cls, s: im.ImageSet, p: PGHParams) -> Reference:
         seg = segments(s)
         h = histograms(np.stack([seg["a"], seg["b"]], axis=1), p)
-        return cls(np.sqrt(h.reshape(len(h), -1)), source_key(seg["fid"], seg["segment"]))
+        key = source_key(seg["fid"], seg["segment"])
+        order = np.argsort(key, kind="stable")
+        sources, starts = np.unique(key[order], return_index=True)
+        return cls(np.sqrt(h.reshape(len(h), -1))[order], sources, starts)
 
 
 @dataclass
@@ -313,13 +344,16 @@ class PGH(Measure):
 def _own_scores(root: np.ndarray, key: np.ndarray, ref: Reference) -> tuple[np.ndarray, np.ndarray]:
     """Each disturbed segment's best score among its own source's ideal segments (0 if none), and
     whether that is the best score among all ideal segments of the view (within TIE)."""
-    if len(ref.root) == 0:
+    K = len(ref.sources)
+    if K == 0:
         return np.zeros(len(root)), np.zeros(len(root), dtype=bool)
-    S = root @ ref.root.T
-    same = key[:, None] == ref.key[None, :]
-    own = np.where(same, S, -1.0).max(axis=1)
-    other = np.where(same, -1.0, S).max(axis=1)
-    has = same.any(axis=1)
+    best = np.maximum.reduceat(root @ ref.root.T, ref.starts, axis=1)  # (M, K): best score per source
+    col = np.minimum(np.searchsorted(ref.sources, key), K - 1)
+    has = ref.sources[col] == key
+    rows = np.arange(len(root))
+    own = best[rows, col]
+    best[rows, col] = -1.0
+    other = best.max(axis=1)  # the best of every other source
     return np.where(has, own, 0.0), has & (own >= other - TIE)
 
 
