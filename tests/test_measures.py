@@ -99,3 +99,14 @@ def test_survival_follows_the_declared_losses():
     assert out["features"].min() == 1.0  # ... as one gap: every feature keeps some part
     assert out["corners"].mean() == pytest.approx(0.6, abs=0.03)
     assert (out["ideal_corners"] > 0).all()
+
+
+def test_when_everything_is_lost_the_placeholders_are_the_documented_ones():
+    lost = pipeline("edge_loss fraction 1\ncorner_loss keep 0")
+    for out in run_measure("pgh", lost, 2):
+        assert all((v == 0).all() for v in out.values())
+    for out in run_measure("stereo3d", lost, 2):
+        assert all((v == 0).all() for v in out.values())  # errors are 0 with weight (points) 0
+    for out in run_measure("survival", lost, 2):
+        assert (out["features"] == 0).all() and (out["length"] == 0).all() and (out["corners"] == 0).all()
+        assert (out["ideal_features"] > 0).all()

@@ -3,6 +3,8 @@ reconstructed to within what the projection tolerance allows."""
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import pytest
@@ -117,3 +119,14 @@ def test_corner_mismatch_and_calibration_error_are_seen_in_3d():
     for o in outs:
         assert all(np.isfinite(v).all() for v in o.values())
         assert ((o["outliers"] >= 0) & (o["outliers"] <= 1)).all()
+
+
+def test_line_end_points_near_the_epipolar_direction_are_not_reconstructed():
+    run = Run.create(LAB, WORLD, None, 0, Options(poses=(2,)))
+    prep_wide = Stereo3D.prepare(Stereo3DParams(band=math.radians(89.9)), run)
+    prep = Stereo3D.prepare(Stereo3DParams(band=0.0), run)
+    (batch, [(result, disturbed, _)]), = list(run.batches([0]))
+    wide = Stereo3D.measure(Stereo3DParams(band=math.radians(89.9)), prep_wide, result, disturbed, 1)
+    none = Stereo3D.measure(Stereo3DParams(band=0.0), prep, result, disturbed, 1)
+    assert wide["line_points"][0] == 0 and wide["corners"][0] == none["corners"][0] > 0
+    assert none["line_points"][0] >= Stereo3D.measure(Stereo3DParams(), prep, result, disturbed, 1)["line_points"][0]
