@@ -110,3 +110,20 @@ def test_when_everything_is_lost_the_placeholders_are_the_documented_ones():
     for out in run_measure("survival", lost, 2):
         assert (out["features"] == 0).all() and (out["length"] == 0).all() and (out["corners"] == 0).all()
         assert (out["ideal_features"] > 0).all()
+
+
+def test_finite_from_anywhere_in_the_room_even_inside_furniture():
+    """Random poses over the whole room (some inside the bins and the cabinet), every measure finite."""
+    rng = np.random.default_rng(13)
+    poses = [(float(x), float(y), float(h)) for x, y, h in
+             zip(rng.uniform(-0.5, 6.5, 8), rng.uniform(-0.5, 5.5, 8), rng.uniform(-np.pi, np.pi, 8), strict=True)]
+    poses += [(4.6, 3.2, 0.3), (5.2, 1.1, 2.0)]  # the bins' centres
+    scene = LAB.model_copy(update={"path": LAB.path.model_copy(update={"poses": poses})})
+    run = Run.create(scene, WORLD, LAB.pipeline("paper"), 2, Options(visibility="all"))
+    for name, m in REGISTRY.items():
+        p = m.Params(**({"viewpoints": 2} if name == "pgh" else {}))
+        prep = m.prepare(p, run)
+        for batch, results in run.batches([0, 1]):
+            for result, disturbed, _ in results:
+                out = m.measure(p, prep, result, disturbed, len(batch))
+                assert all(v.shape == (2,) and np.isfinite(v).all() for v in out.values()), (name, result.pose)

@@ -228,9 +228,14 @@ def blur(h: np.ndarray, p: PGHParams) -> np.ndarray:
     return h
 
 
+def flat(h: np.ndarray) -> np.ndarray:
+    """Histograms (n, ...) as rows (n, bins), also when n is 0."""
+    return h.reshape(len(h), int(np.prod(h.shape[1:])))
+
+
 def bhattacharyya(h1: np.ndarray, h2: np.ndarray) -> np.ndarray:
     """Match scores (n1, n2) between normalised histograms h1 (n1, ...) and h2 (n2, ...): sum sqrt(a_i b_i)."""
-    return np.sqrt(h1.reshape(len(h1), -1)) @ np.sqrt(h2.reshape(len(h2), -1)).T
+    return np.sqrt(flat(h1)) @ np.sqrt(flat(h2)).T
 
 
 # ----------------------------------------------------------------------------- the measure
@@ -251,7 +256,7 @@ class Reference:
         key = source_key(seg["fid"], seg["segment"])
         order = np.argsort(key, kind="stable")
         sources, starts = np.unique(key[order], return_index=True)
-        return cls(np.sqrt(h.reshape(len(h), -1))[order], sources, starts)
+        return cls(np.sqrt(flat(h))[order], sources, starts)
 
 
 @dataclass
@@ -327,7 +332,7 @@ class PGH(Measure):
             if len(seg["a"]) == 0:
                 continue
             h = histograms(np.stack([seg["a"], seg["b"]], axis=1), p, group=seg["trial"])
-            root = np.sqrt(h.reshape(len(h), -1))
+            root = np.sqrt(flat(h))
             L, trial = seg["length"], seg["trial"]
             own, recog = _own_scores(root, source_key(seg["fid"], seg["segment"]), ref)
             total += np.bincount(trial, weights=L, minlength=n_trials)
