@@ -153,6 +153,11 @@ def test_the_compiled_pair_loop_agrees_with_numpy(p):
         assert np.abs(histograms(ab, p, engine="numpy") - histograms(ab, p, engine="numba")).max() < 1e-12
 
 
+def test_a_segment_without_length_is_refused():
+    with pytest.raises(ValueError, match="positive"):
+        histograms(np.array([[[0, 0], [10, 0]], [[3, 3], [3, 3]]], dtype=float), PGHParams())
+
+
 @pytest.mark.parametrize("engine", ["numpy", "numba"])
 def test_groups_see_only_their_own_segments(engine):
     segs = random_segments(30, 8)

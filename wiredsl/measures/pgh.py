@@ -63,6 +63,8 @@ def histograms(segs: np.ndarray, p: PGHParams, group: np.ndarray | None = None, 
     `engine`: "numpy", "numba" (the compiled pair loop, `wiredsl[fast]`), or "auto" (numba when installed).
     """
     segs = np.asarray(segs, dtype=float).reshape(-1, 2, 2)
+    if not (np.hypot(*(segs[:, 1] - segs[:, 0]).T) > 0).all():
+        raise ValueError("every segment needs a positive, finite length (a direction)")
     group = np.zeros(len(segs), dtype=int) if group is None else np.asarray(group)
     h = raw_histograms(segs[:, 0], segs[:, 1], group, p, engine)
     h = blur(h, p)
