@@ -134,18 +134,19 @@ def _padded(a: np.ndarray, b: np.ndarray, valid: np.ndarray, p: PGHParams) -> np
     u = d / length[..., None]
     nrm = np.stack([-u[..., 1], u[..., 0]], axis=-1)
     D, w = p.d_max, p.d_max / nd
-    # [g, i, j]: distances of j's ends from i's line, and the sine and cosine of the angle from i to j
+    # [g, i, j]: distances of j's ends from i's line
     base = (nrm * a).sum(-1)[..., None]
     da = nrm @ np.swapaxes(a, 1, 2) - base
     db = nrm @ np.swapaxes(b, 1, 2) - base
-    sin = nrm @ np.swapaxes(u, 1, 2)
-    cos = u @ np.swapaxes(u, 1, 2)
     lo, hi = np.minimum(da, db), np.maximum(da, db)
     # pairs wholly beyond d_max on one side contribute nothing: dropped before the rest of the work
     near = (lo <= D) & (hi >= -D) & valid[:, :, None] & valid[:, None, :]
-    lo, hi, sin, cos = lo[near], hi[near], sin[near], cos[near]
+    lo, hi = lo[near], hi[near]
     gi, i, j = np.nonzero(near)
-    theta = np.arctan2(sin, cos)
+    # the angle from i's direction to j's, from each segment's own direction angle, wrapped to (-pi, pi]
+    phi = np.arctan2(u[..., 1], u[..., 0])
+    theta = phi[gi, j] - phi[gi, i]
+    theta = np.where(theta > math.pi, theta - 2 * math.pi, np.where(theta <= -math.pi, theta + 2 * math.pi, theta))
     step = math.pi / p.n_angle
     if p.directed:
         abin = np.floor(theta / step + 0.5).astype(int) % (2 * p.n_angle)

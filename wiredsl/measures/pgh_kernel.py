@@ -41,12 +41,14 @@ def histograms(a, b, starts, n_angle, directed, n_dist, d_max, point_span):
     length = np.empty(n)
     ux = np.empty(n)
     uy = np.empty(n)
+    phi = np.empty(n)
     for i in range(n):
         dx = b[i, 0] - a[i, 0]
         dy = b[i, 1] - a[i, 1]
         length[i] = math.hypot(dx, dy)
         ux[i] = dx / length[i]
         uy[i] = dy / length[i]
+        phi[i] = math.atan2(dy, dx)
     for g in range(len(starts) - 1):
         for i in range(starts[g], starts[g + 1]):
             nx, ny = -uy[i], ux[i]
@@ -57,7 +59,11 @@ def histograms(a, b, starts, n_angle, directed, n_dist, d_max, point_span):
                 lo, hi = min(da, db), max(da, db)
                 if lo > d_max or hi < -d_max:
                     continue
-                theta = math.atan2(nx * ux[j] + ny * uy[j], ux[i] * ux[j] + uy[i] * uy[j])
+                theta = phi[j] - phi[i]
+                if theta > math.pi:
+                    theta -= 2 * math.pi
+                elif theta <= -math.pi:
+                    theta += 2 * math.pi
                 if directed:
                     abin = (int(math.floor(theta / step + 0.5)) + 2 * n_angle) % (2 * n_angle)
                 else:
