@@ -325,3 +325,26 @@ def test_factor_diagnostics(tmp_path, line, message):
                     f"study s {{\n  {line}\n  measure kept\n}}\n")
     r = CliRunner().invoke(main, ["check", str(path)])
     assert r.exit_code == 1 and message in r.stderr.splitlines()[0], r.stderr
+
+
+def test_lab_study_scene_compiles_with_the_installed_measures():
+    scene = compile_file("scenes/studies/lab_study.wd")[0]
+    grid, sources = scene.study("shift_calibration"), scene.study("sources")
+    assert len(design.matrix(grid)) == 12 and {m.name for m in grid.measures} == {"pgh", "stereo3d"}
+    assert len(sources.factors) == 7 and len(design.matrix(sources)) == 64 * 9
+
+
+def test_study_with_the_installed_measures_end_to_end(tmp_path):
+    path = tmp_path / "real.wd"
+    path.write_text(f'wiredsl 1\ninclude "{Path("scenes/lab.wd").resolve().as_posix()}"\n'
+                    "study real {\n  pipeline paper\n  vary lateral_shift.range values [0, 6px]\n  trials 3\n"
+                    "  poses [3]\n  measure survival\n  measure stereo3d outlier 5cm\n}\n")
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["study", str(path), "-o", str(out), "--workers", "2", "--no-plots"])
+    assert r.exit_code == 0, r.output
+    rows = json.loads((out / "table.json").read_text())["rows"]
+    stats = {(r["measure"], r["statistic"]) for r in rows}
+    assert ("survival", "features") in stats and ("stereo3d", "error_median") in stats
+    length = {r["values"]["lateral_shift.range"]: r["mean"] for r in rows if r["statistic"] == "length"
+              and r["measure"] == "survival"}
+    assert set(length) == {0.0, 6.0}
