@@ -286,10 +286,12 @@ def test_weighted_statistics_leave_out_views_without_a_value():
     W = np.array([[1.0, 2.0, 0.0], [4.0, 0.0, 0.0]])
     rows = report.rows(s, np.array([[0.1]]), [{"m.err": V, "m.count": W}], {"m.err": "m.count"})
     err = next(r for r in rows if r.statistic == "err")
-    assert (err.n, err.n_values, err.mean, err.q50) == (2, 3, 3.0, 3.0)  # trial 2 has no value at all
-    assert err.sem == pytest.approx(np.std([2.0, 5.0], ddof=1) / np.sqrt(2))
+    # sum(w v) / sum(w) = (1 + 12 + 10) / 7; trial 2 has no value at all; quantiles over 1, 3, 5
+    assert (err.n, err.n_values, err.q50) == (2, 3, 3.0) and err.mean == pytest.approx(23 / 7)
+    # ratio estimator by hand: per-trial sums (13, 10), weights (5, 2): residuals +-24/7, mean weight 3.5
+    assert err.sem == pytest.approx(48 / 49)
     count = next(r for r in rows if r.statistic == "count")
-    assert (count.n, count.n_values) == (3, 6)
+    assert (count.n, count.n_values) == (3, 6) and count.mean == pytest.approx(7 / 6)
 
 
 def test_camera_factors_change_the_projection_at_their_points(tmp_path):

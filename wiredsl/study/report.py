@@ -4,8 +4,8 @@ the manifest, and Sobol' indices for space-filling designs.
 Statistics of a row pool the study's poses and trials: `mean` and the quantiles are over every
 (trial, pose) value; `sem` is the standard error of the mean over trials (each trial's values
 averaged over the poses first), because a trial's poses share its calibration draw. A statistic
-a measure weights (`weights`: statistic -> the statistic that counts its points) leaves out the
-views of weight 0, where it has no value.
+a measure weights (`weights`: statistic -> the statistic that counts its points) is averaged with
+those weights, and its quantiles leave out the views of weight 0, where it has no value.
 """
 
 from __future__ import annotations
@@ -80,24 +80,34 @@ def _f(x: float) -> float:
 
 def rows(study: Study, X: np.ndarray, per_point: list[dict[str, np.ndarray]],
          weights: dict[str, str] | None = None) -> list[Row]:
-    """Rows from each point's values {"measure.statistic": (n_poses, trials)}. A statistic with a
-    weight (a measure's `weights`, e.g. an error with its point count) leaves out views of weight 0,
-    where it has no value; a point where none has one gets no row."""
+    """Rows from each point's values {"measure.statistic": (n_poses, trials)}.
+
+    A statistic with a weight (a measure's `weights`: an average over a count, e.g. a 3D error over the
+    points reconstructed) has the weighted mean sum(w v) / sum(w) over every (trial, pose), its standard
+    error by the ratio estimator over trials, and quantiles over the views of weight > 0 (a view of weight
+    0 holds only a placeholder); a point where no view has a weight gets no row.
+    """
     out = []
     labels = [f.label for f in study.factors]
     for p, arrays in enumerate(per_point):
         for name, V in arrays.items():
             measure, stat = name.split(".", 1)
             w = (weights or {}).get(name)
-            valid = arrays[w] > 0 if w in arrays else np.ones(V.shape, dtype=bool)
-            per_trial = np.array([V[valid[:, k], k].mean() for k in range(V.shape[1]) if valid[:, k].any()])
-            n = len(per_trial)
+            W = arrays[w] if w in arrays else np.ones(V.shape)
+            valid = W > 0
+            per_w, per_s = W.sum(axis=0), (W * V).sum(axis=0)  # per trial
+            keep = per_w > 0
+            n = int(keep.sum())
             if n == 0:
                 continue
-            sem = _f(per_trial.std(ddof=1) / math.sqrt(n)) if n > 1 else None
+            mean = per_s.sum() / per_w.sum()
+            sem = None
+            if n > 1:
+                resid = per_s[keep] - mean * per_w[keep]
+                sem = _f(math.sqrt((resid ** 2).sum() / (n * (n - 1))) / per_w[keep].mean())
             q = np.quantile(V[valid], QUANTILES)
             out.append(Row(point=p, values={k: _f(v) for k, v in zip(labels, X[p], strict=True)}, measure=measure,
-                           statistic=stat, n=n, n_values=int(valid.sum()), mean=_f(V[valid].mean()), sem=sem,
+                           statistic=stat, n=n, n_values=int(valid.sum()), mean=_f(mean), sem=sem,
                            **{f"q{int(round(a * 100)):02d}": _f(v) for a, v in zip(QUANTILES, q, strict=True)}))
     return out
 
