@@ -67,7 +67,7 @@ def _processes(jobs: Sequence[Job], done: Done, workers: int) -> None:
     method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
     ctx = multiprocessing.get_context(method)
     if method == "forkserver":
-        ctx.set_forkserver_preload(["wiredsl.study.shards"])
+        ctx.set_forkserver_preload(["wiredsl.study.shards", "wiredsl.measures"])  # missing ones are skipped
     with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx) as pool:
         futures = [pool.submit(run_job, job) for job in jobs]
         try:
