@@ -42,11 +42,9 @@ def jobs(scene: Scene, study: Study, folder: str | Path, registry: dict | None =
 class Progress:
     """Points done, trials/s and the estimated time left, on stderr at most once a second."""
 
-    def __init__(self, total: list[shards.Job], todo: int, echo: Callable[[str], None] | None):
+    def __init__(self, total: list[shards.Job], echo: Callable[[str], None] | None):
         self.echo = echo
-        self.left = {}
-        for j in total:
-            self.left[j.shard.point] = self.left.get(j.shard.point, 0)
+        self.left = dict.fromkeys((j.shard.point for j in total), 0)  # shards still to run, per point
         self.todo_trials = 0
         self.points = len(self.left)
         self.started = time.perf_counter()
@@ -85,7 +83,7 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
         stale.unlink(missing_ok=True)
     X, all_jobs = jobs(scene, study, folder, registry, shard_trials)
     todo = [j for j in all_jobs if shards.read(j) is None]
-    progress = Progress(all_jobs, len(todo), echo)
+    progress = Progress(all_jobs, echo)
     if limit is not None:
         todo = todo[:limit]
     for j in todo:
