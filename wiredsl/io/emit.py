@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 from pathlib import Path
 
@@ -24,7 +23,7 @@ from wiredsl.io.features import (
     StageRecord,
     View,
 )
-from wiredsl.io.files import publish
+from wiredsl.io.files import json_text, publish, require_finite
 from wiredsl.scene import Scene
 
 DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable across platforms
@@ -37,7 +36,7 @@ def scene_ref(scene: Scene) -> SceneRef:
 
 def _r(x: float) -> float:
     if not math.isfinite(x):
-        raise ValueError("a non-finite number reached the output")  # a bug upstream; never written
+        require_finite(float(x), "a coordinate")  # refuses it, saying why
     v = round(float(x), DECIMALS)
     return 0.0 if v == 0 else v  # no "-0.0" in dumps
 
@@ -80,7 +79,7 @@ def features(scene: Scene, world: World, results: list[PoseResult], *, pipeline:
 
 
 def to_json(doc, indent: int | None = 1) -> str:
-    return json.dumps(doc.model_dump(mode="json"), indent=indent, allow_nan=False) + "\n"
+    return json_text(doc.model_dump(mode="json"), indent=indent, where=doc.document)
 
 
 # --------------------------------------------------------------------------- disturbed output
@@ -126,10 +125,7 @@ class JsonLines:
         publish(self.tmp, self.path)
 
     def abort(self) -> None:
-        import os
-
-        self.fh.close()
-        os.unlink(self.tmp)
+        _discard(self.tmp, self.fh.close)
 
 
 class NpzStream:
@@ -151,9 +147,11 @@ class NpzStream:
         self.zf = zipfile.ZipFile(open(fd, "wb"), "w", zipfile.ZIP_STORED)  # noqa: SIM115
         self.n = 0
 
-    def _array(self, name: str, a: np.ndarray) -> None:
+    def member(self, name: str, a: np.ndarray, dtype: type | None = None) -> None:
+        """One array member, checked (and cast to `dtype`) by require_finite before a byte is written."""
+        a = require_finite(np.asarray(a), f"{self.path.name} member {name}", dtype)
         with self.zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
-            a = np.asarray(a)  # (ascontiguousarray would turn the 0-d manifest into shape (1,))
+            # (ascontiguousarray would turn the 0-d manifest into shape (1,))
             np.lib.format.write_array(fh, a if a.flags.c_contiguous else a.copy(order="C"), allow_pickle=False)
 
     def write_batch(self, batch: list[int], batch_out) -> None:
@@ -175,26 +173,34 @@ class NpzStream:
                 crows.append(np.column_stack([ctrials, np.full(len(ctrials), result.index),
                                               np.full(len(ctrials), cam), s.corner_fid]))
         b = f"b{self.n:05d}"
-        self._array(f"{b}_pts", np.concatenate(pts).astype(np.float32) if pts else np.zeros((0, 2), np.float32))
-        self._array(f"{b}_start", np.concatenate([*starts, [offset]]).astype(np.int64))
-        self._array(f"{b}_strokes", np.concatenate(rows).astype(np.int32) if rows else np.zeros((0, 7), np.int32))
-        self._array(f"{b}_corners", np.concatenate(corners).astype(np.float32).reshape(-1, 2))
-        self._array(f"{b}_corner_rows", np.concatenate(crows).astype(np.int32).reshape(-1, 4))
+        self.member(f"{b}_pts", np.concatenate(pts) if pts else np.zeros((0, 2)), np.float32)
+        self.member(f"{b}_start", np.concatenate([*starts, [offset]]), np.int64)
+        self.member(f"{b}_strokes", np.concatenate(rows) if rows else np.zeros((0, 7), int), np.int32)
+        self.member(f"{b}_corners", np.concatenate(corners).reshape(-1, 2), np.float32)
+        self.member(f"{b}_corner_rows", np.concatenate(crows).reshape(-1, 4), np.int32)
         self.n += 1
 
     def close(self, feature_ids: list[str], manifest: dict) -> None:
 
-        self._array("feature_ids", np.array(feature_ids))
-        self._array("manifest", np.array(json.dumps(manifest, sort_keys=True)))
+        self.member("feature_ids", np.array(feature_ids))
+        self.member("manifest", np.array(json_text(manifest, indent=None, sort_keys=True, where="manifest")))
         fh = self.zf.fp
         self.zf.close()
         fh.close()
         publish(self.tmp, self.path)
 
     def abort(self) -> None:
-        import os
-
         fh = self.zf.fp
-        self.zf.close()
-        fh.close()
-        os.unlink(self.tmp)
+        _discard(self.tmp, self.zf.close, fh.close)
+
+
+def _discard(tmp: str, *closers) -> None:
+    """Remove a temporary first, then close what wrote it: a close that fails again (a full disk) leaves nothing."""
+    import contextlib
+    import os
+
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(tmp)
+    for close in closers:
+        with contextlib.suppress(OSError, ValueError):
+            close()

@@ -13,6 +13,7 @@ import numpy as np
 
 from wiredsl.engine.simulate import PoseResult, View
 from wiredsl.engine.world import World
+from wiredsl.io.files import require_finite
 from wiredsl.scene import Scene
 
 GAP = 20
@@ -23,6 +24,8 @@ COLOURS = {"line": "#1f4e79", "polyline": "#1f4e79", "ellipse": "#2e7d32", "silh
 
 
 def _f(x: float) -> str:
+    if not math.isfinite(x):
+        require_finite(float(x), "an SVG coordinate")  # refuses it, saying why
     s = f"{x:.2f}".rstrip("0").rstrip(".")
     return "0" if s == "-0" else s
 
@@ -116,7 +119,7 @@ def render(scene: Scene, world: World, result: PoseResult, underlay: PoseResult 
     body += map_parts
     total_w = x + map_w + MARGIN
     total_h = MARGIN + TITLE + height + MARGIN + 18
-    x0, y0, hd = result.pose
+    x0, y0, hd = require_finite(tuple(float(v) for v in result.pose), "the pose")
     caption = (f"{scene.name}: pose {result.index} at ({x0:.2f} m, {y0:.2f} m), heading {math.degrees(hd):.1f} deg"
                + (f", view-point {result.viewpoint}" if result.viewpoint else ""))
     head = [f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {_f(total_w)} {_f(total_h)}" '
