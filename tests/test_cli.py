@@ -293,3 +293,20 @@ def test_size_estimate_matches_a_real_run(tmp_path):
                    "-o", str(tmp_path / fmt)).exit_code == 0
         real = (tmp_path / fmt / f"features.{fmt}").stat().st_size / 20
         assert 0.9 < float(per[1]) * 1000 / real < 1.1, (fmt, per[1], real)
+
+
+def test_o_naming_a_fifo_writes_into_it_and_empty_o_is_refused(tmp_path):
+    """A device or FIFO (say /dev/null) is written into, never renamed over."""
+    import threading
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    got = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_text()))
+    reader.start()
+    assert run("compile", "scenes/cylinder.wd", "-o", str(fifo)).exit_code == 0
+    reader.join(10)
+    assert json.loads(got[0])["name"] == "cylinder" and fifo.is_fifo()
+    for cmd in ("build", "compile", "viewdep"):
+        r = run(cmd, "scenes/lab.wd", "-o", "")
+        assert r.exit_code == 2 and "must not be empty" in r.stderr, cmd

@@ -280,6 +280,8 @@ def _file_output(output: str) -> str:
     """-o of a command that writes one file: it must not name a folder."""
     from pathlib import Path
 
+    if not output:
+        raise click.BadParameter("must not be empty", param_hint="-o")
     if output.endswith(("/", os.sep)) or Path(output).is_dir():
         raise click.BadParameter(f"must name a file, not a folder: {output}", param_hint="-o")
     return output
@@ -293,7 +295,9 @@ def _folder_output(output: str | None, scene_name: str, force: bool):
 
     if output == "-":
         return None
-    out = Path(output) if output else Path("build") / scene_name
+    if output == "":
+        raise click.BadParameter("must not be empty", param_hint="-o")
+    out = Path(output) if output is not None else Path("build") / scene_name
     check_output_folder(out, force)
     if out.suffix.lower() in DUMP_SUFFIXES and not out.is_dir():
         raise click.BadParameter(f"{output} looks like a file name; -o names the output folder (the dump is "
@@ -592,6 +596,6 @@ def bench(file: str, output: str | None, budget: float) -> None:
                f"Python {platform.python_version()}, numpy {__import__('numpy').__version__}.\n")
     for t in tables:
         click.echo(t.markdown())
-    out = Path(_file_output(output)) if output else Path("build") / scene.name / "bench.svg"
+    out = Path(_file_output(output)) if output is not None else Path("build") / scene.name / "bench.svg"
     write_atomic(out, bench_mod.plot_svg(tables))
     click.echo(f"wrote {out}", err=True)

@@ -135,13 +135,20 @@ def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
 def write_atomic(path: str | os.PathLike, data: str | bytes, tidy: bool = True) -> None:
     """Replace `path` with `data` so that readers see the old file or the new one, never a part.
 
-    `tidy` first removes the temporaries a killed writer of `path` left (a listing of the folder: pass False
-    for the many files of a fresh folder, which has none).
+    A device or FIFO (e.g. /dev/null) is written into, not replaced. `tidy` first removes the temporaries a
+    killed writer of `path` left (a listing of the folder: pass False for the many files of a fresh folder).
     """
     path = Path(path)
     if path.is_dir():
         raise OutputFolderError(f"{path} is a folder")
     raw = data.encode("utf-8") if isinstance(data, str) else data
+    if path.exists() and not path.is_file():  # /dev/null, a FIFO: write into it, never rename over it
+        try:
+            with open(path, "wb") as fh:
+                fh.write(raw)
+            return
+        except OSError as exc:
+            raise _named(exc, path) from None
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

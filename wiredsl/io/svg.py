@@ -19,6 +19,7 @@ from wiredsl.scene import Scene
 GAP = 20
 MARGIN = 10
 TITLE = 22
+MAP_ASPECT = 4  # widest top view, in map heights
 COLOURS = {"line": "#1f4e79", "polyline": "#1f4e79", "ellipse": "#2e7d32", "silhouette": "#b35900",
            "corner": "#c62828"}
 
@@ -67,12 +68,15 @@ def _map(scene: Scene, world: World, result: PoseResult, ox: float, oy: float, h
     pts.append(np.array(scene.path.poses)[:, :2])
     allp = np.concatenate(pts)
     lo, hi = allp.min(0) - 0.5, allp.max(0) + 0.5  # room for the robot and its tail
-    scale = height / max(hi[1] - lo[1], 1e-9)
-    width = (hi[0] - lo[0]) * scale
+    # Halves: a world spanning more than half the float range must not overflow its own extent. The map is
+    # `height` tall, or MAP_ASPECT times as wide when the world is wider than that.
+    half = np.maximum(hi / 2 - lo / 2, 1e-9)
+    k = min(height / 2 / half[1], MAP_ASPECT * height / 2 / half[0])  # pixels per half-metre
+    width, height = 2 * float(half[0] * k), 2 * float(half[1] * k)
 
     def m(p):
         p = np.atleast_2d(p)
-        return np.column_stack([(p[:, 0] - lo[0]) * scale, (hi[1] - p[:, 1]) * scale])
+        return np.column_stack([(p[:, 0] / 2 - lo[0] / 2) * 2 * k, (hi[1] / 2 - p[:, 1] / 2) * 2 * k])
 
     out = [f'<g transform="translate({_f(ox)},{_f(oy)})">',
            '<text x="0" y="-6" font-family="sans-serif" font-size="13">top view</text>',
