@@ -268,3 +268,15 @@ def test_a_world_wider_than_half_the_float_range_still_draws_a_finite_map():
     width = float(svg.split('width="', 1)[1].split('"', 1)[0])
     panes = 2 * (result.left.camera.width + svg_mod.GAP + svg_mod.MARGIN)
     assert panes < width <= panes + svg_mod.MAP_ASPECT * result.left.camera.height + 1
+
+
+def test_a_crash_while_writing_the_manifest_leaves_no_temporary(tmp_path, monkeypatch):
+    """Whatever fails inside a build (here the manifest), the staged folder goes with it."""
+    from wiredsl.engine.montecarlo import Run
+
+    monkeypatch.setattr(Run, "manifest", lambda self: 1 / 0)
+    for fmt in ("json", "npz"):
+        r = CliRunner().invoke(main, ["build", LAB, "--seed", "1", "--pose", "0", "--format", fmt, "--trials",
+                                      "1" if fmt == "json" else "2", "-o", str(tmp_path / "out")])
+        assert r.exit_code == 3 and "ZeroDivisionError" in r.stderr, r.output
+        assert list(tmp_path.iterdir()) == []
