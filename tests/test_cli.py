@@ -190,7 +190,7 @@ def test_installed_package_runs_outside_the_checkout(tmp_path):
 # --------------------------------------------------------------------------- options and output folders
 
 def test_diagnostics_option_on_every_command_and_format_only_for_dumps(tmp_path):
-    for cmd in (["check"], ["compile"], ["fmt", "--check"], ["build"], ["viewdep"]):
+    for cmd in (["check"], ["compile"], ["fmt", "--check"], ["build"], ["viewdep"], ["bench"], ["export-calibration"]):
         r = run(*cmd, "--diagnostics", "json", "tests/invalid/syntax_unclosed.wd")
         assert r.exit_code == 1, (cmd, r.output)
         assert json.loads(r.stderr)["diagnostics"][0]["line"] > 0, cmd
@@ -214,11 +214,15 @@ def test_o_naming_a_file_or_a_dump_name_is_a_usage_error(tmp_path):
 def test_output_folder_holds_exactly_one_run(tmp_path):
     out = tmp_path / "out"
     assert run("build", "scenes/lab.wd", "-o", str(out), "--seed", "1").exit_code == 0
-    (out / "viewdep.json").write_text("{}")  # another command's file is carried over
+    (out / "viewdep.json").write_text("{}")  # other commands' outputs are carried over
+    (out / "calibration").mkdir()
+    (out / "calibration" / "stereo.yaml").write_text("%YAML:1.0")
     r = run("build", "scenes/lab.wd", "-o", str(out), "--seed", "1", "--pose", "2", "--trials", "2",
             "--format", "jsonl")
     assert r.exit_code == 0, r.output
-    assert sorted(p.name for p in out.iterdir()) == ["features.jsonl", "manifest.json", "pose_002.svg", "viewdep.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["calibration", "features.jsonl", "manifest.json", "pose_002.svg",
+                                                     "viewdep.json"]
+    assert (out / "calibration" / "stereo.yaml").read_text() == "%YAML:1.0"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporaries beside it
     assert json.loads((out / "manifest.json").read_text())["trials"] == 2
 

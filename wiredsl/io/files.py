@@ -170,8 +170,10 @@ def write_atomic(path: str | os.PathLike, data: str | bytes, tidy: bool = True) 
 
 # --------------------------------------------------------------------------- output folders
 
-KEPT = ("viewdep.json", "bench.svg")  # other commands' files in a build folder: carried over to the new run
-_OURS = re.compile(r"^(manifest\.json|features\.(json|jsonl|npz)|pose_\d+\.svg|viewdep\.json|bench\.svg)$")
+# What other commands (viewdep, bench, export-calibration) write into a build folder: a rebuild keeps it.
+KEPT = ("viewdep.json", "bench.svg", "bench.png", "calibration")
+_OURS = re.compile(r"^(manifest\.json|features\.(json|jsonl|npz)|pose_\d+\.svg|viewdep\.json|bench\.(svg|png)"
+                   r"|calibration)$")
 
 
 def check_output_folder(target: str | os.PathLike, force: bool = False) -> None:
@@ -220,10 +222,15 @@ def _swap(stage: Path, target: Path) -> None:
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
     try:
         os.chmod(stage, 0o777 & ~_umask())
-        for name in KEPT:  # hard links: free, and the old folder's copy goes with it
-            if (target / name).is_file() and not (stage / name).exists():
-                with contextlib.suppress(OSError):
-                    os.link(target / name, stage / name)
+        for name in KEPT:  # files hard-linked (free), folders copied: the old folder's copy goes with it
+            old, new = target / name, stage / name
+            if new.exists() or old.is_symlink():
+                continue
+            with contextlib.suppress(OSError):
+                if old.is_file():
+                    os.link(old, new)
+                elif old.is_dir():
+                    shutil.copytree(old, new, symlinks=True)
         for _ in range(100):  # another run may swap in between our two renames: move it aside too
             aside = _temp_name(target, ".old")
             with contextlib.suppress(FileNotFoundError):
