@@ -314,3 +314,15 @@ def test_o_naming_a_fifo_writes_into_it_and_empty_o_is_refused(tmp_path):
     for cmd in ("build", "compile", "viewdep"):
         r = run(cmd, "scenes/lab.wd", "-o", "")
         assert r.exit_code == 2 and "must not be empty" in r.stderr, cmd
+
+
+def test_the_size_estimate_leaves_the_run_as_it_was(tmp_path):
+    """Measuring a trial before the run changes no byte of its outputs (--force skips the measuring)."""
+    outs = []
+    for extra in ([], ["--force"]):
+        out = tmp_path / f"o{len(outs)}"
+        r = run("build", "scenes/lab.wd", "--seed", "6", "--trials", "3", "--format", "jsonl", "--pose", "2", "-o",
+                str(out), *extra)
+        assert r.exit_code == 0, r.output
+        outs.append({p.name: p.read_bytes() for p in out.iterdir()})
+    assert outs[0] == outs[1]

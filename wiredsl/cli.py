@@ -309,11 +309,15 @@ def _size(n: float) -> str:
 
 def trial_bytes(out_format: str, run, trial: int, doc_for) -> int:
     """Bytes one trial adds to a jsonl or npz dump, measured by running `trial` alone (not written)."""
-    from wiredsl.engine.montecarlo import Run
+    import dataclasses
+    from collections import Counter
+
+    from wiredsl.effects.base import Stats
     from wiredsl.io import emit
 
-    probe = Run.create(run.scene, run.world, None, run.seed, run.options)  # its own stats: the manifest is untouched
-    probe.stages, probe.exact_calibration = run.stages, run.exact_calibration
+    # The run's ideal projection, but its own counters and caches: the run's manifest is left as it would be.
+    probe = dataclasses.replace(run, trace=Counter(), stats=Stats(), warnings=[], _sampler=None, _epipoles={},
+                                _ideal=run.ideal())
     if not probe.stages:
         outs = [(r, None, None) for r in probe.ideal()]
     else:
