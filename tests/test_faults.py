@@ -116,8 +116,8 @@ def _limit_file_size(limit: int):
 def test_a_disk_that_refuses_writes_leaves_nothing(tmp_path, fmt):
     """A real process whose writes start failing mid-dump (RLIMIT_FSIZE): a clean error, exit 1, nothing left."""
     out = tmp_path / "out"
-    proc = _start(out, "--format", fmt, *(["--pose", "0", "--trials", "60"] if fmt != "json" else []),
-                  preexec_fn=_limit_file_size(100_000))
+    proc = _start(out, "--format", fmt, "--pose", "0", *(["--trials", "60"] if fmt != "json" else []),
+                  preexec_fn=_limit_file_size(100_000 if fmt != "json" else 20_000))
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 1, err
     assert f"cannot write {out}: File too large" in err and "Traceback" not in err and ".tmp" not in err
