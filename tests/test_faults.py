@@ -268,3 +268,33 @@ def test_a_crash_while_writing_the_manifest_leaves_no_temporary(tmp_path, monkey
                                       "1" if fmt == "json" else "2", "-o", str(tmp_path / "out")])
         assert r.exit_code == 3 and "ZeroDivisionError" in r.stderr, r.output
         assert list(tmp_path.iterdir()) == []
+
+
+def test_stale_temporaries_of_dead_local_processes_go_others_stay(tmp_path):
+    """Only this host's temporaries whose process is gone are removed; a live or another host's one stays."""
+    from wiredsl.io import files
+
+    done = subprocess.Popen([sys.executable, "-c", "pass"])
+    done.wait()  # reaped: its pid no longer runs
+    dead = tmp_path / f".out.wiredsl-{files._HOST}-{done.pid}-abcd1234.tmp"
+    dead.mkdir()
+    (dead / "features.jsonl").write_text("half")
+    alive = tmp_path / f".out.wiredsl-{files._HOST}-{os.getppid()}-abcd1234.tmp"
+    other = tmp_path / ".out.wiredsl-otherhost-1-abcd1234.tmp"
+    alive.mkdir()
+    other.mkdir()
+    r = CliRunner().invoke(main, ["build", LAB, "--no-effects", "--pose", "0", "-o", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["out", alive.name, other.name])
+
+
+def test_a_link_to_a_folder_stays_a_link(tmp_path):
+    real = tmp_path / "real"
+    real.mkdir()
+    (tmp_path / "out").symlink_to(real)
+    for pose in ("0", "1"):
+        r = CliRunner().invoke(main, ["build", LAB, "--no-effects", "--pose", pose, "-o", str(tmp_path / "out")])
+        assert r.exit_code == 0, r.output
+    assert (tmp_path / "out").is_symlink()
+    assert sorted(p.name for p in real.iterdir()) == ["features.json", "manifest.json", "pose_001.svg"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "real"]

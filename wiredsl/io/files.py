@@ -1,7 +1,8 @@
 """Atomic output: files and whole output folders are written under a temporary name, then renamed into place.
 
-Temporaries are named `.<target>.wiredsl-<pid>-<token>.tmp` (and `.old` for a folder moved aside), so
-the next write to the same target can recognise and remove those a killed process left (its pid is gone).
+Temporaries are named `.<target>.wiredsl-<host>-<pid>-<token>.tmp` (and `.old` for a folder moved aside),
+so the next write to the same target can recognise and remove those a killed process left: on this host,
+when its pid no longer runs (another host's, on a shared file system, are left to that host).
 Every writer passes its values through `require_finite` (or `json_text`, built on it): no output can
 hold NaN, infinity or a number its format cannot store.
 """
@@ -16,14 +17,16 @@ import re
 import secrets
 import shutil
 import signal
+import socket
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
-_TEMP = re.compile(r"^\.(?P<target>.+)\.wiredsl-(?P<pid>\d+)-[A-Za-z0-9_]+\.(tmp|old)$")
+_TEMP = re.compile(r"^\.(?P<target>.+)\.wiredsl-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[A-Za-z0-9_]+\.(tmp|old)$")
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
+_HOST = re.sub(r"[^A-Za-z0-9]", "_", socket.gethostname())[:64] or "host"
 
 
 class UnwritableValue(ValueError):
@@ -103,7 +106,8 @@ def remove_stale(target: str | os.PathLike) -> list[Path]:
     with contextlib.suppress(OSError):
         for p in target.parent.iterdir():
             m = _TEMP.match(p.name)
-            if m and m["target"] == target.name and int(m["pid"]) != os.getpid() and not _alive(int(m["pid"])):
+            if (m and m["target"] == target.name and m["host"] == _HOST and int(m["pid"]) != os.getpid()
+                    and not _alive(int(m["pid"]))):
                 _remove(p)
                 gone.append(p)
     return gone
@@ -117,8 +121,12 @@ def _remove(p: Path) -> None:
             p.unlink()
 
 
+def _tag() -> str:
+    return f"wiredsl-{_HOST}-{os.getpid()}-"
+
+
 def _temp_name(target: Path, suffix: str) -> Path:
-    return target.parent / f".{target.name}.wiredsl-{os.getpid()}-{secrets.token_hex(4)}{suffix}"
+    return target.parent / f".{target.name}.{_tag()}{secrets.token_hex(4)}{suffix}"
 
 
 def _named(exc: OSError, path: Path) -> OSError:
@@ -154,7 +162,7 @@ def write_atomic(path: str | os.PathLike, data: str | bytes, tidy: bool = True) 
         path.parent.mkdir(parents=True, exist_ok=True)
         if tidy:
             remove_stale(path)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.wiredsl-{os.getpid()}-", suffix=".tmp", dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{_tag()}", suffix=".tmp", dir=path.parent)
         try:
             with os.fdopen(fd, "wb") as fh:
                 fh.write(raw)
@@ -201,6 +209,8 @@ def output_folder(target: str | os.PathLike, force: bool = False) -> Iterator[Pa
     so `target` always holds one whole run, and of two concurrent runs the last to finish wins whole.
     """
     target = Path(target)
+    if target.is_symlink() and target.is_dir():  # the run goes where the link points; the link stays
+        target = Path(os.path.realpath(target))
     check_output_folder(target, force)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
