@@ -298,3 +298,24 @@ def test_a_link_to_a_folder_stays_a_link(tmp_path):
     assert (tmp_path / "out").is_symlink()
     assert sorted(p.name for p in real.iterdir()) == ["features.json", "manifest.json", "pose_001.svg"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "real"]
+
+
+@pytest.mark.parametrize("cmd", ["compile", "export-calibration"])
+def test_a_non_finite_scene_value_is_never_written(tmp_path, monkeypatch, cmd):
+    """Whatever the compiler lets through, `compile` and `export-calibration` refuse to write it."""
+    from wiredsl.language import compile as compiler
+
+    real = compiler.compile_file
+
+    def with_infinite_focal(path):
+        scene, warnings, program = real(path)
+        cams = [c.model_copy(update={"f": math.inf}) for c in scene.cameras]
+        return scene.model_copy(update={"cameras": cams}), warnings, program
+
+    monkeypatch.setattr(compiler, "compile_file", with_infinite_focal)
+    out = tmp_path / ("scene.json" if cmd == "compile" else "calibration")
+    r = CliRunner().invoke(main, [cmd, str(ROOT / "scenes/cylinder.wd"), "-o", str(out)])
+    assert r.exit_code == 1 and "nothing written" in r.stderr and "is inf" in r.stderr, r.output
+    assert list(tmp_path.iterdir()) == []
+    r = CliRunner().invoke(main, ["compile", str(ROOT / "scenes/cylinder.wd")])
+    assert r.exit_code == 1 and r.stdout == ""

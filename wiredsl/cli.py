@@ -149,12 +149,12 @@ def check(files: tuple[str, ...], diagnostics: str) -> None:
 @guarded
 def compile_cmd(file: str, output: str, diagnostics: str) -> None:
     """Compile FILE to the scene JSON (valid against schema/scene.schema.json)."""
-    from wiredsl.io.files import write_atomic
+    from wiredsl.io.files import json_text, write_atomic
     from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
-    text = json.dumps(scene.model_dump(mode="json"), indent=1) + "\n"
+    text = json_text(scene.model_dump(mode="json"), where="scene")
     if output == "-":
         sys.stdout.write(text)
     else:
