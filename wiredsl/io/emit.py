@@ -35,10 +35,11 @@ def scene_ref(scene: Scene) -> SceneRef:
     return SceneRef(name=scene.name, file=scene.source, sha256=digest)
 
 
-def _r(x: float) -> float:
+def _r(x: float, decimals: int | None = DECIMALS) -> float:
+    """A finite number for a dump, rounded to `decimals` (None: full float64 precision)."""
     if not math.isfinite(x):
         raise ValueError("a non-finite number reached the output")  # a bug upstream; never written
-    v = round(float(x), DECIMALS)
+    v = float(x) if decimals is None else round(float(x), decimals)
     return 0.0 if v == 0 else v  # no "-0.0" in dumps
 
 
@@ -50,7 +51,7 @@ def _view(v: SimView, world: World) -> View:
     lines, polylines, conics_, corners = [], [], [], []
     for f in v.features:
         common = {"source": world.feature_ids[f.fid], "segment": None if f.segment < 0 else f.segment,
-                  "fragment": None if f.fragment < 0 else f.fragment, "clipped": f.clipped}
+                  "fragment": None if f.fragment < 0 else f.fragment, "clipped": f.clipped, "occluded": f.occluded}
         if f.kind == "line":
             lines.append(ImageLine(points=tuple(_pts(f.points)), **common))
         elif f.kind == "polyline":
@@ -64,8 +65,9 @@ def _view(v: SimView, world: World) -> View:
             corners.append(ImageCorner(at=(_r(f.points[0, 0]), _r(f.points[0, 1])), **common))
         else:
             raise ValueError(f"unknown feature kind {f.kind!r}")
-    R = tuple(tuple(_r(x) for x in row) for row in v.R_cw)
-    t = tuple(_r(x) for x in v.t_cw)
+    # the camera's pose at full precision: re-projecting through it must give the dumped pixels
+    R = tuple(tuple(_r(x, None) for x in row) for row in v.R_cw)
+    t = tuple(_r(x, None) for x in v.t_cw)
     return View(camera=v.camera, rotation=R, translation=t, lines=lines, polylines=polylines, conics=conics_,
                 corners=corners)
 

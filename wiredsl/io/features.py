@@ -16,6 +16,7 @@ class Feature(Node):
     segment: int | None = Field(None, description="segment index within a polyline, silhouette side 0 or 1")
     fragment: int | None = Field(None, description="fragment index after edge loss")
     clipped: bool = Field(False, description="cut by the image border or the near plane")
+    occluded: bool = Field(False, description="a visible part of a feature that occlusion cut (--visibility exact)")
 
 
 class ImageLine(Feature):
