@@ -158,9 +158,9 @@ def fmt(files: tuple[str, ...], check_only: bool, diag_format: str) -> None:
 
 
 @main.command()
-@click.argument("name", type=click.Choice(["scene", "features", "viewdep"]))
+@click.argument("name", type=click.Choice(["scene", "features", "viewdep", "manifest"]))
 def schema(name: str) -> None:
-    """Print the JSON Schema of a scene, a features dump or a view-dependency file."""
+    """Print the JSON Schema of a scene, a features dump, a view-dependency file or a build manifest."""
     from wiredsl.io.schema import schema_dir
 
     sys.stdout.write((schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8"))
@@ -170,11 +170,18 @@ def schema(name: str) -> None:
 @click.argument("dumps", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @guarded
 def validate(dumps: tuple[str, ...]) -> None:
-    """Validate scene or feature dumps (JSON, or JSON lines) against the schemas."""
+    """Validate scenes, feature dumps (JSON, JSON lines, npz) and manifests against the schemas."""
+    from wiredsl.io.layout import npz_problems
     from wiredsl.io.schema import problems
 
     bad = 0
     for path in dumps:
+        if _is_zip(path):  # features.npz: its layout and its manifest
+            msgs = npz_problems(path)
+            for m in msgs[:20]:
+                click.echo(f"{path}: error: {m}", err=True)
+            bad += bool(msgs)
+            continue
         try:
             with open(path, encoding="utf-8") as fh:
                 text = fh.read()
@@ -193,6 +200,14 @@ def validate(dumps: tuple[str, ...]) -> None:
     if bad:
         sys.exit(EXIT_INVALID)
     click.echo(f"{len(dumps)} dump{'s' * (len(dumps) != 1)} valid", err=True)
+
+
+def _is_zip(path: str) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(4) == b"PK\x03\x04"
+    except OSError:
+        return False
 
 
 def _documents(path: str, text: str) -> list[tuple[str, object]]:
@@ -336,8 +351,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                 if out_format == "npz":
                     if effects:
                         writer.write_batch(batch, batch_out)
-                    else:
-                        raise click.BadParameter("npz holds Monte-Carlo trials: give a pipeline", param_hint="--format")
+                    else:  # the ideal projection as trial 0, in the same layout
+                        writer.write_ideal([r for r, _, _ in batch_out], world)
                 else:
                     for k, t in enumerate(batch):
                         res = emit.disturbed_results(batch_out, k) if effects else [r for r, _, _ in batch_out]
@@ -355,8 +370,12 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         if writer is not None:
             writer.abort()
         raise
-    manifest = {"scene": emit.scene_ref(scene).model_dump(), "pipeline": pipeline.name if pipeline else None,
-                "seed": seed, "trials": len(trial_list), "first_trial": trial_list[0], **run.manifest()}
+    from wiredsl.io.features import Manifest
+
+    manifest = Manifest(tool_version=__version__, scene=emit.scene_ref(scene),
+                        pipeline=pipeline.name if pipeline else None, seed=seed if effects else None,
+                        trials=len(trial_list), first_trial=trial_list[0], visibility=visibility,
+                        **run.manifest()).model_dump(mode="json")
     seconds = time.perf_counter() - started
     if out_format == "npz":
         writer.close(world.feature_ids, manifest)

@@ -69,6 +69,8 @@ class Eye:
         reach = lambda c, U, V: (np.linalg.norm(c - centre, axis=1)  # noqa: E731
                                  + np.maximum(np.linalg.norm(U, axis=1), np.linalg.norm(V, axis=1)))
         self.sphere_c = centre
+        al, be = (occ.ca, occ.Ua, occ.Va), (occ.cb, occ.Ub, occ.Vb)
+        self.X = np.stack([np.cross(al[i], be[j]) for i in range(3) for j in range(3)], axis=1)  # (S, 9, 3)
         self.sphere_r = np.maximum(reach(occ.ca, occ.Ua, occ.Va), reach(occ.cb, occ.Ub, occ.Vb)) * (1 + 1e-9)
 
     # ----------------------------------------------------------------------- points
@@ -94,7 +96,7 @@ class Eye:
         i, k = np.nonzero(gap < self.sphere_r[None])
         if len(i):
             o = self.occ
-            hit = _ray_hits_ruled(P[i], o.ca[k], o.Ua[k], o.Va[k], o.cb[k], o.Ub[k], o.Vb[k])
+            hit = _ray_hits_ruled(P[i], self.X[k], o.ca[k], o.Ua[k], o.Va[k], o.cb[k], o.Ub[k], o.Vb[k])
             np.logical_or.at(out, i[hit], True)
         return out
 
@@ -174,11 +176,13 @@ def _segment_intervals(G: np.ndarray, h: np.ndarray, A: np.ndarray, D: np.ndarra
     return lo, hi
 
 
-def _ray_hits_ruled(P, ca, Ua, Va, cb, Ub, Vb) -> np.ndarray:
-    """Whether the segment from the origin to each P (m, 3) meets its row's ruled surface strictly before P."""
-    al = (ca, Ua, Va)
-    be = (cb, Ub, Vb)
-    m = {(i, j): (np.cross(al[i], be[j]) * P).sum(1) for i in range(3) for j in range(3)}
+def _ray_hits_ruled(P, X, ca, Ua, Va, cb, Ub, Vb) -> np.ndarray:
+    """Whether the segment from the origin to each P (m, 3) meets its row's ruled surface strictly before P.
+
+    X (m, 9, 3) holds the row's cross products (ca, Ua, Va)_i x (cb, Ub, Vb)_j.
+    """
+    mm = np.einsum("mkj,mj->mk", X, P)
+    m = {(i, j): mm[:, 3 * i + j] for i in range(3) for j in range(3)}
     # g(th) = det(Ea(th), Eb(th), P) = a0 + a1 cos + b1 sin + a2 cos 2th + b2 sin 2th
     a0 = m[0, 0] + (m[1, 1] + m[2, 2]) / 2
     a1, b1 = m[1, 0] + m[0, 1], m[2, 0] + m[0, 2]

@@ -13,6 +13,7 @@ from wiredsl import __version__
 from wiredsl.engine.simulate import PoseResult
 from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
+from wiredsl.io import layout
 from wiredsl.io.features import (
     Features,
     ImageConic,
@@ -137,10 +138,9 @@ class JsonLines:
 class NpzStream:
     """Bulk arrays, one group of members a batch, written into a zip as they come (an .npz numpy reads).
 
-    Members of batch b: b{b}_pts (N, 2) float32 vertices; b{b}_start (S + 1,) offsets; b{b}_strokes (S, 7)
-    int32 rows (trial, pose, camera 0/1, feature id, segment, kind, clipped); b{b}_corners (C, 2) float32;
-    b{b}_corner_rows (C, 4) int32 (trial, pose, camera, feature id). `feature_ids` names the ids;
-    `manifest` is the run manifest as JSON text.
+    The members, columns and codes are listed in `wiredsl/io/layout.py` (and the README): b{b}_pts,
+    b{b}_start, b{b}_strokes, b{b}_corners, b{b}_corner_rows a batch; `feature_ids`, `layout` and
+    `manifest` (the run manifest as JSON text) once.
     """
 
     def __init__(self, path: Path):
@@ -158,7 +158,16 @@ class NpzStream:
             a = np.asarray(a)  # (ascontiguousarray would turn the 0-d manifest into shape (1,))
             np.lib.format.write_array(fh, a if a.flags.c_contiguous else a.copy(order="C"), allow_pickle=False)
 
-    def write_batch(self, batch: list[int], batch_out) -> None:
+    def write_ideal(self, results: list[PoseResult], world: World) -> None:
+        """The ideal projection (--no-effects) as trial 0, in the same layout as disturbed trials."""
+        from wiredsl.engine.montecarlo import to_imageset
+
+        out = [(r, {side: to_imageset(getattr(r, side), world) for side in ("left", "right")
+                    if getattr(r, side) is not None}, None) for r in results]
+        self.write_batch([0], out, renumber=False)
+
+    def write_batch(self, batch: list[int], batch_out, renumber: bool = True) -> None:
+        """One batch's strokes and corners; `fragment` numbered as the JSON dump numbers it."""
         pts, starts, rows, corners, crows = [], [], [], [], []
         offset = 0
         for result, disturbed, _ in batch_out:
@@ -170,23 +179,26 @@ class NpzStream:
                 pts.append(s.pts)
                 starts.append(s.start[:-1] + offset)
                 offset += len(s.pts)
+                frag = _json_fragments(s) if renumber else s.fragment
                 rows.append(np.column_stack([trials, np.full(s.n_strokes, result.index), np.full(s.n_strokes, cam),
-                                             s.fid, s.segment, s.kind, s.clipped]))
+                                             s.fid, s.segment, s.kind, s.clipped, s.closed, frag, s.occluded]))
                 ctrials = np.asarray(batch)[s.corner_trial]
                 corners.append(s.corners)
                 crows.append(np.column_stack([ctrials, np.full(len(ctrials), result.index),
                                               np.full(len(ctrials), cam), s.corner_fid]))
         b = f"b{self.n:05d}"
+        width = len(layout.STROKE_COLUMNS)
         self._array(f"{b}_pts", np.concatenate(pts).astype(np.float32) if pts else np.zeros((0, 2), np.float32))
         self._array(f"{b}_start", np.concatenate([*starts, [offset]]).astype(np.int64))
-        self._array(f"{b}_strokes", np.concatenate(rows).astype(np.int32) if rows else np.zeros((0, 7), np.int32))
+        self._array(f"{b}_strokes", np.concatenate(rows).astype(np.int32) if rows else np.zeros((0, width), np.int32))
         self._array(f"{b}_corners", np.concatenate(corners).astype(np.float32).reshape(-1, 2))
-        self._array(f"{b}_corner_rows", np.concatenate(crows).astype(np.int32).reshape(-1, 4))
+        self._array(f"{b}_corner_rows", np.concatenate(crows).astype(np.int32).reshape(-1, len(layout.CORNER_COLUMNS)))
         self.n += 1
 
     def close(self, feature_ids: list[str], manifest: dict) -> None:
 
         self._array("feature_ids", np.array(feature_ids))
+        self._array("layout", np.array(layout.NPZ_VERSION, dtype=np.int64))
         self._array("manifest", np.array(json.dumps(manifest, sort_keys=True)))
         fh = self.zf.fp
         self.zf.close()
@@ -200,3 +212,21 @@ class NpzStream:
         self.zf.close()
         fh.close()
         os.unlink(self.tmp)
+
+
+def _json_fragments(s) -> np.ndarray:
+    """The fragment numbers the JSON dump gives (montecarlo.features_of): within a trial, the strokes of one
+    (feature, segment) are numbered 0, 1, ... in order when the feature was cut, else -1."""
+    if s.n_strokes == 0:
+        return np.zeros(0, dtype=int)
+    key = np.column_stack([s.trial, s.fid, s.segment])
+    _, group, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    group = group.ravel()
+    order = np.argsort(group, kind="stable")
+    rank = np.empty(len(group), dtype=int)
+    sorted_group = group[order]
+    first = np.concatenate([[True], sorted_group[1:] != sorted_group[:-1]])
+    starts = np.maximum.accumulate(np.where(first, np.arange(len(group)), 0))
+    rank[order] = np.arange(len(group)) - starts
+    cut = (s.fragment >= 0) | (count[group] > 1)
+    return np.where(cut, rank, -1)
