@@ -230,19 +230,13 @@ def _documents(path: str, text: str) -> list[tuple[str, object]]:
 @main.command()
 def reference() -> None:
     """Print the language reference (Markdown), generated from the statement table."""
-    from wiredsl.language.statements import CONTEXTS
+    from wiredsl.language.statements import CONTEXTS, takes
 
     out = ["| where | statement | takes | meaning |", "|---|---|---|---|"]
     for ctx, sigs in CONTEXTS.items():
         for sig in sigs.values():
-            takes = [f"<{s.label}>" for s in sig.positional]
-            for key, clause in sig.clauses.items():
-                piece = " ".join([key, *(f"<{s.label}>" for s in clause.slots)])
-                takes.append(piece if clause.required else f"[{piece}]" + ("..." if clause.repeat else ""))
-            if sig.block:
-                takes.append("{ ... }" if sig.block_required else "[{ ... }]")
             where = "top level" if ctx == "top" else f"`{ctx}` block"
-            text = " ".join(takes).replace("|", "\\|")
+            text = takes(sig).replace("|", "\\|")
             out.append(f"| {where} | `{sig.keyword}` | `{text}` | {sig.doc.splitlines()[0]} |")
     click.echo("\n".join(out))
 
@@ -490,3 +484,60 @@ def bench(file: str, output: str | None, budget: float) -> None:
     out = Path(output) if output else Path("build") / scene.name / "bench.svg"
     write_atomic(out, bench_mod.plot_svg(tables))
     click.echo(f"wrote {out}", err=True)
+
+
+@main.command()
+@click.option("--print-grammar", is_flag=True,
+              help="Print the TextMate grammar for syntax highlighting (editors/wiredsl.tmLanguage.json) and exit.")
+@guarded
+def lsp(print_grammar: bool) -> None:
+    """Run the language server on stdin/stdout (needs the `lsp` extra: pip install 'wiredsl[lsp]')."""
+    from wiredsl import lsp as server
+
+    if print_grammar:
+        click.echo(json.dumps(server.textmate_grammar(), indent=2))
+        return
+    try:
+        import pygls  # noqa: F401
+    except ImportError:
+        raise click.UsageError("the language server needs pygls: pip install 'wiredsl[lsp]'") from None
+    server.serve()
+
+
+@main.command("export-calibration")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", default=None, help="Output folder (default build/<scene name>/calibration/).")
+@click.option("--trial", type=click.IntRange(0, 2**31 - 1), default=None,
+              help="Write the rig as trial K drew it (needs --seed and a calibration_error stage).")
+@click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=None, help="The run's seed (with --trial).")
+@click.option("--pipeline", "pipeline_name", default=None, help="The pipeline whose calibration_error draws the rig.")
+@guarded
+def export_calibration(file: str, output: str | None, trial: int | None, seed: int | None,
+                       pipeline_name: str | None) -> None:
+    """Write the rig's cameras as OpenCV (stereo.yaml) and ROS (left.yaml, right.yaml) calibration files."""
+    from pathlib import Path
+
+    from wiredsl.effects import calibration_error as calib
+    from wiredsl.io.calibration import rig_files
+    from wiredsl.io.files import write_atomic
+    from wiredsl.language.compile import compile_file
+
+    scene, warnings, program = compile_file(file)
+    report(warnings, program.sources, "text")
+    if scene.rig is None:
+        raise click.UsageError(f"{file} has no rig to export")
+    if trial is not None:
+        if seed is None:
+            raise click.UsageError("--trial needs the run's --seed (see its manifest.json)")
+        pipeline = scene.pipeline(pipeline_name)
+        stage = next((s for s in (pipeline.stages if pipeline else []) if s.effect == "calibration_error"), None)
+        if stage is None or scene.rig.calibration is None:
+            raise click.UsageError("no calibration_error stage with a rig calibration: each trial has the nominal rig")
+        c = scene.rig.calibration
+        sampler = calib.sampler(stage.params, c.kind, c.matrix, c.order)
+        scene = calib.perturb(scene, calib.draw(sampler, trial, seed), c.order)
+    out = Path(output) if output else Path("build") / scene.name / "calibration"
+    for name, text in rig_files(scene).items():
+        write_atomic(out / name, text)
+    click.echo(f"wrote {out}/stereo.yaml, left.yaml, right.yaml" + (f" (trial {trial}, seed {seed})"
+               if trial is not None else " (nominal rig)"), err=True)
