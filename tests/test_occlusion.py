@@ -7,6 +7,8 @@ import math
 import numpy as np
 import pytest
 from helpers import compile_text
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from wiredsl.engine import occlusion, visibility
 from wiredsl.engine.occlusion import Occluders
@@ -233,3 +235,22 @@ def test_exact_visibility_on_the_lab_cuts_the_bins_base_and_the_lines_behind_it(
     # the occluded parts carry their source, segment and part numbers
     floor = [f for f in exact.features if ids[f.fid] == "walls.floor" and f.occluded]
     assert all(f.segment >= 0 and f.fragment >= 0 for f in floor)
+
+
+LAB_SCENE = compile_file("scenes/lab.wd")[0]
+LAB_WORLD = build_world(LAB_SCENE)
+
+
+@settings(max_examples=15, deadline=None)
+@given(x=st.floats(-2, 8), y=st.floats(-2, 7), heading=st.floats(-math.pi, math.pi), z=st.floats(-0.5, 3.0))
+def test_hidden_lines_are_finite_from_anywhere(x, y, heading, z):
+    """The eye anywhere, inside the bins, in a face's plane or under the floor: parts are finite and ordered."""
+    scene = LAB_SCENE
+    mount = scene.rig.left.model_copy(update={"position": (0.1, 0.06, z)})
+    scene = scene.model_copy(update={"rig": scene.rig.model_copy(update={"left": mount}),
+                                     "path": scene.path.model_copy(update={"poses": [(x, y, heading)]})})
+    view = simulate(scene, Options(visibility="exact", right=False), LAB_WORLD)[0].left
+    for f in view.features:
+        assert np.isfinite(f.points).all()
+        assert not f.occluded or f.fragment >= 0
+
