@@ -34,7 +34,7 @@ def same_records(a: list[dict], b: list[dict], px: float) -> None:
     for x, y in zip(a, b, strict=True):
         assert x.keys() == y.keys(), (x, y)
         for k in x:
-            if k in ("points", "at"):
+            if k in ("points", "at", "centre", "axes", "angle", "arc") and x[k] is not None:
                 assert np.allclose(x[k], y[k], rtol=0, atol=px), (k, x, y)
             else:
                 assert x[k] == y[k], (k, x, y)
@@ -76,6 +76,31 @@ def test_ideal_npz_carries_occlusion_fragments_and_closed_like_json(tmp_path):
     assert any(r["occluded"] and r["fragment"] is not None for r in a)
     strokes = wiredsl.load(npz, arrays=True)["strokes"]
     assert strokes[:, layout.column("occluded")].any() and strokes[:, layout.column("closed")].any()
+
+
+def test_npz_views_hold_the_json_cameras_rotations_and_translations(disturbed):
+    a = wiredsl.load(disturbed["npz"], trial=2, arrays=True)
+    doc = json.loads(disturbed["json"][2].read_text())
+    rows = {tuple(r): k for k, r in enumerate(a["views"].tolist())}
+    assert len(rows) == 2 * len(doc["poses"])
+    for p in doc["poses"]:
+        for cam, side in enumerate(layout.CAMERAS):
+            k = rows[(2, p["index"], cam)]
+            v = p[side]
+            assert a["view_poses"][k].tolist() == [*np.ravel(v["rotation"]), *v["translation"]]  # bit for bit
+            assert a["view_cameras"][k].tolist() == [float(v["camera"][c]) for c in layout.CAMERA_COLUMNS]
+
+
+def test_ideal_conics_round_trip_through_npz(tmp_path):
+    args = ["--no-effects", "--visibility", "all"]
+    out = tmp_path / "cyl"
+    for fmt in ("json", "npz"):
+        r = CliRunner().invoke(main, ["build", "scenes/cylinder.wd", "-o", str(out / fmt), "--no-svg", *args,
+                                      "--format", fmt])
+        assert r.exit_code == 0, r.output
+    a, b = wiredsl.load(out / "npz" / "features.npz"), wiredsl.load(out / "json" / "features.json")
+    assert any(r["kind"] == "conic" for r in b)
+    same_records(a, b, px=1e-4)
 
 
 def test_manifests_and_npz_validate_and_a_broken_npz_does_not(disturbed, tmp_path):

@@ -167,14 +167,26 @@ class NpzStream:
         self.write_batch([0], out, renumber=False)
 
     def write_batch(self, batch: list[int], batch_out, renumber: bool = True) -> None:
-        """One batch's strokes and corners; `fragment` numbered as the JSON dump numbers it."""
-        pts, starts, rows, corners, crows = [], [], [], [], []
+        """One batch's strokes, corners, views (and conics); `fragment` numbered as the JSON dump numbers it."""
+        pts, starts, rows, corners, crows, views, vcams, vposes, conics_, krows = ([] for _ in range(10))
         offset = 0
-        for result, disturbed, _ in batch_out:
+        for result, disturbed, per_trial in batch_out:
             for cam, side in enumerate(("left", "right")):
                 s = disturbed.get(side)
                 if s is None:
                     continue
+                for k, t in enumerate(batch):  # each trial's camera as projected
+                    v = per_trial and per_trial[side]
+                    base = getattr(result, side) if not v else v(k) if callable(v) else v[k]
+                    views.append((t, result.index, cam))
+                    vcams.append([float(getattr(base.camera, c)) for c in layout.CAMERA_COLUMNS])
+                    vposes.append(np.concatenate([np.ravel(base.R_cw), base.t_cw]))
+                    if not renumber:  # the ideal projection: its analytic conics too
+                        for f in base.features:
+                            if f.kind == "conic":
+                                centre, axes, angle, arc = f.conic
+                                conics_.append([*centre, *axes, angle, *(arc if arc is not None else (0.0, 0.0))])
+                                krows.append([t, result.index, cam, f.fid, f.clipped, arc is not None])
                 trials = np.asarray(batch)[s.trial]
                 pts.append(s.pts)
                 starts.append(s.start[:-1] + offset)
@@ -193,6 +205,11 @@ class NpzStream:
         self._array(f"{b}_strokes", np.concatenate(rows).astype(np.int32) if rows else np.zeros((0, width), np.int32))
         self._array(f"{b}_corners", np.concatenate(corners).astype(np.float32).reshape(-1, 2))
         self._array(f"{b}_corner_rows", np.concatenate(crows).astype(np.int32).reshape(-1, len(layout.CORNER_COLUMNS)))
+        self._array(f"{b}_views", np.array(views, dtype=np.int32).reshape(-1, len(layout.VIEW_COLUMNS)))
+        self._array(f"{b}_view_cameras", np.array(vcams, dtype=np.float64).reshape(-1, len(layout.CAMERA_COLUMNS)))
+        self._array(f"{b}_view_poses", np.array(vposes, dtype=np.float64).reshape(-1, 12))
+        self._array(f"{b}_conics", np.array(conics_, dtype=np.float64).reshape(-1, 7))
+        self._array(f"{b}_conic_rows", np.array(krows, dtype=np.int32).reshape(-1, len(layout.CONIC_COLUMNS)))
         self.n += 1
 
     def close(self, feature_ids: list[str], manifest: dict) -> None:

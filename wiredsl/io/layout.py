@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 
-NPZ_VERSION = 2  # 1: seven stroke columns; 2: closed, fragment and occluded added
+NPZ_VERSION = 2  # 1: seven stroke columns; 2: closed, fragment, occluded, views and conics added
 
 STROKE_COLUMNS = (
     ("trial", "Monte-Carlo trial (0 for the ideal projection)"),
@@ -30,6 +30,20 @@ CORNER_COLUMNS = (
     ("camera", "0 left, 1 right"),
     ("feature", "feature id: index into `feature_ids`"),
 )
+VIEW_COLUMNS = (
+    ("trial", "Monte-Carlo trial"),
+    ("pose", "index of the pose in the scene's path"),
+    ("camera", "0 left, 1 right"),
+)
+CAMERA_COLUMNS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "width", "height")
+CONIC_COLUMNS = (
+    ("trial", "Monte-Carlo trial"),
+    ("pose", "index of the pose in the scene's path"),
+    ("camera", "0 left, 1 right"),
+    ("feature", "feature id: index into `feature_ids`"),
+    ("clipped", "1 when the ellipse's image is cut by the image border"),
+    ("section", "1 for an ellipse section (its arc is in `conics` columns 5 and 6), 0 for a whole ellipse"),
+)
 KINDS = {0: "straight", 1: "curve", 2: "ellipse"}
 CAMERAS = ("left", "right")
 
@@ -41,6 +55,14 @@ MEMBERS = (
     ("b_strokes", "int32", f"(S, {len(STROKE_COLUMNS)})", "one row a stroke; columns below"),
     ("b_corners", "float32", "(C, 2)", "corner positions (u, v) in pixels"),
     ("b_corner_rows", "int32", f"(C, {len(CORNER_COLUMNS)})", "one row a corner; columns below"),
+    ("b_views", "int32", f"(V, {len(VIEW_COLUMNS)})", "one row a camera view (trial, pose, camera)"),
+    ("b_view_cameras", "float64", f"(V, {len(CAMERA_COLUMNS)})",
+     "each view's camera as projected (perturbed under calibration error): " + ", ".join(CAMERA_COLUMNS)),
+    ("b_view_poses", "float64", "(V, 12)", "each view's R (row-major, 9) and t (3) of P_cam = R P_world + t, "
+     "full precision"),
+    ("b_conics", "float64", "(K, 7)", "analytic ellipse images (undistorted cameras, ideal projection only): "
+     "centre u, v; semi-axes; angle of the first axis (rad); arc start, end (0, 0 when whole)"),
+    ("b_conic_rows", "int32", f"(K, {len(CONIC_COLUMNS)})", "one row a conic; columns below"),
     ("feature_ids", "unicode", "(F,)", "`placement.feature` of every feature id"),
     ("layout", "int64", "()", f"this layout's version ({NPZ_VERSION})"),
     ("manifest", "unicode", "()", "the run's manifest as JSON text (schema/manifest.schema.json)"),
@@ -59,8 +81,9 @@ def markdown() -> str:
             for m, d, s, t in MEMBERS]
     out += ["", "`strokes` columns (int32):", "", "| column | name | holds |", "|---|---|---|"]
     out += [f"| {i} | `{n}` | {t} |" for i, (n, t) in enumerate(STROKE_COLUMNS)]
-    out += ["", "`corner_rows` columns (int32):", "", "| column | name | holds |", "|---|---|---|"]
-    out += [f"| {i} | `{n}` | {t} |" for i, (n, t) in enumerate(CORNER_COLUMNS)]
+    for name, cols in (("corner_rows", CORNER_COLUMNS), ("views", VIEW_COLUMNS), ("conic_rows", CONIC_COLUMNS)):
+        out += ["", f"`{name}` columns (int32):", "", "| column | name | holds |", "|---|---|---|"]
+        out += [f"| {i} | `{n}` | {t} |" for i, (n, t) in enumerate(cols)]
     return "\n".join(out) + "\n"
 
 
@@ -84,7 +107,7 @@ def npz_problems(path) -> list[str]:
         batches = sorted({n.split("_", 1)[0] for n in names if n.startswith("b") and n[1:6].isdigit()})
         n_ids = len(data["feature_ids"])
         for b in batches:
-            for m, dtype, _, _ in MEMBERS[:5]:
+            for m, dtype, _, _ in MEMBERS[:-3]:
                 key = f"{b}_{m[2:]}"
                 if key not in names:
                     out.append(f"missing member '{key}'")
@@ -99,7 +122,8 @@ def npz_problems(path) -> list[str]:
             elif len(strokes) and not (0 <= strokes[:, column("feature")].min() <= strokes[:, column("feature")].max()
                                        < n_ids):
                 out.append(f"{b}: a feature id outside feature_ids")
-            elif not np.isfinite(pts).all() or not np.isfinite(data[f"{b}_corners"]).all():
+            elif not all(np.isfinite(data[f"{b}_{m}"]).all() for m in ("pts", "corners", "view_cameras", "view_poses",
+                                                                        "conics")):
                 out.append(f"{b}: non-finite coordinates")
         from wiredsl.io.schema import problems
 

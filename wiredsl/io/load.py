@@ -5,8 +5,9 @@ Records are the JSON dump's feature objects (`kind`, `source`, `segment`,
 fields), each with the `trial`, `pose` and `camera` ("left" or "right") it
 belongs to; the ideal projection is trial 0. They come in the JSON dump's order:
 per trial, pose and camera, lines, polylines, conics, then corners. An npz dump
-gives the same records (its pixels are float32) except conics, which only the
-JSON forms hold; with `arrays=True` it gives its arrays instead (layout.py).
+gives the same records (its stroke and corner pixels are float32); with
+`arrays=True` it gives its arrays instead (layout.py), including each view's
+camera, rotation and translation.
 """
 
 from __future__ import annotations
@@ -70,33 +71,32 @@ def _batches(data):
 
 
 def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
-    """The selected strokes and corners of every batch, concatenated, with feature_ids and the manifest."""
+    """The selected members of every batch, concatenated (stroke offsets rebased), with feature_ids and the
+    manifest."""
     import numpy as np
 
+    def chosen(rows):
+        return np.array([want_trial(r[0]) and want_pose(r[1]) and want_cam(r[2]) for r in rows[:, :3]], dtype=bool)
+
+    # member -> the member whose rows select it
+    selected_by = {"corners": "corner_rows", "corner_rows": "corner_rows", "views": "views",
+                   "view_cameras": "views", "view_poses": "views", "conics": "conic_rows", "conic_rows": "conic_rows"}
     with np.load(path, allow_pickle=False) as data:
-        pts, start, strokes, corners, crows = [], [0], [], [], []
+        out = {k: [] for k in ("pts", "strokes", *selected_by)}
+        start = [0]
         for b in _batches(data):
-            s, st, p = data[f"{b}_strokes"], data[f"{b}_start"], data[f"{b}_pts"]
-            keep = np.array([want_trial(r[0]) and want_pose(r[1]) and want_cam(r[2]) for r in s[:, :3]], dtype=bool) \
-                if len(s) else np.zeros(0, bool)
-            counts = np.diff(st)[keep]
-            pts.append(p[np.repeat(keep, np.diff(st))])
-            start += (start[-1] + np.cumsum(counts)).tolist()
-            strokes.append(s[keep])
-            c, cr = data[f"{b}_corners"], data[f"{b}_corner_rows"]
-            ck = np.array([want_trial(r[0]) and want_pose(r[1]) and want_cam(r[2]) for r in cr], dtype=bool) \
-                if len(cr) else np.zeros(0, bool)
-            corners.append(c[ck])
-            crows.append(cr[ck])
-        return {
-            "pts": np.concatenate(pts) if pts else np.zeros((0, 2), np.float32),
-            "start": np.array(start, dtype=np.int64),
-            "strokes": np.concatenate(strokes) if strokes else np.zeros((0, len(layout.STROKE_COLUMNS)), np.int32),
-            "corners": np.concatenate(corners) if corners else np.zeros((0, 2), np.float32),
-            "corner_rows": np.concatenate(crows) if crows else np.zeros((0, 4), np.int32),
-            "feature_ids": data["feature_ids"].tolist(),
-            "manifest": json.loads(str(data["manifest"])),
-        }
+            s, st = data[f"{b}_strokes"], data[f"{b}_start"]
+            keep = chosen(s)
+            out["pts"].append(data[f"{b}_pts"][np.repeat(keep, np.diff(st))])
+            start += (start[-1] + np.cumsum(np.diff(st)[keep])).tolist()
+            out["strokes"].append(s[keep])
+            for m, by in selected_by.items():
+                out[m].append(data[f"{b}_{m}"][chosen(data[f"{b}_{by}"])])
+        arrays = {k: np.concatenate(v) for k, v in out.items() if v}
+        arrays["start"] = np.array(start, dtype=np.int64)
+        arrays["feature_ids"] = data["feature_ids"].tolist()
+        arrays["manifest"] = json.loads(str(data["manifest"]))
+        return arrays
 
 
 def _npz_records(path: Path, *pick) -> list[dict]:
@@ -122,6 +122,11 @@ def _npz_records(path: Path, *pick) -> list[dict]:
         group(*row[:3])["corners"].append({"source": ids[row[3]], "segment": None, "fragment": None,
                                            "clipped": False, "occluded": False, "kind": "corner",
                                            "at": [float(u), float(v)]})
+    for row, (u, v, A, B, angle, s0, s1) in zip(a["conic_rows"], a["conics"].tolist(), strict=True):
+        group(*row[:3])["conics"].append({"source": ids[row[3]], "segment": None, "fragment": None,
+                                          "clipped": bool(row[4]), "occluded": False, "kind": "conic",
+                                          "centre": [u, v], "axes": [A, B], "angle": angle,
+                                          "arc": [s0, s1] if row[5] else None})
     out = []
     for (t, p, c) in sorted(groups):
         g = groups[(t, p, c)]
