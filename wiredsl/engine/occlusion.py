@@ -210,14 +210,14 @@ def _ray_hits_ruled(P, X, ca, Ua, Va, cb, Ub, Vb) -> np.ndarray:
         C[:, 1, 0] = C[:, 2, 1] = C[:, 3, 2] = 1.0
         z = np.linalg.eigvals(C)  # (m', 4)
         on_circle[q_] = np.abs(np.abs(z) - 1.0) < 1e-6
-        th[q_] = np.angle(z)
-    for _ in range(3):  # Newton on the real polynomial
-        g = (a0[:, None] + a1[:, None] * np.cos(th) + b1[:, None] * np.sin(th) + a2[:, None] * np.cos(2 * th)
-             + b2[:, None] * np.sin(2 * th))
-        dg = (-a1[:, None] * np.sin(th) + b1[:, None] * np.cos(th) - 2 * a2[:, None] * np.sin(2 * th)
-              + 2 * b2[:, None] * np.cos(2 * th))
-        step = np.divide(g, dg, out=np.zeros_like(g), where=np.abs(dg) > 1e-12)
-        th = th - np.clip(step, -0.1, 0.1)
+        tq = np.angle(z)
+        A0, A1, B1, A2, B2 = (x[q_, None] for x in (a0, a1, b1, a2, b2))
+        for _ in range(3):  # Newton on the real polynomial (the closed form above needs none)
+            g = A0 + A1 * np.cos(tq) + B1 * np.sin(tq) + A2 * np.cos(2 * tq) + B2 * np.sin(2 * tq)
+            dg = -A1 * np.sin(tq) + B1 * np.cos(tq) - 2 * A2 * np.sin(2 * tq) + 2 * B2 * np.cos(2 * tq)
+            step = np.divide(g, dg, out=np.zeros_like(g), where=np.abs(dg) > 1e-12)
+            tq = tq - np.clip(step, -0.1, 0.1)
+        th[q_] = tq
     cos, sin = np.cos(th)[..., None], np.sin(th)[..., None]
     q = ca[:, None] + cos * Ua[:, None] + sin * Va[:, None]  # Ea(th), (m, 4, 3)
     w = cb[:, None] + cos * Ub[:, None] + sin * Vb[:, None] - q  # the ruling's direction
