@@ -176,7 +176,7 @@ def validate(dumps: tuple[str, ...]) -> None:
 
     bad = 0
     for path in dumps:
-        if _is_zip(path):  # features.npz: its layout and its manifest
+        if _is_zip(path) or path.endswith(".npz"):  # features.npz: its layout and its manifest
             msgs = npz_problems(path)
             for m in msgs[:20]:
                 click.echo(f"{path}: error: {m}", err=True)
