@@ -262,6 +262,9 @@ def _positive_px(ctx, param, value: float) -> float:
 @click.option("--format", "out_format", type=click.Choice(["json", "jsonl", "npz"]), default="json",
               show_default=True, help="json: one dump (one trial); jsonl: a line a trial and pose; npz: bulk arrays.")
 @click.option("--svg/--no-svg", default=True, show_default=True, help="Write one SVG a pose (json format).")
+@click.option("--layout", type=click.Choice(["overlay", "side-by-side", "visibility"]), default="overlay",
+              show_default=True, help="The SVGs' layout: overlay: disturbed over ideal (Figures 3, 9); side-by-side: "
+              "original beside disturbed (Figure 9); visibility: without and with view-dependency (Figure 4).")
 @click.option("--cameras", type=click.Choice(["both", "left"]), default="both", show_default=True,
               help="Project the right camera too, or only the left.")
 @click.option("--tolerance", type=float, default=0.1, show_default=True, callback=_positive_px,
@@ -274,7 +277,7 @@ def _positive_px(ctx, param, value: float) -> float:
 @guarded
 def build(file: str, output: str | None, pipeline_name: str | None, no_effects: bool, seed: int | None, trials: int,
           only_trial: int | None, poses: tuple[int, ...], out_format: str, svg: bool, cameras: str, tolerance: float,
-          visibility: str, exact_calibration: bool) -> None:
+          visibility: str, exact_calibration: bool, layout: str) -> None:
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
     import secrets
     import time
@@ -307,6 +310,12 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
             click.echo("note: no pipeline is marked default; building the ideal projection (choose one with "
                        "--pipeline: " + ", ".join(p.name for p in scene.pipelines) + ")", err=True)
     trial_list = [only_trial] if only_trial is not None else list(range(trials))
+    if layout == "side-by-side" and pipeline is None:
+        raise click.BadParameter("side-by-side shows the original beside the disturbed world: give a pipeline",
+                                 param_hint="--layout")
+    if layout == "visibility" and visibility == "all":
+        raise click.BadParameter("the visibility layout compares --visibility all with scene or exact",
+                                 param_hint="--layout")
     if out_format == "json" and len(trial_list) > 1:
         raise click.BadParameter("one JSON dump holds one trial: use --format jsonl or npz for several",
                                  param_hint="--trials")
@@ -324,6 +333,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     def doc_for(results, k):
         return emit.features(scene, world, results, pipeline=pipeline.name if pipeline else None, stages=records,
                              seed=seed if effects else None, trial=k if effects else None)
+
+    from wiredsl.io.svg import Info as svg_info
 
     started = time.perf_counter()
     if not effects:
@@ -358,7 +369,9 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                                 else:
                                     writer.write(line)
                         else:
-                            _write_json(doc_for(res, t), res, out_dir, svg, run)
+                            info = svg_info(pipeline.name if effects else None, seed if effects else None,
+                                            t if effects else None, visibility, layout)
+                            _write_json(doc_for(res, t), res, out_dir, svg, run, info)
                 bar.update(len(batch))
     except BaseException:
         if writer is not None:
@@ -400,7 +413,7 @@ class _Null:
         return False
 
 
-def _write_json(doc, results, out_dir, svg: bool, run) -> None:
+def _write_json(doc, results, out_dir, svg: bool, run, info=None) -> None:
     """One trial's dump, and its SVGs (disturbed over ideal when the pipeline ran)."""
     from wiredsl.io import emit
     from wiredsl.io import svg as svg_mod
@@ -412,10 +425,9 @@ def _write_json(doc, results, out_dir, svg: bool, run) -> None:
         return
     write_atomic(out_dir / "features.json", text)
     if svg:
-        ideal = {r.index: r for r in run.ideal()} if run.stages else {}
-        for r in results:
-            write_atomic(out_dir / f"pose_{r.index:03d}.svg", svg_mod.render(run.scene, run.world, r,
-                                                                             ideal.get(r.index)))
+        info = info or svg_mod.Info()
+        for name, text in svg_mod.pose_figures(run, results, info.layout, info).items():
+            write_atomic(out_dir / name, text)
 
 
 @main.command()
@@ -457,7 +469,8 @@ def viewdep(file: str, output: str | None, threshold: float) -> None:
 
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
-@click.option("-o", "--output", default=None, help="The plot (default build/<scene name>/bench.svg).")
+@click.option("-o", "--output", default=None,
+              help="The plot: .svg, or .png for a raster (default build/<scene name>/bench.svg). Needs wiredsl[plot].")
 @click.option("--budget", type=click.FloatRange(1, None), default=60.0, show_default=True,
               help="Seconds the Monte-Carlo table may spend; rows beyond it are not run.")
 @guarded
@@ -476,13 +489,19 @@ def bench(file: str, output: str | None, budget: float) -> None:
     report(warnings, program.sources, "text")
     require_buildable(scene)
     world = build_world(scene)
+    out = Path(output) if output else Path("build") / scene.name / "bench.svg"
+    if out.suffix.lower() not in (".svg", ".png"):
+        raise click.BadParameter("the plot is written as .svg or .png", param_hint="-o")
+    try:
+        import matplotlib  # noqa: F401  (checked before the minutes of measuring, not after)
+    except ImportError:
+        raise click.UsageError("the bench plot needs matplotlib: pip install 'wiredsl[plot]'") from None
     tables = bench_mod.run_all(scene, world, budget, progress=lambda m: click.echo(m, err=True))
     click.echo(f"## wiredsl bench {file}\n\nMachine: {platform.machine()}, {os.cpu_count()} cores, "
                f"Python {platform.python_version()}, numpy {__import__('numpy').__version__}.\n")
     for t in tables:
         click.echo(t.markdown())
-    out = Path(output) if output else Path("build") / scene.name / "bench.svg"
-    write_atomic(out, bench_mod.plot_svg(tables))
+    write_atomic(out, bench_mod.plot(tables, out.suffix.lower()[1:]))
     click.echo(f"wrote {out}", err=True)
 
 
