@@ -235,6 +235,8 @@ def test_exact_visibility_on_the_lab_cuts_the_bins_base_and_the_lines_behind_it(
     # the occluded parts carry their source, segment and part numbers
     floor = [f for f in exact.features if ids[f.fid] == "walls.floor" and f.occluded]
     assert all(f.segment >= 0 and f.fragment >= 0 for f in floor)
+    names = [(f.fid, f.segment, f.fragment) for f in exact.features if f.occluded]
+    assert len(names) == len(set(names))  # (source, segment, fragment) names one part
 
 
 LAB_SCENE = compile_file("scenes/lab.wd")[0]

@@ -319,6 +319,17 @@ def split_arcs(eye: Eye, c, U, V, intervals: list[tuple[float, float]], full: bo
     return out, bool(cut.any())
 
 
+def number_parts(features: list) -> None:
+    """Number the image parts of each occluded (feature, segment) 0, 1, ... in order, in place, so that
+    (source, segment, fragment) names one part even where the image border cut a part again."""
+    seen: dict[tuple[int, int], int] = {}
+    for f in features:
+        if f.occluded and f.kind in ("line", "polyline"):
+            key = (f.fid, f.segment)
+            f.fragment = seen.get(key, 0)
+            seen[key] = f.fragment + 1
+
+
 def _rank(r: np.ndarray) -> np.ndarray:
     """Position of each element among the equal values of sorted r (0, 1, ... within each run)."""
     if len(r) == 0:

@@ -203,6 +203,8 @@ def project_view(world: World, cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, 
         ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
         for f, p in zip(world.corner_fid[sel][ok], uv[ok], strict=True):
             view.features.append(ImageFeature(int(f), "corner", p[None, :]))
+    if eye is not None:  # parts also cut by the image border get their own numbers (occlusion.py)
+        occlusion.number_parts(view.features)
     return view
 
 
