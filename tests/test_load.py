@@ -43,7 +43,7 @@ def same_records(a: list[dict], b: list[dict], px: float) -> None:
 @pytest.fixture(scope="module")
 def disturbed(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("dumps")
-    seed = ["--seed", "11", "--pose", "1", "--pose", "4"]
+    seed = ["--seed", "11", "--pose", "1", "--pose", "4", "--visibility", "exact"]  # parts through the effects
     return {"npz": build(tmp, "npz", *seed, "--trials", "3", "--format", "npz") / "features.npz",
             "jsonl": build(tmp, "jsonl", *seed, "--trials", "3", "--format", "jsonl") / "features.jsonl",
             "json": [build(tmp, f"j{k}", *seed, "--trial", str(k)) / "features.json" for k in range(3)],
@@ -54,6 +54,7 @@ def test_every_format_loads_to_the_same_records_for_the_same_seed_and_trials(dis
     from_json = [r for p in disturbed["json"] for r in wiredsl.load(p)]
     same_records(wiredsl.load(disturbed["jsonl"]), from_json, px=0)
     same_records(wiredsl.load(disturbed["npz"]), from_json, px=1e-4)  # float32 pixels (about 3e-5 at 640 px)
+    assert any(r["occluded"] for r in from_json)  # hidden-line parts went through every effect
 
 
 def test_selection_by_trial_pose_and_camera(disturbed):
@@ -68,7 +69,7 @@ def test_selection_by_trial_pose_and_camera(disturbed):
 
 
 def test_ideal_npz_carries_occlusion_fragments_and_closed_like_json(tmp_path):
-    args = ["--no-effects", "--visibility", "exact"]
+    args = ["--no-effects", "--visibility", "exact", "--pose", "1", "--pose", "4"]
     npz = build(tmp_path, "n", *args, "--format", "npz") / "features.npz"
     js = build(tmp_path, "j", *args) / "features.json"
     a, b = wiredsl.load(npz), wiredsl.load(js)
