@@ -189,9 +189,9 @@ def fmt(files: tuple[str, ...], check_only: bool, diagnostics: str) -> None:
 
 
 @main.command()
-@click.argument("name", type=click.Choice(["scene", "features", "viewdep"]))
+@click.argument("name", type=click.Choice(["scene", "features", "viewdep", "manifest"]))
 def schema(name: str) -> None:
-    """Print the JSON Schema of a scene, a features dump or a view-dependency file."""
+    """Print the JSON Schema of a scene, a features dump, a view-dependency file or a build manifest."""
     from wiredsl.io.schema import schema_dir
 
     sys.stdout.write((schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8"))
@@ -201,11 +201,18 @@ def schema(name: str) -> None:
 @click.argument("dumps", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @guarded
 def validate(dumps: tuple[str, ...]) -> None:
-    """Validate scene or feature dumps (JSON, or JSON lines) against the schemas."""
+    """Validate scenes, feature dumps (JSON, JSON lines, npz) and manifests against the schemas."""
+    from wiredsl.io.layout import npz_problems
     from wiredsl.io.schema import problems
 
     bad = 0
     for path in dumps:
+        if _is_zip(path) or path.endswith(".npz"):  # features.npz: its layout and its manifest
+            msgs = npz_problems(path)
+            for m in msgs[:20]:
+                click.echo(f"{path}: error: {m}", err=True)
+            bad += bool(msgs)
+            continue
         try:
             with open(path, encoding="utf-8") as fh:
                 text = fh.read()
@@ -224,6 +231,14 @@ def validate(dumps: tuple[str, ...]) -> None:
     if bad:
         sys.exit(EXIT_INVALID)
     click.echo(f"{len(dumps)} dump{'s' * (len(dumps) != 1)} valid", err=True)
+
+
+def _is_zip(path: str) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(4) == b"PK\x03\x04"
+    except OSError:
+        return False
 
 
 def _documents(path: str, text: str) -> list[tuple[str, object]]:
@@ -325,10 +340,16 @@ def trial_bytes(out_format: str, run, trial: int, doc_for) -> int:
     if out_format == "jsonl":
         res = emit.disturbed_results(outs, 0) if probe.stages else [r for r, _, _ in outs]
         return sum(len(emit.to_json(doc_for([r], trial), indent=None).encode()) for r in res)
+    from wiredsl.io import layout
+
+    if not probe.stages:  # npz holds the ideal projection once, as trial 0, whatever N
+        return 0
     n = 0
     for _, disturbed, _ in outs:
-        for s in disturbed.values():  # float32 vertices, an int32 row and an int64 offset a stroke; corners
-            n += 4 * 2 * len(s.pts) + (4 * 7 + 8) * s.n_strokes + (4 * 2 + 4 * 4) * len(s.corners)
+        for s in disturbed.values():  # float32 vertices; int32 rows and an int64 offset; corners; the view
+            n += (4 * 2 * len(s.pts) + (4 * len(layout.STROKE_COLUMNS) + 8) * s.n_strokes
+                  + (4 * 2 + 4 * len(layout.CORNER_COLUMNS)) * len(s.corners)
+                  + 4 * len(layout.VIEW_COLUMNS) + 8 * len(layout.CAMERA_COLUMNS) + 8 * 12)
     return n
 
 
@@ -397,6 +418,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world
     from wiredsl.io import emit
+    from wiredsl.io.features import Manifest
     from wiredsl.io.files import json_text, output_folder, write_atomic
     from wiredsl.io.svg import Info as svg_info
     from wiredsl.language.compile import compile_file
@@ -441,8 +463,6 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     effects = bool(run.stages)
     if seed is None and effects:  # drawn only when something random runs, so ideal runs stay byte-identical
         seed = run.seed = secrets.randbits(63)
-    if out_format == "npz" and not effects:
-        raise click.BadParameter("npz holds Monte-Carlo trials: give a pipeline", param_hint="--format")
     records = emit.stage_records(run)
 
     def doc_for(results, k):
@@ -469,8 +489,10 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
             with click.progressbar(length=len(trial_list), label="trials", file=sys.stderr if show else _Null()) as bar:
                 for batch, batch_out in batches:
                     first = batch[0] == trial_list[0]
-                    if out_format == "npz":
+                    if out_format == "npz" and effects:
                         writer.write_batch(batch, batch_out)
+                    elif out_format == "npz":  # the ideal projection as trial 0, in the same layout
+                        writer.write_ideal([r for r, _, _ in batch_out], world)
                     for k, t in enumerate(batch):
                         if out_format == "npz" and not (first and k == 0 and svg):
                             break
@@ -493,8 +515,10 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                             else:
                                 write_atomic(stage / what, text, tidy=False)
                     bar.update(len(batch))
-            manifest = {"scene": emit.scene_ref(scene).model_dump(), "pipeline": pipeline.name if pipeline else None,
-                        "seed": seed, "trials": len(trial_list), "first_trial": trial_list[0], **run.manifest()}
+            manifest = Manifest(tool_version=__version__, scene=emit.scene_ref(scene),
+                                pipeline=pipeline.name if pipeline else None, seed=seed, trials=len(trial_list),
+                                first_trial=trial_list[0], visibility=visibility,
+                                **run.manifest()).model_dump(mode="json")
             if out_format == "npz":
                 writer.close(world.feature_ids, manifest)
             elif writer is not None:
