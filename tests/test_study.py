@@ -350,3 +350,14 @@ def test_study_with_the_installed_measures_end_to_end(tmp_path):
     length = {r["values"]["lateral_shift.range"]: r["mean"] for r in rows if r["statistic"] == "length"
               and r["measure"] == "survival"}
     assert set(length) == {0.0, 6.0}
+
+
+def test_build_study_replay_into_a_folder_writes_its_trial_and_figures(scene_file, tmp_path):
+    out = tmp_path / "replay"
+    r = CliRunner().invoke(main, ["build", str(scene_file), "--study", "shift", "--point", "2", "--trial", "5",
+                                  "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert (manifest["trials"], manifest["first_trial"], manifest["seed"]) == (1, 5, design.point_seed(5, 2))
+    assert json.loads((out / "features.json").read_text())["trial"] == 5
+    assert sorted(p.name for p in out.glob("pose_*.svg")) == ["pose_000.svg", "pose_004.svg"]
