@@ -30,7 +30,7 @@ class LateralShift(Effect):
     @classmethod
     def disturb(cls, p: LateralShiftParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         s = split_ellipses(s)
-        d = ctx.per_trial(cls.name, s.trial, lambda rng, n: rng.uniform(-p.range, p.range, n))
+        d = p.range * (2 * ctx.draws(cls.name, s.trial)[:, 0] - 1)
         normals = im.vertex_normals(s)
         pts = s.pts + np.repeat(d, s.counts)[:, None] * normals
         ctx.stats.add(cls.name, count=len(d), sum_abs=np.abs(d).sum())

@@ -60,7 +60,7 @@ class StereoMismatch(Effect):
         ctx.stats.add(cls.name, length_in=before, length_after_band=im.arc_lengths(s)[1].sum())
         if ctx.side != "right" or p.fraction == 0 or p.disparity == 0:
             return s
-        draws = ctx.per_trial(cls.name, s.trial, lambda rng, n: rng.random(2 * n)).reshape(-1, 2)
+        draws = ctx.draws(cls.name, s.trial, 2)
         hit = draws[:, 0] < p.fraction
         shift = np.where(hit, p.disparity * (2 * draws[:, 1] - 1), 0.0)
         mid = np.add.reduceat(s.pts, s.start[:-1], axis=0) / s.counts[:, None] if s.n_strokes else np.zeros((0, 2))

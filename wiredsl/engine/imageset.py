@@ -80,21 +80,57 @@ def empty() -> ImageSet:
                     np.zeros((0, 2)), z, z)
 
 
+def segmented_cumsum(values: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Running sums of `values` (N,) restarting at every stroke start (CSR `start`), each stroke summed on
+    its own in order: a stroke's sums do not depend on the strokes packed before it (replay holds bit
+    for bit whatever the batch). Strokes are padded by length class (at most 2x) and summed row-wise."""
+    out = np.empty(len(values))
+    counts = np.diff(start)
+    if len(values) == 0:
+        return out
+    width = 1 << np.ceil(np.log2(np.maximum(counts, 1))).astype(int)
+    for w in np.unique(width[counts > 0]):
+        rows = np.flatnonzero((width == w) & (counts > 0))
+        c = counts[rows]
+        col = np.arange(w)
+        mask = col[None, :] < c[:, None]
+        idx = start[rows][:, None] + col[None, :]
+        block = np.zeros((len(rows), w))
+        block[mask] = values[idx[mask]]
+        out[idx[mask]] = np.cumsum(block, axis=1)[mask]
+    return out
+
+
 def arc_lengths(s: ImageSet) -> tuple[np.ndarray, np.ndarray]:
     """Cumulative arc length at each vertex from its stroke's start (N,), and stroke lengths (S,)."""
     if len(s.pts) == 0:
         return np.zeros(0), np.zeros(s.n_strokes)
-    seg = np.linalg.norm(np.diff(s.pts, axis=0), axis=1)
-    first = s.start[:-1]
+    d = np.diff(s.pts, axis=0)
+    seg = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
     seg_len = np.concatenate([[0.0], seg])
-    seg_len[first[s.counts > 0]] = 0.0  # no length across a stroke boundary
-    cum = np.cumsum(seg_len)
-    base = np.repeat(cum[first[s.counts > 0]] if len(first) else [], s.counts[s.counts > 0])
-    arc = cum - base
-    lengths = np.zeros(s.n_strokes)
     nonempty = s.counts > 0
+    seg_len[s.start[:-1][nonempty]] = 0.0  # no length across a stroke boundary
+    arc = segmented_cumsum(seg_len, s.start)
+    lengths = np.zeros(s.n_strokes)
     lengths[nonempty] = arc[s.start[1:][nonempty] - 1]
     return arc, lengths
+
+
+def search(arc: np.ndarray, lo: np.ndarray, hi: np.ndarray, target: np.ndarray, side: str) -> np.ndarray:
+    """np.searchsorted of each target within its own stroke's arc[lo:hi] (vectorised bisection): unlike a
+    search over one global key, exact whatever else is packed in the batch."""
+    lo, hi = lo.copy(), hi.copy()
+    while True:
+        active = lo < hi
+        if not active.any():
+            return lo
+        mid = (lo + hi) // 2
+        v = arc[np.minimum(mid, len(arc) - 1)]
+        right = (v < target) if side == "left" else (v <= target)
+        go = active & right
+        stay = active & ~right
+        lo = np.where(go, mid + 1, lo)
+        hi = np.where(stay, mid, hi)
 
 
 def unroll_closed(s: ImageSet) -> ImageSet:
@@ -128,23 +164,19 @@ def keep_intervals(s: ImageSet, stroke: np.ndarray, a: np.ndarray, b: np.ndarray
     if len(stroke) == 0:
         out = empty()
         return replace(out, corners=s.corners, corner_fid=s.corner_fid, corner_trial=s.corner_trial)
-    # a global, increasing key: arc length plus a per-stroke offset larger than any stroke
-    offset = np.concatenate([[0.0], np.cumsum(lengths + 1.0)])[:-1]
-    key = arc + np.repeat(offset, s.counts)
-    ka, kb = a + offset[stroke], b + offset[stroke]
-    lo = np.searchsorted(key, ka, side="right")  # first vertex strictly after a
-    hi = np.searchsorted(key, kb, side="left")  # first vertex at or after b
     first, last = s.start[stroke], s.start[stroke + 1] - 1
+    lo = search(arc, first, last + 1, a, "right")  # first vertex strictly after a
+    hi = search(arc, first, last + 1, b, "left")  # first vertex at or after b
 
-    def point_at(k, target):
-        j = np.clip(np.searchsorted(key, target, side="right") - 1, first, np.maximum(last - 1, first))
+    def point_at(target):
+        j = np.clip(search(arc, first, last + 1, target, "right") - 1, first, np.maximum(last - 1, first))
         j1 = np.minimum(j + 1, last)
-        span = key[j1] - key[j]
+        span = arc[j1] - arc[j]
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(span > 0, (target - key[j]) / span, 0.0)
+            t = np.where(span > 0, (target - arc[j]) / span, 0.0)
         return s.pts[j] + t[:, None] * (s.pts[j1] - s.pts[j])
 
-    pa, pb = point_at(stroke, ka), point_at(stroke, kb)
+    pa, pb = point_at(a), point_at(b)
     inner = np.maximum(hi - lo, 0)
     counts = inner + 2
     start = np.concatenate([[0], np.cumsum(counts)]).astype(int)

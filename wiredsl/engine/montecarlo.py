@@ -14,11 +14,12 @@ is shared by all trials; with it, each trial projects its own perturbed rig.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from wiredsl.diagnostics import Diagnostic, WiredslError
 from wiredsl.effects import REGISTRY
 from wiredsl.effects import calibration_error as calib
 from wiredsl.effects.base import Context, Stats
@@ -54,16 +55,18 @@ class Run:
     _epipoles: dict = field(default_factory=dict)
     _visible: tuple | None = None
     exact_calibration: bool = False  # project each trial's perturbed rig from scratch (slow reference)
+    point: int | None = None  # a study's design point: one more component of every draw's key
 
     @classmethod
-    def create(cls, scene: Scene, world: World, pipeline, seed: int, options: Options) -> Run:
+    def create(cls, scene: Scene, world: World, pipeline, seed: int, options: Options,
+               point: int | None = None) -> Run:
         require_buildable(scene)
         stages = []
         for st in (pipeline.stages if pipeline is not None else []):
             effect = REGISTRY[st.effect]
             if not effect.is_identity(st.params):
                 stages.append((effect, st.params))
-        return cls(scene, world, stages, seed, options)
+        return cls(scene, world, stages, seed, options, point=point)
 
     @property
     def calibration(self):
@@ -116,20 +119,51 @@ class Run:
             self._epipoles[key] = e / np.linalg.norm(e)
         return self._epipoles[key]
 
-    def batches(self, trials: list[int]) -> Iterator[tuple[list[int], list[tuple[PoseResult, dict]]]]:
-        """For each batch of trials: per pose, the ideal result and {side: disturbed ImageSet of the batch}."""
-        for lo in range(0, len(trials), BATCH):
-            batch = trials[lo:lo + BATCH]
+    def batches(self, trials: Sequence[int], size: int = BATCH
+                ) -> Iterator[tuple[Sequence[int], list[tuple[PoseResult, dict]]]]:
+        """For each batch of trials: per pose, the ideal result and {side: disturbed ImageSet of the batch}.
+
+        `trials` is any sequence (a range for a run: nothing is built for the trials not yet reached), and
+        each trial's output is the same whichever trials share its batch.
+        """
+        for lo in range(0, len(trials), size):
+            batch = trials[lo:lo + size]
             yield batch, self._batch(batch)
 
-    def _batch(self, batch: list[int]):
+    def calibration_draws(self, batch: Sequence[int]) -> np.ndarray:
+        """The batch's calibration perturbations (T, m), each checked: a draw that leaves a camera without a
+        positive finite focal length or pixel aspect is refused and redrawn (next attempt of the same key)."""
+        sampler = self.sampler()
+        order = self.scene.rig.calibration.order
+        trials = np.asarray(batch, dtype=np.int64)
+        phis = calib.draws(sampler, trials, self.seed, self.point)
+        bad = ~calib.sensible(self.scene, phis, order)
+        refused = int(bad.sum())
+        for attempt in range(1, calib.ATTEMPTS):
+            if not bad.any():
+                break
+            redo = np.flatnonzero(bad)
+            phis[redo] = calib.draws(sampler, trials[redo], self.seed, self.point, attempt)
+            bad[redo] = ~calib.sensible(self.scene, phis[redo], order)
+            refused += int(bad.sum())
+        if bad.any():
+            raise WiredslError([Diagnostic(
+                "error", "E161", f"calibration_error: {calib.ATTEMPTS} draws in a row for trial {int(trials[bad][0])} "
+                "give a camera a focal length or pixel aspect that is not positive: the calibration uncertainty is "
+                "too large for the cameras", None)])
+        if refused and not any(w.startswith("calibration draws refused") for w in self.warnings):
+            self.warnings.append("calibration draws refused and redrawn (a camera's focal length or pixel aspect "
+                                 "not positive): counted in the manifest as refused_draws")
+        calib.CalibrationError.record(self.stats, phis, refused)
+        return phis
+
+    def _batch(self, batch: Sequence[int]):
         sampler = self.sampler()
         per_trial = rigs = None
         base = self.ideal()
         if sampler is not None:
             order = self.scene.rig.calibration.order
-            phis = np.array([calib.draw(sampler, t, self.seed) for t in batch])
-            self.stats.samples["calibration_error"].extend(phis)
+            phis = self.calibration_draws(batch)
             if self.exact_calibration:  # each trial's rig projected from scratch: the reference
                 per_trial = [self.project(calib.perturb(self.scene, phi, order)) for phi in phis]
                 base = per_trial[0]
@@ -150,8 +184,9 @@ class Run:
                     sets, views[side] = reproject(getattr(result, side), self.world, rigs[side], result.pose, side)
                 else:
                     sets = to_imageset(getattr(result, side), self.world).repeat_trials(len(batch))
-                ctx = Context(pose=result.index, side=side, trials=np.array(batch), seed=self.seed,
-                              stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s))
+                ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
+                              stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
+                              point=self.point)
                 for effect, params in self.image_stages:
                     self.trace[effect.name] += 1
                     sets = effect.apply(params, sets, ctx)
