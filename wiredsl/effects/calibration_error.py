@@ -121,17 +121,20 @@ def rotation_vectors(r: np.ndarray) -> np.ndarray:
 
 CAMERA_KEYS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2")
 ATTEMPTS = 64  # draws tried for one trial before the calibration is refused as too uncertain for its cameras
+SCALE_LIMIT = 1000.0  # a drawn pixel scale beyond this multiple of the nominal one is refused (no real camera)
 
 
 def sensible(scene, phis: np.ndarray, order: list[str]) -> np.ndarray:
-    """Which draws (T,) leave both cameras with a positive focal length and pixel aspects, and every
-    perturbed parameter finite."""
+    """Which draws (T,) leave both cameras with positive pixel scales (f ax, f ay) no larger than
+    SCALE_LIMIT times the nominal ones, and every perturbed parameter finite."""
     ok = np.isfinite(phis).all(axis=1)
-    for rig in perturbed_rigs(scene, np.where(np.isfinite(phis), phis, 0.0), order).values():
-        prm = rig["params"]
+    for side, rig in perturbed_rigs(scene, np.where(np.isfinite(phis), phis, 0.0), order).items():
+        prm, cam = rig["params"], scene.camera(getattr(scene.rig, side).camera)
         with np.errstate(over="ignore", invalid="ignore"):
-            ok &= (prm["f"] > 0) & (prm["ax"] > 0) & (prm["ay"] > 0) & np.isfinite(prm["f"] * prm["ax"])
-            ok &= np.isfinite(prm["f"] * prm["ay"])
+            for scale, nominal in ((prm["f"] * prm["ax"], cam.f * cam.ax), (prm["f"] * prm["ay"], cam.f * cam.ay)):
+                ok &= (prm["f"] > 0) & (scale > 0) & (scale <= SCALE_LIMIT * abs(nominal))
+            for key in CAMERA_KEYS:
+                ok &= np.isfinite(prm[key])
             ok &= np.isfinite(rig["position"]).all(axis=1) & np.isfinite(rig["rotation"]).all(axis=(1, 2))
     return ok
 

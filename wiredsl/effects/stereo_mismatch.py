@@ -81,19 +81,44 @@ class StereoMismatch(Effect):
 
 
 def _drop_band(s: im.ImageSet, epipole: np.ndarray, band: float) -> im.ImageSet:
-    """Remove every stroke segment within `band` of its epipolar line; keep the rest as fragments."""
-    s = im.unroll_closed(s) if s.closed.any() else s
-    a, b = s.pts[:-1], s.pts[1:]
-    inside = angle_to_epipolar(a, b, epipole) <= band  # per consecutive vertex pair
-    last = s.start[1:] - 1
-    real = np.ones(len(a), dtype=bool)
-    real[last[last < len(a)]] = False  # pairs that straddle two strokes
-    arc, _ = im.arc_lengths(s)
-    keep_pair = real & ~inside
-    stroke_of = s.vertex_stroke()[:-1] if len(a) else np.zeros(0, int)
+    """Remove every stroke segment within `band` of its epipolar line; keep the rest as fragments.
+
+    A closed stroke's segments include its closing one; its kept runs are taken once around the loop,
+    a run through the loop's start being one piece; a loop that loses nothing stays whole and closed.
+    """
+    S = s.n_strokes
+    first, last = s.start[:-1], s.start[1:] - 1
+    loops = np.flatnonzero(s.closed & (s.counts > 1))
+    closing_inside = np.zeros(S, dtype=bool)
+    closing_inside[loops] = angle_to_epipolar(s.pts[last[loops]], s.pts[first[loops]], epipole) <= band
+    real = s.vertex_stroke()[:-1] == s.vertex_stroke()[1:] if len(s.pts) else np.zeros(0, bool)
+    inside = angle_to_epipolar(s.pts[:-1], s.pts[1:], epipole) <= band
+    hit = np.bincount(s.vertex_stroke()[:-1][real & inside], minlength=S) > 0 if len(s.pts) else np.zeros(S, bool)
+    cut_loops = s.closed & (hit | closing_inside)
+    intact = s.closed & ~cut_loops
+    u = im.unroll_closed(s, cut_loops)  # a cut loop: twice round, of which one lap from a dropped segment is used
+    stroke_of = u.vertex_stroke()
+    pair_stroke = stroke_of[:-1]
+    real = stroke_of[:-1] == stroke_of[1:]
+    inside = angle_to_epipolar(u.pts[:-1], u.pts[1:], epipole) <= band
+    local = np.arange(len(u.pts) - 1) - u.start[pair_stroke]
+    c = s.counts[pair_stroke]  # a loop's own number of segments
+    lap = real & inside & cut_loops[pair_stroke] & (local < c)
+    p0 = np.full(S, np.iinfo(np.int64).max // 4)
+    np.minimum.at(p0, pair_stroke[lap], local[lap])  # a cut loop's first dropped segment
+    window = ~cut_loops[pair_stroke] | ((local > p0[pair_stroke]) & (local < p0[pair_stroke] + c))
+    keep_pair = real & ~inside & window & ~intact[pair_stroke]
+    arc, _ = im.arc_lengths(u)
     # runs of kept pairs within each stroke become fragments (vertex ranges [starts, ends])
     change = np.flatnonzero(np.diff(np.concatenate([[False], keep_pair, [False]]).astype(int)))
     starts, ends = change[::2], change[1::2]
-    strokes, lo, hi = stroke_of[starts], arc[starts], arc[ends]
-    frag = np.zeros(len(strokes), int)  # fragments are numbered when the dump is written
-    return im.keep_intervals(s, strokes, lo, hi, frag)
+    strokes = pair_stroke[starts]
+    whole = (starts == u.start[strokes]) & (ends == u.start[strokes + 1] - 1)  # an open stroke that lost nothing
+    strokes = np.concatenate([strokes, np.flatnonzero(intact)])
+    lo = np.concatenate([arc[starts], np.zeros(intact.sum())])
+    hi = np.concatenate([arc[ends], np.zeros(intact.sum())])
+    whole = np.concatenate([whole, np.ones(intact.sum(), dtype=bool)])
+    order = np.argsort(strokes, kind="stable")
+    strokes, lo, hi, whole = strokes[order], lo[order], hi[order], whole[order]
+    frag = np.where(whole, u.fragment[strokes], 0)  # fragments are numbered when the dump is written
+    return im.keep_intervals(u, strokes, lo, hi, frag, closed=whole & s.closed[strokes], whole=whole)

@@ -133,32 +133,38 @@ def search(arc: np.ndarray, lo: np.ndarray, hi: np.ndarray, target: np.ndarray, 
         hi = np.where(stay, mid, hi)
 
 
-def unroll_closed(s: ImageSet) -> ImageSet:
-    """Closed strokes as open ones traversed twice (vertex 0 .. last, 0 .. last, 0), so that any
-    arc of length <= L starting in [0, L) is a single interval."""
-    if not s.closed.any():
+def unroll_closed(s: ImageSet, which: np.ndarray | None = None) -> ImageSet:
+    """Closed strokes (those of `which`, default all) as open ones traversed twice (vertex 0 .. last,
+    0 .. last, 0), so that any arc of length <= L starting in [0, L) is a single interval."""
+    which = s.closed if which is None else s.closed & which
+    if not which.any():
         return s
     counts = s.counts
-    new_counts = np.where(s.closed, 2 * counts + 1, counts)
+    new_counts = np.where(which, 2 * counts + 1, counts)
     start = np.concatenate([[0], np.cumsum(new_counts)]).astype(int)
     k = np.repeat(np.arange(s.n_strokes), new_counts)  # the stroke of every output vertex
     i = np.arange(start[-1]) - start[:-1][k]  # its position within the output stroke
     src = s.start[:-1][k] + i % np.maximum(counts[k], 1)
-    return replace(s, pts=s.pts[src], start=start, closed=np.zeros_like(s.closed))
+    return replace(s, pts=s.pts[src], start=start, closed=s.closed & ~which)
 
 
 def keep_intervals(s: ImageSet, stroke: np.ndarray, a: np.ndarray, b: np.ndarray, fragment: np.ndarray,
-                   closed: np.ndarray | None = None, cut: np.ndarray | None = None) -> ImageSet:
+                   closed: np.ndarray | None = None, cut: np.ndarray | None = None,
+                   whole: np.ndarray | None = None) -> ImageSet:
     """New strokes: the parts of strokes `stroke` (K,) between arc lengths a and b (K,).
 
     Each part starts and ends at interpolated points and keeps the stroke's metadata, with `fragment`
-    and `closed` set and `clipped` or-ed with `cut`; parts shorter than 1e-9 px are dropped.
+    and `closed` set and `clipped` or-ed with `cut`; parts shorter than 1e-9 px are dropped. A part
+    marked `whole` is its stroke's vertices verbatim (a and b unused): a stroke left uncut is exactly
+    itself, whatever else is cut in the batch.
     """
     arc, lengths = arc_lengths(s)
-    a = np.clip(a, 0.0, lengths[stroke])
-    b = np.clip(b, 0.0, lengths[stroke])
+    K = len(stroke)
+    whole = np.zeros(K, dtype=bool) if whole is None else np.asarray(whole, dtype=bool)
+    a = np.where(whole, 0.0, np.clip(a, 0.0, lengths[stroke]))
+    b = np.where(whole, lengths[stroke], np.clip(b, 0.0, lengths[stroke]))
     ok = b - a > 1e-9
-    stroke, a, b, fragment = stroke[ok], a[ok], b[ok], fragment[ok]
+    stroke, a, b, fragment, whole = stroke[ok], a[ok], b[ok], np.asarray(fragment)[ok], whole[ok]
     closed = np.zeros(len(stroke), dtype=bool) if closed is None else np.asarray(closed, dtype=bool)[ok]
     cut = np.zeros(len(stroke), dtype=bool) if cut is None else np.asarray(cut, dtype=bool)[ok]
     if len(stroke) == 0:
@@ -176,17 +182,18 @@ def keep_intervals(s: ImageSet, stroke: np.ndarray, a: np.ndarray, b: np.ndarray
             t = np.where(span > 0, (target - arc[j]) / span, 0.0)
         return s.pts[j] + t[:, None] * (s.pts[j1] - s.pts[j])
 
-    pa, pb = point_at(a), point_at(b)
-    inner = np.maximum(hi - lo, 0)
-    counts = inner + 2
+    ends = ~whole  # parts with interpolated end points
+    run_lo = np.where(whole, first, lo)  # then a run of the stroke's own vertices
+    run_n = np.where(whole, last + 1 - first, np.maximum(hi - lo, 0))
+    counts = run_n + 2 * ends
     start = np.concatenate([[0], np.cumsum(counts)]).astype(int)
     out = np.empty((start[-1], 2))
-    out[start[:-1]] = pa
-    out[start[1:] - 1] = pb
-    if inner.sum():
-        src = np.repeat(lo, inner) + (np.arange(inner.sum()) - np.repeat(np.cumsum(inner) - inner, inner))
-        dst = np.repeat(start[:-1] + 1, inner) + (np.arange(inner.sum()) - np.repeat(np.cumsum(inner) - inner, inner))
-        out[dst] = s.pts[src]
+    out[start[:-1][ends]] = point_at(a)[ends]
+    out[start[1:][ends] - 1] = point_at(b)[ends]
+    n = int(run_n.sum())
+    if n:
+        within = np.arange(n) - np.repeat(np.cumsum(run_n) - run_n, run_n)
+        out[np.repeat(start[:-1] + ends, run_n) + within] = s.pts[np.repeat(run_lo, run_n) + within]
     meta = _meta(s, stroke)
     meta["fragment"] = fragment
     meta["closed"] = closed
@@ -211,7 +218,7 @@ def keep_vertex_runs(s: ImageSet, ok: np.ndarray) -> ImageSet:
     stroke = stroke_of[b_idx]
     whole = first[b_idx] & last[e_idx]
     return keep_intervals(s, stroke, arc[b_idx], arc[e_idx], np.where(whole, s.fragment[stroke], 0),
-                          closed=whole & s.closed[stroke], cut=~whole)
+                          closed=whole & s.closed[stroke], cut=~whole, whole=whole)
 
 
 def clip_rect(s: ImageSet, width: float, height: float) -> ImageSet:
@@ -244,7 +251,7 @@ def clip_rect(s: ImageSet, width: float, height: float) -> ImageSet:
     b = arc[k] + t1[k] * seg_len[k]
     whole = first_pair[j] & (t0[j] <= 0) & last_pair[k] & (t1[k] >= 1)
     return keep_intervals(s, stroke, a, b, np.where(whole, s.fragment[stroke], np.maximum(s.fragment[stroke], 0)),
-                          closed=whole & s.closed[stroke], cut=~whole)
+                          closed=whole & s.closed[stroke], cut=~whole, whole=whole)
 
 
 def vertex_normals(s: ImageSet) -> np.ndarray:

@@ -132,7 +132,8 @@ class Run:
 
     def calibration_draws(self, batch: Sequence[int]) -> np.ndarray:
         """The batch's calibration perturbations (T, m), each checked: a draw that leaves a camera without a
-        positive finite focal length or pixel aspect is refused and redrawn (next attempt of the same key)."""
+        positive pixel scale (f ax, f ay), or one over calib.SCALE_LIMIT times the nominal, or anything not
+        finite, is refused and redrawn (the next attempt of the same key), and counted."""
         sampler = self.sampler()
         order = self.scene.rig.calibration.order
         trials = np.asarray(batch, dtype=np.int64)
@@ -149,11 +150,12 @@ class Run:
         if bad.any():
             raise WiredslError([Diagnostic(
                 "error", "E161", f"calibration_error: {calib.ATTEMPTS} draws in a row for trial {int(trials[bad][0])} "
-                "give a camera a focal length or pixel aspect that is not positive: the calibration uncertainty is "
-                "too large for the cameras", None)])
+                "give a camera a pixel scale (f ax, f ay) that is not positive or over "
+                f"{calib.SCALE_LIMIT:g} times the nominal: the calibration uncertainty is too large for the cameras",
+                None)])
         if refused and not any(w.startswith("calibration draws refused") for w in self.warnings):
-            self.warnings.append("calibration draws refused and redrawn (a camera's focal length or pixel aspect "
-                                 "not positive): counted in the manifest as refused_draws")
+            self.warnings.append("calibration draws refused and redrawn (a camera's pixel scale not positive or "
+                                 "implausibly large): counted in the manifest as refused_draws")
         calib.CalibrationError.record(self.stats, phis, refused)
         return phis
 
