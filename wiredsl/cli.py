@@ -259,13 +259,16 @@ def _positive_px(ctx, param, value: float) -> float:
               help="Largest deviation (px) of an emitted polyline from the true image curve.")
 @click.option("--visibility", type=click.Choice(["scene", "exact", "all"]), default="scene", show_default=True,
               help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion.")
+@click.option("--engine", type=click.Choice(["auto", "kernel", "numpy"]), default="auto", show_default=True,
+              help="Monte-Carlo engine: the compiled kernel (needs wiredsl[fast]) or the numpy reference; auto: the "
+                   "kernel for --trials above 1 and --trial when numba is installed. Both draw the same numbers.")
 @click.option("--exact-calibration", is_flag=True,
               help="Project each trial's perturbed rig from scratch (slow) instead of re-projecting the ideal "
                    "strokes with every trial's cameras at once.")
 @guarded
 def build(file: str, output: str | None, pipeline_name: str | None, no_effects: bool, seed: int | None, trials: int,
           only_trial: int | None, poses: tuple[int, ...], out_format: str, svg: bool, cameras: str, tolerance: float,
-          visibility: str, exact_calibration: bool) -> None:
+          visibility: str, engine: str, exact_calibration: bool) -> None:
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
     import secrets
     import time
@@ -297,7 +300,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         if pipeline is None and scene.pipelines:
             click.echo("note: no pipeline is marked default; building the ideal projection (choose one with "
                        "--pipeline: " + ", ".join(p.name for p in scene.pipelines) + ")", err=True)
-    trial_list = [only_trial] if only_trial is not None else list(range(trials))
+    trial_list = [only_trial] if only_trial is not None else range(trials)  # a range: nothing built a trial
     if out_format == "json" and len(trial_list) > 1:
         raise click.BadParameter("one JSON dump holds one trial: use --format jsonl or npz for several",
                                  param_hint="--trials")
@@ -308,6 +311,15 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                    right=cameras == "both")
     run = Run.create(scene, world, pipeline, seed, opts)
     run.exact_calibration = exact_calibration
+    if engine == "auto" and only_trial is None and trials == 1:
+        engine = "numpy"  # one plain build: not worth loading the compiled kernel
+    if engine == "kernel":
+        import importlib.util
+
+        if importlib.util.find_spec("numba") is None:
+            raise click.BadParameter("the compiled kernel needs numba: pip install 'wiredsl[fast]'",
+                                     param_hint="--engine")
+    run.engine = engine
     effects = bool(run.stages)
     out_dir = None if output == "-" else (Path(output) if output else Path("build") / scene.name)
     records = emit.stage_records(run)

@@ -63,11 +63,15 @@ def keyed_uniform(key: np.ndarray, index: np.ndarray) -> np.ndarray:
 
 
 def keyed_normal(key: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Standard normals by Box-Muller: normal i = sqrt(-2 ln(1 - u_2i)) cos(2 pi u_2i+1) from draws 2i, 2i+1."""
+    """Standard normals by Box-Muller: normals 2i and 2i + 1 are r cos(phi) and r sin(phi), with
+    r = sqrt(-2 ln(1 - u_2i)) and phi = 2 pi u_2i+1 from uniform draws 2i and 2i + 1 of the key."""
     index = np.asarray(index, dtype=np.uint64)
-    u1 = keyed_uniform(key, np.uint64(2) * index)
-    u2 = keyed_uniform(key, np.uint64(2) * index + np.uint64(1))
-    return np.sqrt(-2.0 * np.log1p(-u1)) * np.cos(2.0 * np.pi * u2)
+    pair = index >> np.uint64(1)
+    u1 = keyed_uniform(key, np.uint64(2) * pair)
+    u2 = keyed_uniform(key, np.uint64(2) * pair + np.uint64(1))
+    r = np.sqrt(-2.0 * np.log1p(-u1))
+    phi = 2.0 * np.pi * u2
+    return np.where(index & np.uint64(1), r * np.sin(phi), r * np.cos(phi))
 
 
 def param(default: float, kind: str, doc: str, **limits: Any) -> Any:

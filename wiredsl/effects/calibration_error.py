@@ -157,7 +157,7 @@ def perturbed_rigs(scene, phis: np.ndarray, order: list[str]) -> dict:
         params["k1"] = cam.k1 - delta("k")  # TINA's k = -k1
         R = np.array(mount.rotation)
         dt = np.column_stack([delta("tx"), delta("ty"), delta("tz")])
-        position = np.array(mount.position)[None] + dt @ R.T
+        position = np.array(mount.position)[None] + (dt[:, None, :] * R[None, :, :]).sum(axis=2)  # row by row
         rotation = R[None] @ rotation_vectors(np.column_stack([delta("rx"), delta("ry"), delta("rz")]))
         out[side] = {"params": params, "rotation": rotation, "position": position, "camera": cam}
     return out

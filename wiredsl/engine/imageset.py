@@ -163,7 +163,7 @@ def keep_intervals(s: ImageSet, stroke: np.ndarray, a: np.ndarray, b: np.ndarray
     whole = np.zeros(K, dtype=bool) if whole is None else np.asarray(whole, dtype=bool)
     a = np.where(whole, 0.0, np.clip(a, 0.0, lengths[stroke]))
     b = np.where(whole, lengths[stroke], np.clip(b, 0.0, lengths[stroke]))
-    ok = b - a > 1e-9
+    ok = whole | (b - a > 1e-9)  # a whole stroke is kept as it is, even if degenerate
     stroke, a, b, fragment, whole = stroke[ok], a[ok], b[ok], np.asarray(fragment)[ok], whole[ok]
     closed = np.zeros(len(stroke), dtype=bool) if closed is None else np.asarray(closed, dtype=bool)[ok]
     cut = np.zeros(len(stroke), dtype=bool) if cut is None else np.asarray(cut, dtype=bool)[ok]
