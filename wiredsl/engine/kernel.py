@@ -86,6 +86,20 @@ def _arcs(pts, start):
 
 
 @njit(cache=True)
+def _total_length(pts, start):
+    """The sum of the strokes' lengths, summed as _arcs does each stroke (for the statistics)."""
+    total = 0.0
+    for k in range(len(start) - 1):
+        acc = 0.0
+        for i in range(start[k] + 1, start[k + 1]):
+            dx = pts[i, 0] - pts[i - 1, 0]
+            dy = pts[i, 1] - pts[i - 1, 1]
+            acc = acc + math.sqrt(dx * dx + dy * dy)
+        total += acc
+    return total
+
+
+@njit(cache=True)
 def _after(arc, lo, hi, x):
     """First index in [lo, hi) with arc > x (hi if none)."""
     while lo < hi:
@@ -122,9 +136,9 @@ def _point_at(pts, arc, first, last, target, out, o):
 
 
 @njit(cache=True)
-def _keep(pts, start, meta, ps, pa, pb, pfrag, pclosed, pcut, pwhole, n):
-    """imageset.keep_intervals: parts [a, b] of strokes ps (n parts), whole parts verbatim."""
-    arc, L = _arcs(pts, start)
+def _keep(pts, start, meta, arc, L, ps, pa, pb, pfrag, pclosed, pcut, pwhole, n):
+    """imageset.keep_intervals: parts [a, b] of strokes ps (n parts), whole parts verbatim; arc and L are
+    the strokes' arc lengths (_arcs)."""
     okp = np.zeros(n, np.bool_)
     lo = np.zeros(n, np.int64)
     cnt = np.zeros(n, np.int64)
@@ -213,7 +227,7 @@ def _edge_loss(pts, start, meta, key, fraction, st):
     S = len(start) - 1
     closed = meta[:, CLOSED] != 0
     upts, ustart, umeta = _unroll(pts, start, meta, np.ones(S, np.bool_))
-    _, Lu = _arcs(upts, ustart)
+    arc, Lu = _arcs(upts, ustart)
     n = 0
     for k in range(S):
         n += 1 if closed[k] else 2
@@ -236,9 +250,8 @@ def _edge_loss(pts, start, meta, key, fraction, st):
             ps[q], pa[q], pb[q] = k, 0.0, g0
             ps[q + 1], pa[q + 1], pb[q + 1], pf[q + 1] = k, g0 + gap, L, 1
             q += 2
-    out = _keep(upts, ustart, umeta, ps, pa, pb, pf, zeros, zeros, np.zeros(n, np.bool_), n)
-    _, Lo = _arcs(out[0], out[1])
-    st[1] += Lo.sum()
+    out = _keep(upts, ustart, umeta, arc, Lu, ps, pa, pb, pf, zeros, zeros, np.zeros(n, np.bool_), n)
+    st[1] += _total_length(out[0], out[1])
     return out
 
 
@@ -322,7 +335,8 @@ def _split_ellipses(pts, start, meta):
             ps[q], pf[q], pc[q], pw[q] = k, meta[k, FRAG], meta[k, CLOSED], True
             q += 1
     vpts, vstart, vmeta = _unroll(pts, start, meta, halves)
-    return _keep(vpts, vstart, vmeta, ps, pa, pb, pf, pc, np.zeros(n, np.int64), pw, n)
+    varc, vL = _arcs(vpts, vstart)
+    return _keep(vpts, vstart, vmeta, varc, vL, ps, pa, pb, pf, pc, np.zeros(n, np.int64), pw, n)
 
 
 @njit(cache=True)
@@ -411,7 +425,7 @@ def _drop_band(pts, start, meta, e, band):
         cut_loop[k] = hit
         intact[k] = not hit
     upts, ustart, umeta = _unroll(pts, start, meta, cut_loop)
-    arc, _ = _arcs(upts, ustart)
+    arc, uL = _arcs(upts, ustart)
     n_max = len(upts) + S
     ps = np.empty(n_max, np.int64)
     pa = np.empty(n_max)
@@ -449,17 +463,17 @@ def _drop_band(pts, start, meta, e, band):
                     pw[q], pf[q] = True, umeta[k, FRAG]
                 q += 1
                 run = -1
-    return _keep(upts, ustart, umeta, ps, pa, pb, pf, pc, np.zeros(q, np.int64), pw, q)
+    return _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, np.zeros(q, np.int64), pw, q)
 
 
 @njit(cache=True)
 def _stereo(pts, start, meta, key, e, band, fraction, disparity, right, st):
-    _, L = _arcs(pts, start)
-    st[0] += L.sum()
+    st[0] += _total_length(pts, start)
     if band > 0 and len(start) > 1:
         pts, start, meta = _drop_band(pts, start, meta, e, band)
-    _, L = _arcs(pts, start)
-    st[1] += L.sum()
+        st[1] += _total_length(pts, start)
+    else:
+        st[1] += _total_length(pts, start)
     if not right or fraction == 0 or disparity == 0:
         return pts, start, meta
     out = pts.copy()
@@ -539,7 +553,7 @@ def _project(X, R, t, cam, fold, out, ok):
 @njit(cache=True)
 def _keep_vertex_runs(pts, start, meta, ok):
     """imageset.keep_vertex_runs."""
-    arc, _ = _arcs(pts, start)
+    arc, L = _arcs(pts, start)
     S = len(start) - 1
     n_max = len(pts)
     ps = np.empty(n_max, np.int64)
@@ -567,7 +581,15 @@ def _keep_vertex_runs(pts, start, meta, ok):
             pcut[q] = 0 if whole else 1
             q += 1
             i = j + 1
-    return _keep(pts, start, meta, ps, pa, pb, pf, pc, pcut, pw, q)
+    return _keep(pts, start, meta, arc, L, ps, pa, pb, pf, pc, pcut, pw, q)
+
+
+@njit(cache=True)
+def _inside(pts, width, height):
+    for i in range(len(pts)):
+        if not (pts[i, 0] >= 0 and pts[i, 1] >= 0 and pts[i, 0] <= width and pts[i, 1] <= height):
+            return False
+    return True
 
 
 @njit(cache=True)
@@ -598,7 +620,7 @@ def _liang_barsky(ax, ay, bx, by, width, height):
 @njit(cache=True)
 def _clip_rect(pts, start, meta, width, height):
     """imageset.clip_rect."""
-    arc, _ = _arcs(pts, start)
+    arc, L = _arcs(pts, start)
     S = len(start) - 1
     n_max = len(pts)
     ps = np.empty(n_max, np.int64)
@@ -631,7 +653,7 @@ def _clip_rect(pts, start, meta, width, height):
             seg = _dist(pts, i - 1, i)
             _clip_part(k, a, b, ja, t0a, i - 1, prev_t1, arc, pts, seg, meta, ps, pa, pb, pf, pc, pcut, pw, q)
             q += 1
-    return _keep(pts, start, meta, ps, pa, pb, pf, pc, pcut, pw, q)
+    return _keep(pts, start, meta, arc, L, ps, pa, pb, pf, pc, pcut, pw, q)
 
 
 @njit(cache=True)
@@ -671,8 +693,11 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
             pts = np.empty((len(W), 2))
             ok = np.empty(len(W), np.bool_)
             _project(W, R[t], tv[t], cams[t], folds[t], pts, ok)
-            pts, start, meta = _keep_vertex_runs(pts, tstart, tmeta, ok)
-            pts, start, meta = _clip_rect(pts, start, meta, width, height)
+            start, meta = tstart, tmeta
+            if not ok.all():  # (when all are valid, the cut keeps every stroke verbatim: skip it)
+                pts, start, meta = _keep_vertex_runs(pts, tstart, tmeta, ok)
+            if not _inside(pts, width, height):
+                pts, start, meta = _clip_rect(pts, start, meta, width, height)
             cp = np.empty((len(CW), 2))
             cok = np.empty(len(CW), np.bool_)
             _project(CW, R[t], tv[t], cams[t], folds[t], cp, cok)

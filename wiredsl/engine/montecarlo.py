@@ -38,6 +38,7 @@ from wiredsl.engine.world import World
 from wiredsl.scene import Scene
 
 BATCH = 256  # trials per batch: bounds memory whatever the number of trials
+CULL = 0.25  # raw strokes wholly beyond the image grown by this fraction of its size are not re-projected
 
 
 @dataclass
@@ -315,7 +316,11 @@ def features_of(s: im.ImageSet, k: int) -> list[ImageFeature]:
 
 def raw_template(view: View, world: World) -> tuple[im.ImageSet, np.ndarray, np.ndarray]:
     """The ideal view's strokes before image clipping as one trial's ImageSet (vertices not yet
-    projected), with their world points (N, 3) and the corners' world points (C, 3)."""
+    projected), with their world points (N, 3) and the corners' world points (C, 3).
+
+    Strokes whose nominal image lies wholly beyond the image grown by CULL of its size on one side are
+    left out: no calibration draw of a plausible rig brings them in, and re-projecting them is about half
+    the work of a calibrated trial in the lab."""
     raw = view.raw
     counts = np.array([len(r.world) for r in raw], dtype=int)
     W = np.concatenate([r.world for r in raw]) if raw else np.zeros((0, 3))
@@ -330,7 +335,18 @@ def raw_template(view: View, world: World) -> tuple[im.ImageSet, np.ndarray, np.
         fragment=z - 1, kind=kinds, clipped=np.array([r.clipped for r in raw], dtype=bool),
         closed=np.array([r.closed for r in raw], dtype=bool), trial=z, corners=np.zeros((len(cw), 2)),
         corner_fid=np.asarray(cf, dtype=int), corner_trial=np.zeros(len(cw), dtype=int))
-    return template, np.asarray(W, dtype=float).reshape(-1, 3), np.asarray(cw, dtype=float).reshape(-1, 3)
+    W = np.asarray(W, dtype=float).reshape(-1, 3)
+    cam = view.camera
+    nominal = np.array([[getattr(cam, k) for k in calib.CAMERA_KEYS]], dtype=float)
+    uv, _ = project_trials(W, np.asarray(view.R_cw, float)[None], np.asarray(view.t_cw, float)[None], nominal,
+                           np.array([geometry.fold_radius(cam.k1, cam.k2)]))  # invalid vertices at 0: kept
+    mx, my = CULL * cam.width, CULL * cam.height
+    outside = np.zeros(template.n_strokes, dtype=bool)
+    for cond in (uv[:, 0] < -mx, uv[:, 0] > cam.width + mx, uv[:, 1] < -my, uv[:, 1] > cam.height + my):
+        all_far = np.logical_and.reduceat(cond, template.start[:-1]) if len(W) else np.zeros(0, bool)
+        outside |= all_far & (template.counts > 0)
+    far = np.repeat(outside, template.counts)
+    return template.take(~outside), W[~far], np.asarray(cw, dtype=float).reshape(-1, 3)
 
 
 def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -343,8 +359,9 @@ def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.nd
     R_cw = np.ascontiguousarray(np.transpose(R_wc, (0, 2, 1)))
     t_cw = -(R_cw * t_wc[:, None, :]).sum(axis=2)
     cams = np.column_stack([p[k] for k in calib.CAMERA_KEYS]).astype(float)
-    folds = np.array([geometry.fold_radius(k1, k2) for k1, k2 in zip(p["k1"], p["k2"], strict=True)])
-    return R_cw, t_cw, cams, folds
+    if "folds" not in rig:  # the same at every pose: once a batch
+        rig["folds"] = np.array([geometry.fold_radius(k1, k2) for k1, k2 in zip(p["k1"], p["k2"], strict=True)])
+    return R_cw, t_cw, cams, rig["folds"]
 
 
 def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.ndarray, folds: np.ndarray):
