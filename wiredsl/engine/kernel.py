@@ -334,6 +334,8 @@ def _split_ellipses(pts, start, meta):
         else:
             ps[q], pf[q], pc[q], pw[q] = k, meta[k, FRAG], meta[k, CLOSED], True
             q += 1
+    if (halves == closed).all():  # every loop is cut into halves: the unrolled strokes are the ones to cut
+        return _keep(upts, ustart, umeta, arc, Lu, ps, pa, pb, pf, pc, np.zeros(n, np.int64), pw, n)
     vpts, vstart, vmeta = _unroll(pts, start, meta, halves)
     varc, vL = _arcs(vpts, vstart)
     return _keep(vpts, vstart, vmeta, varc, vL, ps, pa, pb, pf, pc, np.zeros(n, np.int64), pw, n)
@@ -407,23 +409,24 @@ def _angle(ax, ay, bx, by, e):
 
 @njit(cache=True)
 def _drop_band(pts, start, meta, e, band):
-    """stereo_mismatch._drop_band."""
+    """stereo_mismatch._drop_band. Each segment's angle is computed once: slot start[k] + i holds segment
+    i of stroke k, the last slot of a closed stroke its closing segment (an unrolled loop reuses them)."""
     S = len(start) - 1
+    inside = np.zeros(len(pts), np.bool_)
     cut_loop = np.zeros(S, np.bool_)
     intact = np.zeros(S, np.bool_)
     for k in range(S):
         a, b = start[k], start[k + 1]
-        if meta[k, CLOSED] == 0:
-            continue
         hit = False
         for i in range(a, b - 1):
-            if _angle(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1], e) <= band:
-                hit = True
-                break
-        if not hit and b - a > 1:
-            hit = _angle(pts[b - 1, 0], pts[b - 1, 1], pts[a, 0], pts[a, 1], e) <= band
-        cut_loop[k] = hit
-        intact[k] = not hit
+            inside[i] = _angle(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1], e) <= band
+            hit = hit or inside[i]
+        if meta[k, CLOSED] != 0:
+            if b - a > 1:
+                inside[b - 1] = _angle(pts[b - 1, 0], pts[b - 1, 1], pts[a, 0], pts[a, 1], e) <= band
+                hit = hit or inside[b - 1]
+            cut_loop[k] = hit
+            intact[k] = not hit
     upts, ustart, umeta = _unroll(pts, start, meta, cut_loop)
     arc, uL = _arcs(upts, ustart)
     n_max = len(upts) + S
@@ -443,16 +446,16 @@ def _drop_band(pts, start, meta, e, band):
         c = start[k + 1] - start[k]
         p0 = -1
         if cut_loop[k]:
-            for i in range(a, a + c):
-                if _angle(upts[i, 0], upts[i, 1], upts[i + 1, 0], upts[i + 1, 1], e) <= band:
-                    p0 = i - a
+            for i in range(c):
+                if inside[start[k] + i]:
+                    p0 = i
                     break
         run = -1
         for i in range(a, b):  # pairs i -> i + 1, and a sentinel at i = b - 1
             keep = False
             if i < b - 1:
                 local = i - a
-                keep = _angle(upts[i, 0], upts[i, 1], upts[i + 1, 0], upts[i + 1, 1], e) > band
+                keep = not inside[start[k] + (local % c if cut_loop[k] else local)]
                 if cut_loop[k]:
                     keep = keep and local > p0 and local < p0 + c
             if keep and run < 0:
