@@ -41,6 +41,20 @@ def angle_to_epipolar(a: np.ndarray, b: np.ndarray, epipole: np.ndarray) -> np.n
     return np.arctan2(np.abs(d[:, 0] * e[:, 1] - d[:, 1] * e[:, 0]), np.abs((d * e).sum(axis=1)))
 
 
+def in_band(a: np.ndarray, b: np.ndarray, epipole: np.ndarray, band: float) -> np.ndarray:
+    """Whether segments a->b (n, 2) are within `band` of the epipolar line through their midpoints:
+    angle_to_epipolar <= band, decided as |cross| <= tan(band) |dot| (no atan2, no normalising)."""
+    if band >= math.pi / 2:
+        return np.ones(len(a), dtype=bool)
+    ex, ey, ew = epipole
+    mx, my = (a[:, 0] + b[:, 0]) / 2, (a[:, 1] + b[:, 1]) / 2
+    lx, ly = mx * ew - ex, my * ew - ey
+    at_epipole = (lx == 0) & (ly == 0)  # no epipolar line: take the x axis, as epipolar_directions does
+    lx, ly = np.where(at_epipole, 1.0, lx), np.where(at_epipole, 0.0, ly)
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    return np.abs(dx * ly - dy * lx) <= math.tan(band) * np.abs(dx * lx + dy * ly)
+
+
 class StereoMismatch(Effect):
     name = "stereo_mismatch"
     acts_on = "stereo"
@@ -90,9 +104,9 @@ def _drop_band(s: im.ImageSet, epipole: np.ndarray, band: float) -> im.ImageSet:
     first, last = s.start[:-1], s.start[1:] - 1
     loops = np.flatnonzero(s.closed & (s.counts > 1))
     closing_inside = np.zeros(S, dtype=bool)
-    closing_inside[loops] = angle_to_epipolar(s.pts[last[loops]], s.pts[first[loops]], epipole) <= band
+    closing_inside[loops] = in_band(s.pts[last[loops]], s.pts[first[loops]], epipole, band)
     real = s.vertex_stroke()[:-1] == s.vertex_stroke()[1:] if len(s.pts) else np.zeros(0, bool)
-    inside = angle_to_epipolar(s.pts[:-1], s.pts[1:], epipole) <= band
+    inside = in_band(s.pts[:-1], s.pts[1:], epipole, band)
     hit = np.bincount(s.vertex_stroke()[:-1][real & inside], minlength=S) > 0 if len(s.pts) else np.zeros(S, bool)
     cut_loops = s.closed & (hit | closing_inside)
     intact = s.closed & ~cut_loops
@@ -100,7 +114,7 @@ def _drop_band(s: im.ImageSet, epipole: np.ndarray, band: float) -> im.ImageSet:
     stroke_of = u.vertex_stroke()
     pair_stroke = stroke_of[:-1]
     real = stroke_of[:-1] == stroke_of[1:]
-    inside = angle_to_epipolar(u.pts[:-1], u.pts[1:], epipole) <= band
+    inside = in_band(u.pts[:-1], u.pts[1:], epipole, band)
     local = np.arange(len(u.pts) - 1) - u.start[pair_stroke]
     c = s.counts[pair_stroke]  # a loop's own number of segments
     lap = real & inside & cut_loops[pair_stroke] & (local < c)

@@ -401,10 +401,16 @@ def _epi_dir(x, y, e):
 
 
 @njit(cache=True)
-def _angle(ax, ay, bx, by, e):
+def _in_band(ax, ay, bx, by, e, tanb, everything):
+    """stereo_mismatch.in_band for one segment."""
+    if everything:
+        return True
+    lx = (ax + bx) / 2 * e[2] - e[0]
+    ly = (ay + by) / 2 * e[2] - e[1]
+    if lx == 0 and ly == 0:
+        lx, ly = 1.0, 0.0
     dx, dy = bx - ax, by - ay
-    ex, ey = _epi_dir((ax + bx) / 2, (ay + by) / 2, e)
-    return math.atan2(abs(dx * ey - dy * ex), abs(dx * ex + dy * ey))
+    return abs(dx * ly - dy * lx) <= tanb * abs(dx * lx + dy * ly)
 
 
 @njit(cache=True)
@@ -412,6 +418,8 @@ def _drop_band(pts, start, meta, e, band):
     """stereo_mismatch._drop_band. Each segment's angle is computed once: slot start[k] + i holds segment
     i of stroke k, the last slot of a closed stroke its closing segment (an unrolled loop reuses them)."""
     S = len(start) - 1
+    everything = band >= math.pi / 2
+    tanb = math.tan(band) if not everything else 0.0
     inside = np.zeros(len(pts), np.bool_)
     cut_loop = np.zeros(S, np.bool_)
     intact = np.zeros(S, np.bool_)
@@ -419,11 +427,11 @@ def _drop_band(pts, start, meta, e, band):
         a, b = start[k], start[k + 1]
         hit = False
         for i in range(a, b - 1):
-            inside[i] = _angle(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1], e) <= band
+            inside[i] = _in_band(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1], e, tanb, everything)
             hit = hit or inside[i]
         if meta[k, CLOSED] != 0:
             if b - a > 1:
-                inside[b - 1] = _angle(pts[b - 1, 0], pts[b - 1, 1], pts[a, 0], pts[a, 1], e) <= band
+                inside[b - 1] = _in_band(pts[b - 1, 0], pts[b - 1, 1], pts[a, 0], pts[a, 1], e, tanb, everything)
                 hit = hit or inside[b - 1]
             cut_loop[k] = hit
             intact[k] = not hit
@@ -636,6 +644,10 @@ def _clip_rect(pts, start, meta, width, height):
     q = 0
     for k in range(S):
         a, b = start[k], start[k + 1]
+        if b - a >= 2 and _inside(pts[a:b], width, height):  # the loop below would keep it whole: say so
+            ps[q], pa[q], pb[q], pw[q], pf[q], pc[q], pcut[q] = k, 0.0, L[k], True, meta[k, FRAG], meta[k, CLOSED], 0
+            q += 1
+            continue
         open_run = False
         ja, t0a = 0, 0.0
         prev_keep, prev_t1 = False, 0.0
