@@ -126,3 +126,17 @@ def test_a_trial_alone_is_bit_identical_to_the_same_trial_in_batches_of_any_size
             assert any(b for *_, b in alone if b[0]), "a trial with no strokes proves nothing"
             for size, got in inside.items():
                 assert got[k] == alone, (path, pipe.name, k, size)
+
+
+def test_a_huge_run_streams_its_trials_and_keeps_no_per_trial_state():
+    """10**12 trials: the first batch comes at once (no trial list is built), and what the run keeps
+    after two batches (calibration moments, statistics) is the same size as after one."""
+    scene, _, _ = compile_file("scenes/lab.wd")
+    run = Run.create(scene, build_world(scene), scene.pipeline("paper"), 3, Options(poses=(0,)))
+    it = run.batches(range(10**12), 16)
+    batch, _ = next(it)
+    assert list(batch) == list(range(16))
+    sizes = [len(v) if isinstance(v, list) else 1 for v in run.stats.samples.values()]
+    next(it)
+    assert [len(v) if isinstance(v, list) else 1 for v in run.stats.samples.values()] == sizes
+    assert run.stats.samples["calibration_error.moments"][0] == 32
