@@ -54,6 +54,7 @@ class Run:
     _sampler: calib.Sampler | None = None
     _ideal: list[PoseResult] | None = None
     _epipoles: dict = field(default_factory=dict)
+    _templates: dict = field(default_factory=dict)  # per (pose, side, raw?): the view's packed strokes, once a run
     _visible: tuple | None = None
     exact_calibration: bool = False  # project each trial's perturbed rig from scratch (slow reference)
     point: int | None = None  # a study's design point: one more component of every draw's key
@@ -202,9 +203,10 @@ class Run:
                     sets = concat_trials([to_imageset(getattr(r[j], side), self.world) for r in per_trial])
                     views[side] = [getattr(r[j], side) for r in per_trial]
                 elif rigs is not None:
-                    sets, views[side] = reproject(getattr(result, side), self.world, rigs[side], result.pose, side)
+                    sets, views[side] = reproject(getattr(result, side), self.world, rigs[side], result.pose, side,
+                                                  self.template(result, side, raw=True))
                 else:
-                    sets = to_imageset(getattr(result, side), self.world).repeat_trials(len(batch))
+                    sets = self.template(result, side, raw=False)[0].repeat_trials(len(batch))
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
                               point=self.point)
@@ -215,6 +217,16 @@ class Run:
             out.append((result, disturbed, views))
         return out
 
+    def template(self, result: PoseResult, side: str, raw: bool) -> tuple[im.ImageSet, np.ndarray, np.ndarray]:
+        """One view's strokes as a trial's ImageSet: raw (before clipping, with world points, for
+        re-projection) or ideal; built once a run."""
+        key = (result.index, side, raw)
+        if key not in self._templates:
+            view = getattr(result, side)
+            self._templates[key] = raw_template(view, self.world) if raw else \
+                (to_imageset(view, self.world), np.zeros((0, 3)), np.zeros((0, 3)))
+        return self._templates[key]
+
     def _kernel_view(self, result: PoseResult, side: str, batch: Sequence[int], rig: dict | None):
         """One view of a batch in the compiled kernel: the same stages and draws as the numpy path."""
         from wiredsl.effects.base import CAMERA_INDEX, stream_key
@@ -224,11 +236,11 @@ class Run:
         trials = np.asarray(batch, dtype=np.int64)
         T = len(trials)
         if rig is not None:
-            template, W, CW = raw_template(view, self.world)
+            template, W, CW = self.template(result, side, raw=True)
             R_cw, t_cw, cams, folds = trial_cameras(rig, result.pose)
             cam, view_of = rig["camera"], view_maker(rig, R_cw, t_cw, side)
         else:
-            template, W, CW = to_imageset(view, self.world), np.zeros((0, 3)), np.zeros((0, 3))
+            template, W, CW = self.template(result, side, raw=False)
             R_cw, t_cw, cams, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros((T, 9)), np.zeros(T)
             cam, view_of = view.camera, None
         meta = np.column_stack([template.fid, template.segment, template.fragment, template.kind,
@@ -387,7 +399,7 @@ def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.n
     return uv.reshape(-1, 2), ok.ravel()
 
 
-def reproject(view: View, world: World, rig: dict, pose: tuple, side: str):
+def reproject(view: View, world: World, rig: dict, pose: tuple, side: str, template: tuple | None = None):
     """Every trial's view under its perturbed camera, at once: the ideal view's strokes before image
     clipping (their world points) projected with per-trial parameters, then cut to the image.
 
@@ -395,7 +407,7 @@ def reproject(view: View, world: World, rig: dict, pose: tuple, side: str):
     behind the near plane or past the fold radius are cut away. Returns the ImageSet and
     a function giving trial k's View (its camera and pose) for the dump.
     """
-    template, W, CW = raw_template(view, world)
+    template, W, CW = template if template is not None else raw_template(view, world)
     R_cw, t_cw, cams, folds = trial_cameras(rig, pose)
     T = len(cams)
     rep = template.repeat_trials(T)
