@@ -14,7 +14,8 @@ from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import build_world
 from wiredsl.language.compile import compile_file
 
-DISCRETE = ("start", "fid", "segment", "fragment", "kind", "clipped", "closed", "trial", "corner_fid", "corner_trial")
+DISCRETE = ("start", "fid", "segment", "fragment", "kind", "clipped", "closed", "occluded", "trial", "corner_fid",
+            "corner_trial")
 
 
 def batches(run: Run, engine: str, trials) -> list:

@@ -99,7 +99,7 @@ def trial_of(s: im.ImageSet, k: int) -> tuple:
     t = s.take(s.trial == k)
     c = s.corner_trial == k
     return (t.pts.tobytes(), t.start.tobytes(), t.fid.tobytes(), t.segment.tobytes(), t.fragment.tobytes(),
-            t.kind.tobytes(), t.clipped.tobytes(), t.closed.tobytes(), s.corners[c].tobytes(),
+            t.kind.tobytes(), t.clipped.tobytes(), t.closed.tobytes(), t.occluded.tobytes(), s.corners[c].tobytes(),
             s.corner_fid[c].tobytes())
 
 

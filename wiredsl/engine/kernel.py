@@ -26,7 +26,8 @@ CODES = {"edge_loss": EDGE_LOSS, "lateral_shift": LATERAL_SHIFT, "approx_error":
 PARAMS = {"edge_loss": ("fraction",), "lateral_shift": ("range",), "approx_error": ("sigma",),
           "corner_loss": ("keep",), "corner_mismatch": ("fraction", "radius"),
           "stereo_mismatch": ("band", "fraction", "disparity")}  # each stage's parameters, as the kernel takes them
-FID, SEG, FRAG, KIND, CLIP, CLOSED = range(6)  # columns of a stroke's metadata row
+FID, SEG, FRAG, KIND, CLIP, CLOSED, OCC = range(7)  # columns of a stroke's metadata row
+NMETA = 7
 ELLIPSE = 2
 NSTAT = 6  # statistics a stage records, per stage (see `stage_stats`)
 
@@ -169,7 +170,7 @@ def _keep(pts, start, meta, arc, L, ps, pa, pb, pfrag, pclosed, pcut, pwhole, n)
         S += 1
     out = np.empty((total, 2))
     ostart = np.zeros(S + 1, np.int64)
-    ometa = np.empty((S, 6), np.int64)
+    ometa = np.empty((S, NMETA), np.int64)
     o = 0
     s = 0
     for q in range(n):
@@ -190,7 +191,7 @@ def _keep(pts, start, meta, arc, L, ps, pa, pb, pfrag, pclosed, pcut, pwhole, n)
             _point_at(pts, arc, first, last, bb[q], out, o + cnt[q] - 1)
         o += cnt[q]
         ostart[s + 1] = o
-        for c in range(6):
+        for c in range(NMETA):
             ometa[s, c] = meta[k, c]
         ometa[s, FRAG] = pfrag[q]
         ometa[s, CLOSED] = pclosed[q]
@@ -748,7 +749,7 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
         C += len(cres[t][0])
     opts = np.empty((N, 2))
     ostart = np.zeros(S + 1, np.int64)
-    ometa = np.empty((S, 6), np.int64)
+    ometa = np.empty((S, NMETA), np.int64)
     otrial = np.empty(S, np.int64)
     ocorners = np.empty((C, 2))
     ocfid = np.empty(C, np.int64)
@@ -778,7 +779,7 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
     announce_compile()
-    return view_batch(f2(tpts, 2), i1(tstart), np.ascontiguousarray(meta, dtype=np.int64).reshape(-1, 6),
+    return view_batch(f2(tpts, 2), i1(tstart), np.ascontiguousarray(meta, dtype=np.int64).reshape(-1, NMETA),
                       f2(tcorners, 2), i1(cfid), f2(W, 3), f2(CW, 3),
                       np.ascontiguousarray(R_cw, dtype=np.float64).reshape(-1, 3, 3), f2(t_cw, 3), f2(cams, 9),
                       np.ascontiguousarray(folds, dtype=np.float64).reshape(-1), float(width), float(height),
@@ -810,7 +811,7 @@ def announce_compile() -> None:
 def warm() -> None:
     """Compile (or load from the cache) the kernel on a tiny view, e.g. once before parallel test workers."""
     z2, zi = np.zeros((0, 2)), np.zeros(0, np.int64)
-    run_view(np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([0, 2]), np.zeros((1, 6), np.int64), z2, zi,
+    run_view(np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([0, 2]), np.zeros((1, NMETA), np.int64), z2, zi,
              np.zeros((2, 3)), np.zeros((0, 3)), np.eye(3)[None], np.zeros((1, 3)), np.ones((1, 9)), np.ones(1),
              10.0, 10.0, True, np.arange(6), np.zeros((6, 3)), np.ones((6, 1), np.uint64), np.ones(3), True,
              np.zeros((6, NSTAT)))

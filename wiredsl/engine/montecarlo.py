@@ -244,7 +244,7 @@ class Run:
             R_cw, t_cw, cams, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros((T, 9)), np.zeros(T)
             cam, view_of = view.camera, None
         meta = np.column_stack([template.fid, template.segment, template.fragment, template.kind,
-                                template.clipped, template.closed]).astype(np.int64).reshape(-1, 6)
+                                template.clipped, template.closed, template.occluded]).astype(np.int64).reshape(-1, 7)
         stages = self.image_stages
         codes = np.array([kn.CODES[e.name] for e, _ in stages], dtype=np.int64)
         params = np.zeros((len(stages), 3))
@@ -262,7 +262,7 @@ class Run:
             kn.record(effect.name, row, self.stats)
         s = im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2], kind=m[:, 3],
                         clipped=m[:, 4].astype(bool), closed=m[:, 5].astype(bool), trial=trial, corners=corners,
-                        corner_fid=cfid, corner_trial=ctrial)
+                        corner_fid=cfid, corner_trial=ctrial, occluded=m[:, 6].astype(bool))
         return s, view_of
 
     def manifest(self) -> dict:
@@ -287,10 +287,12 @@ def to_imageset(view: View, world: World) -> im.ImageSet:
         pts=np.concatenate([f.points for f in strokes]) if strokes else np.zeros((0, 2)),
         start=np.concatenate([[0], np.cumsum(counts)]).astype(int),
         fid=np.array([f.fid for f in strokes], dtype=int), segment=np.array([f.segment for f in strokes], dtype=int),
-        fragment=z - 1, kind=np.array(kind, dtype=int), clipped=np.array([f.clipped for f in strokes], dtype=bool),
+        fragment=np.array([f.fragment for f in strokes], dtype=int), kind=np.array(kind, dtype=int),
+        clipped=np.array([f.clipped for f in strokes], dtype=bool),
         closed=np.array([f.closed for f in strokes], dtype=bool), trial=z,
         corners=np.array([f.points[0] for f in corners]).reshape(-1, 2),
-        corner_fid=np.array([f.fid for f in corners], dtype=int), corner_trial=np.zeros(len(corners), dtype=int))
+        corner_fid=np.array([f.fid for f in corners], dtype=int), corner_trial=np.zeros(len(corners), dtype=int),
+        occluded=np.array([f.occluded for f in strokes], dtype=bool))
 
 
 def concat_trials(sets: list[im.ImageSet]) -> im.ImageSet:
@@ -303,7 +305,8 @@ def concat_trials(sets: list[im.ImageSet]) -> im.ImageSet:
         fragment=cat("fragment"), kind=cat("kind"), clipped=cat("clipped"), closed=cat("closed"),
         trial=np.concatenate([np.full(s.n_strokes, k) for k, s in enumerate(sets)]).astype(int),
         corners=np.concatenate([s.corners for s in sets]).reshape(-1, 2), corner_fid=cat("corner_fid"),
-        corner_trial=np.concatenate([np.full(len(s.corners), k) for k, s in enumerate(sets)]).astype(int))
+        corner_trial=np.concatenate([np.full(len(s.corners), k) for k, s in enumerate(sets)]).astype(int),
+        occluded=cat("occluded"))
 
 
 def features_of(s: im.ImageSet, k: int) -> list[ImageFeature]:
@@ -320,7 +323,7 @@ def features_of(s: im.ImageSet, k: int) -> list[ImageFeature]:
         pts = s.pts[s.start[i]:s.start[i + 1]]
         kind = "line" if s.kind[i] == im.STRAIGHT and len(pts) == 2 else "polyline"
         out.append(ImageFeature(int(s.fid[i]), kind, pts, int(s.segment[i]), bool(s.clipped[i]), bool(s.closed[i]),
-                                fragment=frag))
+                                fragment=frag, occluded=bool(s.occluded[i])))
     for i in np.flatnonzero(s.corner_trial == k):
         out.append(ImageFeature(int(s.corner_fid[i]), "corner", s.corners[i][None, :]))
     return out
@@ -344,9 +347,11 @@ def raw_template(view: View, world: World) -> tuple[im.ImageSet, np.ndarray, np.
     template = im.ImageSet(
         pts=np.zeros((len(W), 2)), start=np.concatenate([[0], np.cumsum(counts)]).astype(int),
         fid=np.array([r.fid for r in raw], dtype=int), segment=np.array([r.segment for r in raw], dtype=int),
-        fragment=z - 1, kind=kinds, clipped=np.array([r.clipped for r in raw], dtype=bool),
+        fragment=np.array([r.fragment for r in raw], dtype=int), kind=kinds,
+        clipped=np.array([r.clipped for r in raw], dtype=bool),
         closed=np.array([r.closed for r in raw], dtype=bool), trial=z, corners=np.zeros((len(cw), 2)),
-        corner_fid=np.asarray(cf, dtype=int), corner_trial=np.zeros(len(cw), dtype=int))
+        corner_fid=np.asarray(cf, dtype=int), corner_trial=np.zeros(len(cw), dtype=int),
+        occluded=np.array([r.occluded for r in raw], dtype=bool))
     W = np.asarray(W, dtype=float).reshape(-1, 3)
     cam = view.camera
     nominal = np.array([[getattr(cam, k) for k in calib.CAMERA_KEYS]], dtype=float)
