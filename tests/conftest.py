@@ -13,6 +13,18 @@ def _at_root(monkeypatch):
     monkeypatch.chdir(ROOT)
 
 
+def pytest_configure(config):
+    """Compile the Monte-Carlo kernel once, before any test worker starts, so that the workers share the
+    compiled code through numba's cache instead of each compiling it."""
+    import importlib.util
+
+    if hasattr(config, "workerinput") or importlib.util.find_spec("numba") is None:
+        return
+    from wiredsl.engine import kernel
+
+    kernel.warm()
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _study_measures():
     """The studies' test measure (tests/study_measures.py) joins whatever measures are installed."""

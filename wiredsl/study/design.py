@@ -10,20 +10,11 @@ from __future__ import annotations
 
 import itertools
 import warnings
-import zlib
 
 import numpy as np
 
 from wiredsl.effects import REGISTRY
 from wiredsl.scene import Pipeline, Scene, Study
-
-
-def point_seed(seed: int, point: int) -> int:
-    """The seed of design point `point`'s trials: the study seed and the point index, hashed.
-
-    Until the keyed draws take a `point` component this is the one place a point enters the streams.
-    """
-    return int(np.random.SeedSequence([seed, point, zlib.crc32(b"study-point")]).generate_state(1, np.uint64)[0] >> 1)
 
 
 def matrix(study: Study) -> np.ndarray:

@@ -170,7 +170,7 @@ def manifest(scene_ref: SceneRef, study: Study, digest: str, X: np.ndarray, shar
     return {
         "document": "study-manifest", "study": study.model_dump(mode="json"), "digest": digest,
         "scene": scene_ref.model_dump(), "seed": study.seed, "design_seed": study.design_seed,
-        "point_seeds": "numpy SeedSequence([seed, point, crc32('study-point')]), first 63 bits",
+        "draws": "keyed by (seed, stage, trial, pose, camera, point): design point I is the run's point I",
         "points": [[_f(v) for v in row] for row in X], "shard_trials": shard_trials,
         "versions": {"wiredsl": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
                      "python": platform.python_version()},

@@ -61,15 +61,15 @@ def options(study: Study) -> Options:
 
 def point_run(scene: Scene, world: World, study: Study, point: int, values, opts: Options | None = None,
               base: Run | None = None) -> Run:
-    """The Run of one design point: its pipeline substituted, its seed keyed by the point's index.
+    """The Run of one design point: its pipeline substituted, every draw keyed by the point's index too.
 
     `base` (a run of the same scene and options) lends its ideal projection and visibility, which no
     pipeline parameter changes.
     """
     values = np.asarray(values, dtype=float)
     pipeline = design.pipeline_at(scene, study, values)
-    run = Run.create(design.scene_at(scene, study, values), world, pipeline, design.point_seed(study.seed, point),
-                     opts or options(study))
+    run = Run.create(design.scene_at(scene, study, values), world, pipeline, study.seed, opts or options(study),
+                     point=point)
     if design.varies_scene(study):  # each point projects its own cameras
         return run
     for cache in ("_ideal", "_visible", "_epipoles"):  # an optimisation only: absent caches just cost time
@@ -131,9 +131,8 @@ def measure_batches(run: Run, prepared, trials: list[int]) -> dict[str, np.ndarr
 
 
 def span_of(trial: int, trials: int, size: int = SHARD_TRIALS) -> tuple[int, int]:
-    """The trials of the shard that holds `trial`: a replay runs them as one batch, as the study did,
-    because the engine's packed arithmetic (cumulative arc lengths over the batch) rounds differently
-    in the last bits when a trial is batched with others."""
+    """The trials of the shard that holds `trial`: a replay runs them as one batch, exactly as the study did
+    (the engine also makes a trial independent of its batch; this keeps the replay so whatever the engine)."""
     lo = trial - trial % size
     return lo, min(lo + size, trials)
 
