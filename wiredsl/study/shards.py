@@ -24,7 +24,7 @@ from wiredsl.io.files import write_atomic
 from wiredsl.scene import Scene, Study
 from wiredsl.study import design
 
-SHARD_TRIALS = 32  # trials a shard: small enough to spread a point over the cores, big enough to batch
+SHARD_TRIALS = 256  # trials a shard: one engine batch (the kernel's per-batch costs amortised); points spread work
 
 
 @dataclass(frozen=True)
