@@ -7,7 +7,7 @@ from pathlib import Path
 
 import lark
 
-from wiredsl.diagnostics import Diagnostic, Span, WiredslError
+from wiredsl.diagnostics import MAX_REPORTED, Diagnostic, Span, WiredslError
 
 
 def grammar_path() -> Path:
@@ -26,26 +26,38 @@ class _CommentSink:
 
 
 class Brackets:
-    """Postlexer: newlines inside ( ) and [ ] are spaces; runs of newlines are one."""
+    """Postlexer: newlines inside ( ) and [ ] are spaces; runs of newlines are one.
+
+    Its state lives on the instance, not in the generator, because lark starts a
+    new generator when it resumes after a syntax error; `reset` starts a parse.
+    """
 
     always_accept = ("_NL",)
 
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.depth = 0
+        self.last_nl = True  # drop newlines at the start of the file too
+
     def process(self, stream):
-        depth = 0
-        last_nl = True  # drop newlines at the start of the file too
         for tok in stream:
             kind = tok.type
             if kind == "_NL":
-                if depth or last_nl:
+                if self.depth or self.last_nl:
                     continue
-                last_nl = True
+                self.last_nl = True
             else:
-                last_nl = False
+                self.last_nl = False
                 if kind == "LPAR" or kind == "LSQB":
-                    depth += 1
+                    self.depth += 1
                 elif kind == "RPAR" or kind == "RSQB":
-                    depth -= 1
+                    self.depth = max(self.depth - 1, 0)
             yield tok
+
+
+_BRACKETS = Brackets()
 
 
 def _cache_ok() -> bool:
@@ -75,7 +87,7 @@ def parser(transformer: lark.Transformer | None = None) -> lark.Lark:
         maybe_placeholders=False,
         transformer=transformer,
         lexer_callbacks={"COMMENT": _sink},
-        postlex=Brackets(),
+        postlex=_BRACKETS,
     )
 
 
@@ -85,14 +97,31 @@ def parse_tree(text: str, path: str = "<string>") -> lark.Tree:
 
 
 def run(p: lark.Lark, text: str, path: str) -> tuple[object, list[lark.Token]]:
-    """Parse with `p`; return the result and the comment tokens met on the way."""
+    """Parse with `p`; return the result and the comment tokens met on the way.
+
+    A syntax error does not stop the parse: the rest of its line is skipped and
+    parsing goes on, so every syntax error of a file is reported (one a line).
+    """
     _CommentSink.tokens = comments = []
+    _BRACKETS.reset()
+    errors: list[Diagnostic] = []
+
+    def recover(exc: lark.exceptions.UnexpectedInput) -> bool:
+        d = syntax_diagnostic(exc, text, path)
+        if not errors or errors[-1].span.line != d.span.line:  # one error a line: the rest is its echo
+            errors.append(d)
+        return d.code != "E003" and len(errors) <= MAX_REPORTED
+
     try:
-        return p.parse(text), comments
+        result = p.parse(text, on_error=recover)
     except lark.exceptions.UnexpectedInput as exc:
-        raise WiredslError([syntax_diagnostic(exc, text, path)]) from None
+        if not errors or errors[-1].span.line != (exc.line if exc.line > 0 else 1):
+            errors.append(syntax_diagnostic(exc, text, path))
     finally:
         _CommentSink.tokens = []
+    if errors:
+        raise WiredslError(errors) from None
+    return result, comments
 
 
 _TOKEN_WORDS = {
