@@ -319,8 +319,6 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         return emit.features(scene, world, results, pipeline=pipeline.name if pipeline else None, stages=records,
                              seed=seed if effects else None, trial=k if effects else None)
 
-    from wiredsl.io.svg import Info as svg_info
-
     started = time.perf_counter()
     if not effects:
         results = run.ideal()
@@ -354,8 +352,12 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                                 else:
                                     writer.write(line)
                         else:
-                            info = svg_info(pipeline.name if effects else None, seed if effects else None,
-                                            t if effects else None, visibility, layout)
+                            info = None
+                            if svg and out_dir is not None:  # the SVG module stays off the --no-svg path
+                                from wiredsl.io.svg import Info as svg_info
+
+                                info = svg_info(pipeline.name if effects else None, seed if effects else None,
+                                                t if effects else None, visibility, layout)
                             _write_json(doc_for(res, t), res, out_dir, svg, run, info)
                 bar.update(len(batch))
     except BaseException:
@@ -397,7 +399,6 @@ class _Null:
 def _write_json(doc, results, out_dir, svg: bool, run, info=None) -> None:
     """One trial's dump, and its SVGs (disturbed over ideal when the pipeline ran)."""
     from wiredsl.io import emit
-    from wiredsl.io import svg as svg_mod
     from wiredsl.io.files import write_atomic
 
     text = emit.to_json(doc)
@@ -406,6 +407,8 @@ def _write_json(doc, results, out_dir, svg: bool, run, info=None) -> None:
         return
     write_atomic(out_dir / "features.json", text)
     if svg:
+        from wiredsl.io import svg as svg_mod
+
         info = info or svg_mod.Info()
         for name, text in svg_mod.pose_figures(run, results, info.layout, info).items():
             write_atomic(out_dir / name, text)
