@@ -274,3 +274,36 @@ def test_huge_focal_lengths_give_finite_features(focal):
         assert np.isfinite(f.points).all()
         if f.conic is not None:
             assert all(np.isfinite(np.asarray(x, float)).all() for x in f.conic[:3])
+
+
+def test_extreme_scales_and_focal_lengths_stay_finite_and_quiet():
+    """Lines, ellipses, a silhouette and a corner from 1e-6 m to 1e15 m under focal lengths up to 1e300 px:
+    finite features and raw strokes, or E151; no RuntimeWarning (errors in this suite), no LAPACK message."""
+    rng = np.random.default_rng(2015)
+    for _ in range(150):
+        s = 10.0 ** rng.uniform(-6, 15)
+        cam = Camera(name="c", f=10.0 ** rng.uniform(0, 300), cx=320, cy=240, width=640, height=480,
+                     k1=rng.choice([0, rng.uniform(-1, 1)]), k2=rng.choice([0, rng.uniform(-1, 1)]),
+                     p1=rng.choice([0, rng.uniform(-0.1, 0.1)]))
+        w = World(feature_ids=[f"p.{i}" for i in range(11)], feature_kind=["line"] * 3 + ["ellipse"] * 6
+                  + ["silhouette", "corner"])
+        w.lines, w.line_fid, w.line_segment = rng.normal(size=(3, 2, 3)) * s, np.arange(3), -np.ones(3, int)
+        axis = rng.normal(size=3)
+        w.ell_c = rng.normal(size=(6, 3)) * s
+        w.ell_U = np.tile(axis, (6, 1)) * 10.0 ** rng.uniform(-8, 3)
+        flat = rng.random() < 0.3  # seen edge-on whatever the view
+        w.ell_V = np.tile(np.cross(axis, rng.normal(size=3)), (6, 1)) * 10.0 ** rng.uniform(-8, 3) * (not flat)
+        w.ell_arc, w.ell_full, w.ell_fid = np.tile([0.0, 2 * math.pi], (6, 1)), np.ones(6, bool), 3 + np.arange(6)
+        w.sil_pair, w.sil_fid = np.array([[0, 1]]), np.array([9])
+        w.corners, w.corner_fid = rng.normal(size=(1, 3)) * s, np.array([10])
+        R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        try:
+            v = project_view(w, cam, R, rng.normal(size=3) * s, np.ones(11, bool))
+        except WiredslError as err:
+            assert err.diagnostics[0].code == "E151"
+            continue
+        for f in v.features:
+            assert np.isfinite(f.points).all()
+            if f.conic is not None:
+                assert np.isfinite(np.concatenate([f.conic[0], f.conic[1], [f.conic[2]]])).all()
+        assert all(np.isfinite(r.world).all() for r in v.raw)

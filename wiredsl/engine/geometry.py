@@ -283,19 +283,8 @@ def _evaluate(point_fn, c: np.ndarray, t: np.ndarray) -> np.ndarray:
                            for lo in range(0, len(t), EVAL_CHUNK)])
 
 
-_LEGACY = False
-
-
 def _deviation(p: np.ndarray, cid: np.ndarray, image=None) -> np.ndarray:
     """Estimated largest distance of curve pieces from their chords, from their five points p (m, 5, 2)."""
-    if _LEGACY:
-        pa, pb, pm = p[:, 0], p[:, 4], p[:, 2]
-        d = pb - pa
-        length = np.hypot(d[:, 0], d[:, 1])
-        cross = np.abs(d[:, 0] * (pm[:, 1] - pa[:, 1]) - d[:, 1] * (pm[:, 0] - pa[:, 0]))
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            perp = cross / length
-        return np.where(length > 0, perp, np.hypot(pm[:, 0] - pa[:, 0], pm[:, 1] - pa[:, 1]))
     dist = _distance_to_segment(p[:, 1:4], p[:, :1], p[:, 4:]).max(axis=1)
     with np.errstate(invalid="ignore", over="ignore"):  # non-finite points give NaN: never split
         second = p[:, :-2] - 2 * p[:, 1:-1] + p[:, 2:]  # (m, 3, 2)

@@ -266,11 +266,18 @@ def _pixels(P: np.ndarray, cam: dict, v: np.ndarray) -> np.ndarray:
 
     A pixel beyond float range (a focal length of 1e300 px) is inf: such points count as outside the image.
     """
-    xy = geometry.cam_to_plane(P)
+    xy = _plane(P)
     g = {k: cam[k][v] for k in _Curves.CAMERA}
     with np.errstate(over="ignore", invalid="ignore"):
         return geometry.plane_to_pixels(geometry.distort(xy, g["k1"], g["k2"], g["p1"], g["p2"]),
                                         g["f"], g["ax"], g["ay"], g["cx"], g["cy"])
+
+
+def _plane(P: np.ndarray) -> np.ndarray:
+    """Unit focal plane of points clipped to z >= NEAR; NaN (outside every image) where rounding at huge
+    distances left z <= 0."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        return np.where(P[:, 2:3] > 0, geometry.cam_to_plane(P), np.nan)
 
 
 def _ellipses_cam(world: World, views: list[View]):
@@ -393,7 +400,7 @@ class _Curves:
 
     def pixels(self, c: np.ndarray, t: np.ndarray) -> np.ndarray:
         g = self.table[c]
-        xy = geometry.cam_to_plane(self.points(c, t, g))
+        xy = _plane(self.points(c, t, g))
         f, ax, ay, cx, cy, k1, k2, p1, p2 = g[:, 10:19].T
         with np.errstate(over="ignore", invalid="ignore"):  # see _pixels
             return geometry.plane_to_pixels(geometry.distort(xy, k1, k2, p1, p2), f, ax, ay, cx, cy)
@@ -418,7 +425,7 @@ class _Curves:
         r = geometry.clip_polylines_rect(uv, start, cam["width"][v], cam["height"][v])
         pts = r["pts"]
         ends = np.flatnonzero(r["end"] > 0)
-        if len(ends) and not geometry._LEGACY:
+        if len(ends):
             j = r["seg"][ends]
             pts[ends] = self._on_border(c[j], t[j], t[j + 1], r["at"][ends], r["side"][ends], pts[ends])
         src, bounds, cut = run_of[r["src"]].tolist(), r["start"].tolist(), r["cut"].tolist()
