@@ -601,9 +601,10 @@ def _emit_corners(world: World, views: list[View], cam: dict, masks: np.ndarray,
     xy = np.where(ok[:, None], P[:, :2] / np.where(ok, P[:, 2], 1.0)[:, None], 0.0)
     ok &= np.hypot(xy[:, 0], xy[:, 1]) < cam["fold"][cv]
     uv = _pixels(np.column_stack([xy, np.ones(len(xy))]), cam, cv)
-    for k, v in enumerate(views):
-        mine = ok & (cv == k)
-        v.corner_world, v.corner_fid = world.corners[cc[mine]], world.corner_fid[cc[mine]]
+    front = np.flatnonzero(ok)  # cv is sorted: one split gives every view its corners in front
+    cuts = np.searchsorted(cv[front], np.arange(1, len(views)))
+    for v, rows in zip(views, np.split(cc[front], cuts), strict=True):
+        v.corner_world, v.corner_fid = world.corners[rows], world.corner_fid[rows]
     with np.errstate(invalid="ignore"):
         ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam["width"][cv]) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam["height"][cv])
     shown = np.flatnonzero(ok)
