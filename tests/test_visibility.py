@@ -177,3 +177,23 @@ def test_ray_casting_memory_is_capped_by_chunks():
     occ = visibility.occluders(w)
     eye = np.array([0.5, -4.0, 0.5])
     assert (visibility.seen(eye, pts, occ, cap=7) == visibility.seen(eye, pts, occ)).all()
+
+
+def test_direction_chunks_test_the_same_pairs_that_can_hit_as_brute_force():
+    """Culling occluders by direction and distance per chunk of targets changes no answer."""
+    from wiredsl.engine import visibility
+
+    rng = np.random.default_rng(12)
+    for _ in range(4):
+        v0 = rng.uniform(-5, 5, (300, 3))
+        tris = v0[:, None] + rng.normal(size=(300, 3, 3)) * rng.uniform(0.05, 1.0, (300, 1, 1))
+        occ = visibility.Occluders(tris, np.array([[0.0, 0.0, -1.0]]), np.linalg.inv(np.diag([0.5, 0.5, 2.0]))[None],
+                                   np.array([-0.4]))
+        eye = rng.uniform(-6, 6, 3)
+        targets = rng.uniform(-6, 6, (4000, 3))
+        d = targets - eye
+        brute = ~(visibility._hits_triangles(eye, d, tris)
+                  | visibility._hits_quadrics(eye, d, occ.origin, occ.to_local, occ.growth))
+        got = visibility.seen(eye, targets, occ)
+        assert (got == brute).all()
+        assert 0.05 < brute.mean() < 0.95

@@ -80,6 +80,17 @@ class Occluders:
     def __len__(self) -> int:
         return len(self.triangles) + len(self.origin)
 
+    def spheres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounding spheres (centres (T + Q, 3), radii): the triangles', then the quadrics'."""
+        tc = self.triangles.mean(axis=1) if len(self.triangles) else np.zeros((0, 3))
+        tr = np.linalg.norm(self.triangles - tc[:, None], axis=2).max(axis=1) if len(tc) else np.zeros(0)
+        M = np.linalg.inv(self.to_local) if len(self.origin) else np.zeros((0, 3, 3))  # columns U, V, W
+        W = M[:, :, 2]
+        qc = self.origin + W / 2
+        reach = np.linalg.norm(M[:, :, 0], axis=1) + np.linalg.norm(M[:, :, 1], axis=1)
+        qr = np.linalg.norm(W, axis=1) / 2 + reach * np.maximum(1.0, np.abs(1.0 + self.growth))
+        return np.concatenate([tc, qc]), np.concatenate([tr, qr]) * (1 + 1e-9) + 1e-12
+
 
 def occluders(w: World) -> Occluders:
     """All occluders: faces, the exact sides of cylinders and cones, other silhouette surfaces as triangles."""
@@ -105,23 +116,58 @@ def occluders(w: World) -> Occluders:
 
 
 def seen(eye: np.ndarray, targets: np.ndarray, occ, cap: int = PAIRS_CAP) -> np.ndarray:
-    """Whether each target (S, 3) is unoccluded from `eye` (3,) by the occluders (or triangles (T, 3, 3))."""
+    """Whether each target (S, 3) is unoccluded from `eye` (3,) by the occluders (or triangles (T, 3, 3)).
+
+    Targets are taken in chunks ordered by direction from the eye; a chunk is tested only against the
+    occluders whose bounding spheres lie, seen from the eye, within the chunk's range of directions and
+    nearer than its farthest target. That keeps the exact tests to pairs that can hit: about linear in
+    the scene's size where the brute force is samples x occluders.
+    """
     if not isinstance(occ, Occluders):
         occ = Occluders(occ, np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0))
     out = np.ones(len(targets), dtype=bool)
     if len(occ) == 0 or len(targets) == 0:
         return out
-    per = max(1, cap // max(len(occ), 1))  # targets a chunk
+    v = targets - eye
+    dist = np.linalg.norm(v, axis=1)
+    az, el = _direction(v, dist)
+    order = np.lexsort((az, np.floor(el / 0.05)))  # bands of elevation, by azimuth within a band
+    centre, radius = occ.spheres()
+    w = centre - eye
+    D = np.linalg.norm(w, axis=1)
+    inside = D <= radius * (1 + 1e-9) + 1e-12  # the eye is in the sphere: every direction
+    caz, cel = _direction(w, np.where(D > 0, D, 1.0))
+    alpha = np.arcsin(np.clip(radius / np.where(D > 0, D, 1.0), 0.0, 1.0)) + 1e-6
+    polar = inside | (np.abs(cel) + alpha >= np.pi / 2 - 1e-6)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        beta = np.where(polar, np.pi, np.arcsin(np.clip(np.sin(alpha) / np.cos(np.abs(cel)), 0.0, 1.0)) + 1e-6)
+    n_tri = len(occ.triangles)
+    per = max(1, min(256, cap // max(len(occ), 1)))  # targets a chunk
     for lo in range(0, len(targets), per):
-        d = targets[lo:lo + per] - eye  # the ray is eye + t d with t in (0, 1)
-        hit = np.zeros(len(d), dtype=bool)
-        for t0 in range(0, len(occ.triangles), cap):
-            hit |= _hits_triangles(eye, d, occ.triangles[t0:t0 + cap])
-        for q0 in range(0, len(occ.origin), cap):
-            sl = slice(q0, q0 + cap)
-            hit |= _hits_quadrics(eye, d, occ.origin[sl], occ.to_local[sl], occ.growth[sl])
-        out[lo:lo + per] = ~hit
+        rows = order[lo:lo + per]
+        a0, a1, e0, e1 = az[rows].min(), az[rows].max(), el[rows].min(), el[rows].max()
+        off = np.abs(np.angle(np.exp(1j * (caz - (a0 + a1) / 2)))) - (a1 - a0) / 2
+        near = inside | ((D - radius < dist[rows].max()) & (cel + alpha >= e0) & (cel - alpha <= e1) & (off <= beta))
+        pick = np.flatnonzero(near)
+        if len(pick) == 0:
+            continue
+        d = v[rows]  # the ray is eye + t d with t in (0, 1)
+        hit = np.zeros(len(rows), dtype=bool)
+        tri, quad = pick[pick < n_tri], pick[pick >= n_tri] - n_tri
+        for t0 in range(0, len(tri), cap):
+            hit |= _hits_triangles(eye, d, occ.triangles[tri[t0:t0 + cap]])
+        for q0 in range(0, len(quad), cap):
+            q = quad[q0:q0 + cap]
+            hit |= _hits_quadrics(eye, d, occ.origin[q], occ.to_local[q], occ.growth[q])
+        out[rows] = ~hit
     return out
+
+
+def _direction(v: np.ndarray, length: np.ndarray):
+    """Azimuth and elevation of vectors v (n, 3) of the given lengths."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        el = np.arcsin(np.clip(v[:, 2] / np.where(length > 0, length, 1.0), -1.0, 1.0))
+    return np.arctan2(v[:, 1], v[:, 0]), el
 
 
 def _hits_triangles(eye: np.ndarray, d: np.ndarray, tris: np.ndarray) -> np.ndarray:
