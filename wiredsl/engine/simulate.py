@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl.diagnostics import Diagnostic, WiredslError
-from wiredsl.engine import conics, geometry, visibility
+from wiredsl.engine import conics, geometry, occlusion, visibility
 from wiredsl.engine.world import World, build_world
 from wiredsl.scene import Camera, Scene
 
@@ -42,6 +42,7 @@ class ImageFeature:
     closed: bool = False
     conic: tuple | None = None  # (centre (2,), axes (2,), angle, arc or None)
     fragment: int = -1  # piece number after a stage cut the feature, -1 when whole
+    occluded: bool = False  # a visible part of a feature that occlusion cut (--visibility exact)
 
 
 @dataclass
@@ -54,6 +55,8 @@ class Raw:
     closed: bool
     clipped: bool  # already cut in 3D (near plane, fold)
     world: np.ndarray  # (k, 3)
+    fragment: int = -1  # part number when occlusion cut the feature
+    occluded: bool = False
 
 
 @dataclass
@@ -87,6 +90,8 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
     poses = np.array(scene.path.poses, dtype=float)
     chosen = range(len(poses)) if options.poses is None else options.poses
     vp_names, masks = visible if visible is not None else visibility_masks(scene, world, options)
+    # --visibility exact: hidden lines removed, features cut at occlusion boundaries (occlusion.py)
+    occluders = occlusion.Occluders.of_world(world) if options.visibility == "exact" else None
     sides = ("left", "right") if options.right else ("left",)
     specs = []  # (pose index, side, camera, R_cw, t_cw, mask) of every view, projected together
     for i in chosen:
@@ -98,7 +103,7 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
     views = []
     if specs:
         _, _, cams, Rs, ts, ms = zip(*specs, strict=True)
-        views = project_views(world, list(cams), list(Rs), list(ts), list(ms), options.tolerance)
+        views = project_views(world, list(cams), list(Rs), list(ts), list(ms), options.tolerance, occluders)
     by_key = {(i, side): v for (i, side, *_), v in zip(specs, views, strict=True)}
     return [PoseResult(i, tuple(float(v) for v in poses[i]), vp_names.get(i), by_key[(i, "left")],
                        by_key.get((i, "right"))) for i in chosen]
@@ -119,15 +124,7 @@ def visibility_masks(scene: Scene, world: World, options: Options):
     names: dict[int, str] = {}
     masks: dict[tuple[int, str], np.ndarray] = {}
     vp = scene.viewpoints
-    if options.visibility == "exact":
-        for i in chosen:
-            pose = tuple(poses[i])
-            for side, mount in (("left", scene.rig.left), ("right", scene.rig.right)):
-                R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
-                eye = -R_cw.T @ t_cw
-                masks[(i, side)] = visibility.visible_features(world, eye[None])[0]
-        return names, masks
-    if vp is None or vp.visibility == "all" or options.visibility == "all":
+    if vp is None or vp.visibility == "all" or options.visibility in ("all", "exact"):  # exact: occlusion.py cuts
         for i in chosen:
             masks[(i, "left")] = masks[(i, "right")] = everything
         return names, masks
@@ -177,22 +174,26 @@ def read_viewdep(path: Path, scene: Scene) -> dict[str, list[str]]:
 # The only Python loops run per view (a 3x3 transform each) or per emitted feature (the objects).
 
 def project_view(world: World, cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, mask: np.ndarray,
-                 tol: float = DEFAULT_TOLERANCE) -> View:
-    """What one camera sees of the features in `mask`."""
-    return project_views(world, [cam], [R_cw], [t_cw], [mask], tol)[0]
+                 tol: float = DEFAULT_TOLERANCE, occluders: occlusion.Occluders | None = None) -> View:
+    """What one camera sees of the features in `mask` (only their unoccluded parts, given occluders)."""
+    return project_views(world, [cam], [R_cw], [t_cw], [mask], tol, occluders)[0]
 
 
 def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, masks: list,
-                  tol: float = DEFAULT_TOLERANCE) -> list[View]:
-    """What each camera sees of the features in its mask, for many views (camera, pose) at once."""
+                  tol: float = DEFAULT_TOLERANCE, occluders: occlusion.Occluders | None = None) -> list[View]:
+    """What each camera sees of the features in its mask, for many views (camera, pose) at once.
+
+    With occluders (--visibility exact), each view keeps only the unoccluded parts (occlusion.py).
+    """
     views = [View(c, np.asarray(R, float), np.asarray(t, float)) for c, R, t in zip(cams, R_cw, t_cw, strict=True)]
     if not views:
         return views
     cam = _camera_table(cams)
     masks = np.asarray(masks, dtype=bool).reshape(len(views), -1)
     out = _Emitted(views)
-    seg = _straight_segments(world, views, cam, masks)
-    ell = _ellipse_intervals(world, views, masks)
+    eyes = None if occluders is None else [occluders.seen_from(v.R_cw, v.t_cw) for v in views]
+    seg = _straight_segments(world, views, cam, masks, eyes)
+    ell = _ellipse_intervals(world, views, masks, eyes)
     _emit_lines(seg, views, cam, out)
     # every curve of every view sampled together: segments under distortion, then ellipse arcs
     curved = np.flatnonzero(seg.keep & cam["distorted"][seg.vid])
@@ -217,8 +218,11 @@ def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mask
     pieces = curves.clip(cid, ts, P, runs)
     _emit_curved_segments(seg, curved, seg_runs, pieces, world_pts, out)
     _emit_ellipses(ell, cam, ell_runs, ell_run_meta, pieces, n_seg, world_pts, out)
-    _emit_corners(world, views, cam, masks, out)
+    _emit_corners(world, views, cam, masks, out, eyes)
     out.deliver()
+    if eyes is not None:  # parts also cut by the image border get their own numbers (occlusion.py)
+        for v in views:
+            occlusion.number_parts(v.features)
     return views
 
 
@@ -288,7 +292,13 @@ def _ellipses_cam(world: World, views: list[View]):
     return c, U, V
 
 
-def silhouettes_cam(world: World, views: list[View], masks: np.ndarray):
+def silhouettes_cam(world: World, mask: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray):
+    """Camera-frame contour generators of one view's visible silhouettes: (A, B, fid, side)."""
+    _, A, B, fid, side = silhouettes_cams(world, [View(None, R_cw, t_cw)], np.asarray(mask, bool)[None])
+    return A, B, fid, side
+
+
+def silhouettes_cams(world: World, views: list[View], masks: np.ndarray):
     """Camera-frame contour generators of the visible silhouettes of every view.
 
     Returns (view, A, B, fid, side): the two sides of a silhouette are numbered by where they
@@ -324,11 +334,13 @@ class _Segments:
     t1: np.ndarray
     keep: np.ndarray
     cut3d: np.ndarray
+    piece: np.ndarray  # part index when occlusion cut the segment, else -1
+    hid: np.ndarray  # occlusion cut it
 
 
-def _straight_segments(world: World, views: list[View], cam: dict, masks: np.ndarray) -> _Segments:
+def _straight_segments(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes=None) -> _Segments:
     """Lines, polyline segments and silhouette sides of every view, in that order within a view."""
-    sv, sA, sB, sfid, sside = silhouettes_cam(world, views, masks)
+    sv, sA, sB, sfid, sside = silhouettes_cams(world, views, masks)
     lv, ll = np.nonzero(masks[:, world.line_fid]) if len(world.line_fid) else (np.zeros(0, int),) * 2
     R = np.stack([v.R_cw for v in views])
     t = np.stack([v.t_cw for v in views])
@@ -342,7 +354,21 @@ def _straight_segments(world: World, views: list[View], cam: dict, masks: np.nda
     fid = np.concatenate([world.line_fid[ll], sfid])[order]
     seg = np.concatenate([world.line_segment[ll], sside])[order]
     t0, t1, keep = geometry.clip_segments_cone(A, B, geometry.NEAR, cam["fold"][vid] * (1 - 1e-9))
-    return _Segments(vid, A, B - A, fid.astype(int), seg.astype(int), t0, t1, keep, (t0 > 0) | (t1 < 1))
+    fid, seg = fid.astype(int), seg.astype(int)
+    cut3d = (t0 > 0) | (t1 < 1)
+    piece, hid = np.full(len(A), -1), np.zeros(len(A), dtype=bool)
+    if eyes is not None:  # --visibility exact: one row per unoccluded part, view by view (occlusion.py)
+        parts = []
+        for k, eye in enumerate(eyes):
+            m = np.flatnonzero(vid == k)
+            r, u0, u1, pc, hd = occlusion.split_segments(eye, A[m], B[m], t0[m], t1[m], keep[m])
+            parts.append((m[r], u0, u1, pc, hd))
+        rows, u0, u1, piece, hid = (np.concatenate(x) for x in zip(*parts, strict=True))
+        rows = rows.astype(int)
+        cut3d = ((u0 > 0) & (u0 == t0[rows])) | ((u1 < 1) & (u1 == t1[rows]))  # the near plane, not occlusion
+        vid, A, B, fid, seg, t0, t1 = vid[rows], A[rows], B[rows], fid[rows], seg[rows], u0, u1
+        keep = np.ones(len(rows), dtype=bool)
+    return _Segments(vid, A, B - A, fid, seg, t0, t1, keep, cut3d, piece.astype(int), hid.astype(bool))
 
 
 def _emit_lines(s: _Segments, views: list[View], cam: dict, out: _Emitted) -> None:
@@ -354,8 +380,10 @@ def _emit_lines(s: _Segments, views: list[View], cam: dict, out: _Emitted) -> No
     Pa, Pb = s.A[idx] + s.t0[idx, None] * s.D[idx], s.A[idx] + s.t1[idx, None] * s.D[idx]
     Wa, Wb = out.to_world(Pa, vid), out.to_world(Pb, vid)
     fid, seg, cut3d, vl = s.fid[idx].tolist(), s.seg[idx].tolist(), s.cut3d[idx].tolist(), vid.tolist()
+    piece, hid = s.piece[idx].tolist(), s.hid[idx].tolist()
     for j, i in enumerate(idx.tolist()):
-        out.raw.append(((vl[j], 0, i), Raw(fid[j], seg[j], "line", False, cut3d[j], np.stack([Wa[j], Wb[j]]))))
+        out.raw.append(((vl[j], 0, i), Raw(fid[j], seg[j], "line", False, cut3d[j], np.stack([Wa[j], Wb[j]]),
+                                           piece[j], hid[j])))
     a, b = _pixels(Pa, cam, vid), _pixels(Pb, cam, vid)
     finite = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
     a, b = np.where(finite[:, None], a, 0.0), np.where(finite[:, None], b, 0.0)
@@ -365,19 +393,21 @@ def _emit_lines(s: _Segments, views: list[View], cam: dict, out: _Emitted) -> No
     for j in np.flatnonzero(ok & (r1 > r0)).tolist():
         pts = np.stack([a[j] + r0[j] * d[j], a[j] + r1[j] * d[j]])
         cut = bool(cut3d[j] or r0[j] > 0 or r1[j] < 1)
-        out.features.append(((vl[j], 0, int(idx[j]), 0), ImageFeature(fid[j], "line", pts, seg[j], cut)))
+        out.features.append(((vl[j], 0, int(idx[j]), 0), ImageFeature(fid[j], "line", pts, seg[j], cut,
+                                                                      fragment=piece[j], occluded=hid[j])))
 
 
 def _emit_curved_segments(s: _Segments, curved: np.ndarray, runs: np.ndarray, pieces, world_pts, out: _Emitted):
     """Segments of distorted views: adaptive polylines (curve k of the sampling is segment curved[k])."""
-    vl, fid, seg, cut3d = (x[curved].tolist() for x in (s.vid, s.fid, s.seg, s.cut3d))
+    vl, fid, seg, cut3d, piece, hid = (x[curved].tolist() for x in (s.vid, s.fid, s.seg, s.cut3d, s.piece, s.hid))
     for k, (b0, b1) in enumerate(runs.tolist()):
         out.raw.append(((vl[k], 0, int(curved[k])), Raw(fid[k], seg[k], "polyline", False, cut3d[k],
-                                                         world_pts[b0:b1])))
+                                                         world_pts[b0:b1], piece[k], hid[k])))
     for n, (k, pts, cut) in enumerate(pieces):
         if k < len(curved):
             out.features.append(((vl[k], 0, int(curved[k]), n),
-                                 ImageFeature(fid[k], "polyline", pts, seg[k], bool(cut or cut3d[k]))))
+                                 ImageFeature(fid[k], "polyline", pts, seg[k], bool(cut or cut3d[k]),
+                                              fragment=piece[k], occluded=hid[k])))
 
 
 class _Curves:
@@ -513,9 +543,10 @@ class _Ellipses:
     lo: np.ndarray
     hi: np.ndarray
     whole: np.ndarray  # (E,) the whole arc is in front (one interval, equal to the arc)
+    hid: np.ndarray  # (E,) occlusion cut it (--visibility exact)
 
 
-def _ellipse_intervals(world: World, views: list[View], masks: np.ndarray) -> _Ellipses:
+def _ellipse_intervals(world: World, views: list[View], masks: np.ndarray, eyes=None) -> _Ellipses:
     vv, ee = np.nonzero(masks[:, world.ell_fid]) if len(world.ell_fid) else (np.zeros(0, int),) * 2
     c, U, V = (x[vv, ee] for x in _ellipses_cam(world, views))
     arc = world.ell_arc[ee]
@@ -524,7 +555,19 @@ def _ellipse_intervals(world: World, views: list[View], masks: np.ndarray) -> _E
     one = np.flatnonzero(np.bincount(owner, minlength=len(vv)) == 1)
     first = np.searchsorted(owner, one)
     whole[one] = (lo[first] == arc[one, 0]) & (hi[first] == arc[one, 1])
-    return _Ellipses(vv, c, U, V, arc, world.ell_full[ee], world.ell_fid[ee], owner, lo, hi, whole)
+    full = world.ell_full[ee]
+    hid = np.zeros(len(vv), dtype=bool)
+    if eyes is not None:  # --visibility exact: the unoccluded arcs, ellipse by ellipse (occlusion.py)
+        parts = []
+        for e in np.unique(owner).tolist():
+            mine = owner == e
+            arcs, hid[e] = occlusion.split_arcs(eyes[vv[e]], c[e], U[e], V[e],
+                                                list(zip(lo[mine].tolist(), hi[mine].tolist(), strict=True)),
+                                                bool(full[e]))
+            parts += [(e, a, b) for a, b in arcs]
+        owner = np.array([p[0] for p in parts], dtype=int)
+        lo, hi = np.array([p[1] for p in parts], dtype=float), np.array([p[2] for p in parts], dtype=float)
+    return _Ellipses(vv, c, U, V, arc, full, world.ell_fid[ee], owner, lo, hi, whole, hid)
 
 
 def _fold_runs(ell: _Ellipses, cam: dict, cid, ts, P, bounds, n_seg: int):
@@ -549,7 +592,7 @@ def _fold_runs(ell: _Ellipses, cam: dict, cid, ts, P, bounds, n_seg: int):
     all_in = np.bincount(icid, weights=~inside, minlength=n_int) == 0
     runs_per_int = np.bincount(run_int, minlength=n_int)
     e = ell.owner[run_int]
-    closed = ell.full[e] & ell.whole[e] & (runs_per_int[run_int] == 1) & all_in[run_int]
+    closed = ell.full[e] & ell.whole[e] & ~ell.hid[e] & (runs_per_int[run_int] == 1) & all_in[run_int]
     clipped = ~(ell.whole[e] & all_in[run_int])
     any_cut = ~ell.whole | (np.bincount(e_of, weights=~inside, minlength=len(ell.vid)) > 0)
     return np.stack([begin + lo, end + lo], axis=1).reshape(-1, 2), (run_int, closed, clipped, any_cut)
@@ -560,20 +603,25 @@ def _emit_ellipses(ell: _Ellipses, cam: dict, runs, meta, pieces, n_seg: int, wo
     run_int, closed, clipped, any_cut = meta
     run_e = ell.owner[run_int]
     vl, fl, el = ell.vid[run_e].tolist(), ell.fid[run_e].tolist(), run_e.tolist()
+    raw_part = np.where(ell.hid[run_e], occlusion._rank(run_e), -1).tolist()  # runs of an ellipse are adjacent
     for k, (b0, b1) in enumerate(runs.tolist()):
         out.raw.append(((vl[k], 1, el[k], k), Raw(fl[k], -1, "polyline", bool(closed[k]), bool(clipped[k]),
-                                                  world_pts[b0:b1])))
+                                                  world_pts[b0:b1], raw_part[k], bool(ell.hid[el[k]]))))
     mine = [(r - n_seg, pts, cut) for r, pts, cut in pieces if r >= n_seg]
     piece_e = np.array([run_e[r] for r, _, _ in mine], dtype=int)
     n_pieces = np.bincount(piece_e, minlength=len(ell.vid))
     piece_cut = np.bincount(piece_e, weights=[cut for _, _, cut in mine], minlength=len(ell.vid)) > 0
-    one_uncut = ell.full & ell.whole & (n_pieces == 1) & ~piece_cut
+    one_uncut = ell.full & ell.whole & ~ell.hid & (n_pieces == 1) & ~piece_cut
+    part = occlusion._rank(piece_e).tolist()  # pieces of an ellipse are adjacent
     for n, (r, pts, cut) in enumerate(mine):
         e = int(piece_e[n])
+        hid = bool(ell.hid[e])
         out.features.append(((vl[r], 1, e, n), ImageFeature(fl[r], "polyline", pts, -1, bool(cut or any_cut[e]),
-                                                            bool(one_uncut[e]))))
-    # conics: exact ellipse images (no distortion, wholly in front), when some of it is in the image
-    sel = np.flatnonzero(~cam["distorted"][ell.vid] & ell.whole & (n_pieces > 0))
+                                                            bool(one_uncut[e]), fragment=part[n] if hid else -1,
+                                                            occluded=hid)))
+    # conics: exact ellipse images (no distortion, wholly in front, not cut by occlusion), when some of it
+    # is in the image
+    sel = np.flatnonzero(~cam["distorted"][ell.vid] & ell.whole & ~ell.hid & (n_pieces > 0))
     if len(sel) == 0:
         return
     g = {k: cam[k][ell.vid[sel]] for k in ("f", "ax", "ay", "cx", "cy")}
@@ -589,7 +637,7 @@ def _emit_ellipses(ell: _Ellipses, cam: dict, runs, meta, pieces, n_seg: int, wo
                                           bool(ell.full[e]), (centre[j], axes[j], float(angle[j]), arc_img))))
 
 
-def _emit_corners(world: World, views: list[View], cam: dict, masks: np.ndarray, out: _Emitted) -> None:
+def _emit_corners(world: World, views: list[View], cam: dict, masks: np.ndarray, out: _Emitted, eyes=None) -> None:
     """Corner points of every view; each view also keeps its corners in front of it for re-projection."""
     cv, cc = np.nonzero(masks[:, world.corner_fid]) if len(world.corner_fid) else (np.zeros(0, int),) * 2
     if len(cv) == 0:
@@ -600,6 +648,10 @@ def _emit_corners(world: World, views: list[View], cam: dict, masks: np.ndarray,
     ok = P[:, 2] > geometry.NEAR
     xy = np.where(ok[:, None], P[:, :2] / np.where(ok, P[:, 2], 1.0)[:, None], 0.0)
     ok &= np.hypot(xy[:, 0], xy[:, 1]) < cam["fold"][cv]
+    if eyes is not None:  # --visibility exact (occlusion.py)
+        for k, eye in enumerate(eyes):
+            m = np.flatnonzero(cv == k)
+            ok[m] &= ~eye.hidden(P[m])
     uv = _pixels(np.column_stack([xy, np.ones(len(xy))]), cam, cv)
     front = np.flatnonzero(ok)  # cv is sorted: one split gives every view its corners in front
     cuts = np.searchsorted(cv[front], np.arange(1, len(views)))

@@ -115,7 +115,7 @@ def occluders(w: World) -> Occluders:
     return Occluders(tris, w.ell_c[a[q]], to_local, ratio[q] - 1.0)
 
 
-def seen(eye: np.ndarray, targets: np.ndarray, occ, cap: int = PAIRS_CAP) -> np.ndarray:
+def seen(eye: np.ndarray, targets: np.ndarray, occ, cap: int = PAIRS_CAP, chunk: int = 256) -> np.ndarray:
     """Whether each target (S, 3) is unoccluded from `eye` (3,) by the occluders (or triangles (T, 3, 3)).
 
     Targets are taken in chunks ordered by direction from the eye; a chunk is tested only against the
@@ -142,7 +142,7 @@ def seen(eye: np.ndarray, targets: np.ndarray, occ, cap: int = PAIRS_CAP) -> np.
     with np.errstate(divide="ignore", invalid="ignore"):
         beta = np.where(polar, np.pi, np.arcsin(np.clip(np.sin(alpha) / np.cos(np.abs(cel)), 0.0, 1.0)) + 1e-6)
     n_tri = len(occ.triangles)
-    per = max(1, min(256, cap // max(len(occ), 1)))  # targets a chunk
+    per = max(1, min(chunk, cap // max(len(occ), 1)))  # targets a chunk
     for lo in range(0, len(targets), per):
         rows = order[lo:lo + per]
         a0, a1, e0, e1 = az[rows].min(), az[rows].max(), el[rows].min(), el[rows].max()
