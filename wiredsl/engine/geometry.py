@@ -222,8 +222,9 @@ def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float
     between those points).
     A midpoint test alone misses curves whose deviation peaks off-centre.
     With image = (width, height) (one each a curve), pieces whose five points all lie beyond one
-    border of the image by more than its size are not refined: nothing there is seen, even after
-    small perturbations, and curves through the near plane would otherwise get vertices by the million.
+    border of the image by more than a quarter of its size are not refined: nothing there is seen,
+    even after perturbations of a hundred pixels, and curves through the near plane would otherwise
+    get vertices by the million.
     Returns (cid, t, bounds): the parameters sorted by curve then t, curve i's are t[bounds[i]:bounds[i+1]].
     Raises TooManyVertices past max_vertices for one curve or MAX_VERTICES in all.
     """
@@ -292,7 +293,7 @@ def _deviation(p: np.ndarray, cid: np.ndarray, image=None) -> np.ndarray:
         out = dist + 0.25 * across
     if image is not None:
         w, h = image[0][cid], image[1][cid]
-        m = np.maximum(w, h)[:, None]
+        m = 0.25 * np.maximum(w, h)[:, None]
         u, v = p[..., 0], p[..., 1]
         with np.errstate(invalid="ignore"):
             far = (u < -m).all(1) | (u > (w[:, None] + m)).all(1) | (v < -m).all(1) | (v > (h[:, None] + m)).all(1)
