@@ -698,13 +698,15 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     if trial is not None:
         if seed is None:
             raise click.UsageError("--trial needs the run's --seed (see its manifest.json)")
-        pipeline = scene.pipeline(pipeline_name)
-        stage = next((s for s in (pipeline.stages if pipeline else []) if s.effect == "calibration_error"), None)
-        if stage is None or scene.rig.calibration is None:
+        from wiredsl.engine.montecarlo import Run
+        from wiredsl.engine.simulate import Options
+        from wiredsl.engine.world import build_world
+
+        run = Run.create(scene, build_world(scene), scene.pipeline(pipeline_name), seed, Options())
+        if run.sampler() is None:
             raise click.UsageError("no calibration_error stage with a rig calibration: each trial has the nominal rig")
-        c = scene.rig.calibration
-        sampler = calib.sampler(stage.params, c.kind, c.matrix, c.order)
-        scene = calib.perturb(scene, calib.draw(sampler, trial, seed), c.order)
+        # the run's own checked draw (a refused draw is redrawn), so the files are the rig the trial saw
+        scene = calib.perturb(scene, run.calibration_draws([trial])[0], scene.rig.calibration.order)
     out = Path(output) if output else Path("build") / scene.name / "calibration"
     for name, text in rig_files(scene).items():
         write_atomic(out / name, text)
