@@ -38,3 +38,14 @@ class Kept:
 
 
 REGISTRY = {"kept": Kept}
+
+
+class SlowKept(Kept):
+    """`kept`, 20 ms slower a call: a study long enough to be killed in the middle."""
+
+    @classmethod
+    def measure(cls, params, prepared, pose, disturbed, n_trials: int) -> dict[str, np.ndarray]:
+        import time
+
+        time.sleep(0.02)
+        return super().measure(params, prepared, pose, disturbed, n_trials)

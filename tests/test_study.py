@@ -256,8 +256,8 @@ from wiredsl.study import run_study
 
 if __name__ == "__main__":
     scene = compile_file(sys.argv[1])[0]
-    run_study(scene, scene.study("shift"), sys.argv[2], executor=sys.argv[3], registry=study_measures.REGISTRY,
-              shard_trials=2, workers=2)
+    slow = {"kept": study_measures.SlowKept}
+    run_study(scene, scene.study("shift"), sys.argv[2], executor=sys.argv[3], registry=slow, shard_trials=2, workers=2)
 """
 
 

@@ -558,7 +558,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     for w in run.warnings:
         click.echo(f"warning: {w}", err=True)
     if out_dir is not None:
-        click.echo(f"wrote {out_dir / what} in {seconds:.1f} s ({len(trial_list)} trial{'s' * (len(trial_list) != 1)}, "
+        n_written = 1 if only_trial is not None else len(trial_list)  # a study replay runs its shard, writes one
+        click.echo(f"wrote {out_dir / what} in {seconds:.1f} s ({n_written} trial{'s' * (n_written != 1)}, "
                    f"seed {seed if effects else '-'}"
                    + (f", pipeline {pipeline.name}: {', '.join(e.name for e, _ in run.stages)}" if effects else
                       ", ideal projection") + ")", err=True)
