@@ -60,19 +60,26 @@ class Collector:
     """Collects diagnostics so that a check reports every error of a file, not just the first."""
 
     diagnostics: list[Diagnostic] = field(default_factory=list)
+    n_errors: int = 0  # kept as they come: counting the list at every statement made checks quadratic
 
     def error(self, code: str, message: str, span: Span | None, hint: str | None = None) -> None:
         self.diagnostics.append(Diagnostic("error", code, message, span, hint))
+        self.n_errors += 1
 
     def warning(self, code: str, message: str, span: Span | None, hint: str | None = None) -> None:
         self.diagnostics.append(Diagnostic("warning", code, message, span, hint))
+
+    def extend(self, diags: Iterable[Diagnostic]) -> None:
+        for d in diags:
+            self.diagnostics.append(d)
+            self.n_errors += d.severity == "error"
 
     @property
     def errors(self) -> list[Diagnostic]:
         return [d for d in self.diagnostics if d.severity == "error"]
 
     def raise_if_errors(self) -> None:
-        if self.errors:
+        if self.n_errors:
             raise WiredslError(self.diagnostics)
 
 
