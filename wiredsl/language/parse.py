@@ -25,13 +25,18 @@ class _CommentSink:
     tokens: list[lark.Token] = []
 
 
+MAX_NESTING = 32  # brackets and blocks; real scenes nest 2 deep, and deeper input would exhaust recursion later
+
+
 class Brackets:
-    """Postlexer: newlines inside ( ) and [ ] are spaces; runs of newlines are one."""
+    """Postlexer: newlines inside ( ) and [ ] are spaces; runs of newlines are one; nesting is bounded."""
 
     always_accept = ("_NL",)
+    path = "<string>"
 
     def process(self, stream):
         depth = 0
+        nesting = 0  # ( [ and {
         last_nl = True  # drop newlines at the start of the file too
         for tok in stream:
             kind = tok.type
@@ -45,6 +50,14 @@ class Brackets:
                     depth += 1
                 elif kind == "RPAR" or kind == "RSQB":
                     depth -= 1
+                if kind in ("LPAR", "LSQB", "LBRACE"):
+                    nesting += 1
+                    if nesting > MAX_NESTING:
+                        span = Span(self.path, tok.line, tok.column, tok.line, tok.column + 1)
+                        raise WiredslError([Diagnostic("error", "E151", f"brackets and blocks nested deeper than "
+                                                       f"{MAX_NESTING}", span)])
+                elif kind in ("RPAR", "RSQB", "RBRACE"):
+                    nesting -= 1
             yield tok
 
 
@@ -87,6 +100,7 @@ def parse_tree(text: str, path: str = "<string>") -> lark.Tree:
 def run(p: lark.Lark, text: str, path: str) -> tuple[object, list[lark.Token]]:
     """Parse with `p`; return the result and the comment tokens met on the way."""
     _CommentSink.tokens = comments = []
+    p.options.postlex.path = path
     try:
         return p.parse(text), comments
     except lark.exceptions.UnexpectedInput as exc:
