@@ -158,6 +158,14 @@ def test_overflowing_derived_sizes_are_diagnostics(stmt, code):
     assert [e.split()[1] for e in errs][:1] == ([code] if code else []), errs
 
 
+def test_pose_statements_are_counted_against_the_limit(monkeypatch):
+    from wiredsl.language import compile as comp
+
+    monkeypatch.setattr(comp, "MAX_POSES", 3)
+    errs = errors_of("wiredsl 1\npath p {\n" + " pose (0, 0)\n" * 4 + "}\n")
+    assert errs == ["6:2: E151 more than 3 poses"]
+
+
 def test_huge_direction_normalises_exactly():
     scene, _ = compile_text("wiredsl 1\nmodel n { ellipse e centre (0, 0, 0) normal (1e308, 1e308, 0) "
                             "axis (0, 0, 1e308) radii (1, 1) }\n")

@@ -678,6 +678,9 @@ class Compiler:
             if sb is None or not sb.ok:
                 continue
             if stmt.keyword == "pose":
+                if len(poses) == MAX_POSES:
+                    self.out.error("E151", f"more than {MAX_POSES:,} poses", stmt.keyword_span)
+                    break
                 x, y = sb.pos(0)
                 poses.append((x, y, sb.get("heading", 0.0)))
                 continue
