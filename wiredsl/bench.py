@@ -36,7 +36,7 @@ class Table:
     columns: list[str]
     rows: list[list] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
-    plot: tuple[int, int] | None = None  # (x column, y column) for the figure: time against error
+    plot: tuple[int, int] | None = None  # (x column, y column) for the figure: cost against error
     short: str = ""  # the figure's panel title
 
     def markdown(self) -> str:
@@ -112,7 +112,7 @@ def _distance_to_polylines(points: np.ndarray, polylines: list[np.ndarray]) -> n
 
 def tolerance_table(scene: Scene, world: World) -> Table:
     table = Table("Polyline tolerance: accuracy of curved features against time",
-                  ["tolerance (px)", "max deviation (px)", "time per view (ms)", "vertices per view"], plot=(2, 1),
+                  ["tolerance (px)", "max deviation (px)", "time per view (ms)", "vertices per view"], plot=(3, 1),
                   short="polyline tolerance")
     opts = Options(visibility="all")
     vis = visibility_masks(scene, world, opts)
@@ -273,43 +273,80 @@ def precision_table(scene: Scene, world: World) -> Table:
 
 # --------------------------------------------------------------------------- the figure
 
-def plot_svg(tables: list[Table]) -> str:
-    """Four small log-log panels, error against time, hand-written SVG."""
-    W, H, M = 300, 220, 46
-    parts = []
-    for i, t in enumerate(tables):
-        ox, oy = 10 + (i % 2) * (W + 20), 10 + (i // 2) * (H + 30)
-        parts.append(f'<g transform="translate({ox},{oy})">')
-        parts.append(f'<text x="0" y="12" font-family="sans-serif" font-size="11">{_esc(t.short or t.title)}</text>')
-        parts.append(f'<rect x="{M}" y="20" width="{W - M - 8}" height="{H - 60}" fill="#fafafa" stroke="#333"/>')
-        pts = [(row[t.plot[0]], row[t.plot[1]]) for row in t.rows
-               if t.plot and isinstance(row[t.plot[0]], float | int) and isinstance(row[t.plot[1]], float | int)
-               and row[t.plot[0]] > 0 and row[t.plot[1]] > 0]
-        pts.sort()
-        if len(pts) >= 1:
-            xs, ys = np.log10([p[0] for p in pts]), np.log10([p[1] for p in pts])
-            x0, x1 = xs.min() - 0.1, xs.max() + 0.1
-            y0, y1 = ys.min() - 0.1, ys.max() + 0.1
-            sx = (W - M - 8) / (x1 - x0)
-            sy = (H - 60) / (y1 - y0)
-            coords = [(M + (x - x0) * sx, 20 + (H - 60) - (y - y0) * sy) for x, y in zip(xs, ys, strict=True)]
-            parts.append('<polyline points="' + " ".join(f"{x:.1f},{y:.1f}" for x, y in coords) +
-                         '" fill="none" stroke="#1f4e79" stroke-width="1.5"/>')
-            parts += [f'<circle cx="{x:.1f}" cy="{y:.1f}" r="3" fill="#1f4e79"/>' for x, y in coords]
-            parts.append(f'<text x="{M}" y="{H - 26}" font-family="sans-serif" font-size="9">'
-                         f'{_esc(t.columns[t.plot[0]])} (log, {10**x0:.3g} .. {10**x1:.3g})</text>')
-            parts.append(f'<text x="0" y="{H - 12}" font-family="sans-serif" font-size="9">'
-                         f'up: {_esc(t.columns[t.plot[1]])} (log, {10**y0:.3g} .. {10**y1:.3g})</text>')
+def plot(tables: list[Table], fmt: str = "svg") -> bytes:
+    """Error against cost, one log-log panel per table (matplotlib, imported only here); SVG or PNG bytes.
+
+    Points are joined in order of their x value. A zero error (float64 against itself, exact visibility) has no
+    place on a log axis: it is drawn as a hollow triangle on a dotted floor a decade below the smallest
+    error, labelled "0 (exact)", with break marks on the axis.
+    """
+    import io
+
+    import matplotlib
+    from matplotlib.figure import Figure
+
+    rc = {"svg.hashsalt": "wiredsl", "font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10,
+          "svg.fonttype": "none"}
+    with matplotlib.rc_context(rc):
+        fig = Figure(figsize=(10, 7.2), layout="constrained")
+        axes = fig.subplots(2, 2).ravel()
+        for ax, t in zip(axes, tables, strict=False):
+            _panel(ax, t)
+        for ax in axes[len(tables):]:
+            ax.set_visible(False)
+        buf = io.BytesIO()
+        meta = {"Date": None} if fmt == "svg" else {"Software": None}
+        fig.savefig(buf, format=fmt, dpi=150, metadata=meta)
+    return buf.getvalue()
+
+
+def _panel(ax, t: Table) -> None:
+    """One table's points, sorted by x, with a marked floor for zero errors."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    ax.set_title(t.short or t.title)
+    rows = [r for r in t.rows if t.plot and isinstance(r[t.plot[0]], float | int)
+            and isinstance(r[t.plot[1]], float | int) and r[t.plot[0]] > 0 and r[t.plot[1]] >= 0]
+    if not t.plot or not rows:
+        ax.text(0.5, 0.5, "nothing to measure", ha="center", va="center", transform=ax.transAxes)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        return
+    rows.sort(key=lambda r: r[t.plot[0]])
+    xs = np.array([r[t.plot[0]] for r in rows], dtype=float)
+    ys = np.array([r[t.plot[1]] for r in rows], dtype=float)
+    names = [_fmt(r[0]) for r in rows]
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel(t.columns[t.plot[0]] + " (log)")
+    ax.set_ylabel(t.columns[t.plot[1]] + " (log)")
+    pos = ys > 0
+    floor = 10 ** (math.floor(math.log10(ys[pos].min())) - 1) if pos.any() else 1e-3
+    ax.plot(xs[pos], ys[pos], "-o", color="#1f4e79", lw=1.5, ms=5)
+    if (~pos).any():
+        ax.axhline(floor, color="#888888", ls=":", lw=1)
+        ax.plot(xs[~pos], np.full((~pos).sum(), floor), "v", color="#c62828", ms=8, mfc="none", mew=1.5)
+        top = ys[pos].max() if pos.any() else floor * 10
+        ax.set_ylim(floor / 3, top * 3)
+        for y0 in (floor * 1.8, floor * 2.2):  # break marks: the axis does not reach zero
+            ax.plot([-0.015, 0.015], [y0 / 1.1, y0 * 1.1], transform=ax.get_yaxis_transform(), color="#333333",
+                    lw=1.2, clip_on=False)
+    for i, (x, y, name, p) in enumerate(zip(xs, ys, names, pos, strict=True)):
+        if p:  # alternate below and above, so that neighbours' labels do not overlap
+            ax.annotate(name, (x, y), xytext=(6, -13 if i % 2 == 0 else 6), textcoords="offset points",
+                        fontsize=8.5, color="#444444")
         else:
-            parts.append(f'<text x="{M + 10}" y="80" font-family="sans-serif" font-size="10">nothing to plot</text>')
-        parts.append("</g>")
-    w, h = 2 * (W + 20) + 10, 2 * (H + 30) + 10
-    return (f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {w} {h}" width="{w}" height="{h}">\n'
-            + "\n".join(parts) + "\n</svg>\n")
-
-
-def _esc(s: str) -> str:
-    return s.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
+            ax.annotate(f"{name.split(' (')[0]}: zero error", (x, floor), xytext=(0, 8), textcoords="offset points",
+                        fontsize=8.5, color="#c62828", ha="center")
+    ax.text(0.98, 0.97, f"points labelled by {t.columns[0]}", transform=ax.transAxes, ha="right", va="top",
+            fontsize=8.5, color="#444444")
+    ax.grid(True, which="major", color="#e0e0e0", lw=0.8)
+    lo, hi = xs.min(), xs.max()
+    ax.set_xlim(lo / 2, hi * 3)
+    for axis in (ax.xaxis, ax.yaxis):  # 1-2-5 ticks as plain numbers; no crowded minor labels
+        axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_minor_formatter(NullFormatter())
 
 
 def run_all(scene: Scene, world: World, budget: float, progress=lambda msg: None) -> list[Table]:

@@ -215,19 +215,13 @@ def _documents(path: str, text: str) -> list[tuple[str, object]]:
 @main.command()
 def reference() -> None:
     """Print the language reference (Markdown), generated from the statement table."""
-    from wiredsl.language.statements import CONTEXTS
+    from wiredsl.language.statements import CONTEXTS, takes
 
     out = ["| where | statement | takes | meaning |", "|---|---|---|---|"]
     for ctx, sigs in CONTEXTS.items():
         for sig in sigs.values():
-            takes = [f"<{s.label}>" for s in sig.positional]
-            for key, clause in sig.clauses.items():
-                piece = " ".join([key, *(f"<{s.label}>" for s in clause.slots)])
-                takes.append(piece if clause.required else f"[{piece}]" + ("..." if clause.repeat else ""))
-            if sig.block:
-                takes.append("{ ... }" if sig.block_required else "[{ ... }]")
             where = "top level" if ctx == "top" else f"`{ctx}` block"
-            text = " ".join(takes).replace("|", "\\|")
+            text = takes(sig).replace("|", "\\|")
             out.append(f"| {where} | `{sig.keyword}` | `{text}` | {sig.doc.splitlines()[0]} |")
     click.echo("\n".join(out))
 
@@ -253,6 +247,9 @@ def _positive_px(ctx, param, value: float) -> float:
 @click.option("--format", "out_format", type=click.Choice(["json", "jsonl", "npz"]), default="json",
               show_default=True, help="json: one dump (one trial); jsonl: a line a trial and pose; npz: bulk arrays.")
 @click.option("--svg/--no-svg", default=True, show_default=True, help="Write one SVG a pose (json format).")
+@click.option("--layout", type=click.Choice(["overlay", "side-by-side", "visibility"]), default="overlay",
+              show_default=True, help="The SVGs' layout: overlay: disturbed over ideal (Figures 3, 9); side-by-side: "
+              "original beside disturbed (Figure 9); visibility: without and with view-dependency (Figure 4).")
 @click.option("--cameras", type=click.Choice(["both", "left"]), default="both", show_default=True,
               help="Project the right camera too, or only the left.")
 @click.option("--tolerance", type=float, default=0.1, show_default=True, callback=_positive_px,
@@ -265,7 +262,7 @@ def _positive_px(ctx, param, value: float) -> float:
 @guarded
 def build(file: str, output: str | None, pipeline_name: str | None, no_effects: bool, seed: int | None, trials: int,
           only_trial: int | None, poses: tuple[int, ...], out_format: str, svg: bool, cameras: str, tolerance: float,
-          visibility: str, exact_calibration: bool) -> None:
+          visibility: str, exact_calibration: bool, layout: str) -> None:
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
     import secrets
     import time
@@ -298,6 +295,12 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
             click.echo("note: no pipeline is marked default; building the ideal projection (choose one with "
                        "--pipeline: " + ", ".join(p.name for p in scene.pipelines) + ")", err=True)
     trial_list = [only_trial] if only_trial is not None else list(range(trials))
+    if layout == "side-by-side" and pipeline is None:
+        raise click.BadParameter("side-by-side shows the original beside the disturbed world: give a pipeline",
+                                 param_hint="--layout")
+    if layout == "visibility" and visibility == "all":
+        raise click.BadParameter("the visibility layout compares --visibility all with scene or exact",
+                                 param_hint="--layout")
     if out_format == "json" and len(trial_list) > 1:
         raise click.BadParameter("one JSON dump holds one trial: use --format jsonl or npz for several",
                                  param_hint="--trials")
@@ -315,6 +318,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     def doc_for(results, k):
         return emit.features(scene, world, results, pipeline=pipeline.name if pipeline else None, stages=records,
                              seed=seed if effects else None, trial=k if effects else None)
+
+    from wiredsl.io.svg import Info as svg_info
 
     started = time.perf_counter()
     if not effects:
@@ -349,7 +354,9 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                                 else:
                                     writer.write(line)
                         else:
-                            _write_json(doc_for(res, t), res, out_dir, svg, run)
+                            info = svg_info(pipeline.name if effects else None, seed if effects else None,
+                                            t if effects else None, visibility, layout)
+                            _write_json(doc_for(res, t), res, out_dir, svg, run, info)
                 bar.update(len(batch))
     except BaseException:
         if writer is not None:
@@ -387,7 +394,7 @@ class _Null:
         return False
 
 
-def _write_json(doc, results, out_dir, svg: bool, run) -> None:
+def _write_json(doc, results, out_dir, svg: bool, run, info=None) -> None:
     """One trial's dump, and its SVGs (disturbed over ideal when the pipeline ran)."""
     from wiredsl.io import emit
     from wiredsl.io import svg as svg_mod
@@ -399,10 +406,9 @@ def _write_json(doc, results, out_dir, svg: bool, run) -> None:
         return
     write_atomic(out_dir / "features.json", text)
     if svg:
-        ideal = {r.index: r for r in run.ideal()} if run.stages else {}
-        for r in results:
-            write_atomic(out_dir / f"pose_{r.index:03d}.svg", svg_mod.render(run.scene, run.world, r,
-                                                                             ideal.get(r.index)))
+        info = info or svg_mod.Info()
+        for name, text in svg_mod.pose_figures(run, results, info.layout, info).items():
+            write_atomic(out_dir / name, text)
 
 
 @main.command()
@@ -444,7 +450,8 @@ def viewdep(file: str, output: str | None, threshold: float) -> None:
 
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
-@click.option("-o", "--output", default=None, help="The plot (default build/<scene name>/bench.svg).")
+@click.option("-o", "--output", default=None,
+              help="The plot: .svg, or .png for a raster (default build/<scene name>/bench.svg). Needs wiredsl[plot].")
 @click.option("--budget", type=click.FloatRange(1, None), default=60.0, show_default=True,
               help="Seconds the Monte-Carlo table may spend; rows beyond it are not run.")
 @guarded
@@ -463,11 +470,74 @@ def bench(file: str, output: str | None, budget: float) -> None:
     report(warnings, program.sources, "text")
     require_buildable(scene)
     world = build_world(scene)
+    out = Path(output) if output else Path("build") / scene.name / "bench.svg"
+    if out.suffix.lower() not in (".svg", ".png"):
+        raise click.BadParameter("the plot is written as .svg or .png", param_hint="-o")
+    try:
+        import matplotlib  # noqa: F401  (checked before the minutes of measuring, not after)
+    except ImportError:
+        raise click.UsageError("the bench plot needs matplotlib: pip install 'wiredsl[plot]'") from None
     tables = bench_mod.run_all(scene, world, budget, progress=lambda m: click.echo(m, err=True))
     click.echo(f"## wiredsl bench {file}\n\nMachine: {platform.machine()}, {os.cpu_count()} cores, "
                f"Python {platform.python_version()}, numpy {__import__('numpy').__version__}.\n")
     for t in tables:
         click.echo(t.markdown())
-    out = Path(output) if output else Path("build") / scene.name / "bench.svg"
-    write_atomic(out, bench_mod.plot_svg(tables))
+    write_atomic(out, bench_mod.plot(tables, out.suffix.lower()[1:]))
     click.echo(f"wrote {out}", err=True)
+
+
+@main.command()
+@click.option("--print-grammar", is_flag=True,
+              help="Print the TextMate grammar for syntax highlighting (editors/wiredsl.tmLanguage.json) and exit.")
+@guarded
+def lsp(print_grammar: bool) -> None:
+    """Run the language server on stdin/stdout (needs the `lsp` extra: pip install 'wiredsl[lsp]')."""
+    from wiredsl import lsp as server
+
+    if print_grammar:
+        click.echo(json.dumps(server.textmate_grammar(), indent=2))
+        return
+    try:
+        import pygls  # noqa: F401
+    except ImportError:
+        raise click.UsageError("the language server needs pygls: pip install 'wiredsl[lsp]'") from None
+    server.serve()
+
+
+@main.command("export-calibration")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("-o", "--output", default=None, help="Output folder (default build/<scene name>/calibration/).")
+@click.option("--trial", type=click.IntRange(0, 2**31 - 1), default=None,
+              help="Write the rig as trial K drew it (needs --seed and a calibration_error stage).")
+@click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=None, help="The run's seed (with --trial).")
+@click.option("--pipeline", "pipeline_name", default=None, help="The pipeline whose calibration_error draws the rig.")
+@guarded
+def export_calibration(file: str, output: str | None, trial: int | None, seed: int | None,
+                       pipeline_name: str | None) -> None:
+    """Write the rig's cameras as OpenCV (stereo.yaml) and ROS (left.yaml, right.yaml) calibration files."""
+    from pathlib import Path
+
+    from wiredsl.effects import calibration_error as calib
+    from wiredsl.io.calibration import rig_files
+    from wiredsl.io.files import write_atomic
+    from wiredsl.language.compile import compile_file
+
+    scene, warnings, program = compile_file(file)
+    report(warnings, program.sources, "text")
+    if scene.rig is None:
+        raise click.UsageError(f"{file} has no rig to export")
+    if trial is not None:
+        if seed is None:
+            raise click.UsageError("--trial needs the run's --seed (see its manifest.json)")
+        pipeline = scene.pipeline(pipeline_name)
+        stage = next((s for s in (pipeline.stages if pipeline else []) if s.effect == "calibration_error"), None)
+        if stage is None or scene.rig.calibration is None:
+            raise click.UsageError("no calibration_error stage with a rig calibration: each trial has the nominal rig")
+        c = scene.rig.calibration
+        sampler = calib.sampler(stage.params, c.kind, c.matrix, c.order)
+        scene = calib.perturb(scene, calib.draw(sampler, trial, seed), c.order)
+    out = Path(output) if output else Path("build") / scene.name / "calibration"
+    for name, text in rig_files(scene).items():
+        write_atomic(out / name, text)
+    click.echo(f"wrote {out}/stereo.yaml, left.yaml, right.yaml" + (f" (trial {trial}, seed {seed})"
+               if trial is not None else " (nominal rig)"), err=True)

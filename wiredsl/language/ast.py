@@ -254,10 +254,10 @@ def read_source(path: Path, where: Span | None = None) -> str:
     return decode(read_bytes(path, "file", where), path, "file", where)
 
 
-def load(path: str | os.PathLike) -> Program:
-    """Parse a file and, recursively, the files it includes."""
+def load(path: str | os.PathLike, text: str | None = None) -> Program:
+    """Parse a file (or `text` standing for it, as an editor has it) and, recursively, its includes."""
     root_path = Path(path)
-    text = read_source(root_path)
+    text = read_source(root_path) if text is None else text
     root = parse_text(text, display_path(root_path))
     program = Program(root)
     _add(program, root, root_path.resolve(), (root_path.resolve(),))

@@ -366,6 +366,17 @@ class Compiler:
             own = dict(base)
             here: set[str] = set()
             for stmt in b.stmt.block or ():
+                if stmt.keyword == "read":
+                    sb = bind(stmt, "camera", self._units(stmt), self.out)
+                    if sb is not None and sb.ok:
+                        read = self._camera_file(sb)
+                        if read is None:  # reported: no cascade of "needs focal"
+                            settings[name] = None
+                            return None
+                        own.update(read)
+            for stmt in b.stmt.block or ():
+                if stmt.keyword == "read":
+                    continue
                 sb = bind(stmt, "camera", self._units(stmt), self.out)
                 if sb is None or not sb.ok:
                     failed.add(name)  # what it would have set is unknown: no 'needs' errors on top
@@ -386,6 +397,44 @@ class Compiler:
                 cam = self._camera(b, s)
                 if cam is not None:
                     self.cameras[name] = cam
+
+    def _calibration_file(self, sb: Bound, path_span: Span, path: str, fmt: str | None):
+        """The cameras of a calibration file named in a statement, or None (reported)."""
+        from wiredsl.io.calibration import CalibrationFileError, read
+
+        try:
+            target = FsPath(sb.stmt.span.file).parent / path
+            ast.read_bytes(target, "calibration file", path_span)  # a regular file, not a FIFO (would block)
+            return read(target, fmt)
+        except WiredslError as err:
+            self.out.extend(err.diagnostics)
+        except CalibrationFileError as exc:
+            self.out.error("E141", f"calibration file {path}: {exc}", path_span)
+        except ValueError as exc:  # e.g. a NUL byte in the path
+            self.out.error("E010", f"cannot read calibration file {path!r}: {exc}", path_span)
+        return None
+
+    def _camera_file(self, sb: Bound) -> dict[str, tuple[object, Span]] | None:
+        """A camera's settings from a calibration file, as if written as statements at `read`."""
+        cams = self._calibration_file(sb, sb.positional[0].span, sb.pos(0), sb.get("format"))
+        if cams is None:
+            return None
+        i = 1 if sb.get("entry") == "second" else 0
+        if i >= len(cams):
+            self.out.error("E104", f"calibration file {sb.pos(0)} has one camera; there is no second",
+                           sb.span("entry"))
+            return None
+        c, span = cams[i], sb.stmt.span
+        if not all(math.isfinite(v) and abs(v) <= MAX_MAGNITUDE for v in (c.fx, c.fy, c.cx, c.cy)):
+            self.out.error("E141", f"calibration file {sb.pos(0)}: the camera matrix has a value that is not "
+                                   f"finite or beyond {MAX_MAGNITUDE:g} px", sb.positional[0].span)
+            return None
+        out = {"focal": ((c.fx, "image", "px"), span), "aspect": ((1.0, c.fy / c.fx), span),
+               "centre": ((c.cx, c.cy), span), "k1": (c.dist[0], span), "k2": (c.dist[1], span),
+               "p1": (c.dist[2], span), "p2": (c.dist[3], span)}
+        if c.width is not None:
+            out["size"] = ((c.width, c.height), span)
+        return out
 
     def _camera(self, b: Bound, s: dict[str, tuple[object, Span]]) -> Camera | None:
         n0 = self.out.n_errors
@@ -471,13 +520,30 @@ class Compiler:
                 self.out.error("E102", f"rig '{b.name}' needs a '{side}' camera", b.name_span)
         self.rig_without_calibration = "calibration" not in seen and not any(
             s.keyword == "calibration" for s in b.stmt.block)  # a calibration with errors is reported already
-        if len(mounts) != 2:
+        for side, other in (("left", "right"), ("right", "left")):
+            if isinstance(mounts.get(side), Bound):
+                mounts[side] = self._relative_mount(mounts[side], mounts.get(other), side)
+        if len(mounts) != 2 or not all(isinstance(m, Mount) for m in mounts.values()):
             return None
         return Rig(name=b.name, left=mounts["left"], right=mounts["right"], calibration=calibration)
 
-    def _mount(self, sb: Bound) -> Mount | None:
+    def _mount(self, sb: Bound) -> Mount | Bound | None:
+        """A mount, or its statement when it is `relative` to the other camera (resolved in `_rig`)."""
         cam = sb.pos(0)
         ok = self._ref(self.camera_stmts, "camera", cam, sb.positional[0].span)
+        if sb.has("relative"):
+            for key in ("at", "looking", "roll"):
+                if sb.has(key):
+                    self.out.error("E103", f"'{key}' and 'relative' both give the mount's pose: keep one",
+                                   sb.span(key))
+                    return None
+            return sb if ok else None
+        for key in ("at", "looking"):
+            if not sb.has(key):
+                self.out.error("E102", f"'{sb.stmt.keyword}' needs '{key}' ({sb.sig.clauses[key].doc}), or "
+                                       "'relative' with a stereo calibration file", sb.stmt.span,
+                               f"e.g. {sb.sig.example}")
+                return None
         look = _unit(np.array(sb.get("looking"), dtype=float))
         if np.linalg.norm(look) == 0:
             self.out.error("E121", "viewing direction is zero", sb.span("looking"))
@@ -489,8 +555,42 @@ class Compiler:
             return None
         return Mount(camera=cam, position=sb.get("at"), rotation=_mat(R)) if ok else None
 
+    def _relative_mount(self, sb: Bound, other: Mount | Bound | None, side: str) -> Mount | None:
+        """A camera's mount from a stereo file's extrinsics (X2 = R X1 + T, from the first camera to the
+        second) and the other camera's mount: the file's second camera is the right one."""
+        if not isinstance(other, Mount):
+            if isinstance(other, Bound):
+                self.out.error("E103", "only one camera of a rig can be 'relative' to the other", sb.span("relative"))
+            return None
+        cams = self._calibration_file(sb, sb.span("relative"), sb.get("relative"), None)
+        if cams is None:
+            return None
+        posed = next((c for c in cams if c.R is not None), None)
+        if posed is None:
+            self.out.error("E141", f"calibration file {sb.get('relative')} has no extrinsics (R and T, or "
+                                   "T_cn_cnm1)", sb.span("relative"))
+            return None
+        R_o, p_o = np.array(other.rotation), np.array(other.position)  # camera -> robot
+        if side == "right":  # X_r = R X_l + T: the right camera in the robot frame
+            R_s = R_o @ posed.R.T
+            p_s = p_o - R_s @ posed.T
+        else:  # X_r = R X_l + T, with the right camera known
+            R_s = R_o @ posed.R
+            p_s = p_o + R_o @ posed.T
+        if not np.abs(p_s).max() <= MAX_MAGNITUDE:  # T near the float limit overflows here
+            self.out.error("E141", f"calibration file {sb.get('relative')}: the translation T is beyond "
+                                   f"{MAX_MAGNITUDE:g} m", sb.span("relative"))
+            return None
+        return Mount(camera=sb.pos(0), position=tuple(float(x) for x in p_s), rotation=_mat(R_s))
+
     def _calibration(self, sb: Bound) -> Calibration | None:
         kind = sb.pos(0)
+        if sb.has("kalibr"):
+            return self._kalibr_calibration(sb)
+        if not sb.has("order"):
+            self.out.error("E102", "'calibration' needs 'order' (the parameter of each row), or 'kalibr' with "
+                                   "Kalibr's results-cam.txt", sb.stmt.span, f"e.g. {sb.sig.example}")
+            return None
         order = sb.get("order")
         n0 = self.out.n_errors
         seen = set()
@@ -530,6 +630,31 @@ class Compiler:
         if self.out.n_errors != n0:
             return None
         return Calibration(kind=kind, order=[o.value for o in order], matrix=M.tolist())
+
+    def _kalibr_calibration(self, sb: Bound) -> Calibration | None:
+        """The rig's calibration uncertainty as Kalibr reports it: independent standard deviations
+        (cam0 is the left camera, cam1 the right; the baseline's as the right mount's)."""
+        for key in ("matrix", "file"):
+            if sb.has(key):
+                self.out.error("E103", f"'{key}' and 'kalibr' both give the matrix: keep one", sb.span(key))
+                return None
+        if sb.pos(0) != "covariance":
+            self.out.error("E103", "Kalibr reports standard deviations: the calibration kind is 'covariance'",
+                           sb.positional[0].span)
+            return None
+        cams = self._calibration_file(sb, sb.span("kalibr"), sb.get("kalibr"), "kalibr")
+        if cams is None:
+            return None
+        sigma = {f"{side}.{k}": v for side, cam in zip(("left", "right"), cams, strict=False)
+                 for k, v in cam.sigma.items() if v > 0}
+        names = [(o.value, o.span) for o in sb.get("order")] if sb.has("order") else [(k, None) for k in sigma]
+        for name, span in names:
+            if name not in sigma:
+                self.out.error("E104", f"Kalibr's file gives no standard deviation for '{name}'", span,
+                               did_you_mean(name, sigma) or "it has: " + ", ".join(sigma))
+                return None
+        return Calibration(kind="covariance", order=[n for n, _ in names],
+                           matrix=np.diag([sigma[n] ** 2 for n, _ in names]).tolist())
 
     def _viewpoints(self, b: Bound) -> Viewpoints | None:
         names: list[str] = []

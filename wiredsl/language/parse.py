@@ -7,7 +7,7 @@ from pathlib import Path
 
 import lark
 
-from wiredsl.diagnostics import Diagnostic, Span, WiredslError
+from wiredsl.diagnostics import MAX_REPORTED, Diagnostic, Span, WiredslError
 
 
 def grammar_path() -> Path:
@@ -29,36 +29,48 @@ MAX_NESTING = 32  # brackets and blocks; real scenes nest 2 deep, and deeper inp
 
 
 class Brackets:
-    """Postlexer: newlines inside ( ) and [ ] are spaces; runs of newlines are one; nesting is bounded."""
+    """Postlexer: newlines inside ( ) and [ ] are spaces; runs of newlines are one; nesting is bounded.
+
+    Its state lives on the instance, not in the generator, because lark starts a
+    new generator when it resumes after a syntax error; `reset` starts a parse.
+    """
 
     always_accept = ("_NL",)
-    path = "<string>"
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self, path: str = "<string>") -> None:
+        self.depth = 0
+        self.nesting = 0  # ( [ and {
+        self.last_nl = True  # drop newlines at the start of the file too
+        self.path = path
 
     def process(self, stream):
-        depth = 0
-        nesting = 0  # ( [ and {
-        last_nl = True  # drop newlines at the start of the file too
         for tok in stream:
             kind = tok.type
             if kind == "_NL":
-                if depth or last_nl:
+                if self.depth or self.last_nl:
                     continue
-                last_nl = True
+                self.last_nl = True
             else:
-                last_nl = False
+                self.last_nl = False
                 if kind == "LPAR" or kind == "LSQB":
-                    depth += 1
+                    self.depth += 1
                 elif kind == "RPAR" or kind == "RSQB":
-                    depth -= 1
+                    self.depth = max(self.depth - 1, 0)
                 if kind in ("LPAR", "LSQB", "LBRACE"):
-                    nesting += 1
-                    if nesting > MAX_NESTING:
+                    self.nesting += 1
+                    if self.nesting > MAX_NESTING:
                         span = Span(self.path, tok.line, tok.column, tok.line, tok.column + 1)
                         raise WiredslError([Diagnostic("error", "E151", f"brackets and blocks nested deeper than "
                                                        f"{MAX_NESTING}", span)])
                 elif kind in ("RPAR", "RSQB", "RBRACE"):
-                    nesting -= 1
+                    self.nesting = max(self.nesting - 1, 0)
             yield tok
+
+
+_BRACKETS = Brackets()
 
 
 def _cache_ok() -> bool:
@@ -88,7 +100,7 @@ def parser(transformer: lark.Transformer | None = None) -> lark.Lark:
         maybe_placeholders=False,
         transformer=transformer,
         lexer_callbacks={"COMMENT": _sink},
-        postlex=Brackets(),
+        postlex=_BRACKETS,
     )
 
 
@@ -98,15 +110,33 @@ def parse_tree(text: str, path: str = "<string>") -> lark.Tree:
 
 
 def run(p: lark.Lark, text: str, path: str) -> tuple[object, list[lark.Token]]:
-    """Parse with `p`; return the result and the comment tokens met on the way."""
+    """Parse with `p`; return the result and the comment tokens met on the way.
+
+    A syntax error does not stop the parse: the rest of its line is skipped and
+    parsing goes on, so every syntax error of a file is reported (one a line).
+    """
     _CommentSink.tokens = comments = []
-    p.options.postlex.path = path
+    _BRACKETS.reset(path)
+    errors: list[Diagnostic] = []
+
+    def recover(exc: lark.exceptions.UnexpectedInput) -> bool:
+        d = syntax_diagnostic(exc, text, path)
+        if not errors or errors[-1].span.line != d.span.line:  # one error a line: the rest is its echo
+            errors.append(d)
+        return d.code != "E003" and len(errors) <= MAX_REPORTED
+
     try:
-        return p.parse(text), comments
+        result = p.parse(text, on_error=recover)
     except lark.exceptions.UnexpectedInput as exc:
-        raise WiredslError([syntax_diagnostic(exc, text, path)]) from None
+        if not errors or errors[-1].span.line != (exc.line if exc.line > 0 else 1):
+            errors.append(syntax_diagnostic(exc, text, path))
+    except WiredslError as err:  # nesting too deep: stop there
+        raise WiredslError(errors + err.diagnostics) from None
     finally:
         _CommentSink.tokens = []
+    if errors:
+        raise WiredslError(errors) from None
+    return result, comments
 
 
 _TOKEN_WORDS = {

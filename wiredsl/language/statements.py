@@ -138,12 +138,21 @@ _CAMERA = [
     Sig("k2", "OpenCV's second radial coefficient", (S("number", "k2"),), example="k2 0.001"),
     Sig("p1", "OpenCV's first tangential coefficient", (S("number", "p1"),), example="p1 0"),
     Sig("p2", "OpenCV's second tangential coefficient", (S("number", "p2"),), example="p2 0"),
+    Sig("read", "take the camera's parameters from a calibration file (OpenCV, ROS or Kalibr); "
+        "statements beside it override them", (S("str", "path"),),
+        {"format": C("the file's format (default: recognised from its content)",
+                     S("word", "format", "opencv", "ros", "kalibr")),
+         "entry": C("which camera of a file with several: first or second (OpenCV's M1/M2, Kalibr's cam0/cam1)",
+                    S("word", "entry", "first", "second"))},
+        example='read "calib/stereo.yaml" entry second'),
 ]
 
 _MOUNT = {
-    "at": C("position in the robot frame (x forward, y left, z up)", P3, required=True),
-    "looking": C("viewing direction in the robot frame", DIR, required=True),
+    "at": C("position in the robot frame (x forward, y left, z up)", P3),
+    "looking": C("viewing direction in the robot frame", DIR),
     "roll": C("rotation about the viewing direction", S("angle", "angle")),
+    "relative": C("instead of at and looking: the pose relative to the other camera, read from a stereo "
+                  "calibration file (OpenCV's R, T or Kalibr's T_cn_cnm1)", S("str", "path")),
 }
 _RIG = [
     Sig("left", "the left camera and its mount", (S("ref", "camera"),), _MOUNT,
@@ -152,10 +161,11 @@ _RIG = [
         example="right cam_r at (0.1, -0.06, 1.2) looking (1, 0, -0.2)"),
     Sig("calibration", "calibration uncertainty: information matrix (J^T J) or covariance",
         (S("word", "kind", "information", "covariance"),),
-        {"order": C("the parameter of each row, e.g. [left.f, left.cx, right.tx]", S("names", "parameters"),
-                    required=True),
+        {"order": C("the parameter of each row, e.g. [left.f, left.cx, right.tx]", S("names", "parameters")),
          "matrix": C("the matrix, inline", S("matrix", "rows")),
-         "file": C("read the matrix from a file (plain rows, or TINA's covariance format)", S("str", "path"))},
+         "file": C("read the matrix from a file (plain rows, or TINA's covariance format)", S("str", "path")),
+         "kalibr": C("a diagonal covariance from the standard deviations in Kalibr's results-cam.txt "
+                     "(with order: only those parameters)", S("str", "path"))},
         example="calibration covariance order [left.f, right.f] matrix [[4, 0], [0, 4]]"),
 ]
 
@@ -204,6 +214,17 @@ CONTEXTS: dict[str, dict[str, Sig]] = {
     "path": {s.keyword: s for s in _PATH},
     "pipeline": {name: _effect_sig(name) for name in REGISTRY},
 }
+
+
+def takes(sig: Sig) -> str:
+    """What a statement takes, as the reference writes it: `<model> as <name> [at <point>]...`."""
+    out = [f"<{s.label}>" for s in sig.positional]
+    for key, clause in sig.clauses.items():
+        piece = " ".join([key, *(f"<{s.label}>" for s in clause.slots)])
+        out.append(piece if clause.required else f"[{piece}]" + ("..." if clause.repeat else ""))
+    if sig.block:
+        out.append("{ ... }" if sig.block_required else "[{ ... }]")
+    return " ".join(out)
 
 
 # --------------------------------------------------------------------------- binding
