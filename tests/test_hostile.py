@@ -247,6 +247,19 @@ def test_unknown_units_word_is_reported_not_used():
 
 # --------------------------------------------------------------------------- located diagnostics, conventions
 
+def test_unicode_line_separators_are_not_line_breaks():
+    """Found by the fuzz campaign: fmt split lines where the lexer does not (U+2028, U+0085), losing comments."""
+    from wiredsl.diagnostics import render
+    from wiredsl.language.fmt import format_text
+
+    text = "wiredsl 1\n# a \u2028 b\nscene x # c\x85d\nscene 1\n"
+    once = format_text(text)
+    assert once == text.replace("x # c", "x  # c") and format_text(once) == once
+    with pytest.raises(WiredslError) as err:
+        compile_text(text)
+    assert " 4 | scene 1" in render(err.value.diagnostics, {"t.wd": text})
+
+
 def test_needs_a_rig_points_at_the_file(tmp_path):
     (tmp_path / "s.wd").write_text("wiredsl 1\nscene lonely\n")
     r = CliRunner().invoke(main, ["build", str(tmp_path / "s.wd"), "-o", str(tmp_path / "out"),

@@ -83,6 +83,15 @@ class Collector:
             raise WiredslError(self.diagnostics)
 
 
+def source_lines(text: str) -> list[str]:
+    """The lines of a source as the lexer counts them: split at \\n only (str.splitlines also splits at
+    \\u2028, \\x0c, \\x85 and others, which would put carets and comments on the wrong line)."""
+    lines = [line.removesuffix("\r") for line in text.split("\n")]
+    if len(lines) > 1 and lines[-1] == "":
+        lines.pop()
+    return lines
+
+
 def did_you_mean(word: str, candidates: Iterable[str]) -> str | None:
     """A 'did you mean' hint for a misspelt name, or None."""
     match = difflib.get_close_matches(word, list(candidates), n=1, cutoff=0.6)
@@ -114,7 +123,7 @@ def _render_one(d: Diagnostic, sources: dict[str, str], colour: bool) -> str:
     lines = [head]
     text = sources.get(d.span.file) if d.span else None
     if text is not None:
-        src_lines = text.splitlines()
+        src_lines = source_lines(text)
         if 1 <= d.span.line <= len(src_lines):
             src = src_lines[d.span.line - 1].expandtabs(1)
             gutter = " " * len(str(d.span.line))

@@ -9,6 +9,7 @@ same scene) and formatting it again changes nothing.
 
 from __future__ import annotations
 
+from wiredsl.diagnostics import source_lines
 from wiredsl.language import ast
 
 WIDTH = 100
@@ -19,7 +20,7 @@ def format_text(text: str, path: str = "<string>") -> str:
     """Canonical form of a file's text (raises WiredslError on a syntax error)."""
     file = ast.parse_text(text, path)
     printer = _Printer(file)
-    out = printer.block(file.statements, 0, 0, len(text.splitlines()) + 1)
+    out = printer.block(file.statements, 0, 0, len(source_lines(text)) + 1)
     while out and out[-1] == "":
         out.pop()
     return "\n".join(out) + "\n" if out else ""
@@ -27,7 +28,7 @@ def format_text(text: str, path: str = "<string>") -> str:
 
 class _Printer:
     def __init__(self, file: ast.File):
-        self.lines = file.text.splitlines()
+        self.lines = source_lines(file.text)
         self.comments = sorted(file.comments, key=lambda c: (c.line, c.col))
         self.used: set[int] = set()
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import lark
 
-from wiredsl.diagnostics import MAX_REPORTED, Diagnostic, Span, WiredslError
+from wiredsl.diagnostics import MAX_REPORTED, Diagnostic, Span, WiredslError, source_lines
 
 
 def grammar_path() -> Path:
@@ -171,7 +171,7 @@ def syntax_diagnostic(exc: lark.exceptions.UnexpectedInput, text: str, path: str
         return Diagnostic("error", "E002", f"unexpected character {char!r}", Span(path, line, col, line, col + 1), hint)
     token = getattr(exc, "token", None)
     if isinstance(exc, lark.exceptions.UnexpectedEOF) or (token is not None and token.type == "$END"):
-        lines = text.splitlines() or [""]
+        lines = source_lines(text) or [""]
         line = len(lines)
         col = len(lines[-1]) + 1
         return Diagnostic(
