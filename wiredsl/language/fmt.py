@@ -9,6 +9,8 @@ same scene) and formatting it again changes nothing.
 
 from __future__ import annotations
 
+import bisect
+
 from wiredsl.diagnostics import source_lines
 from wiredsl.language import ast
 
@@ -30,11 +32,13 @@ class _Printer:
     def __init__(self, file: ast.File):
         self.lines = source_lines(file.text)
         self.comments = sorted(file.comments, key=lambda c: (c.line, c.col))
+        self.comment_lines = [c.line for c in self.comments]
         self.used: set[int] = set()
 
     def _take(self, lo: int, hi: int) -> list[ast.Comment]:
-        """Unused comments on lines lo..hi inclusive."""
-        got = [c for c in self.comments if lo <= c.line <= hi and id(c) not in self.used]
+        """Unused comments on lines lo..hi inclusive (bisected: scanning them all per statement was quadratic)."""
+        a, b = bisect.bisect_left(self.comment_lines, lo), bisect.bisect_right(self.comment_lines, hi)
+        got = [c for c in self.comments[a:b] if id(c) not in self.used]
         self.used.update(id(c) for c in got)
         return got
 
