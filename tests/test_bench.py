@@ -37,3 +37,12 @@ def test_trials_table_respects_its_budget_and_says_what_it_skipped():
     assert table.rows and table.rows[0][0] == 10
     assert all(row[2] > 0 for row in table.rows)
     assert any("not run" in note for note in table.notes)
+
+
+def test_view_dependency_table_says_how_far_whole_feature_lists_are_from_hidden_lines():
+    scene, _, _ = compile_file("scenes/box.wd")
+    table = bench.viewdep_table(scene, build_world(scene))
+    assert table.columns[-1] == "wrong image length vs hidden lines"
+    wrong = [row[-1] for row in table.rows]
+    # the box hides parts of its own edges from the path: no whole-feature list can be right everywhere
+    assert all(0 < w < 1 for w in wrong)

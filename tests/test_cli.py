@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from wiredsl.cli import main
@@ -40,7 +41,7 @@ def test_binary_file_is_a_diagnostic(tmp_path):
 
 
 def test_check_reports_every_file_and_json_format():
-    r = run("check", "--format", "json", "tests/invalid/zero_line.wd", "tests/invalid/unknown_model.wd")
+    r = run("check", "--diagnostics", "json", "tests/invalid/zero_line.wd", "tests/invalid/unknown_model.wd")
     assert r.exit_code == 1
     codes = [d["code"] for d in json.loads(r.stderr)["diagnostics"]]
     assert codes == ["E120", "E104"]
@@ -184,3 +185,147 @@ def test_installed_package_runs_outside_the_checkout(tmp_path):
     r = subprocess.run([sys.executable, "-m", "wiredsl", "schema", "scene"], cwd=elsewhere, capture_output=True,
                        text=True, env=env)
     assert json.loads(r.stdout)["$id"] == "urn:wiredsl:schema:scene:1"
+
+
+# --------------------------------------------------------------------------- options and output folders
+
+def test_diagnostics_option_on_every_command_and_format_only_for_dumps(tmp_path):
+    for cmd in (["check"], ["compile"], ["fmt", "--check"], ["build"], ["viewdep"], ["bench"], ["export-calibration"]):
+        r = run(*cmd, "--diagnostics", "json", "tests/invalid/syntax_unclosed.wd")
+        assert r.exit_code == 1, (cmd, r.output)
+        assert json.loads(r.stderr)["diagnostics"][0]["line"] > 0, cmd
+    assert run("check", "--format", "json", "scenes/lab.wd").exit_code == 2  # the old name is gone
+    assert run("build", "scenes/lab.wd", "--format", "text", "-o", "-").exit_code == 2
+
+
+def test_o_naming_a_file_or_a_dump_name_is_a_usage_error(tmp_path):
+    f = tmp_path / "f"
+    f.write_text("mine")
+    r = run("build", "scenes/cylinder.wd", "-o", str(f))
+    assert r.exit_code == 2 and "must be a folder" in r.stderr and f.read_text() == "mine"
+    r = run("build", "scenes/cylinder.wd", "-o", str(tmp_path / "out.json"))
+    assert r.exit_code == 2 and "looks like a file name" in r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]
+    for cmd in ("viewdep", "compile"):  # one-file commands: -o must not be a folder, and no temporary name leaks
+        r = run(cmd, "scenes/lab.wd", "-o", f"{tmp_path}/")
+        assert r.exit_code == 2 and "must name a file, not a folder" in r.stderr and ".tmp" not in r.stderr, cmd
+
+
+def test_output_folder_holds_exactly_one_run(tmp_path):
+    out = tmp_path / "out"
+    assert run("build", "scenes/lab.wd", "-o", str(out), "--seed", "1").exit_code == 0
+    (out / "viewdep.json").write_text("{}")  # other commands' outputs are carried over
+    (out / "calibration").mkdir()
+    (out / "calibration" / "stereo.yaml").write_text("%YAML:1.0")
+    r = run("build", "scenes/lab.wd", "-o", str(out), "--seed", "1", "--pose", "2", "--trials", "2",
+            "--format", "jsonl")
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in out.iterdir()) == ["calibration", "features.jsonl", "manifest.json", "pose_002.svg",
+                                                     "viewdep.json"]
+    assert (out / "calibration" / "stereo.yaml").read_text() == "%YAML:1.0"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporaries beside it
+    assert json.loads((out / "manifest.json").read_text())["trials"] == 2
+
+
+def test_a_folder_of_other_files_is_replaced_only_with_force(tmp_path):
+    out = tmp_path / "thesis"
+    out.mkdir()
+    (out / "chapter1.tex").write_text("precious")
+    r = run("build", "scenes/cylinder.wd", "-o", str(out), "--no-effects")
+    assert r.exit_code == 2 and "chapter1.tex" in r.stderr and "--force" in r.stderr
+    assert [p.name for p in out.iterdir()] == ["chapter1.tex"]
+    assert run("build", "scenes/cylinder.wd", "-o", str(out), "--no-effects", "--force").exit_code == 0
+    assert "chapter1.tex" not in [p.name for p in out.iterdir()]
+    r = run("build", "scenes/cylinder.wd", "-o", ".", "--force")  # never the working folder itself
+    assert r.exit_code == 2 and "working" in r.stderr
+
+
+def test_default_locations_are_under_build(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert run("build", str(ROOT / "scenes/lab.wd"), "--pose", "0", "--seed", "1").exit_code == 0
+    r = run("viewdep", str(ROOT / "scenes/lab.wd"))
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "build" / "lab").iterdir()) == \
+        ["features.json", "manifest.json", "pose_000.svg", "viewdep.json"]
+    assert run("validate", "build/lab/viewdep.json").exit_code == 0
+
+
+def test_npz_writes_the_first_trials_svgs_and_no_effects_a_manifest(tmp_path):
+    import numpy as np
+
+    r = run("build", "scenes/lab.wd", "--format", "npz", "--trials", "3", "--seed", "4", "--pose", "1", "-o",
+            str(tmp_path / "npz"))
+    assert r.exit_code == 0, r.output
+    svg = (tmp_path / "npz" / "pose_001.svg").read_text()
+    r = run("build", "scenes/lab.wd", "--trial", "0", "--seed", "4", "--pose", "1", "-o", str(tmp_path / "one"))
+    assert svg == (tmp_path / "one" / "pose_001.svg").read_text()  # the SVG shows trial 0, as the json run does
+    with np.load(tmp_path / "npz" / "features.npz") as z:
+        assert json.loads(str(z["manifest"]))["seed"] == 4
+    r = run("build", "scenes/lab.wd", "--no-effects", "--seed", "5", "--pose", "0", "-o", str(tmp_path / "ideal"))
+    assert r.exit_code == 0
+    manifest = json.loads((tmp_path / "ideal" / "manifest.json").read_text())
+    assert manifest["stages"] == [] and manifest["seed"] == 5 and manifest["pipeline"] is None
+
+
+@pytest.mark.parametrize(("args", "says"), [
+    (["--trial", str(2**31)], "0<=x<=2147483647"),
+    (["--trial", str(2**64)], "0<=x<=2147483647"),
+    (["--tolerance", "1e-300"], "[0.001, 100] px"),
+    (["--tolerance", "nan"], "[0.001, 100] px"),
+    (["--tolerance", "1000"], "[0.001, 100] px"),
+    (["--trials", "100000000", "--format", "npz", "-o", "OUT"], "TB of npz"),
+    (["--trials", "100000000", "--format", "jsonl"], "TB of jsonl"),
+    (["--format", "npz"], "npz cannot go to stdout"),
+])
+def test_bounds_are_usage_errors(args, says, tmp_path):
+    args = [str(tmp_path / "o") if a == "OUT" else a for a in args]
+    r = run("build", "scenes/lab.wd", "-o", "-", *args) if "-o" not in args else run("build", "scenes/lab.wd", *args)
+    assert r.exit_code == 2 and says in r.stderr, r.output
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_size_estimate_matches_a_real_run(tmp_path):
+    """The refusal's estimate (bytes a trial, measured on the first trial) is within 10% of what trials add."""
+    import re
+
+    for fmt in ("jsonl", "npz"):
+        big = run("build", "scenes/lab.wd", "--seed", "2", "--trials", "100000000", "--format", fmt, "--pose", "1",
+                  "-o", str(tmp_path / fmt))
+        per = re.search(r"\(([\d.]+) kB a trial", big.stderr)
+        assert big.exit_code == 2 and per, big.stderr
+        size = {}
+        for n in (10, 40):  # the difference leaves out what does not grow with N (npz: feature ids, manifest)
+            assert run("build", "scenes/lab.wd", "--seed", "2", "--trials", str(n), "--format", fmt, "--no-svg",
+                       "--pose", "1", "-o", str(tmp_path / fmt)).exit_code == 0
+            size[n] = (tmp_path / fmt / f"features.{fmt}").stat().st_size
+        real = (size[40] - size[10]) / 30
+        assert 0.9 < float(per[1]) * 1000 / real < 1.1, (fmt, per[1], real)
+
+
+def test_o_naming_a_fifo_writes_into_it_and_empty_o_is_refused(tmp_path):
+    """A device or FIFO (say /dev/null) is written into, never renamed over."""
+    import threading
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    got = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_text()))
+    reader.start()
+    assert run("compile", "scenes/cylinder.wd", "-o", str(fifo)).exit_code == 0
+    reader.join(10)
+    assert json.loads(got[0])["name"] == "cylinder" and fifo.is_fifo()
+    for cmd in ("build", "compile", "viewdep"):
+        r = run(cmd, "scenes/lab.wd", "-o", "")
+        assert r.exit_code == 2 and "must not be empty" in r.stderr, cmd
+
+
+def test_the_size_estimate_leaves_the_run_as_it_was(tmp_path):
+    """Measuring a trial before the run changes no byte of its outputs (--force skips the measuring)."""
+    outs = []
+    for extra in ([], ["--force"]):
+        out = tmp_path / f"o{len(outs)}"
+        r = run("build", "scenes/lab.wd", "--seed", "6", "--trials", "3", "--format", "jsonl", "--pose", "2", "-o",
+                str(out), *extra)
+        assert r.exit_code == 0, r.output
+        outs.append({p.name: p.read_bytes() for p in out.iterdir()})
+    assert outs[0] == outs[1]

@@ -179,7 +179,7 @@ def run_on(text: str, workdir: Path) -> None:
     f.write_text(text, encoding="utf-8", errors="surrogatepass")
     for command in ("check", "compile", "fmt"):
         args = [command, "--check"] if command == "fmt" else [command]
-        result = CliRunner().invoke(main, [*args, "--format", "json", str(f)])
+        result = CliRunner().invoke(main, [*args, "--diagnostics", "json", str(f)])
         assert_clean(result, command)
     try:
         once = format_text(text, str(f))
@@ -206,7 +206,7 @@ def test_arbitrary_bytes_never_crash(data, workdir):
     f = workdir / "_bytes.wd"
     f.write_bytes(b"wiredsl 1\n" + data)
     for command in ("check", "compile"):
-        assert_clean(CliRunner().invoke(main, [command, "--format", "json", str(f)]), command)
+        assert_clean(CliRunner().invoke(main, [command, "--diagnostics", "json", str(f)]), command)
     assert_clean(CliRunner().invoke(main, ["fmt", "--check", str(f)]), "fmt")
 
 

@@ -26,7 +26,7 @@ def check(*args: str):
 
 
 def diagnostics(path) -> list[dict]:
-    r = CliRunner().invoke(main, ["check", "--format", "json", str(path)])
+    r = CliRunner().invoke(main, ["check", "--diagnostics", "json", str(path)])
     assert r.exit_code == 1, r.output
     return json.loads(r.stderr)["diagnostics"]
 

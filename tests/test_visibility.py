@@ -110,7 +110,7 @@ path p {
 }
 """
     (tmp_path / "box.wd").write_text(scene_text)
-    r = CliRunner().invoke(main, ["viewdep", str(tmp_path / "box.wd")])
+    r = CliRunner().invoke(main, ["viewdep", str(tmp_path / "box.wd"), "-o", str(tmp_path / "box.viewdep.json")])
     assert r.exit_code == 0, r.output
     doc = json.loads((tmp_path / "box.viewdep.json").read_text())
     assert set(doc["viewpoints"]["south"]) == {"b.s_bottom", "b.s_top", "b.sw", "b.se"}

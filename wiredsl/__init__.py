@@ -5,3 +5,12 @@ Stages, one module each: parse (lark tree) -> ast (spans) -> compile (Scene)
 """
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """`wiredsl.load` is imported on first use, so importing wiredsl stays light (no numpy)."""
+    if name == "load":
+        from wiredsl.io.load import load
+
+        return load
+    raise AttributeError(f"module 'wiredsl' has no attribute {name!r}")

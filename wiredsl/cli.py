@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from functools import wraps
 
@@ -35,20 +37,46 @@ def report(diags, sources: dict[str, str], fmt: str) -> None:
         sys.stderr.write(render(diags, sources, colour=_colour()))
 
 
+class Stopped(BaseException):
+    """SIGINT or SIGTERM arrived: unwind (every `finally` removes its temporaries), then exit 128 + signal."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _stop(signum: int, frame) -> None:
+    for s in (signal.SIGINT, signal.SIGTERM):  # a second signal must not interrupt the clean-up
+        signal.signal(s, signal.SIG_IGN)
+    raise Stopped(signum)
+
+
 def guarded(fn: Callable) -> Callable:
-    """Turn WiredslError into diagnostics and exit 1; never let a traceback reach a user."""
+    """Turn WiredslError into diagnostics and exit 1, signals into a clean exit 130/143; never a traceback."""
 
     @wraps(fn)
     def wrapper(*args, **kwargs):
         from wiredsl.diagnostics import WiredslError
+        from wiredsl.io.files import OutputFolderError, UnwritableValue
 
+        main_thread = threading.current_thread() is threading.main_thread()
+        previous = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
         try:
             return fn(*args, **kwargs)
         except WiredslError as err:
-            report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diag_format", "text"))
+            report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diagnostics", "text"))
             sys.exit(EXIT_INVALID)
-        except (click.exceptions.Exit, click.ClickException, SystemExit, KeyboardInterrupt):
+        except (Stopped, KeyboardInterrupt) as exc:
+            signum = exc.signum if isinstance(exc, Stopped) else signal.SIGINT
+            click.echo(f"wiredsl: stopped by {signal.Signals(signum).name}; temporary files removed", err=True)
+            sys.exit(128 + signum)
+        except (click.exceptions.Exit, click.ClickException, SystemExit):
             raise
+        except OutputFolderError as exc:
+            raise click.BadParameter(str(exc), param_hint="-o") from None
+        except UnwritableValue as exc:  # the input drove a number out of range; nothing was written
+            click.echo(f"wiredsl: error: nothing written: {exc}", err=True)
+            sys.exit(EXIT_INVALID)
         except OSError as exc:  # the disk, not the input or a bug: say which file and why
             where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
             click.echo(f"wiredsl: error: cannot write{where}: {exc.strerror or exc}", err=True)
@@ -59,6 +87,9 @@ def guarded(fn: Callable) -> Callable:
             click.echo(f"wiredsl: internal error ({type(exc).__name__}: {exc}); this is a bug, please report it "
                        "with the input (set WIREDSL_DEBUG=1 for a traceback)", err=True)
             sys.exit(EXIT_INTERNAL)
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
     return wrapper
 
@@ -76,7 +107,7 @@ def _sources(diags) -> dict[str, str]:
     return out
 
 
-diag_format_option = click.option("--format", "diag_format", type=click.Choice(["text", "json"]), default="text",
+diagnostics_option = click.option("--diagnostics", type=click.Choice(["text", "json"]), default="text",
                                   show_default=True, help="Form of diagnostics on stderr.")
 
 
@@ -88,9 +119,9 @@ def main() -> None:
 
 @main.command()
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
-@diag_format_option
+@diagnostics_option
 @guarded
-def check(files: tuple[str, ...], diag_format: str) -> None:
+def check(files: tuple[str, ...], diagnostics: str) -> None:
     """Check scene FILES; exit 0 when all are valid, 1 with diagnostics."""
     from wiredsl.diagnostics import WiredslError
     from wiredsl.language.compile import compile_file
@@ -104,38 +135,38 @@ def check(files: tuple[str, ...], diag_format: str) -> None:
         except WiredslError as err:
             all_diags += err.diagnostics
             failed = True
-    report(all_diags, _sources(all_diags), diag_format)
+    report(all_diags, _sources(all_diags), diagnostics)
     if failed:
         sys.exit(EXIT_INVALID)
-    if diag_format == "text":
+    if diagnostics == "text":
         click.echo(f"{len(files)} file{'s' * (len(files) != 1)} ok", err=True)
 
 
 @main.command("compile")
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", default="-", show_default=True, help="Output file, or - for stdout.")
-@diag_format_option
+@diagnostics_option
 @guarded
-def compile_cmd(file: str, output: str, diag_format: str) -> None:
+def compile_cmd(file: str, output: str, diagnostics: str) -> None:
     """Compile FILE to the scene JSON (valid against schema/scene.schema.json)."""
-    from wiredsl.io.files import write_atomic
+    from wiredsl.io.files import json_text, write_atomic
     from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
-    report(warnings, program.sources, diag_format)
-    text = json.dumps(scene.model_dump(mode="json"), indent=1) + "\n"
+    report(warnings, program.sources, diagnostics)
+    text = json_text(scene.model_dump(mode="json"), where="scene")
     if output == "-":
         sys.stdout.write(text)
     else:
-        write_atomic(output, text)
+        write_atomic(_file_output(output), text)
 
 
 @main.command()
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option("--check", "check_only", is_flag=True, help="Only report files that are not in canonical form.")
-@diag_format_option
+@diagnostics_option
 @guarded
-def fmt(files: tuple[str, ...], check_only: bool, diag_format: str) -> None:
+def fmt(files: tuple[str, ...], check_only: bool, diagnostics: str) -> None:
     """Rewrite FILES in canonical form, keeping comments (--check: exit 1 if any would change)."""
     from pathlib import Path
 
@@ -158,9 +189,9 @@ def fmt(files: tuple[str, ...], check_only: bool, diag_format: str) -> None:
 
 
 @main.command()
-@click.argument("name", type=click.Choice(["scene", "features", "viewdep"]))
+@click.argument("name", type=click.Choice(["scene", "features", "viewdep", "manifest"]))
 def schema(name: str) -> None:
-    """Print the JSON Schema of a scene, a features dump or a view-dependency file."""
+    """Print the JSON Schema of a scene, a features dump, a view-dependency file or a build manifest."""
     from wiredsl.io.schema import schema_dir
 
     sys.stdout.write((schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8"))
@@ -170,11 +201,18 @@ def schema(name: str) -> None:
 @click.argument("dumps", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @guarded
 def validate(dumps: tuple[str, ...]) -> None:
-    """Validate scene or feature dumps (JSON, or JSON lines) against the schemas."""
+    """Validate scenes, feature dumps (JSON, JSON lines, npz) and manifests against the schemas."""
+    from wiredsl.io.layout import npz_problems
     from wiredsl.io.schema import problems
 
     bad = 0
     for path in dumps:
+        if _is_zip(path) or path.endswith(".npz"):  # features.npz: its layout and its manifest
+            msgs = npz_problems(path)
+            for m in msgs[:20]:
+                click.echo(f"{path}: error: {m}", err=True)
+            bad += bool(msgs)
+            continue
         try:
             with open(path, encoding="utf-8") as fh:
                 text = fh.read()
@@ -193,6 +231,14 @@ def validate(dumps: tuple[str, ...]) -> None:
     if bad:
         sys.exit(EXIT_INVALID)
     click.echo(f"{len(dumps)} dump{'s' * (len(dumps) != 1)} valid", err=True)
+
+
+def _is_zip(path: str) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(4) == b"PK\x03\x04"
+    except OSError:
+        return False
 
 
 def _documents(path: str, text: str) -> list[tuple[str, object]]:
@@ -226,57 +272,159 @@ def reference() -> None:
     click.echo("\n".join(out))
 
 
-def _positive_px(ctx, param, value: float) -> float:
-    if not (0 < value <= 100):
-        raise click.BadParameter("must be in (0, 100] px")
+TOLERANCE_PX = (1e-3, 100.0)  # finer than 1e-3 px costs vertices (memory, time) without bound, for nothing seen
+MAX_TRIAL = 2**31 - 1  # npz stores the trial in an int32 column
+OUTPUT_LIMIT = 50 * 10**9  # bytes a run may write without --force
+DUMP_SUFFIXES = (".json", ".jsonl", ".npz", ".svg")
+
+
+def _tolerance(ctx, param, value: float) -> float:
+    lo, hi = TOLERANCE_PX
+    if not lo <= value <= hi:  # NaN fails too
+        raise click.BadParameter(f"must be in [{lo:g}, {hi:g}] px")
     return value
+
+
+def _file_output(output: str) -> str:
+    """-o of a command that writes one file: it must not name a folder."""
+    from pathlib import Path
+
+    if not output:
+        raise click.BadParameter("must not be empty", param_hint="-o")
+    if output.endswith(("/", os.sep)) or Path(output).is_dir():
+        raise click.BadParameter(f"must name a file, not a folder: {output}", param_hint="-o")
+    return output
+
+
+def _folder_output(output: str | None, scene_name: str, force: bool):
+    """The build's output folder (None: the dump goes to stdout), refused early if it cannot be replaced."""
+    from pathlib import Path
+
+    from wiredsl.io.files import check_output_folder
+
+    if output == "-":
+        return None
+    if output == "":
+        raise click.BadParameter("must not be empty", param_hint="-o")
+    out = Path(output) if output is not None else Path("build") / scene_name
+    check_output_folder(out, force)
+    if out.suffix.lower() in DUMP_SUFFIXES and not out.is_dir():
+        raise click.BadParameter(f"{output} looks like a file name; -o names the output folder (the dump is "
+                                 "written into it as features.json, .jsonl or .npz)", param_hint="-o")
+    return out
+
+
+def _size(n: float) -> str:
+    for unit in ("bytes", "kB", "MB", "GB"):
+        if n < 1000:
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} TB"
+
+
+def trial_bytes(out_format: str, run, trial: int, doc_for) -> int:
+    """Bytes one trial adds to a jsonl or npz dump, measured by running `trial` alone (not written)."""
+    import dataclasses
+    from collections import Counter
+
+    from wiredsl.effects.base import Stats
+    from wiredsl.io import emit
+
+    # The run's ideal projection, but its own counters and caches: the run's manifest is left as it would be.
+    probe = dataclasses.replace(run, trace=Counter(), stats=Stats(), warnings=[], _sampler=None, _epipoles={},
+                                _ideal=run.ideal())
+    if not probe.stages:
+        outs = [(r, None, None) for r in probe.ideal()]
+    else:
+        _, outs = next(probe.batches([trial]))
+    if out_format == "jsonl":
+        res = emit.disturbed_results(outs, 0) if probe.stages else [r for r, _, _ in outs]
+        return sum(len(emit.to_json(doc_for([r], trial), indent=None).encode()) for r in res)
+    from wiredsl.io import layout
+
+    if not probe.stages:  # npz holds the ideal projection once, as trial 0, whatever N
+        return 0
+    n = 0
+    for _, disturbed, _ in outs:
+        for s in disturbed.values():  # float32 vertices; int32 rows and an int64 offset; corners; the view
+            n += (4 * 2 * len(s.pts) + (4 * len(layout.STROKE_COLUMNS) + 8) * s.n_strokes
+                  + (4 * 2 + 4 * len(layout.CORNER_COLUMNS)) * len(s.corners)
+                  + 4 * len(layout.VIEW_COLUMNS) + 8 * len(layout.CAMERA_COLUMNS) + 8 * 12)
+    return n
+
+
+def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None:
+    """Refuse (usage error) a run whose estimated output exceeds OUTPUT_LIMIT or the free space."""
+    import shutil
+    from pathlib import Path
+
+    total = per_trial * n_trials
+    room, why = OUTPUT_LIMIT, f"the {_size(OUTPUT_LIMIT)} a run may write"
+    if out_dir is not None:
+        where = Path(out_dir).absolute()
+        while not where.exists():
+            where = where.parent
+        free = shutil.disk_usage(where).free
+        if free < room:
+            room, why = free, f"the free space on {where} ({_size(free)})"
+    if total > room:
+        raise click.BadParameter(f"{n_trials} trials would write about {_size(total)} of {out_format} "
+                                 f"({_size(per_trial)} a trial, measured on its first trial), more than "
+                                 f"{why}; run fewer trials or pass --force", param_hint="--trials")
 
 
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", default=None,
-              help="Output directory (default build/<scene name>/), or - for the dump on stdout.")
+              help="Output folder (default build/<scene name>/), replaced whole by the run; - for the dump on stdout.")
 @click.option("--pipeline", "pipeline_name", default=None, help="The pipeline to run (default: the scene's default).")
 @click.option("--no-effects", is_flag=True, help="The ideal projection, whatever the scene's pipelines.")
 @click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=None,
               help="Seed of every random stream (default: drawn at random and recorded).")
 @click.option("--trials", type=click.IntRange(1, 10**8), default=1, show_default=True, help="Monte-Carlo trials.")
-@click.option("--trial", "only_trial", type=click.IntRange(0, None), default=None,
+@click.option("--trial", "only_trial", type=click.IntRange(0, MAX_TRIAL), default=None,
               help="Replay trial K of a run alone (same seed): exactly that trial's output.")
 @click.option("--pose", "poses", type=int, multiple=True, help="Build only this pose (repeatable).")
 @click.option("--format", "out_format", type=click.Choice(["json", "jsonl", "npz"]), default="json",
               show_default=True, help="json: one dump (one trial); jsonl: a line a trial and pose; npz: bulk arrays.")
-@click.option("--svg/--no-svg", default=True, show_default=True, help="Write one SVG a pose (json format).")
+@click.option("--svg/--no-svg", default=True, show_default=True,
+              help="Write one SVG a pose (of the run's first trial).")
 @click.option("--layout", type=click.Choice(["overlay", "side-by-side", "visibility"]), default="overlay",
               show_default=True, help="The SVGs' layout: overlay: disturbed over ideal (Figures 3, 9); side-by-side: "
               "original beside disturbed (Figure 9); visibility: without and with view-dependency (Figure 4).")
 @click.option("--cameras", type=click.Choice(["both", "left"]), default="both", show_default=True,
               help="Project the right camera too, or only the left.")
-@click.option("--tolerance", type=float, default=0.1, show_default=True, callback=_positive_px,
-              help="Largest deviation (px) of an emitted polyline from the true image curve.")
+@click.option("--tolerance", type=float, default=0.1, show_default=True, callback=_tolerance,
+              help=f"Largest deviation (px, {TOLERANCE_PX[0]:g} to {TOLERANCE_PX[1]:g}) of an emitted polyline "
+                   "from the true image curve.")
 @click.option("--visibility", type=click.Choice(["scene", "exact", "all"]), default="scene", show_default=True,
               help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion.")
 @click.option("--exact-calibration", is_flag=True,
               help="Project each trial's perturbed rig from scratch (slow) instead of re-projecting the ideal "
                    "strokes with every trial's cameras at once.")
+@click.option("--force", is_flag=True,
+              help="Replace an output folder that holds other files; run beyond the output size limit.")
+@diagnostics_option
 @guarded
 def build(file: str, output: str | None, pipeline_name: str | None, no_effects: bool, seed: int | None, trials: int,
           only_trial: int | None, poses: tuple[int, ...], out_format: str, svg: bool, cameras: str, tolerance: float,
-          visibility: str, exact_calibration: bool, layout: str) -> None:
+          visibility: str, exact_calibration: bool, layout: str, force: bool, diagnostics: str) -> None:
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
+    import contextlib
     import secrets
     import time
-    from pathlib import Path
 
     from wiredsl.engine.montecarlo import Run
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world
     from wiredsl.io import emit
-    from wiredsl.io.files import write_atomic
+    from wiredsl.io.features import Manifest
+    from wiredsl.io.files import json_text, output_folder, write_atomic
+    from wiredsl.io.svg import Info as svg_info
     from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
-    report(warnings, program.sources, "text")
+    report(warnings, program.sources, diagnostics)
     if scene.path is not None:
         n = len(scene.path.poses)
         for p in poses:
@@ -294,7 +442,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         if pipeline is None and scene.pipelines:
             click.echo("note: no pipeline is marked default; building the ideal projection (choose one with "
                        "--pipeline: " + ", ".join(p.name for p in scene.pipelines) + ")", err=True)
-    trial_list = [only_trial] if only_trial is not None else list(range(trials))
+    trial_list = range(only_trial, only_trial + 1) if only_trial is not None else range(trials)
     if layout == "side-by-side" and pipeline is None:
         raise click.BadParameter("side-by-side shows the original beside the disturbed world: give a pipeline",
                                  param_hint="--layout")
@@ -304,48 +452,55 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     if out_format == "json" and len(trial_list) > 1:
         raise click.BadParameter("one JSON dump holds one trial: use --format jsonl or npz for several",
                                  param_hint="--trials")
-    if seed is None:
-        seed = secrets.randbits(63)
+    out_dir = _folder_output(output, scene.name, force)
+    if out_format == "npz" and out_dir is None:
+        raise click.BadParameter("npz cannot go to stdout", param_hint="-o")
     world = build_world(scene)
     opts = Options(tolerance=tolerance, visibility=visibility, poses=tuple(sorted(set(poses))) or None,
                    right=cameras == "both")
-    run = Run.create(scene, world, pipeline, seed, opts)
+    run = Run.create(scene, world, pipeline, seed if seed is not None else 0, opts)
     run.exact_calibration = exact_calibration
     effects = bool(run.stages)
-    out_dir = None if output == "-" else (Path(output) if output else Path("build") / scene.name)
+    if seed is None and effects:  # drawn only when something random runs, so ideal runs stay byte-identical
+        seed = run.seed = secrets.randbits(63)
     records = emit.stage_records(run)
 
     def doc_for(results, k):
         return emit.features(scene, world, results, pipeline=pipeline.name if pipeline else None, stages=records,
                              seed=seed if effects else None, trial=k if effects else None)
 
-    from wiredsl.io.svg import Info as svg_info
-
+    if len(trial_list) > 1 and not force:
+        _check_size(out_format, len(trial_list), trial_bytes(out_format, run, trial_list[0], doc_for), out_dir)
     started = time.perf_counter()
     if not effects:
         results = run.ideal()
         batches = [(trial_list, [(r, None, None) for r in results])]
     else:
         batches = run.batches(trial_list)
-    writer = None
-    if out_format == "jsonl":
-        writer = emit.JsonLines(out_dir / "features.jsonl") if out_dir is not None else None
-    elif out_format == "npz":
-        if out_dir is None:
-            raise click.BadParameter("npz cannot go to stdout", param_hint="-o")
-        writer = emit.NpzStream(out_dir / "features.npz")
     show = sys.stderr.isatty() and len(trial_list) > 1
-    try:
-        with click.progressbar(length=len(trial_list), label="trials", file=sys.stderr if show else _Null()) as bar:
-            for batch, batch_out in batches:
-                if out_format == "npz":
-                    if effects:
+    what = {"json": "features.json", "jsonl": "features.jsonl", "npz": "features.npz"}[out_format]
+    with output_folder(out_dir, force) if out_dir is not None else contextlib.nullcontext() as stage:
+        writer = None
+        if out_format == "jsonl" and stage is not None:
+            writer = emit.JsonLines(stage / what)
+        elif out_format == "npz":
+            writer = emit.NpzStream(stage / what)
+        try:
+            with click.progressbar(length=len(trial_list), label="trials", file=sys.stderr if show else _Null()) as bar:
+                for batch, batch_out in batches:
+                    first = batch[0] == trial_list[0]
+                    if out_format == "npz" and effects:
                         writer.write_batch(batch, batch_out)
-                    else:
-                        raise click.BadParameter("npz holds Monte-Carlo trials: give a pipeline", param_hint="--format")
-                else:
+                    elif out_format == "npz":  # the ideal projection as trial 0, in the same layout
+                        writer.write_ideal([r for r, _, _ in batch_out], world)
                     for k, t in enumerate(batch):
+                        if out_format == "npz" and not (first and k == 0 and svg):
+                            break
                         res = emit.disturbed_results(batch_out, k) if effects else [r for r, _, _ in batch_out]
+                        if first and k == 0 and svg and stage is not None:
+                            _write_svgs(stage, res, run, svg_info(pipeline.name if effects else None,
+                                                                  seed if effects else None, t if effects else None,
+                                                                  visibility, layout))
                         if out_format == "jsonl":
                             for r in res:
                                 line = doc_for([r], t)
@@ -353,28 +508,31 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                                     sys.stdout.write(emit.to_json(line, indent=None))
                                 else:
                                     writer.write(line)
-                        else:
-                            info = svg_info(pipeline.name if effects else None, seed if effects else None,
-                                            t if effects else None, visibility, layout)
-                            _write_json(doc_for(res, t), res, out_dir, svg, run, info)
-                bar.update(len(batch))
-    except BaseException:
-        if writer is not None:
-            writer.abort()
-        raise
-    manifest = {"scene": emit.scene_ref(scene).model_dump(), "pipeline": pipeline.name if pipeline else None,
-                "seed": seed, "trials": len(trial_list), "first_trial": trial_list[0], **run.manifest()}
+                        elif out_format == "json":
+                            text = emit.to_json(doc_for(res, t))
+                            if stage is None:
+                                sys.stdout.write(text)
+                            else:
+                                write_atomic(stage / what, text, tidy=False)
+                    bar.update(len(batch))
+            manifest = Manifest(tool_version=__version__, scene=emit.scene_ref(scene),
+                                pipeline=pipeline.name if pipeline else None, seed=seed, trials=len(trial_list),
+                                first_trial=trial_list[0], visibility=visibility,
+                                **run.manifest()).model_dump(mode="json")
+            if out_format == "npz":
+                writer.close(world.feature_ids, manifest)
+            elif writer is not None:
+                writer.close()
+        except BaseException:
+            if writer is not None:
+                writer.abort()
+            raise
+        if stage is not None:
+            write_atomic(stage / "manifest.json", json_text(manifest, sort_keys=True, where="manifest"), tidy=False)
     seconds = time.perf_counter() - started
-    if out_format == "npz":
-        writer.close(world.feature_ids, manifest)
-    elif writer is not None:
-        writer.close()
     for w in run.warnings:
         click.echo(f"warning: {w}", err=True)
     if out_dir is not None:
-        if effects:
-            write_atomic(out_dir / "manifest.json", json.dumps(manifest, indent=1, sort_keys=True) + "\n")
-        what = {"json": "features.json", "jsonl": "features.jsonl", "npz": "features.npz"}[out_format]
         click.echo(f"wrote {out_dir / what} in {seconds:.1f} s ({len(trial_list)} trial{'s' * (len(trial_list) != 1)}, "
                    f"seed {seed if effects else '-'}"
                    + (f", pipeline {pipeline.name}: {', '.join(e.name for e, _ in run.stages)}" if effects else
@@ -394,31 +552,23 @@ class _Null:
         return False
 
 
-def _write_json(doc, results, out_dir, svg: bool, run, info=None) -> None:
-    """One trial's dump, and its SVGs (disturbed over ideal when the pipeline ran)."""
-    from wiredsl.io import emit
+def _write_svgs(folder, results, run, info) -> None:
+    """One SVG a pose of these results, in the chosen layout (disturbed over ideal when the pipeline ran)."""
     from wiredsl.io import svg as svg_mod
     from wiredsl.io.files import write_atomic
 
-    text = emit.to_json(doc)
-    if out_dir is None:
-        sys.stdout.write(text)
-        return
-    write_atomic(out_dir / "features.json", text)
-    if svg:
-        info = info or svg_mod.Info()
-        for name, text in svg_mod.pose_figures(run, results, info.layout, info).items():
-            write_atomic(out_dir / name, text)
+    for name, text in svg_mod.pose_figures(run, results, info.layout, info).items():
+        write_atomic(folder / name, text, tidy=False)
 
 
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
-@click.option("-o", "--output", default=None,
-              help="Output file (default: the scene's `visibility file`, else <scene>.viewdep.json beside it).")
+@click.option("-o", "--output", default=None, help="Output file (default build/<scene name>/viewdep.json).")
 @click.option("--threshold", type=click.FloatRange(0, 1), default=0.3, show_default=True,
               help="Fraction of a feature's sample points that must be seen for it to count as visible.")
+@diagnostics_option
 @guarded
-def viewdep(file: str, output: str | None, threshold: float) -> None:
+def viewdep(file: str, output: str | None, threshold: float, diagnostics: str) -> None:
     """Compute which features each view-point sees, and write the view-dependency file."""
     from pathlib import Path
 
@@ -431,8 +581,10 @@ def viewdep(file: str, output: str | None, threshold: float) -> None:
     from wiredsl.io.files import write_atomic
     from wiredsl.language.compile import compile_file
 
+    if output is not None:
+        _file_output(output)
     scene, warnings, program = compile_file(file)
-    report(warnings, program.sources, "text")
+    report(warnings, program.sources, diagnostics)
     vp = scene.viewpoints
     if vp is None:
         raise WiredslError([Diagnostic("error", "E102", f"scene '{scene.name}' has no viewpoints mesh", None)])
@@ -441,12 +593,14 @@ def viewdep(file: str, output: str | None, threshold: float) -> None:
     doc = ViewDependency(tool_version=__version__, scene=emit.scene_ref(scene), threshold=threshold,
                          eye_height=visibility.eye_height(scene),
                          viewpoints=visibility.as_lists(world, vp.names, vis))
-    if output is None:
-        base = Path(scene.source).parent
-        output = str(base / vp.file) if vp.file else str(base / f"{Path(scene.source).stem}.viewdep.json")
-    write_atomic(output, emit.to_json(doc))
-    click.echo(f"wrote {output} ({len(vp.names)} view-points, {world.n_features} features)", err=True)
-
+    out = Path(output) if output is not None else Path("build") / scene.name / "viewdep.json"
+    write_atomic(out, emit.to_json(doc))
+    click.echo(f"wrote {out} ({len(vp.names)} view-points, {world.n_features} features)", err=True)
+    if vp.file:
+        wanted = Path(scene.source).parent / vp.file
+        if not (wanted.exists() and wanted.resolve() == out.resolve()):
+            click.echo(f"note: {file} reads its view-point lists from {wanted}; write them there with "
+                       f"'wiredsl viewdep {file} -o {wanted}'", err=True)
 
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
@@ -454,8 +608,9 @@ def viewdep(file: str, output: str | None, threshold: float) -> None:
               help="The plot: .svg, or .png for a raster (default build/<scene name>/bench.svg). Needs wiredsl[plot].")
 @click.option("--budget", type=click.FloatRange(1, None), default=60.0, show_default=True,
               help="Seconds the Monte-Carlo table may spend; rows beyond it are not run.")
+@diagnostics_option
 @guarded
-def bench(file: str, output: str | None, budget: float) -> None:
+def bench(file: str, output: str | None, budget: float, diagnostics: str) -> None:
     """Measure what each accuracy knob costs in time on a scene: four tables (stdout) and a plot."""
     import platform
     from pathlib import Path
@@ -467,10 +622,10 @@ def bench(file: str, output: str | None, budget: float) -> None:
     from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
-    report(warnings, program.sources, "text")
+    report(warnings, program.sources, diagnostics)
     require_buildable(scene)
     world = build_world(scene)
-    out = Path(output) if output else Path("build") / scene.name / "bench.svg"
+    out = Path(_file_output(output)) if output is not None else Path("build") / scene.name / "bench.svg"
     if out.suffix.lower() not in (".svg", ".png"):
         raise click.BadParameter("the plot is written as .svg or .png", param_hint="-o")
     try:
@@ -511,9 +666,10 @@ def lsp(print_grammar: bool) -> None:
               help="Write the rig as trial K drew it (needs --seed and a calibration_error stage).")
 @click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=None, help="The run's seed (with --trial).")
 @click.option("--pipeline", "pipeline_name", default=None, help="The pipeline whose calibration_error draws the rig.")
+@diagnostics_option
 @guarded
 def export_calibration(file: str, output: str | None, trial: int | None, seed: int | None,
-                       pipeline_name: str | None) -> None:
+                       pipeline_name: str | None, diagnostics: str) -> None:
     """Write the rig's cameras as OpenCV (stereo.yaml) and ROS (left.yaml, right.yaml) calibration files."""
     from pathlib import Path
 
@@ -523,7 +679,7 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
-    report(warnings, program.sources, "text")
+    report(warnings, program.sources, diagnostics)
     if scene.rig is None:
         raise click.UsageError(f"{file} has no rig to export")
     if trial is not None:

@@ -30,6 +30,11 @@ class ImageSet:
     corners: np.ndarray  # (C, 2)
     corner_fid: np.ndarray  # (C,)
     corner_trial: np.ndarray  # (C,)
+    occluded: np.ndarray | None = None  # (S,) bool: a visible part of a feature occlusion cut; None: all False
+
+    def __post_init__(self):
+        if self.occluded is None:
+            object.__setattr__(self, "occluded", np.zeros(len(self.start) - 1, dtype=bool))
 
     @property
     def n_strokes(self) -> int:
@@ -64,10 +69,11 @@ class ImageSet:
             fid=np.tile(self.fid, n), segment=np.tile(self.segment, n), fragment=np.tile(self.fragment, n),
             kind=np.tile(self.kind, n), clipped=np.tile(self.clipped, n), closed=np.tile(self.closed, n),
             trial=np.repeat(np.arange(n), S), corners=np.tile(self.corners, (n, 1)),
-            corner_fid=np.tile(self.corner_fid, n), corner_trial=np.repeat(np.arange(n), C))
+            corner_fid=np.tile(self.corner_fid, n), corner_trial=np.repeat(np.arange(n), C),
+            occluded=np.tile(self.occluded, n))
 
 
-_META = ("fid", "segment", "fragment", "kind", "clipped", "closed", "trial")
+_META = ("fid", "segment", "fragment", "kind", "clipped", "closed", "trial", "occluded")
 
 
 def _meta(s: ImageSet, index) -> dict:

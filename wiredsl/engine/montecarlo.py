@@ -180,10 +180,12 @@ def to_imageset(view: View, world: World) -> im.ImageSet:
         pts=np.concatenate([f.points for f in strokes]) if strokes else np.zeros((0, 2)),
         start=np.concatenate([[0], np.cumsum(counts)]).astype(int),
         fid=np.array([f.fid for f in strokes], dtype=int), segment=np.array([f.segment for f in strokes], dtype=int),
-        fragment=z - 1, kind=np.array(kind, dtype=int), clipped=np.array([f.clipped for f in strokes], dtype=bool),
+        fragment=np.array([f.fragment for f in strokes], dtype=int), kind=np.array(kind, dtype=int),
+        clipped=np.array([f.clipped for f in strokes], dtype=bool),
         closed=np.array([f.closed for f in strokes], dtype=bool), trial=z,
         corners=np.array([f.points[0] for f in corners]).reshape(-1, 2),
-        corner_fid=np.array([f.fid for f in corners], dtype=int), corner_trial=np.zeros(len(corners), dtype=int))
+        corner_fid=np.array([f.fid for f in corners], dtype=int), corner_trial=np.zeros(len(corners), dtype=int),
+        occluded=np.array([f.occluded for f in strokes], dtype=bool))
 
 
 def concat_trials(sets: list[im.ImageSet]) -> im.ImageSet:
@@ -196,7 +198,8 @@ def concat_trials(sets: list[im.ImageSet]) -> im.ImageSet:
         fragment=cat("fragment"), kind=cat("kind"), clipped=cat("clipped"), closed=cat("closed"),
         trial=np.concatenate([np.full(s.n_strokes, k) for k, s in enumerate(sets)]).astype(int),
         corners=np.concatenate([s.corners for s in sets]).reshape(-1, 2), corner_fid=cat("corner_fid"),
-        corner_trial=np.concatenate([np.full(len(s.corners), k) for k, s in enumerate(sets)]).astype(int))
+        corner_trial=np.concatenate([np.full(len(s.corners), k) for k, s in enumerate(sets)]).astype(int),
+        occluded=cat("occluded"))
 
 
 def features_of(s: im.ImageSet, k: int) -> list[ImageFeature]:
@@ -213,7 +216,7 @@ def features_of(s: im.ImageSet, k: int) -> list[ImageFeature]:
         pts = s.pts[s.start[i]:s.start[i + 1]]
         kind = "line" if s.kind[i] == im.STRAIGHT and len(pts) == 2 else "polyline"
         out.append(ImageFeature(int(s.fid[i]), kind, pts, int(s.segment[i]), bool(s.clipped[i]), bool(s.closed[i]),
-                                fragment=frag))
+                                fragment=frag, occluded=bool(s.occluded[i])))
     for i in np.flatnonzero(s.corner_trial == k):
         out.append(ImageFeature(int(s.corner_fid[i]), "corner", s.corners[i][None, :]))
     return out
@@ -245,9 +248,11 @@ def reproject(view: View, world: World, rig: dict, pose: tuple, side: str):
     template = im.ImageSet(
         pts=np.zeros((len(W), 2)), start=np.concatenate([[0], np.cumsum(counts)]).astype(int),
         fid=np.array([r.fid for r in raw], dtype=int), segment=np.array([r.segment for r in raw], dtype=int),
-        fragment=z - 1, kind=kinds, clipped=np.array([r.clipped for r in raw], dtype=bool),
+        fragment=np.array([r.fragment for r in raw], dtype=int), kind=kinds,
+        clipped=np.array([r.clipped for r in raw], dtype=bool),
         closed=np.array([r.closed for r in raw], dtype=bool), trial=z, corners=np.zeros((len(cw), 2)),
-        corner_fid=np.asarray(cf, dtype=int), corner_trial=np.zeros(len(cw), dtype=int))
+        corner_fid=np.asarray(cf, dtype=int), corner_trial=np.zeros(len(cw), dtype=int),
+        occluded=np.array([r.occluded for r in raw], dtype=bool))
     rep = template.repeat_trials(T)
     folds = np.array([geometry.fold_radius(k1, k2) for k1, k2 in zip(p["k1"], p["k2"], strict=True)])
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl.diagnostics import Diagnostic, Span, WiredslError
-from wiredsl.engine import conics, geometry, visibility
+from wiredsl.engine import conics, geometry, occlusion, visibility
 from wiredsl.engine.world import World, build_world, ellipse_points
 from wiredsl.scene import Camera, Scene
 
@@ -42,6 +42,7 @@ class ImageFeature:
     closed: bool = False
     conic: tuple | None = None  # (centre (2,), axes (2,), angle, arc or None)
     fragment: int = -1  # piece number after a stage cut the feature, -1 when whole
+    occluded: bool = False  # a visible part of a feature that occlusion cut (--visibility exact)
 
 
 @dataclass
@@ -54,6 +55,8 @@ class Raw:
     closed: bool
     clipped: bool  # already cut in 3D (near plane, fold)
     world: np.ndarray  # (k, 3)
+    fragment: int = -1  # part number when occlusion cut the feature
+    occluded: bool = False
 
 
 @dataclass
@@ -87,6 +90,8 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
     poses = np.array(scene.path.poses, dtype=float)
     chosen = range(len(poses)) if options.poses is None else options.poses
     vp_names, masks = visible if visible is not None else visibility_masks(scene, world, options)
+    # --visibility exact: hidden lines removed, features cut at occlusion boundaries (occlusion.py)
+    occluders = occlusion.Occluders.of_world(world) if options.visibility == "exact" else None
     out = []
     for i in chosen:
         pose = tuple(float(v) for v in poses[i])
@@ -98,7 +103,7 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
             cam = scene.camera(mount.camera)
             R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
             mask = masks[(i, side)]
-            views.append(project_view(world, cam, R_cw, t_cw, mask, options.tolerance))
+            views.append(project_view(world, cam, R_cw, t_cw, mask, options.tolerance, occluders))
         out.append(PoseResult(i, pose, vp_names.get(i), views[0], views[1]))
     return out
 
@@ -119,15 +124,7 @@ def visibility_masks(scene: Scene, world: World, options: Options):
     names: dict[int, str] = {}
     masks: dict[tuple[int, str], np.ndarray] = {}
     vp = scene.viewpoints
-    if options.visibility == "exact":
-        for i in chosen:
-            pose = tuple(poses[i])
-            for side, mount in (("left", scene.rig.left), ("right", scene.rig.right)):
-                R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
-                eye = -R_cw.T @ t_cw
-                masks[(i, side)] = visibility.visible_features(world, eye[None])[0]
-        return names, masks
-    if vp is None or vp.visibility == "all" or options.visibility == "all":
+    if vp is None or vp.visibility == "all" or options.visibility in ("all", "exact"):  # exact: occlusion.py cuts
         for i in chosen:
             masks[(i, "left")] = masks[(i, "right")] = everything
         return names, masks
@@ -180,9 +177,10 @@ def read_viewdep(path: Path, scene: Scene) -> dict[str, list[str]]:
 # --------------------------------------------------------------------------- projection
 
 def project_view(world: World, cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, mask: np.ndarray,
-                 tol: float = DEFAULT_TOLERANCE) -> View:
-    """What one camera sees of the features in `mask`."""
+                 tol: float = DEFAULT_TOLERANCE, occluders: occlusion.Occluders | None = None) -> View:
+    """What one camera sees of the features in `mask` (only their unoccluded parts, given occluders)."""
     view = View(cam, R_cw, t_cw)
+    eye = None if occluders is None else occluders.seen_from(R_cw, t_cw)
     r_fold = geometry.fold_radius(cam.k1, cam.k2)
     distorted = geometry.is_distorted(cam)
 
@@ -195,11 +193,11 @@ def project_view(world: World, cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, 
     sA, sB, sfid, sseg = silhouettes_cam(world, mask, R_cw, t_cw)
     A, B = np.concatenate([A, sA]), np.concatenate([B, sB])
     fid, seg = np.concatenate([fid, sfid]).astype(int), np.concatenate([seg, sseg]).astype(int)
-    view.features += _segments(A, B, fid, seg, cam, r_fold, distorted, tol, view.raw, R_cw, t_cw)
+    view.features += _segments(A, B, fid, seg, cam, r_fold, distorted, tol, view.raw, R_cw, t_cw, eye)
 
     sel = np.flatnonzero(mask[world.ell_fid])
     for e in sel:
-        view.features += _ellipse(world, e, cam, R_cw, t_cw, r_fold, distorted, tol, view.raw)
+        view.features += _ellipse(world, e, cam, R_cw, t_cw, r_fold, distorted, tol, view.raw, eye)
 
     sel = mask[world.corner_fid]
     if sel.any():
@@ -207,12 +205,16 @@ def project_view(world: World, cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, 
         ok = P[:, 2] > geometry.NEAR
         xy = np.where(ok[:, None], P[:, :2] / np.where(ok, P[:, 2], 1.0)[:, None], 0.0)
         ok &= np.hypot(xy[:, 0], xy[:, 1]) < r_fold
+        if eye is not None:  # --visibility exact (occlusion.py)
+            ok &= ~eye.hidden(P)
         uv = geometry.plane_to_pixels(geometry.distort(xy, cam.k1, cam.k2, cam.p1, cam.p2),
                                       cam.f, cam.ax, cam.ay, cam.cx, cam.cy)
         view.corner_world, view.corner_fid = world.corners[sel][ok], world.corner_fid[sel][ok]
         ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
         for f, p in zip(world.corner_fid[sel][ok], uv[ok], strict=True):
             view.features.append(ImageFeature(int(f), "corner", p[None, :]))
+    if eye is not None:  # parts also cut by the image border get their own numbers (occlusion.py)
+        occlusion.number_parts(view.features)
     return view
 
 
@@ -244,19 +246,24 @@ def _to_world(P_cam: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarr
 
 
 def _segments(A, B, fid, seg, cam: Camera, r_fold: float, distorted: bool, tol: float, raw: list[Raw],
-              R_cw, t_cw) -> list[ImageFeature]:
+              R_cw, t_cw, eye: occlusion.Eye | None = None) -> list[ImageFeature]:
     out: list[ImageFeature] = []
     if len(A) == 0:
         return out
     t0, t1, keep = geometry.clip_segments_cone(A, B, geometry.NEAR, r_fold * (1 - 1e-9))
     cut3d = (t0 > 0) | (t1 < 1)
+    piece, hid = np.full(len(A), -1), np.zeros(len(A), dtype=bool)
+    if eye is not None:  # --visibility exact: one row per unoccluded part (occlusion.py)
+        rows, u0, u1, piece, hid = occlusion.split_segments(eye, A, B, t0, t1, keep)
+        cut3d = ((u0 > 0) & (u0 == t0[rows])) | ((u1 < 1) & (u1 == t1[rows]))  # the near plane, not occlusion
+        A, B, fid, seg, t0, t1, keep = A[rows], B[rows], fid[rows], seg[rows], u0, u1, np.ones(len(rows), bool)
     D = B - A
     idx = np.flatnonzero(keep)
     if not distorted:
         Pa, Pb = A[idx] + t0[idx, None] * D[idx], A[idx] + t1[idx, None] * D[idx]
         for j, i in enumerate(idx):
             raw.append(Raw(int(fid[i]), int(seg[i]), "line", False, bool(cut3d[i]),
-                           _to_world(np.stack([Pa[j], Pb[j]]), R_cw, t_cw)))
+                           _to_world(np.stack([Pa[j], Pb[j]]), R_cw, t_cw), int(piece[i]), bool(hid[i])))
         a = geometry.cam_to_pixels(Pa, cam)
         b = geometry.cam_to_pixels(Pb, cam)
         r0, r1, ok = geometry.clip_segments_rect(a, b, cam.width, cam.height)
@@ -266,7 +273,8 @@ def _segments(A, B, fid, seg, cam: Camera, r_fold: float, distorted: bool, tol: 
             i = idx[j]
             pts = np.stack([a[j] + r0[j] * d[j], a[j] + r1[j] * d[j]])
             cut = bool(cut3d[i] or r0[j] > 0 or r1[j] < 1)
-            out.append(ImageFeature(int(fid[i]), "line", pts, int(seg[i]), cut))
+            out.append(ImageFeature(int(fid[i]), "line", pts, int(seg[i]), cut, fragment=int(piece[i]),
+                                    occluded=bool(hid[i])))
         return out
 
     def point(c, t):
@@ -277,9 +285,10 @@ def _segments(A, B, fid, seg, cam: Camera, r_fold: float, distorted: bool, tol: 
         i = idx[j]
         pts = point(np.full(len(ts), j), ts)
         raw.append(Raw(int(fid[i]), int(seg[i]), "polyline", False, bool(cut3d[i]),
-                       _to_world(A[i] + ts[:, None] * D[i], R_cw, t_cw)))
-        for piece, cut in geometry.clip_polyline_rect(pts, cam.width, cam.height):
-            out.append(ImageFeature(int(fid[i]), "polyline", piece, int(seg[i]), bool(cut or cut3d[i])))
+                       _to_world(A[i] + ts[:, None] * D[i], R_cw, t_cw), int(piece[i]), bool(hid[i])))
+        for part, cut in geometry.clip_polyline_rect(pts, cam.width, cam.height):
+            out.append(ImageFeature(int(fid[i]), "polyline", part, int(seg[i]), bool(cut or cut3d[i]),
+                                    fragment=int(piece[i]), occluded=bool(hid[i])))
     return out
 
 
@@ -304,8 +313,8 @@ def _front_intervals(cz: float, Az: float, Bz: float, arc: tuple[float, float]) 
     return out
 
 
-def _ellipse(world: World, e: int, cam: Camera, R_cw, t_cw, r_fold, distorted, tol, raw: list[Raw]
-             ) -> list[ImageFeature]:
+def _ellipse(world: World, e: int, cam: Camera, R_cw, t_cw, r_fold, distorted, tol, raw: list[Raw],
+             eye: occlusion.Eye | None = None) -> list[ImageFeature]:
     fid = int(world.ell_fid[e])
     c = R_cw @ world.ell_c[e] + t_cw
     U = R_cw @ world.ell_U[e]
@@ -313,7 +322,10 @@ def _ellipse(world: World, e: int, cam: Camera, R_cw, t_cw, r_fold, distorted, t
     arc = tuple(world.ell_arc[e])
     full = bool(world.ell_full[e])
     intervals = _front_intervals(c[2], U[2], V[2], arc)
-    whole = len(intervals) == 1 and intervals[0] == arc
+    whole = len(intervals) == 1 and intervals[0] == arc  # wholly in front of the camera
+    hid = False
+    if eye is not None and intervals:  # --visibility exact: the unoccluded arcs (occlusion.py)
+        intervals, hid = occlusion.split_arcs(eye, c, U, V, intervals, full)
     out: list[ImageFeature] = []
     if not intervals:
         return out
@@ -328,6 +340,7 @@ def _ellipse(world: World, e: int, cam: Camera, R_cw, t_cw, r_fold, distorted, t
     params = geometry.adaptive_samples(point, lo, hi, tol, start=16)
     any_cut = not whole
     pieces = []
+    first_raw = len(raw)
     for ts in params:
         P = ellipse_points(np.broadcast_to(c, (len(ts), 3)), np.broadcast_to(U, (len(ts), 3)),
                            np.broadcast_to(V, (len(ts), 3)), ts)
@@ -335,15 +348,17 @@ def _ellipse(world: World, e: int, cam: Camera, R_cw, t_cw, r_fold, distorted, t
         any_cut |= not inside.all()
         runs = _runs(inside)
         for run in runs:
-            raw.append(Raw(fid, -1, "polyline", full and whole and len(runs) == 1 and inside.all(),
-                           not (whole and inside.all()), _to_world(P[run], R_cw, t_cw)))
+            raw.append(Raw(fid, -1, "polyline", full and whole and not hid and len(runs) == 1 and inside.all(),
+                           not (whole and inside.all()), _to_world(P[run], R_cw, t_cw),
+                           len(raw) - first_raw if hid else -1, hid))
             pts = geometry.cam_to_pixels(P[run], cam)
             for piece, cut in geometry.clip_polyline_rect(pts, cam.width, cam.height):
                 pieces.append((piece, cut))
-    closed = full and whole and len(pieces) == 1 and not pieces[0][1]
-    for piece, cut in pieces:
-        out.append(ImageFeature(fid, "polyline", piece, -1, bool(cut or not whole or any_cut), closed))
-    if not distorted and whole:
+    closed = full and whole and not hid and len(pieces) == 1 and not pieces[0][1]
+    for k, (piece, cut) in enumerate(pieces):
+        out.append(ImageFeature(fid, "polyline", piece, -1, bool(cut or not whole or any_cut), closed,
+                                fragment=k if hid else -1, occluded=hid))
+    if not distorted and whole and not hid:  # an occluded ellipse is its visible arcs only
         K = np.array([[cam.f * cam.ax, 0, cam.cx], [0, cam.f * cam.ay, cam.cy], [0, 0, 1.0]])
         H = K @ conics.homography(c, U, V)
         params_ = conics.ellipse_params(conics.dual_conic(H))

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from wiredsl.io.files import require_finite
+
 FORMATS = ("opencv", "ros", "kalibr")
 
 
@@ -295,7 +297,7 @@ def opencv_yaml(cams: list[dict], R: np.ndarray | None = None, T: np.ndarray | N
 
 def _cv_matrix(name: str, a: np.ndarray) -> list[str]:
     a = np.asarray(a, dtype=float)
-    data = ", ".join(repr(float(x)) for x in a.ravel())
+    data = ", ".join(repr(float(x)) for x in require_finite(a, f"calibration matrix {name}").ravel())
     return [f"{name}: !!opencv-matrix", f"   rows: {a.shape[0]}", f"   cols: {a.shape[1]}", "   dt: d",
             f"   data: [ {data} ]"]
 
@@ -310,7 +312,7 @@ def ros_yaml(name: str, cam: dict, R: np.ndarray | None = None, P: np.ndarray | 
         a = np.asarray(a, dtype=float)
         rows, cols = (1, a.size) if a.ndim == 1 else a.shape
         return [f"{key}:", f"  rows: {rows}", f"  cols: {cols}",
-                "  data: [" + ", ".join(repr(float(x)) for x in a.ravel()) + "]"]
+                "  data: [" + ", ".join(repr(float(x)) for x in require_finite(a, f"{name} {key}").ravel()) + "]"]
 
     lines = [f"image_width: {cam['width']}", f"image_height: {cam['height']}", f"camera_name: {name}"]
     lines += block("camera_matrix", K) + ["distortion_model: plumb_bob"] + block("distortion_coefficients", cam["D"])

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field
 
@@ -16,6 +16,7 @@ class Feature(Node):
     segment: int | None = Field(None, description="segment index within a polyline, silhouette side 0 or 1")
     fragment: int | None = Field(None, description="fragment index after edge loss")
     clipped: bool = Field(False, description="cut by the image border or the near plane")
+    occluded: bool = Field(False, description="a visible part of a feature that occlusion cut (--visibility exact)")
 
 
 class ImageLine(Feature):
@@ -101,3 +102,26 @@ class ViewDependency(Node):
     threshold: float = Field(ge=0, le=1, description="fraction of a feature's samples that must be seen")
     eye_height: float = Field(description="metres above the floor the view-points see from")
     viewpoints: dict[str, list[str]]
+
+
+class ManifestStage(Node):
+    effect: str
+    params: dict[str, float]
+    measured: dict[str, Any] = Field(description="each effect's measured statistic beside the declared value")
+
+
+class Manifest(Node):
+    """What a build ran (`manifest.json`, and the `manifest` member of features.npz)."""
+
+    document: Literal["manifest"] = "manifest"
+    schema_version: Literal["1"] = SCHEMA_VERSION
+    tool_version: str
+    scene: SceneRef
+    pipeline: str | None = None
+    seed: int | None = Field(None, description="the seed of every random stream; null for the ideal projection")
+    trials: int = Field(ge=1)
+    first_trial: int = Field(ge=0)
+    visibility: str = Field("scene", description="scene (the nearest view-point's list), exact or all")
+    stages: list[ManifestStage] = []
+    ran: dict[str, int] = Field({}, description="how often each piece of work ran (the run's trace)")
+    warnings: list[str] = []

@@ -1,10 +1,86 @@
-"""Atomic output: write a temporary file beside the target, then rename it into place."""
+"""Atomic output: files and whole output folders are written under a temporary name, then renamed into place.
+
+Temporaries are named `.<target>.wiredsl-<host>-<pid>-<token>.tmp` (and `.old` for a folder moved aside),
+so the next write to the same target can recognise and remove those a killed process left: on this host,
+when its pid no longer runs (another host's, on a shared file system, are left to that host).
+Every writer passes its values through `require_finite` (or `json_text`, built on it): no output can
+hold NaN, infinity or a number its format cannot store.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import json
+import math
 import os
+import re
+import secrets
+import shutil
+import signal
+import socket
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
+
+import numpy as np
+
+_TEMP = re.compile(r"^\.(?P<target>.+)\.wiredsl-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[A-Za-z0-9_]+\.(tmp|old)$")
+_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+_HOST = re.sub(r"[^A-Za-z0-9]", "_", socket.gethostname())[:64] or "host"
+
+
+class UnwritableValue(ValueError):
+    """A value no output may hold (NaN, infinity, or beyond the format's range): refused before writing."""
+
+
+class OutputFolderError(ValueError):
+    """An output folder that cannot or must not be replaced (a file, or a folder of someone else's files)."""
+
+
+def require_finite(value, where: str = "value", dtype: type | None = None):
+    """`value` (number, array, or nested dict/list of them) unchanged, or UnwritableValue naming where it fails.
+
+    With `dtype` (e.g. np.float32) an array is returned cast to it, and values beyond its range are refused.
+    """
+    if isinstance(value, np.ndarray | np.generic):
+        a = np.asarray(value)
+        if a.dtype.kind in "fc" and not np.isfinite(a).all():
+            i = tuple(int(j) for j in np.argwhere(~np.isfinite(a))[0])
+            raise UnwritableValue(f"{where}{list(i) if i else ''} is {a[i]} (not a finite number)")
+        if dtype is not None and np.dtype(dtype).kind == "f" and a.dtype != dtype:
+            with np.errstate(over="ignore"):
+                cast = a.astype(dtype)
+            if not np.isfinite(cast).all():
+                i = tuple(int(j) for j in np.argwhere(~np.isfinite(cast))[0])
+                raise UnwritableValue(f"{where}{list(i) if i else ''} is {a[i]:g}, beyond the range of "
+                                      f"{np.dtype(dtype).name} ({np.finfo(dtype).max:g})")
+            return cast
+        if dtype is not None and a.dtype != dtype:
+            info = np.iinfo(dtype)
+            if a.size and (a.min() < info.min or a.max() > info.max):
+                raise UnwritableValue(f"{where} holds {a.max() if a.max() > info.max else a.min()}, beyond the "
+                                      f"range of {np.dtype(dtype).name} ({info.min}..{info.max})")
+            return a.astype(dtype)
+        return a
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise UnwritableValue(f"{where} is {value} (not a finite number)")
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            require_finite(v, f"{where}.{k}")
+    elif isinstance(value, list | tuple):
+        for i, v in enumerate(value):
+            require_finite(v, f"{where}[{i}]")
+    return value
+
+
+def json_text(obj, indent: int | None = 1, sort_keys: bool = False, where: str = "document") -> str:
+    """JSON text of plain data, refusing non-finite numbers (located by `require_finite`)."""
+    try:
+        return json.dumps(obj, indent=indent, sort_keys=sort_keys, allow_nan=False) + "\n"
+    except ValueError:
+        require_finite(obj, where)  # names the first offending number
+        raise
 
 
 def _umask() -> int:
@@ -13,24 +89,170 @@ def _umask() -> int:
     return mask
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale(target: str | os.PathLike) -> list[Path]:
+    """Remove the temporaries of `target` (file or folder) left beside it by processes that no longer run."""
+    target = Path(target)
+    gone = []
+    with contextlib.suppress(OSError):
+        for p in target.parent.iterdir():
+            m = _TEMP.match(p.name)
+            if (m and m["target"] == target.name and m["host"] == _HOST and int(m["pid"]) != os.getpid()
+                    and not _alive(int(m["pid"]))):
+                _remove(p)
+                gone.append(p)
+    return gone
+
+
+def _remove(p: Path) -> None:
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p, ignore_errors=True)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            p.unlink()
+
+
+def _tag() -> str:
+    return f"wiredsl-{_HOST}-{os.getpid()}-"
+
+
+def _temp_name(target: Path, suffix: str) -> Path:
+    return target.parent / f".{target.name}.{_tag()}{secrets.token_hex(4)}{suffix}"
+
+
+def _named(exc: OSError, path: Path) -> OSError:
+    """The same error naming the target, not the temporary the user never asked for."""
+    return type(exc)(exc.errno, exc.strerror or str(exc), str(path))
+
+
 def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
     """Give a finished temporary file ordinary permissions (mkstemp makes it private) and rename it."""
     os.chmod(tmp, 0o666 & ~_umask())
     os.replace(tmp, path)
 
 
-def write_atomic(path: str | os.PathLike, data: str | bytes) -> None:
-    """Replace `path` with `data` so that readers see the old file or the new one, never a part."""
+def write_atomic(path: str | os.PathLike, data: str | bytes, tidy: bool = True) -> None:
+    """Replace `path` with `data` so that readers see the old file or the new one, never a part.
+
+    A device or FIFO (e.g. /dev/null) is written into, not replaced. `tidy` first removes the temporaries a
+    killed writer of `path` left (a listing of the folder: pass False for the many files of a fresh folder).
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise OutputFolderError(f"{path} is a folder")
     raw = data.encode("utf-8") if isinstance(data, str) else data
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    if path.exists() and not path.is_file():  # /dev/null, a FIFO: write into it, never rename over it
+        try:
+            with open(path, "wb") as fh:
+                fh.write(raw)
+            return
+        except OSError as exc:
+            raise _named(exc, path) from None
+    tmp = None
     try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(raw)
-            fh.flush()
-            os.fsync(fh.fileno())
-        publish(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if tidy:
+            remove_stale(path)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{_tag()}", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(raw)
+                fh.flush()
+                os.fsync(fh.fileno())
+            publish(tmp, path)
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)  # still there only when something failed
+    except OSError as exc:
+        raise _named(exc, path) from None
+
+
+# --------------------------------------------------------------------------- output folders
+
+# What other commands (viewdep, bench, export-calibration) write into a build folder: a rebuild keeps it.
+KEPT = ("viewdep.json", "bench.svg", "bench.png", "calibration")
+_OURS = re.compile(r"^(manifest\.json|features\.(json|jsonl|npz)|pose_\d+\.svg|viewdep\.json|bench\.(svg|png)"
+                   r"|calibration)$")
+
+
+def check_output_folder(target: str | os.PathLike, force: bool = False) -> None:
+    """Refuse a target that is a file, holds the working directory, or holds files wiredsl did not write."""
+    target = Path(target)
+    if target.exists() and not target.is_dir():
+        raise OutputFolderError(f"must be a folder: {target} is a file")
+    here = Path.cwd().resolve()
+    resolved = target.resolve()
+    if resolved == here or resolved in here.parents or resolved == Path.home().resolve():
+        raise OutputFolderError(f"{target} holds the working or home folder; name a folder of its own")
+    if target.is_dir() and not force:
+        foreign = sorted(p.name for p in target.iterdir() if not _OURS.match(p.name))
+        if foreign:
+            raise OutputFolderError(f"{target} holds files wiredsl did not write ({', '.join(foreign[:3])}"
+                                    f"{', ...' if len(foreign) > 3 else ''}); pass --force to replace it whole")
+
+
+@contextlib.contextmanager
+def output_folder(target: str | os.PathLike, force: bool = False) -> Iterator[Path]:
+    """A fresh temporary sibling of `target` to write a whole run into; swapped into place when the block ends.
+
+    On any exception (a signal included) the temporary is removed and `target` is left as it was. The swap
+    renames the old folder aside, the new one in, and removes the old one, with SIGINT and SIGTERM held off,
+    so `target` always holds one whole run, and of two concurrent runs the last to finish wins whole.
+    """
+    target = Path(target)
+    if target.is_symlink() and target.is_dir():  # the run goes where the link points; the link stays
+        target = Path(os.path.realpath(target))
+    check_output_folder(target, force)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale(target)
+        stage = _temp_name(target, ".tmp")
+        stage.mkdir()
+    except OSError as exc:
+        raise _named(exc, target) from None
+    try:
+        yield stage
+        _swap(stage, target)
+    except OSError as exc:
+        raise _named(exc, target) from None
+    finally:
+        _remove(stage)
+
+
+def _swap(stage: Path, target: Path) -> None:
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+    try:
+        os.chmod(stage, 0o777 & ~_umask())
+        for name in KEPT:  # files hard-linked (free), folders copied: the old folder's copy goes with it
+            old, new = target / name, stage / name
+            if new.exists() or old.is_symlink():
+                continue
+            with contextlib.suppress(OSError):
+                if old.is_file():
+                    os.link(old, new)
+                elif old.is_dir():
+                    shutil.copytree(old, new, symlinks=True)
+        for _ in range(100):  # another run may swap in between our two renames: move it aside too
+            aside = _temp_name(target, ".old")
+            with contextlib.suppress(FileNotFoundError):
+                os.rename(target, aside)
+            try:
+                os.rename(stage, target)
+                _remove(aside)
+                return
+            except OSError:
+                _remove(aside)
+                if not target.is_dir():
+                    raise
+        raise OSError(f"{target} kept being replaced by other runs")
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)

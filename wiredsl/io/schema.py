@@ -9,7 +9,7 @@ from pathlib import Path
 from pydantic import BaseModel
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
-NAMES = ("scene", "features", "viewdep")
+NAMES = ("scene", "features", "viewdep", "manifest")
 
 
 def _model(name: str) -> type[BaseModel]:
@@ -17,7 +17,7 @@ def _model(name: str) -> type[BaseModel]:
         from wiredsl.scene import Scene
         return Scene
     from wiredsl.io import features
-    return features.Features if name == "features" else features.ViewDependency
+    return {"features": features.Features, "viewdep": features.ViewDependency, "manifest": features.Manifest}[name]
 
 
 def generate(name: str) -> dict:

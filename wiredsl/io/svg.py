@@ -20,6 +20,7 @@ import numpy as np
 
 from wiredsl.engine.simulate import PoseResult, View
 from wiredsl.engine.world import World
+from wiredsl.io.files import require_finite
 from wiredsl.scene import Scene
 
 LAYOUTS = ("overlay", "side-by-side", "visibility")
@@ -50,6 +51,8 @@ MESH, MESH_POINT, NEAREST, PATH, ROBOT = "#90caf9", "#64b5f6", "#ef6c00", "#9e9e
 
 
 def _f(x: float) -> str:
+    if not math.isfinite(x):
+        require_finite(float(x), "an SVG coordinate")  # refuses it, saying why
     s = f"{x:.2f}".rstrip("0").rstrip(".")
     return "0" if s in ("-0", "") else s
 

@@ -1,0 +1,153 @@
+"""wiredsl.load round-trips every dump format; npz layout documented; manifests and npz validate; R, t exact."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import wiredsl
+from wiredsl.cli import main
+from wiredsl.engine.world import build_world
+from wiredsl.io import layout
+from wiredsl.language.compile import compile_file
+
+LAB = "scenes/lab.wd"
+
+
+def build(tmp_path: Path, name: str, *args: str) -> Path:
+    out = tmp_path / name
+    result = CliRunner().invoke(main, ["build", LAB, "-o", str(out), "--no-svg", *args])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def same_records(a: list[dict], b: list[dict], px: float) -> None:
+    """Equal records: every field exactly, pixel coordinates within px (npz holds float32)."""
+    assert len(a) == len(b) and len(a) > 0
+    for x, y in zip(a, b, strict=True):
+        assert x.keys() == y.keys(), (x, y)
+        for k in x:
+            if k in ("points", "at", "centre", "axes", "angle", "arc") and x[k] is not None:
+                assert np.allclose(x[k], y[k], rtol=0, atol=px), (k, x, y)
+            else:
+                assert x[k] == y[k], (k, x, y)
+
+
+@pytest.fixture(scope="module")
+def disturbed(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("dumps")
+    seed = ["--seed", "11", "--pose", "1", "--pose", "4", "--visibility", "exact"]  # parts through the effects
+    return {"npz": build(tmp, "npz", *seed, "--trials", "3", "--format", "npz") / "features.npz",
+            "jsonl": build(tmp, "jsonl", *seed, "--trials", "3", "--format", "jsonl") / "features.jsonl",
+            "json": [build(tmp, f"j{k}", *seed, "--trial", str(k)) / "features.json" for k in range(3)],
+            "dir": tmp}
+
+
+def test_every_format_loads_to_the_same_records_for_the_same_seed_and_trials(disturbed):
+    from_json = [r for p in disturbed["json"] for r in wiredsl.load(p)]
+    same_records(wiredsl.load(disturbed["jsonl"]), from_json, px=0)
+    same_records(wiredsl.load(disturbed["npz"]), from_json, px=1e-4)  # float32 pixels (about 3e-5 at 640 px)
+    assert any(r["occluded"] for r in from_json)  # hidden-line parts went through every effect
+
+
+def test_selection_by_trial_pose_and_camera(disturbed):
+    recs = wiredsl.load(disturbed["npz"], trial=2, pose=4, camera="right")
+    assert recs and {(r["trial"], r["pose"], r["camera"]) for r in recs} == {(2, 4, "right")}
+    same_records(recs, wiredsl.load(disturbed["json"][2], pose=[4], camera=1), px=1e-4)
+    arrays = wiredsl.load(disturbed["npz"], trial=[0, 1], arrays=True)
+    strokes = arrays["strokes"]
+    assert set(strokes[:, layout.column("trial")].tolist()) == {0, 1}
+    assert len(arrays["start"]) == len(strokes) + 1 and arrays["start"][-1] == len(arrays["pts"])
+    assert arrays["manifest"]["seed"] == 11
+
+
+def test_ideal_npz_carries_occlusion_fragments_and_closed_like_json(tmp_path):
+    args = ["--no-effects", "--visibility", "exact", "--pose", "1", "--pose", "4"]
+    npz = build(tmp_path, "n", *args, "--format", "npz") / "features.npz"
+    js = build(tmp_path, "j", *args) / "features.json"
+    a, b = wiredsl.load(npz), wiredsl.load(js)
+    same_records(a, b, px=1e-4)
+    assert any(r["occluded"] and r["fragment"] is not None for r in a)
+    strokes = wiredsl.load(npz, arrays=True)["strokes"]
+    assert strokes[:, layout.column("occluded")].any() and strokes[:, layout.column("closed")].any()
+
+
+def test_npz_views_hold_the_json_cameras_rotations_and_translations(disturbed):
+    a = wiredsl.load(disturbed["npz"], trial=2, arrays=True)
+    doc = json.loads(disturbed["json"][2].read_text())
+    rows = {tuple(r): k for k, r in enumerate(a["views"].tolist())}
+    assert len(rows) == 2 * len(doc["poses"])
+    for p in doc["poses"]:
+        for cam, side in enumerate(layout.CAMERAS):
+            k = rows[(2, p["index"], cam)]
+            v = p[side]
+            assert a["view_poses"][k].tolist() == [*np.ravel(v["rotation"]), *v["translation"]]  # bit for bit
+            assert a["view_cameras"][k].tolist() == [float(v["camera"][c]) for c in layout.CAMERA_COLUMNS]
+
+
+def test_ideal_conics_round_trip_through_npz(tmp_path):
+    args = ["--no-effects", "--visibility", "all"]
+    out = tmp_path / "cyl"
+    for fmt in ("json", "npz"):
+        r = CliRunner().invoke(main, ["build", "scenes/cylinder.wd", "-o", str(out / fmt), "--no-svg", *args,
+                                      "--format", fmt])
+        assert r.exit_code == 0, r.output
+    a, b = wiredsl.load(out / "npz" / "features.npz"), wiredsl.load(out / "json" / "features.json")
+    assert any(r["kind"] == "conic" for r in b)
+    same_records(a, b, px=1e-4)
+
+
+def test_manifests_and_npz_validate_and_a_broken_npz_does_not(disturbed, tmp_path):
+    manifest = disturbed["dir"] / "npz" / "manifest.json"
+    assert json.loads(manifest.read_text())["document"] == "manifest"
+    result = CliRunner().invoke(main, ["validate", str(manifest), str(disturbed["npz"])])
+    assert result.exit_code == 0, result.output
+    data = dict(np.load(disturbed["npz"]))
+    data["b00000_strokes"] = data["b00000_strokes"][:, :7]  # the old seven-column layout
+    broken = tmp_path / "old.npz"
+    np.savez(broken, **data)
+    result = CliRunner().invoke(main, ["validate", str(broken)])
+    assert result.exit_code == 1 and "strokes, start and pts do not agree" in result.output
+    (tmp_path / "text.npz").write_text("not a zip")
+    result = CliRunner().invoke(main, ["validate", str(tmp_path / "text.npz")])
+    assert result.exit_code == 1 and "not an npz file" in result.output
+    result = CliRunner().invoke(main, ["schema", "manifest"])
+    assert json.loads(result.output)["properties"]["document"]["const"] == "manifest"
+
+
+def test_reprojection_with_opencv_from_the_dumped_rotation_and_translation(tmp_path):
+    out = build(tmp_path, "ideal", "--no-effects", "--visibility", "all")
+    doc = json.loads((out / "features.json").read_text())
+    scene, _, _ = compile_file(LAB)
+    w = build_world(scene)
+    where = {w.feature_ids[f]: p for f, p in zip(w.corner_fid, w.corners, strict=True)}
+    worst, n = 0.0, 0
+    for p in doc["poses"]:
+        for side in ("left", "right"):
+            v = p[side]
+            c = v["camera"]
+            K = np.array([[c["f"] * c["ax"], 0, c["cx"]], [0, c["f"] * c["ay"], c["cy"]], [0, 0, 1.0]])
+            dist = np.array([c["k1"], c["k2"], c["p1"], c["p2"]])
+            rvec, _ = cv2.Rodrigues(np.array(v["rotation"]))
+            for corner in v["corners"]:
+                uv, _ = cv2.projectPoints(where[corner["source"]][None], rvec, np.array(v["translation"]), K, dist)
+                worst = max(worst, float(np.abs(uv.ravel() - corner["at"]).max()))
+                n += 1
+    assert n > 20
+    assert worst <= 1e-6  # the dump's pixel rounding; R and t are written at full precision
+
+
+def test_the_readme_documents_the_npz_layout():
+    assert layout.markdown() in Path("README.md").read_text(encoding="utf-8")
+
+
+def test_importing_wiredsl_does_not_import_numpy():
+    code = "import sys, wiredsl; assert 'numpy' not in sys.modules; assert callable(wiredsl.load)"
+    subprocess.run([sys.executable, "-c", code], check=True)

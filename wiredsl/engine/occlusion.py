@@ -1,0 +1,339 @@
+"""Hidden lines (`--visibility exact`): the unoccluded parts of every feature, seen from one eye.
+
+Occluders are the scene's faces (convex planar polygons, as the fan triangles
+`World.triangles` tile them exactly) and the ruled surfaces between the two
+ellipses of every silhouette, S(th, s) = Ea(th) + s (Eb(th) - Ea(th)) with s in
+[0, 1] (the cylinder or cone sides). Everything is computed in 3D, in the camera
+frame, with the eye at the origin; a point P is hidden when the segment from the
+eye to it meets an occluder at a ray parameter in (RAY_END, 1 - RAY_END).
+
+- A segment P(u) = A + u (B - A) against a triangle: the rays through the
+  triangle form a convex cone (three half-spaces through the eye), and the
+  points beyond the triangle's plane are a half-space: four conditions, each
+  linear in u, so the hidden set is one interval, found exactly.
+- A ray against a ruled surface: the ray meets the ruling at th when the eye,
+  Ea(th) and Eb(th) span a plane containing P, det(Ea(th), Eb(th), P) = 0, a
+  trigonometric polynomial of degree 2 in th. Its roots are the eigenvalues of a
+  4 x 4 companion matrix (batched over points), polished by Newton steps; each
+  root gives the ruling's s and the ray's t in closed form.
+- Curves (ellipse arcs) and segments against surfaces are sampled (SAMPLES
+  points a feature) with that exact point test, and every change of visibility
+  between two samples is refined by bisection to BISECT halvings of the sample
+  step (about 1e-14 of the feature's parameter range).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from wiredsl.engine.world import World, ellipse_points
+
+RAY_END = 1e-7  # fraction of the eye-to-point distance treated as touching the point: rounding, not geometry
+SAMPLES = 128  # samples a segment or a full ellipse against the curved surfaces; a section gets its share
+BISECT = 40  # halvings of a sample step that brackets a change of visibility
+SLIVER = 1e-9  # parameter length below which a visible or hidden piece is dropped (rounding, not geometry)
+
+
+@dataclass(frozen=True)
+class Occluders:
+    """Occluding geometry, world or camera frame: triangles (T, 3, 3) and surfaces' two ellipses (S, 3) each."""
+
+    tris: np.ndarray
+    ca: np.ndarray
+    Ua: np.ndarray
+    Va: np.ndarray
+    cb: np.ndarray
+    Ub: np.ndarray
+    Vb: np.ndarray
+
+    @classmethod
+    def of_world(cls, w: World) -> Occluders:
+        a, b = w.sil_pair[:, 0], w.sil_pair[:, 1]
+        return cls(w.triangles, w.ell_c[a], w.ell_U[a], w.ell_V[a], w.ell_c[b], w.ell_U[b], w.ell_V[b])
+
+    def seen_from(self, R_cw: np.ndarray, t_cw: np.ndarray) -> Eye:
+        """The occluders in a camera's frame (P_cam = R P_world + t): the eye at the origin."""
+        return Eye(Occluders(self.tris @ R_cw.T + t_cw, self.ca @ R_cw.T + t_cw, self.Ua @ R_cw.T, self.Va @ R_cw.T,
+                             self.cb @ R_cw.T + t_cw, self.Ub @ R_cw.T, self.Vb @ R_cw.T))
+
+
+class Eye:
+    """What hides what from an eye at the origin of the occluders' frame."""
+
+    def __init__(self, occ: Occluders):
+        self.occ = occ
+        self.G, self.h = _triangle_conditions(occ.tris)
+        centre = (occ.ca + occ.cb) / 2
+        reach = lambda c, U, V: (np.linalg.norm(c - centre, axis=1)  # noqa: E731
+                                 + np.maximum(np.linalg.norm(U, axis=1), np.linalg.norm(V, axis=1)))
+        self.sphere_c = centre
+        al, be = (occ.ca, occ.Ua, occ.Va), (occ.cb, occ.Ub, occ.Vb)
+        self.X = np.stack([np.cross(al[i], be[j]) for i in range(3) for j in range(3)], axis=1)  # (S, 9, 3)
+        self.sphere_r = np.maximum(reach(occ.ca, occ.Ua, occ.Va), reach(occ.cb, occ.Ub, occ.Vb)) * (1 + 1e-9)
+
+    # ----------------------------------------------------------------------- points
+
+    def hidden(self, P: np.ndarray) -> np.ndarray:
+        """Whether each point (n, 3) is hidden by a face or a surface."""
+        return self.hidden_by_faces(P) | self.hidden_by_surfaces(P)
+
+    def hidden_by_faces(self, P: np.ndarray) -> np.ndarray:
+        if len(self.G) == 0 or len(P) == 0:
+            return np.zeros(len(P), dtype=bool)
+        lo, hi = _segment_intervals(self.G, self.h, P, np.zeros_like(P))
+        return (hi > lo).any(axis=1)
+
+    def hidden_by_surfaces(self, P: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(P), dtype=bool)
+        if len(self.sphere_c) == 0 or len(P) == 0:
+            return out
+        # only rays that pass through a surface's bounding sphere are solved for
+        dd = np.maximum((P * P).sum(1), 1e-300)
+        u = np.clip(P @ self.sphere_c.T / dd[:, None], 0.0, 1.0)  # (n, S)
+        gap = np.linalg.norm(self.sphere_c[None] - u[..., None] * P[:, None], axis=2)
+        i, k = np.nonzero(gap < self.sphere_r[None])
+        if len(i):
+            o = self.occ
+            hit = _ray_hits_ruled(P[i], self.X[k], o.ca[k], o.Ua[k], o.Va[k], o.cb[k], o.Ub[k], o.Vb[k])
+            np.logical_or.at(out, i[hit], True)
+        return out
+
+    # ----------------------------------------------------------------------- features
+
+    def segment_pieces(self, A: np.ndarray, B: np.ndarray, t0: np.ndarray, t1: np.ndarray):
+        """Visible parts of segments A + u (B - A), u in [t0, t1] (rows (n,)): (row, u0, u1) of each piece."""
+        n = len(A)
+        hid_r, hid_a, hid_b = [], [], []
+        if len(self.G) and n:
+            lo, hi = _segment_intervals(self.G, self.h, A, B - A)
+            r, _ = np.nonzero(hi > lo)
+            hid_r.append(r)
+            hid_a.append(lo[hi > lo])
+            hid_b.append(hi[hi > lo])
+        if len(self.sphere_c) and n:
+            D = B - A
+            r, a, b = _hidden_runs(lambda rows, u: A[rows] + u[:, None] * D[rows], self.hidden_by_surfaces,
+                                   t0, t1, np.full(n, SAMPLES))
+            hid_r.append(r)
+            hid_a.append(a)
+            hid_b.append(b)
+        return _complement(n, t0, t1, hid_r, hid_a, hid_b)
+
+    def arc_pieces(self, c: np.ndarray, U: np.ndarray, V: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+        """Visible parts of arcs [lo, hi] (rows) of the ellipse c + cos(t) U + sin(t) V: (row, t0, t1)."""
+        n = len(lo)
+        count = np.maximum(16, np.ceil(SAMPLES * (hi - lo) / (2 * np.pi))).astype(int)
+
+        def point(rows, t):
+            m = len(t)
+            return ellipse_points(np.broadcast_to(c, (m, 3)), np.broadcast_to(U, (m, 3)), np.broadcast_to(V, (m, 3)),
+                                  t)
+
+        r, a, b = _hidden_runs(point, self.hidden, lo, hi, count)
+        return _complement(n, lo, hi, [r], [a], [b])
+
+
+def _triangle_conditions(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For triangles (T, 3, 3) seen from the origin: G (T, 4, 3), h (T, 4) with P hidden iff G P + h >= 0.
+
+    Rows 0-2: P inside the cone of rays through the triangle; row 3: P beyond the triangle's plane by
+    more than RAY_END of the way. A triangle whose plane holds the eye hides nothing.
+    """
+    T = len(W)
+    if T == 0:
+        return np.zeros((0, 4, 3)), np.zeros((0, 4))
+    G = np.empty((T, 4, 3))
+    h = np.zeros((T, 4))
+    for i in range(3):
+        G[:, i] = np.cross(W[:, i], W[:, (i + 1) % 3])
+    orient = np.sign((G[:, 0] * W[:, 2]).sum(1))  # the opposite vertex lies on the inner side
+    G[:, :3] *= orient[:, None, None]
+    N = np.cross(W[:, 1] - W[:, 0], W[:, 2] - W[:, 0])
+    sE = -(N * W[:, 0]).sum(1)  # the eye's signed distance (times |N|) from the plane
+    flip = np.where(sE < 0, -1.0, 1.0)
+    N, sE = N * flip[:, None], sE * flip
+    scale = np.linalg.norm(N, axis=1) * np.abs(W).max(axis=(1, 2))
+    G[:, 3] = -N
+    h[:, 3] = np.where((sE > 1e-12 * scale) & (orient != 0), -sE / (1 - RAY_END), -np.inf)
+    return G, h
+
+
+def _segment_intervals(G: np.ndarray, h: np.ndarray, A: np.ndarray, D: np.ndarray):
+    """The u-interval [lo, hi] (n, T) of A + u D (u in [0, 1]) that each triangle hides (empty when lo >= hi)."""
+    a = np.einsum("tkj,nj->ntk", G, A) + h[None]  # (n, T, 4): a + b u >= 0
+    b = np.einsum("tkj,nj->ntk", G, D)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = -a / b
+    lower = np.where(b > 0, bound, -np.inf)
+    upper = np.where(b < 0, bound, np.inf)
+    never = (b == 0) & ~(a >= 0)  # also a = -inf (a triangle that hides nothing)
+    lo = np.maximum(lower.max(axis=2), 0.0)
+    hi = np.minimum(upper.min(axis=2), 1.0)
+    hi = np.where(never.any(axis=2), -np.inf, hi)
+    # a point (D = 0) hidden by every condition: the whole [0, 1]
+    return lo, hi
+
+
+def _ray_hits_ruled(P, X, ca, Ua, Va, cb, Ub, Vb) -> np.ndarray:
+    """Whether the segment from the origin to each P (m, 3) meets its row's ruled surface strictly before P.
+
+    X (m, 9, 3) holds the row's cross products (ca, Ua, Va)_i x (cb, Ub, Vb)_j.
+    """
+    mm = np.einsum("mkj,mj->mk", X, P)
+    m = {(i, j): mm[:, 3 * i + j] for i in range(3) for j in range(3)}
+    # g(th) = det(Ea(th), Eb(th), P) = a0 + a1 cos + b1 sin + a2 cos 2th + b2 sin 2th
+    a0 = m[0, 0] + (m[1, 1] + m[2, 2]) / 2
+    a1, b1 = m[1, 0] + m[0, 1], m[2, 0] + m[0, 2]
+    a2, b2 = (m[1, 1] - m[2, 2]) / 2, (m[1, 2] + m[2, 1]) / 2
+    scale = np.maximum.reduce([np.abs(a0), np.abs(a1), np.abs(b1), np.abs(a2), np.abs(b2)])
+    scale = np.where(scale > 0, scale, 1.0)
+    a0, a1, b1, a2, b2 = (x / scale for x in (a0, a1, b1, a2, b2))
+    # cones and cylinders (parallel ellipses) have a2 = b2 = 0: then g is of degree 1, solved directly
+    quartic = np.hypot(a2, b2) > 1e-9
+    th = np.zeros((len(P), 4))
+    on_circle = np.zeros((len(P), 4), dtype=bool)
+    R = np.hypot(a1, b1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        half = np.arccos(np.clip(-a0 / R, -1.0, 1.0))
+    phi = np.arctan2(b1, a1)
+    th[:, 0], th[:, 1] = phi - half, phi + half
+    on_circle[:, :2] = (~quartic & (np.abs(a0) <= R) & (R > 0))[:, None]
+    if quartic.any():  # z^2 g as a polynomial in z = exp(i th): c4 z^4 + ... + c0, roots by a companion matrix
+        q_ = quartic
+        c4 = (a2[q_] - 1j * b2[q_]) / 2
+        c3, c2 = (a1[q_] - 1j * b1[q_]) / 2, a0[q_] + 0j
+        c1, c0 = (a1[q_] + 1j * b1[q_]) / 2, (a2[q_] + 1j * b2[q_]) / 2
+        C = np.zeros((len(c4), 4, 4), dtype=complex)
+        C[:, 0, 0], C[:, 0, 1], C[:, 0, 2], C[:, 0, 3] = -c3 / c4, -c2 / c4, -c1 / c4, -c0 / c4
+        C[:, 1, 0] = C[:, 2, 1] = C[:, 3, 2] = 1.0
+        z = np.linalg.eigvals(C)  # (m', 4)
+        on_circle[q_] = np.abs(np.abs(z) - 1.0) < 1e-6
+        tq = np.angle(z)
+        A0, A1, B1, A2, B2 = (x[q_, None] for x in (a0, a1, b1, a2, b2))
+        for _ in range(3):  # Newton on the real polynomial (the closed form above needs none)
+            g = A0 + A1 * np.cos(tq) + B1 * np.sin(tq) + A2 * np.cos(2 * tq) + B2 * np.sin(2 * tq)
+            dg = -A1 * np.sin(tq) + B1 * np.cos(tq) - 2 * A2 * np.sin(2 * tq) + 2 * B2 * np.cos(2 * tq)
+            step = np.divide(g, dg, out=np.zeros_like(g), where=np.abs(dg) > 1e-12)
+            tq = tq - np.clip(step, -0.1, 0.1)
+        th[q_] = tq
+    cos, sin = np.cos(th)[..., None], np.sin(th)[..., None]
+    q = ca[:, None] + cos * Ua[:, None] + sin * Va[:, None]  # Ea(th), (m, 4, 3)
+    w = cb[:, None] + cos * Ub[:, None] + sin * Vb[:, None] - q  # the ruling's direction
+    d = np.broadcast_to(P[:, None], q.shape)
+    dw = np.cross(d, w)
+    n2 = (dw * dw).sum(-1)
+    ok = on_circle & (n2 > 1e-24 * (d * d).sum(-1) * np.maximum((w * w).sum(-1), 1e-300))
+    n2 = np.where(ok, n2, 1.0)
+    t = (np.cross(q, w) * dw).sum(-1) / n2  # q + s w = t d
+    s = (np.cross(q, d) * dw).sum(-1) / n2
+    return (ok & (s >= 0) & (s <= 1) & (t > RAY_END) & (t < 1 - RAY_END)).any(axis=1)
+
+
+def _hidden_runs(point, hidden, lo: np.ndarray, hi: np.ndarray, count: np.ndarray):
+    """Hidden sub-intervals (row, a, b) of [lo, hi] per row: `count` samples, changes bisected."""
+    n = len(lo)
+    if n == 0:
+        return np.zeros(0, int), np.zeros(0), np.zeros(0)
+    row = np.repeat(np.arange(n), count)
+    j = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    u = lo[row] + (hi - lo)[row] * j / (count[row] - 1)
+    H = hidden(point(row, u))
+    change = np.flatnonzero((row[:-1] == row[1:]) & (H[:-1] != H[1:]))
+    a, b, ha = u[change], u[change + 1], H[change]
+    cr = row[change]
+    for _ in range(BISECT):
+        if not len(cr):
+            break
+        mid = (a + b) / 2
+        hm = hidden(point(cr, mid))
+        same = hm == ha
+        a, b = np.where(same, mid, a), np.where(same, b, mid)
+    edge = (a + b) / 2
+    first = np.concatenate([[True], row[1:] != row[:-1]])
+    last = np.concatenate([row[1:] != row[:-1], [True]])
+    # a hidden run starts at the row's start or at a change into hidden, and ends likewise
+    s_row = np.concatenate([row[first & H], cr[~ha]])
+    s_val = np.concatenate([u[first & H], edge[~ha]])
+    e_row = np.concatenate([row[last & H], cr[ha]])
+    e_val = np.concatenate([u[last & H], edge[ha]])
+    so, eo = np.lexsort((s_val, s_row)), np.lexsort((e_val, e_row))
+    return s_row[so], s_val[so], e_val[eo]
+
+
+def _complement(n: int, lo: np.ndarray, hi: np.ndarray, rows: list, a: list, b: list):
+    """The parts of [lo, hi] (per row) outside the union of hidden intervals: (row, u0, u1, cut) of each piece.
+
+    `cut` says the row lost something to occlusion.
+    """
+    r = np.concatenate(rows) if rows else np.zeros(0, int)
+    a = np.concatenate(a) if a else np.zeros(0)
+    b = np.concatenate(b) if b else np.zeros(0)
+    span = hi - lo
+    a, b = np.maximum(a, lo[r]), np.minimum(b, hi[r])  # hidden parts outside the range do not count
+    keep = b - a > SLIVER * np.maximum(span[r], 1e-300)
+    r, a, b = r[keep], a[keep], b[keep]
+    order = np.lexsort((a, r))
+    r, a, b = r[order], a[order], b[order]
+    out_r, out_a, out_b, out_cut = [], [], [], []
+    k = 0
+    for i in range(n):
+        cur, end, cut = lo[i], hi[i], False
+        while k < len(r) and r[k] == i:
+            if a[k] > cur + SLIVER * span[i]:
+                out_r.append(i)
+                out_a.append(cur)
+                out_b.append(min(a[k], end))
+            if b[k] > cur and a[k] < end:
+                cut = True
+            cur = max(cur, b[k])
+            k += 1
+        if end > cur + SLIVER * span[i]:
+            out_r.append(i)
+            out_a.append(cur)
+            out_b.append(end)
+        out_cut += [cut] * (len(out_r) - len(out_cut))
+    return (np.array(out_r, dtype=int), np.array(out_a, dtype=float), np.array(out_b, dtype=float),
+            np.array(out_cut, dtype=bool))
+
+
+# --------------------------------------------------------------------------- the projection's hooks
+
+def split_segments(eye: Eye, A, B, t0, t1, keep):
+    """The unoccluded parts [u0, u1] of the kept segments A + u (B - A), u in [t0, t1]: (row, u0, u1, part
+    index or -1 when the segment lost nothing, whether occlusion cut it), one entry a part."""
+    idx = np.flatnonzero(keep)
+    r, u0, u1, cut = eye.segment_pieces(A[idx], B[idx], t0[idx], t1[idx])
+    return idx[r], u0, u1, np.where(cut, _rank(r), -1), cut
+
+
+def split_arcs(eye: Eye, c, U, V, intervals: list[tuple[float, float]], full: bool):
+    """The unoccluded parts of an ellipse's arcs [(t0, t1)], and whether occlusion cut any."""
+    lo = np.array([a for a, _ in intervals], dtype=float)
+    hi = np.array([b for _, b in intervals], dtype=float)
+    _, a, b, cut = eye.arc_pieces(c, U, V, lo, hi)
+    out = list(zip(a.tolist(), b.tolist(), strict=True))
+    if full and len(out) > 1 and len(intervals) == 1 and out[0][0] == lo[0] and out[-1][1] == hi[0]:
+        out = [(out[-1][0], out[0][1] + (hi[0] - lo[0])), *out[1:-1]]  # one arc across the seam
+    return out, bool(cut.any())
+
+
+def number_parts(features: list) -> None:
+    """Number the image parts of each occluded (feature, segment) 0, 1, ... in order, in place, so that
+    (source, segment, fragment) names one part even where the image border cut a part again."""
+    seen: dict[tuple[int, int], int] = {}
+    for f in features:
+        if f.occluded and f.kind in ("line", "polyline"):
+            key = (f.fid, f.segment)
+            f.fragment = seen.get(key, 0)
+            seen[key] = f.fragment + 1
+
+
+def _rank(r: np.ndarray) -> np.ndarray:
+    """Position of each element among the equal values of sorted r (0, 1, ... within each run)."""
+    if len(r) == 0:
+        return np.zeros(0, dtype=int)
+    first = np.concatenate([[True], r[1:] != r[:-1]])
+    start = np.maximum.accumulate(np.where(first, np.arange(len(r)), 0))
+    return np.arange(len(r)) - start

@@ -1,0 +1,134 @@
+"""The npz dump's layout: every member, column and code, as data (rendered into the README, checked by tests).
+
+`features.npz` is an ordinary numpy zip (np.load reads it, no pickles). Its
+strokes and corners come in batches of trials; batch b's members are named
+`b{b:05d}_<member>`. Pixel coordinates follow the JSON dump's convention
+(origin at the image's top-left corner).
+"""
+
+from __future__ import annotations
+
+import json
+
+NPZ_VERSION = 2  # 1: seven stroke columns; 2: closed, fragment, occluded, views and conics added
+
+STROKE_COLUMNS = (
+    ("trial", "Monte-Carlo trial (0 for the ideal projection)"),
+    ("pose", "index of the pose in the scene's path"),
+    ("camera", "0 left, 1 right"),
+    ("feature", "feature id: index into `feature_ids` (`placement.feature`)"),
+    ("segment", "segment of a polyline, side 0 or 1 of a silhouette; -1 when none"),
+    ("kind", "0 straight (a segment in the image), 1 curve (a line's image under distortion), 2 ellipse (arc)"),
+    ("clipped", "1 when cut by the image border or the near plane"),
+    ("closed", "1 when the last vertex joins the first (a whole ellipse)"),
+    ("fragment", "the JSON dump's `fragment`: piece number after a cut; -1 when whole (null in JSON)"),
+    ("occluded", "1 for a visible part of a feature that occlusion cut (--visibility exact)"),
+)
+CORNER_COLUMNS = (
+    ("trial", "Monte-Carlo trial"),
+    ("pose", "index of the pose in the scene's path"),
+    ("camera", "0 left, 1 right"),
+    ("feature", "feature id: index into `feature_ids`"),
+)
+VIEW_COLUMNS = (
+    ("trial", "Monte-Carlo trial"),
+    ("pose", "index of the pose in the scene's path"),
+    ("camera", "0 left, 1 right"),
+)
+CAMERA_COLUMNS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "width", "height")
+CONIC_COLUMNS = (
+    ("trial", "Monte-Carlo trial"),
+    ("pose", "index of the pose in the scene's path"),
+    ("camera", "0 left, 1 right"),
+    ("feature", "feature id: index into `feature_ids`"),
+    ("clipped", "1 when the ellipse's image is cut by the image border"),
+    ("section", "1 for an ellipse section (its arc is in `conics` columns 5 and 6), 0 for a whole ellipse"),
+)
+KINDS = {0: "straight", 1: "curve", 2: "ellipse"}
+CAMERAS = ("left", "right")
+
+# (member, dtype, shape, meaning); a `b_` prefix stands for each batch's `b{b:05d}_`
+MEMBERS = (
+    ("b_pts", "float32", "(N, 2)", "stroke vertices (u, v) in pixels, all strokes of the batch end to end "
+     "(float32: about 3e-5 px at 640 px)"),
+    ("b_start", "int64", "(S + 1,)", "stroke k's vertices are pts[start[k]:start[k + 1]]"),
+    ("b_strokes", "int32", f"(S, {len(STROKE_COLUMNS)})", "one row a stroke; columns below"),
+    ("b_corners", "float32", "(C, 2)", "corner positions (u, v) in pixels"),
+    ("b_corner_rows", "int32", f"(C, {len(CORNER_COLUMNS)})", "one row a corner; columns below"),
+    ("b_views", "int32", f"(V, {len(VIEW_COLUMNS)})", "one row a camera view (trial, pose, camera)"),
+    ("b_view_cameras", "float64", f"(V, {len(CAMERA_COLUMNS)})",
+     "each view's camera as projected (perturbed under calibration error): " + ", ".join(CAMERA_COLUMNS)),
+    ("b_view_poses", "float64", "(V, 12)", "each view's R (row-major, 9) and t (3) of P_cam = R P_world + t, "
+     "full precision"),
+    ("b_conics", "float64", "(K, 7)", "analytic ellipse images (undistorted cameras, ideal projection only): "
+     "centre u, v; semi-axes; angle of the first axis (rad); arc start, end (0, 0 when whole)"),
+    ("b_conic_rows", "int32", f"(K, {len(CONIC_COLUMNS)})", "one row a conic; columns below"),
+    ("feature_ids", "unicode", "(F,)", "`placement.feature` of every feature id"),
+    ("layout", "int64", "()", f"this layout's version ({NPZ_VERSION})"),
+    ("manifest", "unicode", "()", "the run's manifest as JSON text (schema/manifest.schema.json)"),
+)
+
+
+def column(name: str) -> int:
+    """Index of a column of `strokes` by name."""
+    return [c for c, _ in STROKE_COLUMNS].index(name)
+
+
+def markdown() -> str:
+    """The layout as Markdown tables (the README's npz section)."""
+    out = ["| member | dtype | shape | holds |", "|---|---|---|---|"]
+    out += [f"| `{m.replace('b_', 'b00000_', 1) if m.startswith('b_') else m}` | {d} | {s} | {t} |"
+            for m, d, s, t in MEMBERS]
+    out += ["", "`strokes` columns (int32):", "", "| column | name | holds |", "|---|---|---|"]
+    out += [f"| {i} | `{n}` | {t} |" for i, (n, t) in enumerate(STROKE_COLUMNS)]
+    for name, cols in (("corner_rows", CORNER_COLUMNS), ("views", VIEW_COLUMNS), ("conic_rows", CONIC_COLUMNS)):
+        out += ["", f"`{name}` columns (int32):", "", "| column | name | holds |", "|---|---|---|"]
+        out += [f"| {i} | `{n}` | {t} |" for i, (n, t) in enumerate(cols)]
+    return "\n".join(out) + "\n"
+
+
+def npz_problems(path) -> list[str]:
+    """Why a file is not a features.npz of this layout (empty when it is): members, dtypes, shapes, manifest."""
+    import zipfile
+
+    import numpy as np
+
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        return [f"not an npz file: {exc}"]
+    with data:
+        names = set(data.files)
+        out = [f"missing member '{m}'" for m in ("feature_ids", "layout", "manifest") if m not in names]
+        if out:
+            return out
+        if int(data["layout"]) != NPZ_VERSION:
+            return [f"layout {int(data['layout'])}, this wiredsl reads {NPZ_VERSION}"]
+        batches = sorted({n.split("_", 1)[0] for n in names if n.startswith("b") and n[1:6].isdigit()})
+        n_ids = len(data["feature_ids"])
+        for b in batches:
+            for m, dtype, _, _ in MEMBERS[:-3]:
+                key = f"{b}_{m[2:]}"
+                if key not in names:
+                    out.append(f"missing member '{key}'")
+                elif data[key].dtype != np.dtype(dtype):
+                    out.append(f"{key}: dtype {data[key].dtype}, expected {dtype}")
+            if out:
+                continue
+            start, strokes, pts = data[f"{b}_start"], data[f"{b}_strokes"], data[f"{b}_pts"]
+            if strokes.shape[1:] != (len(STROKE_COLUMNS),) or len(start) != len(strokes) + 1 \
+                    or start[-1] != len(pts) or (np.diff(start) < 2).any():
+                out.append(f"{b}: strokes, start and pts do not agree")
+            elif len(strokes) and not (0 <= strokes[:, column("feature")].min() <= strokes[:, column("feature")].max()
+                                       < n_ids):
+                out.append(f"{b}: a feature id outside feature_ids")
+            elif not all(np.isfinite(data[f"{b}_{m}"]).all() for m in ("pts", "corners", "view_cameras", "view_poses",
+                                                                        "conics")):
+                out.append(f"{b}: non-finite coordinates")
+        from wiredsl.io.schema import problems
+
+        try:
+            manifest = json.loads(str(data["manifest"]))
+        except json.JSONDecodeError as exc:
+            return [*out, f"manifest: not JSON: {exc.msg}"]
+        return out + [f"manifest: {m}" for m in problems(manifest)]
