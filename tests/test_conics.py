@@ -10,7 +10,7 @@ from helpers import circle
 from test_projection import _dist_to_polyline
 
 from wiredsl.engine import conics, geometry
-from wiredsl.engine.simulate import _ellipse, project_view
+from wiredsl.engine.simulate import project_view
 from wiredsl.engine.world import World
 from wiredsl.scene import Camera
 
@@ -123,7 +123,7 @@ def test_ellipse_polyline_within_tolerance_of_the_distorted_curve(tol):
     cam = CAM.model_copy(update={"k1": -0.2, "k2": 0.03})
     c, U, V = circle([0.2, 0.1, 2.0], [0.3, -1, 0.4], 0.6)
     w = _world_with_ellipse(c, U, V)
-    feats = _ellipse(w, 0, cam, np.eye(3), np.zeros(3), geometry.fold_radius(cam.k1, cam.k2), True, tol, [])
+    feats = project_view(w, cam, np.eye(3), np.zeros(3), np.array([True]), tol).features
     (poly,) = [f for f in feats if f.kind == "polyline"]
     t = np.linspace(0, 2 * np.pi, 20001)
     truth = geometry.cam_to_pixels(c + np.cos(t)[:, None] * U + np.sin(t)[:, None] * V, cam)

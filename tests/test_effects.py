@@ -47,11 +47,15 @@ def same(a: im.ImageSet, b: im.ImageSet) -> bool:
             and np.array_equal(a.corners, b.corners))
 
 
-def run_pipeline(text_stages: str, trials: int = 1, seed: int = 5, **opts) -> tuple[Run, list]:
+def run_pipeline(text_stages: str, trials: int = 1, seed: int = 5, engine: str = "auto", **opts) -> tuple[Run, list]:
     scene, _ = compile_text(f"wiredsl 1\npipeline p {{\n{text_stages}\n}}\n")
     pipe = Pipeline(name="p", stages=scene.pipelines[0].stages)
     run = Run.create(LAB, WORLD, pipe, seed, Options(**opts))
-    return run, list(run.batches(list(range(trials))))
+    run.engine = engine
+    return run, list(run.batches(range(trials)))
+
+
+ENGINES = ["numpy", "kernel"]  # the readable reference and the compiled kernel: both must keep these promises
 
 
 # ----------------------------------------------------------------------------- registry battery
@@ -206,10 +210,11 @@ def _corners(batches):
             for _, out in batches for r, d, _ in out for side, s in sorted(d.items())]
 
 
-def test_a_stage_draws_the_same_whatever_other_stages_run():
-    _, alone = run_pipeline("corner_loss", trials=4)
-    _, with_edges = run_pipeline("edge_loss\nlateral_shift\ncorner_loss\napprox_error", trials=4)
-    _, reordered = run_pipeline("approx_error\ncorner_loss\nedge_loss", trials=4)
+@pytest.mark.parametrize("engine", ENGINES)
+def test_a_stage_draws_the_same_whatever_other_stages_run(engine):
+    _, alone = run_pipeline("corner_loss", trials=4, engine=engine)
+    _, with_edges = run_pipeline("edge_loss\nlateral_shift\ncorner_loss\napprox_error", trials=4, engine=engine)
+    _, reordered = run_pipeline("approx_error\ncorner_loss\nedge_loss", trials=4, engine=engine)
     assert _corners(alone) == _corners(with_edges) == _corners(reordered)
 
 
@@ -240,31 +245,36 @@ def test_same_seed_gives_byte_identical_dumps_and_the_seed_is_recorded(tmp_path)
 
 # ----------------------------------------------------------------------------- only what is called for
 
-def test_only_the_stages_called_for_run():
-    run, _ = run_pipeline("edge_loss\nlateral_shift", trials=3)
+@pytest.mark.parametrize("engine", ENGINES)
+def test_only_the_stages_called_for_run(engine):
+    run, _ = run_pipeline("edge_loss\nlateral_shift", trials=3, engine=engine)
+    assert run.uses_kernel() == (engine == "kernel")
     assert set(run.trace) == {"project", "project:right", "edge_loss", "lateral_shift"}
     assert run.trace["project"] == 1  # no calibration error: one projection shared by every trial
     assert [s["effect"] for s in run.manifest()["stages"]] == ["edge_loss", "lateral_shift"]
 
 
-def test_no_epipolar_geometry_without_stereo_and_no_decomposition_without_calibration():
-    run, _ = run_pipeline("corner_loss\napprox_error", trials=2)
+@pytest.mark.parametrize("engine", ENGINES)
+def test_no_epipolar_geometry_without_stereo_and_no_decomposition_without_calibration(engine):
+    run, _ = run_pipeline("corner_loss\napprox_error", trials=2, engine=engine)
     assert "epipole" not in run.trace and "decompose" not in run.trace
-    run, _ = run_pipeline("stereo_mismatch", trials=2)
+    run, _ = run_pipeline("stereo_mismatch", trials=2, engine=engine)
     assert run.trace["epipole"] > 0 and "decompose" not in run.trace
-    run, _ = run_pipeline("calibration_error", trials=2)
+    run, _ = run_pipeline("calibration_error", trials=2, engine=engine)
     assert run.trace["decompose"] == 1 and run.trace["project"] == 1 and run.trace["reproject"] == 1
     assert "epipole" not in run.trace
 
 
-def test_no_right_camera_projection_when_only_the_left_is_asked_for():
-    run, batches = run_pipeline("edge_loss", trials=2, right=False)
+@pytest.mark.parametrize("engine", ENGINES)
+def test_no_right_camera_projection_when_only_the_left_is_asked_for(engine):
+    run, batches = run_pipeline("edge_loss", trials=2, right=False, engine=engine)
     assert run.trace["project:right"] == 0
     assert all(set(d) == {"left"} for _, out in batches for _, d, _ in out)
 
 
-def test_stages_at_zero_are_not_run_and_not_listed():
-    run, _ = run_pipeline("edge_loss fraction 0\nlateral_shift", trials=1)
+@pytest.mark.parametrize("engine", ENGINES)
+def test_stages_at_zero_are_not_run_and_not_listed(engine):
+    run, _ = run_pipeline("edge_loss fraction 0\nlateral_shift", trials=1, engine=engine)
     assert "edge_loss" not in run.trace and [e.name for e, _ in run.stages] == ["lateral_shift"]
 
 

@@ -132,3 +132,68 @@ def test_missing_viewdep_file_is_a_diagnostic(tmp_path):
                                    'path p { pose (0, -3) heading 90deg }\n')
     r = CliRunner().invoke(main, ["build", str(tmp_path / "s.wd"), "-o", "-"])
     assert r.exit_code == 1 and "cannot read view-dependency file" in r.stderr and "wiredsl viewdep" in r.stderr
+
+
+def test_exact_cone_and_cylinder_sides_agree_with_a_fine_triangulation():
+    """The closed-form ray test against a cone or cylinder side equals 4,000 quads around, but for grazing rays."""
+    from wiredsl.engine import visibility
+    from wiredsl.engine.world import World, surface_triangles
+
+    rng = np.random.default_rng(4)
+    differ = total = 0
+    for _ in range(6):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        u = np.cross(axis, rng.normal(size=3))
+        u /= np.linalg.norm(u)
+        v = np.cross(axis, u)
+        r, grow, h = rng.uniform(0.2, 1.0), rng.uniform(0.3, 1.7), rng.uniform(0.5, 2.0)
+        c = rng.normal(size=3)
+        w = World(feature_ids=["p.a", "p.b", "p.s"], feature_kind=["ellipse", "ellipse", "silhouette"])
+        w.ell_c = np.stack([c, c + h * axis])
+        w.ell_U, w.ell_V = np.stack([r * u, grow * r * u]), np.stack([r * v, grow * r * v])
+        w.ell_arc, w.ell_full, w.ell_fid = np.tile([0.0, 2 * np.pi], (2, 1)), np.ones(2, bool), np.arange(2)
+        w.sil_pair, w.sil_fid = np.array([[0, 1]]), np.array([2])
+        occ = visibility.occluders(w)
+        assert len(occ.origin) == 1 and len(occ.triangles) == 0  # the exact surface, no triangles
+        fine, _ = surface_triangles(w, segments=4000)
+        eye = c + rng.normal(size=3) * 3
+        targets = c + rng.normal(size=(3000, 3)) * 1.5
+        exact = visibility.seen(eye, targets, occ)
+        approx = visibility.seen(eye, targets, fine)
+        differ += int((exact != approx).sum())
+        total += len(targets)
+        assert 0 < (~exact).sum() < len(targets)  # some rays are blocked, some are not
+    assert differ <= total * 1e-3, differ
+
+
+def test_ray_casting_memory_is_capped_by_chunks():
+    """Tiny chunks give the same answer as one big chunk."""
+    from wiredsl.engine import visibility
+
+    scene, _ = compile_text(BOX)
+    w = build_world(scene)
+    pts, _ = visibility.samples(w)
+    occ = visibility.occluders(w)
+    eye = np.array([0.5, -4.0, 0.5])
+    assert (visibility.seen(eye, pts, occ, cap=7) == visibility.seen(eye, pts, occ)).all()
+
+
+def test_direction_chunks_test_the_same_pairs_that_can_hit_as_brute_force():
+    """Culling occluders by direction and distance per chunk of targets changes no answer."""
+    from wiredsl.engine import visibility
+
+    rng = np.random.default_rng(12)
+    for _ in range(4):
+        v0 = rng.uniform(-5, 5, (300, 3))
+        tris = v0[:, None] + rng.normal(size=(300, 3, 3)) * rng.uniform(0.05, 1.0, (300, 1, 1))
+        occ = visibility.Occluders(tris, np.array([[0.0, 0.0, -1.0]]), np.linalg.inv(np.diag([0.5, 0.5, 2.0]))[None],
+                                   np.array([-0.4]))
+        eye = rng.uniform(-6, 6, 3)
+        targets = rng.uniform(-6, 6, (4000, 3))
+        d = targets - eye
+        brute = ~(visibility._hits_triangles(eye, d, tris)
+                  | visibility._hits_quadrics(eye, d, occ.origin, occ.to_local, occ.growth))
+        got = visibility.seen(eye, targets, occ)
+        assert (got == brute).all()
+        assert 0.05 < brute.mean() < 0.95

@@ -399,6 +399,9 @@ def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None
                    "from the true image curve.")
 @click.option("--visibility", type=click.Choice(["scene", "exact", "all"]), default="scene", show_default=True,
               help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion.")
+@click.option("--engine", type=click.Choice(["auto", "kernel", "numpy"]), default="auto", show_default=True,
+              help="Monte-Carlo engine: the compiled kernel (needs wiredsl[fast]) or the numpy reference; auto: the "
+                   "kernel for --trials above 1 and --trial when numba is installed. Both draw the same numbers.")
 @click.option("--exact-calibration", is_flag=True,
               help="Project each trial's perturbed rig from scratch (slow) instead of re-projecting the ideal "
                    "strokes with every trial's cameras at once.")
@@ -408,7 +411,8 @@ def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None
 @guarded
 def build(file: str, output: str | None, pipeline_name: str | None, no_effects: bool, seed: int | None, trials: int,
           only_trial: int | None, poses: tuple[int, ...], out_format: str, svg: bool, cameras: str, tolerance: float,
-          visibility: str, exact_calibration: bool, layout: str, force: bool, diagnostics: str) -> None:
+          visibility: str, engine: str, exact_calibration: bool, layout: str, force: bool,
+          diagnostics: str) -> None:
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
     import contextlib
     import secrets
@@ -460,6 +464,15 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                    right=cameras == "both")
     run = Run.create(scene, world, pipeline, seed if seed is not None else 0, opts)
     run.exact_calibration = exact_calibration
+    if engine == "auto" and only_trial is None and trials == 1:
+        engine = "numpy"  # one plain build: not worth loading the compiled kernel
+    if engine == "kernel":
+        import importlib.util
+
+        if importlib.util.find_spec("numba") is None:
+            raise click.BadParameter("the compiled kernel needs numba: pip install 'wiredsl[fast]'",
+                                     param_hint="--engine")
+    run.engine = engine
     effects = bool(run.stages)
     if seed is None and effects:  # drawn only when something random runs, so ideal runs stay byte-identical
         seed = run.seed = secrets.randbits(63)
@@ -685,13 +698,15 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     if trial is not None:
         if seed is None:
             raise click.UsageError("--trial needs the run's --seed (see its manifest.json)")
-        pipeline = scene.pipeline(pipeline_name)
-        stage = next((s for s in (pipeline.stages if pipeline else []) if s.effect == "calibration_error"), None)
-        if stage is None or scene.rig.calibration is None:
+        from wiredsl.engine.montecarlo import Run
+        from wiredsl.engine.simulate import Options
+        from wiredsl.engine.world import build_world
+
+        run = Run.create(scene, build_world(scene), scene.pipeline(pipeline_name), seed, Options())
+        if run.sampler() is None:
             raise click.UsageError("no calibration_error stage with a rig calibration: each trial has the nominal rig")
-        c = scene.rig.calibration
-        sampler = calib.sampler(stage.params, c.kind, c.matrix, c.order)
-        scene = calib.perturb(scene, calib.draw(sampler, trial, seed), c.order)
+        # the run's own checked draw (a refused draw is redrawn), so the files are the rig the trial saw
+        scene = calib.perturb(scene, run.calibration_draws([trial])[0], scene.rig.calibration.order)
     out = Path(output) if output else Path("build") / scene.name / "calibration"
     for name, text in rig_files(scene).items():
         write_atomic(out / name, text)

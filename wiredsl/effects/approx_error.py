@@ -30,7 +30,7 @@ class ApproxError(Effect):
     @classmethod
     def disturb(cls, p: ApproxErrorParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         vtrial = np.repeat(s.trial, s.counts)
-        noise = ctx.per_trial(cls.name, vtrial, lambda rng, n: rng.normal(0.0, p.sigma, 2 * n)).reshape(-1, 2)
+        noise = p.sigma * ctx.draws(cls.name, vtrial, 2, normal=True)
         ctx.stats.add(cls.name, count=2 * len(noise), sum_sq=(noise**2).sum())
         return im.replace(s, pts=s.pts + noise)
 

@@ -1,9 +1,8 @@
 """What every effect declares (name, data-flow position, parameters) and the machinery they share.
 
-Randomness: every stage draws from its own streams, one per (stage, trial, pose,
-camera), seeded by `np.random.default_rng([crc32(stage), trial, pose, camera, seed])`.
-Adding, removing or reordering another stage never changes a stage's draws, and
-trial K of a run can be replayed alone.
+Randomness is keyed, not streamed: every draw is a pure function of (seed, stage, trial, pose, camera,
+design point, draw index), so adding, removing or reordering a stage never changes another stage's
+draws, and a trial's draws do not depend on which other trials share its batch (see `keyed_bits`).
 """
 
 from __future__ import annotations
@@ -21,6 +20,59 @@ from pydantic import BaseModel, ConfigDict, Field
 FLOW = ("cameras", "edges", "fitting", "corner detection", "corner matching", "stereo")
 CAMERA_INDEX = {"left": 0, "right": 1}
 
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)  # SplitMix64's Weyl increment
+_M1, _M2 = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
+
+
+def mix64(z: np.ndarray) -> np.ndarray:
+    """SplitMix64's finaliser (Steele, Lea, Flood 2014), elementwise on uint64 arrays (wrapping)."""
+    z = np.asarray(z, dtype=np.uint64)
+    z = (z ^ (z >> np.uint64(30))) * _M1
+    z = (z ^ (z >> np.uint64(27))) * _M2
+    return z ^ (z >> np.uint64(31))
+
+
+def stream_key(stage: str, trial, pose: int, camera: int, seed: int, point: int | None = None) -> np.ndarray:
+    """The 64-bit key of the draws of one stage for trials `trial` (array), a pose and a camera (-1: the rig).
+
+    key = h(h(h(h(h(seed) + crc32(stage)) + trial) + pose + 1) + camera + 1), then h(key + point + 1) when a
+    design point is given, with h = SplitMix64's mix of (x + golden); sums wrap modulo 2**64.
+    """
+    h = lambda x: mix64(np.asarray(x, dtype=np.uint64) + _GOLDEN)  # noqa: E731
+    with np.errstate(over="ignore"):
+        k = h(np.uint64(seed))
+        k = h(k + np.uint64(zlib.crc32(stage.encode())))
+        k = h(k + np.asarray(trial, dtype=np.int64).astype(np.uint64))
+        k = h(k + np.uint64(pose + 1))
+        k = h(k + np.uint64(camera + 1))
+        if point is not None:
+            k = h(k + np.uint64(point + 1))
+    return k
+
+
+def keyed_bits(key: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Draw `index` of the stream with key `key` (arrays, broadcast): SplitMix64's output number index + 1
+    from state `key`, i.e. mix64(key + (index + 1) * golden). A counter-based generator: no state."""
+    with np.errstate(over="ignore"):
+        return mix64(np.asarray(key, dtype=np.uint64) + (np.asarray(index, dtype=np.uint64) + np.uint64(1)) * _GOLDEN)
+
+
+def keyed_uniform(key: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Uniform doubles in [0, 1) from the top 53 bits of draw `index`: (bits >> 11) * 2**-53."""
+    return (keyed_bits(key, index) >> np.uint64(11)).astype(np.float64) * 2.0**-53
+
+
+def keyed_normal(key: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Standard normals by Box-Muller: normals 2i and 2i + 1 are r cos(phi) and r sin(phi), with
+    r = sqrt(-2 ln(1 - u_2i)) and phi = 2 pi u_2i+1 from uniform draws 2i and 2i + 1 of the key."""
+    index = np.asarray(index, dtype=np.uint64)
+    pair = index >> np.uint64(1)
+    u1 = keyed_uniform(key, np.uint64(2) * pair)
+    u2 = keyed_uniform(key, np.uint64(2) * pair + np.uint64(1))
+    r = np.sqrt(-2.0 * np.log1p(-u1))
+    phi = 2.0 * np.pi * u2
+    return np.where(index & np.uint64(1), r * np.sin(phi), r * np.cos(phi))
+
 
 def param(default: float, kind: str, doc: str, **limits: Any) -> Any:
     """A parameter field: default (the paper's), unit kind, bounds and a one-line doc."""
@@ -31,11 +83,6 @@ class Params(BaseModel):
     """Base of every effect's parameter model: frozen, no unknown fields."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
-
-
-def stream(stage: str, trial: int, pose: int, camera: int, seed: int) -> np.random.Generator:
-    """The generator of one stage for one trial, pose and camera (-1 for the whole rig)."""
-    return np.random.default_rng([zlib.crc32(stage.encode()), trial, pose + 1, camera + 1, seed])
 
 
 @dataclass
@@ -65,13 +112,19 @@ class Context:
     seed: int
     stats: Stats
     epipole: Callable[[], np.ndarray] | None = None  # homogeneous epipole in this camera's pixels
+    point: int | None = None  # a study's design point: one more key component
 
-    def per_trial(self, stage: str, batch_index: np.ndarray, fn: Callable[[np.random.Generator, int], np.ndarray]):
-        """Draws for items that belong to trials `batch_index` (sorted), each trial from its own stream."""
+    def draws(self, stage: str, batch_index: np.ndarray, per_item: int = 1, normal: bool = False) -> np.ndarray:
+        """Draws (n, per_item) for items of trials `batch_index` (n,), sorted: item j of a trial gets the
+        draws j * per_item .. j * per_item + per_item - 1 of its trial's key, uniform in [0, 1) or normal."""
+        batch_index = np.asarray(batch_index, dtype=np.int64)
+        keys = stream_key(stage, self.trials, self.pose, CAMERA_INDEX[self.side], self.seed, self.point)
         counts = np.bincount(batch_index, minlength=len(self.trials))
-        parts = [fn(stream(stage, int(t), self.pose, CAMERA_INDEX[self.side], self.seed), int(n))
-                 for t, n in zip(self.trials, counts, strict=True)]
-        return np.concatenate(parts) if parts else fn(np.random.default_rng(0), 0)
+        first = np.cumsum(counts) - counts
+        j = np.arange(len(batch_index)) - first[batch_index]
+        index = j[:, None] * per_item + np.arange(per_item)[None, :]
+        fn = keyed_normal if normal else keyed_uniform
+        return fn(keys[batch_index][:, None], index).reshape(len(batch_index), per_item)
 
 
 class Effect:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wiredsl.effects.base import Effect, Params, Stats, param, stream
+from wiredsl.effects.base import Effect, Params, Stats, keyed_normal, param, stream_key
 
 
 class CalibrationErrorParams(Params):
@@ -54,10 +54,20 @@ def sampler(p: CalibrationErrorParams, kind: str, matrix, order: list[str]) -> S
     return Sampler(basis, loose, basis @ basis.T)
 
 
-def draw(s: Sampler, trial: int, seed: int) -> np.ndarray:
-    """One trial's parameter perturbation phi (m,); the same for every pose and both cameras."""
-    rng = stream(CalibrationError.name, trial, -1, -1, seed)
-    return s.basis @ rng.standard_normal(s.basis.shape[1])
+def draws(s: Sampler, trials: np.ndarray, seed: int, point: int | None = None, attempt: int = 0) -> np.ndarray:
+    """Each trial's parameter perturbation phi (T, m), the same for every pose and both cameras.
+
+    Attempt a (a redraw after a refused one) uses normals a * m .. a * m + m - 1 of the trial's key.
+    """
+    m = s.basis.shape[1]
+    key = stream_key(CalibrationError.name, np.asarray(trials), -1, -1, seed, point)
+    n = keyed_normal(key[:, None], attempt * m + np.arange(m)[None, :])
+    return (n[:, None, :] * s.basis[None, :, :]).sum(axis=2)  # row by row: no dependence on T
+
+
+def draw(s: Sampler, trial: int, seed: int, point: int | None = None) -> np.ndarray:
+    """One trial's perturbation phi (m,)."""
+    return draws(s, np.array([trial]), seed, point)[0]
 
 
 def rotation_vector(r: np.ndarray) -> np.ndarray:
@@ -110,6 +120,23 @@ def rotation_vectors(r: np.ndarray) -> np.ndarray:
 
 
 CAMERA_KEYS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2")
+ATTEMPTS = 64  # draws tried for one trial before the calibration is refused as too uncertain for its cameras
+SCALE_LIMIT = 1000.0  # a drawn pixel scale beyond this multiple of the nominal one is refused (no real camera)
+
+
+def sensible(scene, phis: np.ndarray, order: list[str]) -> np.ndarray:
+    """Which draws (T,) leave both cameras with positive pixel scales (f ax, f ay) no larger than
+    SCALE_LIMIT times the nominal ones, and every perturbed parameter finite."""
+    ok = np.isfinite(phis).all(axis=1)
+    for side, rig in perturbed_rigs(scene, np.where(np.isfinite(phis), phis, 0.0), order).items():
+        prm, cam = rig["params"], scene.camera(getattr(scene.rig, side).camera)
+        with np.errstate(over="ignore", invalid="ignore"):
+            for scale, nominal in ((prm["f"] * prm["ax"], cam.f * cam.ax), (prm["f"] * prm["ay"], cam.f * cam.ay)):
+                ok &= (prm["f"] > 0) & (scale > 0) & (scale <= SCALE_LIMIT * abs(nominal))
+            for key in CAMERA_KEYS:
+                ok &= np.isfinite(prm[key])
+            ok &= np.isfinite(rig["position"]).all(axis=1) & np.isfinite(rig["rotation"]).all(axis=(1, 2))
+    return ok
 
 
 def perturbed_rigs(scene, phis: np.ndarray, order: list[str]) -> dict:
@@ -130,7 +157,7 @@ def perturbed_rigs(scene, phis: np.ndarray, order: list[str]) -> dict:
         params["k1"] = cam.k1 - delta("k")  # TINA's k = -k1
         R = np.array(mount.rotation)
         dt = np.column_stack([delta("tx"), delta("ty"), delta("tz")])
-        position = np.array(mount.position)[None] + dt @ R.T
+        position = np.array(mount.position)[None] + (dt[:, None, :] * R[None, :, :]).sum(axis=2)  # row by row
         rotation = R[None] @ rotation_vectors(np.column_stack([delta("rx"), delta("ry"), delta("rz")]))
         out[side] = {"params": params, "rotation": rotation, "position": position, "camera": cam}
     return out
@@ -147,13 +174,24 @@ class CalibrationError(Effect):
         return p.sigma == 0
 
     @classmethod
+    def record(cls, stats: Stats, phis: np.ndarray, refused: int) -> None:
+        """Running moments of the accepted draws (memory does not grow with trials) and the refused count."""
+        m = stats.samples.setdefault(cls.name + ".moments", [0, 0.0, 0.0])
+        m[0] += len(phis)
+        m[1] = m[1] + phis.sum(axis=0)
+        m[2] = m[2] + phis.T @ phis
+        stats.add(cls.name, refused=refused)
+
+    @classmethod
     def report(cls, p: CalibrationErrorParams, stats: Stats) -> dict:
-        draws = np.array(stats.samples[cls.name])
+        out = {"refused_draws": {"declared": 0, "measured": int(stats.sums[cls.name]["refused"])}}
+        moments = stats.samples.get(cls.name + ".moments")
         declared = stats.samples.get(cls.name + ".covariance")
-        if len(draws) < 2 or not declared:
-            return {}
-        C = np.asarray(declared[0])
-        S = np.cov(draws, rowvar=False)
+        if not moments or moments[0] < 2 or not declared:
+            return out
+        n, s1, s2 = moments
+        C = np.atleast_2d(declared[0])
+        S = np.atleast_2d((s2 - np.outer(s1, s1) / n) / (n - 1))  # one parameter stays a 1 x 1 matrix
         sd = np.sqrt(np.clip(np.diag(C), 0, None))
         worst = float(np.max(np.abs(np.sqrt(np.clip(np.diag(S), 0, None)) - sd) / np.where(sd > 0, sd, 1)))
-        return {"std_relative_error": {"declared": 0.0, "measured": worst, "trials": len(draws)}}
+        return {**out, "std_relative_error": {"declared": 0.0, "measured": worst, "trials": int(n)}}

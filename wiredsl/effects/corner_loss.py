@@ -22,7 +22,7 @@ class CornerLoss(Effect):
 
     @classmethod
     def disturb(cls, p: CornerLossParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
-        keep = ctx.per_trial(cls.name, s.corner_trial, lambda rng, n: rng.random(n)) < p.keep
+        keep = ctx.draws(cls.name, s.corner_trial)[:, 0] < p.keep
         ctx.stats.add(cls.name, total=len(keep), kept=keep.sum())
         return s.take_corners(keep)
 

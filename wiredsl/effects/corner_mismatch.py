@@ -25,7 +25,7 @@ class CornerMismatch(Effect):
 
     @classmethod
     def disturb(cls, p: CornerMismatchParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
-        draws = ctx.per_trial(cls.name, s.corner_trial, lambda rng, n: rng.random(3 * n)).reshape(-1, 3)
+        draws = ctx.draws(cls.name, s.corner_trial, 3)
         hit = draws[:, 0] < p.fraction
         r = p.radius * np.sqrt(draws[:, 1])  # uniform over the disc
         theta = 2 * np.pi * draws[:, 2]

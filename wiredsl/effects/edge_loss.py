@@ -33,7 +33,7 @@ class EdgeLoss(Effect):
         s = im.unroll_closed(s)
         _, L = im.arc_lengths(s)
         L = np.where(closed, L / 2, L)  # an unrolled closed stroke is traversed twice
-        u = ctx.per_trial(cls.name, s.trial, lambda rng, n: rng.random(n))
+        u = ctx.draws(cls.name, s.trial)[:, 0]
         gap = p.fraction * L
         g0 = u * np.where(closed, L, L - gap)  # where the gap starts
         k = np.arange(s.n_strokes)

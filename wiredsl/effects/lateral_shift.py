@@ -30,7 +30,7 @@ class LateralShift(Effect):
     @classmethod
     def disturb(cls, p: LateralShiftParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         s = split_ellipses(s)
-        d = ctx.per_trial(cls.name, s.trial, lambda rng, n: rng.uniform(-p.range, p.range, n))
+        d = p.range * (2 * ctx.draws(cls.name, s.trial)[:, 0] - 1)
         normals = im.vertex_normals(s)
         pts = s.pts + np.repeat(d, s.counts)[:, None] * normals
         ctx.stats.add(cls.name, count=len(d), sum_abs=np.abs(d).sum())
@@ -46,12 +46,14 @@ class LateralShift(Effect):
 
 def split_ellipses(s: im.ImageSet) -> im.ImageSet:
     """Ellipse strokes cut where they cross their own major axis (principal axis of their vertices);
-    a closed ellipse becomes its two halves, an open arc its pieces between crossings."""
+    a closed ellipse becomes its two halves, an open arc its pieces between crossings. A crossing
+    exactly at a vertex counts once; every other stroke is kept verbatim."""
     ell = s.kind == im.ELLIPSE
     if not ell.any():
         return s
-    closed = s.closed.copy()
-    s = im.unroll_closed(s)
+    closed = s.closed & ell
+    original = s
+    s = im.unroll_closed(s, closed)
     arc, L = im.arc_lengths(s)
     L = np.where(closed, L / 2, L)
     S = s.n_strokes
@@ -60,34 +62,43 @@ def split_ellipses(s: im.ImageSet) -> im.ImageSet:
     stroke_of = s.vertex_stroke()
     same = stroke_of[:-1] == stroke_of[1:]
     mid = (s.pts[:-1] + s.pts[1:]) / 2
-    w = np.where(same, np.linalg.norm(s.pts[1:] - s.pts[:-1], axis=1), 0.0)
+    d = s.pts[1:] - s.pts[:-1]
+    w = np.where(same, np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]), 0.0)
     seg_stroke = stroke_of[:-1]
     total = np.maximum(np.bincount(seg_stroke, weights=w, minlength=S), 1e-300)
     centre = np.column_stack([np.bincount(seg_stroke, weights=w * mid[:, i], minlength=S) for i in (0, 1)])
     centre /= total[:, None]
     dm = mid - centre[seg_stroke]
     sxx, sxy, syy = (np.bincount(seg_stroke, weights=w * v, minlength=S)
-                     for v in (dm[:, 0] ** 2, dm[:, 0] * dm[:, 1], dm[:, 1] ** 2))
+                     for v in (dm[:, 0] * dm[:, 0], dm[:, 0] * dm[:, 1], dm[:, 1] * dm[:, 1]))
     theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # the major axis
     minor = np.column_stack([-np.sin(theta), np.cos(theta)])
-    side = ((s.pts - centre[stroke_of]) * minor[stroke_of]).sum(axis=1)
-    pair = np.flatnonzero((stroke_of[:-1] == stroke_of[1:]) & (side[:-1] * side[1:] < 0) & ell[stroke_of[:-1]])
+    rel = s.pts - centre[stroke_of]
+    side = rel[:, 0] * minor[stroke_of, 0] + rel[:, 1] * minor[stroke_of, 1]
+    # a crossing: the pair's ends on different sides, a vertex on the axis (side 0) counting as the + side,
+    # so that an axis through a vertex is one crossing there (t = 0 or 1), not none
+    neg = side < 0
+    pair = np.flatnonzero(same & (neg[:-1] != neg[1:]) & ell[seg_stroke])
     t = side[pair] / (side[pair] - side[pair + 1])
     sc = arc[pair] + t * (arc[pair + 1] - arc[pair])
     kc = stroke_of[pair]
-    first_lap = ~closed[kc] | (sc < L[kc])
+    # a closed loop's crossings are those of its first lap: its own segments, including the closing one
+    first_lap = ~closed[kc] | (pair - s.start[kc] < (s.counts[kc] - 1) // 2)
     sc, kc = sc[first_lap], kc[first_lap]
     cnt = np.bincount(kc, minlength=S)
     off = np.cumsum(cnt) - cnt
-    # open strokes: [0, c1], [c1, c2], ..., [ck, L]; a closed ellipse with two crossings: [c1, c2], [c2, c1 + L]
+    # open arcs: [0, c1], [c1, c2], ..., [ck, L]; a closed ellipse with two crossings: [c1, c2], [c2, c1 + L];
+    # anything else (no crossing, or a closed loop crossed fewer than twice) is kept whole
     halves = closed & (cnt >= 2)
-    m = np.where(halves, 2, np.where(closed, 1, cnt + 1))
+    split = halves | (~closed & (cnt > 0))
+    m = np.where(halves, 2, np.where(split, cnt + 1, 1))
     k = np.repeat(np.arange(S), m)
     j = np.arange(m.sum()) - np.repeat(np.cumsum(m) - m, m)
     c = lambda i: sc[np.clip(off[k] + i, 0, max(len(sc) - 1, 0))] if len(sc) else np.zeros(len(k))  # noqa: E731
     a = np.where(halves[k], np.where(j == 0, c(0), c(1)), np.where(j == 0, 0.0, c(j - 1)))
-    b = np.where(halves[k], np.where(j == 0, c(1), c(0) + L[k]),
-                 np.where(closed[k] | (j == cnt[k]), L[k], c(j)))
-    split = m[k] > 1
-    frag = np.where(split, 0, np.where(s.fragment[k] < 0, -1, 0))
-    return im.keep_intervals(s, k, a, b, frag, closed=~split & closed[k])
+    b = np.where(halves[k], np.where(j == 0, c(1), c(0) + L[k]), np.where(j == cnt[k], L[k], c(j)))
+    # only the loops cut into halves stay unrolled (the same first lap, so the same arc lengths); a loop
+    # kept whole is copied verbatim from its own vertices
+    s = im.unroll_closed(original, halves)
+    return im.keep_intervals(s, k, a, b, np.where(split[k], 0, s.fragment[k]), closed=~split[k] & s.closed[k],
+                             whole=~split[k])

@@ -41,6 +41,20 @@ def angle_to_epipolar(a: np.ndarray, b: np.ndarray, epipole: np.ndarray) -> np.n
     return np.arctan2(np.abs(d[:, 0] * e[:, 1] - d[:, 1] * e[:, 0]), np.abs((d * e).sum(axis=1)))
 
 
+def in_band(a: np.ndarray, b: np.ndarray, epipole: np.ndarray, band: float) -> np.ndarray:
+    """Whether segments a->b (n, 2) are within `band` of the epipolar line through their midpoints:
+    angle_to_epipolar <= band, decided as |cross| <= tan(band) |dot| (no atan2, no normalising)."""
+    if band >= math.pi / 2:
+        return np.ones(len(a), dtype=bool)
+    ex, ey, ew = epipole
+    mx, my = (a[:, 0] + b[:, 0]) / 2, (a[:, 1] + b[:, 1]) / 2
+    lx, ly = mx * ew - ex, my * ew - ey
+    at_epipole = (lx == 0) & (ly == 0)  # no epipolar line: take the x axis, as epipolar_directions does
+    lx, ly = np.where(at_epipole, 1.0, lx), np.where(at_epipole, 0.0, ly)
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    return np.abs(dx * ly - dy * lx) <= math.tan(band) * np.abs(dx * lx + dy * ly)
+
+
 class StereoMismatch(Effect):
     name = "stereo_mismatch"
     acts_on = "stereo"
@@ -60,7 +74,7 @@ class StereoMismatch(Effect):
         ctx.stats.add(cls.name, length_in=before, length_after_band=im.arc_lengths(s)[1].sum())
         if ctx.side != "right" or p.fraction == 0 or p.disparity == 0:
             return s
-        draws = ctx.per_trial(cls.name, s.trial, lambda rng, n: rng.random(2 * n)).reshape(-1, 2)
+        draws = ctx.draws(cls.name, s.trial, 2)
         hit = draws[:, 0] < p.fraction
         shift = np.where(hit, p.disparity * (2 * draws[:, 1] - 1), 0.0)
         mid = np.add.reduceat(s.pts, s.start[:-1], axis=0) / s.counts[:, None] if s.n_strokes else np.zeros((0, 2))
@@ -81,19 +95,44 @@ class StereoMismatch(Effect):
 
 
 def _drop_band(s: im.ImageSet, epipole: np.ndarray, band: float) -> im.ImageSet:
-    """Remove every stroke segment within `band` of its epipolar line; keep the rest as fragments."""
-    s = im.unroll_closed(s) if s.closed.any() else s
-    a, b = s.pts[:-1], s.pts[1:]
-    inside = angle_to_epipolar(a, b, epipole) <= band  # per consecutive vertex pair
-    last = s.start[1:] - 1
-    real = np.ones(len(a), dtype=bool)
-    real[last[last < len(a)]] = False  # pairs that straddle two strokes
-    arc, _ = im.arc_lengths(s)
-    keep_pair = real & ~inside
-    stroke_of = s.vertex_stroke()[:-1] if len(a) else np.zeros(0, int)
+    """Remove every stroke segment within `band` of its epipolar line; keep the rest as fragments.
+
+    A closed stroke's segments include its closing one; its kept runs are taken once around the loop,
+    a run through the loop's start being one piece; a loop that loses nothing stays whole and closed.
+    """
+    S = s.n_strokes
+    first, last = s.start[:-1], s.start[1:] - 1
+    loops = np.flatnonzero(s.closed & (s.counts > 1))
+    closing_inside = np.zeros(S, dtype=bool)
+    closing_inside[loops] = in_band(s.pts[last[loops]], s.pts[first[loops]], epipole, band)
+    real = s.vertex_stroke()[:-1] == s.vertex_stroke()[1:] if len(s.pts) else np.zeros(0, bool)
+    inside = in_band(s.pts[:-1], s.pts[1:], epipole, band)
+    hit = np.bincount(s.vertex_stroke()[:-1][real & inside], minlength=S) > 0 if len(s.pts) else np.zeros(S, bool)
+    cut_loops = s.closed & (hit | closing_inside)
+    intact = s.closed & ~cut_loops
+    u = im.unroll_closed(s, cut_loops)  # a cut loop: twice round, of which one lap from a dropped segment is used
+    stroke_of = u.vertex_stroke()
+    pair_stroke = stroke_of[:-1]
+    real = stroke_of[:-1] == stroke_of[1:]
+    inside = in_band(u.pts[:-1], u.pts[1:], epipole, band)
+    local = np.arange(len(u.pts) - 1) - u.start[pair_stroke]
+    c = s.counts[pair_stroke]  # a loop's own number of segments
+    lap = real & inside & cut_loops[pair_stroke] & (local < c)
+    p0 = np.full(S, np.iinfo(np.int64).max // 4)
+    np.minimum.at(p0, pair_stroke[lap], local[lap])  # a cut loop's first dropped segment
+    window = ~cut_loops[pair_stroke] | ((local > p0[pair_stroke]) & (local < p0[pair_stroke] + c))
+    keep_pair = real & ~inside & window & ~intact[pair_stroke]
+    arc, _ = im.arc_lengths(u)
     # runs of kept pairs within each stroke become fragments (vertex ranges [starts, ends])
     change = np.flatnonzero(np.diff(np.concatenate([[False], keep_pair, [False]]).astype(int)))
     starts, ends = change[::2], change[1::2]
-    strokes, lo, hi = stroke_of[starts], arc[starts], arc[ends]
-    frag = np.zeros(len(strokes), int)  # fragments are numbered when the dump is written
-    return im.keep_intervals(s, strokes, lo, hi, frag)
+    strokes = pair_stroke[starts]
+    whole = (starts == u.start[strokes]) & (ends == u.start[strokes + 1] - 1)  # an open stroke that lost nothing
+    strokes = np.concatenate([strokes, np.flatnonzero(intact)])
+    lo = np.concatenate([arc[starts], np.zeros(intact.sum())])
+    hi = np.concatenate([arc[ends], np.zeros(intact.sum())])
+    whole = np.concatenate([whole, np.ones(intact.sum(), dtype=bool)])
+    order = np.argsort(strokes, kind="stable")
+    strokes, lo, hi, whole = strokes[order], lo[order], hi[order], whole[order]
+    frag = np.where(whole, u.fragment[strokes], 0)  # fragments are numbered when the dump is written
+    return im.keep_intervals(u, strokes, lo, hi, frag, closed=whole & s.closed[strokes], whole=whole)

@@ -13,6 +13,11 @@ f(s) = l(s)^T C_b* l(s) = 0, a trigonometric polynomial of degree 2, solved
 as the roots of a quartic in z = exp(i s) that lie on the unit circle. Each
 tangent gives its two tangent points as ellipse parameters, so the silhouette
 is returned as a 3D segment on the surface (a contour generator).
+
+Every function works on stacks of ellipses at once ((n, 3, 3) homographies): the
+quartics of all silhouettes of all views are solved together as the eigenvalues
+of their companion matrices, so projecting a view has no Python loop per feature.
+The single-ellipse forms (`ellipse_params`, `common_tangent_params`, ...) wrap them.
 """
 
 from __future__ import annotations
@@ -26,12 +31,16 @@ UNIT_TOL = 1e-6  # how far from |z| = 1 a root may be and still be a real tangen
 
 
 def homography(c: np.ndarray, U: np.ndarray, V: np.ndarray) -> np.ndarray:
-    """H mapping (cos t, sin t, 1) to homogeneous unit-plane points of the ellipse."""
-    return np.column_stack([U, V, c])
+    """H mapping (cos t, sin t, 1) to homogeneous unit-plane points of the ellipse: columns U, V, c.
+
+    Shapes (3,) each give (3, 3); (n, 3) each give (n, 3, 3).
+    """
+    return np.stack([U, V, c], axis=-1)
 
 
 def dual_conic(H: np.ndarray) -> np.ndarray:
-    return H @ D @ H.T
+    """C* = H diag(1, 1, -1) H^T, for one (3, 3) or a stack (n, 3, 3)."""
+    return (H * np.array([1.0, 1.0, -1.0])) @ np.swapaxes(H, -1, -2)
 
 
 def ellipse_params(Cstar: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -40,121 +49,179 @@ def ellipse_params(Cstar: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | 
     None when the conic is not a real ellipse (a parabola or hyperbola: the ellipse
     crosses the camera's principal plane), or is degenerate (seen edge-on).
     """
-    s = Cstar[2, 2]
-    scale = np.abs(Cstar).max()
-    if scale == 0 or not abs(s) > 1e-12 * scale:
-        return None
-    C = Cstar / -s  # now C[2, 2] = -1
-    centre = -C[:2, 2]
-    A_inv = C[:2, :2] + np.outer(centre, centre)
-    A_inv = (A_inv + A_inv.T) / 2
-    w, Q = np.linalg.eigh(A_inv)
-    if not w[0] > 1e-12 * w[1]:
-        return None
-    axes = np.sqrt(w[::-1])
-    major = Q[:, 1]
-    angle = math.atan2(major[1], major[0])
-    return centre, axes, angle
+    ok, centre, axes, angle = ellipse_params_batch(Cstar[None])
+    return (centre[0], axes[0], float(angle[0])) if ok[0] else None
+
+
+def ellipse_params_batch(Cstar: np.ndarray):
+    """`ellipse_params` of a stack (n, 3, 3): (ok (n,), centre (n, 2), axes (n, 2), angle (n,))."""
+    n = len(Cstar)
+    s = Cstar[:, 2, 2]
+    finite = np.isfinite(Cstar).all(axis=(1, 2))
+    scale = np.where(finite, np.abs(np.where(finite[:, None, None], Cstar, 0.0)).max(axis=(1, 2), initial=0.0), 0.0)
+    ok = finite & (scale != 0) & (np.abs(s) > 1e-12 * scale)
+    C = np.where(ok[:, None, None], Cstar, np.eye(3)) / -np.where(ok, s, -1.0)[:, None, None]  # C[2, 2] = -1
+    centre = -C[:, :2, 2]
+    A_inv = C[:, :2, :2] + centre[:, :, None] * centre[:, None, :]
+    A_inv = (A_inv + np.swapaxes(A_inv, 1, 2)) / 2
+    good = np.isfinite(A_inv).all(axis=(1, 2))
+    ok &= good
+    w, Q = np.linalg.eigh(np.where(ok[:, None, None], A_inv, np.eye(2))) if n else (np.zeros((0, 2)), None)
+    ok &= w[:, 0] > 1e-12 * w[:, 1]
+    axes = np.sqrt(np.where(ok[:, None], w[:, ::-1], 1.0))
+    angle = np.arctan2(Q[:, 1, 1], Q[:, 0, 1]) if n else np.zeros(0)
+    return ok, centre, axes, angle
 
 
 def parameter_on(H: np.ndarray, P: np.ndarray) -> float:
-    """The ellipse parameter t whose image H (cos t, sin t, 1) is the point P (homogeneous).
+    """The ellipse parameter t whose image H (cos t, sin t, 1) is the point P (homogeneous)."""
+    return float(parameters_on(H[None], P[None])[0])
+
+
+def parameters_on(H: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """For stacks H (k, 3, 3) and P (k, 3): the parameters t with H (cos t, sin t, 1) ~ P.
 
     Minimises |[P]x H (cos t, sin t, 1)| over the circle itself, so it also holds when
     the ellipse is seen edge-on and H has rank 2 (a plain null vector of [P]x H could
     then be H's own null vector, which is not on the circle).
     """
-    Px = np.array([[0.0, -P[2], P[1]], [P[2], 0.0, -P[0]], [-P[1], P[0], 0.0]])
+    k = len(H)
+    Px = np.zeros((k, 3, 3))
+    Px[:, 0, 1], Px[:, 0, 2], Px[:, 1, 2] = -P[:, 2], P[:, 1], -P[:, 0]
+    Px[:, 1, 0], Px[:, 2, 0], Px[:, 2, 1] = P[:, 2], -P[:, 1], P[:, 0]
     M = Px @ H
-    M = M / (np.abs(M).max() or 1.0)
-
-    a, b, m = M[:, 0], M[:, 1], M[:, 2]
+    big = np.abs(M).max(axis=(1, 2), initial=0.0)
+    M = M / np.where(big > 0, big, 1.0)[:, None, None]
+    a, b, m = M[:, :, 0], M[:, :, 1], M[:, :, 2]
     grid = np.linspace(-math.pi, math.pi, 361)
-    r = a[:, None] * np.cos(grid) + b[:, None] * np.sin(grid) + m[:, None]
-    t = float(grid[int(np.argmin((r * r).sum(axis=0)))])
+    r = a[:, :, None] * np.cos(grid) + b[:, :, None] * np.sin(grid) + m[:, :, None]
+    t = grid[np.argmin((r * r).sum(axis=1), axis=1)] if k else np.zeros(0)
+    active = np.ones(k, dtype=bool)
     for _ in range(8):  # Newton on g'(t) = 2 r.r', from within one grid step of the minimum
-        c, s = math.cos(t), math.sin(t)
+        c, s = np.cos(t)[:, None], np.sin(t)[:, None]
         r0, r1, r2 = a * c + b * s + m, -a * s + b * c, -a * c - b * s
-        g1, g2 = 2 * (r0 @ r1), 2 * (r1 @ r1 + r0 @ r2)
-        if g2 <= 0:
-            break
-        step = g1 / g2
-        t -= step
-        if abs(step) < 1e-15:
+        g1, g2 = 2 * (r0 * r1).sum(axis=1), 2 * ((r1 * r1).sum(axis=1) + (r0 * r2).sum(axis=1))
+        active &= g2 > 0
+        step = np.where(active, g1 / np.where(active, g2, 1.0), 0.0)
+        t = t - step
+        active &= np.abs(step) >= 1e-15
+        if not active.any():
             break
     return t
 
 
-def _conditioning(H: np.ndarray) -> float:
-    s = np.linalg.svd(H, compute_uv=False)
-    return s[-1] / s[0] if s[0] > 0 else 0.0
+def _conditioning(H: np.ndarray) -> np.ndarray:
+    """Smallest over largest singular value of each (n, 3, 3); 0 for non-finite or zero matrices."""
+    finite = np.isfinite(H).all(axis=(1, 2))
+    s = np.linalg.svd(np.where(finite[:, None, None], H, 0.0), compute_uv=False) if len(H) else np.zeros((0, 3))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(finite & (s[:, 0] > 0), s[:, -1] / np.where(s[:, 0] > 0, s[:, 0], 1.0), 0.0)
 
 
 def common_tangent_params(Ha: np.ndarray, Hb: np.ndarray) -> list[tuple[float, float]]:
-    """Outer common tangents of two ellipse images: [(t_a, t_b)] parameters of the tangent points.
+    """Outer common tangents of two ellipse images: [(t_a, t_b)] parameters of the tangent points."""
+    _, ta, tb = common_tangents(Ha[None], Hb[None])
+    return [(float(a), float(b)) for a, b in zip(ta, tb, strict=True)]
 
-    Empty when there are none (one image inside the other, e.g. the camera inside the surface).
+
+def common_tangents(Ha: np.ndarray, Hb: np.ndarray):
+    """Outer common tangents of pairs of ellipse images, stacks (n, 3, 3).
+
+    Returns (owner (k,), t_a (k,), t_b (k,)): the pair and the ellipse parameters of the tangent points.
+    A pair has none when one image lies inside the other (e.g. the camera inside the surface).
     """
-    swap = _conditioning(Ha) < _conditioning(Hb)
-    if swap:
-        Ha, Hb = Hb, Ha
-    if _conditioning(Ha) < 1e-12:
-        return []  # both seen exactly edge-on: no surface to outline
-    Ha_inv = np.linalg.inv(Ha)
-    Cb = dual_conic(Hb)
-    M = Ha_inv @ Cb @ Ha_inv.T
-    M = (M + M.T) / 2
-    M = M / np.abs(M).max()
-    a0 = (M[0, 0] + M[1, 1]) / 2 + M[2, 2]
-    a1, b1 = -2 * M[0, 2], -2 * M[1, 2]
-    a2, b2 = (M[0, 0] - M[1, 1]) / 2, M[0, 1]
+    n = len(Ha)
+    ca, cb = _conditioning(Ha), _conditioning(Hb)
+    swap = ca < cb
+    H1 = np.where(swap[:, None, None], Hb, Ha)
+    H2 = np.where(swap[:, None, None], Ha, Hb)
+    ok = np.maximum(ca, cb) >= 1e-12  # both seen exactly edge-on: no surface to outline
+    H1_inv = np.linalg.inv(np.where(ok[:, None, None], H1, np.eye(3))) if n else np.zeros((0, 3, 3))
+    Cb = dual_conic(H2)
+    M = H1_inv @ Cb @ np.swapaxes(H1_inv, 1, 2)
+    M = (M + np.swapaxes(M, 1, 2)) / 2
+    ok &= np.isfinite(M).all(axis=(1, 2))
+    big = np.abs(np.where(ok[:, None, None], M, 0.0)).max(axis=(1, 2), initial=0.0)
+    ok &= big > 0
+    M = np.where(ok[:, None, None], M, np.eye(3)) / np.where(ok, big, 1.0)[:, None, None]
+    a0 = (M[:, 0, 0] + M[:, 1, 1]) / 2 + M[:, 2, 2]
+    a1, b1 = -2 * M[:, 0, 2], -2 * M[:, 1, 2]
+    a2, b2 = (M[:, 0, 0] - M[:, 1, 1]) / 2, M[:, 0, 1]
     # f(s) = a0 + a1 cos s + b1 sin s + a2 cos 2s + b2 sin 2s; z^2 f as a polynomial in z = e^{is}
-    coeffs = [(a2 - 1j * b2) / 2, (a1 - 1j * b1) / 2, a0, (a1 + 1j * b1) / 2, (a2 + 1j * b2) / 2]
-    roots = np.roots(coeffs)
+    coeffs = np.stack([(a2 - 1j * b2) / 2, (a1 - 1j * b1) / 2, a0 + 0j, (a1 + 1j * b1) / 2, (a2 + 1j * b2) / 2], 1)
+    roots = _quartic_roots(coeffs, ok)
+    unit = np.abs(np.abs(roots) - 1.0) <= UNIT_TOL  # NaN (no root) is never on the circle
+    row, col = np.nonzero(unit)
+    z = roots[row, col]
+    s = np.angle(z)
+    A0, A1, B1, A2, B2 = a0[row], a1[row], b1[row], a2[row], b2[row]
+    active = np.ones(len(s), dtype=bool)
+    for _ in range(3):  # polish on the real function
+        d = -A1 * np.sin(s) + B1 * np.cos(s) - 2 * A2 * np.sin(2 * s) + 2 * B2 * np.cos(2 * s)
+        active &= d != 0
+        f = A0 + A1 * np.cos(s) + B1 * np.sin(s) + A2 * np.cos(2 * s) + B2 * np.sin(2 * s)
+        s = np.where(active, s - f / np.where(active, d, 1.0), s)
+    w = np.stack([np.cos(s), np.sin(s), -np.ones(len(s))], axis=1)
+    inv = H1_inv[row]
+    line = np.einsum("kji,kj->ki", inv, w)  # H1^-T w
+    centre_a, centre_b = H1[row, :, 2], H2[row, :, 2]
+    # outer tangent: both ellipses (their centres) on the same side of the line
+    side_a = np.sign((line * centre_a).sum(axis=1)) * np.sign(centre_a[:, 2])
+    side_b = np.sign((line * centre_b).sum(axis=1)) * np.sign(centre_b[:, 2])
+    outer = side_a == side_b
+    row, s, line = row[outer], s[outer], line[outer]
+    Pb = np.einsum("kij,kj->ki", Cb[row], line)
+    tb = parameters_on(H2[row], Pb)
+    sw = swap[row]
+    return row, np.where(sw, tb, s), np.where(sw, s, tb)
 
-    def f(s):
-        return a0 + a1 * np.cos(s) + b1 * np.sin(s) + a2 * np.cos(2 * s) + b2 * np.sin(2 * s)
 
-    def df(s):
-        return -a1 * np.sin(s) + b1 * np.cos(s) - 2 * a2 * np.sin(2 * s) + 2 * b2 * np.cos(2 * s)
+def _quartic_roots(coeffs: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Roots (n, 4) of the quartics coeffs (n, 5) (highest power first), NaN where fewer or not ok.
 
-    centre_a = Ha[:, 2]
-    centre_b = Hb[:, 2]
-    out = []
-    for z in roots:
-        if abs(abs(z) - 1.0) > UNIT_TOL:
-            continue
-        s = float(np.angle(z))
-        for _ in range(3):  # polish on the real function
-            d = df(s)
-            if d == 0:
-                break
-            s -= f(s) / d
-        l = Ha_inv.T @ np.array([math.cos(s), math.sin(s), -1.0])
-        # outer tangent: both ellipses (their centres) on the same side of the line
-        if np.sign(l @ centre_a) * np.sign(centre_a[2]) != np.sign(l @ centre_b) * np.sign(centre_b[2]):
-            continue
-        Pb = Cb @ l
-        tb = parameter_on(Hb, Pb)
-        out.append((tb, s) if swap else (s, tb))
+    The companion matrices' eigenvalues, as np.roots computes them, for all rows at once;
+    rows whose leading or trailing coefficient vanishes go through np.roots itself.
+    """
+    n = len(coeffs)
+    out = np.full((n, 4), np.nan + 0j)
+    full = ok & (coeffs[:, 0] != 0) & (coeffs[:, 4] != 0) & np.isfinite(coeffs).all(axis=1)
+    rows = np.flatnonzero(full)
+    if len(rows):
+        C = np.zeros((len(rows), 4, 4), dtype=complex)
+        C[:, 1:, :-1] = np.eye(3)
+        C[:, 0, :] = -coeffs[rows, 1:] / coeffs[rows, :1]
+        out[rows] = np.linalg.eigvals(C)
+    for r in np.flatnonzero(ok & ~full & np.isfinite(coeffs).all(axis=1)):  # degenerate: rare
+        z = np.roots(coeffs[r])
+        out[r, :len(z)] = z
     return out
 
 
 def silhouette_segments(ca, Ua, Va, cb, Ub, Vb, arc_a=None, arc_b=None):
     """Camera-frame 3D segments (start on a, end on b) of the visible sides between two ellipses."""
-    Ha, Hb = homography(ca, Ua, Va), homography(cb, Ub, Vb)
-    segs = []
-    for ta, tb in common_tangent_params(Ha, Hb):
-        if (arc_a is not None and not _in_arc(ta, arc_a)) or (arc_b is not None and not _in_arc(tb, arc_b)):
-            continue
-        A = ca + math.cos(ta) * Ua + math.sin(ta) * Va
-        B = cb + math.cos(tb) * Ub + math.sin(tb) * Vb
-        segs.append((A, B))
-    return segs
+    full_a, full_b = np.array([arc_a is None]), np.array([arc_b is None])
+    arcs_a = np.array([arc_a if arc_a is not None else (0.0, 2 * math.pi)], dtype=float)
+    arcs_b = np.array([arc_b if arc_b is not None else (0.0, 2 * math.pi)], dtype=float)
+    _, A, B = silhouette_segments_batch(*(np.asarray(x, dtype=float)[None] for x in (ca, Ua, Va, cb, Ub, Vb)),
+                                        arcs_a, full_a, arcs_b, full_b)
+    return list(zip(A, B, strict=True))
 
 
-def _in_arc(t: float, arc: tuple[float, float]) -> bool:
-    t0, t1 = arc
-    if t1 - t0 >= 2 * math.pi - 1e-12:
-        return True
-    return (t - t0) % (2 * math.pi) <= (t1 - t0)
+def silhouette_segments_batch(ca, Ua, Va, cb, Ub, Vb, arc_a, full_a, arc_b, full_b):
+    """Silhouette sides of n ellipse pairs (camera frame, (n, 3) each; arcs (n, 2), full (n,) bool).
+
+    Returns (owner (k,), A (k, 3), B (k, 3)): the pair and the side's end points on ellipse a and b,
+    in the order the tangents were found for each pair.
+    """
+    owner, ta, tb = common_tangents(homography(ca, Ua, Va), homography(cb, Ub, Vb))
+    keep = (full_a[owner] | in_arc(ta, arc_a[owner])) & (full_b[owner] | in_arc(tb, arc_b[owner]))
+    o, ta, tb = owner[keep], ta[keep], tb[keep]
+    A = ca[o] + np.cos(ta)[:, None] * Ua[o] + np.sin(ta)[:, None] * Va[o]
+    B = cb[o] + np.cos(tb)[:, None] * Ub[o] + np.sin(tb)[:, None] * Vb[o]
+    return o, A, B
+
+
+def in_arc(t: np.ndarray, arc: np.ndarray) -> np.ndarray:
+    """Whether parameters t (k,) lie on the arcs (k, 2) [t0, t1] (mod 2 pi)."""
+    t0, t1 = arc[:, 0], arc[:, 1]
+    return (t1 - t0 >= 2 * math.pi - 1e-12) | (np.mod(t - t0, 2 * math.pi) <= t1 - t0)

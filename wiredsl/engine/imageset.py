@@ -86,81 +86,120 @@ def empty() -> ImageSet:
                     np.zeros((0, 2)), z, z)
 
 
+def segmented_cumsum(values: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Running sums of `values` (N,) restarting at every stroke start (CSR `start`), each stroke summed on
+    its own in order: a stroke's sums do not depend on the strokes packed before it (replay holds bit
+    for bit whatever the batch). Strokes are padded by length class (at most 2x) and summed row-wise."""
+    out = np.empty(len(values))
+    counts = np.diff(start)
+    if len(values) == 0:
+        return out
+    width = 1 << np.ceil(np.log2(np.maximum(counts, 1))).astype(int)
+    for w in np.unique(width[counts > 0]):
+        rows = np.flatnonzero((width == w) & (counts > 0))
+        c = counts[rows]
+        col = np.arange(w)
+        mask = col[None, :] < c[:, None]
+        idx = start[rows][:, None] + col[None, :]
+        block = np.zeros((len(rows), w))
+        block[mask] = values[idx[mask]]
+        out[idx[mask]] = np.cumsum(block, axis=1)[mask]
+    return out
+
+
 def arc_lengths(s: ImageSet) -> tuple[np.ndarray, np.ndarray]:
     """Cumulative arc length at each vertex from its stroke's start (N,), and stroke lengths (S,)."""
     if len(s.pts) == 0:
         return np.zeros(0), np.zeros(s.n_strokes)
-    seg = np.linalg.norm(np.diff(s.pts, axis=0), axis=1)
-    first = s.start[:-1]
+    d = np.diff(s.pts, axis=0)
+    seg = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
     seg_len = np.concatenate([[0.0], seg])
-    seg_len[first[s.counts > 0]] = 0.0  # no length across a stroke boundary
-    cum = np.cumsum(seg_len)
-    base = np.repeat(cum[first[s.counts > 0]] if len(first) else [], s.counts[s.counts > 0])
-    arc = cum - base
-    lengths = np.zeros(s.n_strokes)
     nonempty = s.counts > 0
+    seg_len[s.start[:-1][nonempty]] = 0.0  # no length across a stroke boundary
+    arc = segmented_cumsum(seg_len, s.start)
+    lengths = np.zeros(s.n_strokes)
     lengths[nonempty] = arc[s.start[1:][nonempty] - 1]
     return arc, lengths
 
 
-def unroll_closed(s: ImageSet) -> ImageSet:
-    """Closed strokes as open ones traversed twice (vertex 0 .. last, 0 .. last, 0), so that any
-    arc of length <= L starting in [0, L) is a single interval."""
-    if not s.closed.any():
+def search(arc: np.ndarray, lo: np.ndarray, hi: np.ndarray, target: np.ndarray, side: str) -> np.ndarray:
+    """np.searchsorted of each target within its own stroke's arc[lo:hi] (vectorised bisection): unlike a
+    search over one global key, exact whatever else is packed in the batch."""
+    lo, hi = lo.copy(), hi.copy()
+    while True:
+        active = lo < hi
+        if not active.any():
+            return lo
+        mid = (lo + hi) // 2
+        v = arc[np.minimum(mid, len(arc) - 1)]
+        right = (v < target) if side == "left" else (v <= target)
+        go = active & right
+        stay = active & ~right
+        lo = np.where(go, mid + 1, lo)
+        hi = np.where(stay, mid, hi)
+
+
+def unroll_closed(s: ImageSet, which: np.ndarray | None = None) -> ImageSet:
+    """Closed strokes (those of `which`, default all) as open ones traversed twice (vertex 0 .. last,
+    0 .. last, 0), so that any arc of length <= L starting in [0, L) is a single interval."""
+    which = s.closed if which is None else s.closed & which
+    if not which.any():
         return s
     counts = s.counts
-    new_counts = np.where(s.closed, 2 * counts + 1, counts)
+    new_counts = np.where(which, 2 * counts + 1, counts)
     start = np.concatenate([[0], np.cumsum(new_counts)]).astype(int)
     k = np.repeat(np.arange(s.n_strokes), new_counts)  # the stroke of every output vertex
     i = np.arange(start[-1]) - start[:-1][k]  # its position within the output stroke
     src = s.start[:-1][k] + i % np.maximum(counts[k], 1)
-    return replace(s, pts=s.pts[src], start=start, closed=np.zeros_like(s.closed))
+    return replace(s, pts=s.pts[src], start=start, closed=s.closed & ~which)
 
 
 def keep_intervals(s: ImageSet, stroke: np.ndarray, a: np.ndarray, b: np.ndarray, fragment: np.ndarray,
-                   closed: np.ndarray | None = None, cut: np.ndarray | None = None) -> ImageSet:
+                   closed: np.ndarray | None = None, cut: np.ndarray | None = None,
+                   whole: np.ndarray | None = None) -> ImageSet:
     """New strokes: the parts of strokes `stroke` (K,) between arc lengths a and b (K,).
 
     Each part starts and ends at interpolated points and keeps the stroke's metadata, with `fragment`
-    and `closed` set and `clipped` or-ed with `cut`; parts shorter than 1e-9 px are dropped.
+    and `closed` set and `clipped` or-ed with `cut`; parts shorter than 1e-9 px are dropped. A part
+    marked `whole` is its stroke's vertices verbatim (a and b unused): a stroke left uncut is exactly
+    itself, whatever else is cut in the batch.
     """
     arc, lengths = arc_lengths(s)
-    a = np.clip(a, 0.0, lengths[stroke])
-    b = np.clip(b, 0.0, lengths[stroke])
-    ok = b - a > 1e-9
-    stroke, a, b, fragment = stroke[ok], a[ok], b[ok], fragment[ok]
+    K = len(stroke)
+    whole = np.zeros(K, dtype=bool) if whole is None else np.asarray(whole, dtype=bool)
+    a = np.where(whole, 0.0, np.clip(a, 0.0, lengths[stroke]))
+    b = np.where(whole, lengths[stroke], np.clip(b, 0.0, lengths[stroke]))
+    ok = whole | (b - a > 1e-9)  # a whole stroke is kept as it is, even if degenerate
+    stroke, a, b, fragment, whole = stroke[ok], a[ok], b[ok], np.asarray(fragment)[ok], whole[ok]
     closed = np.zeros(len(stroke), dtype=bool) if closed is None else np.asarray(closed, dtype=bool)[ok]
     cut = np.zeros(len(stroke), dtype=bool) if cut is None else np.asarray(cut, dtype=bool)[ok]
     if len(stroke) == 0:
         out = empty()
         return replace(out, corners=s.corners, corner_fid=s.corner_fid, corner_trial=s.corner_trial)
-    # a global, increasing key: arc length plus a per-stroke offset larger than any stroke
-    offset = np.concatenate([[0.0], np.cumsum(lengths + 1.0)])[:-1]
-    key = arc + np.repeat(offset, s.counts)
-    ka, kb = a + offset[stroke], b + offset[stroke]
-    lo = np.searchsorted(key, ka, side="right")  # first vertex strictly after a
-    hi = np.searchsorted(key, kb, side="left")  # first vertex at or after b
     first, last = s.start[stroke], s.start[stroke + 1] - 1
+    lo = search(arc, first, last + 1, a, "right")  # first vertex strictly after a
+    hi = search(arc, first, last + 1, b, "left")  # first vertex at or after b
 
-    def point_at(k, target):
-        j = np.clip(np.searchsorted(key, target, side="right") - 1, first, np.maximum(last - 1, first))
+    def point_at(target):
+        j = np.clip(search(arc, first, last + 1, target, "right") - 1, first, np.maximum(last - 1, first))
         j1 = np.minimum(j + 1, last)
-        span = key[j1] - key[j]
+        span = arc[j1] - arc[j]
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(span > 0, (target - key[j]) / span, 0.0)
+            t = np.where(span > 0, (target - arc[j]) / span, 0.0)
         return s.pts[j] + t[:, None] * (s.pts[j1] - s.pts[j])
 
-    pa, pb = point_at(stroke, ka), point_at(stroke, kb)
-    inner = np.maximum(hi - lo, 0)
-    counts = inner + 2
+    ends = ~whole  # parts with interpolated end points
+    run_lo = np.where(whole, first, lo)  # then a run of the stroke's own vertices
+    run_n = np.where(whole, last + 1 - first, np.maximum(hi - lo, 0))
+    counts = run_n + 2 * ends
     start = np.concatenate([[0], np.cumsum(counts)]).astype(int)
     out = np.empty((start[-1], 2))
-    out[start[:-1]] = pa
-    out[start[1:] - 1] = pb
-    if inner.sum():
-        src = np.repeat(lo, inner) + (np.arange(inner.sum()) - np.repeat(np.cumsum(inner) - inner, inner))
-        dst = np.repeat(start[:-1] + 1, inner) + (np.arange(inner.sum()) - np.repeat(np.cumsum(inner) - inner, inner))
-        out[dst] = s.pts[src]
+    out[start[:-1][ends]] = point_at(a)[ends]
+    out[start[1:][ends] - 1] = point_at(b)[ends]
+    n = int(run_n.sum())
+    if n:
+        within = np.arange(n) - np.repeat(np.cumsum(run_n) - run_n, run_n)
+        out[np.repeat(start[:-1] + ends, run_n) + within] = s.pts[np.repeat(run_lo, run_n) + within]
     meta = _meta(s, stroke)
     meta["fragment"] = fragment
     meta["closed"] = closed
@@ -185,7 +224,7 @@ def keep_vertex_runs(s: ImageSet, ok: np.ndarray) -> ImageSet:
     stroke = stroke_of[b_idx]
     whole = first[b_idx] & last[e_idx]
     return keep_intervals(s, stroke, arc[b_idx], arc[e_idx], np.where(whole, s.fragment[stroke], 0),
-                          closed=whole & s.closed[stroke], cut=~whole)
+                          closed=whole & s.closed[stroke], cut=~whole, whole=whole)
 
 
 def clip_rect(s: ImageSet, width: float, height: float) -> ImageSet:
@@ -218,7 +257,7 @@ def clip_rect(s: ImageSet, width: float, height: float) -> ImageSet:
     b = arc[k] + t1[k] * seg_len[k]
     whole = first_pair[j] & (t0[j] <= 0) & last_pair[k] & (t1[k] >= 1)
     return keep_intervals(s, stroke, a, b, np.where(whole, s.fragment[stroke], np.maximum(s.fragment[stroke], 0)),
-                          closed=whole & s.closed[stroke], cut=~whole)
+                          closed=whole & s.closed[stroke], cut=~whole, whole=whole)
 
 
 def vertex_normals(s: ImageSet) -> np.ndarray:

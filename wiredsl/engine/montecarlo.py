@@ -14,11 +14,12 @@ is shared by all trials; with it, each trial projects its own perturbed rig.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from wiredsl.diagnostics import Diagnostic, WiredslError
 from wiredsl.effects import REGISTRY
 from wiredsl.effects import calibration_error as calib
 from wiredsl.effects.base import Context, Stats
@@ -37,6 +38,7 @@ from wiredsl.engine.world import World
 from wiredsl.scene import Scene
 
 BATCH = 256  # trials per batch: bounds memory whatever the number of trials
+CULL = 0.25  # raw strokes wholly beyond the image grown by this fraction of its size are not re-projected
 
 
 @dataclass
@@ -52,18 +54,22 @@ class Run:
     _sampler: calib.Sampler | None = None
     _ideal: list[PoseResult] | None = None
     _epipoles: dict = field(default_factory=dict)
+    _templates: dict = field(default_factory=dict)  # per (pose, side, raw?): the view's packed strokes, once a run
     _visible: tuple | None = None
     exact_calibration: bool = False  # project each trial's perturbed rig from scratch (slow reference)
+    point: int | None = None  # a study's design point: one more component of every draw's key
+    engine: str = "auto"  # "kernel" (compiled, numba), "numpy" (the readable reference), "auto": kernel if installed
 
     @classmethod
-    def create(cls, scene: Scene, world: World, pipeline, seed: int, options: Options) -> Run:
+    def create(cls, scene: Scene, world: World, pipeline, seed: int, options: Options,
+               point: int | None = None) -> Run:
         require_buildable(scene)
         stages = []
         for st in (pipeline.stages if pipeline is not None else []):
             effect = REGISTRY[st.effect]
             if not effect.is_identity(st.params):
                 stages.append((effect, st.params))
-        return cls(scene, world, stages, seed, options)
+        return cls(scene, world, stages, seed, options, point=point)
 
     @property
     def calibration(self):
@@ -116,20 +122,64 @@ class Run:
             self._epipoles[key] = e / np.linalg.norm(e)
         return self._epipoles[key]
 
-    def batches(self, trials: list[int]) -> Iterator[tuple[list[int], list[tuple[PoseResult, dict]]]]:
-        """For each batch of trials: per pose, the ideal result and {side: disturbed ImageSet of the batch}."""
-        for lo in range(0, len(trials), BATCH):
-            batch = trials[lo:lo + BATCH]
+    def batches(self, trials: Sequence[int], size: int = BATCH
+                ) -> Iterator[tuple[Sequence[int], list[tuple[PoseResult, dict]]]]:
+        """For each batch of trials: per pose, the ideal result and {side: disturbed ImageSet of the batch}.
+
+        `trials` is any sequence (a range for a run: nothing is built for the trials not yet reached), and
+        each trial's output is the same whichever trials share its batch.
+        """
+        for lo in range(0, len(trials), size):
+            batch = trials[lo:lo + size]
             yield batch, self._batch(batch)
 
-    def _batch(self, batch: list[int]):
+    def calibration_draws(self, batch: Sequence[int]) -> np.ndarray:
+        """The batch's calibration perturbations (T, m), each checked: a draw that leaves a camera without a
+        positive pixel scale (f ax, f ay), or one over calib.SCALE_LIMIT times the nominal, or anything not
+        finite, is refused and redrawn (the next attempt of the same key), and counted."""
+        sampler = self.sampler()
+        order = self.scene.rig.calibration.order
+        trials = np.asarray(batch, dtype=np.int64)
+        phis = calib.draws(sampler, trials, self.seed, self.point)
+        bad = ~calib.sensible(self.scene, phis, order)
+        refused = int(bad.sum())
+        for attempt in range(1, calib.ATTEMPTS):
+            if not bad.any():
+                break
+            redo = np.flatnonzero(bad)
+            phis[redo] = calib.draws(sampler, trials[redo], self.seed, self.point, attempt)
+            bad[redo] = ~calib.sensible(self.scene, phis[redo], order)
+            refused += int(bad.sum())
+        if bad.any():
+            raise WiredslError([Diagnostic(
+                "error", "E161", f"calibration_error: {calib.ATTEMPTS} draws in a row for trial {int(trials[bad][0])} "
+                "give a camera a pixel scale (f ax, f ay) that is not positive or over "
+                f"{calib.SCALE_LIMIT:g} times the nominal: the calibration uncertainty is too large for the cameras",
+                None)])
+        if refused and not any(w.startswith("calibration draws refused") for w in self.warnings):
+            self.warnings.append("calibration draws refused and redrawn (a camera's pixel scale not positive or "
+                                 "implausibly large): counted in the manifest as refused_draws")
+        calib.CalibrationError.record(self.stats, phis, refused)
+        return phis
+
+    def uses_kernel(self) -> bool:
+        """Whether batches run in the compiled kernel (never for the from-scratch calibration reference)."""
+        if self.engine == "numpy" or self.exact_calibration or not self.stages:
+            return False
+        if self.engine == "kernel":
+            return True
+        import importlib.util
+
+        return importlib.util.find_spec("numba") is not None
+
+    def _batch(self, batch: Sequence[int]):
         sampler = self.sampler()
         per_trial = rigs = None
         base = self.ideal()
+        kernel = self.uses_kernel()
         if sampler is not None:
             order = self.scene.rig.calibration.order
-            phis = np.array([calib.draw(sampler, t, self.seed) for t in batch])
-            self.stats.samples["calibration_error"].extend(phis)
+            phis = self.calibration_draws(batch)
             if self.exact_calibration:  # each trial's rig projected from scratch: the reference
                 per_trial = [self.project(calib.perturb(self.scene, phi, order)) for phi in phis]
                 base = per_trial[0]
@@ -143,15 +193,23 @@ class Run:
             for side in ("left", "right"):
                 if getattr(result, side) is None:
                     continue
+                if kernel:
+                    for effect, _ in self.image_stages:
+                        self.trace[effect.name] += 1
+                    sets, views[side] = self._kernel_view(result, side, batch, rigs[side] if rigs else None)
+                    disturbed[side] = sets
+                    continue
                 if per_trial is not None:
                     sets = concat_trials([to_imageset(getattr(r[j], side), self.world) for r in per_trial])
                     views[side] = [getattr(r[j], side) for r in per_trial]
                 elif rigs is not None:
-                    sets, views[side] = reproject(getattr(result, side), self.world, rigs[side], result.pose, side)
+                    sets, views[side] = reproject(getattr(result, side), self.world, rigs[side], result.pose, side,
+                                                  self.template(result, side, raw=True))
                 else:
-                    sets = to_imageset(getattr(result, side), self.world).repeat_trials(len(batch))
-                ctx = Context(pose=result.index, side=side, trials=np.array(batch), seed=self.seed,
-                              stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s))
+                    sets = self.template(result, side, raw=False)[0].repeat_trials(len(batch))
+                ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
+                              stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
+                              point=self.point)
                 for effect, params in self.image_stages:
                     self.trace[effect.name] += 1
                     sets = effect.apply(params, sets, ctx)
@@ -159,11 +217,60 @@ class Run:
             out.append((result, disturbed, views))
         return out
 
+    def template(self, result: PoseResult, side: str, raw: bool) -> tuple[im.ImageSet, np.ndarray, np.ndarray]:
+        """One view's strokes as a trial's ImageSet: raw (before clipping, with world points, for
+        re-projection) or ideal; built once a run."""
+        key = (result.index, side, raw)
+        if key not in self._templates:
+            view = getattr(result, side)
+            self._templates[key] = raw_template(view, self.world) if raw else \
+                (to_imageset(view, self.world), np.zeros((0, 3)), np.zeros((0, 3)))
+        return self._templates[key]
+
+    def _kernel_view(self, result: PoseResult, side: str, batch: Sequence[int], rig: dict | None):
+        """One view of a batch in the compiled kernel: the same stages and draws as the numpy path."""
+        from wiredsl.effects.base import CAMERA_INDEX, stream_key
+        from wiredsl.engine import kernel as kn
+
+        view = getattr(result, side)
+        trials = np.asarray(batch, dtype=np.int64)
+        T = len(trials)
+        if rig is not None:
+            template, W, CW = self.template(result, side, raw=True)
+            R_cw, t_cw, cams, folds = trial_cameras(rig, result.pose)
+            cam, view_of = rig["camera"], view_maker(rig, R_cw, t_cw, side)
+        else:
+            template, W, CW = self.template(result, side, raw=False)
+            R_cw, t_cw, cams, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros((T, 9)), np.zeros(T)
+            cam, view_of = view.camera, None
+        meta = np.column_stack([template.fid, template.segment, template.fragment, template.kind,
+                                template.clipped, template.closed, template.occluded]).astype(np.int64).reshape(-1, 7)
+        stages = self.image_stages
+        codes = np.array([kn.CODES[e.name] for e, _ in stages], dtype=np.int64)
+        params = np.zeros((len(stages), 3))
+        for g, (e, p) in enumerate(stages):
+            params[g, :len(kn.PARAMS[e.name])] = [getattr(p, name) for name in kn.PARAMS[e.name]]
+        keys = np.array([stream_key(e.name, trials, result.index, CAMERA_INDEX[side], self.seed, self.point)
+                         for e, _ in stages], dtype=np.uint64).reshape(len(stages), T)
+        stereo = any(e.name == "stereo_mismatch" for e, _ in stages)
+        epipole = self.epipole(result.pose, side) if stereo else np.zeros(3)
+        stats = np.zeros((len(stages), kn.NSTAT))
+        pts, start, m, trial, corners, cfid, ctrial = kn.run_view(
+            template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams, folds,
+            cam.width, cam.height, rig is not None, codes, params, keys, epipole, side == "right", stats)
+        for (effect, _), row in zip(stages, stats, strict=True):
+            kn.record(effect.name, row, self.stats)
+        s = im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2], kind=m[:, 3],
+                        clipped=m[:, 4].astype(bool), closed=m[:, 5].astype(bool), trial=trial, corners=corners,
+                        corner_fid=cfid, corner_trial=ctrial, occluded=m[:, 6].astype(bool))
+        return s, view_of
+
     def manifest(self) -> dict:
         return {
             "stages": [{"effect": e.name, "params": p.model_dump(), "measured": e.report(p, self.stats)}
                        for e, p in self.stages],
             "ran": dict(sorted(self.trace.items())),
+            "engine": "kernel" if self.uses_kernel() else "numpy",
             "warnings": self.warnings,
         }
 
@@ -222,21 +329,13 @@ def features_of(s: im.ImageSet, k: int) -> list[ImageFeature]:
     return out
 
 
-def reproject(view: View, world: World, rig: dict, pose: tuple, side: str):
-    """Every trial's view under its perturbed camera, at once: the ideal view's strokes before image
-    clipping (their world points) projected with per-trial parameters, then cut to the image.
+def raw_template(view: View, world: World) -> tuple[im.ImageSet, np.ndarray, np.ndarray]:
+    """The ideal view's strokes before image clipping as one trial's ImageSet (vertices not yet
+    projected), with their world points (N, 3) and the corners' world points (C, 3).
 
-    The strokes keep the ideal view's sampling and silhouette generators; vertices a perturbation takes
-    behind the near plane or past the fold radius are cut away. Returns the ImageSet and
-    a function giving trial k's View (its camera and pose) for the dump.
-    """
-    p = rig["params"]
-    T = len(p["f"])
-    R_wr = geometry.rot_z(pose[2])
-    R_wc = R_wr[None] @ rig["rotation"]
-    t_wc = rig["position"] @ R_wr.T + np.array([pose[0], pose[1], 0.0])
-    R_cw = np.transpose(R_wc, (0, 2, 1))
-    t_cw = -np.einsum("tij,tj->ti", R_cw, t_wc)
+    Strokes whose nominal image lies wholly beyond the image grown by CULL of its size on one side are
+    left out: no calibration draw of a plausible rig brings them in, and re-projecting them is about half
+    the work of a calibrated trial in the lab."""
     raw = view.raw
     counts = np.array([len(r.world) for r in raw], dtype=int)
     W = np.concatenate([r.world for r in raw]) if raw else np.zeros((0, 3))
@@ -253,31 +352,88 @@ def reproject(view: View, world: World, rig: dict, pose: tuple, side: str):
         closed=np.array([r.closed for r in raw], dtype=bool), trial=z, corners=np.zeros((len(cw), 2)),
         corner_fid=np.asarray(cf, dtype=int), corner_trial=np.zeros(len(cw), dtype=int),
         occluded=np.array([r.occluded for r in raw], dtype=bool))
+    W = np.asarray(W, dtype=float).reshape(-1, 3)
+    cam = view.camera
+    nominal = np.array([[getattr(cam, k) for k in calib.CAMERA_KEYS]], dtype=float)
+    uv, _ = project_trials(W, np.asarray(view.R_cw, float)[None], np.asarray(view.t_cw, float)[None], nominal,
+                           np.array([geometry.fold_radius(cam.k1, cam.k2)]))  # invalid vertices at 0: kept
+    mx, my = CULL * cam.width, CULL * cam.height
+    outside = np.zeros(template.n_strokes, dtype=bool)
+    for cond in (uv[:, 0] < -mx, uv[:, 0] > cam.width + mx, uv[:, 1] < -my, uv[:, 1] > cam.height + my):
+        all_far = np.logical_and.reduceat(cond, template.start[:-1]) if len(W) else np.zeros(0, bool)
+        outside |= all_far & (template.counts > 0)
+    far = np.repeat(outside, template.counts)
+    return template.take(~outside), W[~far], np.asarray(cw, dtype=float).reshape(-1, 3)
+
+
+def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every trial's camera for one side at one pose: R_cw (T, 3, 3), t_cw (T, 3), intrinsics (T, 9) as
+    f, ax, ay, cx, cy, k1, k2, p1, p2, and the fold radius (T,)."""
+    p = rig["params"]
+    R_wr = geometry.rot_z(pose[2])
+    R_wc = (R_wr[None, :, :, None] * rig["rotation"][:, None, :, :]).sum(axis=2)  # row by row: no BLAS
+    t_wc = (rig["position"][:, None, :] * R_wr[None, :, :]).sum(axis=2) + np.array([pose[0], pose[1], 0.0])
+    R_cw = np.ascontiguousarray(np.transpose(R_wc, (0, 2, 1)))
+    t_cw = -(R_cw * t_wc[:, None, :]).sum(axis=2)
+    cams = np.column_stack([p[k] for k in calib.CAMERA_KEYS]).astype(float)
+    if "folds" not in rig:  # the same at every pose: once a batch
+        rig["folds"] = np.array([geometry.fold_radius(k1, k2) for k1, k2 in zip(p["k1"], p["k2"], strict=True)])
+    return R_cw, t_cw, cams, rig["folds"]
+
+
+def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.ndarray, folds: np.ndarray):
+    """World points X (N, 3) seen by every trial's camera: pixels (T * N, 2) trial-major and whether each
+    is valid (in front of the near plane, inside the fold radius); invalid ones are set to 0.
+
+    The arithmetic is the kernel's, term by term, without gathering a matrix per vertex."""
+    def cam(i):
+        return R_cw[:, i, 0, None] * X[None, :, 0] + R_cw[:, i, 1, None] * X[None, :, 1] \
+            + R_cw[:, i, 2, None] * X[None, :, 2] + t_cw[:, i, None]
+
+    Px, Py, Pz = cam(0), cam(1), cam(2)
+    ok = Pz > geometry.NEAR
+    z = np.where(ok, Pz, 1.0)
+    x, y = Px / z, Py / z
+    ok &= np.hypot(x, y) < folds[:, None]
+    f, ax, ay, cx, cy, k1, k2, p1, p2 = (cams[:, i, None] for i in range(9))
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + k2 * r2)
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    uv = np.stack([np.where(ok, f * ax * xd + cx, 0.0), np.where(ok, f * ay * yd + cy, 0.0)], axis=-1)
+    return uv.reshape(-1, 2), ok.ravel()
+
+
+def reproject(view: View, world: World, rig: dict, pose: tuple, side: str, template: tuple | None = None):
+    """Every trial's view under its perturbed camera, at once: the ideal view's strokes before image
+    clipping (their world points) projected with per-trial parameters, then cut to the image.
+
+    The strokes keep the ideal view's sampling and silhouette generators; vertices a perturbation takes
+    behind the near plane or past the fold radius are cut away. Returns the ImageSet and
+    a function giving trial k's View (its camera and pose) for the dump.
+    """
+    template, W, CW = template if template is not None else raw_template(view, world)
+    R_cw, t_cw, cams, folds = trial_cameras(rig, pose)
+    T = len(cams)
     rep = template.repeat_trials(T)
-    folds = np.array([geometry.fold_radius(k1, k2) for k1, k2 in zip(p["k1"], p["k2"], strict=True)])
-
-    def project(points, trial):
-        P = np.einsum("nij,nj->ni", R_cw[trial], points) + t_cw[trial]
-        ok = P[:, 2] > geometry.NEAR
-        xy = P[:, :2] / np.where(ok, P[:, 2], 1.0)[:, None]
-        ok &= np.hypot(xy[:, 0], xy[:, 1]) < folds[trial]
-        g = {k: p[k][trial] for k in p}
-        uv = geometry.plane_to_pixels(geometry.distort(xy, g["k1"], g["k2"], g["p1"], g["p2"]),
-                                      g["f"], g["ax"], g["ay"], g["cx"], g["cy"])
-        return uv, ok
-
-    uv, ok = project(np.tile(W, (T, 1)), np.repeat(rep.trial, rep.counts))
+    uv, ok = project_trials(W, R_cw, t_cw, cams, folds)
     # a vertex the perturbation takes behind the near plane or past the fold (a stroke cut there in the
     # ideal view) is cut away with its neighbours' span, as the ideal path cuts in 3D
-    rep = im.keep_vertex_runs(im.replace(rep, pts=np.where(ok[:, None], uv, 0.0)), ok)
+    rep = im.keep_vertex_runs(im.replace(rep, pts=uv), ok)
     cam = rig["camera"]
     rep = im.clip_rect(rep, cam.width, cam.height)
-    cuv, cok = project(np.tile(cw, (T, 1)), rep.corner_trial)
+    cuv, cok = project_trials(CW, R_cw, t_cw, cams, folds)
     cok &= (cuv[:, 0] >= 0) & (cuv[:, 0] <= cam.width) & (cuv[:, 1] >= 0) & (cuv[:, 1] <= cam.height)
     rep = im.replace(rep, corners=cuv).take_corners(cok)
+    return rep, view_maker(rig, R_cw, t_cw, side)
+
+
+def view_maker(rig: dict, R_cw: np.ndarray, t_cw: np.ndarray, side: str):
+    """A function giving trial k's View (its perturbed camera and pose) for the dump."""
+    p, cam = rig["params"], rig["camera"]
 
     def view_of(k: int) -> View:
         fields = {key: float(p[key][k]) for key in p}
         return View(cam.model_copy(update={**fields, "name": f"{cam.name}:{side}"}), R_cw[k], t_cw[k])
 
-    return rep, view_of
+    return view_of

@@ -18,7 +18,7 @@ import numpy as np
 
 from wiredsl.diagnostics import Diagnostic, Span, WiredslError
 from wiredsl.engine import conics, geometry, occlusion, visibility
-from wiredsl.engine.world import World, build_world, ellipse_points
+from wiredsl.engine.world import World, build_world
 from wiredsl.scene import Camera, Scene
 
 DEFAULT_TOLERANCE = 0.1  # px: largest deviation of an emitted polyline from the true image curve
@@ -92,20 +92,21 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
     vp_names, masks = visible if visible is not None else visibility_masks(scene, world, options)
     # --visibility exact: hidden lines removed, features cut at occlusion boundaries (occlusion.py)
     occluders = occlusion.Occluders.of_world(world) if options.visibility == "exact" else None
-    out = []
+    sides = ("left", "right") if options.right else ("left",)
+    specs = []  # (pose index, side, camera, R_cw, t_cw, mask) of every view, projected together
     for i in chosen:
         pose = tuple(float(v) for v in poses[i])
-        views = []
-        for side, mount in (("left", scene.rig.left), ("right", scene.rig.right)):
-            if side == "right" and not options.right:
-                views.append(None)
-                continue
-            cam = scene.camera(mount.camera)
+        for side in sides:
+            mount = getattr(scene.rig, side)
             R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
-            mask = masks[(i, side)]
-            views.append(project_view(world, cam, R_cw, t_cw, mask, options.tolerance, occluders))
-        out.append(PoseResult(i, pose, vp_names.get(i), views[0], views[1]))
-    return out
+            specs.append((i, side, scene.camera(mount.camera), R_cw, t_cw, masks[(i, side)]))
+    views = []
+    if specs:
+        _, _, cams, Rs, ts, ms = zip(*specs, strict=True)
+        views = project_views(world, list(cams), list(Rs), list(ts), list(ms), options.tolerance, occluders)
+    by_key = {(i, side): v for (i, side, *_), v in zip(specs, views, strict=True)}
+    return [PoseResult(i, tuple(float(v) for v in poses[i]), vp_names.get(i), by_key[(i, "left")],
+                       by_key.get((i, "right"))) for i in chosen]
 
 
 def require_buildable(scene: Scene) -> None:
@@ -175,206 +176,502 @@ def read_viewdep(path: Path, scene: Scene) -> dict[str, list[str]]:
 
 
 # --------------------------------------------------------------------------- projection
+#
+# All views (poses x cameras) are projected together, in packed arrays: the straight 3D segments
+# (lines, polyline segments, silhouette generators) of every view, then the ellipses, then the
+# corners. Curves (segments under distortion, ellipse arcs) are sampled adaptively all at once,
+# cut to the image all at once, and each end cut at the image border is moved onto the true curve.
+# The only Python loops run per view (a 3x3 transform each) or per emitted feature (the objects).
 
 def project_view(world: World, cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, mask: np.ndarray,
                  tol: float = DEFAULT_TOLERANCE, occluders: occlusion.Occluders | None = None) -> View:
     """What one camera sees of the features in `mask` (only their unoccluded parts, given occluders)."""
-    view = View(cam, R_cw, t_cw)
-    eye = None if occluders is None else occluders.seen_from(R_cw, t_cw)
-    r_fold = geometry.fold_radius(cam.k1, cam.k2)
-    distorted = geometry.is_distorted(cam)
-
-    # straight 3D segments: lines, polyline segments, then silhouette generators (camera frame)
-    sel = mask[world.line_fid]
-    A = geometry.world_to_cam(world.lines[sel, 0], R_cw, t_cw)
-    B = geometry.world_to_cam(world.lines[sel, 1], R_cw, t_cw)
-    fid = world.line_fid[sel]
-    seg = world.line_segment[sel]
-    sA, sB, sfid, sseg = silhouettes_cam(world, mask, R_cw, t_cw)
-    A, B = np.concatenate([A, sA]), np.concatenate([B, sB])
-    fid, seg = np.concatenate([fid, sfid]).astype(int), np.concatenate([seg, sseg]).astype(int)
-    view.features += _segments(A, B, fid, seg, cam, r_fold, distorted, tol, view.raw, R_cw, t_cw, eye)
-
-    sel = np.flatnonzero(mask[world.ell_fid])
-    for e in sel:
-        view.features += _ellipse(world, e, cam, R_cw, t_cw, r_fold, distorted, tol, view.raw, eye)
-
-    sel = mask[world.corner_fid]
-    if sel.any():
-        P = geometry.world_to_cam(world.corners[sel], R_cw, t_cw)
-        ok = P[:, 2] > geometry.NEAR
-        xy = np.where(ok[:, None], P[:, :2] / np.where(ok, P[:, 2], 1.0)[:, None], 0.0)
-        ok &= np.hypot(xy[:, 0], xy[:, 1]) < r_fold
-        if eye is not None:  # --visibility exact (occlusion.py)
-            ok &= ~eye.hidden(P)
-        uv = geometry.plane_to_pixels(geometry.distort(xy, cam.k1, cam.k2, cam.p1, cam.p2),
-                                      cam.f, cam.ax, cam.ay, cam.cx, cam.cy)
-        view.corner_world, view.corner_fid = world.corners[sel][ok], world.corner_fid[sel][ok]
-        ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam.height)
-        for f, p in zip(world.corner_fid[sel][ok], uv[ok], strict=True):
-            view.features.append(ImageFeature(int(f), "corner", p[None, :]))
-    if eye is not None:  # parts also cut by the image border get their own numbers (occlusion.py)
-        occlusion.number_parts(view.features)
-    return view
+    return project_views(world, [cam], [R_cw], [t_cw], [mask], tol, occluders)[0]
 
 
-def silhouettes_cam(world: World, mask: np.ndarray, R_cw, t_cw):
-    """Camera-frame contour generators of the visible silhouettes, with feature ids and side index."""
-    A, B, fids, sides = [], [], [], []
-    for fid, (a, b) in zip(world.sil_fid, world.sil_pair, strict=True):
-        if not mask[fid]:
-            continue
-        args = []
-        for e in (a, b):
-            args += [R_cw @ world.ell_c[e] + t_cw, R_cw @ world.ell_U[e], R_cw @ world.ell_V[e]]
-        arcs = [None if world.ell_full[e] else tuple(world.ell_arc[e]) for e in (a, b)]
-        segs = conics.silhouette_segments(*args, arc_a=arcs[0], arc_b=arcs[1])
-        # order the two sides by where they appear (left to right in the image) for stable indices
-        segs.sort(key=lambda s: (s[0][0] / s[0][2] if s[0][2] > 0 else math.inf))
-        for side, (p, q) in enumerate(segs):
-            A.append(p)
-            B.append(q)
-            fids.append(fid)
-            sides.append(side)
-    z = np.zeros((0, 3))
-    return (np.array(A).reshape(-1, 3) if A else z, np.array(B).reshape(-1, 3) if B else z,
-            np.array(fids, dtype=int), np.array(sides, dtype=int))
+def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, masks: list,
+                  tol: float = DEFAULT_TOLERANCE, occluders: occlusion.Occluders | None = None) -> list[View]:
+    """What each camera sees of the features in its mask, for many views (camera, pose) at once.
+
+    With occluders (--visibility exact), each view keeps only the unoccluded parts (occlusion.py).
+    """
+    views = [View(c, np.asarray(R, float), np.asarray(t, float)) for c, R, t in zip(cams, R_cw, t_cw, strict=True)]
+    if not views:
+        return views
+    cam = _camera_table(cams)
+    masks = np.asarray(masks, dtype=bool).reshape(len(views), -1)
+    out = _Emitted(views)
+    eyes = None if occluders is None else [occluders.seen_from(v.R_cw, v.t_cw) for v in views]
+    seg = _straight_segments(world, views, cam, masks, eyes)
+    ell = _ellipse_intervals(world, views, masks, eyes)
+    _emit_lines(seg, views, cam, out)
+    # every curve of every view sampled together: segments under distortion, then ellipse arcs
+    curved = np.flatnonzero(seg.keep & cam["distorted"][seg.vid])
+    curves = _Curves(cam, np.concatenate([seg.vid[curved], ell.vid[ell.owner]]),
+                     np.concatenate([seg.A[curved], ell.c[ell.owner]]),
+                     np.concatenate([seg.D[curved], ell.U[ell.owner]]),
+                     np.concatenate([np.zeros((len(curved), 3)), ell.V[ell.owner]]),
+                     np.arange(len(curved) + len(ell.owner)) < len(curved))
+    try:
+        cid, ts, bounds = curves.sample(np.concatenate([seg.t0[curved], ell.lo]),
+                                        np.concatenate([seg.t1[curved], ell.hi]), tol,
+                                        np.where(curves.line, 2, 16))
+    except geometry.TooManyVertices as exc:
+        raise _too_many(exc, tol) from None
+    P = curves.points(cid, ts)
+    world_pts = out.to_world(P, curves.view[cid])
+    n_seg = len(curved)
+    # a segment's curve is one run; an ellipse arc splits into runs inside the fold radius
+    seg_runs = np.stack([bounds[:n_seg], bounds[1:n_seg + 1]], axis=1)
+    ell_runs, ell_run_meta = _fold_runs(ell, cam, cid, ts, P, bounds, n_seg)
+    runs = np.concatenate([seg_runs, ell_runs])
+    pieces = curves.clip(cid, ts, P, runs)
+    _emit_curved_segments(seg, curved, seg_runs, pieces, world_pts, out)
+    _emit_ellipses(ell, cam, ell_runs, ell_run_meta, pieces, n_seg, world_pts, out)
+    _emit_corners(world, views, cam, masks, out, eyes)
+    out.deliver()
+    if eyes is not None:  # parts also cut by the image border get their own numbers (occlusion.py)
+        for v in views:
+            occlusion.number_parts(v.features)
+    return views
 
 
-def _to_world(P_cam: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
-    return (P_cam - t_cw) @ R_cw
+def _too_many(exc: geometry.TooManyVertices, tol: float) -> WiredslError:
+    what = "one curve" if exc.curve >= 0 else "the projection of all views"
+    return WiredslError([Diagnostic(
+        "error", "E151", f"{what} would need more than {exc.limit:,} polyline vertices at a tolerance of {tol:g} px",
+        None, "use a larger --tolerance; the camera model is only meaningful to about 1e-6 px")])
 
 
-def _segments(A, B, fid, seg, cam: Camera, r_fold: float, distorted: bool, tol: float, raw: list[Raw],
-              R_cw, t_cw, eye: occlusion.Eye | None = None) -> list[ImageFeature]:
-    out: list[ImageFeature] = []
-    if len(A) == 0:
+class _Emitted:
+    """Features and raw strokes as they are produced, delivered to the views in a stable order."""
+
+    def __init__(self, views: list[View]):
+        self.views = views
+        self.features: list[tuple[tuple, ImageFeature]] = []
+        self.raw: list[tuple[tuple, Raw]] = []
+
+    def to_world(self, P_cam: np.ndarray, vid: np.ndarray) -> np.ndarray:
+        """Camera-frame points (m, 3) of views vid (m,) back in the world frame, one transform a view."""
+        out = np.empty_like(P_cam)
+        for k in np.unique(vid):
+            m = vid == k
+            out[m] = (P_cam[m] - self.views[k].t_cw) @ self.views[k].R_cw
         return out
-    t0, t1, keep = geometry.clip_segments_cone(A, B, geometry.NEAR, r_fold * (1 - 1e-9))
+
+    def deliver(self) -> None:
+        for key, f in sorted(self.features, key=lambda kf: kf[0]):
+            self.views[key[0]].features.append(f)
+        for key, r in sorted(self.raw, key=lambda kr: kr[0]):
+            self.views[key[0]].raw.append(r)
+
+
+def _camera_table(cams: list[Camera]) -> dict[str, np.ndarray]:
+    """Per-view camera parameters as arrays (V,), with the fold radius and whether there is distortion."""
+    names = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "width", "height")
+    table = {k: np.array([float(getattr(c, k)) for c in cams]) for k in names}
+    table["fold"] = np.array([geometry.fold_radius(c.k1, c.k2) for c in cams])
+    table["distorted"] = np.array([geometry.is_distorted(c) for c in cams], dtype=bool)
+    return table
+
+
+def _pixels(P: np.ndarray, cam: dict, v: np.ndarray) -> np.ndarray:
+    """Camera-frame points (m, 3) in front of views v (m,) -> pixels (m, 2).
+
+    A pixel beyond float range (a focal length of 1e300 px) is inf: such points count as outside the image.
+    """
+    xy = _plane(P)
+    g = {k: cam[k][v] for k in _Curves.CAMERA}
+    with np.errstate(over="ignore", invalid="ignore"):
+        return geometry.plane_to_pixels(geometry.distort(xy, g["k1"], g["k2"], g["p1"], g["p2"]),
+                                        g["f"], g["ax"], g["ay"], g["cx"], g["cy"])
+
+
+def _plane(P: np.ndarray) -> np.ndarray:
+    """Unit focal plane of points clipped to z >= NEAR; NaN (outside every image) where rounding at huge
+    distances left z <= 0."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        return np.where(P[:, 2:3] > 0, geometry.cam_to_plane(P), np.nan)
+
+
+def _ellipses_cam(world: World, views: list[View]):
+    """Every ellipse in every view's camera frame: centres, U and V, each (V, m, 3)."""
+    c = np.stack([world.ell_c @ v.R_cw.T + v.t_cw for v in views])
+    U = np.stack([world.ell_U @ v.R_cw.T for v in views])
+    V = np.stack([world.ell_V @ v.R_cw.T for v in views])
+    return c, U, V
+
+
+def silhouettes_cam(world: World, mask: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray):
+    """Camera-frame contour generators of one view's visible silhouettes: (A, B, fid, side)."""
+    _, A, B, fid, side = silhouettes_cams(world, [View(None, R_cw, t_cw)], np.asarray(mask, bool)[None])
+    return A, B, fid, side
+
+
+def silhouettes_cams(world: World, views: list[View], masks: np.ndarray):
+    """Camera-frame contour generators of the visible silhouettes of every view.
+
+    Returns (view, A, B, fid, side): the two sides of a silhouette are numbered by where they
+    appear, left to right in the image, for stable indices.
+    """
+    vv, ss = np.nonzero(masks[:, world.sil_fid]) if len(world.sil_fid) else (np.zeros(0, int),) * 2
+    z3 = np.zeros((0, 3))
+    if len(vv) == 0:
+        return np.zeros(0, int), z3, z3, np.zeros(0, int), np.zeros(0, int)
+    c, U, V = _ellipses_cam(world, views)
+    a, b = world.sil_pair[ss, 0], world.sil_pair[ss, 1]
+    full = world.ell_full
+    o, A, B = conics.silhouette_segments_batch(c[vv, a], U[vv, a], V[vv, a], c[vv, b], U[vv, b], V[vv, b],
+                                               world.ell_arc[a], full[a], world.ell_arc[b], full[b])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        key = np.where(A[:, 2] > 0, A[:, 0] / np.where(A[:, 2] > 0, A[:, 2], 1.0), np.inf)
+    order = np.lexsort((key, o))
+    o, A, B = o[order], A[order], B[order]
+    first = np.searchsorted(o, o)
+    return vv[o], A, B, world.sil_fid[ss[o]], np.arange(len(o)) - first
+
+
+@dataclass
+class _Segments:
+    """Straight 3D segments of every view (camera frame), clipped to the near plane and the fold cone."""
+
+    vid: np.ndarray
+    A: np.ndarray
+    D: np.ndarray
+    fid: np.ndarray
+    seg: np.ndarray
+    t0: np.ndarray
+    t1: np.ndarray
+    keep: np.ndarray
+    cut3d: np.ndarray
+    piece: np.ndarray  # part index when occlusion cut the segment, else -1
+    hid: np.ndarray  # occlusion cut it
+
+
+def _straight_segments(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes=None) -> _Segments:
+    """Lines, polyline segments and silhouette sides of every view, in that order within a view."""
+    sv, sA, sB, sfid, sside = silhouettes_cams(world, views, masks)
+    lv, ll = np.nonzero(masks[:, world.line_fid]) if len(world.line_fid) else (np.zeros(0, int),) * 2
+    R = np.stack([v.R_cw for v in views])
+    t = np.stack([v.t_cw for v in views])
+    ends = np.einsum("vij,lkj->vlki", R, world.lines)[lv, ll] + t[lv, None]  # (n, 2, 3) camera frame
+    # within a view: its lines and polyline segments, then its silhouette sides
+    vid = np.concatenate([lv, sv])
+    order = np.argsort(vid, kind="stable")
+    vid = vid[order]
+    A = np.concatenate([ends[:, 0], sA])[order]
+    B = np.concatenate([ends[:, 1], sB])[order]
+    fid = np.concatenate([world.line_fid[ll], sfid])[order]
+    seg = np.concatenate([world.line_segment[ll], sside])[order]
+    t0, t1, keep = geometry.clip_segments_cone(A, B, geometry.NEAR, cam["fold"][vid] * (1 - 1e-9))
+    fid, seg = fid.astype(int), seg.astype(int)
     cut3d = (t0 > 0) | (t1 < 1)
     piece, hid = np.full(len(A), -1), np.zeros(len(A), dtype=bool)
-    if eye is not None:  # --visibility exact: one row per unoccluded part (occlusion.py)
-        rows, u0, u1, piece, hid = occlusion.split_segments(eye, A, B, t0, t1, keep)
+    if eyes is not None:  # --visibility exact: one row per unoccluded part, view by view (occlusion.py)
+        parts = []
+        for k, eye in enumerate(eyes):
+            m = np.flatnonzero(vid == k)
+            r, u0, u1, pc, hd = occlusion.split_segments(eye, A[m], B[m], t0[m], t1[m], keep[m])
+            parts.append((m[r], u0, u1, pc, hd))
+        rows, u0, u1, piece, hid = (np.concatenate(x) for x in zip(*parts, strict=True))
+        rows = rows.astype(int)
         cut3d = ((u0 > 0) & (u0 == t0[rows])) | ((u1 < 1) & (u1 == t1[rows]))  # the near plane, not occlusion
-        A, B, fid, seg, t0, t1, keep = A[rows], B[rows], fid[rows], seg[rows], u0, u1, np.ones(len(rows), bool)
-    D = B - A
-    idx = np.flatnonzero(keep)
-    if not distorted:
-        Pa, Pb = A[idx] + t0[idx, None] * D[idx], A[idx] + t1[idx, None] * D[idx]
-        for j, i in enumerate(idx):
-            raw.append(Raw(int(fid[i]), int(seg[i]), "line", False, bool(cut3d[i]),
-                           _to_world(np.stack([Pa[j], Pb[j]]), R_cw, t_cw), int(piece[i]), bool(hid[i])))
-        a = geometry.cam_to_pixels(Pa, cam)
-        b = geometry.cam_to_pixels(Pb, cam)
-        r0, r1, ok = geometry.clip_segments_rect(a, b, cam.width, cam.height)
-        d = b - a
-        long_enough = np.linalg.norm(d, axis=1) * (r1 - r0) > 1e-9  # a line seen end-on has no image
-        for j in np.flatnonzero(ok & (r1 > r0) & long_enough):
-            i = idx[j]
-            pts = np.stack([a[j] + r0[j] * d[j], a[j] + r1[j] * d[j]])
-            cut = bool(cut3d[i] or r0[j] > 0 or r1[j] < 1)
-            out.append(ImageFeature(int(fid[i]), "line", pts, int(seg[i]), cut, fragment=int(piece[i]),
-                                    occluded=bool(hid[i])))
-        return out
-
-    def point(c, t):
-        return geometry.cam_to_pixels(A[idx][c] + t[:, None] * D[idx][c], cam)
-
-    params = geometry.adaptive_samples(point, t0[idx], t1[idx], tol, start=2)
-    for j, ts in enumerate(params):
-        i = idx[j]
-        pts = point(np.full(len(ts), j), ts)
-        raw.append(Raw(int(fid[i]), int(seg[i]), "polyline", False, bool(cut3d[i]),
-                       _to_world(A[i] + ts[:, None] * D[i], R_cw, t_cw), int(piece[i]), bool(hid[i])))
-        for part, cut in geometry.clip_polyline_rect(pts, cam.width, cam.height):
-            out.append(ImageFeature(int(fid[i]), "polyline", part, int(seg[i]), bool(cut or cut3d[i]),
-                                    fragment=int(piece[i]), occluded=bool(hid[i])))
-    return out
+        vid, A, B, fid, seg, t0, t1 = vid[rows], A[rows], B[rows], fid[rows], seg[rows], u0, u1
+        keep = np.ones(len(rows), dtype=bool)
+    return _Segments(vid, A, B - A, fid, seg, t0, t1, keep, cut3d, piece.astype(int), hid.astype(bool))
 
 
-def _front_intervals(cz: float, Az: float, Bz: float, arc: tuple[float, float]) -> list[tuple[float, float]]:
-    """Parts of [t0, t1] where cz + Az cos t + Bz sin t > NEAR."""
-    t0, t1 = arc
-    R = math.hypot(Az, Bz)
+def _emit_lines(s: _Segments, views: list[View], cam: dict, out: _Emitted) -> None:
+    """Segments of undistorted views: straight in the image too, clipped exactly."""
+    idx = np.flatnonzero(s.keep & ~cam["distorted"][s.vid])
+    if len(idx) == 0:
+        return
+    vid = s.vid[idx]
+    Pa, Pb = s.A[idx] + s.t0[idx, None] * s.D[idx], s.A[idx] + s.t1[idx, None] * s.D[idx]
+    Wa, Wb = out.to_world(Pa, vid), out.to_world(Pb, vid)
+    fid, seg, cut3d, vl = s.fid[idx].tolist(), s.seg[idx].tolist(), s.cut3d[idx].tolist(), vid.tolist()
+    piece, hid = s.piece[idx].tolist(), s.hid[idx].tolist()
+    for j, i in enumerate(idx.tolist()):
+        out.raw.append(((vl[j], 0, i), Raw(fid[j], seg[j], "line", False, cut3d[j], np.stack([Wa[j], Wb[j]]),
+                                           piece[j], hid[j])))
+    a, b = _pixels(Pa, cam, vid), _pixels(Pb, cam, vid)
+    finite = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+    a, b = np.where(finite[:, None], a, 0.0), np.where(finite[:, None], b, 0.0)
+    r0, r1, ok = geometry.clip_segments_rect(a, b, cam["width"][vid], cam["height"][vid])
+    d = b - a
+    ok &= finite & (np.hypot(d[:, 0], d[:, 1]) * (r1 - r0) > 1e-9)  # a line seen end-on has no image
+    for j in np.flatnonzero(ok & (r1 > r0)).tolist():
+        pts = np.stack([a[j] + r0[j] * d[j], a[j] + r1[j] * d[j]])
+        cut = bool(cut3d[j] or r0[j] > 0 or r1[j] < 1)
+        out.features.append(((vl[j], 0, int(idx[j]), 0), ImageFeature(fid[j], "line", pts, seg[j], cut,
+                                                                      fragment=piece[j], occluded=hid[j])))
+
+
+def _emit_curved_segments(s: _Segments, curved: np.ndarray, runs: np.ndarray, pieces, world_pts, out: _Emitted):
+    """Segments of distorted views: adaptive polylines (curve k of the sampling is segment curved[k])."""
+    vl, fid, seg, cut3d, piece, hid = (x[curved].tolist() for x in (s.vid, s.fid, s.seg, s.cut3d, s.piece, s.hid))
+    for k, (b0, b1) in enumerate(runs.tolist()):
+        out.raw.append(((vl[k], 0, int(curved[k])), Raw(fid[k], seg[k], "polyline", False, cut3d[k],
+                                                         world_pts[b0:b1], piece[k], hid[k])))
+    for n, (k, pts, cut) in enumerate(pieces):
+        if k < len(curved):
+            out.features.append(((vl[k], 0, int(curved[k]), n),
+                                 ImageFeature(fid[k], "polyline", pts, seg[k], bool(cut or cut3d[k]),
+                                              fragment=piece[k], occluded=hid[k])))
+
+
+class _Curves:
+    """Curves P(t) = base + X cos t + Y sin t (ellipses) or base + t X (lines, Y = 0), camera frame."""
+
+    CAMERA = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2")
+
+    def __init__(self, cam: dict, view: np.ndarray, base: np.ndarray, X: np.ndarray, Y: np.ndarray,
+                 line: np.ndarray):
+        self.cam, self.view, self.line = cam, view, line
+        # one row a curve: its geometry and its camera, so that evaluating points is a single gather
+        self.table = np.column_stack([base, X, Y, line, *(cam[k][view] for k in self.CAMERA)])
+
+    def points(self, c: np.ndarray, t: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        g = self.table[c] if rows is None else rows
+        line = g[:, 9] != 0
+        x = np.where(line, t, np.cos(t))
+        y = np.where(line, 0.0, np.sin(t))
+        return g[:, 0:3] + x[:, None] * g[:, 3:6] + y[:, None] * g[:, 6:9]
+
+    def pixels(self, c: np.ndarray, t: np.ndarray) -> np.ndarray:
+        g = self.table[c]
+        xy = _plane(self.points(c, t, g))
+        f, ax, ay, cx, cy, k1, k2, p1, p2 = g[:, 10:19].T
+        with np.errstate(over="ignore", invalid="ignore"):  # see _pixels
+            return geometry.plane_to_pixels(geometry.distort(xy, k1, k2, p1, p2), f, ax, ay, cx, cy)
+
+    def sample(self, t0: np.ndarray, t1: np.ndarray, tol: float, start):
+        image = (self.cam["width"][self.view], self.cam["height"][self.view])
+        return geometry.adaptive_samples_packed(self.pixels, t0, t1, tol, start, image=image)
+
+    def clip(self, cid: np.ndarray, ts: np.ndarray, P: np.ndarray, runs: np.ndarray) -> list:
+        """Cut the polylines of sample runs (R, 2) [first, end) to the image; ends cut at the border lie on
+        the curve. Returns [(run, pixels (k, 2), cut)] in run order."""
+        cam = self.cam
+        keep = runs[:, 1] > runs[:, 0]
+        runs = runs[keep]
+        sizes = runs[:, 1] - runs[:, 0]
+        take = geometry._ranges(runs[:, 0], sizes)
+        c, t = cid[take], ts[take]
+        uv = _pixels(P[take], cam, self.view[c])
+        start = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        run_of = np.flatnonzero(keep)
+        v = self.view[c[start[:-1]]]
+        r = geometry.clip_polylines_rect(uv, start, cam["width"][v], cam["height"][v])
+        pts = r["pts"]
+        ends = np.flatnonzero(r["end"] > 0)
+        if len(ends):
+            j = r["seg"][ends]
+            pts[ends] = self._on_border(c[j], t[j], t[j + 1], r["at"][ends], r["side"][ends], pts[ends])
+        src, bounds, cut = run_of[r["src"]].tolist(), r["start"].tolist(), r["cut"].tolist()
+        return [(src[k], pts[bounds[k]:bounds[k + 1]], cut[k]) for k in range(len(src))]
+
+    def _on_border(self, c, ta, tb, at, side, chord_pts) -> np.ndarray:
+        """Where the curve crosses the border `side` between parameters ta and tb (Illinois regula falsi).
+
+        Falls back to the chord's crossing where the curve's end values do not bracket the border.
+        """
+        axis = np.where(side < 2, 0, 1)
+        v = self.view[c]
+        level = np.select([side == 1, side == 3], [self.cam["width"][v], self.cam["height"][v]], 0.0)
+        rows = np.arange(len(c))
+
+        def g(t):
+            return self.pixels(c, t)[rows, axis] - level
+
+        ga, gb = g(ta), g(tb)
+        ok = np.isfinite(ga) & np.isfinite(gb) & (np.sign(ga) != np.sign(gb))
+        a, b, fa, fb = ta.copy(), tb.copy(), ga.copy(), gb.copy()
+        last = np.zeros(len(c), dtype=int)
+        x = ta + at * (tb - ta)
+        for _ in range(100):
+            fx = g(x)
+            done = ~ok | (np.abs(fx) <= 1e-10) | (np.abs(b - a) <= 1e-15 * np.maximum(np.abs(a), 1.0))
+            if done.all():
+                break
+            left = np.sign(fx) == np.sign(fa)  # the root lies in [x, b]
+            a, fa, b, fb = np.where(left, x, a), np.where(left, fx, fa), np.where(left, b, x), np.where(left, fb, fx)
+            # Illinois: halve the weight of an end kept twice in a row, so convergence stays superlinear
+            fb = np.where(left & (last == 1), fb / 2, fb)
+            fa = np.where(~left & (last == -1), fa / 2, fa)
+            last = np.where(left, 1, -1)
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                x_new = (a * fb - b * fa) / (fb - fa)
+            x_new = np.where(np.isfinite(x_new) & (x_new >= np.minimum(a, b)) & (x_new <= np.maximum(a, b)),
+                             x_new, 0.5 * (a + b))
+            x = np.where(done, x, x_new)
+        p = self.pixels(c, x)
+        p[rows, axis] = np.where(ok, level, p[rows, axis])  # exactly on the border (within 1e-10 px already)
+        return np.where(ok[:, None] & np.isfinite(p).all(axis=1)[:, None], p, chord_pts)
+
+
+def _front_intervals(cz, Az, Bz, arc):
+    """Parts of each ellipse's arc [t0, t1] where cz + Az cos t + Bz sin t > NEAR.
+
+    For n ellipses (arrays (n,), arc (n, 2)): (owner (k,), lo (k,), hi (k,)), in order.
+    """
+    t0, t1 = arc[:, 0], arc[:, 1]
+    R = np.hypot(Az, Bz)
     level = geometry.NEAR - cz
-    if R <= 1e-15 * max(abs(cz), 1.0) or level / R <= -1:
-        return [(t0, t1)] if level < 0 or level / max(R, 1e-300) <= -1 else []
-    if level / R >= 1:
-        return []
-    phi, alpha = math.atan2(Bz, Az), math.acos(level / R)
-    out = []
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        ratio = level / np.where(R > 0, R, 1e-300)
+    flat = (R <= 1e-15 * np.maximum(np.abs(cz), 1.0)) | (ratio <= -1)
+    flat_in = flat & ((level < 0) | (ratio <= -1))
+    phi = np.arctan2(Bz, Az)
+    alpha = np.arccos(np.clip(ratio, -1.0, 1.0))
     # visible where |t - phi| < alpha (mod 2 pi); intersect with [t0, t1]
-    k0 = math.floor((t0 - phi - alpha) / (2 * math.pi))
-    for k in range(k0, k0 + 3):
-        lo, hi = phi - alpha + 2 * math.pi * k, phi + alpha + 2 * math.pi * k
-        a, b = max(lo, t0), min(hi, t1)
-        if b > a:
-            out.append((a, b))
-    return out
+    k0 = np.floor((t0 - phi - alpha) / (2 * math.pi))
+    ks = k0[:, None] + np.arange(3)[None, :]
+    lo = phi[:, None] - alpha[:, None] + 2 * math.pi * ks
+    hi = phi[:, None] + alpha[:, None] + 2 * math.pi * ks
+    a, b = np.maximum(lo, t0[:, None]), np.minimum(hi, t1[:, None])
+    ok = (~flat & (ratio < 1))[:, None] & (b > a)
+    ok = np.concatenate([flat_in[:, None], ok], axis=1)
+    a = np.concatenate([t0[:, None], a], axis=1)
+    b = np.concatenate([t1[:, None], b], axis=1)
+    owner, col = np.nonzero(ok)
+    return owner, a[owner, col], b[owner, col]
 
 
-def _ellipse(world: World, e: int, cam: Camera, R_cw, t_cw, r_fold, distorted, tol, raw: list[Raw],
-             eye: occlusion.Eye | None = None) -> list[ImageFeature]:
-    fid = int(world.ell_fid[e])
-    c = R_cw @ world.ell_c[e] + t_cw
-    U = R_cw @ world.ell_U[e]
-    V = R_cw @ world.ell_V[e]
-    arc = tuple(world.ell_arc[e])
-    full = bool(world.ell_full[e])
-    intervals = _front_intervals(c[2], U[2], V[2], arc)
-    whole = len(intervals) == 1 and intervals[0] == arc  # wholly in front of the camera
-    hid = False
-    if eye is not None and intervals:  # --visibility exact: the unoccluded arcs (occlusion.py)
-        intervals, hid = occlusion.split_arcs(eye, c, U, V, intervals, full)
-    out: list[ImageFeature] = []
-    if not intervals:
-        return out
+@dataclass
+class _Ellipses:
+    """The visible ellipses of every view (camera frame) and their arcs in front of the near plane."""
 
-    def point(cid, t):
-        P = ellipse_points(np.broadcast_to(c, (len(t), 3)), np.broadcast_to(U, (len(t), 3)),
-                           np.broadcast_to(V, (len(t), 3)), t)
-        return geometry.cam_to_pixels(P, cam)
-
-    lo = np.array([a for a, _ in intervals])
-    hi = np.array([b for _, b in intervals])
-    params = geometry.adaptive_samples(point, lo, hi, tol, start=16)
-    any_cut = not whole
-    pieces = []
-    first_raw = len(raw)
-    for ts in params:
-        P = ellipse_points(np.broadcast_to(c, (len(ts), 3)), np.broadcast_to(U, (len(ts), 3)),
-                           np.broadcast_to(V, (len(ts), 3)), ts)
-        inside = np.hypot(P[:, 0] / P[:, 2], P[:, 1] / P[:, 2]) < r_fold
-        any_cut |= not inside.all()
-        runs = _runs(inside)
-        for run in runs:
-            raw.append(Raw(fid, -1, "polyline", full and whole and not hid and len(runs) == 1 and inside.all(),
-                           not (whole and inside.all()), _to_world(P[run], R_cw, t_cw),
-                           len(raw) - first_raw if hid else -1, hid))
-            pts = geometry.cam_to_pixels(P[run], cam)
-            for piece, cut in geometry.clip_polyline_rect(pts, cam.width, cam.height):
-                pieces.append((piece, cut))
-    closed = full and whole and not hid and len(pieces) == 1 and not pieces[0][1]
-    for k, (piece, cut) in enumerate(pieces):
-        out.append(ImageFeature(fid, "polyline", piece, -1, bool(cut or not whole or any_cut), closed,
-                                fragment=k if hid else -1, occluded=hid))
-    if not distorted and whole and not hid:  # an occluded ellipse is its visible arcs only
-        K = np.array([[cam.f * cam.ax, 0, cam.cx], [0, cam.f * cam.ay, cam.cy], [0, 0, 1.0]])
-        H = K @ conics.homography(c, U, V)
-        params_ = conics.ellipse_params(conics.dual_conic(H))
-        if params_ is not None:
-            centre, axes, angle = params_
-            arc_img = None if full else _image_arc(H, centre, axes, angle, arc)
-            clipped = any(cut for _, cut in pieces) or not pieces
-            out.append(ImageFeature(fid, "conic", centre[None, :], -1, clipped, full,
-                                    (centre, axes, angle, arc_img)))
-    return out
+    vid: np.ndarray  # (E,) view of each
+    c: np.ndarray
+    U: np.ndarray
+    V: np.ndarray
+    arc: np.ndarray
+    full: np.ndarray
+    fid: np.ndarray
+    owner: np.ndarray  # (I,) the ellipse of each interval in front
+    lo: np.ndarray
+    hi: np.ndarray
+    whole: np.ndarray  # (E,) the whole arc is in front (one interval, equal to the arc)
+    hid: np.ndarray  # (E,) occlusion cut it (--visibility exact)
 
 
-def _runs(mask: np.ndarray) -> list[slice]:
-    """Slices of consecutive True values."""
-    d = np.diff(np.concatenate([[0], mask.astype(int), [0]]))
-    return [slice(a, b) for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1), strict=True)]
+def _ellipse_intervals(world: World, views: list[View], masks: np.ndarray, eyes=None) -> _Ellipses:
+    vv, ee = np.nonzero(masks[:, world.ell_fid]) if len(world.ell_fid) else (np.zeros(0, int),) * 2
+    c, U, V = (x[vv, ee] for x in _ellipses_cam(world, views))
+    arc = world.ell_arc[ee]
+    owner, lo, hi = _front_intervals(c[:, 2], U[:, 2], V[:, 2], arc)
+    whole = np.zeros(len(vv), dtype=bool)
+    one = np.flatnonzero(np.bincount(owner, minlength=len(vv)) == 1)
+    first = np.searchsorted(owner, one)
+    whole[one] = (lo[first] == arc[one, 0]) & (hi[first] == arc[one, 1])
+    full = world.ell_full[ee]
+    hid = np.zeros(len(vv), dtype=bool)
+    if eyes is not None:  # --visibility exact: the unoccluded arcs, ellipse by ellipse (occlusion.py)
+        parts = []
+        for e in np.unique(owner).tolist():
+            mine = owner == e
+            arcs, hid[e] = occlusion.split_arcs(eyes[vv[e]], c[e], U[e], V[e],
+                                                list(zip(lo[mine].tolist(), hi[mine].tolist(), strict=True)),
+                                                bool(full[e]))
+            parts += [(e, a, b) for a, b in arcs]
+        owner = np.array([p[0] for p in parts], dtype=int)
+        lo, hi = np.array([p[1] for p in parts], dtype=float), np.array([p[2] for p in parts], dtype=float)
+    return _Ellipses(vv, c, U, V, arc, full, world.ell_fid[ee], owner, lo, hi, whole, hid)
+
+
+def _fold_runs(ell: _Ellipses, cam: dict, cid, ts, P, bounds, n_seg: int):
+    """Runs [first, end) of each ellipse interval's samples inside the fold radius, with (interval,
+    raw closed, raw clipped, any sample cut of its ellipse) for each run."""
+    lo = bounds[n_seg]
+    icid = cid[lo:] - n_seg  # interval of each ellipse sample
+    Pe = P[lo:]
+    n_int = len(ell.owner)
+    e_of = ell.owner[icid]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        inside = np.hypot(Pe[:, 0] / Pe[:, 2], Pe[:, 1] / Pe[:, 2]) < cam["fold"][ell.vid[e_of]]
+    first = np.zeros(len(icid), dtype=bool)
+    first[bounds[n_seg:-1] - lo] = True
+    last = np.zeros(len(icid), dtype=bool)
+    last[bounds[n_seg + 1:] - lo - 1] = True
+    prev_in = np.concatenate([[False], inside[:-1]])
+    next_in = np.concatenate([inside[1:], [False]])
+    begin = np.flatnonzero(inside & (first | ~prev_in))
+    end = np.flatnonzero(inside & (last | ~next_in)) + 1
+    run_int = icid[begin]
+    all_in = np.bincount(icid, weights=~inside, minlength=n_int) == 0
+    runs_per_int = np.bincount(run_int, minlength=n_int)
+    e = ell.owner[run_int]
+    closed = ell.full[e] & ell.whole[e] & ~ell.hid[e] & (runs_per_int[run_int] == 1) & all_in[run_int]
+    clipped = ~(ell.whole[e] & all_in[run_int])
+    any_cut = ~ell.whole | (np.bincount(e_of, weights=~inside, minlength=len(ell.vid)) > 0)
+    return np.stack([begin + lo, end + lo], axis=1).reshape(-1, 2), (run_int, closed, clipped, any_cut)
+
+
+def _emit_ellipses(ell: _Ellipses, cam: dict, runs, meta, pieces, n_seg: int, world_pts, out: _Emitted) -> None:
+    """Ellipse polylines (runs n_seg... of the pieces), and a conic where the image is an exact ellipse."""
+    run_int, closed, clipped, any_cut = meta
+    run_e = ell.owner[run_int]
+    vl, fl, el = ell.vid[run_e].tolist(), ell.fid[run_e].tolist(), run_e.tolist()
+    raw_part = np.where(ell.hid[run_e], occlusion._rank(run_e), -1).tolist()  # runs of an ellipse are adjacent
+    for k, (b0, b1) in enumerate(runs.tolist()):
+        out.raw.append(((vl[k], 1, el[k], k), Raw(fl[k], -1, "polyline", bool(closed[k]), bool(clipped[k]),
+                                                  world_pts[b0:b1], raw_part[k], bool(ell.hid[el[k]]))))
+    mine = [(r - n_seg, pts, cut) for r, pts, cut in pieces if r >= n_seg]
+    piece_e = np.array([run_e[r] for r, _, _ in mine], dtype=int)
+    n_pieces = np.bincount(piece_e, minlength=len(ell.vid))
+    piece_cut = np.bincount(piece_e, weights=[cut for _, _, cut in mine], minlength=len(ell.vid)) > 0
+    one_uncut = ell.full & ell.whole & ~ell.hid & (n_pieces == 1) & ~piece_cut
+    part = occlusion._rank(piece_e).tolist()  # pieces of an ellipse are adjacent
+    for n, (r, pts, cut) in enumerate(mine):
+        e = int(piece_e[n])
+        hid = bool(ell.hid[e])
+        out.features.append(((vl[r], 1, e, n), ImageFeature(fl[r], "polyline", pts, -1, bool(cut or any_cut[e]),
+                                                            bool(one_uncut[e]), fragment=part[n] if hid else -1,
+                                                            occluded=hid)))
+    # conics: exact ellipse images (no distortion, wholly in front, not cut by occlusion), when some of it
+    # is in the image
+    sel = np.flatnonzero(~cam["distorted"][ell.vid] & ell.whole & ~ell.hid & (n_pieces > 0))
+    if len(sel) == 0:
+        return
+    g = {k: cam[k][ell.vid[sel]] for k in ("f", "ax", "ay", "cx", "cy")}
+    K = np.zeros((len(sel), 3, 3))
+    K[:, 0, 0], K[:, 0, 2], K[:, 1, 1], K[:, 1, 2], K[:, 2, 2] = g["f"] * g["ax"], g["cx"], g["f"] * g["ay"], g["cy"], 1
+    H = K @ conics.homography(ell.c[sel], ell.U[sel], ell.V[sel])
+    ok, centre, axes, angle = conics.ellipse_params_batch(conics.dual_conic(H))
+    for j in np.flatnonzero(ok).tolist():
+        e = int(sel[j])
+        arc_img = None if ell.full[e] else _image_arc(H[j], centre[j], axes[j], angle[j], tuple(ell.arc[e]))
+        out.features.append(((int(ell.vid[e]), 1, e, len(mine)),
+                             ImageFeature(int(ell.fid[e]), "conic", centre[j][None, :], -1, bool(piece_cut[e]),
+                                          bool(ell.full[e]), (centre[j], axes[j], float(angle[j]), arc_img))))
+
+
+def _emit_corners(world: World, views: list[View], cam: dict, masks: np.ndarray, out: _Emitted, eyes=None) -> None:
+    """Corner points of every view; each view also keeps its corners in front of it for re-projection."""
+    cv, cc = np.nonzero(masks[:, world.corner_fid]) if len(world.corner_fid) else (np.zeros(0, int),) * 2
+    if len(cv) == 0:
+        return
+    R = np.stack([v.R_cw for v in views])
+    t = np.stack([v.t_cw for v in views])
+    P = np.einsum("vij,cj->vci", R, world.corners)[cv, cc] + t[cv]
+    ok = P[:, 2] > geometry.NEAR
+    xy = np.where(ok[:, None], P[:, :2] / np.where(ok, P[:, 2], 1.0)[:, None], 0.0)
+    ok &= np.hypot(xy[:, 0], xy[:, 1]) < cam["fold"][cv]
+    if eyes is not None:  # --visibility exact (occlusion.py)
+        for k, eye in enumerate(eyes):
+            m = np.flatnonzero(cv == k)
+            ok[m] &= ~eye.hidden(P[m])
+    uv = _pixels(np.column_stack([xy, np.ones(len(xy))]), cam, cv)
+    front = np.flatnonzero(ok)  # cv is sorted: one split gives every view its corners in front
+    cuts = np.searchsorted(cv[front], np.arange(1, len(views)))
+    for v, rows in zip(views, np.split(cc[front], cuts), strict=True):
+        v.corner_world, v.corner_fid = world.corners[rows], world.corner_fid[rows]
+    with np.errstate(invalid="ignore"):
+        ok &= (uv[:, 0] >= 0) & (uv[:, 0] <= cam["width"][cv]) & (uv[:, 1] >= 0) & (uv[:, 1] <= cam["height"][cv])
+    shown = np.flatnonzero(ok)
+    for j, k, f in zip(shown.tolist(), cv[shown].tolist(), world.corner_fid[cc[shown]].tolist(), strict=True):
+        out.features.append(((k, 2, j, 0), ImageFeature(f, "corner", uv[j][None, :])))
 
 
 def _image_arc(H, centre, axes, angle, arc) -> tuple[float, float]:

@@ -124,4 +124,6 @@ class Manifest(Node):
     visibility: str = Field("scene", description="scene (the nearest view-point's list), exact or all")
     stages: list[ManifestStage] = []
     ran: dict[str, int] = Field({}, description="how often each piece of work ran (the run's trace)")
+    engine: Literal["kernel", "numpy"] = Field("numpy", description="the Monte-Carlo engine that ran the trials "
+                                                "(the same draws; a replay is byte-identical with the same one)")
     warnings: list[str] = []

@@ -1,0 +1,142 @@
+"""Keyed randomness: the generator against SplitMix64's published outputs, statistics of the keyed
+uniforms and normals, and replay of any trial alone bit for bit equal to the same trial inside batches of
+1, 7, 64 and 256, on every scene in scenes/ (its own pipelines and every stage at the paper's values)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import compile_text
+
+from wiredsl.effects.base import keyed_bits, keyed_normal, keyed_uniform, stream_key
+from wiredsl.engine import imageset as im
+from wiredsl.engine.montecarlo import Run
+from wiredsl.engine.simulate import Options
+from wiredsl.engine.world import build_world
+from wiredsl.language.compile import compile_file
+
+ALL_SCENES = sorted(str(p) for p in Path(__file__).resolve().parent.parent.glob("scenes/*.wd"))
+SCENES = [p for p in ALL_SCENES if compile_file(p)[0].path is not None]  # the others cannot be built
+PAPER_IMAGE = """  edge_loss fraction 29%
+  lateral_shift range 3px
+  approx_error sigma 0.15px
+  corner_loss keep 0.85
+  corner_mismatch fraction 20% radius 10px
+  stereo_mismatch band 5deg fraction 20% disparity 20px"""
+
+
+def test_the_scenes_that_cannot_be_built_have_no_path():
+    assert len(SCENES) >= 3 and all(compile_file(p)[0].path is None for p in set(ALL_SCENES) - set(SCENES))
+
+
+def test_keyed_bits_are_splitmix64_outputs():
+    """SplitMix64 seeded with 1234567 (the reference implementation's published first five outputs)."""
+    got = keyed_bits(np.uint64(1234567), np.arange(5)).tolist()
+    assert got == [6457827717110365317, 3203168211198807973, 9817491932198370423, 4593380528125082431,
+                   16408922859458223821]
+
+
+def _splitmix_python(state: int, n: int) -> list[int]:
+    """The reference SplitMix64 generator in Python integers (a stateful loop, not the counter form)."""
+    out, mask = [], (1 << 64) - 1
+    for _ in range(n):
+        state = (state + 0x9E3779B97F4A7C15) & mask
+        z = state
+        z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
+        z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+        out.append(z ^ (z >> 31))
+    return out
+
+
+def test_counter_form_equals_the_stateful_generator_for_any_key():
+    for key in (0, 1, 2**63 + 12345, 2**64 - 1, int(stream_key("edge_loss", 7, 3, 1, 99))):
+        assert keyed_bits(np.uint64(key), np.arange(300)).tolist() == _splitmix_python(key, 300)
+
+
+def _chi2(x: np.ndarray, cdf, bins: int = 20) -> float:
+    """Pearson's chi-square of x against `cdf` over `bins` equiprobable bins (df = bins - 1)."""
+    p = np.array([cdf(v) for v in x])
+    observed = np.bincount(np.minimum((p * bins).astype(int), bins - 1), minlength=bins)
+    expected = len(x) / bins
+    return float(((observed - expected) ** 2 / expected).sum())
+
+
+def test_keyed_uniforms_and_normals_have_their_distributions():
+    key = stream_key("approx_error", np.arange(200), 2, 0, 5)
+    u = keyed_uniform(key[:, None], np.arange(100)[None, :]).ravel()
+    assert u.min() >= 0 and u.max() < 1
+    n = keyed_normal(key[:, None], np.arange(100)[None, :]).ravel()
+    # df = 19: the 99.9% point of chi-square is 43.8
+    assert _chi2(u, lambda v: v) < 43.8
+    assert _chi2(n, lambda v: 0.5 * (1 + math.erf(v / math.sqrt(2)))) < 43.8
+    assert abs(n.mean()) < 4 / math.sqrt(len(n)) and abs(n.std() - 1) < 0.03
+    # neighbouring trials and draw indices are uncorrelated
+    grid = keyed_uniform(key[:, None], np.arange(100)[None, :])
+    assert abs(np.corrcoef(grid[:-1].ravel(), grid[1:].ravel())[0, 1]) < 0.03
+    assert abs(np.corrcoef(grid[:, :-1].ravel(), grid[:, 1:].ravel())[0, 1]) < 0.03
+
+
+def test_every_key_component_changes_the_draws():
+    base = dict(stage="edge_loss", trial=3, pose=2, camera=0, seed=11)
+    ref = stream_key(**base)
+    for k, v in (("stage", "lateral_shift"), ("trial", 4), ("pose", 3), ("camera", 1), ("seed", 12)):
+        assert stream_key(**{**base, k: v}) != ref
+    assert stream_key(**base, point=0) != ref and stream_key(**base, point=0) != stream_key(**base, point=1)
+
+
+def pipelines(scene):
+    """The scene's own pipelines, and every stage at the paper's values (calibration when the rig has one)."""
+    text = ("  calibration_error sigma 0.01\n" if scene.rig.calibration is not None else "") + PAPER_IMAGE
+    full, _ = compile_text(f"wiredsl 1\npipeline full {{\n{text}\n}}\n")
+    return [*scene.pipelines, full.pipelines[0]]
+
+
+def trial_of(s: im.ImageSet, k: int) -> tuple:
+    """Batch trial k's part of an ImageSet, as bytes (everything but the batch index)."""
+    t = s.take(s.trial == k)
+    c = s.corner_trial == k
+    return (t.pts.tobytes(), t.start.tobytes(), t.fid.tobytes(), t.segment.tobytes(), t.fragment.tobytes(),
+            t.kind.tobytes(), t.clipped.tobytes(), t.closed.tobytes(), t.occluded.tobytes(), s.corners[c].tobytes(),
+            s.corner_fid[c].tobytes())
+
+
+def outputs(run: Run, trials, size: int) -> dict:
+    """{trial: [(pose, side, bytes)]} of a run over `trials` in batches of `size`."""
+    out: dict = {}
+    for batch, res in run.batches(trials, size):
+        for k, t in enumerate(batch):
+            out[t] = [(r.index, side, trial_of(s, k)) for r, d, _ in res for side, s in sorted(d.items())]
+    return out
+
+
+@pytest.mark.parametrize("path", SCENES)
+def test_a_trial_alone_is_bit_identical_to_the_same_trial_in_batches_of_any_size(path):
+    scene, _, _ = compile_file(path)
+    world = build_world(scene)
+    for pipe in pipelines(scene):
+        run = Run.create(scene, world, pipe, 2024, Options())
+        inside = {}
+        for size, trials in ((7, range(1000, 1007)), (64, range(950, 1014)), (256, range(800, 1056))):
+            inside[size] = outputs(run, trials, size)
+        for k in (1000, 1003, 1006):
+            alone = outputs(run, [k], 1)[k]
+            assert any(b for *_, b in alone if b[0]), "a trial with no strokes proves nothing"
+            for size, got in inside.items():
+                assert got[k] == alone, (path, pipe.name, k, size)
+
+
+def test_a_huge_run_streams_its_trials_and_keeps_no_per_trial_state():
+    """10**12 trials: the first batch comes at once (no trial list is built), and what the run keeps
+    after two batches (calibration moments, statistics) is the same size as after one."""
+    scene, _, _ = compile_file("scenes/lab.wd")
+    run = Run.create(scene, build_world(scene), scene.pipeline("paper"), 3, Options(poses=(0,)))
+    it = run.batches(range(10**12), 16)
+    batch, _ = next(it)
+    assert list(batch) == list(range(16))
+    sizes = [len(v) if isinstance(v, list) else 1 for v in run.stats.samples.values()]
+    next(it)
+    assert [len(v) if isinstance(v, list) else 1 for v in run.stats.samples.values()] == sizes
+    assert run.stats.samples["calibration_error.moments"][0] == 32
