@@ -36,4 +36,5 @@ def test_every_error_code_is_exercised():
     codes = {re.search(r"error\[(E\d+)\]", expected(p)).group(1) for p in CASES}
     documented = set(re.findall(r"\| (E\d{3}) \|", Path("README.md").read_text(encoding="utf-8")))
     assert documented, "README lists the error codes"
-    assert documented <= codes | {"E141"}, f"codes without a bad-input file: {documented - codes}"
+    build_time = {"E142"}  # a view-dependency file is read by build, not check: tested in test_hostile.py
+    assert documented <= codes | build_time, f"codes without a bad-input file: {documented - codes}"

@@ -60,20 +60,36 @@ class Collector:
     """Collects diagnostics so that a check reports every error of a file, not just the first."""
 
     diagnostics: list[Diagnostic] = field(default_factory=list)
+    n_errors: int = 0  # kept as they come: counting the list at every statement made checks quadratic
 
     def error(self, code: str, message: str, span: Span | None, hint: str | None = None) -> None:
         self.diagnostics.append(Diagnostic("error", code, message, span, hint))
+        self.n_errors += 1
 
     def warning(self, code: str, message: str, span: Span | None, hint: str | None = None) -> None:
         self.diagnostics.append(Diagnostic("warning", code, message, span, hint))
+
+    def extend(self, diags: Iterable[Diagnostic]) -> None:
+        for d in diags:
+            self.diagnostics.append(d)
+            self.n_errors += d.severity == "error"
 
     @property
     def errors(self) -> list[Diagnostic]:
         return [d for d in self.diagnostics if d.severity == "error"]
 
     def raise_if_errors(self) -> None:
-        if self.errors:
+        if self.n_errors:
             raise WiredslError(self.diagnostics)
+
+
+def source_lines(text: str) -> list[str]:
+    """The lines of a source as the lexer counts them: split at \\n only (str.splitlines also splits at
+    \\u2028, \\x0c, \\x85 and others, which would put carets and comments on the wrong line)."""
+    lines = [line.removesuffix("\r") for line in text.split("\n")]
+    if len(lines) > 1 and lines[-1] == "":
+        lines.pop()
+    return lines
 
 
 def did_you_mean(word: str, candidates: Iterable[str]) -> str | None:
@@ -107,7 +123,7 @@ def _render_one(d: Diagnostic, sources: dict[str, str], colour: bool) -> str:
     lines = [head]
     text = sources.get(d.span.file) if d.span else None
     if text is not None:
-        src_lines = text.splitlines()
+        src_lines = source_lines(text)
         if 1 <= d.span.line <= len(src_lines):
             src = src_lines[d.span.line - 1].expandtabs(1)
             gutter = " " * len(str(d.span.line))

@@ -37,7 +37,8 @@ CALIBRATION_PARAMETERS = {
 
 
 class Node(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    # allow_inf_nan=False: a non-finite number is refused at construction, so no dump or JSON can carry one
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
 
 class Line(Node):

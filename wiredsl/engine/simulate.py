@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wiredsl.diagnostics import Diagnostic, WiredslError
+from wiredsl.diagnostics import Diagnostic, Span, WiredslError
 from wiredsl.engine import conics, geometry, occlusion, visibility
 from wiredsl.engine.world import World, build_world
 from wiredsl.scene import Camera, Scene
@@ -113,7 +113,8 @@ def require_buildable(scene: Scene) -> None:
     """A scene needs a rig and a path to be projected."""
     if scene.rig is None or scene.path is None:
         missing = "a rig" if scene.rig is None else "a path"
-        raise WiredslError([Diagnostic("error", "E102", f"scene '{scene.name}' needs {missing} to be built", None)])
+        start = Span(scene.source, 1, 1, 1, 1)  # the scene has no statement to point at: its file's start
+        raise WiredslError([Diagnostic("error", "E102", f"scene '{scene.name}' needs {missing} to be built", start)])
 
 
 def visibility_masks(scene: Scene, world: World, options: Options):
@@ -153,15 +154,24 @@ def viewpoint_lists(scene: Scene, world: World, which: list[int]) -> dict[int, n
 def read_viewdep(path: Path, scene: Scene) -> dict[str, list[str]]:
     """View-point -> visible feature ids, from a view-dependency file (schema/viewdep.schema.json)."""
     from wiredsl.io.schema import problems
+    from wiredsl.language.ast import decode, display_path, read_bytes
 
+    where = Span(display_path(path), 1, 1, 1, 1)
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise WiredslError([Diagnostic("error", "E010", f"cannot read view-dependency file {path}: {exc}", None,
+        text = decode(read_bytes(path, "view-dependency file", Span(scene.source, 1, 1, 1, 1)), path,
+                      "view-dependency file")
+        doc = json.loads(text)
+    except WiredslError as err:
+        raise WiredslError([Diagnostic(d.severity, d.code, d.message, d.span,
+                                       "run 'wiredsl viewdep' on the scene to write it") for d in err.diagnostics]
+                           ) from None
+    except json.JSONDecodeError as exc:  # at the line and column of the file where the JSON breaks
+        at = Span(where.file, exc.lineno, exc.colno, exc.lineno, exc.colno + 1)
+        raise WiredslError([Diagnostic("error", "E010", f"cannot read view-dependency file: {exc.msg}", at,
                                        "run 'wiredsl viewdep' on the scene to write it")]) from None
     bad = problems(doc)
     if bad:
-        raise WiredslError([Diagnostic("error", "E142", f"{path}: {bad[0]}", None)])
+        raise WiredslError([Diagnostic("error", "E142", f"view-dependency file {where.file}: {bad[0]}", where)])
     return doc["viewpoints"]
 
 

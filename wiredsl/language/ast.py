@@ -1,12 +1,14 @@
 """Stage 2: lark tree -> AST of frozen dataclasses, each node with its source span.
 
 Also loads a file with its includes (resolved relative to the including file,
-cycles refused) into a `Program`: the flat list of statements to compile.
+each file read once, cycles and chains deeper than 64 refused) into a
+`Program`: the flat list of statements to compile.
 """
 
 from __future__ import annotations
 
 import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Union
@@ -93,6 +95,7 @@ class Program:
     root: File
     files: dict[str, File] = field(default_factory=dict)
     included_from: dict[str, Span] = field(default_factory=dict)
+    resolved: set[Path] = field(default_factory=set)  # every file read, for include-once
     statements: list[Statement] = field(default_factory=list)
 
     @property
@@ -192,24 +195,63 @@ def parse_text(text: str, path: str = "<string>") -> File:
 def display_path(path: Path) -> str:
     """A path as the user should see it: relative to the working directory when inside it."""
     try:
-        return os.path.relpath(path)
+        rel = os.path.relpath(path)
     except ValueError:  # another drive on Windows
         return str(path)
+    return str(path) if rel.startswith(os.pardir) and os.path.isabs(path) else rel  # not '../../../dev/zero'
+
+
+MAX_SOURCE_BYTES = 16 * 1024 * 1024  # a scene, include or matrix file larger than this is refused
+MAX_INCLUDE_DEPTH = 64
+
+
+def read_bytes(path: Path, what: str, where: Span | None = None, limit: int | None = None) -> bytes:
+    """A regular file's bytes, at most `limit`; FIFOs, devices, directories and loops are refused (E010).
+
+    The stat comes first so that a FIFO or /dev/stdin is never opened (opening one would block).
+    """
+    limit = MAX_SOURCE_BYTES if limit is None else limit
+    shown = display_path(path) if "\0" not in str(path) else repr(str(path))
+    try:
+        if "\0" in str(path):
+            raise ValueError("a path cannot contain a NUL byte")
+        st = path.stat()
+        if stat.S_ISDIR(st.st_mode):
+            raise ValueError("is a directory")
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError("is not a regular file (a FIFO, device or socket)")
+        if st.st_size > limit:
+            raise ValueError(f"is {st.st_size:,} bytes, over the limit of {limit:,}")
+        with open(path, "rb") as fh:
+            data = fh.read(limit + 1)
+        if len(data) > limit:
+            raise ValueError(f"is over the limit of {limit:,} bytes")
+        return data
+    except FileNotFoundError:
+        msg = f"no such file: {shown}" if what == "file" else f"cannot read {what} {shown}: no such file"
+    except ValueError as exc:
+        msg = f"cannot read {what} {shown}: {exc}"
+    except (OSError, RuntimeError) as exc:  # ELOOP, EACCES, ...; RuntimeError: a symlink loop in resolve()
+        msg = f"cannot read {what} {shown}: {getattr(exc, 'strerror', None) or exc}"
+    raise WiredslError([Diagnostic("error", "E010", msg, where)])
+
+
+def decode(data: bytes, path: Path, what: str, where: Span | None = None) -> str:
+    """UTF-8 text, or E010 at the line and column of the first bad byte."""
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        col = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        span = Span(display_path(path), line, col, line, col + 1)
+        note = (f"{span.file} included from {where}",) if where is not None else ()
+        raise WiredslError([Diagnostic("error", "E010", f"{what} {display_path(path)} is not UTF-8 text "
+                                       f"({exc.reason} at byte {exc.start})", span, notes=note)]) from None
 
 
 def read_source(path: Path, where: Span | None = None) -> str:
     """Read a source file, or raise a located diagnostic."""
-    try:
-        return path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        msg = f"no such file: {display_path(path)}"
-    except IsADirectoryError:
-        msg = f"is a directory: {display_path(path)}"
-    except UnicodeDecodeError as exc:
-        msg = f"{display_path(path)} is not UTF-8 text ({exc.reason} at byte {exc.start})"
-    except OSError as exc:
-        msg = f"cannot read {display_path(path)}: {exc.strerror}"
-    raise WiredslError([Diagnostic("error", "E010", msg, where)])
+    return decode(read_bytes(path, "file", where), path, "file", where)
 
 
 def load(path: str | os.PathLike, text: str | None = None) -> Program:
@@ -223,7 +265,9 @@ def load(path: str | os.PathLike, text: str | None = None) -> Program:
 
 
 def _add(program: Program, file: File, resolved: Path, stack: tuple[Path, ...]) -> None:
+    """Follow includes depth first; a file already read is not read again (include once)."""
     program.files[file.path] = file
+    program.resolved.add(resolved)
     for stmt in file.statements:
         if stmt.keyword != "include":
             program.statements.append(stmt)
@@ -231,18 +275,35 @@ def _add(program: Program, file: File, resolved: Path, stack: tuple[Path, ...]) 
         if len(stmt.args) != 1 or not isinstance(stmt.args[0], String):
             program.statements.append(stmt)  # the compiler reports the malformed include
             continue
-        target = (resolved.parent / stmt.args[0].value).resolve()
         where = stmt.args[0].span
+        notes = program.include_notes(file.path)
+        target = _include_target(resolved.parent, stmt.args[0].value, where, notes)
         if target in stack:
             chain = " -> ".join(display_path(p) for p in (*stack[stack.index(target):], target))
-            raise WiredslError([Diagnostic("error", "E011", f"include cycle: {chain}", where,
-                                           notes=program.include_notes(file.path))])
+            raise WiredslError([Diagnostic("error", "E011", f"include cycle: {chain}", where, notes=notes)])
+        if target in program.resolved:
+            continue  # include once: a second include of a file adds nothing
+        if len(stack) >= MAX_INCLUDE_DEPTH:
+            raise WiredslError([Diagnostic("error", "E011", f"includes nested deeper than {MAX_INCLUDE_DEPTH} files",
+                                           where, "a chain this deep is almost certainly generated by mistake",
+                                           notes)])
         try:
             child = parse_text(read_source(target, where), display_path(target))
         except WiredslError as err:
             raise WiredslError([_with_notes(d, program, file.path, where) for d in err.diagnostics]) from None
         program.included_from[child.path] = where
         _add(program, child, target, (*stack, target))
+
+
+def _include_target(folder: Path, name: str, where: Span, notes: tuple[str, ...]) -> Path:
+    """The resolved path of an include, or E010 at its string (NUL byte, symlink loop)."""
+    try:
+        if "\0" in name:
+            raise ValueError("a path cannot contain a NUL byte")
+        return (folder / name).resolve()
+    except (ValueError, OSError, RuntimeError) as exc:
+        raise WiredslError([Diagnostic("error", "E010", f"cannot include {name!r}: "
+                                       f"{getattr(exc, 'strerror', None) or exc}", where, notes=notes)]) from None
 
 
 def _with_notes(d: Diagnostic, program: Program, including: str, where: Span) -> Diagnostic:

@@ -15,10 +15,10 @@ from pathlib import Path as FsPath
 import numpy as np
 import pydantic
 
-from wiredsl.diagnostics import Collector, Diagnostic, Span, did_you_mean
+from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
-from wiredsl.language.statements import Bound, bind
+from wiredsl.language.statements import MAX_MAGNITUDE, Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS
 from wiredsl.scene import (
     CALIBRATION_PARAMETERS,
@@ -45,8 +45,11 @@ FORMAT_VERSION = 1
 MAX_VIEWPOINTS = 100_000
 MAX_POSES = 100_000
 MAX_MATRIX = 1_000
+COUNTABLE = 1e15  # a count of grid points or poses below this is exact in a float, so it may be computed
 GEOM_EPS = 1e-9  # metres: shorter is degenerate
 PERP_TOL = 1e-6  # |cos| between an ellipse's axis and normal
+PLAUSIBLE_FOV = 1000  # f over the image's larger side beyond which a focal length is probably missing its unit
+MAX_MATRIX_ENTRY = 1e100  # calibration entries: inverses, square roots and products of them stay finite
 
 
 def compile_file(path: str | os.PathLike) -> tuple[Scene, list[Diagnostic], ast.Program]:
@@ -93,7 +96,9 @@ class Compiler:
         self.singles: dict[str, Bound] = {}  # rig, viewpoints, path
         self.pipelines: dict[str, _Decl] = {}
         self.study_stmts: list[Bound] = []
+        self.calibration_stages: list[Span] = []  # where pipelines call calibration_error
         self.scene_name: str | None = None
+        self.rig_without_calibration = False
 
     # ------------------------------------------------------------------ driver
     def run(self) -> Scene:
@@ -114,9 +119,14 @@ class Compiler:
         path = self._path(self.singles["path"]) if "path" in self.singles else None
         self._check_defaults()
         studies = self._studies(path)
+        if self.rig_without_calibration:
+            for span in self.calibration_stages:
+                self.out.error("E162", f"calibration_error needs a calibration, and rig "
+                                       f"'{self.singles['rig'].name}' has none", span,
+                               "add 'calibration ...' to the rig, or remove the stage")
         root = self.program.root
         name = self.scene_name or FsPath(root.path).stem
-        if self.out.errors:
+        if self.out.n_errors:
             # Sentinel; never returned to a user, compile_program raises first.
             return Scene.model_construct(name=name, source=root.path)
         return Scene(
@@ -142,7 +152,7 @@ class Compiler:
             for stmt in file.statements:
                 if stmt.keyword == "units":
                     b = bind(stmt, "top", units, Collector())  # errors reported in the main pass
-                    if b is not None:
+                    if b is not None and b.ok:  # an unknown unit word is reported there, never used
                         units["length"] = b.get("length", units["length"])
                         units["angle"] = b.get("angle", units["angle"])
             self.units[path] = units
@@ -251,7 +261,7 @@ class Compiler:
         return Polyline(name=fb.name, points=pts, closed=closed)
 
     def _feature_ellipse(self, fb: Bound) -> Ellipse | None:
-        n, u = self._point(fb, "normal"), self._point(fb, "axis")
+        n, u = _unit(self._point(fb, "normal")), _unit(self._point(fb, "axis"))
         a, b = fb.get("radii")
         ok = True
         for key, vec in (("normal", n), ("axis", u)):
@@ -335,6 +345,7 @@ class Compiler:
 
     def _resolve_cameras(self) -> None:
         settings: dict[str, dict[str, tuple[object, Span]] | None] = {}
+        failed: set[str] = set()
 
         def resolve(name: str, chain: tuple[str, ...]) -> dict | None:
             if name in settings:
@@ -371,6 +382,7 @@ class Compiler:
                     continue
                 sb = bind(stmt, "camera", self._units(stmt), self.out)
                 if sb is None or not sb.ok:
+                    failed.add(name)  # what it would have set is unknown: no 'needs' errors on top
                     continue
                 here.add(stmt.keyword)
                 if stmt.keyword in ("k", "k1"):
@@ -384,7 +396,7 @@ class Compiler:
 
         for name, b in self.camera_stmts.items():
             s = resolve(name, (name,))
-            if s is not None:
+            if s is not None and name not in failed:
                 cam = self._camera(b, s)
                 if cam is not None:
                     self.cameras[name] = cam
@@ -395,7 +407,10 @@ class Compiler:
 
         try:
             target = FsPath(sb.stmt.span.file).parent / path
+            ast.read_bytes(target, "calibration file", path_span)  # a regular file, not a FIFO (would block)
             return read(target, fmt)
+        except WiredslError as err:
+            self.out.extend(err.diagnostics)
         except CalibrationFileError as exc:
             self.out.error("E141", f"calibration file {path}: {exc}", path_span)
         except ValueError as exc:  # e.g. a NUL byte in the path
@@ -413,7 +428,11 @@ class Compiler:
                            sb.span("entry"))
             return None
         c, span = cams[i], sb.stmt.span
-        out = {"focal": ((c.fx, "image"), span), "aspect": ((1.0, c.fy / c.fx), span),
+        if not all(math.isfinite(v) and abs(v) <= MAX_MAGNITUDE for v in (c.fx, c.fy, c.cx, c.cy)):
+            self.out.error("E141", f"calibration file {sb.pos(0)}: the camera matrix has a value that is not "
+                                   f"finite or beyond {MAX_MAGNITUDE:g} px", sb.positional[0].span)
+            return None
+        out = {"focal": ((c.fx, "image", "px"), span), "aspect": ((1.0, c.fy / c.fx), span),
                "centre": ((c.cx, c.cy), span), "k1": (c.dist[0], span), "k2": (c.dist[1], span),
                "p1": (c.dist[2], span), "p2": (c.dist[3], span)}
         if c.width is not None:
@@ -421,7 +440,7 @@ class Compiler:
         return out
 
     def _camera(self, b: Bound, s: dict[str, tuple[object, Span]]) -> Camera | None:
-        n0 = len(self.out.errors)
+        n0 = self.out.n_errors
         where = b.name_span
 
         def need(key: str, what: str) -> None:
@@ -430,9 +449,10 @@ class Compiler:
 
         need("focal", "focal length")
         need("size", "image size")
-        if n0 != len(self.out.errors):
+        if n0 != self.out.n_errors:
             return None
-        (f, kind), fspan = s["focal"]
+        (f, kind, unit), fspan = s["focal"]
+        written = f
         if kind == "length":
             if "pixel" not in s:
                 self.out.error("E102", f"camera '{b.name}' gives its focal length in {kind} units and needs 'pixel'",
@@ -449,9 +469,20 @@ class Compiler:
         ax, ay = s.get("aspect", ((1.0, 1.0), None))[0]
         for v in (ax, ay):
             self._positive(v, "aspect scale", s.get("aspect", (None, where))[1])
+        if self.out.n_errors == n0:
+            fx = f * max(ax, ay)
+            if not fx <= MAX_MAGNITUDE:  # also catches inf from a huge focal over a tiny pixel
+                self.out.error("E110", f"camera '{b.name}': focal length of {fx:.3g} px (with aspect) is beyond "
+                                       f"the limit of {MAX_MAGNITUDE:g} px", fspan)
+            elif f < 1 or f > PLAUSIBLE_FOV * max(w, h):
+                fov = math.degrees(2 * math.atan(max(w, h) / (2 * f)))
+                bare_metres = unit is None and kind == "length" and self.units[fspan.file]["length"] == "m"
+                hint = f"did you mean {written:g}mm?" if bare_metres else None
+                self.out.warning("W111", f"camera '{b.name}': a focal length of {f:.4g} px gives a field of view "
+                                         f"of {fov:.3g} deg over its {max(w, h):g} px image", fspan, hint)
         k1 = -s["k"][0] if "k" in s else s.get("k1", (0.0, None))[0]
         cx, cy = s.get("centre", ((w / 2, h / 2), None))[0]
-        if len(self.out.errors) != n0:
+        if self.out.n_errors != n0:
             return None
         return Camera(name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, k2=s.get("k2", (0.0,))[0],
                       p1=s.get("p1", (0.0,))[0], p2=s.get("p2", (0.0,))[0], width=int(w), height=int(h))
@@ -490,6 +521,8 @@ class Compiler:
         for side in ("left", "right"):
             if side not in seen:
                 self.out.error("E102", f"rig '{b.name}' needs a '{side}' camera", b.name_span)
+        self.rig_without_calibration = "calibration" not in seen and not any(
+            s.keyword == "calibration" for s in b.stmt.block)  # a calibration with errors is reported already
         for side, other in (("left", "right"), ("right", "left")):
             if isinstance(mounts.get(side), Bound):
                 mounts[side] = self._relative_mount(mounts[side], mounts.get(other), side)
@@ -514,7 +547,7 @@ class Compiler:
                                        "'relative' with a stereo calibration file", sb.stmt.span,
                                f"e.g. {sb.sig.example}")
                 return None
-        look = np.array(sb.get("looking"), dtype=float)
+        look = _unit(np.array(sb.get("looking"), dtype=float))
         if np.linalg.norm(look) == 0:
             self.out.error("E121", "viewing direction is zero", sb.span("looking"))
             return None
@@ -547,6 +580,10 @@ class Compiler:
         else:  # X_r = R X_l + T, with the right camera known
             R_s = R_o @ posed.R
             p_s = p_o + R_o @ posed.T
+        if not np.abs(p_s).max() <= MAX_MAGNITUDE:  # T near the float limit overflows here
+            self.out.error("E141", f"calibration file {sb.get('relative')}: the translation T is beyond "
+                                   f"{MAX_MAGNITUDE:g} m", sb.span("relative"))
+            return None
         return Mount(camera=sb.pos(0), position=tuple(float(x) for x in p_s), rotation=_mat(R_s))
 
     def _calibration(self, sb: Bound) -> Calibration | None:
@@ -558,7 +595,7 @@ class Compiler:
                                    "Kalibr's results-cam.txt", sb.stmt.span, f"e.g. {sb.sig.example}")
             return None
         order = sb.get("order")
-        n0 = len(self.out.errors)
+        n0 = self.out.n_errors
         seen = set()
         for item in order:
             side, _, param = item.value.partition(".")
@@ -593,7 +630,7 @@ class Compiler:
         problem = matrix_problem(M)
         if problem:
             self.out.error("E140", f"calibration {kind} matrix {problem}", mspan)
-        if len(self.out.errors) != n0:
+        if self.out.n_errors != n0:
             return None
         return Calibration(kind=kind, order=[o.value for o in order], matrix=M.tolist())
 
@@ -631,6 +668,7 @@ class Compiler:
         mode, file = None, None
         grid = vertex = None
         stmts = []
+        n0 = self.out.n_errors
         for stmt in b.stmt.block:
             sb = bind(stmt, "viewpoints", self._units(stmt), self.out)
             if sb is not None and sb.ok:
@@ -690,7 +728,8 @@ class Compiler:
                     for ref in sb.pos(1):
                         ids += self._expand(ref.value, ref.span)
         if not names:
-            self.out.error("E102", f"mesh '{b.name}' has no view-points", b.name_span, "add a grid or vertices")
+            if self.out.n_errors == n0:  # else the grid or vertices that failed are the reason, reported already
+                self.out.error("E102", f"mesh '{b.name}' has no view-points", b.name_span, "add a grid or vertices")
             return None
         mode = mode or ("authored" if visible else "all")
         if visible and mode != "authored":
@@ -711,8 +750,14 @@ class Compiler:
         if not step > 0:
             self.out.error("E110", f"spacing must be > 0, got {step:g}", sb.span("spacing"))
             return None
-        nx = math.floor(abs(x1 - x0) / step + 1e-9) + 1
-        ny = math.floor(abs(y1 - y0) / step + 1e-9) + 1
+        fx, fy = abs(x1 - x0) / step, abs(y1 - y0) / step  # floats first: a tiny spacing may give inf
+        if not fx * fy <= COUNTABLE:  # (also inf) too many to count exactly
+            self.out.error("E151", f"spacing {step:.3g} m over a {abs(x1 - x0):.3g} x {abs(y1 - y0):.3g} m "
+                                   f"rectangle gives more view-points than the limit of {MAX_VIEWPOINTS:,}",
+                           sb.span("spacing"), "use a larger spacing")
+            return None
+        nx = math.floor(fx + 1e-9) + 1
+        ny = math.floor(fy + 1e-9) + 1
         if nx * ny > MAX_VIEWPOINTS:
             self.out.error("E151", f"grid of {nx:,} x {ny:,} = {nx * ny:,} view-points exceeds the limit of "
                                    f"{MAX_VIEWPOINTS:,}", sb.span("spacing"), "use a larger spacing")
@@ -755,11 +800,15 @@ class Compiler:
 
     def _path(self, b: Bound) -> Path | None:
         poses: list[tuple[float, float, float]] = []
+        n0 = self.out.n_errors
         for stmt in b.stmt.block:
             sb = bind(stmt, "path", self._units(stmt), self.out)
             if sb is None or not sb.ok:
                 continue
             if stmt.keyword == "pose":
+                if len(poses) == MAX_POSES:
+                    self.out.error("E151", f"more than {MAX_POSES:,} poses", stmt.keyword_span)
+                    break
                 x, y = sb.pos(0)
                 poses.append((x, y, sb.get("heading", 0.0)))
                 continue
@@ -771,7 +820,12 @@ class Compiler:
             if length <= GEOM_EPS:
                 self.out.error("E120", "a straight run needs two different end points", sb.stmt.span)
                 continue
-            n = math.floor(length / step + 1e-9) + 1
+            count = length / step  # a float first: a tiny step may give inf
+            if not count <= COUNTABLE:
+                self.out.error("E151", f"about {count:.3g} poses exceed the limit of {MAX_POSES:,}", sb.span("step"),
+                               "use a larger step")
+                continue
+            n = math.floor(count + 1e-9) + 1
             if n + len(poses) > MAX_POSES:
                 self.out.error("E151", f"{n:,} poses exceed the limit of {MAX_POSES:,}", sb.span("step"),
                                "use a larger step")
@@ -781,7 +835,8 @@ class Compiler:
                 t = i * step / length
                 poses.append((x0 + t * (x1 - x0), y0 + t * (y1 - y0), heading))
         if not poses:
-            self.out.error("E102", f"path '{b.name}' has no poses", b.name_span)
+            if self.out.n_errors == n0:  # else the statements that failed are the reason, reported already
+                self.out.error("E102", f"path '{b.name}' has no poses", b.name_span)
             return None
         return Path(name=b.name, poses=poses)
 
@@ -801,6 +856,8 @@ class Compiler:
                                f"first at {seen[name]}")
                 continue
             seen[name] = stmt.keyword_span
+            if name == "calibration_error":
+                self.calibration_stages.append(stmt.keyword_span)
             rank = effect.flow_rank()
             if name == "calibration_error" and stages:
                 self.out.error("E160", "calibration_error must be the first stage: it acts on the cameras, "
@@ -819,7 +876,7 @@ class Compiler:
                 for err in exc.errors():
                     key = str(err["loc"][0]) if err["loc"] else ""
                     self.out.error("E110", f"{name} {key}: {_range_message(err, params.get(key))}",
-                                   sb.span(key) if key in sb.clauses else stmt.span)
+                                   sb.span(key) if key in sb.clauses else stmt.span, _percent_hint(sb, key))
         pipeline = Pipeline(name=b.name, default=b.has("default"), stages=stages)
         self._declare(self.pipelines, "pipeline", b.name, b.name_span, pipeline)
 
@@ -844,6 +901,17 @@ class Compiler:
 
 def _ignore(b: Bound) -> None:
     pass
+
+
+def _percent_hint(sb: Bound, key: str) -> str | None:
+    """'did you mean 29%?' for a bare fraction above 1, which was surely meant as a percentage."""
+    if key not in sb.clauses or sb.sig.clauses[key].slots[0].kind != "fraction":
+        return None
+    span = sb.span(key)
+    num = next((a for a in sb.stmt.args if isinstance(a, ast.Number) and a.span == span), None)
+    if num is not None and num.unit is None and 1 < num.value <= 100:
+        return f"did you mean {num.text}%?"
+    return None
 
 
 def _range_message(err: dict, value: object) -> str:
@@ -877,6 +945,12 @@ def camera_rotation(look: np.ndarray, roll: float) -> np.ndarray | None:
     return np.column_stack([x, y, z])
 
 
+def _unit(v: np.ndarray) -> np.ndarray:
+    """v scaled so its largest component is 1 (zero stays zero): norms of huge or tiny vectors stay finite."""
+    big = float(np.abs(v).max())
+    return v / big if big > 0 else v
+
+
 def _mat(R: np.ndarray):
     return tuple(tuple(float(v) for v in row) for row in R)
 
@@ -886,14 +960,18 @@ def matrix_problem(M: np.ndarray) -> str | None:
     if not np.all(np.isfinite(M)):
         return "has a value that is not finite"
     scale = float(np.abs(M).max()) if M.size else 0.0
+    if scale > MAX_MATRIX_ENTRY:
+        return f"has an entry of {scale:.3g}, beyond the limit of {MAX_MATRIX_ENTRY:g}"
+    unit = scale if scale > 0 else 1.0
+    M = M / unit  # judged at unit scale (differences and eigenvalues of huge entries overflow), reported unscaled
     asym = float(np.abs(M - M.T).max()) if M.size else 0.0
-    if asym > 1e-9 * max(scale, 1e-300):
+    if asym > 1e-9:
         i, j = np.unravel_index(np.argmax(np.abs(M - M.T)), M.shape)
-        return f"is not symmetric (entry [{i + 1}, {j + 1}] differs from [{j + 1}, {i + 1}] by {asym:.3g})"
+        return f"is not symmetric (entry [{i + 1}, {j + 1}] differs from [{j + 1}, {i + 1}] by {asym * unit:.3g})"
     if M.size:
         low = float(np.linalg.eigvalsh((M + M.T) / 2).min())
-        if low < -1e-9 * scale:
-            return f"is not positive semi-definite (smallest eigenvalue {low:.3g})"
+        if low < -1e-9:
+            return f"is not positive semi-definite (smallest eigenvalue {low * unit:.3g})"
     return None
 
 
@@ -901,12 +979,15 @@ def read_matrix_file(path: FsPath, n: int, span: Span, out: Collector) -> list[l
     """A matrix from a file: plain rows of numbers, or TINA's covariance format
     (n, a label, the n x n matrix, then the n mean parameters)."""
     try:
-        text = path.read_text(encoding="utf-8")
-        words = [w for line in text.splitlines() for w in line.partition("#")[0].split()]
-    except (OSError, UnicodeDecodeError) as exc:
-        out.error("E010", f"cannot read calibration file {ast.display_path(path)}: "
-                          f"{getattr(exc, 'strerror', None) or exc}", span)
+        text = ast.read_bytes(path, "calibration file", span).decode("utf-8")
+    except WiredslError as err:
+        out.extend(err.diagnostics)
         return None
+    except UnicodeDecodeError as exc:
+        out.error("E010", f"calibration file {ast.display_path(path)} is not UTF-8 text ({exc.reason} at byte "
+                          f"{exc.start})", span)
+        return None
+    words = [w for line in text.splitlines() for w in line.partition("#")[0].split()]
     try:
         if len(words) >= 2 and words[0].isdigit() and not _is_number(words[1]):
             size = int(words[0])

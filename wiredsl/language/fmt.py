@@ -9,6 +9,9 @@ same scene) and formatting it again changes nothing.
 
 from __future__ import annotations
 
+import bisect
+
+from wiredsl.diagnostics import source_lines
 from wiredsl.language import ast
 
 WIDTH = 100
@@ -19,7 +22,7 @@ def format_text(text: str, path: str = "<string>") -> str:
     """Canonical form of a file's text (raises WiredslError on a syntax error)."""
     file = ast.parse_text(text, path)
     printer = _Printer(file)
-    out = printer.block(file.statements, 0, 0, len(text.splitlines()) + 1)
+    out = printer.block(file.statements, 0, 0, len(source_lines(text)) + 1)
     while out and out[-1] == "":
         out.pop()
     return "\n".join(out) + "\n" if out else ""
@@ -27,13 +30,15 @@ def format_text(text: str, path: str = "<string>") -> str:
 
 class _Printer:
     def __init__(self, file: ast.File):
-        self.lines = file.text.splitlines()
+        self.lines = source_lines(file.text)
         self.comments = sorted(file.comments, key=lambda c: (c.line, c.col))
+        self.comment_lines = [c.line for c in self.comments]
         self.used: set[int] = set()
 
     def _take(self, lo: int, hi: int) -> list[ast.Comment]:
-        """Unused comments on lines lo..hi inclusive."""
-        got = [c for c in self.comments if lo <= c.line <= hi and id(c) not in self.used]
+        """Unused comments on lines lo..hi inclusive (bisected: scanning them all per statement was quadratic)."""
+        a, b = bisect.bisect_left(self.comment_lines, lo), bisect.bisect_right(self.comment_lines, hi)
+        got = [c for c in self.comments[a:b] if id(c) not in self.used]
         self.used.update(id(c) for c in got)
         return got
 

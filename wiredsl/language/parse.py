@@ -7,7 +7,7 @@ from pathlib import Path
 
 import lark
 
-from wiredsl.diagnostics import MAX_REPORTED, Diagnostic, Span, WiredslError
+from wiredsl.diagnostics import MAX_REPORTED, Diagnostic, Span, WiredslError, source_lines
 
 
 def grammar_path() -> Path:
@@ -25,8 +25,11 @@ class _CommentSink:
     tokens: list[lark.Token] = []
 
 
+MAX_NESTING = 32  # brackets and blocks; real scenes nest 2 deep, and deeper input would exhaust recursion later
+
+
 class Brackets:
-    """Postlexer: newlines inside ( ) and [ ] are spaces; runs of newlines are one.
+    """Postlexer: newlines inside ( ) and [ ] are spaces; runs of newlines are one; nesting is bounded.
 
     Its state lives on the instance, not in the generator, because lark starts a
     new generator when it resumes after a syntax error; `reset` starts a parse.
@@ -37,9 +40,11 @@ class Brackets:
     def __init__(self) -> None:
         self.reset()
 
-    def reset(self) -> None:
+    def reset(self, path: str = "<string>") -> None:
         self.depth = 0
+        self.nesting = 0  # ( [ and {
         self.last_nl = True  # drop newlines at the start of the file too
+        self.path = path
 
     def process(self, stream):
         for tok in stream:
@@ -54,6 +59,14 @@ class Brackets:
                     self.depth += 1
                 elif kind == "RPAR" or kind == "RSQB":
                     self.depth = max(self.depth - 1, 0)
+                if kind in ("LPAR", "LSQB", "LBRACE"):
+                    self.nesting += 1
+                    if self.nesting > MAX_NESTING:
+                        span = Span(self.path, tok.line, tok.column, tok.line, tok.column + 1)
+                        raise WiredslError([Diagnostic("error", "E151", f"brackets and blocks nested deeper than "
+                                                       f"{MAX_NESTING}", span)])
+                elif kind in ("RPAR", "RSQB", "RBRACE"):
+                    self.nesting = max(self.nesting - 1, 0)
             yield tok
 
 
@@ -103,7 +116,7 @@ def run(p: lark.Lark, text: str, path: str) -> tuple[object, list[lark.Token]]:
     parsing goes on, so every syntax error of a file is reported (one a line).
     """
     _CommentSink.tokens = comments = []
-    _BRACKETS.reset()
+    _BRACKETS.reset(path)
     errors: list[Diagnostic] = []
 
     def recover(exc: lark.exceptions.UnexpectedInput) -> bool:
@@ -117,6 +130,8 @@ def run(p: lark.Lark, text: str, path: str) -> tuple[object, list[lark.Token]]:
     except lark.exceptions.UnexpectedInput as exc:
         if not errors or errors[-1].span.line != (exc.line if exc.line > 0 else 1):
             errors.append(syntax_diagnostic(exc, text, path))
+    except WiredslError as err:  # nesting too deep: stop there
+        raise WiredslError(errors + err.diagnostics) from None
     finally:
         _CommentSink.tokens = []
     if errors:
@@ -156,7 +171,7 @@ def syntax_diagnostic(exc: lark.exceptions.UnexpectedInput, text: str, path: str
         return Diagnostic("error", "E002", f"unexpected character {char!r}", Span(path, line, col, line, col + 1), hint)
     token = getattr(exc, "token", None)
     if isinstance(exc, lark.exceptions.UnexpectedEOF) or (token is not None and token.type == "$END"):
-        lines = text.splitlines() or [""]
+        lines = source_lines(text) or [""]
         line = len(lines)
         col = len(lines[-1]) + 1
         return Diagnostic(

@@ -7,6 +7,8 @@ reference in the README (`wiredsl reference`), so a statement is described once.
 
 from __future__ import annotations
 
+import math
+import sys
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,6 +18,7 @@ from wiredsl.language import ast
 from wiredsl.language.units import KIND_NAMES, UNITS
 
 SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "integer")
+MAX_MAGNITUDE = 1e9  # metres or pixels: squares and products of a few stay far from float overflow
 
 
 @dataclass(frozen=True)
@@ -77,7 +80,8 @@ _TOP = [
          "at": C("position of the model's origin", P3),
          "rotate": C("rotation about a world axis, applied in order", S("word", "axis", "x", "y", "z"),
                      S("angle", "angle"), repeat=True),
-         "ypr": C("yaw about z, then pitch about y, then roll about x", S("vec3:angle", "(yaw, pitch, roll)"))},
+         "ypr": C("R = Rz(yaw) Ry(pitch) Rx(roll): yaw about z, then pitch about the turned y, then roll",
+                  S("vec3:angle", "(yaw, pitch, roll)"))},
         example="place bin as bin1 at (2m, 1m, 0) rotate z 30deg"),
     Sig("camera", "a camera model C = F(f, ax, ay, ox, oy, k, R, T)", (NAME,),
         {"like": C("start from another camera's parameters", S("ref", "camera"))},
@@ -309,7 +313,7 @@ def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collecto
         out.error("E100", f"unknown statement '{stmt.keyword}' {where}", stmt.keyword_span, hint)
         return None
     b = Bound(stmt, sig, [], {}, {})
-    n_before = len(out.errors)
+    n_before = out.n_errors
     args = list(stmt.args)
     i = 0
     for slot in sig.positional:
@@ -327,7 +331,10 @@ def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collecto
         arg = args[i]
         key = arg.name if isinstance(arg, ast.Ref) and len(arg.parts) == 1 else None
         if key not in sig.clauses:
-            if sig.clauses:
+            if key in CONTEXTS[context] and context != "top":
+                out.error("E101", f"'{key}' starts another statement: a block holds one statement a line",
+                          arg.span, f"put '{key} ...' on a line of its own")
+            elif sig.clauses:
                 hint = did_you_mean(key, sig.clauses) if key else None
                 hint = hint or "expected one of: " + ", ".join(sig.clauses)
                 what = f"unknown word '{key}'" if key else "unexpected value"
@@ -357,7 +364,7 @@ def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collecto
         out.error("E101", f"'{sig.keyword}' takes no {{ block }}", stmt.span)
     if sig.block_required and stmt.block is None:
         out.error("E102", f"'{sig.keyword}' needs a {{ block }}", stmt.span, f"e.g. {sig.example}")
-    b.ok = len(out.errors) == n_before
+    b.ok = out.n_errors == n_before
     return b
 
 
@@ -403,8 +410,8 @@ def _convert(slot: Slot, arg: ast.Arg, units: dict[str, str], out: Collector) ->
             out.error("E106", f"expected {_a(slot.label)} ({KIND_NAMES.get(kind, kind)}), got {_show(arg)}", arg.span)
             return bad
         value = quantity(arg, kind, units, out)
-        if "|" in kind:  # say which alternative was written, e.g. focal 6mm or 800px
-            value = (value, UNITS[arg.unit][0] if arg.unit in UNITS else kind.split("|")[0])
+        if "|" in kind:  # say which alternative was written, e.g. focal 6mm or 800px, and whether bare
+            value = (value, UNITS[arg.unit][0] if arg.unit in UNITS else kind.split("|")[0], arg.unit)
         return Value(value, arg.span)
     if kind.startswith("vec"):
         n, elem = int(kind[3]), kind.split(":")[1]
@@ -432,6 +439,9 @@ def _convert(slot: Slot, arg: ast.Arg, units: dict[str, str], out: Collector) ->
     if kind == "str":
         if not isinstance(arg, ast.String):
             out.error("E106", f"expected {_a(slot.label)} in double quotes, got {_show(arg)}", arg.span)
+            return bad
+        if "\0" in arg.value:  # the operating system would refuse it later, without a location
+            out.error("E010", "a file path cannot contain a NUL byte", arg.span)
             return bad
         return Value(arg.value, arg.span)
     if kind == "raw":  # converted by the compiler, which knows the kind (e.g. a stage parameter's)
@@ -476,7 +486,11 @@ def _convert(slot: Slot, arg: ast.Arg, units: dict[str, str], out: Collector) ->
 
 
 def quantity(num: ast.Number, kind: str, units: dict[str, str], out: Collector) -> float:
-    """A number in SI for the expected kind; a unit of the wrong kind is reported."""
+    """A number in SI for the expected kind; a unit of the wrong kind, or a value no float holds, is reported."""
+    if not math.isfinite(num.value):
+        out.error("E109", f"number '{num.text}' is too large to represent", num.span,
+                  f"numbers must be finite, below {sys.float_info.max:.3g} in size")
+        return 0.0
     if kind == "integer":
         if num.unit is not None or not num.value.is_integer():
             out.error("E106", f"expected a whole number, got '{num.text}'", num.span)
@@ -485,6 +499,9 @@ def quantity(num: ast.Number, kind: str, units: dict[str, str], out: Collector) 
         if kind in ("number", "fraction"):
             return num.value
         unit = units[kind.split("|")[0]]
+        if kind == "angle" and unit == "deg" and 0 < abs(num.value) < 1:
+            out.warning("W111", f"'{num.text}' is {num.text} degrees (a bare angle is in degrees)", num.span,
+                        f"{num.text} is degrees; did you mean {num.text}rad?")
     else:
         unit = num.unit
         if unit not in UNITS:
@@ -497,7 +514,13 @@ def quantity(num: ast.Number, kind: str, units: dict[str, str], out: Collector) 
         expected = " or ".join(KIND_NAMES[k] for k in allowed)
         out.error("E107", f"expected {expected}, got {KIND_NAMES[unit_kind]} '{num.text}'", num.span)
         return num.value
-    return num.value * factor
+    value = num.value * factor
+    if unit_kind in ("length", "image") and abs(value) > MAX_MAGNITUDE:
+        what = "m" if unit_kind == "length" else "px"
+        out.error("E110", f"'{num.text}' is beyond the limit of {MAX_MAGNITUDE:g} {what}", num.span,
+                  "lengths and image distances are bounded so that products of them stay finite")
+        return 0.0
+    return value
 
 
 def _show(arg: ast.Arg) -> str:
