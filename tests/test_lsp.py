@@ -175,3 +175,10 @@ def test_completion_contexts_are_read_from_braces_even_in_broken_text():
     assert lsp.context_at(text, 3) == ("model", "m")
     assert lsp.context_at(text, 6) == ("camera", "c")
     assert lsp.context_at(text, 5) == ("top", None)
+
+
+def test_positions_count_lines_as_the_lexer_does():
+    """A comment holding U+2028 is not a line break: contexts and completions stay on the right line."""
+    text = "# a\u2028b\nmodel m {\n  \n}\n"
+    assert lsp.context_at(text, 3) == ("model", "m")
+    assert {c.label for c in lsp.completions(None, text, 3, 3)} >= {"line", "ellipse"}

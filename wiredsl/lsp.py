@@ -14,7 +14,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError
+from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, source_lines
 from wiredsl.language import ast
 from wiredsl.language.statements import CONTEXTS, Sig, bind, takes
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
@@ -188,7 +188,7 @@ def context_at(text: str, line: int) -> tuple[str, str | None]:
     Works on text that does not parse, as text being typed usually does.
     """
     stack: list[tuple[str, str | None]] = [("top", None)]
-    for raw in text.splitlines()[: line - 1]:
+    for raw in source_lines(text)[: line - 1]:
         src = re.sub(r'"[^"]*"', '""', raw).split("#", 1)[0]
         for m in re.finditer(r"[{}]", src):
             if m.group() == "}":
@@ -212,7 +212,7 @@ class Completion:
 
 def completions(index: Index | None, text: str, line: int, col: int) -> list[Completion]:
     """What may be typed at a 1-based position: keywords, clauses or declared names."""
-    lines = text.splitlines()
+    lines = source_lines(text)
     before = (lines[line - 1] if line - 1 < len(lines) else "")[: col - 1]
     context, owner = context_at(text, line)
     words = _WORD.findall(before.split("#", 1)[0])
@@ -288,7 +288,7 @@ def _clause_detail(sig: Sig, key: str) -> str:
 def hover(index: Index | None, text: str, path: str, line: int, col: int) -> str | None:
     """Markdown for the word under a 1-based position: a statement's signature and
     meaning, a pipeline parameter's default, or a name's declaration."""
-    lines = text.splitlines()
+    lines = source_lines(text)
     src = lines[line - 1] if line - 1 < len(lines) else ""
     word = next((m for m in _WORD.finditer(src) if m.start() < col <= m.end() + 1 and m.start() + 1 <= col), None)
     if word is None:
@@ -305,7 +305,7 @@ def hover(index: Index | None, text: str, path: str, line: int, col: int) -> str
         item = index.at(path, line, col)
         sym = item if isinstance(item, Symbol) else _resolve(index, item) if isinstance(item, Reference) else None
         if sym is not None:
-            decl = index.files[sym.span.file].text.splitlines()[sym.stmt.span.line - 1].strip() \
+            decl = index.files[sym.span.file].source_lines(text)[sym.stmt.span.line - 1].strip() \
                 if sym.span.file in index.files else sym.name
             return f"{sym.what} `{sym.name}`, declared at {sym.span}:\n```wiredsl\n{decl}\n```"
     return None
