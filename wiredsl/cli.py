@@ -51,6 +51,23 @@ def _stop(signum: int, frame) -> None:
     raise Stopped(signum)
 
 
+def _stop_in(exc: BaseException | None) -> BaseException | None:
+    """The Stopped or KeyboardInterrupt an exception was raised from or during, if any."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, (Stopped, KeyboardInterrupt)):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def _exit_stopped(exc: BaseException) -> None:
+    signum = exc.signum if isinstance(exc, Stopped) else signal.SIGINT
+    click.echo(f"wiredsl: stopped by {signal.Signals(signum).name}; temporary files removed", err=True)
+    sys.exit(128 + signum)
+
+
 def guarded(fn: Callable) -> Callable:
     """Turn WiredslError into diagnostics and exit 1, signals into a clean exit 130/143; never a traceback."""
 
@@ -67,9 +84,7 @@ def guarded(fn: Callable) -> Callable:
             report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diagnostics", "text"))
             sys.exit(EXIT_INVALID)
         except (Stopped, KeyboardInterrupt) as exc:
-            signum = exc.signum if isinstance(exc, Stopped) else signal.SIGINT
-            click.echo(f"wiredsl: stopped by {signal.Signals(signum).name}; temporary files removed", err=True)
-            sys.exit(128 + signum)
+            _exit_stopped(exc)
         except (click.exceptions.Exit, click.ClickException, SystemExit):
             raise
         except OutputFolderError as exc:
@@ -82,6 +97,9 @@ def guarded(fn: Callable) -> Callable:
             click.echo(f"wiredsl: error: cannot write{where}: {exc.strerror or exc}", err=True)
             sys.exit(EXIT_INVALID)
         except Exception as exc:  # a bug: say so plainly, keep the traceback for WIREDSL_DEBUG
+            stop = _stop_in(exc)
+            if stop is not None:  # the signal landed inside compiled code, which wraps it in a SystemError
+                _exit_stopped(stop)
             if os.environ.get("WIREDSL_DEBUG"):
                 raise
             click.echo(f"wiredsl: internal error ({type(exc).__name__}: {exc}); this is a bug, please report it "

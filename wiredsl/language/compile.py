@@ -887,6 +887,10 @@ class Compiler:
         n_poses = len(path.poses) if path is not None else None
         studies: dict[str, _Decl] = {}
         for b in self.study_stmts:
+            for stmt in b.stmt.block or ():  # varying calibration_error needs a calibration too (E162)
+                if (stmt.keyword == "vary" and stmt.args and isinstance(stmt.args[0], ast.Ref)
+                        and stmt.args[0].parts[0] == "calibration_error"):
+                    self.calibration_stages.append(stmt.args[0].span)
             study = compile_study(b, pipelines, n_poses, self._units, self.out, tuple(self.cameras))
             if study is not None:
                 self._declare(studies, "study", b.name, b.name_span, study)

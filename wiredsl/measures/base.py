@@ -39,7 +39,12 @@ class Measure:
 
     @classmethod
     def prepare(cls, params: Params, run) -> object:
-        """Once per run (`wiredsl.engine.montecarlo.Run`): the ideal references the measure compares with."""
+        """The ideal references the measure compares with, from a `wiredsl.engine.montecarlo.Run`.
+
+        A study calls it once per worker with a run of the nominal scene (its design points change only stage
+        magnitudes, not the scene), and once per design point when it varies a camera; so it must depend on
+        the run's scene and options only, never on its stages.
+        """
         return None
 
     @classmethod
