@@ -32,3 +32,14 @@ def circle(centre, normal, radius):
     u = np.cross(n, helper)
     u /= np.linalg.norm(u)
     return np.asarray(centre, float), radius * u, radius * np.cross(n, u)
+
+
+def out_of_range(field) -> list[float]:
+    """Values just outside a pydantic field's declared bounds (ge, gt, le, lt): each must be refused."""
+    bad = []
+    for m in field.metadata:
+        for attr, delta in (("ge", -1), ("gt", 0), ("le", 1), ("lt", 0)):
+            v = getattr(m, attr, None)
+            if v is not None:
+                bad.append(v + delta * max(abs(v), 1.0) if delta else v)
+    return bad

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from helpers import compile_text, errors_of
+from helpers import compile_text, errors_of, out_of_range
 
 from wiredsl.cli import main
 from wiredsl.effects import REGISTRY
@@ -85,22 +85,12 @@ def test_same_seed_same_output_other_seed_other_output(name):
         assert not same(a, effect.apply(params, s, ctx(seed=12, side="right", trials=3)))
 
 
-def _out_of_range(field) -> list[float]:
-    bad = []
-    for m in field.metadata:
-        for attr, delta in (("ge", -1), ("gt", 0), ("le", 1), ("lt", 0)):
-            v = getattr(m, attr, None)
-            if v is not None:
-                bad.append(v + delta * max(abs(v), 1.0) if delta else v)
-    return bad
-
-
 @pytest.mark.parametrize("name", list(REGISTRY))
 def test_out_of_range_parameters_are_refused_at_their_line(name):
     effect = REGISTRY[name]
     for key, field in effect.Params.model_fields.items():
         unit = {"image": "px", "angle": "rad"}.get(field.json_schema_extra["kind"], "")
-        for value in _out_of_range(field):
+        for value in out_of_range(field):
             text = f"wiredsl 1\npipeline p {{\n  {name} {key} {value!r}{unit}\n}}\n"
             errs = errors_of(text)
             col = 4 + len(name) + len(key) + 1

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pydantic
 import pytest
-from helpers import compile_text
+from helpers import compile_text, out_of_range
 
 from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
@@ -70,23 +70,13 @@ def test_same_input_same_output(name):
         assert all(np.array_equal(x[k], y[k]) for k in x)
 
 
-def _out_of_range(field) -> list[float]:
-    bad = []
-    for m in field.metadata:
-        for attr, delta in (("ge", -1), ("gt", 0), ("le", 1), ("lt", 0)):
-            v = getattr(m, attr, None)
-            if v is not None:
-                bad.append(v + delta * max(abs(v), 1.0) if delta else v)
-    return bad
-
-
 @pytest.mark.parametrize("name", list(REGISTRY))
 def test_out_of_range_parameters_are_refused(name):
     m = REGISTRY[name]
     m.Params()  # the defaults are in range
     for key, field in m.Params.model_fields.items():
         assert field.description and field.json_schema_extra["kind"]
-        for value in _out_of_range(field):
+        for value in out_of_range(field):
             with pytest.raises(pydantic.ValidationError):
                 m.Params(**{key: value})
     with pytest.raises(pydantic.ValidationError):
