@@ -127,6 +127,7 @@ def test_table_rows_and_schema(scene, tmp_path):
     assert csv_lines[0].startswith("lateral_shift.range,calibration_error.sigma,point,measure,statistic,n,")
     assert len(csv_lines) == 1 + len(rows)
     manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert schema.problems(manifest) == [] and manifest["document"] == "study-manifest"
     assert manifest["seed"] == 5 and manifest["points"] == design.matrix(scene.study("shift")).tolist()
     # a larger lateral shift keeps more stroke pieces per view (ellipses split in halves): the measure sees it
     strokes = {(r.values["lateral_shift.range"], r.values["calibration_error.sigma"]): r.mean for r in rows

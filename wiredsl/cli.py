@@ -207,7 +207,7 @@ def fmt(files: tuple[str, ...], check_only: bool, diagnostics: str) -> None:
 
 
 @main.command()
-@click.argument("name", type=click.Choice(["scene", "features", "viewdep", "manifest", "study"]))
+@click.argument("name", type=click.Choice(["scene", "features", "viewdep", "manifest", "study", "study-manifest"]))
 def schema(name: str) -> None:
     """Print the JSON Schema of a scene, a features dump, a view-dependency file, a build manifest or a study
     table."""

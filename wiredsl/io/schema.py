@@ -9,16 +9,16 @@ from pathlib import Path
 from pydantic import BaseModel
 
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
-NAMES = ("scene", "features", "viewdep", "manifest", "study")
+NAMES = ("scene", "features", "viewdep", "manifest", "study", "study-manifest")
 
 
 def _model(name: str) -> type[BaseModel]:
     if name == "scene":
         from wiredsl.scene import Scene
         return Scene
-    if name == "study":
-        from wiredsl.study.report import StudyTable
-        return StudyTable
+    if name in ("study", "study-manifest"):
+        from wiredsl.study.report import StudyManifest, StudyTable
+        return StudyTable if name == "study" else StudyManifest
     from wiredsl.io import features
     return {"features": features.Features, "viewdep": features.ViewDependency, "manifest": features.Manifest}[name]
 

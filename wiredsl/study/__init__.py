@@ -115,6 +115,6 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
     write_atomic(folder / "table.json", report.to_json(table))
     if table.sobol:
         write_atomic(folder / "sobol.csv", report.sobol_csv(table))
-    write_atomic(folder / "manifest.json", json.dumps(report.manifest(ref, study, all_jobs[0].digest, X, shard_trials),
-                                                      indent=1) + "\n")
+    write_atomic(folder / "manifest.json", report.to_json(report.manifest(ref, study, all_jobs[0].digest, X,
+                                                                          shard_trials)))
     return table

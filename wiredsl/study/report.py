@@ -163,15 +163,30 @@ def to_json(doc: BaseModel) -> str:
     return json.dumps(doc.model_dump(mode="json"), indent=1, sort_keys=False, allow_nan=False) + "\n"
 
 
-def manifest(scene_ref: SceneRef, study: Study, digest: str, X: np.ndarray, shard_trials: int) -> dict:
+class StudyManifest(_Node):
+    """What a study's table was made from: the study, its seeds and design points, the scene, the versions."""
+
+    document: Literal["study-manifest"] = "study-manifest"
+    schema_version: Literal["1"] = "1"
+    study: Study
+    digest: str = Field(description="sha256 of what every shard's key is made from (the scene and the study)")
+    scene: SceneRef
+    seed: int
+    design_seed: int
+    draws: str
+    points: list[list[float]] = Field(description="each design point's factor values (SI units), by index")
+    shard_trials: int = Field(ge=1)
+    versions: dict[str, str]
+
+
+def manifest(scene_ref: SceneRef, study: Study, digest: str, X: np.ndarray, shard_trials: int) -> StudyManifest:
     """What the table was made from: the study, the seeds, the design, the scene, the versions."""
     import scipy
 
-    return {
-        "document": "study-manifest", "study": study.model_dump(mode="json"), "digest": digest,
-        "scene": scene_ref.model_dump(), "seed": study.seed, "design_seed": study.design_seed,
-        "draws": "keyed by (seed, stage, trial, pose, camera, point): design point I is the run's point I",
-        "points": [[_f(v) for v in row] for row in X], "shard_trials": shard_trials,
-        "versions": {"wiredsl": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
-                     "python": platform.python_version()},
-    }
+    return StudyManifest(
+        study=study, digest=digest, scene=scene_ref, seed=study.seed, design_seed=study.design_seed,
+        draws="keyed by (seed, stage, trial, pose, camera, point): design point I is the run's point I",
+        points=[[_f(v) for v in row] for row in X], shard_trials=shard_trials,
+        versions={"wiredsl": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
+                  "python": platform.python_version()},
+    )
