@@ -563,18 +563,19 @@ def _project(X, R, t, cam, fold, out, ok):
 
 
 @njit(cache=True)
+def _pieces(n):
+    """Room for n kept pieces: stroke, start and end arc length, fragment, closed, cut count, whole."""
+    return (np.empty(n, np.int64), np.empty(n), np.empty(n), np.zeros(n, np.int64), np.zeros(n, np.int64),
+            np.zeros(n, np.int64), np.zeros(n, np.bool_))
+
+
+@njit(cache=True)
 def _keep_vertex_runs(pts, start, meta, ok):
     """imageset.keep_vertex_runs."""
     arc, L = _arcs(pts, start)
     S = len(start) - 1
     n_max = len(pts)
-    ps = np.empty(n_max, np.int64)
-    pa = np.empty(n_max)
-    pb = np.empty(n_max)
-    pf = np.zeros(n_max, np.int64)
-    pc = np.zeros(n_max, np.int64)
-    pcut = np.zeros(n_max, np.int64)
-    pw = np.zeros(n_max, np.bool_)
+    ps, pa, pb, pf, pc, pcut, pw = _pieces(n_max)
     q = 0
     for k in range(S):
         a, b = start[k], start[k + 1]
@@ -635,13 +636,7 @@ def _clip_rect(pts, start, meta, width, height):
     arc, L = _arcs(pts, start)
     S = len(start) - 1
     n_max = len(pts)
-    ps = np.empty(n_max, np.int64)
-    pa = np.empty(n_max)
-    pb = np.empty(n_max)
-    pf = np.zeros(n_max, np.int64)
-    pc = np.zeros(n_max, np.int64)
-    pcut = np.zeros(n_max, np.int64)
-    pw = np.zeros(n_max, np.bool_)
+    ps, pa, pb, pf, pc, pcut, pw = _pieces(n_max)
     q = 0
     for k in range(S):
         a, b = start[k], start[k + 1]
