@@ -329,3 +329,15 @@ def test_the_size_estimate_leaves_the_run_as_it_was(tmp_path):
         assert r.exit_code == 0, r.output
         outs.append({p.name: p.read_bytes() for p in out.iterdir()})
     assert outs[0] == outs[1]
+
+
+def test_a_replayed_trial_needs_its_runs_seed():
+    r = run("build", "scenes/lab.wd", "--trial", "3", "-o", "-")
+    assert r.exit_code == 2 and "--seed" in r.output
+
+
+def test_a_study_without_matplotlib_is_refused_before_it_runs(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib now raises ImportError
+    r = run("study", "scenes/studies/lab_study.wd", "shift_calibration", "-o", str(tmp_path / "s"))
+    assert r.exit_code == 2 and "wiredsl[plot]" in r.output and "--no-plots" in r.output
+    assert not (tmp_path / "s").exists()  # nothing ran

@@ -195,6 +195,13 @@ def test_bare_focal_in_metres_warns_with_a_millimetre_hint():
     assert "0.055 deg" in w.message
 
 
+@pytest.mark.parametrize("focal, warned", [("6", True), ("0.08", False), ("0.006", False)])
+def test_a_bare_focal_of_a_lens_in_metres_warns_whatever_the_pixel(focal, warned):
+    """focal 6 with 10 um pixels is f = 600,000 px, a plausible view of a 6 m lens: still a unit forgotten."""
+    found = warnings_of(f"wiredsl 1\ncamera c {{\n focal {focal}\n pixel 0.01mm\n size (640px, 480px)\n}}\n")
+    assert [(w.code, w.hint) for w in found] == ([("W111", f"did you mean {focal}mm?")] if warned else [])
+
+
 @pytest.mark.parametrize("focal, warned", [("0.5px", True), ("1px", False), ("640000px", False),
                                            ("640001px", True), ("6mm", False)])
 def test_focal_warning_thresholds(focal, warned):

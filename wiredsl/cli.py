@@ -449,6 +449,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     from wiredsl.io.svg import Info as svg_info
     from wiredsl.language.compile import compile_file
 
+    if only_trial is not None and seed is None and study_name is None and not no_effects:
+        raise click.UsageError("--trial K replays trial K of a run: give that run's --seed (see its manifest.json)")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
     if scene.path is not None:
@@ -803,6 +805,12 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
     if executor == "dask" and not scheduler:
         raise click.BadParameter("--executor dask needs --scheduler ADDRESS", param_hint="--scheduler")
     require_buildable(scene)
+    if plots:
+        try:
+            import matplotlib  # noqa: F401  (checked before the study runs, not after)
+        except ImportError:
+            raise click.UsageError("the study's plots need matplotlib: pip install 'wiredsl[plot]', or give "
+                                   "--no-plots") from None
     out = Path(output) if output else Path("build") / f"{scene.name}-{found.name}"
     table = run_study(scene, found, out, executor=executor, workers=workers, scheduler=scheduler,
                       echo=lambda m: click.echo(m, err=True))

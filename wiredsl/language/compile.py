@@ -48,6 +48,7 @@ MAX_MATRIX = 1_000
 COUNTABLE = 1e15  # a count of grid points or poses below this is exact in a float, so it may be computed
 GEOM_EPS = 1e-9  # metres: shorter is degenerate
 PERP_TOL = 1e-6  # |cos| between an ellipse's axis and normal
+BARE_FOCAL_METRES = 0.1  # a bare focal length this long (in m) is more likely mm written without its unit
 PLAUSIBLE_FOV = 1000  # f over the image's larger side beyond which a focal length is probably missing its unit
 MAX_MATRIX_ENTRY = 1e100  # calibration entries: inverses, square roots and products of them stay finite
 
@@ -474,12 +475,16 @@ class Compiler:
             if not fx <= MAX_MAGNITUDE:  # also catches inf from a huge focal over a tiny pixel
                 self.out.error("E110", f"camera '{b.name}': focal length of {fx:.3g} px (with aspect) is beyond "
                                        f"the limit of {MAX_MAGNITUDE:g} px", fspan)
-            elif f < 1 or f > PLAUSIBLE_FOV * max(w, h):
-                fov = math.degrees(2 * math.atan(max(w, h) / (2 * f)))
+            else:
                 bare_metres = unit is None and kind == "length" and self.units[fspan.file]["length"] == "m"
                 hint = f"did you mean {written:g}mm?" if bare_metres else None
-                self.out.warning("W111", f"camera '{b.name}': a focal length of {f:.4g} px gives a field of view "
-                                         f"of {fov:.3g} deg over its {max(w, h):g} px image", fspan, hint)
+                if f < 1 or f > PLAUSIBLE_FOV * max(w, h):
+                    fov = math.degrees(2 * math.atan(max(w, h) / (2 * f)))
+                    self.out.warning("W111", f"camera '{b.name}': a focal length of {f:.4g} px gives a field of "
+                                             f"view of {fov:.3g} deg over its {max(w, h):g} px image", fspan, hint)
+                elif bare_metres and written >= BARE_FOCAL_METRES:  # a bare number is metres: 6 is a 6 m lens
+                    self.out.warning("W111", f"camera '{b.name}': a bare focal length is in metres, so "
+                                             f"{written:g} is a {written:g} m lens", fspan, hint)
         k1 = -s["k"][0] if "k" in s else s.get("k1", (0.0, None))[0]
         cx, cy = s.get("centre", ((w / 2, h / 2), None))[0]
         if self.out.n_errors != n0:

@@ -376,7 +376,10 @@ def _elsewhere(keyword: str, context: str) -> str | None:
 
 
 def _a(label: str) -> str:
-    return label if label.startswith(("(", "[")) else ("an " if label[0] in "aeiou" else "a ") + label
+    """'a unit', 'an entry', '(x, y)': the label with its article, as English says it."""
+    if label.startswith(("(", "[")):
+        return label
+    return ("an " if label[0] in "aeiou" and not label.startswith(("uni", "use", "one")) else "a ") + label
 
 
 def _is_key(arg: ast.Arg, sig: Sig, slot: Slot) -> bool:
@@ -433,7 +436,7 @@ def _convert(slot: Slot, arg: ast.Arg, units: dict[str, str], out: Collector) ->
             return bad
         if kind == "word" and arg.name not in slot.choices:
             hint = did_you_mean(arg.name, slot.choices) or "one of: " + ", ".join(slot.choices)
-            out.error("E106", f"'{arg.name}' is not a {slot.label}", arg.span, hint)
+            out.error("E106", f"'{arg.name}' is not {_a(slot.label)}", arg.span, hint)
             return bad
         return Value(arg.name, arg.span)
     if kind == "str":
