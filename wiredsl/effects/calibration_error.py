@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wiredsl.engine import geometry
 from wiredsl.effects.base import Effect, Params, Stats, keyed_normal, param, stream_key
+from wiredsl.engine import geometry
 
 
 class CalibrationErrorParams(Params):
