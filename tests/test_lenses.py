@@ -247,3 +247,31 @@ def test_fisheye_ends_at_the_image_border_and_at_the_lens_limit_lie_on_the_true_
                     if abs(theta - lim) < 1e-3:
                         on_limit += 1
     assert on_border > 10 and on_limit > 5, (on_border, on_limit)
+
+
+def test_stereo3d_undistorts_the_rational_model_and_the_fisheye_as_opencv_does():
+    from wiredsl.measures.stereo3d import undistort
+
+    rng = np.random.default_rng(1706)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-16)
+    for _ in range(20):
+        cam = rational_camera(rng)
+        xy = rng.uniform(-0.4, 0.4, (200, 2))
+        xy = xy[np.hypot(*xy.T) < 0.7 * geometry.lens_limit(cam)]
+        uv = geometry.cam_to_pixels(np.column_stack([xy, np.ones(len(xy))]), cam)
+        ours, ok = undistort(uv, cam)
+        dist = np.array([cam.k1, cam.k2, cam.p1, cam.p2, cam.k3, cam.k4, cam.k5, cam.k6])
+        theirs = cv2.undistortPoints(uv.reshape(-1, 1, 2), _K(cam), dist, None, None, None, criteria).reshape(-1, 2)
+        assert ok.all() and np.abs(ours - xy).max() < 1e-11 and np.abs(ours - theirs).max() < 1e-8
+        fish = fisheye_camera(rng)
+        theta = rng.uniform(0, math.radians(80), 200)
+        phi = rng.uniform(-math.pi, math.pi, 200)
+        P = np.column_stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+        uv = geometry.cam_to_pixels(P, fish)
+        ours, ok = undistort(uv, fish)
+        D = np.array([fish.k1, fish.k2, fish.k3, fish.k4])
+        theirs = cv2.fisheye.undistortPoints(uv.reshape(-1, 1, 2), _K(fish), D).reshape(-1, 2)
+        assert ok.all() and np.abs(ours - P[:, :2] / P[:, 2:]).max() < 1e-9
+        assert np.abs(ours - theirs).max() < 1e-6  # OpenCV's fisheye iteration stops earlier
+    behind = geometry.cam_to_pixels(np.array([[1.0, 0.0, -0.05]]), fish.model_copy(update={"fov": 3.3}))
+    assert undistort(behind, fish.model_copy(update={"fov": 3.3}))[1].tolist() == [False]  # no unit-plane point
