@@ -275,3 +275,37 @@ def test_stereo3d_undistorts_the_rational_model_and_the_fisheye_as_opencv_does()
         assert np.abs(ours - theirs).max() < 1e-6  # OpenCV's fisheye iteration stops earlier
     behind = geometry.cam_to_pixels(np.array([[1.0, 0.0, -0.05]]), fish.model_copy(update={"fov": 3.3}))
     assert undistort(behind, fish.model_copy(update={"fov": 3.3}))[1].tolist() == [False]  # no unit-plane point
+
+
+@pytest.mark.parametrize("z", [(2.0, 3.0), (-0.5, 1.5), (-2.0, -1.0)])
+def test_silhouette_generators_are_tangent_planes_through_the_eye_wherever_the_surface_is(z):
+    """A vertical cylinder in front of, across and behind the camera's plane: each side is a generator in a
+    plane through the eye with both rims wholly on one side of it (dense samples), the same side for both."""
+    from wiredsl.engine import conics
+
+    rng = np.random.default_rng(40)
+    checked = 0
+    for _ in range(20):
+        axis = rng.normal(size=3) * [0.2, 1.0, 0.2]
+        axis /= np.linalg.norm(axis)
+        U = np.cross(axis, rng.normal(size=3))
+        U /= np.linalg.norm(U)
+        V = np.cross(axis, U)
+        foot = np.array([rng.uniform(1.0, 2.0) * rng.choice([-1, 1]), 0.0, 0.0])
+        ca, cb = foot + [0.0, 0.0, z[0]], foot + [0.0, 0.0, z[1]]
+        r = rng.uniform(0.1, 0.4)
+        arc = np.array([[0.0, 2 * math.pi]])
+        one = np.ones(1, bool)
+        o, A, B = conics.silhouette_segments_batch(ca[None], r * U[None], r * V[None], cb[None], r * U[None],
+                                                   r * V[None], arc, one, arc, one)
+        assert len(o) == 2
+        s = np.linspace(0, 2 * math.pi, 3601)
+        rims = [c + r * (np.cos(s)[:, None] * U + np.sin(s)[:, None] * V) for c in (ca, cb)]
+        for a, b in zip(A, B, strict=True):
+            n = np.cross(a, b)
+            n /= np.linalg.norm(n)
+            sides = [np.sign(np.round(rim @ n, 9)) for rim in rims]
+            signs = {int(v) for side in sides for v in side if v != 0}
+            assert len(signs) == 1, z  # both rims on one side of the plane through the eye
+            checked += 1
+    assert checked == 40
