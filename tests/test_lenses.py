@@ -9,12 +9,12 @@ import cv2
 import mpmath
 import numpy as np
 import pytest
+from test_projection import _dist_to_polyline, random_rotation
 
 from wiredsl.engine import geometry
 from wiredsl.engine.simulate import project_view
 from wiredsl.engine.world import World
 from wiredsl.scene import Camera
-from tests.test_projection import _dist_to_polyline, random_rotation
 
 
 def _K(cam: Camera) -> np.ndarray:

@@ -174,7 +174,8 @@ def fisheye_max_angle(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0
     return min(limit, fov / 2) if fov is not None else limit
 
 
-def fold_radius(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0.0, k5: float = 0.0, k6: float = 0.0) -> float:
+def fold_radius(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0.0, k5: float = 0.0,
+                k6: float = 0.0) -> float:
     """Smallest unit-plane radius where r radial(r) stops increasing or the rational denominator
     vanishes (inf if never).
 
