@@ -147,11 +147,19 @@ def visible(P_cam: np.ndarray, model, limit) -> np.ndarray:
     model and limit (`lens_limit`) are scalars or one per point.
     """
     X, Y, Z = P_cam[..., 0], P_cam[..., 1], P_cam[..., 2]
+    fisheye = np.asarray(model) == 1
+    radtan = fish = None
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        zs = np.where(Z > 0, Z, 1.0)
-        radtan = (Z > NEAR) & (np.hypot(X / zs, Y / zs) < limit)
-        fish = (np.arctan2(np.hypot(X, Y), Z) < limit) & (np.sqrt(X * X + Y * Y + Z * Z) > NEAR)
-    return np.where(np.asarray(model) == 1, fish, radtan)
+        if not fisheye.all():
+            zs = np.where(Z > 0, Z, 1.0)
+            radtan = (Z > NEAR) & (np.hypot(X / zs, Y / zs) < limit)
+        if fisheye.any():
+            fish = (np.arctan2(np.hypot(X, Y), Z) < limit) & (np.sqrt(X * X + Y * Y + Z * Z) > NEAR)
+    if fish is None or radtan is None:
+        out = fish if radtan is None else radtan
+        shape = np.broadcast_shapes(X.shape, fisheye.shape)
+        return out if out.shape == shape else np.array(np.broadcast_to(out, shape))
+    return np.where(fisheye, fish, radtan)
 
 
 def lens_limit(cam, **values) -> float:
