@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -282,3 +283,52 @@ def test_positions_count_lines_as_the_lexer_does():
     text = "# a\u2028b\nmodel m {\n  \n}\n"
     assert lsp.context_at(text, 3) == ("model", "m")
     assert {c.label for c in lsp.completions(None, text, 3, 3)} >= {"line", "ellipse"}
+
+
+def _readme_lua(marker: str) -> str:
+    """The README's Neovim snippet that contains `marker`."""
+    blocks = re.findall(r"```lua\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    (block,) = [b for b in blocks if marker in b]
+    return block
+
+
+_NVIM_REPORT = """
+function WiredslTestReport(out)
+  local ok = vim.wait(60000, function() return #vim.diagnostic.get(0) > 0 end, 50)
+  local lines = {}
+  for _, d in ipairs(vim.diagnostic.get(0)) do
+    table.insert(lines, string.format("%d:%d:%s", d.lnum + 1, d.col + 1, tostring(d.code)))
+  end
+  if not ok then table.insert(lines, "timeout") end
+  vim.fn.writefile(lines, out)
+  vim.cmd("qa!")
+end
+"""
+
+
+def _nvim_version() -> tuple[int, ...] | None:
+    nvim = shutil.which("nvim")
+    if nvim is None:
+        return None
+    first = subprocess.run([nvim, "--version"], capture_output=True, text=True, timeout=30).stdout.split("\n")[0]
+    return tuple(int(x) for x in re.search(r"v(\d+)\.(\d+)\.(\d+)", first).groups())
+
+
+@pytest.mark.parametrize("marker, needs", [("vim.lsp.start_client", (0, 7)), ("vim.lsp.start(", (0, 10))],
+                         ids=["neovim-0.7-to-0.9", "neovim-0.10"])
+def test_the_readmes_neovim_snippet_gets_diagnostics_from_the_real_server(tmp_path, marker, needs):
+    version = _nvim_version()
+    if version is None:
+        pytest.skip("nvim is not installed (CI installs it with apt-get where it can: Debian 12 gives 0.7.2)")
+    if version < needs:
+        pytest.skip(f"this snippet needs Neovim {'.'.join(map(str, needs))} or later; nvim here is "
+                    f"{'.'.join(map(str, version))}")
+    (tmp_path / "init.lua").write_text(_readme_lua(marker) + _NVIM_REPORT)
+    (tmp_path / "s.wd").write_text("wiredsl 1\nmodel m {\n  line a from (0, 0, 0) to (0, 0, 0)\n}\n")
+    home = tmp_path / "home"  # Neovim's state, cache and logs stay in the test's folder
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
+           **{k: str(home) for k in ("XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_STATE_HOME", "XDG_CACHE_HOME")}}
+    subprocess.run(["nvim", "--headless", "-u", "init.lua", "-i", "NONE", "-n", "s.wd",
+                    "-c", 'lua WiredslTestReport("out.txt")'], cwd=tmp_path, env=env, timeout=120,
+                   capture_output=True)
+    assert (tmp_path / "out.txt").read_text().split() == ["3:3:E120"]
