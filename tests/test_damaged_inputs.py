@@ -147,3 +147,18 @@ def test_validate_refuses_devices_fifos_and_folders_without_reading_them(tmp_pat
                        timeout=30)
     assert p.returncode == 1, p.stderr
     assert "not a regular file (a FIFO, device or socket)" in p.stderr, p.stderr
+
+
+def test_a_scene_whose_path_is_not_utf8_builds_its_svgs(tmp_path):
+    """A file named b'lab\\xff.wd' (its name decodes to a lone surrogate): the SVGs show U+FFFD there."""
+    import shutil
+
+    for p in Path("scenes").iterdir():  # the scene with its includes beside it
+        (shutil.copytree if p.is_dir() else shutil.copy)(p, tmp_path / p.name)
+    name = os.fsdecode(b"lab\xff.wd")
+    shutil.copy("scenes/lab.wd", tmp_path / name)
+    p = subprocess.run([sys.executable, "-m", "wiredsl", "build", name, "--pose", "0", "-o", "out"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    svg = (tmp_path / "out" / "pose_000.svg").read_bytes().decode("utf-8")
+    assert "lab\ufffd.wd" in svg and svg.startswith("<svg")
