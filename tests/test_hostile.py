@@ -15,7 +15,8 @@ from helpers import compile_text, errors_of
 from wiredsl.cli import main
 from wiredsl.diagnostics import WiredslError
 from wiredsl.language import ast
-from wiredsl.language.compile import camera_rotation, compile_file, rotation
+from wiredsl.language.compile import compile_file
+from wiredsl.language.compile_camera import camera_rotation, rotation
 
 CAMERA = "camera c {\n focal 600px\n size (640px, 480px)\n}\n"
 RIG = "rig r {\n left c at (0, 0.1, 1) looking (1, 0, 0)\n right c at (0, -0.1, 1) looking (1, 0, 0)\n}\n"
@@ -172,7 +173,7 @@ def test_huge_direction_normalises_exactly():
 
 
 def test_huge_matrix_eigenvalues_are_judged_without_overflow():
-    from wiredsl.language.compile import matrix_problem
+    from wiredsl.language.compile_camera import matrix_problem
 
     assert matrix_problem(np.array([[1e100, 0], [0, 1e100]])) is None
     assert "eigenvalue -1e+100" in matrix_problem(np.array([[0, 1e100], [1e100, 0]]))

@@ -88,11 +88,13 @@ def _true_curves(world: World, view, fid: int, segment: int) -> np.ndarray:
         t = np.linspace(0, 1, 20001)[:, None]
         P = A + t * (B - A)
     Pc = geometry.world_to_cam(P, view.R_cw, view.t_cw)
-    front = Pc[:, 2] > geometry.NEAR * 1.01
-    Pc = Pc[front]
-    xy = geometry.cam_to_plane(Pc)
-    ok = np.hypot(xy[:, 0], xy[:, 1]) < geometry.fold_radius(cam.k1, cam.k2) * 0.999
-    uv = geometry.cam_to_pixels(Pc[ok], cam)
+    if cam.distortion == "equidistant":  # the near rule of a fisheye, a little inside its limit
+        Pc = Pc[geometry.visible(Pc, 1, geometry.lens_limit(cam) * 0.999)]
+    else:
+        Pc = Pc[Pc[:, 2] > geometry.NEAR * 1.01]
+        xy = geometry.cam_to_plane(Pc)
+        Pc = Pc[np.hypot(xy[:, 0], xy[:, 1]) < geometry.lens_limit(cam) * 0.999]
+    uv = geometry.cam_to_pixels(Pc, cam)
     inside = (uv[:, 0] > 0.5) & (uv[:, 0] < cam.width - 0.5) & (uv[:, 1] > 0.5) & (uv[:, 1] < cam.height - 0.5)
     return uv[inside]
 

@@ -177,7 +177,7 @@ class NpzStream:
                     v = per_trial and per_trial[side]
                     base = getattr(result, side) if not v else v(k) if callable(v) else v[k]
                     views.append((t, result.index, cam))
-                    vcams.append([float(getattr(base.camera, c)) for c in layout.CAMERA_COLUMNS])
+                    vcams.append([float(layout.camera_value(base.camera, c)) for c in layout.CAMERA_COLUMNS])
                     vposes.append(np.concatenate([np.ravel(base.R_cw), base.t_cw]))
                     if not renumber:  # the ideal projection: its analytic conics too
                         for f in base.features:
