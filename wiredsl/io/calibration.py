@@ -630,11 +630,14 @@ def _kalibr_camera(c: dict) -> CameraFile:
 def opencv_yaml(cams: list[dict], R: np.ndarray | None = None, T: np.ndarray | None = None) -> str:
     """OpenCV FileStorage YAML: one camera as camera_matrix / distortion_coefficients, two as M1, D1, M2, D2, R, T.
 
-    Each camera is {"K": (3, 3), "D": (4,), "width": int, "height": int}.
+    Each camera is {"K": (3, 3), "D": (n,), "width": int, "height": int} and optionally "model": an
+    "equidistant" camera's D is OpenCV's fisheye (k1..k4), named by a `distortion_model: equidistant` line.
     """
     lines = ["%YAML:1.0", "---"]
     first = cams[0]
     lines += [f"image_width: {first['width']}", f"image_height: {first['height']}"]
+    if first.get("model", "radtan") != "radtan":
+        lines.append(f"distortion_model: {first['model']}")
     if len(cams) == 1:
         lines += _cv_matrix("camera_matrix", first["K"]) + _cv_matrix("distortion_coefficients", first["D"][None, :])
     else:
@@ -652,7 +655,8 @@ def _cv_matrix(name: str, a: np.ndarray) -> list[str]:
 
 
 def ros_yaml(name: str, cam: dict, R: np.ndarray | None = None, P: np.ndarray | None = None) -> str:
-    """ROS camera_info YAML (plumb_bob); P defaults to [K | 0]."""
+    """ROS camera_info YAML (plumb_bob, rational_polynomial for 8 coefficients, or equidistant for a camera
+    whose "model" is); P defaults to [K | 0]."""
     K = np.asarray(cam["K"], dtype=float)
     R = np.eye(3) if R is None else np.asarray(R, dtype=float)
     P = np.hstack([K, np.zeros((3, 1))]) if P is None else np.asarray(P, dtype=float)
@@ -664,7 +668,9 @@ def ros_yaml(name: str, cam: dict, R: np.ndarray | None = None, P: np.ndarray | 
                 "  data: [" + ", ".join(repr(float(x)) for x in require_finite(a, f"{name} {key}").ravel()) + "]"]
 
     lines = [f"image_width: {cam['width']}", f"image_height: {cam['height']}", f"camera_name: {name}"]
-    lines += block("camera_matrix", K) + ["distortion_model: plumb_bob"] + block("distortion_coefficients", cam["D"])
+    model = "equidistant" if cam.get("model") == "equidistant" else \
+        "rational_polynomial" if len(cam["D"]) == 8 else "plumb_bob"
+    lines += block("camera_matrix", K) + [f"distortion_model: {model}"] + block("distortion_coefficients", cam["D"])
     lines += block("rectification_matrix", R) + block("projection_matrix", P)
     return "\n".join(lines) + "\n"
 
@@ -678,10 +684,19 @@ def rig_files(scene) -> dict[str, str]:
     for side in ("left", "right"):
         c = cams[getattr(rig, side).camera]
         K = np.array([[c.f * c.ax, 0, c.cx], [0, c.f * c.ay, c.cy], [0, 0, 1.0]])
-        mats[side] = {"K": K, "D": np.array([c.k1, c.k2, c.p1, c.p2]), "width": c.width, "height": c.height}
+        mats[side] = {"K": K, "D": distortion_vector(c), "width": c.width, "height": c.height, "model": c.distortion}
     R, T = stereo_extrinsics(rig)
     return {"stereo.yaml": opencv_yaml([mats["left"], mats["right"]], R, T),
             "left.yaml": ros_yaml("left", mats["left"]), "right.yaml": ros_yaml("right", mats["right"])}
+
+
+def distortion_vector(cam) -> np.ndarray:
+    """A camera's coefficients as OpenCV takes them: fisheye (k1, k2, k3, k4); else (k1, k2, p1, p2, k3), with
+    k4, k5, k6 too when the rational model is used (8)."""
+    if cam.distortion == "equidistant":
+        return np.array([cam.k1, cam.k2, cam.k3, cam.k4])
+    d = [cam.k1, cam.k2, cam.p1, cam.p2, cam.k3]
+    return np.array(d + [cam.k4, cam.k5, cam.k6] if (cam.k4, cam.k5, cam.k6) != (0.0, 0.0, 0.0) else d)
 
 
 def stereo_extrinsics(rig) -> tuple[np.ndarray, np.ndarray]:

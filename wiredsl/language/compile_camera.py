@@ -229,10 +229,33 @@ class CameraCompiler:
                                              f"{written:g} is a {written:g} m lens", fspan, hint)
         k1 = -s["k"][0] if "k" in s else s.get("k1", (0.0, None))[0]
         cx, cy = s.get("centre", ((w / 2, h / 2), None))[0]
-        if self.out.n_errors != n0:
+        lens = self._lens(b, s)
+        if self.out.n_errors != n0 or lens is None:
             return None
-        return Camera(name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, k2=s.get("k2", (0.0,))[0],
-                      p1=s.get("p1", (0.0,))[0], p2=s.get("p2", (0.0,))[0], width=int(w), height=int(h))
+        return Camera(name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, width=int(w), height=int(h), **lens)
+
+    def _lens(self, b: Bound, s: dict[str, tuple[object, Span]]) -> dict | None:
+        """The lens model and its coefficients beside k1; None after reporting a clause the model has not."""
+        model, mspan = s.get("distortion", ("radtan", b.name_span))
+        foreign = ("k", "p1", "p2", "k5", "k6") if model == "equidistant" else ("fov",)
+        ok = True
+        for key in foreign:
+            if key in s:
+                ok = False
+                hint = ("the equidistant (fisheye) model takes k1..k4 on the angle theta and a fov; "
+                        "use 'distortion radtan' for OpenCV's k1..k6, p1, p2" if model == "equidistant"
+                        else "a field of view bounds a fisheye: add 'distortion equidistant'")
+                self.out.error("E103", f"camera '{b.name}': '{key}' does not belong to the {model} lens model",
+                               s[key][1], hint)
+        fov = s.get("fov", (None, None))
+        if fov[0] is not None and not 0 < fov[0] <= 2 * math.pi:
+            self.out.error("E110", f"a field of view must be in (0, 360] deg, got {math.degrees(fov[0]):g} deg",
+                           fov[1])
+            ok = False
+        if not ok:
+            return None
+        out = {k: s.get(k, (0.0,))[0] for k in ("k2", "p1", "p2", "k3", "k4", "k5", "k6")}
+        return {**out, "distortion": model, "fov": fov[0]}
 
     def _positive(self, v: float, what: str, span: Span | None) -> None:
         if not v > 0:

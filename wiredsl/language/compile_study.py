@@ -26,6 +26,8 @@ CAMERA_FACTORS = {
     "cy": ("image", None, "optical centre y"), "k": ("number", None, "TINA's radial coefficient (k1 = -k)"),
     "k1": ("number", None, "OpenCV's k1"), "k2": ("number", None, "OpenCV's k2"),
     "p1": ("number", None, "OpenCV's p1"), "p2": ("number", None, "OpenCV's p2"),
+    "k3": ("number", None, "k3 (OpenCV's, or the fisheye's)"), "k4": ("number", None, "k4 (rational, or the fisheye's)"),
+    "k5": ("number", None, "OpenCV's rational k5"), "k6": ("number", None, "OpenCV's rational k6"),
 }
 MAX_TRIALS = 10**9  # design points x trials
 

@@ -140,6 +140,18 @@ _CAMERA = [
     Sig("k2", "OpenCV's second radial coefficient", (S("number", "k2"),), example="k2 0.001"),
     Sig("p1", "OpenCV's first tangential coefficient", (S("number", "p1"),), example="p1 0"),
     Sig("p2", "OpenCV's second tangential coefficient", (S("number", "p2"),), example="p2 0"),
+    Sig("k3", "third radial coefficient: OpenCV's k3 (r^6), or the fisheye's k3 (theta^6)", (S("number", "k3"),),
+        example="k3 0.0001"),
+    Sig("k4", "OpenCV's rational k4 (denominator's r^2), or the fisheye's k4 (theta^8)", (S("number", "k4"),),
+        example="k4 0"),
+    Sig("k5", "OpenCV's rational k5 (denominator's r^4)", (S("number", "k5"),), example="k5 0"),
+    Sig("k6", "OpenCV's rational k6 (denominator's r^6)", (S("number", "k6"),), example="k6 0"),
+    Sig("distortion", "the lens model: radtan (OpenCV's k1..k6, p1, p2; the default) or equidistant "
+        "(OpenCV's fisheye, Kannala-Brandt: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8))",
+        (S("word", "model", "radtan", "equidistant"),), example="distortion equidistant"),
+    Sig("fov", "equidistant: the lens's full field of view; nothing farther than half of it from the optical "
+        "axis is imaged (default: where theta_d stops increasing, at most 360 deg)", (S("angle", "field of view"),),
+        example="fov 190deg"),
     Sig("read", "take the camera's parameters from a calibration file (OpenCV, ROS or Kalibr); "
         "statements beside it override them", (S("str", "path"),),
         {"format": C("the file's format (default: recognised from its content)",
