@@ -238,6 +238,8 @@ def _matrix(m: dict, what: str) -> np.ndarray:
     a = _floats(data, what)
     if a.size != n or n == 0:
         raise CalibrationFileError(f"{what}: a {rows}x{cols} matrix needs {n} values, has {a.size}")
+    if str(m.get("dt", "")).strip().endswith("f"):  # single precision: the values OpenCV (and the tool) see
+        a = a.astype(np.float32).astype(float)
     return a.reshape(rows, cols, -1) if n != rows * cols else a.reshape(rows, cols)
 
 
