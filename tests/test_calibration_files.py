@@ -309,3 +309,38 @@ def test_kalibr_standard_deviations_become_the_rigs_calibration_uncertainty(tmp_
         compile_text(text.replace('kalibr "results-cam.txt"', 'kalibr "results-cam.txt" order [left.rx]'),
                      str(tmp_path / "a.wd"))
     assert [d.code for d in err.value.diagnostics] == ["E104"]
+
+
+def test_ros_export_carries_the_stereo_rectification_as_cv2_stereo_rectify_gives_it(tmp_path):
+    """right.yaml's R and P are ROS's stereo convention: P's Tx = -fx' * baseline; both as cv2.stereoRectify."""
+    out = tmp_path / "cal"
+    assert CliRunner().invoke(main, ["export-calibration", "scenes/lab.wd", "-o", str(out)]).exit_code == 0
+    fs = cv2.FileStorage(str(out / "stereo.yaml"), cv2.FILE_STORAGE_READ)
+    size = (int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()))
+    T = fs.getNode("T").mat()
+    want = cv2.stereoRectify(fs.getNode("M1").mat(), fs.getNode("D1").mat(), fs.getNode("M2").mat(),
+                             fs.getNode("D2").mat(), size, fs.getNode("R").mat(), T)[:4]
+    for side, R_want, P_want in (("left", want[0], want[2]), ("right", want[1], want[3])):
+        ros = cv2.FileStorage(str(out / f"{side}.yaml"), cv2.FILE_STORAGE_READ)
+        R = np.array([ros.getNode("rectification_matrix").getNode("data").at(i).real() for i in range(9)]).reshape(3, 3)
+        P = np.array([ros.getNode("projection_matrix").getNode("data").at(i).real() for i in range(12)]).reshape(3, 4)
+        assert np.abs(R - R_want).max() < 1e-12 and np.abs(P - P_want).max() < 1e-9
+        assert ros.getNode("distortion_model").string() == "plumb_bob"
+        assert ros.getNode("distortion_coefficients").getNode("cols").real() == 5
+    assert P[0, 3] == pytest.approx(-P[0, 0] * np.linalg.norm(T), rel=1e-3)  # Tx = -fx' * baseline
+    assert P_want[0, 3] != 0 and want[2][0, 3] == 0  # the right camera carries the baseline, the left none
+
+
+def test_stereo_rectify_matches_opencv_for_random_rigs():
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        K1 = np.array([[rng.uniform(400, 900), 0, rng.uniform(300, 340)], [0, rng.uniform(400, 900), 240], [0, 0, 1]])
+        K2 = K1 + np.diag([rng.uniform(-5, 5), rng.uniform(-5, 5), 0])
+        D1, D2 = rng.normal(0, 0.08, 5), rng.normal(0, 0.08, 8)  # strong lenses too: OpenCV's stopping rule
+        R = cv2.Rodrigues(rng.normal(0, 0.05, 3))[0]
+        T = np.array([[-0.12], [0.002], [0.001]]) + rng.normal(0, 0.003, (3, 1))
+        size = (640 + int(rng.integers(0, 3)), 480 + int(rng.integers(0, 3)))
+        want = cv2.stereoRectify(K1, D1, K2, D2, size, R, T)[:4]
+        got = cf.stereo_rectify(K1, D1, K2, D2, size, R, T)
+        for a, b in zip(want, got, strict=True):
+            assert np.abs(a - b).max() < 1e-9

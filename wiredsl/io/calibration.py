@@ -680,7 +680,9 @@ def ros_yaml(name: str, cam: dict, R: np.ndarray | None = None, P: np.ndarray | 
 # --------------------------------------------------------------------------- a scene's rig as files
 
 def rig_files(scene) -> dict[str, str]:
-    """The rig's cameras as files: OpenCV stereo YAML (M1, D1, M2, D2, R, T) and one ROS camera_info each."""
+    """The rig's cameras as files: OpenCV stereo YAML (M1, D1, M2, D2, R, T) and one ROS camera_info each,
+    with the stereo rectification R and P that ROS's stereo nodes use (radtan cameras of one image size;
+    otherwise R = I and P = [K | 0])."""
     rig, cams = scene.rig, {c.name: c for c in scene.cameras}
     mats = {}
     for side in ("left", "right"):
@@ -688,8 +690,73 @@ def rig_files(scene) -> dict[str, str]:
         K = np.array([[c.f * c.ax, 0, c.cx], [0, c.f * c.ay, c.cy], [0, 0, 1.0]])
         mats[side] = {"K": K, "D": distortion_vector(c), "width": c.width, "height": c.height, "model": c.distortion}
     R, T = stereo_extrinsics(rig)
-    return {"stereo.yaml": opencv_yaml([mats["left"], mats["right"]], R, T),
-            "left.yaml": ros_yaml("left", mats["left"]), "right.yaml": ros_yaml("right", mats["right"])}
+    rect: dict = {"left": {}, "right": {}}
+    l, r = mats["left"], mats["right"]
+    if l["model"] == r["model"] == "radtan" and (l["width"], l["height"]) == (r["width"], r["height"]) \
+            and np.linalg.norm(T) > 0:
+        with np.errstate(all="ignore"):  # a wild lens's corners may not undistort: then no rectification
+            R1, R2, P1, P2 = stereo_rectify(l["K"], l["D"], r["K"], r["D"], (l["width"], l["height"]), R, T)
+        if all(np.all(np.isfinite(m)) for m in (R1, R2, P1, P2)):
+            rect = {"left": {"R": R1, "P": P1}, "right": {"R": R2, "P": P2}}
+    return {"stereo.yaml": opencv_yaml([l, r], R, T),
+            "left.yaml": ros_yaml("left", l, **rect["left"]), "right.yaml": ros_yaml("right", r, **rect["right"])}
+
+
+def stereo_rectify(K1, D1, K2, D2, size: tuple[int, int], R, T):
+    """R1, R2, P1, P2 as `cv2.stereoRectify` gives them (alpha -1, CALIB_ZERO_DISPARITY), which is ROS's
+    stereo convention: R rectifies each camera, P2[0, 3] = Tx = -fx' * baseline. OpenCV's steps, with its
+    single-precision image corners: half the rotation to each camera, then the baseline turned onto x;
+    f' the mean of the cameras' fy; the centre from the undistorted corners of each image."""
+    from scipy.spatial.transform import Rotation
+
+    R, T = np.asarray(R, dtype=float), np.asarray(T, dtype=float).ravel()
+    r_r = Rotation.from_rotvec(-0.5 * Rotation.from_matrix(R).as_rotvec()).as_matrix()
+    t = r_r @ T
+    idx = 0 if abs(t[0]) > abs(t[1]) else 1
+    c, nt = t[idx], float(np.linalg.norm(t))
+    uu = np.zeros(3)
+    uu[idx] = 1.0 if c > 0 else -1.0
+    ww = np.cross(t, uu)
+    nw = float(np.linalg.norm(ww))
+    if nw > 0:
+        ww *= math.acos(min(1.0, abs(c) / nt)) / nw
+    wR = Rotation.from_rotvec(ww).as_matrix()
+    R1, R2 = wR @ r_r.T, wR @ r_r
+    t = R2 @ T
+    fc = (K1[idx ^ 1, idx ^ 1] + K2[idx ^ 1, idx ^ 1]) / 2
+    nx, ny = size
+    corners = np.array([[0, 0], [nx - 1, 0], [0, ny - 1], [nx - 1, ny - 1]], dtype=np.float32).astype(float)
+    centres = []
+    for K, D, Rk in ((K1, D1, R1), (K2, D2, R2)):
+        xy = _undistort(corners, np.asarray(K, dtype=float), np.asarray(D, dtype=float)).astype(np.float32)
+        X = np.column_stack([xy.astype(float), np.ones(4)]) @ Rk.T
+        uv = (fc * X[:, :2] / X[:, 2:]).astype(np.float32).astype(float)
+        centres.append(np.array([(nx - 1) / 2, (ny - 1) / 2]) - uv.mean(axis=0))
+    cc = (centres[0] + centres[1]) / 2
+    P1 = np.array([[fc, 0, cc[0], 0], [0, fc, cc[1], 0], [0, 0, 1, 0]])
+    P2 = P1.copy()
+    P2[idx, 3] = t[idx] * fc
+    return R1, R2, P1, P2
+
+
+def _undistort(uv: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Normalised points from pixels under OpenCV's radtan model, as `cv2.undistortPoints` (5 iterations)."""
+    k = np.zeros(8)
+    k[:min(8, D.size)] = D.ravel()[:8]
+    x0 = (uv[:, 0] - K[0, 2]) / K[0, 0]
+    y0 = (uv[:, 1] - K[1, 2]) / K[1, 1]
+    x, y = x0.copy(), y0.copy()
+    stopped = np.zeros(x.shape, dtype=bool)  # a negative icdist stops that point at its distorted position
+    for _ in range(5):
+        r2 = x * x + y * y
+        icdist = (1 + ((k[7] * r2 + k[6]) * r2 + k[5]) * r2) / (1 + ((k[4] * r2 + k[1]) * r2 + k[0]) * r2)
+        stop = ~stopped & (icdist < 0)
+        dx = 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+        dy = k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
+        x = np.where(stopped, x, np.where(stop, x0, (x0 - dx) * icdist))
+        y = np.where(stopped, y, np.where(stop, y0, (y0 - dy) * icdist))
+        stopped |= stop
+    return np.column_stack([x, y])
 
 
 def distortion_vector(cam) -> np.ndarray:
