@@ -393,8 +393,8 @@ def _inverse(M: np.ndarray) -> np.ndarray:
 
 # ---- OpenCV (and ORB-SLAM, which writes FileStorage YAML)
 
-_K = ("camera_matrix", "Camera_Matrix", "cameraMatrix", "CameraMatrix", "K", "intrinsic_matrix")
-_D = ("distortion_coefficients", "Distortion_Coefficients", "dist_coeffs", "distCoeffs", "distortion", "D")
+_K = ("camera_matrix", "Camera_Matrix", "cameraMatrix", "CameraMatrix", "K", "k", "intrinsic_matrix")
+_D = ("distortion_coefficients", "Distortion_Coefficients", "dist_coeffs", "distCoeffs", "distortion", "D", "d")
 
 
 def _opencv_size(doc: dict, name: str):
@@ -515,12 +515,14 @@ def _kalibr(doc: dict) -> list[CameraFile]:
         if not isinstance(cam, dict):
             raise CalibrationFileError(f"{name} must be a mapping (camera_model, intrinsics, ...), is {_kind(cam)}")
         model = cam.get("camera_model", "pinhole")
-        if model in KALIBR_MODELS or model != "pinhole":
-            what = KALIBR_MODELS.get(model, "a model" if not isinstance(model, str) else f"'{model}'")
+        if not isinstance(model, str):
+            raise CalibrationFileError(f"{name}: camera_model must be a name, is {_kind(model)}")
+        if model != "pinhole":
+            what = KALIBR_MODELS.get(model, "unknown")
             raise CalibrationFileError(f"{name}: Kalibr camera model '{model}' ({what}) is not supported: wiredsl's "
                                        "cameras are pinhole (with radtan, equidistant or no distortion)")
         dmodel = cam.get("distortion_model", "radtan")
-        if dmodel in KALIBR_MODELS:
+        if isinstance(dmodel, str) and dmodel in KALIBR_MODELS:
             raise CalibrationFileError(f"{name}: Kalibr distortion model '{dmodel}' ({KALIBR_MODELS[dmodel]}) is "
                                        "not supported: wiredsl reads radtan, equidistant and none")
         fu, fv, pu, pv = _floats(_get(cam, "intrinsics"), f"{name}: intrinsics [fu, fv, pu, pv]", 4)
