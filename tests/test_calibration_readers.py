@@ -68,7 +68,8 @@ def test_opencv_fisheye_and_rational_files(tmp_path):
     (c,) = cf.read(tmp_path / "fish.yaml")
     assert c.model == "equidistant" and c.dist == (0.01, -0.002, 0.0003, -0.00004)
     rational = np.array([[-0.2, 0.01, 0.001, 0.002, 0.03, 0.1, 0.02, 0.003]])
-    _fs_write(tmp_path / "rat.yaml", image_width=640, image_height=480, camera_matrix=K, distortion_coefficients=rational)
+    _fs_write(tmp_path / "rat.yaml", image_width=640, image_height=480, camera_matrix=K,
+              distortion_coefficients=rational)
     scene, _ = _compile(tmp_path, 'camera c {\n  read "rat.yaml"\n}')
     cam = scene.cameras[0]
     assert (cam.k1, cam.k2, cam.p1, cam.p2, cam.k3, cam.k4, cam.k5, cam.k6) == tuple(rational.ravel())

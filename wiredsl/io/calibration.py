@@ -37,6 +37,7 @@ from wiredsl.io.files import require_finite
 
 FORMATS = ("opencv", "ros", "kalibr")
 MAX_BYTES = 4 << 20
+MAX_VALUE = 1e12  # any number a calibration file gives: products of a few stay far from overflow
 MAX_DEPTH = 64  # nesting of a calibration file's mappings and lists (real ones have 3)
 RADTAN = ("plumb_bob", "radtan", "rational_polynomial", "pinhole", "none")
 EQUIDISTANT = ("equidistant", "fisheye", "kannalabrandt8", "kannala_brandt", "kb4")
@@ -192,8 +193,8 @@ def _json(text: str) -> object:
         raise CalibrationFileError(f"the file nests mappings or lists over {MAX_DEPTH} deep")
     try:
         doc = json.loads(text, object_hook=lambda d: _Matrix(d) if d.get("type_id") == "opencv-matrix" else d)
-    except ValueError as exc:
-        raise CalibrationFileError(f"not valid JSON: {exc}") from None
+    except ValueError:  # OpenCV 3 wrote numbers such as "1." into JSON, which its reader takes: so does YAML
+        return _yaml(text)
     return doc
 
 
@@ -269,6 +270,8 @@ def _floats(v, what: str, n: int | None = None) -> np.ndarray:
         raise CalibrationFileError(f"{what} must have {n} values, has {a.size}")
     if not np.all(np.isfinite(a)):
         raise CalibrationFileError(f"{what} has a value that is not finite")
+    if a.size and np.abs(a).max() > MAX_VALUE:
+        raise CalibrationFileError(f"{what} has a value beyond {MAX_VALUE:g} (|{np.abs(a).max():g}|)")
     return a
 
 
@@ -289,9 +292,7 @@ def _numbers(v: list, depth: int = 0) -> bool:
 def _num(v, what: str) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise CalibrationFileError(f"{what} must be a number, is {_kind(v)}")
-    if not math.isfinite(v):
-        raise CalibrationFileError(f"{what} is not finite")
-    return float(v)
+    return float(_floats([v], what)[0])
 
 
 def _first(doc: dict, *names: str):
@@ -574,14 +575,8 @@ def _kalibr_results(text: str) -> list[CameraFile]:
             continue
         m = _PLUSMINUS.match(line)
         if m:
-            try:
-                values = [float(x) for x in m.group(2).replace(",", " ").split()]
-                sigmas = [float(x) for x in m.group(3).replace(",", " ").split()]
-            except ValueError:
-                raise CalibrationFileError(f"line {n}: '{m.group(1).strip()}' has a value that is not a number") \
-                    from None
-            if not all(math.isfinite(x) for x in values + sigmas):
-                raise CalibrationFileError(f"line {n}: '{m.group(1).strip()}' has a value that is not finite")
+            what = f"line {n}: '{m.group(1).strip()}'"
+            values, sigmas = ([float(x) for x in _floats(g.replace(",", " ").split(), what)] for g in m.group(2, 3))
             block[m.group(1).strip()] = (values, sigmas, n)
     out = [_kalibr_camera(c) for c in cams]
     if not out:

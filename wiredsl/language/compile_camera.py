@@ -108,10 +108,14 @@ class CameraCompiler:
         """The cameras of a calibration file named in a statement, or None (reported)."""
         from wiredsl.io.calibration import CalibrationFileError, read
 
+        cache = self.__dict__.setdefault("_calibration_files", {})  # a file read by two cameras and the rig
         try:
             target = FsPath(sb.stmt.span.file).parent / path
+            if (target, fmt) in cache:
+                return cache[target, fmt]
             ast.read_bytes(target, "calibration file", path_span)  # a regular file, not a FIFO (would block)
-            return read(target, fmt)
+            cache[target, fmt] = read(target, fmt)
+            return cache[target, fmt]
         except WiredslError as err:
             self.out.extend(err.diagnostics)
         except CalibrationFileError as exc:
