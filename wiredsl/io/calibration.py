@@ -144,7 +144,13 @@ def _yaml(text: str) -> object:
         raise CalibrationFileError("reading YAML calibration files needs PyYAML: pip install 'wiredsl[calib]'") \
             from None
 
-    class Loader(yaml.SafeLoader):
+    # libyaml's composer is fast but recursive in C: only for texts whose nesting is bounded by their
+    # brackets and line prefixes, and without aliases; the others get the Python composer's bounded depth
+    prefix = max((len(line) - len(line.lstrip(" \t-?")) for line in text.splitlines()), default=0)
+    shallow = text.count("[") + text.count("{") + prefix < 4 * MAX_DEPTH and "*" not in text
+    base = getattr(yaml, "CSafeLoader", yaml.SafeLoader) if shallow else yaml.SafeLoader
+
+    class Loader(base):
         depth = 0
 
         def compose_node(self, parent, index):  # bounded nesting, no aliases: never a RecursionError or a bomb
@@ -171,6 +177,8 @@ def _yaml(text: str) -> object:
     # reads "key:value" with no space after the colon ("data:[" in ORB-SLAM's files).
     text = re.sub(r"\A\s*%YAML:\d+\.\d+[^\n]*\n", "", text)
     text = re.sub(r"^(\s*[A-Za-z_][\w.\-]*):(?=[^\s:/])", r"\1: ", text, flags=re.M)
+    if base is not yaml.SafeLoader:
+        del Loader.compose_node  # libyaml composes in C
     try:
         return yaml.load(text, Loader=Loader)  # noqa: S506 (a SafeLoader with one constructor)
     except yaml.YAMLError as exc:
