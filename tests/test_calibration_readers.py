@@ -319,3 +319,20 @@ def test_malformed_calibration_files_are_e141_at_the_path(tmp_path, content):
     errors = _error(tmp_path, 'camera c {\n  read "bad.yaml"\n  size (640px, 480px)\n}')
     assert [e.code for e in errors] == ["E141"], errors
     assert (errors[0].span.line, errors[0].span.col) == (7, 8)
+
+
+def test_a_fisheye_rig_exported_reads_back_as_the_same_cameras(tmp_path):
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+
+    cameras = ("camera c {\n  focal 290px\n  size (640px, 480px)\n  distortion equidistant\n  k1 0.02\n  k2 -0.01\n"
+               "  k3 0.003\n  k4 -0.0004\n}")
+    (tmp_path / "a.wd").write_text(_scene(cameras))
+    assert CliRunner().invoke(main, ["export-calibration", str(tmp_path / "a.wd"), "-o", str(tmp_path / "cal")]
+                              ).exit_code == 0
+    for name in ("stereo.yaml", "left.yaml", "right.yaml"):
+        c = cf.read(tmp_path / "cal" / name)[-1]
+        assert (c.model, c.fx, c.dist) == ("equidistant", 290.0, (0.02, -0.01, 0.003, -0.0004)), name
+    fs = cv2.FileStorage(str(tmp_path / "cal" / "stereo.yaml"), cv2.FILE_STORAGE_READ)
+    assert np.array_equal(fs.getNode("D2").mat().ravel(), [0.02, -0.01, 0.003, -0.0004])

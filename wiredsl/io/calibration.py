@@ -117,6 +117,8 @@ def _is_kalibr(doc: dict) -> bool:
 
 def _is_ros(doc: dict) -> bool:
     keys = {k for k in doc if isinstance(k, str)}
+    if keys & {"M1", "K1", "cameraMatrix1"}:  # a stereo pair is OpenCV's (with a distortion_model when a fisheye)
+        return False
     return bool(keys & {"camera_name", "distortion_model", "projection_matrix", "rectification_matrix"}) or (
         {"height", "width"} <= keys and bool(keys & {"K", "k"}))
 
