@@ -156,8 +156,9 @@ _CAMERA = [
         "statements beside it override them", (S("str", "path"),),
         {"format": C("the file's format (default: recognised from its content)",
                      S("word", "format", "opencv", "ros", "kalibr")),
-         "entry": C("which camera of a file with several: first or second (OpenCV's M1/M2, Kalibr's cam0/cam1)",
-                    S("word", "entry", "first", "second"))},
+         "entry": C("which camera of a file with several: first, second, third (OpenCV's M1/M2, Kalibr's "
+                    "cam0/cam1...) or Kalibr's camN", S("word", "entry", "first", "second", "third",
+                                                          *(f"cam{i}" for i in range(10))))},
         example='read "calib/stereo.yaml" entry second'),
 ]
 
