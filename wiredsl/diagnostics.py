@@ -92,6 +92,19 @@ def source_lines(text: str) -> list[str]:
     return lines
 
 
+def read_sources(diags: Iterable[Diagnostic]) -> dict[str, str]:
+    """Source text of the files diagnostics point into, for the caret lines (unreadable ones left out)."""
+    out: dict[str, str] = {}
+    for d in diags:
+        if d.span is not None and d.span.file not in out:
+            try:
+                with open(d.span.file, encoding="utf-8") as fh:
+                    out[d.span.file] = fh.read()
+            except (OSError, UnicodeDecodeError):
+                pass
+    return out
+
+
 def did_you_mean(word: str, candidates: Iterable[str]) -> str | None:
     """A 'did you mean' hint for a misspelt name, or None."""
     match = difflib.get_close_matches(word, list(candidates), n=1, cutoff=0.6)

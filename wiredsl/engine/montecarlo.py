@@ -71,6 +71,14 @@ class Run:
                 stages.append((effect, st.params))
         return cls(scene, world, stages, seed, options, point=point)
 
+    def share_projection(self, base: Run) -> None:
+        """Take `base`'s ideal projection, visibility and epipoles (a run of the same scene and options):
+        no stage changes them. An optimisation only: what `base` has not computed is computed when needed."""
+        for name in ("_ideal", "_visible"):
+            if getattr(base, name) is not None:
+                setattr(self, name, getattr(base, name))
+        self._epipoles = base._epipoles
+
     @property
     def calibration(self):
         return next(((e, p) for e, p in self.stages if e.name == "calibration_error"), None)
@@ -172,10 +180,21 @@ class Run:
 
         return importlib.util.find_spec("numba") is not None
 
-    def _batch(self, batch: Sequence[int]):
+    def observe(self, result: PoseResult, trials: Sequence[int]) -> tuple[PoseResult, dict, dict]:
+        """One ideal view (a path pose, or any pose projected with `Run.project_pose`) through the stages,
+        for the given trials: (result, {side: disturbed ImageSet}, views), as `batches` gives each pose.
+
+        The draws are keyed by `result.index`, so a path pose gives exactly what `batches` gives it; nothing is
+        kept for a result that is not one of the run's ideal poses (a closed loop's poses do not pile up)."""
+        if self.exact_calibration:
+            raise ValueError("observe() re-projects the ideal strokes; exact_calibration projects whole runs")
+        keep = any(r is result for r in self.ideal())
+        return self._batch(trials, [result], keep)[0]
+
+    def _batch(self, batch: Sequence[int], results: list[PoseResult] | None = None, keep: bool = True):
         sampler = self.sampler()
         per_trial = rigs = None
-        base = self.ideal()
+        base = self.ideal() if results is None else results
         kernel = self.uses_kernel()
         if sampler is not None:
             order = self.scene.rig.calibration.order
@@ -196,7 +215,7 @@ class Run:
                 if kernel:
                     for effect, _ in self.image_stages:
                         self.trace[effect.name] += 1
-                    sets, views[side] = self._kernel_view(result, side, batch, rigs[side] if rigs else None)
+                    sets, views[side] = self._kernel_view(result, side, batch, rigs[side] if rigs else None, keep)
                     disturbed[side] = sets
                     continue
                 if per_trial is not None:
@@ -204,9 +223,9 @@ class Run:
                     views[side] = [getattr(r[j], side) for r in per_trial]
                 elif rigs is not None:
                     sets, views[side] = reproject(getattr(result, side), self.world, rigs[side], result.pose, side,
-                                                  self.template(result, side, raw=True))
+                                                  self.template(result, side, raw=True, keep=keep))
                 else:
-                    sets = self.template(result, side, raw=False)[0].repeat_trials(len(batch))
+                    sets = self.template(result, side, raw=False, keep=keep)[0].repeat_trials(len(batch))
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
                               point=self.point)
@@ -217,17 +236,22 @@ class Run:
             out.append((result, disturbed, views))
         return out
 
-    def template(self, result: PoseResult, side: str, raw: bool) -> tuple[im.ImageSet, np.ndarray, np.ndarray]:
+    def template(self, result: PoseResult, side: str, raw: bool, keep: bool = True
+                 ) -> tuple[im.ImageSet, np.ndarray, np.ndarray]:
         """One view's strokes as a trial's ImageSet: raw (before clipping, with world points, for
-        re-projection) or ideal; built once a run."""
+        re-projection) or ideal; built once a run (`keep`), or each time."""
         key = (result.index, side, raw)
-        if key not in self._templates:
-            view = getattr(result, side)
-            self._templates[key] = raw_template(view, self.world) if raw else \
-                (to_imageset(view, self.world), np.zeros((0, 3)), np.zeros((0, 3)))
-        return self._templates[key]
+        if key in self._templates and keep:
+            return self._templates[key]
+        view = getattr(result, side)
+        made = raw_template(view, self.world) if raw else \
+            (to_imageset(view, self.world), np.zeros((0, 3)), np.zeros((0, 3)))
+        if keep:
+            self._templates[key] = made
+        return made
 
-    def _kernel_view(self, result: PoseResult, side: str, batch: Sequence[int], rig: dict | None):
+    def _kernel_view(self, result: PoseResult, side: str, batch: Sequence[int], rig: dict | None,
+                     keep: bool = True):
         """One view of a batch in the compiled kernel: the same stages and draws as the numpy path."""
         from wiredsl.effects.base import CAMERA_INDEX, stream_key
         from wiredsl.engine import kernel as kn
@@ -236,11 +260,11 @@ class Run:
         trials = np.asarray(batch, dtype=np.int64)
         T = len(trials)
         if rig is not None:
-            template, W, CW = self.template(result, side, raw=True)
+            template, W, CW = self.template(result, side, raw=True, keep=keep)
             R_cw, t_cw, cams, folds = trial_cameras(rig, result.pose)
             cam, view_of = rig["camera"], view_maker(rig, R_cw, t_cw, side)
         else:
-            template, W, CW = self.template(result, side, raw=False)
+            template, W, CW = self.template(result, side, raw=False, keep=keep)
             R_cw, t_cw, cams, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros((T, 9)), np.zeros(T)
             cam, view_of = view.camera, None
         meta = np.column_stack([template.fid, template.segment, template.fragment, template.kind,

@@ -109,6 +109,41 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
                        by_key.get((i, "right"))) for i in chosen]
 
 
+def project_pose(scene: Scene, world: World, pose, index: int, options: Options = Options(),
+                 lists: dict[int, np.ndarray] | None = None, occluders: occlusion.Occluders | None = None
+                 ) -> PoseResult:
+    """The ideal views of the rig at any robot pose (x, y, heading), numbered `index`.
+
+    What is visible follows the scene's visibility mode as for a path pose: the nearest view-point's list
+    (`lists` keeps the view-point masks computed across calls), or, with options.visibility "exact", the
+    occluders (`occluders`: Occluders.of_world, computed once by the caller), or everything.
+    """
+    require_buildable(scene)
+    pose = tuple(float(v) for v in pose)
+    vp, name = scene.viewpoints, None
+    if vp is None or vp.visibility == "all" or options.visibility in ("all", "exact"):
+        mask = world.mask(None)
+    else:
+        k = int(visibility.nearest_viewpoint(np.array(vp.points, dtype=float), np.array([pose[:2]]))[0])
+        lists = {} if lists is None else lists
+        if k not in lists:
+            lists.update(viewpoint_lists(scene, world, [k]))
+        mask, name = lists[k], vp.names[k]
+    if options.visibility == "exact" and occluders is None:
+        occluders = occlusion.Occluders.of_world(world)
+    sides = ("left", "right") if options.right else ("left",)
+    cams, Rs, ts = [], [], []
+    for side in sides:
+        mount = getattr(scene.rig, side)
+        R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
+        cams.append(scene.camera(mount.camera))
+        Rs.append(R_cw)
+        ts.append(t_cw)
+    views = project_views(world, cams, Rs, ts, [mask] * len(sides), options.tolerance,
+                          occluders if options.visibility == "exact" else None)
+    return PoseResult(index, pose, name, views[0], views[1] if options.right else None)
+
+
 def require_buildable(scene: Scene) -> None:
     """A scene needs a rig and a path to be projected."""
     if scene.rig is None or scene.path is None:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl.engine.montecarlo import Run
+from wiredsl.engine.run import start
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
 from wiredsl.io.files import write_atomic
@@ -67,15 +68,9 @@ def point_run(scene: Scene, world: World, study: Study, point: int, values, opts
     pipeline parameter changes.
     """
     values = np.asarray(values, dtype=float)
-    pipeline = design.pipeline_at(scene, study, values)
-    run = Run.create(design.scene_at(scene, study, values), world, pipeline, study.seed, opts or options(study),
-                     point=point)
-    if design.varies_scene(study):  # each point projects its own cameras
-        return run
-    for cache in ("_ideal", "_visible", "_epipoles"):  # an optimisation only: absent caches just cost time
-        if base is not None and getattr(base, cache, None) is not None and hasattr(run, cache):
-            setattr(run, cache, getattr(base, cache))
-    return run
+    lend = None if design.varies_scene(study) else base  # a point that varies the cameras projects its own
+    return start(design.scene_at(scene, study, values), design.pipeline_at(scene, study, values), seed=study.seed,
+                 options=opts or options(study), world=world, point=point, base=lend)
 
 
 _WORKER: dict = {}  # per process: digest -> (world, base run, prepared); (digest, point) -> (run, prepared)
@@ -90,7 +85,7 @@ def compute(job: Job) -> dict[str, np.ndarray]:
     if job.digest not in _WORKER:
         world = build_world(scene)
         _WORKER.clear()  # one study at a time per worker
-        base = Run.create(scene, world, None, 0, options(study))
+        base = start(scene, None, options=options(study), world=world)
         base.ideal()
         # a measure's reference data come from the ideal scene, which no pipeline parameter changes:
         # prepared once per study (with the run of no stages), unless the study varies the cameras
