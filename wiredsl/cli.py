@@ -432,7 +432,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
     import time
 
-    from wiredsl.engine import run as runs
+    from wiredsl import run as runs
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world
     from wiredsl.io import emit
@@ -563,7 +563,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
 @contextlib.contextmanager
 def _setup_errors():
     """A run's options that do not fit the scene: a usage error naming the option."""
-    from wiredsl.engine.run import RunSetupError
+    from wiredsl.run import RunSetupError
 
     try:
         yield
@@ -746,7 +746,7 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     if trial is not None:
         if seed is None:
             raise click.UsageError("--trial needs the run's --seed (see its manifest.json)")
-        from wiredsl.engine import run as runs
+        from wiredsl import run as runs
 
         with _setup_errors():
             run = runs.start(scene, runs.choose_pipeline(scene, pipeline_name).pipeline, seed=seed)

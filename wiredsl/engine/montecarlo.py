@@ -67,8 +67,9 @@ class Run:
         stages = []
         for st in (pipeline.stages if pipeline is not None else []):
             effect = REGISTRY[st.effect]
-            if not effect.is_identity(st.params):
-                stages.append((effect, st.params))
+            params = effect.Params(**st.params)
+            if not effect.is_identity(params):
+                stages.append((effect, params))
         return cls(scene, world, stages, seed, options, point=point)
 
     def share_projection(self, base: Run) -> None:

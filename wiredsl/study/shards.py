@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl.engine.montecarlo import Run
-from wiredsl.engine.run import start
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
 from wiredsl.io.files import write_atomic
+from wiredsl.run import start
 from wiredsl.scene import Scene, Study
 from wiredsl.study import design
 
