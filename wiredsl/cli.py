@@ -285,6 +285,31 @@ def reference() -> None:
     click.echo("\n".join(out))
 
 
+@main.command()
+def plugins() -> None:
+    """List the effects and measures that installed packages add (entry points wiredsl.effects, wiredsl.measures).
+
+    One line a plug-in on stdout: kind, name, package and version, module:attribute, and ok or why it cannot be
+    used; exit 1 when one cannot."""
+    from wiredsl.effects import REGISTRY as effects
+    from wiredsl.measures import REGISTRY as measures
+    from wiredsl.plugins import installed, lookup
+
+    rows, bad = [], 0
+    for kind, registry in (("effect", effects), ("measure", measures)):
+        clashes = registry.clashes()
+        for p in installed(kind):
+            why = next((c for c in clashes if f"'{p.name}' from {p.origin}" in c), None)
+            if why is None:
+                why = lookup(registry, p.name)[1]
+            bad += why is not None
+            rows.append(f"{kind}\t{p.name}\t{p.package} {p.version}\t{p.value}\t{'ok' if why is None else why}")
+    click.echo("\n".join(rows) if rows else "no plug-ins installed (entry points wiredsl.effects, "
+                                             "wiredsl.measures)")
+    if bad:
+        sys.exit(EXIT_INVALID)
+
+
 TOLERANCE_PX = (1e-3, 100.0)  # finer than 1e-3 px costs vertices (memory, time) without bound, for nothing seen
 MAX_TRIAL = 2**31 - 1  # npz stores the trial in an int32 column
 OUTPUT_LIMIT = 50 * 10**9  # bytes a run may write without --force

@@ -161,3 +161,21 @@ class Registry(Mapping):
 
 
 _REGISTRIES: list[Registry] = []
+
+
+def failure(kind: str, name: str, registry: Mapping, what: str):
+    """The error of a plug-in that misbehaved at run time (E171), naming its package."""
+    from wiredsl.diagnostics import Diagnostic, WiredslError
+
+    origin = registry.origin(name) if isinstance(registry, Registry) else None
+    where = f" from {origin.origin}" if origin is not None else ""
+    return WiredslError([Diagnostic("error", "E171", f"{kind} '{name}'{where} {what}", None)])
+
+
+def lookup(registry: Mapping, name: str) -> tuple[type | None, str | None]:
+    """(class, None) for a name a registry knows, (None, None) for an unknown one, (None, why) for an installed
+    plug-in that cannot be used (why names its package)."""
+    try:
+        return registry.get(name), None
+    except PluginError as err:
+        return None, str(err)

@@ -97,6 +97,9 @@ def start(scene: Scene, pipeline: Pipeline | str | None = None, *, seed: int | N
     if seed is None and run.stages:  # drawn only when something random runs, so ideal runs stay byte-identical
         run.seed = secrets.randbits(63)
     run.engine = check_engine(engine)
+    if engine == "kernel" and not run.uses_kernel() and run.stages and not exact_calibration:
+        lacking = ", ".join(e.name for e, _ in run.image_stages if e.kernel is None)
+        run.warnings.append(f"the whole pipeline runs on numpy: no compiled kernel for {lacking}")
     run.exact_calibration = exact_calibration
     if base is not None:
         run.share_projection(base)
