@@ -164,12 +164,12 @@ _REGISTRIES: list[Registry] = []
 
 
 def failure(kind: str, name: str, registry: Mapping, what: str):
-    """The error of a plug-in that misbehaved at run time (E171), naming its package."""
+    """The error of a plug-in that misbehaved at run time (E181), naming its package."""
     from wiredsl.diagnostics import Diagnostic, WiredslError
 
     origin = registry.origin(name) if isinstance(registry, Registry) else None
     where = f" from {origin.origin}" if origin is not None else ""
-    return WiredslError([Diagnostic("error", "E171", f"{kind} '{name}'{where} {what}", None)])
+    return WiredslError([Diagnostic("error", "E181", f"{kind} '{name}'{where} {what}", None)])
 
 
 def lookup(registry: Mapping, name: str) -> tuple[type | None, str | None]:

@@ -46,8 +46,10 @@ def stage_models() -> dict[str, type]:
     for the JSON schema of a pipeline's stages (the compiled scene keeps a stage as name and parameters)."""
     from pydantic import create_model
 
+    from wiredsl.plugins import lookup
     from wiredsl.scene import Node
 
+    usable = {name: effect for name in REGISTRY if (effect := lookup(REGISTRY, name)[0]) is not None}
     return {name: create_model("".join(w.title() for w in name.split("_")) + "Stage", __base__=Node,
-                               effect=(Literal[name], ...), params=(REGISTRY[name].Params, REGISTRY[name].Params()))
-            for name in REGISTRY}
+                               effect=(Literal[name], ...), params=(effect.Params, effect.Params()))
+            for name, effect in usable.items()}

@@ -160,7 +160,7 @@ class Effect:
     `occluded` and `trial`; `corners`, `corner_fid`, `corner_trial`) and returns a new one of the same layout,
     with finite coordinates and trial numbers in range. Draw randomness only with `ctx.draws(name, ...)`: keyed by
     (seed, stage, trial, pose, camera), so a trial's values do not depend on its batch or on other stages. A stage
-    that raises or returns a malformed set is reported as its package's error (E171). `report(params, stats)`
+    that raises or returns a malformed set is reported as its package's error (E181). `report(params, stats)`
     may add measured statistics to the run manifest.
     """
 

@@ -315,7 +315,7 @@ class Run:
 
 
 def plugin_apply(effect, params, sets: im.ImageSet, ctx: Context) -> im.ImageSet:
-    """An installed effect's stage, its failures and its output's defects reported against its package (E171)."""
+    """An installed effect's stage, its failures and its output's defects reported against its package (E181)."""
     from wiredsl.plugins import failure
 
     try:

@@ -169,7 +169,7 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras
     stage, param = ref.parts
     effect, problem = lookup(REGISTRY, stage)
     if problem is not None:
-        out.error("E170", problem, span)
+        out.error("E180", problem, span)
         return None
     if effect is None:
         out.error("E104", f"unknown stage '{stage}'", span, did_you_mean(stage, REGISTRY)
@@ -289,7 +289,7 @@ def _measure(sb: Bound, units: dict[str, str], out: Collector) -> MeasureUse | N
     registry = measure_registry()
     measure, problem = lookup(registry, name)
     if problem is not None:
-        out.error("E170", problem, span)
+        out.error("E180", problem, span)
         return None
     if measure is None:
         out.error("E104", f"unknown measure '{name}'", span,

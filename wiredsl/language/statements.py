@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from wiredsl.diagnostics import Collector, Span, did_you_mean
-from wiredsl.effects import REGISTRY
+from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.language import ast
 from wiredsl.language.units import KIND_NAMES, UNITS
 from wiredsl.plugins import lookup
@@ -242,12 +242,15 @@ class _StageSigs(Mapping):
         self._sigs: dict[str, Sig] = {}
 
     def __getitem__(self, name: str) -> Sig:
-        if name not in self._sigs:
-            effect, _ = lookup(REGISTRY, name) if isinstance(name, str) else (None, None)
-            if effect is None:
-                raise KeyError(name)
-            self._sigs[name] = _effect_sig(name)
-        return self._sigs[name]
+        if name in self._sigs:
+            return self._sigs[name]
+        effect, _ = lookup(REGISTRY, name) if isinstance(name, str) else (None, None)
+        if effect is None:
+            raise KeyError(name)
+        sig = _effect_sig(name)
+        if name in BUILTIN:  # a plug-in's is made again: packages come and go (plugins.rescan)
+            self._sigs[name] = sig
+        return sig
 
     def __iter__(self):
         return (name for name in REGISTRY if lookup(REGISTRY, name)[0] is not None)
@@ -337,7 +340,7 @@ def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collecto
     sig = sigs.get(stmt.keyword)
     problem = sigs.problem(stmt.keyword) if sig is None and isinstance(sigs, _StageSigs) else None
     if problem is not None:  # an installed plug-in of that name that cannot be used
-        out.error("E170", problem, stmt.keyword_span, "see 'wiredsl plugins'")
+        out.error("E180", problem, stmt.keyword_span, "see 'wiredsl plugins'")
         return None
     if sig is None:
         where = "at the top level" if context == "top" else f"in a {context} block"
