@@ -22,7 +22,6 @@ from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotatio
 from wiredsl.language.statements import Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS
 from wiredsl.scene import (
-    STAGE_MODELS,
     Camera,
     Corner,
     Ellipse,
@@ -35,6 +34,7 @@ from wiredsl.scene import (
     Polyline,
     Scene,
     Silhouette,
+    Stage,
     Viewpoints,
 )
 
@@ -567,7 +567,7 @@ class Compiler(CameraCompiler):
             last = (rank, name) if last is None or rank >= last[0] else last
             params = {k: sb.get(k) for k in sb.clauses}
             try:
-                stages.append(STAGE_MODELS[name](effect=name, params=effect.Params(**params)))
+                stages.append(Stage(effect=name, params=effect.Params(**params).model_dump()))
             except pydantic.ValidationError as exc:
                 for err in exc.errors():
                     key = str(err["loc"][0]) if err["loc"] else ""
