@@ -19,13 +19,10 @@ import sys
 import numpy as np
 from numba import njit
 
-# stage codes, in the order of wiredsl.effects' names
+# the per-stroke functions view_batch dispatches to, by the code each effect declares (its `kernel`,
+# wiredsl.effects.base.KernelStage); a code with no function here is refused before the kernel runs
 EDGE_LOSS, LATERAL_SHIFT, APPROX_ERROR, CORNER_LOSS, CORNER_MISMATCH, STEREO_MISMATCH = range(6)
-CODES = {"edge_loss": EDGE_LOSS, "lateral_shift": LATERAL_SHIFT, "approx_error": APPROX_ERROR,
-         "corner_loss": CORNER_LOSS, "corner_mismatch": CORNER_MISMATCH, "stereo_mismatch": STEREO_MISMATCH}
-PARAMS = {"edge_loss": ("fraction",), "lateral_shift": ("range",), "approx_error": ("sigma",),
-          "corner_loss": ("keep",), "corner_mismatch": ("fraction", "radius"),
-          "stereo_mismatch": ("band", "fraction", "disparity")}  # each stage's parameters, as the kernel takes them
+KNOWN = frozenset(range(6))
 FID, SEG, FRAG, KIND, CLIP, CLOSED, OCC = range(7)  # columns of a stroke's metadata row
 NMETA = 7
 ELLIPSE = 2
@@ -257,6 +254,17 @@ def _edge_loss(pts, start, meta, key, fraction, st):
 
 
 @njit(cache=True)
+def _crossing(arc, i, t):
+    """lateral_shift._crossing: the arc length at fraction t of segment i, snapped to a vertex within 1e-9 px."""
+    seg = arc[i + 1] - arc[i]
+    if t * seg < 1e-9:
+        return arc[i]
+    if (1 - t) * seg < 1e-9:
+        return arc[i + 1]
+    return arc[i] + t * seg
+
+
+@njit(cache=True)
 def _split_ellipses(pts, start, meta):
     """lateral_shift.split_ellipses."""
     S = len(start) - 1
@@ -267,6 +275,7 @@ def _split_ellipses(pts, start, meta):
     upts, ustart, umeta = _unroll(pts, start, meta, closed)
     arc, Lu = _arcs(upts, ustart)
     crossings = np.empty(len(upts))
+    second = np.empty(len(upts))  # each crossing's point on a loop's second lap
     ccount = np.zeros(S, np.int64)
     coff = np.zeros(S + 1, np.int64)
     for k in range(S):
@@ -304,7 +313,8 @@ def _split_ellipses(pts, start, meta):
             nxt = (upts[i + 1, 0] - cx) * nx + (upts[i + 1, 1] - cy) * ny
             if (prev < 0) != (nxt < 0) and i - a < c:
                 t = prev / (prev - nxt)
-                crossings[coff[k + 1]] = arc[i] + t * (arc[i + 1] - arc[i])
+                crossings[coff[k + 1]] = _crossing(arc, i, t)
+                second[coff[k + 1]] = _crossing(arc, i + c, t) if closed[k] else 0.0
                 coff[k + 1] += 1
             prev = nxt
         ccount[k] = coff[k + 1] - coff[k]
@@ -324,7 +334,7 @@ def _split_ellipses(pts, start, meta):
         o = coff[k]
         if halves[k]:
             ps[q], pa[q], pb[q] = k, crossings[o], crossings[o + 1]
-            ps[q + 1], pa[q + 1], pb[q + 1] = k, crossings[o + 1], crossings[o] + L
+            ps[q + 1], pa[q + 1], pb[q + 1] = k, crossings[o + 1], second[o]
             q += 2
         elif not closed[k] and ccount[k] > 0:
             for j in range(ccount[k] + 1):
@@ -741,9 +751,11 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
                 corners, cf = _corner_loss(corners, cf, key, params[g, 0], st)
             elif code == CORNER_MISMATCH:
                 corners = _corner_mismatch(corners, key, params[g, 0], params[g, 1], st)
-            else:
+            elif code == STEREO_MISMATCH:
                 pts, start, meta = _stereo(pts, start, meta, key, epipole, params[g, 0], params[g, 1], params[g, 2],
                                            right, st)
+            else:
+                raise ValueError("kernel: unknown stage code")
         res.append((pts, start, meta))
         cres.append((corners, cf))
     N = 0
@@ -823,19 +835,7 @@ def warm() -> None:
              np.zeros((6, NSTAT)))
 
 
-# what each stage's statistics row holds: (name, "add" | "peak") by column, as the numpy effects record them
-STATS = {
-    "edge_loss": (("total_length", "add"), ("kept_length", "add")),
-    "lateral_shift": (("count", "add"), ("sum_abs", "add"), ("max_abs", "peak")),
-    "approx_error": (("count", "add"), ("sum_sq", "add")),
-    "corner_loss": (("total", "add"), ("kept", "add")),
-    "corner_mismatch": (("total", "add"), ("shifted", "add"), ("max_distance", "peak")),
-    "stereo_mismatch": (("length_in", "add"), ("length_after_band", "add"), ("right_strokes", "add"),
-                        ("shifted", "add"), ("max_shift", "peak")),
-}
-
-
-def record(name: str, row: np.ndarray, stats) -> None:
-    """Add one view's statistics row of stage `name` to the run's Stats."""
-    for (key, how), value in zip(STATS[name], row, strict=False):
+def record(name: str, columns, row: np.ndarray, stats) -> None:
+    """Add one view's statistics row of stage `name` (its KernelStage's `stats` columns) to the run's Stats."""
+    for (key, how), value in zip(columns, row, strict=False):
         (stats.add if how == "add" else stats.peak)(name, **{key: value})

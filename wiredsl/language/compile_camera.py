@@ -8,6 +8,7 @@ units and reference checks.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path as FsPath
 
 import numpy as np
@@ -21,6 +22,9 @@ MAX_MATRIX = 1_000
 BARE_FOCAL_METRES = 0.1  # a bare focal length this long (in m) is more likely mm written without its unit
 PLAUSIBLE_FOV = 1000  # f over the image's larger side beyond which a focal length is probably missing its unit
 MAX_MATRIX_ENTRY = 1e100  # calibration entries: inverses, square roots and products of them stay finite
+LENS = ("distortion", "k", "k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
+ENTRIES = ("first", "second", "third")  # `read ... entry`: these, or camN (Kalibr's name, N from 0)
+STEREO_BASELINE = 5.0  # metres: a stereo pair's |T| beyond this is more likely in millimetres
 
 
 class CameraCompiler:
@@ -36,6 +40,7 @@ class CameraCompiler:
         self.camera_stmts[b.name] = b
 
     def _resolve_cameras(self) -> None:
+        self.camera_reads: dict[str, tuple[FsPath, int]] = {}  # camera -> (calibration file, entry) it read
         settings: dict[str, dict[str, tuple[object, Span]] | None] = {}
         failed: set[str] = set()
 
@@ -68,6 +73,8 @@ class CameraCompiler:
                         if read is None:  # reported: no cascade of "needs focal"
                             settings[name] = None
                             return None
+                        for key in LENS:  # the file's lens replaces a `like` camera's whole lens
+                            own.pop(key, None)
                         own.update(read)
             for stmt in b.stmt.block or ():
                 if stmt.keyword == "read":
@@ -83,11 +90,15 @@ class CameraCompiler:
                                        stmt.keyword_span, "k1 = -k")
                     own.pop("k1" if stmt.keyword == "k" else "k", None)  # one parameter, two spellings
                 own[stmt.keyword] = (sb.pos(0), sb.positional[0].span)
+            if "_read" in own:
+                self._rescaled(name, own)
             settings[name] = own
             return own
 
         for name, b in self.camera_stmts.items():
             s = resolve(name, (name,))
+            if s is not None and "_read" in s:
+                self.camera_reads[name] = s["_read"][0][:2]
             if s is not None and name not in failed:
                 cam = self._camera(b, s)
                 if cam is not None:
@@ -97,10 +108,14 @@ class CameraCompiler:
         """The cameras of a calibration file named in a statement, or None (reported)."""
         from wiredsl.io.calibration import CalibrationFileError, read
 
+        cache = self.__dict__.setdefault("_calibration_files", {})  # a file read by two cameras and the rig
         try:
             target = FsPath(sb.stmt.span.file).parent / path
+            if (target, fmt) in cache:
+                return cache[target, fmt]
             ast.read_bytes(target, "calibration file", path_span)  # a regular file, not a FIFO (would block)
-            return read(target, fmt)
+            cache[target, fmt] = read(target, fmt)
+            return cache[target, fmt]
         except WiredslError as err:
             self.out.extend(err.diagnostics)
         except CalibrationFileError as exc:
@@ -111,25 +126,65 @@ class CameraCompiler:
 
     def _camera_file(self, sb: Bound) -> dict[str, tuple[object, Span]] | None:
         """A camera's settings from a calibration file, as if written as statements at `read`."""
-        cams = self._calibration_file(sb, sb.positional[0].span, sb.pos(0), sb.get("format"))
+        path, path_span = sb.pos(0), sb.positional[0].span
+        cams = self._calibration_file(sb, path_span, path, sb.get("format"))
         if cams is None:
             return None
-        i = 1 if sb.get("entry") == "second" else 0
+        entry = sb.get("entry", "first")
+        i = ENTRIES.index(entry) if entry in ENTRIES else int(entry[3:])
         if i >= len(cams):
-            self.out.error("E104", f"calibration file {sb.pos(0)} has one camera; there is no second",
-                           sb.span("entry"))
+            have = ", ".join(c.name for c in cams)
+            self.out.error("E104", f"calibration file {path} has {len(cams)} camera{'s' * (len(cams) > 1)} "
+                                   f"({have}); there is no {entry}", sb.span("entry"))
             return None
         c, span = cams[i], sb.stmt.span
-        if not all(math.isfinite(v) and abs(v) <= MAX_MAGNITUDE for v in (c.fx, c.fy, c.cx, c.cy)):
-            self.out.error("E141", f"calibration file {sb.pos(0)}: the camera matrix has a value that is not "
-                                   f"finite or beyond {MAX_MAGNITUDE:g} px", sb.positional[0].span)
+        if not c.intrinsics:
+            self.out.error("E141", f"calibration file {path} holds extrinsics only (R, T): no camera to read",
+                           path_span, "read the cameras from the intrinsics file (stereo_calib's intrinsics.yml) "
+                           "and give this one to the rig's 'relative'")
             return None
+        if not all(math.isfinite(v) and abs(v) <= MAX_MAGNITUDE for v in (c.fx, c.fy, c.cx, c.cy, *c.dist)):
+            self.out.error("E141", f"calibration file {path}: the camera matrix or distortion has a value beyond "
+                                   f"{MAX_MAGNITUDE:g}", path_span)
+            return None
+        for note in c.notes:
+            self.out.warning("W143", f"calibration file {path}: {note}", path_span)
+        coeffs = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6") if c.model == "radtan" else ("k1", "k2", "k3", "k4")
         out = {"focal": ((c.fx, "image", "px"), span), "aspect": ((1.0, c.fy / c.fx), span),
-               "centre": ((c.cx, c.cy), span), "k1": (c.dist[0], span), "k2": (c.dist[1], span),
-               "p1": (c.dist[2], span), "p2": (c.dist[3], span)}
+               "centre": ((c.cx, c.cy), span), "distortion": (c.model, span)}
+        out.update({k: (v, span) for k, v in zip(coeffs, c.dist, strict=True)})
         if c.width is not None:
             out["size"] = ((c.width, c.height), span)
+        out["_read"] = ((FsPath(sb.stmt.span.file).parent / path, i, dict(out)), span)
         return out
+
+    def _rescaled(self, name: str, own: dict) -> None:
+        """A `size` beside `read` that differs from the file's: the file's K scaled to it (or refused)."""
+        (_, _, read), _ = own["_read"]
+        if "size" not in read or own["size"] is read["size"]:
+            return
+        (W, H), (w, h) = read["size"][0], own["size"][0]
+        if (W, H) == (w, h):
+            return
+        scaled = [k for k in ("focal", "aspect", "centre") if own.get(k) is read[k]]
+        if not scaled:
+            return  # the statements give the whole camera matrix for the new size
+        sx, sy = w / W, h / H
+        span = own["size"][1]
+        if abs(sx - sy) > 1e-3 * max(sx, sy):
+            self.out.error("E110", f"camera '{name}': size ({w:g}, {h:g}) is not the calibration file's "
+                                   f"({W}, {H}) scaled: its camera matrix does not apply", span,
+                           "a cropped or binned image needs its own 'focal', 'aspect' and 'centre'")
+            return
+        (f, kind, unit), fspan = read["focal"]
+        ax, ay = read["aspect"][0]
+        cx, cy = read["centre"][0]
+        new = {"focal": ((f * sx, kind, unit), fspan), "aspect": ((ax, ay * sy / sx), read["aspect"][1]),
+               "centre": ((cx * sx, cy * sy), read["centre"][1])}
+        own.update({k: new[k] for k in scaled})
+        self.out.warning("W143", f"camera '{name}': size ({w:g}, {h:g}) differs from the calibration file's "
+                                 f"({W}, {H}): its {', '.join(scaled)} scaled by {sx:.6g}", span,
+                         "if the image is cropped rather than scaled, give 'centre' for it")
 
     def _camera(self, b: Bound, s: dict[str, tuple[object, Span]]) -> Camera | None:
         n0 = self.out.n_errors
@@ -240,7 +295,9 @@ class CameraCompiler:
             return None
         if calibration is not None and not self._calibration_fits_lenses(calibration, mounts, seen["calibration"]):
             return None
-        return Rig(name=b.name, left=mounts["left"], right=mounts["right"], calibration=calibration)
+        rig = Rig(name=b.name, left=mounts["left"], right=mounts["right"], calibration=calibration)
+        self._check_stereo(rig, seen["right"])
+        return rig
 
     def _calibration_fits_lenses(self, calibration: Calibration, mounts: dict[str, Mount], span: Span) -> bool:
         """A calibration may not perturb a coefficient its camera's lens model has not (a fisheye's p1):
@@ -285,32 +342,61 @@ class CameraCompiler:
         return Mount(camera=cam, position=sb.get("at"), rotation=_mat(R)) if ok else None
 
     def _relative_mount(self, sb: Bound, other: Mount | Bound | None, side: str) -> Mount | None:
-        """A camera's mount from a stereo file's extrinsics (X2 = R X1 + T, from the first camera to the
-        second) and the other camera's mount: the file's second camera is the right one."""
+        """A camera's mount from a calibration file's extrinsics and the other camera's mount. When both
+        cameras `read` their entries from that file, the extrinsics between those entries (a Kalibr chain's
+        cam1 and cam2...); otherwise the file's first pair, its second camera being the right one."""
         if not isinstance(other, Mount):
             if isinstance(other, Bound):
                 self.out.error("E103", "only one camera of a rig can be 'relative' to the other", sb.span("relative"))
             return None
-        cams = self._calibration_file(sb, sb.span("relative"), sb.get("relative"), None)
+        path, span = sb.get("relative"), sb.span("relative")
+        cams = self._calibration_file(sb, span, path, None)
         if cams is None:
             return None
-        posed = next((c for c in cams if c.R is not None), None)
-        if posed is None:
-            self.out.error("E141", f"calibration file {sb.get('relative')} has no extrinsics (R and T, or "
-                                   "T_cn_cnm1)", sb.span("relative"))
-            return None
+        target = FsPath(sb.stmt.span.file).parent / path
+        ends = [self.camera_reads.get(c) for c in (other.camera, sb.pos(0))]
+        if all(e is not None and _same_file(e[0], target) for e in ends) and ends[0][1] != ends[1][1]:
+            a, b = ends[0][1], ends[1][1]
+        else:
+            a, b = (0, 1) if side == "right" else (1, 0)
+        lo, hi = min(a, b), max(a, b)
+        M = np.eye(4)  # camera lo's frame -> camera hi's: each entry maps its predecessor's frame into its own
+        for k in range(lo + 1, hi + 1):
+            if k >= len(cams) or cams[k].R is None:
+                self.out.error("E141", f"calibration file {path} has no extrinsics (R and T, or T_cn_cnm1) "
+                                       f"between its cameras {lo} and {hi}", span)
+                return None
+            step = np.eye(4)
+            step[:3, :3], step[:3, 3] = cams[k].R, cams[k].T
+            M = step @ M
+        if a > b:
+            M = np.linalg.inv(M)
+        R, T = M[:3, :3], M[:3, 3]  # the other camera's frame -> this one's
         R_o, p_o = np.array(other.rotation), np.array(other.position)  # camera -> robot
-        if side == "right":  # X_r = R X_l + T: the right camera in the robot frame
-            R_s = R_o @ posed.R.T
-            p_s = p_o - R_s @ posed.T
-        else:  # X_r = R X_l + T, with the right camera known
-            R_s = R_o @ posed.R
-            p_s = p_o + R_o @ posed.T
+        R_s = R_o @ R.T
+        p_s = p_o - R_s @ T
         if not np.abs(p_s).max() <= MAX_MAGNITUDE:  # T near the float limit overflows here
-            self.out.error("E141", f"calibration file {sb.get('relative')}: the translation T is beyond "
-                                   f"{MAX_MAGNITUDE:g} m", sb.span("relative"))
+            self.out.error("E141", f"calibration file {path}: the translation T is beyond {MAX_MAGNITUDE:g} m", span)
             return None
+        self.relative_file = path
         return Mount(camera=sb.pos(0), position=tuple(float(x) for x in p_s), rotation=_mat(R_s))
+
+    def _check_stereo(self, rig: Rig, span: Span) -> None:
+        """Warnings for a rig that is probably not what was meant: a baseline in millimetres, sides swapped."""
+        from wiredsl.io.calibration import stereo_extrinsics
+
+        _, T = stereo_extrinsics(rig)
+        relative = getattr(self, "relative_file", None)
+        where = f" (from {relative})" if relative else ""
+        if np.linalg.norm(T) > STEREO_BASELINE:
+            self.out.warning("W144", f"rig '{rig.name}': the cameras are {np.linalg.norm(T):.4g} m apart{where}: "
+                                     "did you mean millimetres?", span,
+                             "T is in the units of the calibration board (OpenCV's square size): convert it to "
+                             "metres, or calibrate with the square size in metres")
+        elif T[0] > 0:
+            self.out.warning("W144", f"rig '{rig.name}': the right camera is {T[0]:.4g} m to the left of the left "
+                                     f"camera (along the left camera's x){where}", span,
+                             "are left and right swapped? a file's second camera (M2, cam1) is the right one")
 
     def _calibration(self, sb: Bound) -> Calibration | None:
         kind = sb.pos(0)
@@ -375,7 +461,7 @@ class CameraCompiler:
         if cams is None:
             return None
         sigma = {f"{side}.{k}": v for side, cam in zip(("left", "right"), cams, strict=False)
-                 for k, v in cam.sigma.items() if v > 0}
+                 for k, v in cam.sigma.items() if v > 0 and k in CALIBRATION_PARAMETERS}
         names = [(o.value, o.span) for o in sb.get("order")] if sb.has("order") else [(k, None) for k in sigma]
         for name, span in names:
             if name not in sigma:
@@ -477,3 +563,7 @@ def _is_number(word: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def _same_file(a: FsPath, b: FsPath) -> bool:
+    return os.path.normcase(os.path.abspath(a)) == os.path.normcase(os.path.abspath(b))
