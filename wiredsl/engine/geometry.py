@@ -91,12 +91,28 @@ def fisheye_plane(P_cam: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0) -> np.ndarray:
     """
     X, Y, Z = P_cam[..., 0], P_cam[..., 1], P_cam[..., 2]
     rho = np.hypot(X, Y)
-    theta = np.arctan2(rho, Z)
-    t2 = theta * theta
-    td = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    td = fisheye_theta_d(np.arctan2(rho, Z), k1, k2, k3, k4)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         scale = np.where(rho > 0, td / np.where(rho > 0, rho, 1.0), np.where(Z > 0, 0.0, np.nan))
     return np.stack([scale * X, scale * Y], axis=-1)
+
+
+def fisheye_theta_d(theta, k1, k2=0.0, k3=0.0, k4=0.0):
+    """The equidistant model's distorted angle theta_d of angles theta from the optical axis."""
+    t2 = theta * theta
+    return theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+
+
+def fisheye_theta(theta_d: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0, steps: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """The angles theta (n,) whose theta_d are given (Newton's method), and the residual |theta_d(theta) - given|
+    (n,); the caller bounds theta by the lens limit, below which the map is one-to-one."""
+    theta = np.array(theta_d, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        for _ in range(steps):
+            t2 = theta * theta
+            slope = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+            theta = theta - (fisheye_theta_d(theta, k1, k2, k3, k4) - theta_d) / slope
+        return theta, np.abs(fisheye_theta_d(theta, k1, k2, k3, k4) - theta_d)
 
 
 def plane_to_pixels(xy_d: np.ndarray, f, ax, ay, cx, cy) -> np.ndarray:

@@ -224,11 +224,11 @@ def _fov_rays(view: View) -> np.ndarray:
     cam = view.camera
     us = np.linspace(0.0, cam.width, 17)
     xd = (us - cam.cx) / (cam.f * cam.ax)
-    if cam.distortion == "equidistant":  # theta from theta_d on a table (monotone up to the limit)
-        theta = np.linspace(0.0, geometry.lens_limit(cam), 4001)
-        t2 = theta * theta
-        td = theta * (1 + t2 * (cam.k1 + t2 * (cam.k2 + t2 * (cam.k3 + t2 * cam.k4))))
-        th = np.interp(np.abs(xd), td, theta)
+    if cam.distortion == "equidistant":  # theta from theta_d, no farther than the lens limit
+        limit = geometry.lens_limit(cam)
+        reach = geometry.fisheye_theta_d(limit, cam.k1, cam.k2, cam.k3, cam.k4)
+        th, _ = geometry.fisheye_theta(np.minimum(np.abs(xd), reach), cam.k1, cam.k2, cam.k3, cam.k4)
+        th = np.clip(np.nan_to_num(th, nan=limit), 0.0, limit)
         rays = np.column_stack([np.sign(xd) * np.sin(th), np.zeros_like(us), np.cos(th)])
     else:
         rays = np.column_stack([xd, np.zeros_like(us), np.ones_like(us)])
