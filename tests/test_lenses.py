@@ -238,8 +238,22 @@ def test_fisheye_ends_at_the_image_border_and_at_the_lens_limit_lie_on_the_true_
                 d = np.hypot(*(uv - end).T)
                 k = int(np.nanargmin(d))
                 assert d[k] < 0.2, (f.fid, end)  # on the curve to the dense sampling's resolution
-                border = min(abs(end[0]), abs(end[0] - 900), abs(end[1]), abs(end[1] - 700))
-                if border < 1e-9:
+                on = [abs(end[0]), abs(end[0] - 900), abs(end[1]), abs(end[1] - 700)]
+                side = int(np.argmin(on))
+                if on[side] < 1e-9:  # where the true curve crosses that border: bisected on the curve
+                    axis, level = (0, 0.0) if side == 0 else (0, 900.0) if side == 1 else (1, 0.0) if side == 2 \
+                        else (1, 700.0)
+                    g = uv[:, axis] - level
+                    cross = np.flatnonzero(np.sign(g[:-1]) * np.sign(g[1:]) < 0)
+                    j = cross[np.argmin(np.abs(cross - k))]
+                    a, b = t[j], t[j + 1]
+                    ga = g[j]
+                    for _ in range(60):
+                        m = 0.5 * (a + b)
+                        gm = geometry.cam_to_pixels(_curve(w, f.fid, np.array([m])), cam)[0, axis] - level
+                        a, b, ga = (m, b, gm) if np.sign(gm) == np.sign(ga) else (a, m, ga)
+                    truth = geometry.cam_to_pixels(_curve(w, f.fid, np.array([0.5 * (a + b)])), cam)[0]
+                    assert np.abs(truth - end).max() < 1e-6, (end, truth)
                     on_border += 1
                 else:  # cut by the lens limit: the point there is at theta = limit
                     P = _curve(w, f.fid, t[k:k + 1])[0]
