@@ -375,3 +375,18 @@ def test_a_study_varies_a_fisheye_coefficient(tmp_path):
     assert [r.scene.camera("cam_l").k3 for r in runs] == [-0.0372, 0.01]
     a, b = (max((f.points for f in r.ideal()[0].left.features), key=len) for r in runs)
     assert a.shape != b.shape or not np.allclose(a, b)
+
+
+def test_a_study_may_not_vary_a_coefficient_a_fisheye_has_not(tmp_path):
+    from pathlib import Path
+
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+
+    path = tmp_path / "bad.wd"
+    path.write_text(f'wiredsl 1\ninclude "{Path("scenes/fisheye.wd").resolve().as_posix()}"\n'
+                    "study s {\n  vary camera.cam_l.p1 values [0, 0.001]\n  measure kept\n}\n")
+    r = CliRunner().invoke(main, ["check", str(path)])
+    assert r.exit_code == 1
+    assert "4:8: error[E104]: camera 'cam_l' has an equidistant lens, which has no 'p1'" in r.stderr.splitlines()[0]

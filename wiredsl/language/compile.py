@@ -587,7 +587,7 @@ class Compiler(CameraCompiler):
                 if (stmt.keyword == "vary" and stmt.args and isinstance(stmt.args[0], ast.Ref)
                         and stmt.args[0].parts[0] == "calibration_error"):
                     self.calibration_stages.append(stmt.args[0].span)
-            study = compile_study(b, pipelines, n_poses, self._units, self.out, tuple(self.cameras))
+            study = compile_study(b, pipelines, n_poses, self._units, self.out, dict(self.cameras))
             if study is not None:
                 self._declare(studies, "study", b.name, b.name_span, study)
         return [d.value for d in studies.values()]
