@@ -346,3 +346,10 @@ def test_a_size_given_for_a_file_without_one_is_checked_against_its_centre(tmp_p
     _, warnings = _compile(tmp_path, 'camera c {\n  read "kitti.yaml"\n  size (600px, 376px)\n}')
     (w,) = [w for w in warnings if w.code == "W143"]
     assert "centre (607.193, 185.216) is outside the 600 x 376 image" in w.message
+
+
+def test_a_focal_length_that_underflows_is_refused(tmp_path):
+    """Found by the fuzzing: Kalibr's projection with fu = 1e-320 divided by fu**2 = 0."""
+    (tmp_path / "results-cam.txt").write_text(_results("\t").replace("[530.  531.5", "[1e-320  531.5"))
+    with pytest.raises(cf.CalibrationFileError, match="focal lengths must be at least 1e-06 px"):
+        cf.read(tmp_path / "results-cam.txt")
