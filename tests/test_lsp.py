@@ -154,7 +154,8 @@ async def test_hover_on_every_kind_of_declared_name_shows_its_declaration(client
     for needle, offset, what, file, line in cases:
         h = await _hover(client, uri, good, needle, offset)
         assert h is not None, needle
-        row = next(i for i, x in enumerate((lab.parent / file).read_text().splitlines(), 1) if x.strip().startswith(line))
+        lines = (lab.parent / file).read_text().splitlines()
+        row = next(i for i, x in enumerate(lines, 1) if x.strip().startswith(line))
         assert h.startswith(f"{what}, declared at ") and f"/scenes/{file}:{row}:" in h, (needle, h)
         assert f"```wiredsl\n{line}" in h, (needle, h)
 
