@@ -70,7 +70,7 @@ class Brackets:
                 self.last_nl = True
                 yield tok
                 continue
-            if tok.line in self.close_before and self.last is not None:
+            if self.close_before and tok.line in self.close_before and self.last is not None:
                 yield from self._close_blocks(self.close_before.pop(tok.line))
             self.last_nl = False
             if kind in _CLOSER:
@@ -241,6 +241,8 @@ def _starts_statement(tok: lark.Token, text: str) -> bool:
         return False
     if tok.type == "RBRACE":
         return True
+    if lines[tok.line - 1][tok.end_column - 1: tok.end_column] == ".":  # `right.f`: a reference, not `right`
+        return False
     from wiredsl.language.statements import CONTEXTS
 
     return tok.type == "WORD" and any(str(tok) in sigs for sigs in CONTEXTS.values())
