@@ -249,22 +249,23 @@ def schema(name: str) -> None:
 @guarded
 def validate(dumps: tuple[str, ...]) -> None:
     """Validate scenes, feature dumps (JSON, JSON lines, npz) and manifests against the schemas."""
+    from wiredsl.io.files import read_regular, regular_size
     from wiredsl.io.layout import npz_problems
     from wiredsl.io.schema import problems
 
     bad = 0
     for path in dumps:
-        if _is_zip(path) or path.endswith(".npz"):  # features.npz: its layout and its manifest
-            msgs = npz_problems(path)
-            for m in msgs[:20]:
-                click.echo(f"{path}: error: {m}", err=True)
-            bad += bool(msgs)
-            continue
-        try:
-            with open(path, encoding="utf-8") as fh:
-                text = fh.read()
-        except (OSError, UnicodeDecodeError) as exc:
-            click.echo(f"{path}: error: cannot read: {exc}", err=True)
+        try:  # regular files only: /dev/zero or a FIFO is refused before it is opened
+            regular_size(path, 2**63)
+            if _is_zip(path) or path.endswith(".npz"):  # features.npz: its layout and its manifest
+                msgs = npz_problems(path)
+                for m in msgs[:20]:
+                    click.echo(f"{path}: error: {m}", err=True)
+                bad += bool(msgs)
+                continue
+            text = read_regular(path, MAX_JSON_BYTES).decode("utf-8")
+        except (OSError, ValueError) as exc:  # UnreadableFile and UnicodeDecodeError are ValueErrors
+            click.echo(f"{path}: error: cannot read: {getattr(exc, 'strerror', None) or exc}", err=True)
             bad += 1
             continue
         docs = _documents(path, text)
@@ -290,15 +291,21 @@ def _is_zip(path: str) -> bool:
 
 def _documents(path: str, text: str) -> list[tuple[str, object]]:
     """(location, document or error message) for a JSON or JSON-lines file."""
+    from wiredsl.io.files import json_loads
+
     try:
-        return [(path, json.loads(text))]
+        return [(path, json_loads(text))]
+    except RecursionError:
+        return [(path, "not JSON this reader takes: nested too deeply")]
     except json.JSONDecodeError as exc:
         if path.endswith(".jsonl"):
             out = []
             for i, line in enumerate(text.splitlines(), 1):
                 if line.strip():
                     try:
-                        out.append((f"{path}:{i}", json.loads(line)))
+                        out.append((f"{path}:{i}", json_loads(line)))
+                    except RecursionError:
+                        out.append((f"{path}:{i}", "not JSON this reader takes: nested too deeply"))
                     except json.JSONDecodeError as e:
                         out.append((f"{path}:{i}:{e.colno}", f"not JSON: {e.msg}"))
             return out
@@ -325,6 +332,7 @@ def reference() -> None:
 TOLERANCE_PX = (1e-3, 100.0)  # finer than 1e-3 px costs vertices (memory, time) without bound, for nothing seen
 MAX_TRIAL = 2**31 - 1  # npz stores the trial in an int32 column
 OUTPUT_LIMIT = 50 * 10**9  # bytes a run may write without --force
+MAX_JSON_BYTES = 1 << 30  # a JSON or JSON-lines file `validate` reads (a JSON dump holds one trial)
 DUMP_SUFFIXES = (".json", ".jsonl", ".npz", ".svg")
 
 

@@ -16,6 +16,7 @@ import json
 from pathlib import Path
 
 from wiredsl.io import layout
+from wiredsl.io.files import json_loads
 
 KIND_ORDER = ("lines", "polylines", "conics", "corners")
 
@@ -76,7 +77,7 @@ def _json_docs(path: Path) -> list[dict]:
     try:
         text = data.decode("utf-8")
         lines = [line for line in text.splitlines() if line.strip()]
-        docs = [json.loads(line) for line in lines] if path.suffix == ".jsonl" else [json.loads(text)]
+        docs = [json_loads(line) for line in lines] if path.suffix == ".jsonl" else [json_loads(text)]
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         what = "a CSV table" if b"," in start.split(b"\n", 1)[0] and not start.startswith((b"{", b"[")) \
             else "not JSON"
@@ -186,7 +187,11 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
     # member -> the member whose rows select it
     selected_by = {"corners": "corner_rows", "corner_rows": "corner_rows", "views": "views",
                    "view_cameras": "views", "view_poses": "views", "conics": "conic_rows", "conic_rows": "conic_rows"}
-    with np.load(path, allow_pickle=False) as data:
+    try:
+        data = layout.open_npz(path)
+    except layout.NpzError as exc:
+        raise layout.NpzError(f"{path}: {exc}") from None
+    with data:
         out = {k: [] for k in ("pts", "strokes", *selected_by)}
         start = [0]
         for b in _batches(data):
@@ -198,6 +203,10 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
             for m, by in selected_by.items():
                 out[m].append(data[f"{b}_{m}"][chosen(data[f"{b}_{by}"])])
         arrays = {k: np.concatenate(v) for k, v in out.items() if v}
+        bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
+        if bad:
+            raise ValueError(f"{path}: its {bad[0]} hold NaN or infinity: not a dump wiredsl wrote "
+                             f"(wiredsl validate {path} says which member)")
         arrays["start"] = np.array(start, dtype=np.int64)
         arrays["feature_ids"] = data["feature_ids"].tolist()
         arrays["manifest"] = json.loads(str(data["manifest"]))

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Union
@@ -244,23 +243,14 @@ def read_bytes(path: Path, what: str, where: Span | None = None, limit: int | No
 
     The stat comes first so that a FIFO or /dev/stdin is never opened (opening one would block).
     """
+    from wiredsl.io.files import read_regular
+
     limit = MAX_SOURCE_BYTES if limit is None else limit
     shown = display_path(path) if "\0" not in str(path) else repr(str(path))
     try:
         if "\0" in str(path):
             raise ValueError("a path cannot contain a NUL byte")
-        st = path.stat()
-        if stat.S_ISDIR(st.st_mode):
-            raise ValueError("is a directory")
-        if not stat.S_ISREG(st.st_mode):
-            raise ValueError("is not a regular file (a FIFO, device or socket)")
-        if st.st_size > limit:
-            raise ValueError(f"is {st.st_size:,} bytes, over the limit of {limit:,}")
-        with open(path, "rb") as fh:
-            data = fh.read(limit + 1)
-        if len(data) > limit:
-            raise ValueError(f"is over the limit of {limit:,} bytes")
-        return data
+        return read_regular(path, limit)
     except FileNotFoundError:
         msg = f"no such file: {shown}" if what == "file" else f"cannot read {what} {shown}: no such file"
     except ValueError as exc:
