@@ -80,3 +80,22 @@ def test_the_editor_gets_the_other_errors_while_an_include_is_being_typed(tmp_pa
     index = lsp.analyse(str(tmp_path / "s.wd"), text)
     assert [(d.code, d.span.line) for d in index.diagnostics] == [("E010", 2), ("E120", 5)]
     assert index.symbol("model", "m") is not None  # hover and completion still know the rest
+
+
+def test_a_study_whose_scene_include_is_missing_gives_that_error_alone(tmp_path):
+    """The lab study's own file, copied where its `include "../lab.wd"` finds nothing: its studies' pipeline and
+    cameras are the missing file's, so they are not reported unknown."""
+    (tmp_path / "s.wd").write_text(open("scenes/studies/lab_study.wd").read())
+    assert _check(tmp_path, (tmp_path / "s.wd").read_text()) == [("E010", 4, 9)]
+    (note,) = _notes(tmp_path)
+    assert note.endswith("not reported: they may be declared in what did not load")
+
+
+def test_the_note_on_unreported_names_is_on_the_include_that_failed(tmp_path):
+    text = 'wiredsl 1\nscene s )\ninclude "nothere.wd"\nplace bin as b1\n'
+    (tmp_path / "s.wd").write_text(text)
+    r = CliRunner().invoke(main, ["check", "--diagnostics", "json", str(tmp_path / "s.wd")])
+    diags = json.loads(r.stderr)["diagnostics"]
+    assert [(d["code"], d["line"], d.get("notes")) for d in diags] == [
+        ("E001", 2, None),
+        ("E010", 3, ["1 reference to unknown names not reported: they may be declared in what did not load"])]
