@@ -120,7 +120,7 @@ def test_validate_refuses_nan_and_infinity_in_a_json_dump(tmp_path, token, where
     assert code == 1 and f"{token} is not a JSON number" in msg, msg
     line = text[:text.index(needle)].count("\n") + 1
     assert f"d.json:{line}:" in msg
-    with pytest.raises(ValueError, match=f"is not JSON \\({token} is not a JSON number"):
+    with pytest.raises(ValueError, match=f"{token} is not a JSON number"):  # load's DumpError
         wiredsl.load(tmp_path / "d.json")
     # and a document built in Python, not parsed: the schema check names the value
     doc_nan = json.loads(text.replace(needle, token, 1), parse_constant=float)

@@ -19,6 +19,7 @@ from wiredsl.engine.world import build_world
 from wiredsl.io import layout
 from wiredsl.io.load import DumpError
 from wiredsl.language.compile import compile_file
+from wiredsl.scene import Camera
 
 LAB = "scenes/lab.wd"
 
@@ -136,7 +137,9 @@ def test_npz_views_hold_the_json_cameras_rotations_and_translations(disturbed):
             k = rows[(2, p["index"], cam)]
             v = p[side]
             assert a["view_poses"][k].tolist() == [*np.ravel(v["rotation"]), *v["translation"]]  # bit for bit
-            assert a["view_cameras"][k].tolist() == [float(v["camera"][c]) for c in layout.CAMERA_COLUMNS]
+            camera = Camera.model_validate(v["camera"])
+            want = [float(layout.camera_value(camera, c)) for c in layout.CAMERA_COLUMNS]
+            assert a["view_cameras"][k].tolist() == want
 
 
 def test_ideal_conics_round_trip_through_npz(tmp_path):

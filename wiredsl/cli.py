@@ -5,6 +5,7 @@ Exit codes: 0 ok, 1 invalid input, 2 usage error, 3 internal error (a bug).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -140,16 +141,9 @@ def _quiet_exit() -> None:
 
 
 def _sources(diags) -> dict[str, str]:
-    """Source text of the files diagnostics point into, for the caret lines."""
-    out = {}
-    for d in diags:
-        if d.span is not None and d.span.file not in out:
-            try:
-                with open(d.span.file, encoding="utf-8") as fh:
-                    out[d.span.file] = fh.read()
-            except (OSError, UnicodeDecodeError):
-                pass
-    return out
+    from wiredsl.diagnostics import read_sources
+
+    return read_sources(diags)
 
 
 diagnostics_option = click.option("--diagnostics", type=click.Choice(["text", "json"]), default="text",
@@ -329,6 +323,31 @@ def reference() -> None:
     click.echo("\n".join(out))
 
 
+@main.command()
+def plugins() -> None:
+    """List the effects and measures that installed packages add (entry points wiredsl.effects, wiredsl.measures).
+
+    One line a plug-in on stdout: kind, name, package and version, module:attribute, and ok or why it cannot be
+    used; exit 1 when one cannot."""
+    from wiredsl.effects import REGISTRY as effects
+    from wiredsl.measures import REGISTRY as measures
+    from wiredsl.plugins import installed, lookup
+
+    rows, bad = [], 0
+    for kind, registry in (("effect", effects), ("measure", measures)):
+        clashes = registry.clashes()
+        for p in installed(kind):
+            why = next((c for c in clashes if f"'{p.name}' from {p.origin}" in c), None)
+            if why is None:
+                why = lookup(registry, p.name)[1]
+            bad += why is not None
+            rows.append(f"{kind}\t{p.name}\t{p.package} {p.version}\t{p.value}\t{'ok' if why is None else why}")
+    click.echo("\n".join(rows) if rows else "no plug-ins installed (entry points wiredsl.effects, "
+                                             "wiredsl.measures)")
+    if bad:
+        sys.exit(EXIT_INVALID)
+
+
 TOLERANCE_PX = (1e-3, 100.0)  # finer than 1e-3 px costs vertices (memory, time) without bound, for nothing seen
 MAX_TRIAL = 2**31 - 1  # npz stores the trial in an int32 column
 OUTPUT_LIMIT = 50 * 10**9  # bytes a run may write without --force
@@ -482,11 +501,9 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
           visibility: str, engine: str, exact_calibration: bool, layout: str, force: bool,
           diagnostics: str, study_name: str | None = None, point: int | None = None) -> None:
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
-    import contextlib
-    import secrets
     import time
 
-    from wiredsl.engine.montecarlo import Run
+    from wiredsl import run as runs
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world
     from wiredsl.io import emit
@@ -499,23 +516,12 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         raise click.UsageError("--trial K replays trial K of a run: give that run's --seed (see its manifest.json)")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
-    if scene.path is not None:
-        n = len(scene.path.poses)
-        for p in poses:
-            if not 0 <= p < n:
-                raise click.BadParameter(f"pose {p} is not in 0..{n - 1}", param_hint="--pose")
-    pipeline = None
-    if pipeline_name is not None and not no_effects:
-        pipeline = scene.pipeline(pipeline_name)
-        if pipeline is None:
-            names = ", ".join(p.name for p in scene.pipelines) or "none"
-            raise click.BadParameter(f"no pipeline '{pipeline_name}' in {file} (it has: {names})",
-                                     param_hint="--pipeline")
-    elif not no_effects:
-        pipeline = scene.pipeline()
-        if pipeline is None and scene.pipelines:
-            click.echo("note: no pipeline is marked default; building the ideal projection (choose one with "
-                       "--pipeline: " + ", ".join(p.name for p in scene.pipelines) + ")", err=True)
+    with _setup_errors():
+        chosen_poses = runs.check_poses(scene, poses) if poses else None
+        choice = runs.choose_pipeline(scene, pipeline_name, no_effects)
+    pipeline = choice.pipeline
+    if choice.note is not None:
+        click.echo(f"note: {choice.note}", err=True)
     trial_list = range(only_trial, only_trial + 1) if only_trial is not None else range(trials)
     if layout == "side-by-side" and pipeline is None:
         raise click.BadParameter("side-by-side shows the original beside the disturbed world: give a pipeline",
@@ -530,28 +536,22 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     if out_format == "npz" and out_dir is None:
         raise click.BadParameter("npz cannot go to stdout", param_hint="-o")
     world = build_world(scene)
-    opts = Options(tolerance=tolerance, visibility=visibility, poses=tuple(sorted(set(poses))) or None,
-                   right=cameras == "both")
-    if study_name is not None or point is not None:
-        run, pipeline, trial_list = _study_point(scene, world, study_name, point, only_trial, seed, pipeline_name,
-                                                 no_effects, opts, poses, out_format)
-        seed = run.seed
-    else:
-        run = Run.create(scene, world, pipeline, seed if seed is not None else 0, opts)
-    shown = only_trial if only_trial is not None else trial_list[0]  # the trial the SVGs show
-    run.exact_calibration = exact_calibration
+    opts = Options(tolerance=tolerance, visibility=visibility, poses=chosen_poses, right=cameras == "both")
     if engine == "auto" and only_trial is None and trials == 1:
         engine = "numpy"  # one plain build: not worth loading the compiled kernel
-    if engine == "kernel":
-        import importlib.util
-
-        if importlib.util.find_spec("numba") is None:
-            raise click.BadParameter("the compiled kernel needs numba: pip install 'wiredsl[fast]'",
-                                     param_hint="--engine")
-    run.engine = engine
+    with _setup_errors():
+        if study_name is not None or point is not None:
+            run, pipeline, trial_list = _study_point(scene, world, study_name, point, only_trial, seed,
+                                                     pipeline_name, no_effects, opts, poses, out_format)
+            run.engine, run.exact_calibration = runs.check_engine(engine), exact_calibration
+            seed = run.seed
+        else:
+            run = runs.start(scene, pipeline, seed=seed, options=opts, world=world, engine=engine,
+                             exact_calibration=exact_calibration)
+    shown = only_trial if only_trial is not None else trial_list[0]  # the trial the SVGs show
     effects = bool(run.stages)
-    if seed is None and effects:  # drawn only when something random runs, so ideal runs stay byte-identical
-        seed = run.seed = secrets.randbits(63)
+    if effects:
+        seed = run.seed  # drawn by start() when not given
     records = emit.stage_records(run)
 
     def doc_for(results, k):
@@ -629,6 +629,17 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                    f"seed {seed if effects else '-'}"
                    + (f", pipeline {pipeline.name}: {', '.join(e.name for e, _ in run.stages)}" if effects else
                       ", ideal projection") + ")", err=True)
+
+
+@contextlib.contextmanager
+def _setup_errors():
+    """A run's options that do not fit the scene: a usage error naming the option."""
+    from wiredsl.run import RunSetupError
+
+    try:
+        yield
+    except RunSetupError as err:
+        raise click.BadParameter(str(err), param_hint=err.option) from None
 
 
 def _study_point(scene, world, study_name, point, only_trial, seed, pipeline_name, no_effects, opts, poses,
@@ -809,11 +820,10 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     if trial is not None:
         if seed is None:
             raise click.UsageError("--trial needs the run's --seed (see its manifest.json)")
-        from wiredsl.engine.montecarlo import Run
-        from wiredsl.engine.simulate import Options
-        from wiredsl.engine.world import build_world
+        from wiredsl import run as runs
 
-        run = Run.create(scene, build_world(scene), scene.pipeline(pipeline_name), seed, Options())
+        with _setup_errors():
+            run = runs.start(scene, runs.choose_pipeline(scene, pipeline_name).pipeline, seed=seed)
         if run.sampler() is None:
             raise click.UsageError("no calibration_error stage with a rig calibration: each trial has the nominal rig")
         # the run's own checked draw (a refused draw is redrawn), so the files are the rig the trial saw

@@ -11,7 +11,8 @@ from __future__ import annotations
 import json
 import math
 
-NPZ_VERSION = 2  # 1: seven stroke columns; 2: closed, fragment, occluded, views and conics added
+NPZ_VERSION = 3  # 1: seven stroke columns; 2: closed, fragment, occluded, views and conics added;
+# 3: view cameras with k3..k6 and the lens model
 
 STROKE_COLUMNS = (
     ("trial", "Monte-Carlo trial (0 for the ideal projection)"),
@@ -36,7 +37,16 @@ VIEW_COLUMNS = (
     ("pose", "index of the pose in the scene's path"),
     ("camera", "0 left, 1 right"),
 )
-CAMERA_COLUMNS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "width", "height")
+# `model`: the lens model's code, 0 radtan, 1 equidistant (geometry.MODELS)
+CAMERA_COLUMNS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "width", "height", "k3", "k4", "k5", "k6",
+                  "model")
+
+
+def camera_value(camera, column: str) -> float:
+    """A camera's number in CAMERA_COLUMNS (the lens model as its code)."""
+    return ("radtan", "equidistant").index(camera.distortion) if column == "model" else getattr(camera, column)
+
+
 CONIC_COLUMNS = (
     ("trial", "Monte-Carlo trial"),
     ("pose", "index of the pose in the scene's path"),
@@ -58,7 +68,8 @@ MEMBERS = (
     ("b_corner_rows", "int32", f"(C, {len(CORNER_COLUMNS)})", "one row a corner; columns below"),
     ("b_views", "int32", f"(V, {len(VIEW_COLUMNS)})", "one row a camera view (trial, pose, camera)"),
     ("b_view_cameras", "float64", f"(V, {len(CAMERA_COLUMNS)})",
-     "each view's camera as projected (perturbed under calibration error): " + ", ".join(CAMERA_COLUMNS)),
+     "each view's camera as projected (perturbed under calibration error): " + ", ".join(CAMERA_COLUMNS)
+     + " (0 radtan, 1 equidistant)"),
     ("b_view_poses", "float64", "(V, 12)", "each view's R (row-major, 9) and t (3) of P_cam = R P_world + t, "
      "full precision"),
     ("b_conics", "float64", "(K, 7)", "analytic ellipse images (undistorted cameras, ideal projection only): "
@@ -137,7 +148,6 @@ def open_npz(path):
 
 def npz_problems(path) -> list[str]:
     """Why a file is not a features.npz of this layout (empty when it is): members, dtypes, shapes, manifest."""
-    import numpy as np
 
     import zipfile
 

@@ -227,7 +227,12 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
 
 def _npz_records(path: Path, *pick) -> list[dict]:
     """The JSON dump's feature records, rebuilt from the npz arrays."""
-    a = _npz_arrays(path, *pick)
+    return records(_npz_arrays(path, *pick))
+
+
+def records(a: dict) -> list[dict]:
+    """The JSON dump's feature records from one run's arrays (the npz members of its batches, without the
+    b{n}_ prefix, with `feature_ids`): what `load` gives, in its order."""
     ids, col = a["feature_ids"], {n: i for i, (n, _) in enumerate(layout.STROKE_COLUMNS)}
     groups: dict[tuple[int, int, int], dict[str, list]] = {}
 
