@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -200,3 +201,11 @@ def test_the_readme_documents_the_npz_layout():
 def test_importing_wiredsl_does_not_import_numpy():
     code = "import sys, wiredsl; assert 'numpy' not in sys.modules; assert callable(wiredsl.load)"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_a_device_or_fifo_is_refused_unopened(tmp_path):
+    fifo = tmp_path / "features.jsonl"
+    os.mkfifo(fifo)
+    for path in (fifo, "/dev/zero"):
+        with pytest.raises(DumpError, match="is not a regular file"):
+            wiredsl.load(path)

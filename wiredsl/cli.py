@@ -81,7 +81,8 @@ def guarded(fn: Callable) -> Callable:
         previous = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
         try:
             out = fn(*args, **kwargs)
-            sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
+            if not sys.stdout.closed:  # (the language server's client closes it on exit)
+                sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
             return out
         except BrokenPipeError:
             if not _stdout_closed():

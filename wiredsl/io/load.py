@@ -16,9 +16,10 @@ import json
 from pathlib import Path
 
 from wiredsl.io import layout
-from wiredsl.io.files import json_loads
+from wiredsl.io.files import UnreadableFile, json_loads, read_regular, regular_size
 
 KIND_ORDER = ("lines", "polylines", "conics", "corners")
+MAX_JSON_BYTES = 1 << 30  # a JSON or JSON-lines dump read whole (as `validate` reads one)
 
 
 class DumpError(ValueError):
@@ -38,6 +39,10 @@ def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
     trial, pose or camera the dump does not hold, raises DumpError naming what it does hold.
     """
     path = Path(path)
+    try:
+        regular_size(path, MAX_JSON_BYTES if path.suffix != ".npz" else 2**63)  # FIFOs and devices stay unopened
+    except UnreadableFile as exc:
+        raise DumpError(f"{path} {exc}") from None
     with open(path, "rb") as fh:
         head = fh.read(4)
     if head == b"PK\x03\x04":
@@ -70,7 +75,10 @@ def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
 
 def _json_docs(path: Path) -> list[dict]:
     """The features documents of a JSON or JSON-lines dump, or DumpError saying what the file is instead."""
-    data = path.read_bytes()
+    try:
+        data = read_regular(path, MAX_JSON_BYTES)
+    except UnreadableFile as exc:
+        raise DumpError(f"{path} {exc}") from None
     start = data.lstrip()[:200]
     if start.startswith((b"<svg", b"<?xml")):
         raise DumpError(f"{path} is an SVG image, not a dump; {_NOT_A_DUMP}")
@@ -79,9 +87,9 @@ def _json_docs(path: Path) -> list[dict]:
         lines = [line for line in text.splitlines() if line.strip()]
         docs = [json_loads(line) for line in lines] if path.suffix == ".jsonl" else [json_loads(text)]
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        what = "a CSV table" if b"," in start.split(b"\n", 1)[0] and not start.startswith((b"{", b"[")) \
-            else "not JSON"
-        raise DumpError(f"{path} is {what}, not a dump ({exc}); {_NOT_A_DUMP}") from None
+        if b"," in start.split(b"\n", 1)[0] and not start.startswith((b"{", b"[")):
+            raise DumpError(f"{path} is a CSV table, not a dump; {_NOT_A_DUMP}") from None
+        raise DumpError(f"{path} is not JSON ({exc}); {_NOT_A_DUMP}") from None
     for doc in docs:
         kind = doc.get("document") if isinstance(doc, dict) else None
         if kind != "features" or not isinstance(doc.get("poses"), list):
@@ -95,17 +103,25 @@ def _npz_held(path: Path) -> tuple[set[int], set[int], None]:
     import numpy as np
 
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with _open_npz(path) as data:
             batches = _batches(data)
             if "manifest" not in data.files or "feature_ids" not in data.files or not batches:
                 raise DumpError(f"{path} is an npz file but not a wiredsl dump (no manifest, feature_ids or "
                                 f"batches); {_NOT_A_DUMP}")
             views = np.concatenate([data[f"{b}_views"] for b in batches])
     except (OSError, ValueError, KeyError) as exc:
-        if isinstance(exc, DumpError):
+        if isinstance(exc, (DumpError, layout.NpzError)):
             raise
         raise DumpError(f"{path} is not a readable npz dump ({exc}); {_NOT_A_DUMP}") from None
     return set(views[:, 0].tolist()), set(views[:, 1].tolist()), None
+
+
+def _open_npz(path: Path):
+    """The npz, its members checked before any is read (layout.open_npz), or NpzError naming the file."""
+    try:
+        return layout.open_npz(path)
+    except layout.NpzError as exc:
+        raise layout.NpzError(f"{path}: {exc}") from None
 
 
 def _pick(path: Path, held, trial, pose, camera, names: list[str] | None):
@@ -187,11 +203,7 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
     # member -> the member whose rows select it
     selected_by = {"corners": "corner_rows", "corner_rows": "corner_rows", "views": "views",
                    "view_cameras": "views", "view_poses": "views", "conics": "conic_rows", "conic_rows": "conic_rows"}
-    try:
-        data = layout.open_npz(path)
-    except layout.NpzError as exc:
-        raise layout.NpzError(f"{path}: {exc}") from None
-    with data:
+    with _open_npz(path) as data:
         out = {k: [] for k in ("pts", "strokes", *selected_by)}
         start = [0]
         for b in _batches(data):

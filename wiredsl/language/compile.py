@@ -60,16 +60,15 @@ def compile_program(program: ast.Program) -> tuple[Scene, list[Diagnostic]]:
     errors of everything that did, except references to unknown names: while part of the program is
     missing, such a name may well be declared there, so one note counts them instead.
     """
-    out = Collector()
+    out = Collector(hold_unknown=bool(program.errors))
     out.extend(program.errors)
-    compiler = Compiler(program, out)
-    scene = compiler.run()
-    if compiler.unknown_unreported:
-        first = out.diagnostics[0]
-        n = compiler.unknown_unreported
+    scene = Compiler(program, out).run()
+    if out.unknown_held:  # noted at the first include that failed, else at the first syntax error
+        i = next((i for i, d in enumerate(program.errors) if d.code in ("E010", "E011")), 0)
+        n = out.unknown_held
         note = (f"{n} reference{'s' * (n != 1)} to unknown names not reported: they may be declared in what "
                 f"did not load")
-        out.diagnostics[0] = replace(first, notes=(*first.notes, note))
+        out.diagnostics[i] = replace(out.diagnostics[i], notes=(*out.diagnostics[i].notes, note))
     out.diagnostics = [_noted(d, program) for d in out.diagnostics]
     out.raise_if_errors()
     return scene, out.diagnostics
@@ -106,7 +105,6 @@ class Compiler(CameraCompiler):
         self.calibration_stages: list[Span] = []  # where pipelines call calibration_error
         self.scene_name: str | None = None
         self.rig_without_calibration = False
-        self.unknown_unreported = 0  # references to unknown names while part of the program did not load
 
     # ------------------------------------------------------------------ driver
     def run(self) -> Scene:
@@ -192,10 +190,7 @@ class Compiler(CameraCompiler):
     def _ref(self, table, what: str, name: str, span: Span, context: str = "") -> bool:
         if name in table:
             return True
-        if self.program.errors:
-            self.unknown_unreported += 1
-            return False
-        self.out.error("E104", f"unknown {what} '{name}'{context}", span, did_you_mean(name, table))
+        self.out.unknown(f"unknown {what} '{name}'{context}", span, did_you_mean(name, table))
         return False
 
     # ------------------------------------------------------------------ models
