@@ -13,6 +13,7 @@ camera, rotation and translation.
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 from wiredsl.io import layout
@@ -31,7 +32,13 @@ def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
     with open(path, "rb") as fh:
         is_zip = fh.read(4) == b"PK\x03\x04"
     if is_zip:
-        return _npz_arrays(path, *pick) if arrays else _npz_records(path, *pick)
+        try:
+            return _npz_arrays(path, *pick) if arrays else _npz_records(path, *pick)
+        except (KeyError, IndexError, TypeError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            if str(exc).startswith(f"{path}: "):  # ours, naming the file already
+                raise
+            raise layout.NpzError(f"{path}: not a features.npz of layout {layout.NPZ_VERSION} ({type(exc).__name__}:"
+                                  f" {exc}); `wiredsl validate {path}` says what is wrong") from None
     if arrays:
         raise ValueError(f"{path}: arrays=True reads npz dumps; this is JSON")
     text = path.read_text(encoding="utf-8")
@@ -86,6 +93,12 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
         data = layout.open_npz(path)
     except layout.NpzError as exc:
         raise layout.NpzError(f"{path}: {exc}") from None
+    return _read_npz(data, path, selected_by, chosen)
+
+
+def _read_npz(data, path: Path, selected_by: dict, chosen) -> dict:
+    import numpy as np
+
     with data:
         out = {k: [] for k in ("pts", "strokes", *selected_by)}
         start = [0]
