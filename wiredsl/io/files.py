@@ -240,8 +240,8 @@ def write_atomic(path: str | os.PathLike, data: str | bytes, tidy: bool = True) 
 # --------------------------------------------------------------------------- output folders
 
 # What other commands (viewdep, bench, export-calibration) write into a build folder: a rebuild keeps it.
-KEPT = ("viewdep.json", "bench.svg", "bench.png", "calibration")
-_OURS = re.compile(r"^(manifest\.json|features\.(json|jsonl|npz)|pose_\d+\.svg|viewdep\.json|bench\.(svg|png)"
+KEPT = ("viewdep.json", "bench.svg", "bench.png", "bench.pdf", "calibration")
+_OURS = re.compile(r"^(manifest\.json|features\.(json|jsonl|npz)|pose_\d+\.svg|viewdep\.json|bench\.(svg|png|pdf)"
                    r"|calibration)$")
 
 
