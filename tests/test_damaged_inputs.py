@@ -87,6 +87,24 @@ def test_a_zip_bomb_member_is_refused_before_it_is_inflated(dump, tmp_path, monk
         wiredsl.load(bomb)
 
 
+@pytest.mark.parametrize(("member", "change", "message"), [
+    ("layout", lambda a: np.zeros(0, np.int64), "layout: shape (0,), expected ()"),  # the fuzz campaign's exit 3
+    ("layout", lambda a: np.array(1), "layout 1, this wiredsl reads 2"),
+    ("b00000_strokes", lambda a: a[:, :7], "b00000_strokes: shape"),
+    ("b00000_strokes", lambda a: np.where(np.arange(a.shape[1]) == 2, 5, a).astype(np.int32), "a camera other than"),
+    ("b00000_corner_rows", lambda a: a[:-1], "corners and corner_rows differ in length"),
+    ("feature_ids", lambda a: np.array(7), "feature_ids: dtype int64, expected unicode"),
+])
+def test_a_member_of_the_wrong_shape_or_values_is_a_diagnostic_not_a_crash(dump, tmp_path, member, change, message):
+    arrays = dict(np.load(dump))
+    arrays[member] = change(arrays[member])
+    np.savez(tmp_path / "bad.npz", **arrays)
+    code, out = validate(tmp_path / "bad.npz")
+    assert code == 1 and message in out and "internal error" not in out, out
+    with pytest.raises(ValueError, match="bad.npz"):
+        wiredsl.load(tmp_path / "bad.npz")
+
+
 def test_a_dump_with_nan_is_refused_by_validate_and_load(dump, tmp_path):
     arrays = dict(np.load(dump))
     arrays["b00000_pts"][3, 1] = np.nan

@@ -100,6 +100,9 @@ def _read_npz(data, path: Path, selected_by: dict, chosen) -> dict:
     import numpy as np
 
     with data:
+        if data["layout"].shape != () or int(data["layout"]) != layout.NPZ_VERSION:
+            raise layout.NpzError(f"{path}: layout {data['layout'].tolist()}, this wiredsl reads "
+                                  f"{layout.NPZ_VERSION}")
         out = {k: [] for k in ("pts", "strokes", *selected_by)}
         start = [0]
         for b in _batches(data):
