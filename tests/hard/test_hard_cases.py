@@ -9,7 +9,7 @@ import sys
 import mpmath as mp
 import numpy as np
 import pytest
-from helpers import circle, compile_text, errors_of
+from helpers import circle, compile_text, errors_of, silhouette_segments
 
 from wiredsl.effects import REGISTRY
 from wiredsl.effects import calibration_error as calib
@@ -235,7 +235,7 @@ def case_ellipse_section_arc_is_reported_in_image_parameter():
 # ------------------------------------------------------------------ silhouettes
 
 def _sil(a, b):
-    segs = conics.silhouette_segments(*a, *b)
+    segs = silhouette_segments(*a, *b)
     for A, B in segs:
         assert np.isfinite(A).all() and np.isfinite(B).all()
     return segs
