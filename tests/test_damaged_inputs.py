@@ -94,6 +94,7 @@ def test_a_zip_bomb_member_is_refused_before_it_is_inflated(dump, tmp_path, monk
     ("b00000_strokes", lambda a: np.where(np.arange(a.shape[1]) == 2, 5, a).astype(np.int32), "a camera other than"),
     ("b00000_corner_rows", lambda a: a[:-1], "corners and corner_rows differ in length"),
     ("feature_ids", lambda a: np.array(7), "feature_ids: dtype int64, expected unicode"),
+    ("b00000_pts", lambda a: a.astype(np.complex64), "b00000_pts: dtype complex64, expected float32"),  # fuzz
 ])
 def test_a_member_of_the_wrong_shape_or_values_is_a_diagnostic_not_a_crash(dump, tmp_path, member, change, message):
     arrays = dict(np.load(dump))

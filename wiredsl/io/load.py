@@ -114,6 +114,11 @@ def _read_npz(data, path: Path, selected_by: dict, chosen) -> dict:
             for m, by in selected_by.items():
                 out[m].append(data[f"{b}_{m}"][chosen(data[f"{b}_{by}"])])
         arrays = {k: np.concatenate(v) for k, v in out.items() if v}
+        dtypes = {m[2:]: d for m, d, _, _ in layout.MEMBERS if m.startswith("b_")}
+        wrong = [k for k, v in arrays.items() if v.dtype != np.dtype(dtypes[k])]
+        if wrong:
+            raise layout.NpzError(f"{path}: its {wrong[0]} are {arrays[wrong[0]].dtype}, the layout's are "
+                                  f"{dtypes[wrong[0]]} (`wiredsl validate {path}` says more)")
         bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
         if bad:
             raise ValueError(f"{path}: its {bad[0]} hold NaN or infinity: not a dump wiredsl wrote "
