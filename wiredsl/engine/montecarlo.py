@@ -395,12 +395,16 @@ def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.n
     z = np.where(ok, Pz, 1.0)
     x, y = Px / z, Py / z
     ok &= np.hypot(x, y) < folds[:, None]
+    x, y = np.where(ok, x, 0.0), np.where(ok, y, 0.0)  # past the fold the polynomial can overflow: unused there
     f, ax, ay, cx, cy, k1, k2, p1, p2 = (cams[:, i, None] for i in range(9))
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + k2 * r2)
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    uv = np.stack([np.where(ok, f * ax * xd + cx, 0.0), np.where(ok, f * ay * yd + cy, 0.0)], axis=-1)
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge k1 > 0 (no fold): pixels beyond any image
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + k2 * r2)
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        xd, yd = f * ax * xd + cx, f * ay * yd + cy
+    ok &= np.isfinite(xd) & np.isfinite(yd)  # checked here: what overflowed is invalid, like a folded point
+    uv = np.stack([np.where(ok, xd, 0.0), np.where(ok, yd, 0.0)], axis=-1)
     return uv.reshape(-1, 2), ok.ravel()
 
 
