@@ -181,3 +181,15 @@ def test_a_scene_whose_path_is_not_utf8_builds_its_svgs(tmp_path):
     assert p.returncode == 0, p.stderr
     svg = (tmp_path / "out" / "pose_000.svg").read_bytes().decode("utf-8")
     assert "lab\ufffd.wd" in svg and svg.startswith("<svg")
+
+
+REGRESSIONS = sorted(Path(__file__).parent.joinpath("fuzz_regressions").glob("*"))
+
+
+@pytest.mark.parametrize("path", REGRESSIONS, ids=[p.name for p in REGRESSIONS])
+def test_every_input_the_fuzz_campaign_crashed_on_is_now_a_diagnostic(path):
+    """The inputs tests/fuzz_campaign.py found (exit 3 in validate, an exception in load), kept as they were."""
+    code, out = validate(path)
+    assert code == 1 and "internal error" not in out and out.startswith(f"{path}: error: "), out
+    with pytest.raises(ValueError, match=str(path.name)):
+        wiredsl.load(path)

@@ -131,8 +131,9 @@ def open_npz(path):
                         raise NpzError(f"member '{name}': its header's shape {shape} ({dtype}) needs {need:,} bytes, "
                                        f"the member holds {info.file_size - fh.tell():,}")
         return np.load(path, allow_pickle=False)
-    except (OSError, zipfile.BadZipFile, zipfile.LargeZipFile, EOFError) as exc:
-        raise NpzError(f"not an npz file: {exc}") from None
+    except (OSError, zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError) as exc:
+        # NotImplementedError: a zip feature Python does not read (a compression method, a version)
+        raise NpzError(f"not an npz file this reader takes: {exc}") from None
 
 
 def npz_problems(path) -> list[str]:
@@ -146,7 +147,7 @@ def npz_problems(path) -> list[str]:
             return _layout_problems(data)
     except NpzError as exc:
         return [str(exc)]
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # a member's data damaged (CRC, length)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError) as exc:  # damaged data (CRC)
         return [f"a damaged member: {exc}"]
 
 
