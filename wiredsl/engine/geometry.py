@@ -218,13 +218,17 @@ def _first_positive_root(coef) -> float:
 def _fold_radius_quadratic(k1: float, k2: float = 0.0) -> float:
     """fold_radius for k1, k2 only."""
     # d/dr = 1 + 3 k1 r^2 + 5 k2 r^4 = 0: a s^2 + b s + 1 = 0 in s = r^2, solved in the stable form
-    # (q = -(b + sign(b) sqrt(disc)) / 2, roots q / a and 1 / q) so that a tiny a cannot overflow
-    a, b = 5.0 * k2, 3.0 * k1
-    disc = b * b - 4.0 * a
+    # (q = -(b + sign(b) sqrt(disc)) / 2, roots c / q and q / a) so that a tiny a cannot overflow; the whole
+    # equation is first divided by its largest coefficient, so that a huge k1 or k2 cannot overflow b^2 either
+    m = max(abs(float(k1)), abs(float(k2)), 1.0)
+    a, b, c = 5.0 * (k2 / m), 3.0 * (k1 / m), 1.0 / m
+    if a == 0:  # linear (no k2): b s + c = 0 directly, as b * b could underflow below
+        return math.sqrt(-c / b) if b < 0 else math.inf
+    disc = b * b - 4.0 * a * c
     if disc < 0:
         return math.inf
     q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
-    roots = [1.0 / q if q != 0 else math.inf]
+    roots = [c / q if q != 0 else math.inf]
     if a != 0:
         roots.append(q / a)
     positive = [s for s in roots if math.isfinite(s) and s > 0]

@@ -476,7 +476,9 @@ def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.n
     P = np.stack([cam(0), cam(1), cam(2)], axis=-1)
     g = {k: cams[:, i, None] for i, k in enumerate(geometry.CAMERA_ROW)}
     ok = geometry.visible(P, g["model"], folds[:, None])
-    uv = geometry.project(np.where(ok[..., None], P, np.array([0.0, 0.0, 1.0])), g)
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge k1 > 0 (no fold): pixels beyond any image
+        uv = geometry.project(np.where(ok[..., None], P, np.array([0.0, 0.0, 1.0])), g)
+    ok &= np.isfinite(uv).all(axis=-1)  # checked here: what overflowed is invalid, like a folded point
     uv = np.where(ok[..., None], uv, 0.0)
     return uv.reshape(-1, 2), ok.ravel()
 

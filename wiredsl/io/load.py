@@ -13,6 +13,7 @@ camera, rotation and translation.
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 from wiredsl.io import layout
@@ -48,7 +49,13 @@ def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
     if head == b"PK\x03\x04":
         held = _npz_held(path)
         pick = _pick(path, held, trial, pose, camera, names=None)
-        return _npz_arrays(path, *pick) if arrays else _npz_records(path, *pick)
+        try:
+            return _npz_arrays(path, *pick) if arrays else _npz_records(path, *pick)
+        except (KeyError, IndexError, TypeError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError) as exc:
+            if isinstance(exc, DumpError) or str(exc).startswith(f"{path}: "):  # ours, naming the file already
+                raise
+            raise layout.NpzError(f"{path}: not a features.npz of layout {layout.NPZ_VERSION} ({type(exc).__name__}:"
+                                  f" {exc}); `wiredsl validate {path}` says what is wrong") from None
     if arrays:
         raise DumpError(f"{path}: arrays=True reads npz dumps; this is JSON")
     docs = _json_docs(path)
@@ -203,7 +210,16 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
     # member -> the member whose rows select it
     selected_by = {"corners": "corner_rows", "corner_rows": "corner_rows", "views": "views",
                    "view_cameras": "views", "view_poses": "views", "conics": "conic_rows", "conic_rows": "conic_rows"}
-    with _open_npz(path) as data:
+    return _read_npz(_open_npz(path), path, selected_by, chosen)
+
+
+def _read_npz(data, path: Path, selected_by: dict, chosen) -> dict:
+    import numpy as np
+
+    with data:
+        if data["layout"].shape != () or int(data["layout"]) != layout.NPZ_VERSION:
+            raise layout.NpzError(f"{path}: layout {data['layout'].tolist()}, this wiredsl reads "
+                                  f"{layout.NPZ_VERSION}")
         out = {k: [] for k in ("pts", "strokes", *selected_by)}
         start = [0]
         for b in _batches(data):
@@ -215,6 +231,11 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
             for m, by in selected_by.items():
                 out[m].append(data[f"{b}_{m}"][chosen(data[f"{b}_{by}"])])
         arrays = {k: np.concatenate(v) for k, v in out.items() if v}
+        dtypes = {m[2:]: d for m, d, _, _ in layout.MEMBERS if m.startswith("b_")}
+        wrong = [k for k, v in arrays.items() if v.dtype != np.dtype(dtypes[k])]
+        if wrong:
+            raise layout.NpzError(f"{path}: its {wrong[0]} are {arrays[wrong[0]].dtype}, the layout's are "
+                                  f"{dtypes[wrong[0]]} (`wiredsl validate {path}` says more)")
         bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
         if bad:
             raise ValueError(f"{path}: its {bad[0]} hold NaN or infinity: not a dump wiredsl wrote "

@@ -282,7 +282,11 @@ class Prepared:
 class PGH(Measure):
     name = "pgh"
     Params = PGHParams
-    statistics = ("match", "recognition", "viewpoint")
+    statistics = ("match", "recognition", "viewpoint", "viewpoint_cameras")
+    # viewpoint is defined only where a camera has a view-point mesh to rank: weighted by those cameras, a scene
+    # without a mesh gets no viewpoint row (not a 0 that reads as "never located")
+    weights = {"viewpoint": "viewpoint_cameras"}
+    units = {"match": "fraction", "recognition": "fraction", "viewpoint": "fraction", "viewpoint_cameras": "count"}
     doc = __doc__
 
     @classmethod
@@ -347,7 +351,7 @@ class PGH(Measure):
         some = total > 0
         return {"match": np.where(some, matched / np.where(some, total, 1.0), 0.0),
                 "recognition": np.where(some, recognised / np.where(some, total, 1.0), 0.0),
-                "viewpoint": located / max(cameras, 1)}
+                "viewpoint": located / max(cameras, 1), "viewpoint_cameras": np.full(n_trials, float(cameras))}
 
 
 def _own_scores(root: np.ndarray, key: np.ndarray, ref: Reference) -> tuple[np.ndarray, np.ndarray]:
