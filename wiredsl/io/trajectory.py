@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import re
+from decimal import Decimal
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +25,8 @@ import numpy as np
 FORMATS = ("tum", "euroc", "kitti", "csv")
 ROUNDING = 1e-3  # |length - 1| of a quaternion (or R^T R - I of a matrix) up to this: printed digits, silent
 NOT_UNIT = 0.1  # beyond this it is not a rotation: an error; in between, normalised with a warning
+MAX_COORDINATE = 1e9  # metres: as the language's lengths, so that sums and products of a few stay finite
+MAX_SPAN = 1e12  # seconds (30,000 years) from the first pose: so that the poses of a period stay countable
 
 _TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 _LENGTH_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
@@ -48,7 +51,7 @@ class TrajectoryError(ValueError):
 class Trajectory:
     """Poses of the file's frame in the file's world, in file order."""
 
-    times: np.ndarray | None  # (n,) seconds; None: the file has none (KITTI without rate or times)
+    times: np.ndarray | None  # (n,) seconds from the first pose; None: the file has none (KITTI without them)
     positions: np.ndarray  # (n, 3) metres
     rotations: np.ndarray  # (n, 3, 3) world_from_body
     lines: np.ndarray  # (n,) the line of each pose in the file
@@ -77,7 +80,7 @@ def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rat
     if fmt == "kitti":
         traj = _kitti(text)
         if times is not None:
-            stamps = times
+            stamps = times - times[0] if len(times) else times
             if len(stamps) != len(traj.lines):
                 raise TrajectoryError(f"the times file has {len(stamps)} timestamps for {len(traj.lines)} poses")
             traj = Trajectory(stamps, traj.positions, traj.rotations, traj.lines, traj.normalised)
@@ -88,6 +91,9 @@ def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rat
         traj = _tum(text)
     else:
         traj = _csv(text, fmt)
+    far = np.flatnonzero(np.abs(traj.positions).max(axis=1) > MAX_COORDINATE)
+    if len(far):
+        raise TrajectoryError(f"a position beyond {MAX_COORDINATE:g} m", int(traj.lines[far[0]]))
     if traj.times is not None:
         _check_increasing(traj.times, traj.lines)
     return traj
@@ -107,6 +113,8 @@ def _numbers(words: list[str], n: int, what: str, line: int) -> list[float]:
     out = []
     for w in words:
         try:
+            if "_" in w:  # Python reads 1_000; no trajectory writer does, nor Decimal
+                raise ValueError
             v = float(w)
         except ValueError:
             raise TrajectoryError(f"'{w}' is not a number", line) from None
@@ -131,7 +139,7 @@ def _tum(text: str) -> Trajectory:
     lines = np.array([i for i, _ in rows])
     a = np.array([v for _, v in rows])
     R, fixed = _from_quaternions(a[:, 4:8], lines)
-    return Trajectory(a[:, 0], a[:, 1:4], R, lines, fixed)
+    return Trajectory(_seconds([s.split()[0] for _, s in _rows(text)]), a[:, 1:4], R, lines, fixed)
 
 
 def _kitti(text: str) -> Trajectory:
@@ -147,7 +155,9 @@ def _kitti(text: str) -> Trajectory:
 def read_times(text: str) -> np.ndarray:
     """The timestamps of a times file (KITTI's times.txt): one number a line."""
     rows = [(i, _numbers(s.split(), 1, "a timestamp", i)[0]) for i, s in _rows(text)]
-    return np.array([v for _, v in rows], dtype=float)
+    t = np.array([v for _, v in rows], dtype=float)
+    _check_increasing(t, np.array([i for i, _ in rows]))
+    return t
 
 
 def _header(text: str) -> tuple[int, list[str], str | None]:
@@ -209,21 +219,31 @@ def _csv(text: str, fmt: str) -> Trajectory:
 
         ypr = np.column_stack([col("yaw"), col("pitch"), col("roll")])
         R, fixed = Rotation.from_euler("ZYX", ypr).as_matrix(), ()
-    t = col("t")
+    k, factor = cols["t"]
+    t = _seconds([_split(s, sep)[k] for i, s in _rows(text) if i > line0], factor)
     return Trajectory(t, positions, R, lines, fixed)
+
+
+def _seconds(stamps: list[str], factor: float = 1.0) -> np.ndarray:
+    """Times from the first, differences taken in exact decimal: a timestamp's digits (EuRoC's nanoseconds past
+    2^53, TUM's microseconds of 1.3e9 s) are kept, as float64 of the whole stamp would not keep them."""
+    first = Decimal(stamps[0])
+    return np.array([float(Decimal(w) - first) for w in stamps]) * factor
 
 
 def _from_quaternions(q: np.ndarray, lines: np.ndarray) -> tuple[np.ndarray, tuple]:
     """Rotation matrices of (n, 4) x, y, z, w quaternions, normalised; lengths far from 1 refused."""
     from scipy.spatial.transform import Rotation
 
-    n = np.linalg.norm(q, axis=1)
+    big = np.flatnonzero(np.abs(q).max(axis=1) > 1.0 + NOT_UNIT)  # before any square can overflow
+    n = np.linalg.norm(np.clip(q, -2.0, 2.0), axis=1)
     off = np.abs(n - 1.0)
-    bad = np.flatnonzero(off > NOT_UNIT)
+    bad = np.union1d(big, np.flatnonzero(off > NOT_UNIT))
     if len(bad):
         i = bad[0]
-        raise TrajectoryError(f"quaternion of length {n[i]:.6g} is not a rotation (a unit quaternion has "
-                              f"length 1)", int(lines[i]))
+        length = f"{n[i]:.6g}" if i not in big else f"over {np.abs(q[i]).max():.6g}"
+        raise TrajectoryError(f"quaternion of length {length} is not a rotation (a unit quaternion has length 1)",
+                              int(lines[i]))
     fixed = tuple((int(lines[i]), f"quaternion of length {n[i]:.6g} normalised")
                   for i in np.flatnonzero(off > ROUNDING))
     return Rotation.from_quat(q / n[:, None]).as_matrix(), fixed
@@ -231,6 +251,7 @@ def _from_quaternions(q: np.ndarray, lines: np.ndarray) -> tuple[np.ndarray, tup
 
 def _nearest_rotations(M: np.ndarray, lines: np.ndarray) -> tuple[np.ndarray, tuple]:
     """The rotations nearest to (n, 3, 3) matrices (SVD); matrices far from a rotation refused."""
+    M = np.clip(M, -2.0, 2.0)  # a rotation's entries are within [-1, 1]: no square of these overflows
     off = np.abs(np.einsum("nji,njk->nik", M, M) - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(M)
     bad = np.flatnonzero((off > NOT_UNIT) | (det <= 0))
@@ -245,14 +266,14 @@ def _nearest_rotations(M: np.ndarray, lines: np.ndarray) -> tuple[np.ndarray, tu
 
 
 def _check_increasing(t: np.ndarray, lines: np.ndarray) -> None:
-    if not np.all(np.isfinite(t)):
-        i = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise TrajectoryError("the timestamp is not finite", int(lines[i]))
+    far = np.flatnonzero(~(np.abs(t - t[0]) <= MAX_SPAN)) if len(t) else []
+    if len(far):
+        raise TrajectoryError(f"the timestamp is over {MAX_SPAN:g} s from the first", int(lines[far[0]]))
     steps = np.flatnonzero(np.diff(t) <= 0)
     if len(steps):
         i = int(steps[0]) + 1
-        raise TrajectoryError(f"timestamp {t[i]:.6f} s does not increase (the previous pose, line {lines[i - 1]}, "
-                              f"is at {t[i - 1]:.6f} s)", int(lines[i]))
+        raise TrajectoryError(f"the timestamp does not increase: {t[i]:.9g} s from the first pose, the previous "
+                              f"(line {lines[i - 1]}) {t[i - 1]:.9g} s", int(lines[i]))
 
 
 def resample(traj: Trajectory, every: float | None = None, start: float | None = None, end: float | None = None,
@@ -265,8 +286,8 @@ def resample(traj: Trajectory, every: float | None = None, start: float | None =
             raise TrajectoryError("the file has no timestamps: give KITTI's times file or a rate")
         P, R = traj.positions, traj.rotations
         return P[:limit], R[:limit]
-    t = traj.times - traj.times[0]
-    lo = 0.0 if start is None else start
+    t = traj.times - traj.times[0]  # a times file need not start at 0
+    lo = 0.0 if start is None else max(start, 0.0)  # the window starts at the first pose at the earliest
     hi = t[-1] if end is None else min(end, t[-1])
     if lo > hi:
         raise TrajectoryError(f"the window from {lo:g} s to {hi:g} s holds no pose (the file spans "
