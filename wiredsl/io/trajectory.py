@@ -87,6 +87,8 @@ def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rat
         elif rate is not None:
             traj = Trajectory(np.arange(len(traj.lines)) / rate, traj.positions, traj.rotations, traj.lines,
                               traj.normalised)
+    elif times is not None or rate is not None:
+        raise TrajectoryError("the file has its own timestamps: 'rate' and 'times' are for KITTI's poses")
     elif fmt == "tum":
         traj = _tum(text)
     else:
@@ -132,32 +134,43 @@ def _rows(text: str):
             yield i, s
 
 
-def _tum(text: str) -> Trajectory:
-    rows = [(i, _numbers(s.split(), 8, "timestamp tx ty tz qx qy qz qw", i)) for i, s in _rows(text)]
-    if not rows:
+def _table(text: str, n: int, what: str, sep: str | None = None, after: int = 0
+           ) -> tuple[np.ndarray, np.ndarray, list[list[str]]]:
+    """(lines (m,), numbers (m, n), words) of the data rows after line `after`: each row n finite numbers."""
+    data = [(i, s) for i, s in _rows(text) if i > after]
+    if not data:
         raise TrajectoryError("the file holds no poses")
-    lines = np.array([i for i, _ in rows])
-    a = np.array([v for _, v in rows])
+    rows = [(i, _split(s, sep)) for i, s in data]
+    words = [w for _, w in rows]
+    a = None
+    if all(len(w) == n for w in words) and not any("_" in s for _, s in data):  # numpy's fast reading
+        try:
+            a = np.array(words, dtype=float)
+        except ValueError:
+            a = None
+    if a is None or not np.isfinite(a).all():  # find the first bad row, and say what is wrong with it
+        a = np.array([_numbers(w, n, what, i) for i, w in rows])
+    return np.array([i for i, _ in rows]), a, words
+
+
+def _tum(text: str) -> Trajectory:
+    lines, a, words = _table(text, 8, "timestamp tx ty tz qx qy qz qw")
     R, fixed = _from_quaternions(a[:, 4:8], lines)
-    return Trajectory(_seconds([s.split()[0] for _, s in _rows(text)]), a[:, 1:4], R, lines, fixed)
+    return Trajectory(_seconds([w[0] for w in words]), a[:, 1:4], R, lines, fixed)
 
 
 def _kitti(text: str) -> Trajectory:
-    rows = [(i, _numbers(s.split(), 12, "a row-major 3 x 4 matrix [R | t]", i)) for i, s in _rows(text)]
-    if not rows:
-        raise TrajectoryError("the file holds no poses")
-    lines = np.array([i for i, _ in rows])
-    M = np.array([v for _, v in rows]).reshape(-1, 3, 4)
+    lines, a, _ = _table(text, 12, "a row-major 3 x 4 matrix [R | t]")
+    M = a.reshape(-1, 3, 4)
     R, fixed = _nearest_rotations(M[:, :, :3], lines)
     return Trajectory(None, M[:, :, 3], R, lines, fixed)
 
 
 def read_times(text: str) -> np.ndarray:
     """The timestamps of a times file (KITTI's times.txt): one number a line."""
-    rows = [(i, _numbers(s.split(), 1, "a timestamp", i)[0]) for i, s in _rows(text)]
-    t = np.array([v for _, v in rows], dtype=float)
-    _check_increasing(t, np.array([i for i, _ in rows]))
-    return t
+    lines, a, _ = _table(text, 1, "a timestamp")
+    _check_increasing(a[:, 0], lines)
+    return a[:, 0]
 
 
 def _header(text: str) -> tuple[int, list[str], str | None]:
@@ -170,6 +183,8 @@ def _header(text: str) -> tuple[int, list[str], str | None]:
 
 
 def _split(s: str, sep: str | None) -> list[str]:
+    if sep is None:
+        return s.split()
     words = [w.strip() for w in s.split(sep)]
     return words[:-1] if sep and words and words[-1] == "" else words  # a trailing comma ends some writers' rows
 
@@ -195,15 +210,7 @@ def _csv(text: str, fmt: str) -> Trajectory:
     if missing:
         raise TrajectoryError(f"the header names no column {' or '.join(missing)} (it names {', '.join(names)})",
                               line0)
-    rows = []
-    for i, s in _rows(text):
-        if i <= line0:
-            continue
-        rows.append((i, _numbers(_split(s, sep), len(names), f"one a column of the header at line {line0}", i)))
-    if not rows:
-        raise TrajectoryError("the file holds no poses")
-    lines = np.array([i for i, _ in rows])
-    a = np.array([v for _, v in rows])
+    lines, a, words = _table(text, len(names), f"one a column of the header at line {line0}", sep, line0)
 
     def col(role: str, default: float = 0.0) -> np.ndarray:
         if role not in cols:
@@ -220,7 +227,7 @@ def _csv(text: str, fmt: str) -> Trajectory:
         ypr = np.column_stack([col("yaw"), col("pitch"), col("roll")])
         R, fixed = Rotation.from_euler("ZYX", ypr).as_matrix(), ()
     k, factor = cols["t"]
-    t = _seconds([_split(s, sep)[k] for i, s in _rows(text) if i > line0], factor)
+    t = _seconds([w[k] for w in words], factor)
     return Trajectory(t, positions, R, lines, fixed)
 
 
@@ -295,8 +302,10 @@ def resample(traj: Trajectory, every: float | None = None, start: float | None =
     if every is None:
         keep = (t >= lo) & (t <= hi)
         return traj.positions[keep][:limit], traj.rotations[keep][:limit]
-    count = (hi - lo) / every
-    n = math.floor(count + 1e-9) + 1
+    if max_poses is not None and hi - lo >= every * max_poses:  # no division: a tiny period would give inf
+        raise TrajectoryError(f"one pose every {every:g} s over {hi - lo:g} s exceeds the limit of {max_poses:,} "
+                              "poses")
+    n = math.floor((hi - lo) / every + 1e-9) + 1
     if limit is not None:
         n = min(n, limit)
     if max_poses is not None and n > max_poses:
