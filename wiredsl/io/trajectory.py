@@ -67,9 +67,11 @@ def guess_format(text: str) -> str:
         words = line.replace(",", " ").split()
         if not words or line.lstrip().startswith("#"):
             continue
-        if not _is_number(words[0]) or "," in line:
-            return "csv"
-        return "kitti" if len(words) == 12 else "tum"
+        try:
+            float(words[0])
+        except ValueError:
+            return "csv"  # a header
+        return "csv" if "," in line else "kitti" if len(words) == 12 else "tum"
     raise TrajectoryError("the file holds no poses")
 
 
@@ -99,14 +101,6 @@ def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rat
     if traj.times is not None:
         _check_increasing(traj.times, traj.lines)
     return traj
-
-
-def _is_number(word: str) -> bool:
-    try:
-        float(word)
-    except ValueError:
-        return False
-    return True
 
 
 def _numbers(words: list[str], n: int, what: str, line: int) -> list[float]:
