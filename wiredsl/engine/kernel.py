@@ -257,6 +257,17 @@ def _edge_loss(pts, start, meta, key, fraction, st):
 
 
 @njit(cache=True)
+def _crossing(arc, i, t):
+    """lateral_shift._crossing: the arc length at fraction t of segment i, snapped to a vertex within 1e-9 px."""
+    seg = arc[i + 1] - arc[i]
+    if t * seg < 1e-9:
+        return arc[i]
+    if (1 - t) * seg < 1e-9:
+        return arc[i + 1]
+    return arc[i] + t * seg
+
+
+@njit(cache=True)
 def _split_ellipses(pts, start, meta):
     """lateral_shift.split_ellipses."""
     S = len(start) - 1
@@ -267,6 +278,7 @@ def _split_ellipses(pts, start, meta):
     upts, ustart, umeta = _unroll(pts, start, meta, closed)
     arc, Lu = _arcs(upts, ustart)
     crossings = np.empty(len(upts))
+    second = np.empty(len(upts))  # each crossing's point on a loop's second lap
     ccount = np.zeros(S, np.int64)
     coff = np.zeros(S + 1, np.int64)
     for k in range(S):
@@ -304,7 +316,8 @@ def _split_ellipses(pts, start, meta):
             nxt = (upts[i + 1, 0] - cx) * nx + (upts[i + 1, 1] - cy) * ny
             if (prev < 0) != (nxt < 0) and i - a < c:
                 t = prev / (prev - nxt)
-                crossings[coff[k + 1]] = arc[i] + t * (arc[i + 1] - arc[i])
+                crossings[coff[k + 1]] = _crossing(arc, i, t)
+                second[coff[k + 1]] = _crossing(arc, i + c, t) if closed[k] else 0.0
                 coff[k + 1] += 1
             prev = nxt
         ccount[k] = coff[k + 1] - coff[k]
@@ -324,7 +337,7 @@ def _split_ellipses(pts, start, meta):
         o = coff[k]
         if halves[k]:
             ps[q], pa[q], pb[q] = k, crossings[o], crossings[o + 1]
-            ps[q + 1], pa[q + 1], pb[q + 1] = k, crossings[o + 1], crossings[o] + L
+            ps[q + 1], pa[q + 1], pb[q + 1] = k, crossings[o + 1], second[o]
             q += 2
         elif not closed[k] and ccount[k] > 0:
             for j in range(ccount[k] + 1):

@@ -13,6 +13,7 @@ same input; coordinates are rounded to 0.01 units.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from html import escape
 
@@ -443,7 +444,8 @@ def _compose(scene: Scene, world: World, result: PoseResult, panes: list[Pane], 
             f'width="{_f(width)}" height="{_f(height)}">',
             f"<title>{escape(lines[0])}</title>",
             f'<rect x="0" y="0" width="{_f(width)}" height="{_f(height)}" fill="#ffffff"/>']
-    return "\n".join(head + body + caption + ["</svg>"]) + "\n"
+    # a path that is not UTF-8 (os.fsdecode keeps its bytes as lone surrogates) shows U+FFFD: SVG is UTF-8 text
+    return re.sub("[\ud800-\udfff]", "\ufffd", "\n".join(head + body + caption + ["</svg>"]) + "\n")
 
 
 def _cam_title(scene: Scene, side: str, what: str = "") -> str:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path as FsPath
 
 import numpy as np
@@ -61,9 +61,22 @@ def compile_file(path: str | os.PathLike) -> tuple[Scene, list[Diagnostic], ast.
 
 
 def compile_program(program: ast.Program) -> tuple[Scene, list[Diagnostic]]:
-    """Compile a loaded program; returns the scene and its warnings."""
+    """Compile a loaded program; returns the scene and its warnings.
+
+    What did not load (syntax errors, includes that cannot be read) is reported first, then the
+    errors of everything that did, except references to unknown names: while part of the program is
+    missing, such a name may well be declared there, so one note counts them instead.
+    """
     out = Collector()
-    scene = Compiler(program, out).run()
+    out.extend(program.errors)
+    compiler = Compiler(program, out)
+    scene = compiler.run()
+    if compiler.unknown_unreported:
+        first = out.diagnostics[0]
+        n = compiler.unknown_unreported
+        note = (f"{n} reference{'s' * (n != 1)} to unknown names not reported: they may be declared in what "
+                f"did not load")
+        out.diagnostics[0] = replace(first, notes=(*first.notes, note))
     out.diagnostics = [_noted(d, program) for d in out.diagnostics]
     out.raise_if_errors()
     return scene, out.diagnostics
@@ -100,6 +113,7 @@ class Compiler:
         self.calibration_stages: list[Span] = []  # where pipelines call calibration_error
         self.scene_name: str | None = None
         self.rig_without_calibration = False
+        self.unknown_unreported = 0  # references to unknown names while part of the program did not load
 
     # ------------------------------------------------------------------ driver
     def run(self) -> Scene:
@@ -158,7 +172,7 @@ class Compiler:
                         units["angle"] = b.get("angle", units["angle"])
             self.units[path] = units
             versions = [s for s in file.statements if s.keyword == "wiredsl"]
-            if not versions and file is self.program.root:
+            if not versions and file is self.program.root and path not in self.program.partial:
                 first = file.statements[0].keyword_span if file.statements else Span(path, 1, 1, 1, 2)
                 self.out.error("E012", "missing format version", first, "start the file with 'wiredsl 1'")
             for stmt in versions:
@@ -185,6 +199,9 @@ class Compiler:
     def _ref(self, table, what: str, name: str, span: Span, context: str = "") -> bool:
         if name in table:
             return True
+        if self.program.errors:
+            self.unknown_unreported += 1
+            return False
         self.out.error("E104", f"unknown {what} '{name}'{context}", span, did_you_mean(name, table))
         return False
 
