@@ -266,3 +266,22 @@ def test_a_missing_trajectory_file_is_e010(tmp_path):
         compile_file(f)
     assert [d.code for d in err.value.diagnostics] == ["E010"]
     assert "no such file" in err.value.diagnostics[0].message
+
+
+def test_an_oversized_trajectory_file_is_refused_unread(tmp_path):
+    big = tmp_path / "big.tum"
+    with open(big, "wb") as fh:  # sparse: 17 MiB on paper, nothing on disk
+        fh.truncate(17 << 20)
+    f = scene_file(tmp_path, '  read "big.tum"', {})
+    with pytest.raises(WiredslError) as err:
+        compile_file(f)
+    d = err.value.diagnostics[0]
+    assert (d.code, d.span.line, d.span.col) == ("E010", 4, 8) and "over the limit of 16,777,216" in d.message
+
+
+def test_body_placed_two_ways_is_refused(tmp_path):
+    f = scene_file(tmp_path, '  read "a.tum"\n  body at (0, 0, 1) camera left', {"a.tum": "0 1 2 0 0 0 0 1\n"})
+    with pytest.raises(WiredslError) as err:
+        compile_file(f)
+    assert [(d.code, d.message) for d in err.value.diagnostics] == [
+        ("E103", "'camera' and 'at' both place the body: keep one")]
