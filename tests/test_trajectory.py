@@ -285,3 +285,19 @@ def test_body_placed_two_ways_is_refused(tmp_path):
         compile_file(f)
     assert [(d.code, d.message) for d in err.value.diagnostics] == [
         ("E103", "'camera' and 'at' both place the body: keep one")]
+
+
+@pytest.mark.parametrize(("block", "warned"), [
+    ('  read "p.txt" format kitti', "rises"),  # KITTI's z is forward: the car would climb 9 m
+    ('  read "p.txt" format kitti\n  world rotate x -90deg rotate z -90deg', "up (z) axis"),  # camera as robot
+    ('  read "p.txt" format kitti\n  world rotate x -90deg rotate z -90deg\n  body camera left', None),
+    ('  read "e.csv"', "up (z) axis"),  # EuRoC's IMU frame has x up
+])
+def test_a_robot_on_its_side_or_climbing_is_warned(tmp_path, block, warned):
+    f = scene_file(tmp_path, block, {"p.txt": (DATA / "kitti_00_poses.txt").read_text(),
+                                     "e.csv": (DATA / "euroc_MH_01_easy_groundtruth.csv").read_text()},
+                   "camera c {\n  focal 700px\n  size (1241px, 376px)\n}\n"
+                   "rig r {\n  left c at (0, 0, 0) looking (1, 0, 0)\n  right c at (0, -0.5, 0) looking (1, 0, 0)\n}\n")
+    _, diags, _ = compile_file(f)
+    messages = [d.message for d in diags if d.code == "W146"]
+    assert (warned is None and not messages) or (warned is not None and any(warned in m for m in messages))
