@@ -312,3 +312,30 @@ def resample(traj: Trajectory, every: float | None = None, start: float | None =
     from scipy.spatial.transform import Rotation, Slerp
 
     return P, Slerp(t, Rotation.from_matrix(traj.rotations))(ts).as_matrix()
+
+
+def world_from_robot(P: np.ndarray, R: np.ndarray, body: tuple, world: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """The robot's poses (R_wr (n, 3, 3), t_wr (n, 3)) from the file's (positions P (n, 3), rotations R (n, 3, 3)):
+    world_from_robot = world_from_file . file_from_body . body_from_robot, with `body` = robot_from_body (R, p)
+    and `world` = world_from_file (R, t)."""
+    (R_rb, p_rb), (R_sf, t_sf) = body, world
+    R_wr = R_sf @ R @ R_rb.T
+    t_wr = (R_sf @ (R @ (-R_rb.T @ p_rb) + P)[..., None])[..., 0] + t_sf
+    return R_wr, t_wr
+
+
+def implausible(R_wr: np.ndarray, t_wr: np.ndarray) -> list[tuple[str, str]]:
+    """(message, hint) for a path that is most likely in the wrong frames: a robot on its side (a camera's
+    or IMU's poses taken for the robot's), or one that climbs more than it drives (a world whose z is not up)."""
+    out = []
+    tilt = math.degrees(math.acos(float(np.clip(np.median(R_wr[:, 2, 2]), -1.0, 1.0))))
+    if tilt > 60:
+        out.append((f"the robot's up (z) axis is {tilt:.0f} deg from the scene's up at the median pose",
+                    "the file's poses may be a camera's ('body camera left') or an IMU's ('body kalibr ...'), or "
+                    "its world not z-up ('world rotate x -90deg ...')"))
+    rise, run = float(np.ptp(t_wr[:, 2])), float(np.hypot(*np.ptp(t_wr[:, :2], axis=0)))
+    if rise > 1.0 and rise > 2 * run:
+        out.append((f"the path rises {rise:.3g} m and runs {run:.3g} m across the floor",
+                    "the file's world may not be z-up: turn it with 'world rotate ...' (KITTI's: 'world rotate x "
+                    "-90deg rotate z -90deg')"))
+    return out

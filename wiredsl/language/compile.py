@@ -944,24 +944,13 @@ class Compiler:
             self.out.error("E151", f"{len(P):,} poses exceed the limit of {MAX_POSES:,}", file_arg.span,
                            "resample with 'every', or give a 'limit'")
             return None
-        R_rb, p_rb = body
-        R_wr = R_sf @ R @ R_rb.T  # (n, 3, 3)
-        t_wr = (R_sf @ (R @ (-R_rb.T @ p_rb) + P)[..., None])[..., 0] + t_sf
+        R_wr, t_wr = trajectory.world_from_robot(P, R, body, (R_sf, t_sf))
         if not np.all(np.abs(t_wr) <= MAX_MAGNITUDE):
             self.out.error("E110", f"trajectory file {ast.display_path(target)} places the robot beyond "
                                    f"{MAX_MAGNITUDE:g} m", file_arg.span)
             return None
-        tilt = math.degrees(math.acos(float(np.clip(np.median(R_wr[:, 2, 2]), -1.0, 1.0))))
-        if tilt > 60:  # a robot on its side: the file's frames are most likely not the robot's and the scene's
-            self.out.warning("W146", f"the robot's up (z) axis is {tilt:.0f} deg from the scene's up at the median "
-                                     "pose", sb.stmt.keyword_span,
-                             "the file's poses may be a camera's ('body camera left') or an IMU's ('body kalibr "
-                             "...'), or its world not z-up ('world rotate x -90deg ...')")
-        rise, run = np.ptp(t_wr[:, 2]), float(np.hypot(*np.ptp(t_wr[:, :2], axis=0)))
-        if rise > 1.0 and rise > 2 * run:  # a robot that climbs more than it drives: a world whose z is not up
-            self.out.warning("W146", f"the path rises {rise:.3g} m and runs {run:.3g} m across the floor",
-                             sb.stmt.keyword_span, "the file's world may not be z-up: turn it with 'world rotate "
-                                                   "...' (KITTI's: 'world rotate x -90deg rotate z -90deg')")
+        for message, hint in trajectory.implausible(R_wr, t_wr):
+            self.out.warning("W146", message, sb.stmt.keyword_span, hint)
         floor = [(float(t[0]), float(t[1]), math.atan2(r[1, 0], r[0, 0])) for r, t in zip(R_wr, t_wr, strict=True)]
         transforms = [tuple(tuple(float(v) for v in row) for row in np.column_stack([r, t])) for r, t
                       in zip(R_wr, t_wr, strict=True)]
