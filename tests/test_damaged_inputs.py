@@ -17,7 +17,6 @@ from click.testing import CliRunner
 
 import wiredsl
 from wiredsl.cli import main
-from wiredsl.io import layout
 from wiredsl.io import layout, schema
 
 

@@ -157,12 +157,12 @@ def viewdep_table(scene: Scene, world: World) -> Table:
                   ["visibility from", "view-points", "wrong visibility (fraction)", "time for the path (s)",
                    "wrong image length vs hidden lines (fraction)"], plot=(3, 2),
                   short="view-point mesh spacing")
-    poses = np.array(scene.path.poses, dtype=float)
     rig = scene.rig
     eyes, keys = [], []
-    for i, pose in enumerate(poses):
+    poses = np.array(scene.path.poses, dtype=float)  # floor projections
+    for i in range(len(poses)):
         for mount in (rig.left, rig.right):
-            R_cw, t_cw = geometry.camera_from_world(tuple(pose), mount.rotation, mount.position)
+            R_cw, t_cw = geometry.camera_from_world(scene.path.pose(i), mount.rotation, mount.position)
             eyes.append(-R_cw.T @ t_cw)
             keys.append(i)
     t0 = time.perf_counter()
@@ -285,7 +285,7 @@ def precision_table(scene: Scene, world: World) -> Table:
     t = rng.random((PRECISION_POINTS, 1))
     P = pts[idx] + t * (pts[other] - pts[idx])  # points on and between the scene's edges
     mount = scene.rig.left
-    R_cw, t_cw = geometry.camera_from_world(tuple(scene.path.poses[0]), mount.rotation, mount.position)
+    R_cw, t_cw = geometry.camera_from_world(scene.path.pose(0), mount.rotation, mount.position)
     cam = scene.camera(mount.camera)
 
     def project(dtype):

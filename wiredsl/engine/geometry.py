@@ -44,15 +44,40 @@ def rot_z(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def camera_from_world(pose: tuple[float, float, float], mount_rotation, mount_position):
+def world_from_robot(pose) -> tuple[np.ndarray, np.ndarray]:
+    """(R_wr (3, 3), t_wr (3,)) with P_world = R_wr @ P_robot + t_wr: the robot's rigid pose in the world.
+
+    `pose` is one of: (x, y, heading), a robot on the floor turned by heading about z; the 12 numbers of
+    the row-major [R | t] (3, 4) world_from_robot matrix (a path read from a trajectory file); or a (3, 4)
+    or (4, 4) array of it. A floor pose gives exactly rot_z(heading) and (x, y, 0).
+    """
+    if len(pose) == 3 and np.ndim(pose) == 1:
+        x, y, heading = pose
+        return rot_z(heading), np.array([x, y, 0.0])
+    M = np.asarray(pose, dtype=float)
+    if M.shape not in ((12,), (3, 4), (4, 4)):
+        raise ValueError(f"a pose is (x, y, heading), [R | t] (3, 4) or (4, 4), not of shape {M.shape}")
+    M = M.reshape(-1, 4)
+    return M[:3, :3], M[:3, 3].copy()
+
+
+def floor_pose(pose) -> tuple[float, float, float]:
+    """(x, y, heading) of a pose on the floor: its position's x and y, and the heading of its x axis
+    projected onto the floor (0 when that axis is vertical). A floor pose is returned as it is."""
+    if len(pose) == 3 and np.ndim(pose) == 1:
+        return tuple(float(v) for v in pose)
+    R, t = world_from_robot(pose)
+    return float(t[0]), float(t[1]), math.atan2(R[1, 0], R[0, 0])
+
+
+def camera_from_world(pose, mount_rotation, mount_position):
     """(R_cw, t_cw) with P_cam = R_cw @ P_world + t_cw, for a camera mounted on the robot at `pose`.
 
-    pose = (x, y, heading); mount_rotation is robot_from_camera (3, 3); mount_position in the robot frame.
+    pose: see `world_from_robot`; mount_rotation is robot_from_camera (3, 3); mount_position in the robot frame.
     """
-    x, y, heading = pose
-    R_wr = rot_z(heading)
+    R_wr, t_wr = world_from_robot(pose)
     R_wc = R_wr @ np.asarray(mount_rotation, dtype=float)
-    t_wc = R_wr @ np.asarray(mount_position, dtype=float) + np.array([x, y, 0.0])
+    t_wc = R_wr @ np.asarray(mount_position, dtype=float) + t_wr
     R_cw = R_wc.T
     return R_cw, -R_cw @ t_wc
 

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wiredsl.engine import geometry, visibility
 from wiredsl.engine import imageset as im
-from wiredsl.engine import visibility
 from wiredsl.engine.montecarlo import to_imageset
 from wiredsl.engine.simulate import simulate
 from wiredsl.measures.base import Measure, Params, param, segments, source_key
@@ -304,10 +304,10 @@ class PGH(Measure):
         points = np.array(vp.points, dtype=float).reshape(-1, 2)
         sets: dict[float, dict] = {}
         for result in ideal:
-            heading = result.pose[2]
+            x, y, heading = geometry.floor_pose(result.pose)
             if heading not in sets:  # the ideal view from every view-point, with this heading
                 sets[heading] = _viewpoint_views(run, points, heading, p)
-            xy = np.array(result.pose[:2])[None]
+            xy = np.array([x, y])[None]
             truth = int(visibility.nearest_viewpoint(points, xy)[0])
             order = np.argsort(((points - xy) ** 2).sum(1), kind="stable")
             chosen = order[:p.viewpoints] if p.viewpoints else np.arange(len(points))
@@ -405,7 +405,8 @@ def _viewpoint_views(run, points: np.ndarray, heading: float, p: PGHParams) -> d
         cache = {}
         _VIEWS[id(run.world)] = (weakref.ref(run.world), cache)
     if key not in cache:
-        path = scene.path.model_copy(update={"poses": [(float(x), float(y), heading) for x, y in points]})
+        path = scene.path.model_copy(update={"poses": [(float(x), float(y), heading) for x, y in points],
+                                            "transforms": None})
         options = dataclasses.replace(run.options, poses=None, right=False)
         results = simulate(scene.model_copy(update={"path": path}), options, run.world)
         cache[key] = [to_imageset(r.left, run.world) for r in results]
