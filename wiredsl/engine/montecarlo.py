@@ -449,9 +449,9 @@ def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.nd
     """Every trial's camera for one side at one pose: R_cw (T, 3, 3), t_cw (T, 3), intrinsics (T, 14) as
     geometry.CAMERA_ROW, and the lens limit (T,) (`geometry.lens_limit`)."""
     p = rig["params"]
-    R_wr = geometry.rot_z(pose[2])
+    R_wr, t_wr = geometry.world_from_robot(pose)
     R_wc = (R_wr[None, :, :, None] * rig["rotation"][:, None, :, :]).sum(axis=2)  # row by row: no BLAS
-    t_wc = (rig["position"][:, None, :] * R_wr[None, :, :]).sum(axis=2) + np.array([pose[0], pose[1], 0.0])
+    t_wc = (rig["position"][:, None, :] * R_wr[None, :, :]).sum(axis=2) + t_wr
     R_cw = np.ascontiguousarray(np.transpose(R_wc, (0, 2, 1)))
     t_cw = -(R_cw * t_wc[:, None, :]).sum(axis=2)
     cam = rig["camera"]
@@ -476,7 +476,9 @@ def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.n
     P = np.stack([cam(0), cam(1), cam(2)], axis=-1)
     g = {k: cams[:, i, None] for i, k in enumerate(geometry.CAMERA_ROW)}
     ok = geometry.visible(P, g["model"], folds[:, None])
-    uv = geometry.project(np.where(ok[..., None], P, np.array([0.0, 0.0, 1.0])), g)
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge k1 > 0 (no fold): pixels beyond any image
+        uv = geometry.project(np.where(ok[..., None], P, np.array([0.0, 0.0, 1.0])), g)
+    ok &= np.isfinite(uv).all(axis=-1)  # checked here: what overflowed is invalid, like a folded point
     uv = np.where(ok[..., None], uv, 0.0)
     return uv.reshape(-1, 2), ok.ravel()
 

@@ -159,8 +159,16 @@ class CameraCompiler:
         return out
 
     def _rescaled(self, name: str, own: dict) -> None:
-        """A `size` beside `read` that differs from the file's: the file's K scaled to it (or refused)."""
+        """A `size` beside `read` that differs from the file's: the file's K scaled to it (or refused).
+        A size given for a file that has none is checked against the file's centre."""
         (_, _, read), _ = own["_read"]
+        if "size" in own and "size" not in read and own.get("centre") is read["centre"]:
+            (cx, cy), (w, h) = read["centre"][0], own["size"][0]
+            if not (0 <= cx <= w and 0 <= cy <= h):
+                self.out.warning("W143", f"camera '{name}': the calibration file's centre ({cx:.6g}, {cy:.6g}) is "
+                                         f"outside the {w:g} x {h:g} image", own["size"][1],
+                                 "give the size the camera was calibrated at")
+            return
         if "size" not in read or own["size"] is read["size"]:
             return
         (W, H), (w, h) = read["size"][0], own["size"][0]

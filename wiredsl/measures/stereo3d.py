@@ -158,6 +158,8 @@ class Stereo3D(Measure):
                   "corners", "corner_error", "line_points", "line_error")
     weights = {"error_mean": "points", "error_median": "points", "error_rms": "points", "outliers": "points",
                "corner_error": "corners", "line_error": "line_points"}
+    units = {"points": "count", "error_mean": "m", "error_median": "m", "error_rms": "m", "outliers": "fraction",
+             "corners": "count", "corner_error": "m", "line_points": "count", "line_error": "m"}
     doc = __doc__
 
     @classmethod
