@@ -148,7 +148,8 @@ def _dumps(work: Path) -> dict[str, bytes]:
     out = work / "dumps"
     for fmt in ("json", "jsonl", "npz"):
         r = CliRunner().invoke(main, ["build", str(ROOT / "scenes/lab.wd"), "--pose", "0", "--pose", "3",
-                                      "--trials", "1" if fmt == "json" else "2", "--seed", "3", "--no-svg", "--format", fmt, "-o",
+                                      "--trials", "1" if fmt == "json" else "2", "--seed", "3", "--no-svg",
+                                      "--format", fmt, "-o",
                                       str(out / fmt)])
         assert r.exit_code == 0, r.output
     files = {f"features.{fmt}": (out / fmt / f"features.{fmt}").read_bytes() for fmt in ("json", "jsonl", "npz")}

@@ -138,7 +138,6 @@ def open_npz(path):
 
 def npz_problems(path) -> list[str]:
     """Why a file is not a features.npz of this layout (empty when it is): members, dtypes, shapes, manifest."""
-    import numpy as np
 
     import zipfile
 
