@@ -17,7 +17,6 @@ import json
 import math
 import os
 import random
-import select
 import signal
 import subprocess
 import sys
@@ -149,7 +148,8 @@ def _dumps(work: Path) -> dict[str, bytes]:
     out = work / "dumps"
     for fmt in ("json", "jsonl", "npz"):
         r = CliRunner().invoke(main, ["build", str(ROOT / "scenes/lab.wd"), "--pose", "0", "--pose", "3",
-                                      "--trials", "1" if fmt == "json" else "2", "--seed", "3", "--no-svg", "--format", fmt, "-o",
+                                      "--trials", "1" if fmt == "json" else "2", "--seed", "3", "--no-svg",
+                                      "--format", fmt, "-o",
                                       str(out / fmt)])
         assert r.exit_code == 0, r.output
     files = {f"features.{fmt}": (out / fmt / f"features.{fmt}").read_bytes() for fmt in ("json", "jsonl", "npz")}
@@ -300,28 +300,36 @@ def _frame(body: bytes) -> bytes:
 
 
 class Reader:
-    """The server's messages, read from its stdout without blocking beyond a deadline."""
+    """The server's messages: a thread drains its stdout all the time (a server blocked writing a long answer
+    would otherwise stop reading its input, and the campaign's writes would block: a hang of the harness)."""
 
     def __init__(self, proc):
-        self.proc, self.buf = proc, b""
+        import queue
+        import threading
+
+        self.proc, self.messages = proc, queue.Queue()
+
+        def pump():
+            buf = b""
+            while chunk := os.read(proc.stdout.fileno(), 1 << 16):
+                buf += chunk
+                while b"\r\n\r\n" in buf:
+                    head, rest = buf.split(b"\r\n\r\n", 1)
+                    length = int(head.split(b"Content-Length:")[1].split(b"\r\n")[0])
+                    if len(rest) < length:
+                        break
+                    self.messages.put(json.loads(rest[:length]))
+                    buf = rest[length:]
+
+        threading.Thread(target=pump, daemon=True).start()
 
     def next(self, seconds: float) -> dict | None:
-        end = time.monotonic() + seconds
-        while True:
-            if b"\r\n\r\n" in self.buf:
-                head, rest = self.buf.split(b"\r\n\r\n", 1)
-                length = int(head.split(b"Content-Length:")[1].split(b"\r\n")[0])
-                if len(rest) >= length:
-                    self.buf = rest[length:]
-                    return json.loads(rest[:length])
-            left = end - time.monotonic()
-            r, _, _ = select.select([self.proc.stdout.fileno()], [], [], max(0.0, left))
-            if not r:
-                return None
-            chunk = os.read(self.proc.stdout.fileno(), 1 << 16)
-            if not chunk:
-                return None
-            self.buf += chunk
+        import queue
+
+        try:
+            return self.messages.get(timeout=max(seconds, 1e-3))
+        except queue.Empty:
+            return None
 
     def drain(self, seconds: float = 0.0) -> list[dict]:
         out = []
@@ -402,8 +410,9 @@ def language_server(c: Campaign, n: int, work: Path, seed: int) -> None:
     text = (scenes / "lab.wd").read_text()
     sent = 0
     while sent < n and not c.expired():
+        errlog = tempfile.TemporaryFile()  # pygls logs every error it answers: a pipe would fill and block it
         proc = subprocess.Popen([sys.executable, "-m", "wiredsl", "lsp"], stdin=subprocess.PIPE,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                                stdout=subprocess.PIPE, stderr=errlog)
         reader = Reader(proc)
         try:
             init, _ = _ask(proc, reader, 0, "initialize", {"processId": None, "rootUri": None, "capabilities": {}},
@@ -440,15 +449,8 @@ def language_server(c: Campaign, n: int, work: Path, seed: int) -> None:
                                    {"textDocument": {"uri": uri}}, 60)
                 answers += seen
             alive = proc.poll() is None
-            if not alive:
-                err = proc.stderr.read().decode(errors="replace")
-            else:
-                err = ""
-                while select.select([proc.stderr.fileno()], [], [], 0)[0]:
-                    chunk = os.read(proc.stderr.fileno(), 1 << 16)
-                    if not chunk:
-                        break
-                    err += chunk.decode(errors="replace")
+            errlog.seek(0)
+            err = errlog.read().decode(errors="replace")
             internal = [m for m in answers if (m.get("error") or {}).get("code") == -32603]
             if not alive and proc.returncode not in (0, 1):
                 c.found("lsp", "exit", b"".join(batch), f"server exited {proc.returncode}: {err}")
@@ -462,7 +464,7 @@ def language_server(c: Campaign, n: int, work: Path, seed: int) -> None:
             with contextlib.suppress(Exception):
                 proc.kill()
             proc.wait()
-            for s in (proc.stdin, proc.stdout, proc.stderr):
+            for s in (proc.stdin, proc.stdout, errlog):
                 with contextlib.suppress(Exception):
                     s.close()
 

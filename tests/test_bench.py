@@ -14,7 +14,6 @@ from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.world import build_world
 from wiredsl.language.compile import compile_file
 
-
 TINY = Path("scenes/cylinder.wd").read_text().replace("""  silhouette side between top bottom
 """, """  silhouette side between top bottom
   line post from (0.3, 0, 0) to (0.3, 0, 1)
@@ -117,7 +116,8 @@ def test_view_dependency_table_says_how_far_whole_feature_lists_are_from_hidden_
 
 def test_a_scene_without_corners_has_no_trials_rows_and_says_why(tmp_path):
     """It used to take the mean of no displacement (a numpy RuntimeWarning, exit 3)."""
-    (tmp_path / "c.wd").write_text(Path("scenes/cylinder.wd").read_text() + "pipeline p {\n lateral_shift range 1px\n}\n")
+    pipeline = "pipeline p {\n lateral_shift range 1px\n}\n"
+    (tmp_path / "c.wd").write_text(Path("scenes/cylinder.wd").read_text() + pipeline)
     scene, _, _ = compile_file(tmp_path / "c.wd")
     table = bench.trials_table(scene, build_world(scene), budget=1.0)
     assert table.rows == [] and "no corners" in table.notes[0]

@@ -14,7 +14,7 @@ from helpers import circle, compile_text, errors_of, silhouette_segments
 from wiredsl.effects import REGISTRY
 from wiredsl.effects import calibration_error as calib
 from wiredsl.effects.stereo_mismatch import angle_to_epipolar
-from wiredsl.engine import conics, geometry
+from wiredsl.engine import geometry
 from wiredsl.engine import imageset as im
 from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options, project_view, simulate
