@@ -456,7 +456,8 @@ def test_there_are_at_least_forty_named_cases():
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_hard_case(name):
+def test_hard_case(name, engine):
+    """Every case on both engines (a stage applied by hand runs in the kernel under engine "kernel")."""
     CASES[name]()
     # deterministic: the same case twice gives the same outcome (no hidden state)
     CASES[name]()
