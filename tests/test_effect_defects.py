@@ -19,6 +19,7 @@ from wiredsl.engine import imageset as im
 
 pytestmark = pytest.mark.usefixtures("engine")  # every reference on both engines
 
+
 def one_stroke(pts: np.ndarray, closed: bool, kind: int = im.CURVE) -> im.ImageSet:
     z = np.zeros(1, int)
     return im.ImageSet(pts=np.asarray(pts, float), start=np.array([0, len(pts)]), fid=z, segment=z - 1,
