@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,7 +17,9 @@ import wiredsl
 from wiredsl.cli import main
 from wiredsl.engine.world import build_world
 from wiredsl.io import layout
+from wiredsl.io.load import DumpError
 from wiredsl.language.compile import compile_file
+from wiredsl.scene import Camera
 
 LAB = "scenes/lab.wd"
 
@@ -68,6 +71,51 @@ def test_selection_by_trial_pose_and_camera(disturbed):
     assert arrays["manifest"]["seed"] == 11
 
 
+def test_the_scenes_own_camera_names_select_in_a_json_dump(disturbed):
+    """Issue 15: camera="cam_l" raised `tuple.index(x): x not in tuple`."""
+    for path in (disturbed["jsonl"], disturbed["json"][1]):
+        assert wiredsl.load(path, camera="cam_l") == wiredsl.load(path, camera="left")
+        assert wiredsl.load(path, camera=["cam_r"]) == wiredsl.load(path, camera=1)
+    with pytest.raises(DumpError, match=r"no camera 'cam_x': choose 'left', 'right', 0 or 1, "
+                                                r"or the scene's 'cam_l' and 'cam_r'"):
+        wiredsl.load(disturbed["jsonl"], camera="cam_x")
+    with pytest.raises(DumpError, match=r"no camera 'cam_l': .* \(an npz dump knows its cameras by side"):
+        wiredsl.load(disturbed["npz"], camera="cam_l")
+    with pytest.raises(DumpError, match="no camera 2"):
+        wiredsl.load(disturbed["npz"], camera=2)
+
+
+@pytest.mark.parametrize("kind", ["npz", "jsonl"])
+def test_a_trial_or_pose_outside_the_dump_names_what_it_holds(disturbed, kind):
+    """Issue 15: these returned [] without a word."""
+    with pytest.raises(DumpError, match="holds no trial 3: it holds trials 0-2"):
+        wiredsl.load(disturbed[kind], trial=3)
+    with pytest.raises(DumpError, match="holds no pose 2, 9: it holds poses 1, 4"):
+        wiredsl.load(disturbed[kind], pose=[1, 2, 9])
+    with pytest.raises(DumpError, match="holds no trial 0: it holds trial 2"):
+        wiredsl.load(disturbed["json"][2], trial=0)
+    assert wiredsl.load(disturbed[kind], trial=range(3), pose=(1, 4)) == wiredsl.load(disturbed[kind])
+
+
+def test_a_file_that_is_not_a_dump_says_what_it_is(disturbed, tmp_path):
+    """Issue 15: a manifest, a study table or an SVG raised KeyError or JSONDecodeError."""
+    svg = tmp_path / "view.svg"
+    svg.write_text('<svg xmlns="http://www.w3.org/2000/svg" width="640" height="480"></svg>\n')
+    table = tmp_path / "table.csv"
+    table.write_text("sigma,measure,statistic,mean\n0.1,survival,mean,0.5\n")
+    study = tmp_path / "study.json"
+    study.write_text(json.dumps({"document": "study", "rows": []}))
+    npz = tmp_path / "other.npz"
+    np.savez(npz, x=np.arange(3))
+    cases = [(disturbed["dir"] / "npz" / "manifest.json", "this is a run manifest, not a dump"),
+             (study, "this is a study table, not a dump"), (svg, "is an SVG image, not a dump"),
+             (table, "is a CSV table, not a dump"), (npz, "is an npz file but not a wiredsl dump")]
+    for path, says in cases:
+        with pytest.raises(DumpError, match=says) as err:
+            wiredsl.load(path)
+        assert "pass features.json, features.jsonl or features.npz" in str(err.value)
+
+
 def test_ideal_npz_carries_occlusion_fragments_and_closed_like_json(tmp_path):
     args = ["--no-effects", "--visibility", "exact", "--pose", "1", "--pose", "4"]
     npz = build(tmp_path, "n", *args, "--format", "npz") / "features.npz"
@@ -89,7 +137,9 @@ def test_npz_views_hold_the_json_cameras_rotations_and_translations(disturbed):
             k = rows[(2, p["index"], cam)]
             v = p[side]
             assert a["view_poses"][k].tolist() == [*np.ravel(v["rotation"]), *v["translation"]]  # bit for bit
-            assert a["view_cameras"][k].tolist() == [float(v["camera"][c]) for c in layout.CAMERA_COLUMNS]
+            camera = Camera.model_validate(v["camera"])
+            want = [float(layout.camera_value(camera, c)) for c in layout.CAMERA_COLUMNS]
+            assert a["view_cameras"][k].tolist() == want
 
 
 def test_ideal_conics_round_trip_through_npz(tmp_path):
@@ -114,7 +164,7 @@ def test_manifests_and_npz_validate_and_a_broken_npz_does_not(disturbed, tmp_pat
     broken = tmp_path / "old.npz"
     np.savez(broken, **data)
     result = CliRunner().invoke(main, ["validate", str(broken)])
-    assert result.exit_code == 1 and "strokes, start and pts do not agree" in result.output
+    assert result.exit_code == 1 and "b00000_strokes: shape (" in result.output and "expected (S, 10)" in result.output
     (tmp_path / "text.npz").write_text("not a zip")
     result = CliRunner().invoke(main, ["validate", str(tmp_path / "text.npz")])
     assert result.exit_code == 1 and "not an npz file" in result.output
@@ -151,3 +201,11 @@ def test_the_readme_documents_the_npz_layout():
 def test_importing_wiredsl_does_not_import_numpy():
     code = "import sys, wiredsl; assert 'numpy' not in sys.modules; assert callable(wiredsl.load)"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_a_device_or_fifo_is_refused_unopened(tmp_path):
+    fifo = tmp_path / "features.jsonl"
+    os.mkfifo(fifo)
+    for path in (fifo, "/dev/zero"):
+        with pytest.raises(DumpError, match="is not a regular file"):
+            wiredsl.load(path)

@@ -80,7 +80,14 @@ def guarded(fn: Callable) -> Callable:
         main_thread = threading.current_thread() is threading.main_thread()
         previous = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
         try:
-            return fn(*args, **kwargs)
+            out = fn(*args, **kwargs)
+            if not sys.stdout.closed:  # (the language server's client closes it on exit)
+                sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
+            return out
+        except BrokenPipeError:
+            if not _stdout_closed():
+                raise  # another pipe (a worker's): not the reader of our output going away
+            _quiet_exit()
         except WiredslError as err:
             report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diagnostics", "text"))
             sys.exit(EXIT_INVALID)
@@ -111,6 +118,26 @@ def guarded(fn: Callable) -> Callable:
                 signal.signal(sig, handler)
 
     return wrapper
+
+
+def _stdout_closed() -> bool:
+    """Has the reader of stdout gone away (`wiredsl build -o - | head`)? Not an error: we stop quietly."""
+    import select
+
+    try:
+        poll = select.poll()
+        poll.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poll.poll(0))
+    except (AttributeError, OSError, ValueError):  # no real file descriptor (tests), or no poll
+        return False
+
+
+def _quiet_exit() -> None:
+    """Exit 0 after the reader closed stdout; what Python still holds for it goes to /dev/null, so the
+    interpreter's last flush does not complain either."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    sys.exit(0)
 
 
 def _sources(diags) -> dict[str, str]:
@@ -202,6 +229,7 @@ def fmt(files: tuple[str, ...], check_only: bool, diagnostics: str) -> None:
 
 @main.command()
 @click.argument("name", type=click.Choice(["scene", "features", "viewdep", "manifest", "study", "study-manifest"]))
+@guarded
 def schema(name: str) -> None:
     """Print the JSON Schema of a scene, a features dump, a view-dependency file, a build manifest or a study
     table."""
@@ -215,22 +243,23 @@ def schema(name: str) -> None:
 @guarded
 def validate(dumps: tuple[str, ...]) -> None:
     """Validate scenes, feature dumps (JSON, JSON lines, npz) and manifests against the schemas."""
+    from wiredsl.io.files import read_regular, regular_size
     from wiredsl.io.layout import npz_problems
     from wiredsl.io.schema import problems
 
     bad = 0
     for path in dumps:
-        if _is_zip(path) or path.endswith(".npz"):  # features.npz: its layout and its manifest
-            msgs = npz_problems(path)
-            for m in msgs[:20]:
-                click.echo(f"{path}: error: {m}", err=True)
-            bad += bool(msgs)
-            continue
-        try:
-            with open(path, encoding="utf-8") as fh:
-                text = fh.read()
-        except (OSError, UnicodeDecodeError) as exc:
-            click.echo(f"{path}: error: cannot read: {exc}", err=True)
+        try:  # regular files only: /dev/zero or a FIFO is refused before it is opened
+            regular_size(path, 2**63)
+            if _is_zip(path) or path.endswith(".npz"):  # features.npz: its layout and its manifest
+                msgs = npz_problems(path)
+                for m in msgs[:20]:
+                    click.echo(f"{path}: error: {m}", err=True)
+                bad += bool(msgs)
+                continue
+            text = read_regular(path, MAX_JSON_BYTES).decode("utf-8")
+        except (OSError, ValueError) as exc:  # UnreadableFile and UnicodeDecodeError are ValueErrors
+            click.echo(f"{path}: error: cannot read: {getattr(exc, 'strerror', None) or exc}", err=True)
             bad += 1
             continue
         docs = _documents(path, text)
@@ -256,22 +285,27 @@ def _is_zip(path: str) -> bool:
 
 def _documents(path: str, text: str) -> list[tuple[str, object]]:
     """(location, document or error message) for a JSON or JSON-lines file."""
+    from wiredsl.io.files import json_loads
+
     try:
-        return [(path, json.loads(text))]
+        return [(path, json_loads(text))]
     except json.JSONDecodeError as exc:
         if path.endswith(".jsonl"):
             out = []
             for i, line in enumerate(text.splitlines(), 1):
                 if line.strip():
                     try:
-                        out.append((f"{path}:{i}", json.loads(line)))
+                        out.append((f"{path}:{i}", json_loads(line)))
                     except json.JSONDecodeError as e:
                         out.append((f"{path}:{i}:{e.colno}", f"not JSON: {e.msg}"))
             return out
+        if path.endswith(".wd") or text.lstrip().startswith(("wiredsl", "#")):
+            return [(path, f"a scene source, not a JSON document: check it with 'wiredsl check {path}'")]
         return [(f"{path}:{exc.lineno}:{exc.colno}", f"not JSON: {exc.msg}")]
 
 
 @main.command()
+@guarded
 def reference() -> None:
     """Print the language reference (Markdown), generated from the statement table."""
     from wiredsl.language.statements import CONTEXTS, takes
@@ -313,6 +347,7 @@ def plugins() -> None:
 TOLERANCE_PX = (1e-3, 100.0)  # finer than 1e-3 px costs vertices (memory, time) without bound, for nothing seen
 MAX_TRIAL = 2**31 - 1  # npz stores the trial in an int32 column
 OUTPUT_LIMIT = 50 * 10**9  # bytes a run may write without --force
+MAX_JSON_BYTES = 1 << 30  # a JSON or JSON-lines file `validate` reads (a JSON dump holds one trial)
 DUMP_SUFFIXES = (".json", ".jsonl", ".npz", ".svg")
 
 
@@ -346,9 +381,16 @@ def _folder_output(output: str | None, scene_name: str, force: bool):
         raise click.BadParameter("must not be empty", param_hint="-o")
     out = Path(output) if output is not None else Path("build") / scene_name
     check_output_folder(out, force)
-    if out.suffix.lower() in DUMP_SUFFIXES and not out.is_dir():
-        raise click.BadParameter(f"{output} looks like a file name; -o names the output folder (the dump is "
-                                 "written into it as features.json, .jsonl or .npz)", param_hint="-o")
+    return _folder_name(out, DUMP_SUFFIXES, "the dump is written into it as features.json, .jsonl or .npz")
+
+
+def _folder_name(out, suffixes: tuple[str, ...], inside: str):
+    """-o of a command that writes a folder: a name that looks like one of its files is a mistake."""
+    if out.exists() and not out.is_dir():
+        raise click.BadParameter(f"must name a folder: {out} is a file", param_hint="-o")
+    if out.suffix.lower() in suffixes and not out.is_dir():
+        raise click.BadParameter(f"{out} looks like a file name; -o names the output folder ({inside})",
+                                 param_hint="-o")
     return out
 
 
@@ -691,12 +733,15 @@ def viewdep(file: str, output: str | None, threshold: float, diagnostics: str) -
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", default=None,
-              help="The plot: .svg, or .png for a raster (default build/<scene name>/bench.svg). Needs wiredsl[plot].")
+              help="The plot: .svg, .pdf, or .png for a raster (default build/<scene name>/bench.svg). Needs "
+                   "wiredsl[plot].")
 @click.option("--budget", type=click.FloatRange(1, None), default=60.0, show_default=True,
               help="Seconds the Monte-Carlo table may spend; rows beyond it are not run.")
+@click.option("--dpi", type=click.IntRange(20, 1200), default=150, show_default=True,
+              help="The plot's resolution in dots per inch (a .png).")
 @diagnostics_option
 @guarded
-def bench(file: str, output: str | None, budget: float, diagnostics: str) -> None:
+def bench(file: str, output: str | None, budget: float, dpi: int, diagnostics: str) -> None:
     """Measure what each accuracy knob costs in time on a scene: four tables (stdout) and a plot."""
     import platform
     from pathlib import Path
@@ -712,8 +757,8 @@ def bench(file: str, output: str | None, budget: float, diagnostics: str) -> Non
     require_buildable(scene)
     world = build_world(scene)
     out = Path(_file_output(output)) if output is not None else Path("build") / scene.name / "bench.svg"
-    if out.suffix.lower() not in (".svg", ".png"):
-        raise click.BadParameter("the plot is written as .svg or .png", param_hint="-o")
+    if out.suffix.lower() not in (".svg", ".png", ".pdf"):
+        raise click.BadParameter("the plot is written as .svg, .pdf or .png", param_hint="-o")
     try:
         import matplotlib  # noqa: F401  (checked before the minutes of measuring, not after)
     except ImportError:
@@ -723,7 +768,7 @@ def bench(file: str, output: str | None, budget: float, diagnostics: str) -> Non
                f"Python {platform.python_version()}, numpy {__import__('numpy').__version__}.\n")
     for t in tables:
         click.echo(t.markdown())
-    write_atomic(out, bench_mod.plot(tables, out.suffix.lower()[1:]))
+    write_atomic(out, bench_mod.plot(tables, out.suffix.lower()[1:], dpi))
     click.echo(f"wrote {out}", err=True)
 
 
@@ -764,6 +809,9 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     from wiredsl.io.files import write_atomic
     from wiredsl.language.compile import compile_file
 
+    if output is not None:
+        _folder_name(Path(output), (".yaml", ".yml", ".json", ".xml"),
+                     "stereo.yaml, left.yaml and right.yaml are written into it")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
     if scene.rig is None:
@@ -794,10 +842,15 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
               show_default=True, help="processes: local processes on every core; dask: a Dask cluster.")
 @click.option("--workers", type=click.IntRange(1, None), default=None, help="Local processes (default: every core).")
 @click.option("--scheduler", default=None, help="With --executor dask: the scheduler's address (tcp://host:8786).")
-@click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots (needs matplotlib).")
+@click.option("--plots/--no-plots", default=True, show_default=True, help="Write the plots (needs matplotlib).")
+@click.option("--plot-format", type=click.Choice(["png", "svg", "pdf"]), default="png", show_default=True,
+              help="The plots' format: png (raster), or svg / pdf (vector, for publication).")
+@click.option("--dpi", type=click.IntRange(20, 1200), default=110, show_default=True,
+              help="The plots' resolution in dots per inch (png; embedded rasters in svg / pdf).")
+@diagnostics_option
 @guarded
 def study(file: str, name: str | None, output: str | None, executor: str, workers: int | None,
-          scheduler: str | None, plots: bool) -> None:
+          scheduler: str | None, plots: bool, plot_format: str, dpi: int, diagnostics: str) -> None:
     """Run a study of FILE (NAME, or its only one): shards, then table.csv/json, manifest.json and plots."""
     from pathlib import Path
 
@@ -805,8 +858,11 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
     from wiredsl.language.compile import compile_file
     from wiredsl.study import run_study
 
+    if output is not None:
+        _folder_name(Path(output), (".csv", ".json", ".png", ".svg"), "table.csv, table.json and plots/ are written "
+                     "into it")
     scene, warnings, program = compile_file(file)
-    report(warnings, program.sources, "text")
+    report(warnings, program.sources, diagnostics)
     found = scene.study(name)
     if found is None:
         names = ", ".join(s.name for s in scene.studies) or "none"
@@ -828,5 +884,5 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
     if plots:
         from wiredsl.study import plots as plots_mod
 
-        written += plots_mod.write_all(table, found, out / "plots")
+        written += plots_mod.write_all(table, found, out / "plots", fmt=plot_format, dpi=dpi)
     click.echo(f"wrote {out}: " + ", ".join(written), err=True)

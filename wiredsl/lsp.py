@@ -305,8 +305,8 @@ def hover(index: Index | None, text: str, path: str, line: int, col: int) -> str
         item = index.at(path, line, col)
         sym = item if isinstance(item, Symbol) else _resolve(index, item) if isinstance(item, Reference) else None
         if sym is not None:
-            decl = index.files[sym.span.file].source_lines(text)[sym.stmt.span.line - 1].strip() \
-                if sym.span.file in index.files else sym.name
+            declaring = index.files.get(sym.span.file)
+            decl = source_lines(declaring.text)[sym.stmt.span.line - 1].strip() if declaring else sym.name
             return f"{sym.what} `{sym.name}`, declared at {sym.span}:\n```wiredsl\n{decl}\n```"
     return None
 
@@ -368,6 +368,42 @@ def textmate_grammar() -> dict:
 
 # --------------------------------------------------------------------------- the server
 
+MAX_MESSAGE_BYTES = 16 * 1024 * 1024  # a document as large as the compiler reads, plus its JSON framing
+MAX_HEADER_BYTES = 64 * 1024
+_SKIPPED = b'{"jsonrpc": "2.0", "method": "$/wiredsl/skipped", "params": {}}'  # an unknown notification: ignored
+
+
+class BoundedInput:
+    """The server's stdin: a header line or message body over the limit is skipped, never held in memory.
+
+    pygls reads a message's `Content-Length` bytes in one call, so a header claiming 100 GB was a
+    MemoryError. A body over the limit is read and dropped in small pieces (the next message is still
+    framed right); the end of input ends the server as usual.
+    """
+
+    def __init__(self, raw) -> None:
+        self.raw = raw
+
+    def readline(self) -> bytes:
+        return self.raw.readline(MAX_HEADER_BYTES)
+
+    def read(self, n: int) -> bytes:
+        if n <= MAX_MESSAGE_BYTES:
+            return self.raw.read(n)
+        import sys
+
+        sys.stderr.write(f"wiredsl lsp: skipping a message of {n:,} bytes, over the limit of "
+                         f"{MAX_MESSAGE_BYTES:,}\n")
+        sys.stderr.flush()
+        left = n
+        while left:
+            chunk = self.raw.read(min(left, 1 << 16))
+            if not chunk:
+                return b""  # the input ended inside the message: stop serving
+            left -= len(chunk)
+        return _SKIPPED
+
+
 def serve() -> None:
     """Run the language server on stdin/stdout until the client exits."""
     from lsprotocol import types as T
@@ -382,6 +418,12 @@ def serve() -> None:
     def doc_path(uri: str) -> str:
         return server.workspace.get_text_document(uri).path
 
+    def opened(uri: str):
+        """The document if the client opened it, else None: pygls would read any other URI from disk, without
+        bound (file:///dev/zero) or failing (a file that does not exist)."""
+        doc = server.workspace.get_text_document(uri)
+        return doc if doc.version is not None else None
+
     def to_range(span: Span | None) -> T.Range:
         if span is None:
             return T.Range(T.Position(0, 0), T.Position(0, 0))
@@ -391,7 +433,9 @@ def serve() -> None:
         return Path(file).resolve().as_uri()
 
     def refresh(uri: str) -> None:
-        doc = server.workspace.get_text_document(uri)
+        doc = opened(uri)
+        if doc is None:
+            return
         index = analyse(doc.path, doc.source)
         indexes[uri] = index
         by_uri: dict[str, list] = {uri: []}
@@ -426,8 +470,11 @@ def serve() -> None:
 
     @server.feature(T.TEXT_DOCUMENT_COMPLETION, T.CompletionOptions(trigger_characters=[" ", "."]))
     def completion(ls, params: T.CompletionParams):
+        doc = opened(params.text_document.uri)
+        if doc is None:
+            return None
         index, _, line, col = where(params.text_document.uri, params.position)
-        text = server.workspace.get_text_document(params.text_document.uri).source
+        text = doc.source
         kinds = {"keyword": T.CompletionItemKind.Keyword, "clause": T.CompletionItemKind.Property,
                  "name": T.CompletionItemKind.Reference}
         return T.CompletionList(is_incomplete=False, items=[
@@ -436,8 +483,11 @@ def serve() -> None:
 
     @server.feature(T.TEXT_DOCUMENT_HOVER)
     def on_hover(ls, params: T.HoverParams):
+        doc = opened(params.text_document.uri)
+        if doc is None:
+            return None
         index, path, line, col = where(params.text_document.uri, params.position)
-        text = server.workspace.get_text_document(params.text_document.uri).source
+        text = doc.source
         md = hover(index, text, path, line, col)
         return T.Hover(T.MarkupContent(T.MarkupKind.Markdown, md)) if md else None
 
@@ -460,7 +510,9 @@ def serve() -> None:
     def on_format(ls, params: T.DocumentFormattingParams):
         from wiredsl.language.fmt import format_text
 
-        doc = server.workspace.get_text_document(params.text_document.uri)
+        doc = opened(params.text_document.uri)
+        if doc is None:
+            return None
         try:
             new = format_text(doc.source, doc.path)
         except WiredslError:
@@ -484,4 +536,6 @@ def serve() -> None:
 
         return [convert(o) for o in symbols(index)] if index else []
 
-    server.start_io()
+    import sys
+
+    server.start_io(stdin=BoundedInput(sys.stdin.buffer))

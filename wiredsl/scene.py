@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_serializer
 
 SCHEMA_VERSION = "1"
 
@@ -23,6 +23,10 @@ CALIBRATION_PARAMETERS = {
     "k2": "second radial coefficient",
     "p1": "first tangential coefficient",
     "p2": "second tangential coefficient",
+    "k3": "third radial coefficient (radtan: OpenCV's k3; equidistant: k3 of theta^6)",
+    "k4": "fourth coefficient (radtan: OpenCV's rational k4; equidistant: k4 of theta^8)",
+    "k5": "OpenCV's rational k5",
+    "k6": "OpenCV's rational k6",
     "tx": "mount translation along camera x (m)",
     "ty": "mount translation along camera y (m)",
     "tz": "mount translation along camera z (m)",
@@ -35,6 +39,20 @@ CALIBRATION_PARAMETERS = {
 class Node(BaseModel):
     # allow_inf_nan=False: a non-finite number is refused at construction, so no dump or JSON can carry one
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
+def omitted_when_none(*names: str):
+    """A model serializer leaving out these fields while they are None: documents without them stay as they
+    were before the fields existed (use as `_dump = omitted_when_none("field")` in the class body)."""
+    @model_serializer(mode="wrap")
+    def dump(self, handler):
+        out = handler(self)
+        for name in names:
+            if getattr(self, name) is None:
+                out.pop(name, None)
+        return out
+
+    return dump
 
 
 class Line(Node):
@@ -98,7 +116,12 @@ class Placement(Node):
 
 
 class Camera(Node):
-    """TINA's camera: u = ax*f*x_d + cx, v = ay*f*y_d + cy, f in pixels (f / pixel size)."""
+    """TINA's camera: u = ax*f*x_d + cx, v = ay*f*y_d + cy, f in pixels (f / pixel size).
+
+    The lens model maps a camera-frame point to (x_d, y_d) (engine/geometry.py): `radtan` is OpenCV's
+    full rational model (k1..k6, p1, p2), `equidistant` OpenCV's fisheye / Kannala-Brandt (k1..k4 on the
+    angle theta from the optical axis; p1 = p2 = k5 = k6 = 0).
+    """
 
     name: str
     f: float = Field(gt=0, description="focal length in pixels")
@@ -112,6 +135,15 @@ class Camera(Node):
     p2: float = 0.0
     width: int = Field(gt=0)
     height: int = Field(gt=0)
+    distortion: Literal["radtan", "equidistant"] = "radtan"
+    k3: float = 0.0
+    k4: float = 0.0
+    k5: float = 0.0
+    k6: float = 0.0
+    fov: float | None = Field(None, gt=0, le=6.283185307179586,
+                              description="equidistant: the lens's full field of view (rad); nothing farther "
+                                          "than fov / 2 from the optical axis is imaged (default: where the "
+                                          "lens's theta_d stops increasing, at most 360 deg)")
 
 
 class Mount(Node):
@@ -145,9 +177,23 @@ class Viewpoints(Node):
     visible: dict[str, list[str]] = Field({}, description="authored: view-point name -> visible feature ids")
 
 
+Vec4 = tuple[float, float, float, float]
+Mat34 = tuple[Vec4, Vec4, Vec4]
+
+
 class Path(Node):
     name: str
-    poses: list[Vec3] = Field(description="(x, y, heading) in metres and radians")
+    poses: list[Vec3] = Field(description="(x, y, heading) in metres and radians; of a path read from a "
+                                          "trajectory file, its poses' projections onto the floor")
+    transforms: list[Mat34] | None = Field(None, description="of a path read from a trajectory file: every "
+                                           "pose's world_from_robot [R | t] (rows), in full 6-DoF")
+    _dump = omitted_when_none("transforms")
+
+    def pose(self, i: int) -> tuple[float, ...]:
+        """Pose i as the engine takes it (geometry.world_from_robot): (x, y, heading), or [R | t] row-major."""
+        if self.transforms is not None:
+            return tuple(float(v) for row in self.transforms[i] for v in row)
+        return tuple(float(v) for v in self.poses[i])
 
 
 class Stage(Node):

@@ -272,7 +272,8 @@ class Run:
             cam, view_of = rig["camera"], view_maker(rig, R_cw, t_cw, side)
         else:
             template, W, CW = self.template(result, side, raw=False, keep=keep)
-            R_cw, t_cw, cams, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros((T, 9)), np.zeros(T)
+            cams = np.zeros((T, len(geometry.CAMERA_ROW)))
+            R_cw, t_cw, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros(T)
             cam, view_of = view.camera, None
         meta = np.column_stack([template.fid, template.segment, template.fragment, template.kind,
                                 template.clipped, template.closed, template.occluded]).astype(np.int64).reshape(-1, 7)
@@ -338,8 +339,8 @@ def kernel_apply(effect, params, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         z3 = np.zeros((0, 3))
         pts, start, m, _, corners, cfid, _ = kn.run_view(
             one.pts, one.start, meta, one.corners, one.corner_fid, z3, z3, np.zeros((1, 3, 3)), np.zeros((1, 3)),
-            np.zeros((1, 9)), np.zeros(1), 0.0, 0.0, False, codes, row, keys.reshape(1, 1), epipole,
-            ctx.side == "right", stats)
+            np.zeros((1, len(geometry.CAMERA_ROW))), np.zeros(1), 0.0, 0.0, False, codes, row, keys.reshape(1, 1),
+            epipole, ctx.side == "right", stats)
         kn.record(effect.name, effect.kernel.stats, stats[0], ctx.stats)
         parts.append(im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2],
                                  kind=m[:, 3], clipped=m[:, 4].astype(bool), closed=m[:, 5].astype(bool),
@@ -465,9 +466,10 @@ def raw_template(view: View, world: World) -> tuple[im.ImageSet, np.ndarray, np.
         occluded=np.array([r.occluded for r in raw], dtype=bool))
     W = np.asarray(W, dtype=float).reshape(-1, 3)
     cam = view.camera
-    nominal = np.array([[getattr(cam, k) for k in calib.CAMERA_KEYS]], dtype=float)
+    table = geometry.camera_table(cam)
+    nominal = np.array([[table[k] for k in geometry.CAMERA_ROW]], dtype=float)
     uv, _ = project_trials(W, np.asarray(view.R_cw, float)[None], np.asarray(view.t_cw, float)[None], nominal,
-                           np.array([geometry.fold_radius(cam.k1, cam.k2)]))  # invalid vertices at 0: kept
+                           np.array([table["limit"]]))  # invalid vertices at 0: kept
     mx, my = CULL * cam.width, CULL * cam.height
     outside = np.zeros(template.n_strokes, dtype=bool)
     for cond in (uv[:, 0] < -mx, uv[:, 0] > cam.width + mx, uv[:, 1] < -my, uv[:, 1] > cam.height + my):
@@ -478,40 +480,40 @@ def raw_template(view: View, world: World) -> tuple[im.ImageSet, np.ndarray, np.
 
 
 def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every trial's camera for one side at one pose: R_cw (T, 3, 3), t_cw (T, 3), intrinsics (T, 9) as
-    f, ax, ay, cx, cy, k1, k2, p1, p2, and the fold radius (T,)."""
+    """Every trial's camera for one side at one pose: R_cw (T, 3, 3), t_cw (T, 3), intrinsics (T, 14) as
+    geometry.CAMERA_ROW, and the lens limit (T,) (`geometry.lens_limit`)."""
     p = rig["params"]
-    R_wr = geometry.rot_z(pose[2])
+    R_wr, t_wr = geometry.world_from_robot(pose)
     R_wc = (R_wr[None, :, :, None] * rig["rotation"][:, None, :, :]).sum(axis=2)  # row by row: no BLAS
-    t_wc = (rig["position"][:, None, :] * R_wr[None, :, :]).sum(axis=2) + np.array([pose[0], pose[1], 0.0])
+    t_wc = (rig["position"][:, None, :] * R_wr[None, :, :]).sum(axis=2) + t_wr
     R_cw = np.ascontiguousarray(np.transpose(R_wc, (0, 2, 1)))
     t_cw = -(R_cw * t_wc[:, None, :]).sum(axis=2)
-    cams = np.column_stack([p[k] for k in calib.CAMERA_KEYS]).astype(float)
+    cam = rig["camera"]
+    model = geometry.MODELS.index(cam.distortion)
+    cams = np.column_stack([*(p[k] for k in geometry.CAMERA_KEYS), np.full(len(p["f"]), model)]).astype(float)
     if "folds" not in rig:  # the same at every pose: once a batch
-        rig["folds"] = np.array([geometry.fold_radius(k1, k2) for k1, k2 in zip(p["k1"], p["k2"], strict=True)])
+        lens = ("k1", "k2", "k3", "k4", "k5", "k6")
+        rig["folds"] = np.array([geometry.lens_limit(cam, **{k: float(p[k][i]) for k in lens})
+                                 for i in range(len(cams))])
     return R_cw, t_cw, cams, rig["folds"]
 
 
 def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.ndarray, folds: np.ndarray):
-    """World points X (N, 3) seen by every trial's camera: pixels (T * N, 2) trial-major and whether each
-    is valid (in front of the near plane, inside the fold radius); invalid ones are set to 0.
+    """World points X (N, 3) seen by every trial's camera (rows of geometry.CAMERA_ROW, lens limits folds):
+    pixels (T * N, 2) trial-major and whether each is valid (imaged by the near rule); invalid ones are 0.
 
     The arithmetic is the kernel's, term by term, without gathering a matrix per vertex."""
     def cam(i):
         return R_cw[:, i, 0, None] * X[None, :, 0] + R_cw[:, i, 1, None] * X[None, :, 1] \
             + R_cw[:, i, 2, None] * X[None, :, 2] + t_cw[:, i, None]
 
-    Px, Py, Pz = cam(0), cam(1), cam(2)
-    ok = Pz > geometry.NEAR
-    z = np.where(ok, Pz, 1.0)
-    x, y = Px / z, Py / z
-    ok &= np.hypot(x, y) < folds[:, None]
-    f, ax, ay, cx, cy, k1, k2, p1, p2 = (cams[:, i, None] for i in range(9))
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + k2 * r2)
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    uv = np.stack([np.where(ok, f * ax * xd + cx, 0.0), np.where(ok, f * ay * yd + cy, 0.0)], axis=-1)
+    P = np.stack([cam(0), cam(1), cam(2)], axis=-1)
+    g = {k: cams[:, i, None] for i, k in enumerate(geometry.CAMERA_ROW)}
+    ok = geometry.visible(P, g["model"], folds[:, None])
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge k1 > 0 (no fold): pixels beyond any image
+        uv = geometry.project(np.where(ok[..., None], P, np.array([0.0, 0.0, 1.0])), g)
+    ok &= np.isfinite(uv).all(axis=-1)  # checked here: what overflowed is invalid, like a folded point
+    uv = np.where(ok[..., None], uv, 0.0)
     return uv.reshape(-1, 2), ok.ravel()
 
 

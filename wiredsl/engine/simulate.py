@@ -72,7 +72,7 @@ class View:
 @dataclass
 class PoseResult:
     index: int
-    pose: tuple[float, float, float]
+    pose: tuple[float, ...]  # see geometry.world_from_robot: (x, y, heading), or [R | t] row-major
     viewpoint: str | None
     left: View
     right: View | None
@@ -86,15 +86,14 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
     """
     require_buildable(scene)
     world = world or build_world(scene)
-    poses = np.array(scene.path.poses, dtype=float)
-    chosen = range(len(poses)) if options.poses is None else options.poses
+    chosen = range(len(scene.path.poses)) if options.poses is None else options.poses
     vp_names, masks = visible if visible is not None else visibility_masks(scene, world, options)
     # --visibility exact: hidden lines removed, features cut at occlusion boundaries (occlusion.py)
     occluders = occlusion.Occluders.of_world(world) if options.visibility == "exact" else None
     sides = ("left", "right") if options.right else ("left",)
     specs = []  # (pose index, side, camera, R_cw, t_cw, mask) of every view, projected together
     for i in chosen:
-        pose = tuple(float(v) for v in poses[i])
+        pose = scene.path.pose(i)
         for side in sides:
             mount = getattr(scene.rig, side)
             R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
@@ -104,7 +103,7 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
         _, _, cams, Rs, ts, ms = zip(*specs, strict=True)
         views = project_views(world, list(cams), list(Rs), list(ts), list(ms), options.tolerance, occluders)
     by_key = {(i, side): v for (i, side, *_), v in zip(specs, views, strict=True)}
-    return [PoseResult(i, tuple(float(v) for v in poses[i]), vp_names.get(i), by_key[(i, "left")],
+    return [PoseResult(i, scene.path.pose(i), vp_names.get(i), by_key[(i, "left")],
                        by_key.get((i, "right"))) for i in chosen]
 
 
@@ -218,7 +217,7 @@ def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mask
     out = _Emitted(views)
     eyes = None if occluders is None else [occluders.seen_from(v.R_cw, v.t_cw) for v in views]
     seg = _straight_segments(world, views, cam, masks, eyes)
-    ell = _ellipse_intervals(world, views, masks, eyes)
+    ell = _ellipse_intervals(world, views, cam, masks, eyes)
     _emit_lines(seg, views, cam, out)
     # every curve of every view sampled together: segments under distortion, then ellipse arcs
     curved = np.flatnonzero(seg.keep & cam["distorted"][seg.vid])
@@ -282,31 +281,23 @@ class _Emitted:
 
 
 def _camera_table(cams: list[Camera]) -> dict[str, np.ndarray]:
-    """Per-view camera parameters as arrays (V,), with the fold radius and whether there is distortion."""
-    names = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "width", "height")
-    table = {k: np.array([float(getattr(c, k)) for c in cams]) for k in names}
-    table["fold"] = np.array([geometry.fold_radius(c.k1, c.k2) for c in cams])
+    """Per-view camera parameters as arrays (V,), with the lens model and limit (`geometry.lens_limit`), and
+    whether lines are curves in the image."""
+    rows = [geometry.camera_table(c) for c in cams]
+    table = {k: np.array([r[k] for r in rows]) for k in rows[0]}
+    table["width"] = np.array([float(c.width) for c in cams])
+    table["height"] = np.array([float(c.height) for c in cams])
     table["distorted"] = np.array([geometry.is_distorted(c) for c in cams], dtype=bool)
     return table
 
 
 def _pixels(P: np.ndarray, cam: dict, v: np.ndarray) -> np.ndarray:
-    """Camera-frame points (m, 3) in front of views v (m,) -> pixels (m, 2).
+    """Camera-frame points (m, 3) the cameras of views v (m,) image -> pixels (m, 2).
 
-    A pixel beyond float range (a focal length of 1e300 px) is inf: such points count as outside the image.
+    A pixel beyond float range (a focal length of 1e300 px) is inf: such points count as outside the image;
+    a radtan point that rounding at huge distances left at z <= 0 is NaN (outside every image).
     """
-    xy = _plane(P)
-    g = {k: cam[k][v] for k in _Curves.CAMERA}
-    with np.errstate(over="ignore", invalid="ignore"):
-        return geometry.plane_to_pixels(geometry.distort(xy, g["k1"], g["k2"], g["p1"], g["p2"]),
-                                        g["f"], g["ax"], g["ay"], g["cx"], g["cy"])
-
-
-def _plane(P: np.ndarray) -> np.ndarray:
-    """Unit focal plane of points clipped to z >= NEAR; NaN (outside every image) where rounding at huge
-    distances left z <= 0."""
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        return np.where(P[:, 2:3] > 0, geometry.cam_to_plane(P), np.nan)
+    return geometry.project(P, {k: cam[k][v] for k in _Curves.CAMERA})
 
 
 def _ellipses_cam(world: World, views: list[View]):
@@ -378,7 +369,9 @@ def _straight_segments(world: World, views: list[View], cam: dict, masks: np.nda
     B = np.concatenate([ends[:, 1], sB])[order]
     fid = np.concatenate([world.line_fid[ll], sfid])[order]
     seg = np.concatenate([world.line_segment[ll], sside])[order]
-    t0, t1, keep = geometry.clip_segments_cone(A, B, geometry.NEAR, cam["fold"][vid] * (1 - 1e-9))
+    rows, t0, t1 = geometry.clip_segments_lens(A, B, cam["model"][vid], cam["limit"][vid])
+    vid, A, B, fid, seg = vid[rows], A[rows], B[rows], fid[rows], seg[rows]  # a fisheye may cut one in parts
+    keep = np.ones(len(rows), dtype=bool)
     fid, seg = fid.astype(int), seg.astype(int)
     cut3d = (t0 > 0) | (t1 < 1)
     piece, hid = np.full(len(A), -1), np.zeros(len(A), dtype=bool)
@@ -438,7 +431,7 @@ def _emit_curved_segments(s: _Segments, curved: np.ndarray, runs: np.ndarray, pi
 class _Curves:
     """Curves P(t) = base + X cos t + Y sin t (ellipses) or base + t X (lines, Y = 0), camera frame."""
 
-    CAMERA = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2")
+    CAMERA = (*geometry.CAMERA_KEYS, "model")
 
     def __init__(self, cam: dict, view: np.ndarray, base: np.ndarray, X: np.ndarray, Y: np.ndarray,
                  line: np.ndarray):
@@ -455,10 +448,7 @@ class _Curves:
 
     def pixels(self, c: np.ndarray, t: np.ndarray) -> np.ndarray:
         g = self.table[c]
-        xy = _plane(self.points(c, t, g))
-        f, ax, ay, cx, cy, k1, k2, p1, p2 = g[:, 10:19].T
-        with np.errstate(over="ignore", invalid="ignore"):  # see _pixels
-            return geometry.plane_to_pixels(geometry.distort(xy, k1, k2, p1, p2), f, ax, ay, cx, cy)
+        return geometry.project(self.points(c, t, g), dict(zip(self.CAMERA, g[:, 10:].T, strict=True)))
 
     def sample(self, t0: np.ndarray, t1: np.ndarray, tol: float, start):
         image = (self.cam["width"][self.view], self.cam["height"][self.view])
@@ -553,6 +543,44 @@ def _front_intervals(cz, Az, Bz, arc):
     return owner, a[owner, col], b[owner, col]
 
 
+LENS_SAMPLES = 256  # samples of an ellipse arc where a fisheye's visible parts are sought (then bisected)
+
+
+def _lens_intervals(c, U, V, arc, limit, n: int = LENS_SAMPLES):
+    """Parts of each ellipse's arc that a fisheye images: theta < limit and at least NEAR from the centre.
+
+    The arc is sampled at n + 1 points and each change of side bisected to 1e-15 of the arc, so a part
+    narrower than 1/n of the arc may be missed. For E ellipses: (owner (k,), lo (k,), hi (k,)), in order.
+    """
+    E = len(c)
+    if E == 0:
+        return np.zeros(0, int), np.zeros(0), np.zeros(0)
+    cos_lim = np.cos(limit)
+
+    def h(e, t):  # > 0 where imaged
+        P = c[e] + np.cos(t)[:, None] * U[e] + np.sin(t)[:, None] * V[e]
+        r = np.sqrt((P * P).sum(axis=1))
+        return np.minimum(P[:, 2] - r * cos_lim[e], r - geometry.NEAR)
+
+    T = arc[:, :1] + (arc[:, 1] - arc[:, 0])[:, None] * np.linspace(0.0, 1.0, n + 1)[None, :]
+    T[:, 0], T[:, -1] = arc[:, 0], arc[:, 1]
+    H = h(np.repeat(np.arange(E), n + 1), T.ravel()).reshape(E, n + 1)
+    pos = H > 0
+    ce, cj = np.nonzero(pos[:, :-1] != pos[:, 1:])
+    a, b, in_a = T[ce, cj], T[ce, cj + 1], pos[ce, cj]
+    for _ in range(64):
+        m = 0.5 * (a + b)
+        same = (h(ce, m) > 0) == in_a
+        a, b = np.where(same, m, a), np.where(same, b, m)
+    # a part starts at the arc's start or where it enters; ends where it leaves or at the arc's end
+    s_e = np.concatenate([np.flatnonzero(pos[:, 0]), ce[~in_a]])
+    s_t = np.concatenate([arc[pos[:, 0], 0], b[~in_a]])
+    e_e = np.concatenate([ce[in_a], np.flatnonzero(pos[:, -1])])
+    e_t = np.concatenate([a[in_a], arc[pos[:, -1], 1]])
+    so, eo = np.lexsort((s_t, s_e)), np.lexsort((e_t, e_e))
+    return s_e[so], s_t[so], e_t[eo]
+
+
 @dataclass
 class _Ellipses:
     """The visible ellipses of every view (camera frame) and their arcs in front of the near plane."""
@@ -571,11 +599,21 @@ class _Ellipses:
     hid: np.ndarray  # (E,) occlusion cut it (--visibility exact)
 
 
-def _ellipse_intervals(world: World, views: list[View], masks: np.ndarray, eyes=None) -> _Ellipses:
+def _ellipse_intervals(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes=None) -> _Ellipses:
     vv, ee = np.nonzero(masks[:, world.ell_fid]) if len(world.ell_fid) else (np.zeros(0, int),) * 2
     c, U, V = (x[vv, ee] for x in _ellipses_cam(world, views))
     arc = world.ell_arc[ee]
-    owner, lo, hi = _front_intervals(c[:, 2], U[:, 2], V[:, 2], arc)
+    fish = cam["model"][vv] == 1
+    rad = np.flatnonzero(~fish)
+    owner, lo, hi = _front_intervals(c[rad, 2], U[rad, 2], V[rad, 2], arc[rad])
+    if fish.any():  # the parts a fisheye images (its region is not bounded by a plane)
+        fe = np.flatnonzero(fish)
+        fo, flo, fhi = _lens_intervals(c[fe], U[fe], V[fe], arc[fe], cam["limit"][vv[fe]])
+        owner, lo, hi = np.concatenate([rad[owner], fe[fo]]), np.concatenate([lo, flo]), np.concatenate([hi, fhi])
+        order = np.lexsort((lo, owner))
+        owner, lo, hi = owner[order], lo[order], hi[order]
+    else:
+        owner = rad[owner]
     whole = np.zeros(len(vv), dtype=bool)
     one = np.flatnonzero(np.bincount(owner, minlength=len(vv)) == 1)
     first = np.searchsorted(owner, one)
@@ -596,15 +634,18 @@ def _ellipse_intervals(world: World, views: list[View], masks: np.ndarray, eyes=
 
 
 def _fold_runs(ell: _Ellipses, cam: dict, cid, ts, P, bounds, n_seg: int):
-    """Runs [first, end) of each ellipse interval's samples inside the fold radius, with (interval,
+    """Runs [first, end) of each ellipse interval's samples inside the fold radius (radtan), with (interval,
     raw closed, raw clipped, any sample cut of its ellipse) for each run."""
     lo = bounds[n_seg]
     icid = cid[lo:] - n_seg  # interval of each ellipse sample
     Pe = P[lo:]
     n_int = len(ell.owner)
     e_of = ell.owner[icid]
+    v_of = ell.vid[e_of]
+    # a fisheye's intervals are exact already (their ends lie on its limit); a radtan's are cut at the fold
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        inside = np.hypot(Pe[:, 0] / Pe[:, 2], Pe[:, 1] / Pe[:, 2]) < cam["fold"][ell.vid[e_of]]
+        inside = (cam["model"][v_of] == 1) | (np.hypot(Pe[:, 0] / Pe[:, 2], Pe[:, 1] / Pe[:, 2])
+                                               < cam["limit"][v_of])
     first = np.zeros(len(icid), dtype=bool)
     first[bounds[n_seg:-1] - lo] = True
     last = np.zeros(len(icid), dtype=bool)
@@ -670,14 +711,12 @@ def _emit_corners(world: World, views: list[View], cam: dict, masks: np.ndarray,
     R = np.stack([v.R_cw for v in views])
     t = np.stack([v.t_cw for v in views])
     P = np.einsum("vij,cj->vci", R, world.corners)[cv, cc] + t[cv]
-    ok = P[:, 2] > geometry.NEAR
-    xy = np.where(ok[:, None], P[:, :2] / np.where(ok, P[:, 2], 1.0)[:, None], 0.0)
-    ok &= np.hypot(xy[:, 0], xy[:, 1]) < cam["fold"][cv]
+    ok = geometry.visible(P, cam["model"][cv], cam["limit"][cv])
     if eyes is not None:  # --visibility exact (occlusion.py)
         for k, eye in enumerate(eyes):
             m = np.flatnonzero(cv == k)
             ok[m] &= ~eye.hidden(P[m])
-    uv = _pixels(np.column_stack([xy, np.ones(len(xy))]), cam, cv)
+    uv = _pixels(np.where(ok[:, None], P, np.array([0.0, 0.0, 1.0])), cam, cv)
     front = np.flatnonzero(ok)  # cv is sorted: one split gives every view its corners in front
     cuts = np.searchsorted(cv[front], np.arange(1, len(views)))
     for v, rows in zip(views, np.split(cc[front], cuts), strict=True):

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl import __version__
+from wiredsl.engine import geometry
 from wiredsl.engine.simulate import PoseResult
 from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
@@ -72,10 +73,19 @@ def _view(v: SimView, world: World) -> View:
                 corners=corners)
 
 
+def _transform(pose: tuple) -> tuple | None:
+    """A 6-DoF pose's [R | t] rows at full precision (None for a floor pose: dumps of floor paths unchanged)."""
+    if len(pose) == 3:
+        return None
+    R, t = geometry.world_from_robot(pose)
+    return tuple(tuple(_r(x, None) for x in (*R[i], t[i])) for i in range(3))
+
+
 def features(scene: Scene, world: World, results: list[PoseResult], *, pipeline: str | None = None,
              stages: list[StageRecord] = (), seed: int | None = None, trial: int | None = None) -> Features:
-    poses = [PoseViews(index=r.index, pose=tuple(_r(x) for x in r.pose), viewpoint=r.viewpoint,
-                       left=_view(r.left, world), right=None if r.right is None else _view(r.right, world))
+    poses = [PoseViews(index=r.index, pose=tuple(_r(x) for x in geometry.floor_pose(r.pose)),
+                       transform=_transform(r.pose), viewpoint=r.viewpoint, left=_view(r.left, world),
+                       right=None if r.right is None else _view(r.right, world))
              for r in results]
     return Features(tool_version=__version__, scene=scene_ref(scene), pipeline=pipeline, stages=list(stages),
                     seed=seed, trial=trial, poses=poses)
@@ -204,7 +214,7 @@ def batch_arrays(batch: list[int], batch_out, renumber: bool = True) -> dict[str
                 v = per_trial and per_trial[side]
                 base = getattr(result, side) if not v else v(k) if callable(v) else v[k]
                 views.append((t, result.index, cam))
-                vcams.append([float(getattr(base.camera, c)) for c in layout.CAMERA_COLUMNS])
+                vcams.append([float(layout.camera_value(base.camera, c)) for c in layout.CAMERA_COLUMNS])
                 vposes.append(np.concatenate([np.ravel(base.R_cw), base.t_cw]))
                 if not renumber:  # the ideal projection: its analytic conics too
                     for f in base.features:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from pathlib import Path
 
 from pydantic import BaseModel
@@ -73,7 +74,22 @@ def problems(doc: object) -> list[str]:
         return [f"not a wiredsl document: 'document' must be one of {', '.join(NAMES)}"]
     errors = sorted(validator(kind).iter_errors(doc), key=lambda e: list(map(str, e.absolute_path)))
     errors = [x for e in errors for x in _explain(e)]
-    return [f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {_short(e.message)}" for e in errors]
+    return _non_finite(doc) + [f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {_short(e.message)}"
+                               for e in errors]
+
+
+def _non_finite(doc: object) -> list[str]:
+    """Every NaN or infinity in a document (jsonschema's "number" admits them; JSON cannot hold them)."""
+    out, stack = [], [((), doc)]
+    while stack:
+        path, v = stack.pop()
+        if isinstance(v, float) and not math.isfinite(v):
+            out.append(f"{'/'.join(map(str, path)) or '(root)'}: {v} is not a finite number")
+        elif isinstance(v, dict):
+            stack += [((*path, k), x) for k, x in v.items()]
+        elif isinstance(v, list):
+            stack += [((*path, i), x) for i, x in enumerate(v)]
+    return sorted(out)
 
 
 def _short(message: str, limit: int = 160) -> str:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path as FsPath
 
 import numpy as np
@@ -18,18 +18,16 @@ import pydantic
 from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
-from wiredsl.language.statements import MAX_MAGNITUDE, Bound, bind
+from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
+from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE, Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS
 from wiredsl.scene import (
-    CALIBRATION_PARAMETERS,
-    Calibration,
     Camera,
     Corner,
     Ellipse,
     Face,
     Line,
     Model,
-    Mount,
     Path,
     Pipeline,
     Placement,
@@ -44,13 +42,9 @@ from wiredsl.scene import (
 FORMAT_VERSION = 1
 MAX_VIEWPOINTS = 100_000
 MAX_POSES = 100_000
-MAX_MATRIX = 1_000
 COUNTABLE = 1e15  # a count of grid points or poses below this is exact in a float, so it may be computed
 GEOM_EPS = 1e-9  # metres: shorter is degenerate
 PERP_TOL = 1e-6  # |cos| between an ellipse's axis and normal
-BARE_FOCAL_METRES = 0.1  # a bare focal length this long (in m) is more likely mm written without its unit
-PLAUSIBLE_FOV = 1000  # f over the image's larger side beyond which a focal length is probably missing its unit
-MAX_MATRIX_ENTRY = 1e100  # calibration entries: inverses, square roots and products of them stay finite
 
 
 def compile_file(path: str | os.PathLike) -> tuple[Scene, list[Diagnostic], ast.Program]:
@@ -61,9 +55,21 @@ def compile_file(path: str | os.PathLike) -> tuple[Scene, list[Diagnostic], ast.
 
 
 def compile_program(program: ast.Program) -> tuple[Scene, list[Diagnostic]]:
-    """Compile a loaded program; returns the scene and its warnings."""
-    out = Collector()
+    """Compile a loaded program; returns the scene and its warnings.
+
+    What did not load (syntax errors, includes that cannot be read) is reported first, then the
+    errors of everything that did, except references to unknown names: while part of the program is
+    missing, such a name may well be declared there, so one note counts them instead.
+    """
+    out = Collector(hold_unknown=bool(program.errors))
+    out.extend(program.errors)
     scene = Compiler(program, out).run()
+    if out.unknown_held:  # noted at the first include that failed, else at the first syntax error
+        i = next((i for i, d in enumerate(program.errors) if d.code in ("E010", "E011")), 0)
+        n = out.unknown_held
+        note = (f"{n} reference{'s' * (n != 1)} to unknown names not reported: they may be declared in what "
+                f"did not load")
+        out.diagnostics[i] = replace(out.diagnostics[i], notes=(*out.diagnostics[i].notes, note))
     out.diagnostics = [_noted(d, program) for d in out.diagnostics]
     out.raise_if_errors()
     return scene, out.diagnostics
@@ -84,7 +90,7 @@ class _Decl:
     span: Span
 
 
-class Compiler:
+class Compiler(CameraCompiler):
     def __init__(self, program: ast.Program, out: Collector):
         self.program = program
         self.out = out
@@ -117,7 +123,7 @@ class Compiler:
         self._resolve_cameras()
         rig = self._rig(self.singles["rig"]) if "rig" in self.singles else None
         viewpoints = self._viewpoints(self.singles["viewpoints"]) if "viewpoints" in self.singles else None
-        path = self._path(self.singles["path"]) if "path" in self.singles else None
+        path = self._path(self.singles["path"], rig) if "path" in self.singles else None
         self._check_defaults()
         studies = self._studies(path)
         if self.rig_without_calibration:
@@ -158,7 +164,7 @@ class Compiler:
                         units["angle"] = b.get("angle", units["angle"])
             self.units[path] = units
             versions = [s for s in file.statements if s.keyword == "wiredsl"]
-            if not versions and file is self.program.root:
+            if not versions and file is self.program.root and path not in self.program.partial:
                 first = file.statements[0].keyword_span if file.statements else Span(path, 1, 1, 1, 2)
                 self.out.error("E012", "missing format version", first, "start the file with 'wiredsl 1'")
             for stmt in versions:
@@ -185,7 +191,7 @@ class Compiler:
     def _ref(self, table, what: str, name: str, span: Span, context: str = "") -> bool:
         if name in table:
             return True
-        self.out.error("E104", f"unknown {what} '{name}'{context}", span, did_you_mean(name, table))
+        self.out.unknown(f"unknown {what} '{name}'{context}", span, did_you_mean(name, table))
         return False
 
     # ------------------------------------------------------------------ models
@@ -324,177 +330,25 @@ class Compiler:
         name = b.get("as")
         if not self._ref(self.models, "model", model, b.positional[0].span):
             return
+        R = self._rotation(b)
+        if R is None:
+            return
+        placement = Placement(name=name, model=model, position=b.get("at", (0.0, 0.0, 0.0)), rotation=_mat(R))
+        self._declare(self.placements, "placement", name, b.span("as"), placement)
+
+    def _rotation(self, b: Bound) -> np.ndarray | None:
+        """The rotation of a statement's `rotate` clauses (in order) or `ypr`, identity without them; None when
+        both are given (reported)."""
         if b.has("rotate") and b.has("ypr"):
             self.out.error("E103", "give either 'rotate' or 'ypr', not both", b.span("ypr"))
-            return
+            return None
         R = np.eye(3)
         for axis, angle in b.clauses.get("rotate", []):
             R = rotation(axis.value, angle.value) @ R
         if b.has("ypr"):
             yaw, pitch, roll = b.get("ypr")
             R = rotation("z", yaw) @ rotation("y", pitch) @ rotation("x", roll)
-        placement = Placement(name=name, model=model, position=b.get("at", (0.0, 0.0, 0.0)), rotation=_mat(R))
-        self._declare(self.placements, "placement", name, b.span("as"), placement)
-
-    # ------------------------------------------------------------------ cameras
-    def _camera_decl(self, b: Bound) -> None:
-        if b.name in self.camera_stmts:
-            self.out.error("E105", f"duplicate camera '{b.name}'", b.name_span,
-                           f"first declared at {self.camera_stmts[b.name].name_span}")
-            return
-        self.camera_stmts[b.name] = b
-
-    def _resolve_cameras(self) -> None:
-        settings: dict[str, dict[str, tuple[object, Span]] | None] = {}
-        failed: set[str] = set()
-
-        def resolve(name: str, chain: tuple[str, ...]) -> dict | None:
-            if name in settings:
-                return settings[name]
-            b = self.camera_stmts[name]
-            base: dict = {}
-            if b.has("like"):
-                parent = b.get("like")
-                if parent in chain:
-                    self.out.error("E104", "cameras are declared like each other in a cycle: "
-                                           + " -> ".join((*chain, parent)), b.span("like"))
-                    settings[name] = None
-                    return None
-                if not self._ref(self.camera_stmts, "camera", parent, b.span("like")):
-                    settings[name] = None
-                    return None
-                base = resolve(parent, (*chain, parent))
-                if base is None:
-                    settings[name] = None
-                    return None
-            own = dict(base)
-            here: set[str] = set()
-            for stmt in b.stmt.block or ():
-                if stmt.keyword == "read":
-                    sb = bind(stmt, "camera", self._units(stmt), self.out)
-                    if sb is not None and sb.ok:
-                        read = self._camera_file(sb)
-                        if read is None:  # reported: no cascade of "needs focal"
-                            settings[name] = None
-                            return None
-                        own.update(read)
-            for stmt in b.stmt.block or ():
-                if stmt.keyword == "read":
-                    continue
-                sb = bind(stmt, "camera", self._units(stmt), self.out)
-                if sb is None or not sb.ok:
-                    failed.add(name)  # what it would have set is unknown: no 'needs' errors on top
-                    continue
-                here.add(stmt.keyword)
-                if stmt.keyword in ("k", "k1"):
-                    if here >= {"k", "k1"}:
-                        self.out.error("E103", "give either TINA's 'k' or OpenCV's 'k1', not both",
-                                       stmt.keyword_span, "k1 = -k")
-                    own.pop("k1" if stmt.keyword == "k" else "k", None)  # one parameter, two spellings
-                own[stmt.keyword] = (sb.pos(0), sb.positional[0].span)
-            settings[name] = own
-            return own
-
-        for name, b in self.camera_stmts.items():
-            s = resolve(name, (name,))
-            if s is not None and name not in failed:
-                cam = self._camera(b, s)
-                if cam is not None:
-                    self.cameras[name] = cam
-
-    def _calibration_file(self, sb: Bound, path_span: Span, path: str, fmt: str | None):
-        """The cameras of a calibration file named in a statement, or None (reported)."""
-        from wiredsl.io.calibration import CalibrationFileError, read
-
-        try:
-            target = FsPath(sb.stmt.span.file).parent / path
-            ast.read_bytes(target, "calibration file", path_span)  # a regular file, not a FIFO (would block)
-            return read(target, fmt)
-        except WiredslError as err:
-            self.out.extend(err.diagnostics)
-        except CalibrationFileError as exc:
-            self.out.error("E141", f"calibration file {path}: {exc}", path_span)
-        except ValueError as exc:  # e.g. a NUL byte in the path
-            self.out.error("E010", f"cannot read calibration file {path!r}: {exc}", path_span)
-        return None
-
-    def _camera_file(self, sb: Bound) -> dict[str, tuple[object, Span]] | None:
-        """A camera's settings from a calibration file, as if written as statements at `read`."""
-        cams = self._calibration_file(sb, sb.positional[0].span, sb.pos(0), sb.get("format"))
-        if cams is None:
-            return None
-        i = 1 if sb.get("entry") == "second" else 0
-        if i >= len(cams):
-            self.out.error("E104", f"calibration file {sb.pos(0)} has one camera; there is no second",
-                           sb.span("entry"))
-            return None
-        c, span = cams[i], sb.stmt.span
-        if not all(math.isfinite(v) and abs(v) <= MAX_MAGNITUDE for v in (c.fx, c.fy, c.cx, c.cy)):
-            self.out.error("E141", f"calibration file {sb.pos(0)}: the camera matrix has a value that is not "
-                                   f"finite or beyond {MAX_MAGNITUDE:g} px", sb.positional[0].span)
-            return None
-        out = {"focal": ((c.fx, "image", "px"), span), "aspect": ((1.0, c.fy / c.fx), span),
-               "centre": ((c.cx, c.cy), span), "k1": (c.dist[0], span), "k2": (c.dist[1], span),
-               "p1": (c.dist[2], span), "p2": (c.dist[3], span)}
-        if c.width is not None:
-            out["size"] = ((c.width, c.height), span)
-        return out
-
-    def _camera(self, b: Bound, s: dict[str, tuple[object, Span]]) -> Camera | None:
-        n0 = self.out.n_errors
-        where = b.name_span
-
-        def need(key: str, what: str) -> None:
-            if key not in s:
-                self.out.error("E102", f"camera '{b.name}' needs '{key}' ({what})", where)
-
-        need("focal", "focal length")
-        need("size", "image size")
-        if n0 != self.out.n_errors:
-            return None
-        (f, kind, unit), fspan = s["focal"]
-        written = f
-        if kind == "length":
-            if "pixel" not in s:
-                self.out.error("E102", f"camera '{b.name}' gives its focal length in {kind} units and needs 'pixel'",
-                               fspan, "add e.g. 'pixel 0.01mm', or give the focal length in px")
-                return None
-            pixel, pspan = s["pixel"]
-            self._positive(pixel, "pixel size", pspan)
-            f = f / pixel if pixel > 0 else f
-        self._positive(f, "focal length", fspan)
-        (w, h), sspan = s["size"]
-        for v in (w, h):
-            if not (v > 0 and float(v).is_integer()):
-                self.out.error("E110", f"image size must be whole pixels > 0, got {v:g}", sspan)
-        ax, ay = s.get("aspect", ((1.0, 1.0), None))[0]
-        for v in (ax, ay):
-            self._positive(v, "aspect scale", s.get("aspect", (None, where))[1])
-        if self.out.n_errors == n0:
-            fx = f * max(ax, ay)
-            if not fx <= MAX_MAGNITUDE:  # also catches inf from a huge focal over a tiny pixel
-                self.out.error("E110", f"camera '{b.name}': focal length of {fx:.3g} px (with aspect) is beyond "
-                                       f"the limit of {MAX_MAGNITUDE:g} px", fspan)
-            else:
-                bare_metres = unit is None and kind == "length" and self.units[fspan.file]["length"] == "m"
-                hint = f"did you mean {written:g}mm?" if bare_metres else None
-                if f < 1 or f > PLAUSIBLE_FOV * max(w, h):
-                    fov = math.degrees(2 * math.atan(max(w, h) / (2 * f)))
-                    self.out.warning("W111", f"camera '{b.name}': a focal length of {f:.4g} px gives a field of "
-                                             f"view of {fov:.3g} deg over its {max(w, h):g} px image", fspan, hint)
-                elif bare_metres and written >= BARE_FOCAL_METRES:  # a bare number is metres: 6 is a 6 m lens
-                    self.out.warning("W111", f"camera '{b.name}': a bare focal length is in metres, so "
-                                             f"{written:g} is a {written:g} m lens", fspan, hint)
-        k1 = -s["k"][0] if "k" in s else s.get("k1", (0.0, None))[0]
-        cx, cy = s.get("centre", ((w / 2, h / 2), None))[0]
-        if self.out.n_errors != n0:
-            return None
-        return Camera(name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, k2=s.get("k2", (0.0,))[0],
-                      p1=s.get("p1", (0.0,))[0], p2=s.get("p2", (0.0,))[0], width=int(w), height=int(h))
-
-    def _positive(self, v: float, what: str, span: Span | None) -> None:
-        if not v > 0:
-            self.out.error("E110", f"{what} must be > 0, got {v:g}", span)
+        return R
 
     # ------------------------------------------------------------------ rig, viewpoints, path
     def _single(self, b: Bound) -> None:
@@ -504,165 +358,6 @@ class Compiler:
                            b.name_span, f"the first is at {self.singles[kind].name_span}")
             return
         self.singles[kind] = b
-
-    def _rig(self, b: Bound) -> Rig | None:
-        mounts: dict[str, Mount] = {}
-        calibration = None
-        seen: dict[str, Span] = {}
-        for stmt in b.stmt.block:
-            sb = bind(stmt, "rig", self._units(stmt), self.out)
-            if sb is None or not sb.ok:
-                continue
-            if stmt.keyword in seen:
-                self.out.error("E105", f"'{stmt.keyword}' given twice in rig '{b.name}'", stmt.keyword_span)
-                continue
-            seen[stmt.keyword] = stmt.keyword_span
-            if stmt.keyword == "calibration":
-                calibration = self._calibration(sb)
-            else:
-                mount = self._mount(sb)
-                if mount is not None:
-                    mounts[stmt.keyword] = mount
-        for side in ("left", "right"):
-            if side not in seen:
-                self.out.error("E102", f"rig '{b.name}' needs a '{side}' camera", b.name_span)
-        self.rig_without_calibration = "calibration" not in seen and not any(
-            s.keyword == "calibration" for s in b.stmt.block)  # a calibration with errors is reported already
-        for side, other in (("left", "right"), ("right", "left")):
-            if isinstance(mounts.get(side), Bound):
-                mounts[side] = self._relative_mount(mounts[side], mounts.get(other), side)
-        if len(mounts) != 2 or not all(isinstance(m, Mount) for m in mounts.values()):
-            return None
-        return Rig(name=b.name, left=mounts["left"], right=mounts["right"], calibration=calibration)
-
-    def _mount(self, sb: Bound) -> Mount | Bound | None:
-        """A mount, or its statement when it is `relative` to the other camera (resolved in `_rig`)."""
-        cam = sb.pos(0)
-        ok = self._ref(self.camera_stmts, "camera", cam, sb.positional[0].span)
-        if sb.has("relative"):
-            for key in ("at", "looking", "roll"):
-                if sb.has(key):
-                    self.out.error("E103", f"'{key}' and 'relative' both give the mount's pose: keep one",
-                                   sb.span(key))
-                    return None
-            return sb if ok else None
-        for key in ("at", "looking"):
-            if not sb.has(key):
-                self.out.error("E102", f"'{sb.stmt.keyword}' needs '{key}' ({sb.sig.clauses[key].doc}), or "
-                                       "'relative' with a stereo calibration file", sb.stmt.span,
-                               f"e.g. {sb.sig.example}")
-                return None
-        look = _unit(np.array(sb.get("looking"), dtype=float))
-        if np.linalg.norm(look) == 0:
-            self.out.error("E121", "viewing direction is zero", sb.span("looking"))
-            return None
-        R = camera_rotation(look, sb.get("roll", 0.0))
-        if R is None:
-            self.out.error("E122", "viewing direction is vertical: the camera's image axes are undefined",
-                           sb.span("looking"), "tilt it slightly, e.g. (0.01, 0, -1)")
-            return None
-        return Mount(camera=cam, position=sb.get("at"), rotation=_mat(R)) if ok else None
-
-    def _relative_mount(self, sb: Bound, other: Mount | Bound | None, side: str) -> Mount | None:
-        """A camera's mount from a stereo file's extrinsics (X2 = R X1 + T, from the first camera to the
-        second) and the other camera's mount: the file's second camera is the right one."""
-        if not isinstance(other, Mount):
-            if isinstance(other, Bound):
-                self.out.error("E103", "only one camera of a rig can be 'relative' to the other", sb.span("relative"))
-            return None
-        cams = self._calibration_file(sb, sb.span("relative"), sb.get("relative"), None)
-        if cams is None:
-            return None
-        posed = next((c for c in cams if c.R is not None), None)
-        if posed is None:
-            self.out.error("E141", f"calibration file {sb.get('relative')} has no extrinsics (R and T, or "
-                                   "T_cn_cnm1)", sb.span("relative"))
-            return None
-        R_o, p_o = np.array(other.rotation), np.array(other.position)  # camera -> robot
-        if side == "right":  # X_r = R X_l + T: the right camera in the robot frame
-            R_s = R_o @ posed.R.T
-            p_s = p_o - R_s @ posed.T
-        else:  # X_r = R X_l + T, with the right camera known
-            R_s = R_o @ posed.R
-            p_s = p_o + R_o @ posed.T
-        if not np.abs(p_s).max() <= MAX_MAGNITUDE:  # T near the float limit overflows here
-            self.out.error("E141", f"calibration file {sb.get('relative')}: the translation T is beyond "
-                                   f"{MAX_MAGNITUDE:g} m", sb.span("relative"))
-            return None
-        return Mount(camera=sb.pos(0), position=tuple(float(x) for x in p_s), rotation=_mat(R_s))
-
-    def _calibration(self, sb: Bound) -> Calibration | None:
-        kind = sb.pos(0)
-        if sb.has("kalibr"):
-            return self._kalibr_calibration(sb)
-        if not sb.has("order"):
-            self.out.error("E102", "'calibration' needs 'order' (the parameter of each row), or 'kalibr' with "
-                                   "Kalibr's results-cam.txt", sb.stmt.span, f"e.g. {sb.sig.example}")
-            return None
-        order = sb.get("order")
-        n0 = self.out.n_errors
-        seen = set()
-        for item in order:
-            side, _, param = item.value.partition(".")
-            if side not in ("left", "right") or param not in CALIBRATION_PARAMETERS:
-                choices = [f"{s}.{p}" for s in ("left", "right") for p in CALIBRATION_PARAMETERS]
-                self.out.error("E104", f"unknown calibration parameter '{item.value}'", item.span,
-                               did_you_mean(item.value, choices) or "parameters are left.<p> or right.<p> with <p> "
-                               "one of " + ", ".join(CALIBRATION_PARAMETERS))
-            elif item.value in seen:
-                self.out.error("E105", f"calibration parameter '{item.value}' listed twice", item.span)
-            seen.add(item.value)
-        if sb.has("matrix") == sb.has("file"):
-            self.out.error("E102", "calibration needs exactly one of 'matrix' or 'file'", sb.stmt.span)
-            return None
-        if sb.has("matrix"):
-            matrix, mspan = sb.get("matrix"), sb.span("matrix")
-        else:
-            mspan = sb.span("file")
-            matrix = read_matrix_file(FsPath(sb.stmt.span.file).parent / sb.get("file"), len(order), mspan, self.out)
-            if matrix is None:
-                return None
-        n = len(order)
-        if n > MAX_MATRIX:
-            self.out.error("E151", f"calibration of {n} parameters exceeds the limit of {MAX_MATRIX}", sb.span("order"))
-            return None
-        if len(matrix) != n or any(len(r) != n for r in matrix):
-            shape = f"{len(matrix)} x {max((len(r) for r in matrix), default=0)}"
-            self.out.error("E140", f"calibration matrix is {shape}, but 'order' names {n} parameters "
-                                   f"(expected {n} x {n})", mspan)
-            return None
-        M = np.array(matrix, dtype=float)
-        problem = matrix_problem(M)
-        if problem:
-            self.out.error("E140", f"calibration {kind} matrix {problem}", mspan)
-        if self.out.n_errors != n0:
-            return None
-        return Calibration(kind=kind, order=[o.value for o in order], matrix=M.tolist())
-
-    def _kalibr_calibration(self, sb: Bound) -> Calibration | None:
-        """The rig's calibration uncertainty as Kalibr reports it: independent standard deviations
-        (cam0 is the left camera, cam1 the right; the baseline's as the right mount's)."""
-        for key in ("matrix", "file"):
-            if sb.has(key):
-                self.out.error("E103", f"'{key}' and 'kalibr' both give the matrix: keep one", sb.span(key))
-                return None
-        if sb.pos(0) != "covariance":
-            self.out.error("E103", "Kalibr reports standard deviations: the calibration kind is 'covariance'",
-                           sb.positional[0].span)
-            return None
-        cams = self._calibration_file(sb, sb.span("kalibr"), sb.get("kalibr"), "kalibr")
-        if cams is None:
-            return None
-        sigma = {f"{side}.{k}": v for side, cam in zip(("left", "right"), cams, strict=False)
-                 for k, v in cam.sigma.items() if v > 0}
-        names = [(o.value, o.span) for o in sb.get("order")] if sb.has("order") else [(k, None) for k in sigma]
-        for name, span in names:
-            if name not in sigma:
-                self.out.error("E104", f"Kalibr's file gives no standard deviation for '{name}'", span,
-                               did_you_mean(name, sigma) or "it has: " + ", ".join(sigma))
-                return None
-        return Calibration(kind="covariance", order=[n for n, _ in names],
-                           matrix=np.diag([sigma[n] ** 2 for n, _ in names]).tolist())
 
     def _viewpoints(self, b: Bound) -> Viewpoints | None:
         names: list[str] = []
@@ -803,12 +498,18 @@ class Compiler:
     def _emitted(self, model: str) -> dict[str, str]:
         return {n: k for n, k in self.features.get(model, {}).items() if k != "face"}
 
-    def _path(self, b: Bound) -> Path | None:
+    def _path(self, b: Bound, rig: Rig | None) -> Path | None:
         poses: list[tuple[float, float, float]] = []
         n0 = self.out.n_errors
+        reads: dict[str, Bound] = {}  # read, body, world
         for stmt in b.stmt.block:
             sb = bind(stmt, "path", self._units(stmt), self.out)
             if sb is None or not sb.ok:
+                continue
+            if stmt.keyword in ("read", "body", "world"):
+                if stmt.keyword in reads:
+                    self.out.error("E103", f"a path takes one '{stmt.keyword}'", stmt.keyword_span)
+                reads.setdefault(stmt.keyword, sb)
                 continue
             if stmt.keyword == "pose":
                 if len(poses) == MAX_POSES:
@@ -839,11 +540,154 @@ class Compiler:
             for i in range(n):
                 t = i * step / length
                 poses.append((x0 + t * (x1 - x0), y0 + t * (y1 - y0), heading))
+        if reads:
+            if "read" not in reads:
+                sb = reads.get("body") or reads["world"]
+                self.out.error("E102", f"'{sb.stmt.keyword}' places the poses of a trajectory file: the path has "
+                                       "no 'read'", sb.stmt.keyword_span, f"e.g. {CONTEXTS['path']['read'].example}")
+                return None
+            if poses:
+                self.out.error("E103", "a path read from a trajectory file takes no 'pose' or 'straight'",
+                               reads["read"].stmt.keyword_span)
+                return None
+            return self._trajectory(b, reads, rig) if self.out.n_errors == n0 else None
         if not poses:
             if self.out.n_errors == n0:  # else the statements that failed are the reason, reported already
                 self.out.error("E102", f"path '{b.name}' has no poses", b.name_span)
             return None
         return Path(name=b.name, poses=poses)
+
+    def _trajectory(self, b: Bound, reads: dict[str, Bound], rig: Rig | None) -> Path | None:
+        """A 6-DoF path from a trajectory file: world_from_robot = world_from_file . file_from_body .
+        body_from_robot, each pose."""
+        from wiredsl.io import trajectory
+
+        sb = reads["read"]
+        body = self._body(reads.get("body"), rig)
+        world = reads.get("world")
+        R_sf = self._rotation(world) if world is not None else np.eye(3)
+        if body is None or R_sf is None:
+            return None
+        t_sf = np.array(world.get("at", (0.0, 0.0, 0.0)) if world is not None else (0.0, 0.0, 0.0))
+        file_arg = sb.positional[0]
+        target = FsPath(sb.stmt.span.file).parent / sb.pos(0)
+        where = f"read by path '{b.name}' at {sb.stmt.span}"
+        try:
+            text = ast.decode(ast.read_bytes(target, "trajectory file", file_arg.span), target, "trajectory file",
+                              file_arg.span)
+            times = None
+            if sb.has("times"):
+                t_target = FsPath(sb.stmt.span.file).parent / sb.get("times")
+                t_text = ast.decode(ast.read_bytes(t_target, "times file", sb.span("times")), t_target,
+                                    "times file", sb.span("times"))
+                try:
+                    times = trajectory.read_times(t_text)
+                except trajectory.TrajectoryError as exc:
+                    return self._trajectory_error(exc, t_target, t_text, where, sb.span("times"))
+        except WiredslError as err:
+            self.out.extend(err.diagnostics)
+            return None
+        for key in ("every", "limit", "rate"):
+            if sb.has(key) and not sb.get(key) > 0:
+                self.out.error("E110", f"{key} must be > 0, got {sb.get(key):g}", sb.span(key))
+                return None
+        try:
+            traj = trajectory.read(text, sb.get("format"), times, sb.get("rate"))
+        except trajectory.TrajectoryError as exc:
+            return self._trajectory_error(exc, target, text, where, file_arg.span)
+        if traj.normalised:
+            line, message = traj.normalised[0]
+            more = f" (and {len(traj.normalised) - 1} more)" if len(traj.normalised) > 1 else ""
+            self.out.extend([Diagnostic("warning", "W145", message + more, _line_span(target, text, line),
+                                        notes=(where,))])
+        try:
+            P, R = trajectory.resample(traj, sb.get("every"), sb.get("from"), sb.get("to"),
+                                       int(sb.get("limit")) if sb.has("limit") else None, MAX_POSES)
+        except trajectory.TrajectoryError as exc:
+            return self._trajectory_error(exc, target, text, where, sb.span("every") if sb.has("every")
+                                          else file_arg.span)
+        if len(P) == 0:
+            self.out.error("E145", f"trajectory file {ast.display_path(target)}: no pose in the window",
+                           sb.span("from") if sb.has("from") else file_arg.span)
+            return None
+        if len(P) > MAX_POSES:
+            self.out.error("E151", f"{len(P):,} poses exceed the limit of {MAX_POSES:,}", file_arg.span,
+                           "resample with 'every', or give a 'limit'")
+            return None
+        R_wr, t_wr = trajectory.world_from_robot(P, R, body, (R_sf, t_sf))
+        if not np.all(np.abs(t_wr) <= MAX_MAGNITUDE):
+            self.out.error("E110", f"trajectory file {ast.display_path(target)} places the robot beyond "
+                                   f"{MAX_MAGNITUDE:g} m", file_arg.span)
+            return None
+        for message, hint in trajectory.implausible(R_wr, t_wr):
+            self.out.warning("W146", message, sb.stmt.keyword_span, hint)
+        floor = [(float(t[0]), float(t[1]), math.atan2(r[1, 0], r[0, 0])) for r, t in zip(R_wr, t_wr, strict=True)]
+        transforms = [tuple(tuple(float(v) for v in row) for row in np.column_stack([r, t])) for r, t
+                      in zip(R_wr, t_wr, strict=True)]
+        return Path(name=b.name, poses=floor, transforms=transforms)
+
+    def _trajectory_error(self, exc, target: FsPath, text: str, where: str, span: Span) -> None:
+        """Report a TrajectoryError at its line of the file, else at `span` of the statement."""
+        if exc.line is None:
+            self.out.error("E145", f"trajectory file {ast.display_path(target)}: {exc}", span)
+        else:
+            self.out.extend([Diagnostic("error", "E145", str(exc), _line_span(target, text, exc.line),
+                                        notes=(where,))])
+
+    def _body(self, sb: Bound | None, rig: Rig | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """robot_from_body (R, p) of a path's `body` statement (identity without one); None when reported."""
+        if sb is None:
+            return np.eye(3), np.zeros(3)
+        given = [k for k in ("at", "rotate", "ypr", "camera", "kalibr") if sb.has(k)]
+        if sum(k in given for k in ("camera", "kalibr")) + any(k in given for k in ("at", "rotate", "ypr")) > 1:
+            self.out.error("E103", f"'{given[-1]}' and '{given[0]}' both place the body: keep one", sb.span(given[-1]))
+            return None
+        if "camera" not in given and "kalibr" not in given:
+            R = self._rotation(sb)
+            return None if R is None else (R, np.array(sb.get("at", (0.0, 0.0, 0.0)), dtype=float))
+        if rig is None:
+            self.out.error("E102", f"'{given[0]}' places the body by the rig's cameras: the scene has no rig",
+                           sb.span(given[0]))
+            return None
+        mount = rig.left if sb.get("camera", "left") == "left" else rig.right
+        R_m, p_m = np.array(mount.rotation), np.array(mount.position)
+        if "camera" in given:
+            return R_m, p_m
+        T = self._kalibr_imu(sb)
+        return None if T is None else (R_m @ T[:3, :3], R_m @ T[:3, 3] + p_m)
+
+    def _kalibr_imu(self, sb: Bound) -> np.ndarray | None:
+        """cam0's T_cam_imu (4, 4) of a Kalibr camchain, its rotation made exact; None when reported."""
+        from wiredsl.io.calibration import CalibrationFileError, _yaml
+
+        span = sb.span("kalibr")
+        target = FsPath(sb.stmt.span.file).parent / sb.get("kalibr")
+        try:
+            doc = _yaml(ast.decode(ast.read_bytes(target, "Kalibr camchain", span), target, "Kalibr camchain", span))
+        except WiredslError as err:
+            self.out.extend(err.diagnostics)
+            return None
+        except CalibrationFileError as exc:
+            self.out.error("E141", f"Kalibr camchain {sb.get('kalibr')}: {exc}", span)
+            return None
+        cam0 = doc.get("cam0") if isinstance(doc, dict) else None
+        T = cam0.get("T_cam_imu") if isinstance(cam0, dict) else None
+        try:
+            T = np.array(T, dtype=float)
+        except (TypeError, ValueError):
+            T = np.zeros(0)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            self.out.error("E141", f"Kalibr camchain {sb.get('kalibr')}: cam0 has no 4 x 4 T_cam_imu of finite "
+                                   "numbers (a camchain-imucam.yaml has one)", span)
+            return None
+        R = T[:3, :3]
+        if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or np.linalg.det(R) <= 0:
+            self.out.error("E141", f"Kalibr camchain {sb.get('kalibr')}: cam0's T_cam_imu has no rotation in its "
+                                   "upper-left 3 x 3", span)
+            return None
+        U, _, Vt = np.linalg.svd(R)
+        T[:3, :3] = U @ Vt
+        return T
 
     # ------------------------------------------------------------------ pipelines
     def _pipeline(self, b: Bound) -> None:
@@ -908,6 +752,12 @@ class Compiler:
                            f"'{marked[0].value.name}' is already the default")
 
 
+def _line_span(path: FsPath, text: str, line: int) -> Span:
+    """The whole of one line of a file read by a statement."""
+    lines = text.splitlines()
+    return Span(ast.display_path(path), line, 1, line, len(lines[line - 1]) + 1 if line <= len(lines) else 2)
+
+
 def _ignore(b: Bound) -> None:
     pass
 
@@ -929,96 +779,3 @@ def _range_message(err: dict, value: object) -> str:
         if key in ctx:
             return f"must be {word} {ctx[key]:g}, got {value:g}"
     return err["msg"]
-
-
-def rotation(axis: str, angle: float) -> np.ndarray:
-    """Right-handed rotation matrix about a coordinate axis."""
-    c, s = math.cos(angle), math.sin(angle)
-    if axis == "x":
-        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-    if axis == "y":
-        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-def camera_rotation(look: np.ndarray, roll: float) -> np.ndarray | None:
-    """robot_from_camera for an OpenCV camera frame (x right, y down, z along `look`); z is up."""
-    z = look / np.linalg.norm(look)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    if np.linalg.norm(x) < 1e-9:
-        return None
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    c, s = math.cos(roll), math.sin(roll)
-    x, y = c * x + s * y, -s * x + c * y
-    return np.column_stack([x, y, z])
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    """v scaled so its largest component is 1 (zero stays zero): norms of huge or tiny vectors stay finite."""
-    big = float(np.abs(v).max())
-    return v / big if big > 0 else v
-
-
-def _mat(R: np.ndarray):
-    return tuple(tuple(float(v) for v in row) for row in R)
-
-
-def matrix_problem(M: np.ndarray) -> str | None:
-    """Why a matrix is not a usable covariance or information matrix, or None."""
-    if not np.all(np.isfinite(M)):
-        return "has a value that is not finite"
-    scale = float(np.abs(M).max()) if M.size else 0.0
-    if scale > MAX_MATRIX_ENTRY:
-        return f"has an entry of {scale:.3g}, beyond the limit of {MAX_MATRIX_ENTRY:g}"
-    unit = scale if scale > 0 else 1.0
-    M = M / unit  # judged at unit scale (differences and eigenvalues of huge entries overflow), reported unscaled
-    asym = float(np.abs(M - M.T).max()) if M.size else 0.0
-    if asym > 1e-9:
-        i, j = np.unravel_index(np.argmax(np.abs(M - M.T)), M.shape)
-        return f"is not symmetric (entry [{i + 1}, {j + 1}] differs from [{j + 1}, {i + 1}] by {asym * unit:.3g})"
-    if M.size:
-        low = float(np.linalg.eigvalsh((M + M.T) / 2).min())
-        if low < -1e-9:
-            return f"is not positive semi-definite (smallest eigenvalue {low * unit:.3g})"
-    return None
-
-
-def read_matrix_file(path: FsPath, n: int, span: Span, out: Collector) -> list[list[float]] | None:
-    """A matrix from a file: plain rows of numbers, or TINA's covariance format
-    (n, a label, the n x n matrix, then the n mean parameters)."""
-    try:
-        text = ast.read_bytes(path, "calibration file", span).decode("utf-8")
-    except WiredslError as err:
-        out.extend(err.diagnostics)
-        return None
-    except UnicodeDecodeError as exc:
-        out.error("E010", f"calibration file {ast.display_path(path)} is not UTF-8 text ({exc.reason} at byte "
-                          f"{exc.start})", span)
-        return None
-    words = [w for line in text.splitlines() for w in line.partition("#")[0].split()]
-    try:
-        if len(words) >= 2 and words[0].isdigit() and not _is_number(words[1]):
-            size = int(words[0])
-            nums = [float(w) for w in words[2:]]
-            if len(nums) != size * size + size:
-                raise ValueError(f"TINA covariance file of size {size} needs {size * size + size} numbers, "
-                                 f"has {len(nums)}")
-        else:
-            nums = [float(w) for w in words]
-            size = n
-            if len(nums) != n * n:
-                raise ValueError(f"expected {n} x {n} = {n * n} numbers for the {n} parameters of 'order', "
-                                 f"found {len(nums)}")
-    except ValueError as exc:
-        out.error("E141", f"{ast.display_path(path)}: {exc}", span)
-        return None
-    return [nums[i * size:(i + 1) * size] for i in range(size)]
-
-
-def _is_number(word: str) -> bool:
-    try:
-        float(word)
-    except ValueError:
-        return False
-    return True

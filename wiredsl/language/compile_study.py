@@ -28,6 +28,9 @@ CAMERA_FACTORS = {
     "cy": ("image", None, "optical centre y"), "k": ("number", None, "TINA's radial coefficient (k1 = -k)"),
     "k1": ("number", None, "OpenCV's k1"), "k2": ("number", None, "OpenCV's k2"),
     "p1": ("number", None, "OpenCV's p1"), "p2": ("number", None, "OpenCV's p2"),
+    "k3": ("number", None, "k3 (OpenCV's, or the fisheye's)"),
+    "k4": ("number", None, "k4 (rational, or the fisheye's)"),
+    "k5": ("number", None, "OpenCV's rational k5"), "k6": ("number", None, "OpenCV's rational k6"),
 }
 MAX_TRIALS = 10**9  # design points x trials
 
@@ -63,8 +66,8 @@ def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None,
         pb = first["pipeline"]
         pipeline = pb.pos(0)
         if pipeline not in pipelines:
-            out.error("E104", f"unknown pipeline '{pipeline}' in study '{b.name}'", pb.positional[0].span,
-                      did_you_mean(pipeline, pipelines) or "pipelines: " + (", ".join(pipelines) or "none"))
+            out.unknown(f"unknown pipeline '{pipeline}' in study '{b.name}'", pb.positional[0].span,
+                        did_you_mean(pipeline, pipelines) or "pipelines: " + (", ".join(pipelines) or "none"))
     else:
         defaults = [p.name for p in pipelines.values() if p.default] or (
             list(pipelines) if len(pipelines) == 1 else [])
@@ -201,8 +204,8 @@ def _camera_factor(sb: Bound, ref: ast.Ref, kind: str, units: dict[str, str], ou
     _, name, param = ref.parts
     span = sb.positional[0].span
     if name not in cameras:
-        out.error("E104", f"unknown camera '{name}'", span, did_you_mean(name, cameras)
-                  or "cameras: " + (", ".join(cameras) or "none"))
+        out.unknown(f"unknown camera '{name}'", span, did_you_mean(name, cameras)
+                    or "cameras: " + (", ".join(cameras) or "none"))
         return None
     if param not in CAMERA_FACTORS:
         out.error("E104", f"unknown camera parameter '{param}'", span,
