@@ -509,7 +509,8 @@ def test_the_outcome_tells_a_case_with_hidden_state():
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_hard_case(name):
+def test_hard_case(name, engine):
+    """Every case on both engines (a stage applied by hand runs in the kernel under engine "kernel")."""
     first = outcome(CASES[name])
     # deterministic: the same case twice computes the same values, byte for byte (no hidden state)
     assert outcome(CASES[name]) == first
