@@ -428,12 +428,29 @@ def reproject(view: View, world: World, rig: dict, pose: tuple, side: str, templ
     return rep, view_maker(rig, R_cw, t_cw, side)
 
 
-def view_maker(rig: dict, R_cw: np.ndarray, t_cw: np.ndarray, side: str):
-    """A function giving trial k's View (its perturbed camera and pose) for the dump."""
-    p, cam = rig["params"], rig["camera"]
+def view_maker(rig: dict, R_cw: np.ndarray, t_cw: np.ndarray, side: str) -> TrialViews:
+    """Every trial's View (its perturbed camera and pose) for the dump."""
+    return TrialViews(rig, R_cw, t_cw, side)
 
-    def view_of(k: int) -> View:
-        fields = {key: float(p[key][k]) for key in p}
-        return View(cam.model_copy(update={**fields, "name": f"{cam.name}:{side}"}), R_cw[k], t_cw[k])
 
-    return view_of
+class TrialViews:
+    """The perturbed cameras and poses of a batch's trials for one side: trial k's View by `views(k)`, and all
+    of them as arrays (`cameras`, `poses`) for the npz writer, which needs no model a trial."""
+
+    def __init__(self, rig: dict, R_cw: np.ndarray, t_cw: np.ndarray, side: str):
+        self.params, self.camera, self.R_cw, self.t_cw, self.side = rig["params"], rig["camera"], R_cw, t_cw, side
+
+    def __call__(self, k: int) -> View:
+        cam = self.camera
+        fields = {key: float(self.params[key][k]) for key in self.params}
+        return View(cam.model_copy(update={**fields, "name": f"{cam.name}:{self.side}"}), self.R_cw[k], self.t_cw[k])
+
+    def cameras(self, columns: Sequence[str]) -> np.ndarray:
+        """(T, len(columns)) float64: each trial's camera parameter of each column (unperturbed ones repeated)."""
+        T = len(self.R_cw)
+        return np.column_stack([np.broadcast_to(np.asarray(self.params[c], dtype=np.float64), (T,))
+                                if c in self.params else np.full(T, float(getattr(self.camera, c))) for c in columns])
+
+    def poses(self) -> np.ndarray:
+        """(T, 12) float64: each trial's R_cw (row-major) and t_cw."""
+        return np.concatenate([self.R_cw.reshape(-1, 9), self.t_cw.reshape(-1, 3)], axis=1)

@@ -168,34 +168,42 @@ class NpzStream:
         """One batch's strokes, corners, views (and conics); `fragment` numbered as the JSON dump numbers it."""
         pts, starts, rows, corners, crows, views, vcams, vposes, conics_, krows = ([] for _ in range(10))
         offset = 0
+        trials_of = np.asarray(batch, dtype=np.int64)
+        T = len(trials_of)
         for result, disturbed, per_trial in batch_out:
             for cam, side in enumerate(("left", "right")):
                 s = disturbed.get(side)
                 if s is None:
                     continue
-                for k, t in enumerate(batch):  # each trial's camera as projected
-                    v = per_trial and per_trial[side]
-                    base = getattr(result, side) if not v else v(k) if callable(v) else v[k]
-                    views.append((t, result.index, cam))
-                    vcams.append([float(getattr(base.camera, c)) for c in layout.CAMERA_COLUMNS])
-                    vposes.append(np.concatenate([np.ravel(base.R_cw), base.t_cw]))
-                    if not renumber:  # the ideal projection: its analytic conics too
-                        for f in base.features:
+                v = per_trial and per_trial[side]
+                views.append(np.column_stack([trials_of, np.full(T, result.index), np.full(T, cam)]))
+                if v and not callable(v):  # each trial projected from scratch (--exact-calibration)
+                    vcams.append([[float(getattr(b.camera, c)) for c in layout.CAMERA_COLUMNS] for b in v[:T]])
+                    vposes.append([np.concatenate([np.ravel(b.R_cw), b.t_cw]) for b in v[:T]])
+                elif v:  # each trial's perturbed camera, from the batch's arrays
+                    vcams.append(v.cameras(layout.CAMERA_COLUMNS))
+                    vposes.append(v.poses())
+                else:  # every trial sees through the view's own camera
+                    base = getattr(result, side)
+                    vcams.append(np.tile([float(getattr(base.camera, c)) for c in layout.CAMERA_COLUMNS], (T, 1)))
+                    vposes.append(np.tile(np.concatenate([np.ravel(base.R_cw), base.t_cw]), (T, 1)))
+                if not renumber:  # the ideal projection (one trial): its analytic conics too
+                    for t in batch:
+                        for f in getattr(result, side).features:
                             if f.kind == "conic":
                                 centre, axes, angle, arc = f.conic
                                 conics_.append([*centre, *axes, angle, *(arc if arc is not None else (0.0, 0.0))])
                                 krows.append([t, result.index, cam, f.fid, f.clipped, arc is not None])
-                trials = np.asarray(batch)[s.trial]
                 pts.append(s.pts)
                 starts.append(s.start[:-1] + offset)
                 offset += len(s.pts)
                 frag = _json_fragments(s) if renumber else s.fragment
-                rows.append(np.column_stack([trials, np.full(s.n_strokes, result.index), np.full(s.n_strokes, cam),
-                                             s.fid, s.segment, s.kind, s.clipped, s.closed, frag, s.occluded]))
-                ctrials = np.asarray(batch)[s.corner_trial]
+                rows.append(np.column_stack([trials_of[s.trial], np.full(s.n_strokes, result.index),
+                                             np.full(s.n_strokes, cam), s.fid, s.segment, s.kind, s.clipped, s.closed,
+                                             frag, s.occluded]))
                 corners.append(s.corners)
-                crows.append(np.column_stack([ctrials, np.full(len(ctrials), result.index),
-                                              np.full(len(ctrials), cam), s.corner_fid]))
+                crows.append(np.column_stack([trials_of[s.corner_trial], np.full(len(s.corner_trial), result.index),
+                                              np.full(len(s.corner_trial), cam), s.corner_fid]))
         b = f"b{self.n:05d}"
         width = len(layout.STROKE_COLUMNS)
         self.member(f"{b}_pts", np.concatenate(pts) if pts else np.zeros((0, 2)), np.float32)
@@ -203,9 +211,9 @@ class NpzStream:
         self.member(f"{b}_strokes", np.concatenate(rows) if rows else np.zeros((0, width), int), np.int32)
         self.member(f"{b}_corners", np.concatenate(corners).reshape(-1, 2), np.float32)
         self.member(f"{b}_corner_rows", np.concatenate(crows).reshape(-1, len(layout.CORNER_COLUMNS)), np.int32)
-        self.member(f"{b}_views", np.array(views).reshape(-1, len(layout.VIEW_COLUMNS)), np.int32)
-        self.member(f"{b}_view_cameras", np.array(vcams, dtype=np.float64).reshape(-1, len(layout.CAMERA_COLUMNS)))
-        self.member(f"{b}_view_poses", np.array(vposes, dtype=np.float64).reshape(-1, 12))
+        self.member(f"{b}_views", _rows(views, len(layout.VIEW_COLUMNS)), np.int32)
+        self.member(f"{b}_view_cameras", _rows(vcams, len(layout.CAMERA_COLUMNS), np.float64))
+        self.member(f"{b}_view_poses", _rows(vposes, 12, np.float64))
         self.member(f"{b}_conics", np.array(conics_, dtype=np.float64).reshape(-1, 7))
         self.member(f"{b}_conic_rows", np.array(krows).reshape(-1, len(layout.CONIC_COLUMNS)), np.int32)
         self.n += 1
@@ -237,19 +245,31 @@ def _discard(tmp: str, *closers) -> None:
             close()
 
 
+def _rows(parts: list, width: int, dtype: type = np.int64) -> np.ndarray:
+    """Blocks of rows stacked into one (n, width) array (an empty one when there are none)."""
+    return np.concatenate([np.asarray(p, dtype=dtype).reshape(-1, width) for p in parts]) if parts else \
+        np.zeros((0, width), dtype=dtype)
+
+
 def _json_fragments(s) -> np.ndarray:
     """The fragment numbers the JSON dump gives (montecarlo.features_of): within a trial, the strokes of one
     (feature, segment) are numbered 0, 1, ... in order when the feature was cut, else -1."""
-    if s.n_strokes == 0:
+    n = s.n_strokes
+    if n == 0:
         return np.zeros(0, dtype=int)
-    key = np.column_stack([s.trial, s.fid, s.segment])
-    _, group, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    group = group.ravel()
-    order = np.argsort(group, kind="stable")
-    rank = np.empty(len(group), dtype=int)
-    sorted_group = group[order]
-    first = np.concatenate([[True], sorted_group[1:] != sorted_group[:-1]])
-    starts = np.maximum.accumulate(np.where(first, np.arange(len(group)), 0))
-    rank[order] = np.arange(len(group)) - starts
-    cut = (s.fragment >= 0) | (count[group] > 1)
-    return np.where(cut, rank, -1)
+    # one int64 key a stroke, (trial, feature, segment) in lexicographic order; a stable sort keeps each
+    # group's strokes in their order, so a stroke's rank in its group is its fragment number
+    trial, fid, seg = (np.asarray(a, dtype=np.int64) for a in (s.trial, s.fid, s.segment))
+    nf, ns = int(fid.max()) + 1, int(seg.max()) + 2  # segment -1 (none) is shifted to 0
+    order = np.argsort((trial * nf + fid) * ns + seg + 1, kind="stable")
+    key = ((trial * nf + fid) * ns + seg + 1)[order]
+    first = np.empty(n, dtype=bool)
+    first[0] = True
+    np.not_equal(key[1:], key[:-1], out=first[1:])
+    group_start = np.flatnonzero(first)
+    group = np.cumsum(first) - 1
+    count = np.diff(np.append(group_start, n))[group]
+    rank_sorted = np.arange(n) - group_start[group]
+    rank, counts = np.empty(n, dtype=int), np.empty(n, dtype=int)
+    rank[order], counts[order] = rank_sorted, count
+    return np.where((s.fragment >= 0) | (counts > 1), rank, -1)
