@@ -5,6 +5,8 @@ from __future__ import annotations
 import hashlib
 import zipfile
 
+import numpy as np
+
 from click.testing import CliRunner
 
 from wiredsl.cli import main
@@ -31,3 +33,24 @@ def test_the_npz_writer_writes_the_same_bytes_as_before(tmp_path):
     result = CliRunner().invoke(main, [*args, "-o", str(tmp_path / "a")])
     assert result.exit_code == 0, result.output
     assert members_hash(tmp_path / "a" / "features.npz") == GOLDEN
+
+
+def test_batches_are_sized_to_the_scene_and_trials_do_not_depend_on_them():
+    from wiredsl.engine import montecarlo as mc
+    from wiredsl.engine.simulate import Options
+    from wiredsl.engine.world import build_world
+    from wiredsl.language.compile import compile_file
+
+    scene, _, _ = compile_file("scenes/lab.wd")
+    world = build_world(scene)
+    run = mc.Run.create(scene, world, scene.pipeline("edges"), 3, Options(poses=(1,)))
+    assert run.batch_size() == mc.BATCH  # one pose: every trial of a full batch fits
+    whole = mc.Run.create(scene, world, scene.pipeline("edges"), 3, Options())
+    # the lab's 14 views: 128 trials' strokes fit in BATCH_BYTES, 256 would not
+    assert whole.batch_size() == 128
+    sizes = [len(b) for b, _ in whole.batches(range(300))]
+    assert sizes == [128, 128, 44]
+    one = next(iter(run.batches([5])))[1][0][1]["left"]
+    many = [out for b, out in run.batches(range(300)) if 5 in b][0][0][1]["left"]
+    k = list(range(300)).index(5) % run.batch_size()
+    assert np.array_equal(one.pts, many.pts[np.repeat(many.trial == k, np.diff(many.start))])

@@ -37,7 +37,11 @@ from wiredsl.engine.simulate import (
 from wiredsl.engine.world import World
 from wiredsl.scene import Scene
 
-BATCH = 256  # trials per batch: bounds memory whatever the number of trials
+BATCH = 256  # trials per batch at most: bounds memory whatever the number of trials
+BATCH_BYTES = 32 * 2**20  # what one batch may hold (kernel output and the writer's copies), about
+# bytes a trial holds per vertex and per stroke of its views, measured (peak RSS of 1,000 `paper` trials of the
+# lab and of benchmarks/big_scene.py's 10x lab at several batch sizes): the writer's rows weigh on the strokes
+VERTEX_BYTES, STROKE_BYTES = 16, 512
 CULL = 0.25  # raw strokes wholly beyond the image grown by this fraction of its size are not re-projected
 
 
@@ -122,16 +126,31 @@ class Run:
             self._epipoles[key] = e / np.linalg.norm(e)
         return self._epipoles[key]
 
-    def batches(self, trials: Sequence[int], size: int = BATCH
+    def batches(self, trials: Sequence[int], size: int | None = None
                 ) -> Iterator[tuple[Sequence[int], list[tuple[PoseResult, dict]]]]:
         """For each batch of trials: per pose, the ideal result and {side: disturbed ImageSet of the batch}.
 
         `trials` is any sequence (a range for a run: nothing is built for the trials not yet reached), and
-        each trial's output is the same whichever trials share its batch.
+        each trial's output is the same whichever trials share its batch. `size`: trials a batch (default:
+        `batch_size()`, sized to the scene).
         """
+        size = size or self.batch_size()
         for lo in range(0, len(trials), size):
             batch = trials[lo:lo + size]
             yield batch, self._batch(batch)
+
+    def batch_size(self) -> int:
+        """Trials a batch: the largest power of two up to BATCH whose trials' strokes fit in BATCH_BYTES, so
+        that memory stays bounded in a scene with many features in view (one trial at least)."""
+        raw = self.sampler() is not None and not self.exact_calibration
+        vertices = strokes = 0
+        for result in self.ideal():
+            for side in ("left", "right"):
+                if getattr(result, side) is not None:
+                    template = self.template(result, side, raw=raw)[0]
+                    vertices, strokes = vertices + len(template.pts), strokes + template.n_strokes
+        fits = BATCH_BYTES // max(VERTEX_BYTES * vertices + STROKE_BYTES * strokes, 1)
+        return int(min(BATCH, 2 ** int(np.log2(fits)) if fits >= 1 else 1))
 
     def calibration_draws(self, batch: Sequence[int]) -> np.ndarray:
         """The batch's calibration perturbations (T, m), each checked: a draw that leaves a camera without a
