@@ -54,3 +54,15 @@ def test_batches_are_sized_to_the_scene_and_trials_do_not_depend_on_them():
     many = [out for b, out in run.batches(range(300)) if 5 in b][0][0][1]["left"]
     k = list(range(300)).index(5) % run.batch_size()
     assert np.array_equal(one.pts, many.pts[np.repeat(many.trial == k, np.diff(many.start))])
+
+
+def test_rounded_arrays_are_pythons_round_to_the_last_bit():
+    from wiredsl.io.emit import rounded
+
+    rng = np.random.default_rng(5)
+    ties = (rng.integers(-10**9, 10**9, 20_000) + 0.5) / 1e6  # half-way in decimal: the hard cases
+    values = np.concatenate([ties, rng.uniform(-2000, 2000, 20_000), rng.normal(0, 1e-6, 2000), [-0.0, -1e-9, 2.5e15]])
+    got = rounded(values, "x")
+    want = [round(float(x), 6) for x in values]
+    assert [float(x).hex() for x in got] == [(w + 0.0).hex() for w in want]
+    assert not np.signbit(got[values == 0]).any()

@@ -509,7 +509,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     records = emit.stage_records(run)
 
     def doc_for(results, k):
-        return emit.features(scene, world, results, pipeline=pipeline.name if pipeline else None, stages=records,
+        return emit.features_doc(scene, world, results, pipeline=pipeline.name if pipeline else None, stages=records,
                              seed=seed if effects else None, trial=k if effects else None)
 
     if len(trial_list) > 1 and not force:

@@ -13,19 +13,9 @@ from wiredsl.engine.simulate import PoseResult
 from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
 from wiredsl.io import layout
-from wiredsl.io.features import (
-    Features,
-    ImageConic,
-    ImageCorner,
-    ImageLine,
-    ImagePolyline,
-    PoseViews,
-    SceneRef,
-    StageRecord,
-    View,
-)
+from wiredsl.io.features import Features, SceneRef, StageRecord
 from wiredsl.io.files import json_text, publish, require_finite
-from wiredsl.scene import Scene
+from wiredsl.scene import SCHEMA_VERSION, Scene
 
 DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable across platforms
 
@@ -43,46 +33,106 @@ def _r(x: float, decimals: int | None = DECIMALS) -> float:
     return 0.0 if v == 0 else v  # no "-0.0" in dumps
 
 
-def _pts(a: np.ndarray) -> list[tuple[float, float]]:
-    return [(_r(p[0]), _r(p[1])) for p in a]
+def rounded(a: np.ndarray, where: str, decimals: int = DECIMALS) -> np.ndarray:
+    """Array `a` rounded to `decimals` exactly as Python's round(x, decimals) rounds each element (no -0.0),
+    or UnwritableValue when an element is not finite.
+
+    np.round scales, rounds to an integer and scales back: it gives round()'s double whenever the scaled value
+    is not within its rounding error of a half-integer, so only those few (and values too large to scale) are
+    rounded one by one."""
+    a = require_finite(np.ascontiguousarray(a, dtype=np.float64), where)
+    scale = 10.0 ** decimals
+    scaled = a * scale
+    out = np.round(scaled) / scale
+    near = (np.abs(scaled - np.floor(scaled) - 0.5) < 1e-3) | (np.abs(scaled) >= 2.0 ** 52)
+    for i in np.flatnonzero(near):
+        out.flat[i] = round(float(a.flat[i]), decimals)
+    return out + 0.0  # -0.0 + 0.0 is 0.0: no "-0.0" in dumps
 
 
-def _view(v: SimView, world: World) -> View:
+def _full(a) -> np.ndarray:
+    """A pose's matrix or vector at full precision, checked finite, without -0.0."""
+    return require_finite(np.ascontiguousarray(a, dtype=np.float64), "a camera pose") + 0.0
+
+
+_CORNER, _STROKE = ("corner",), ("line", "polyline")
+
+
+def _view(v: SimView, world: World, cameras: dict) -> dict:
+    """One view as the dump's `View` document (plain data: numpy arrays where the dump has lists of numbers).
+
+    Every stroke's and corner's pixels are rounded at once; the fields come in the models' order."""
+    feats = v.features
+    pointed = [f for f in feats if f.kind in _STROKE or f.kind in _CORNER]
+    ends = np.cumsum([0] + [len(f.points) for f in pointed])
+    pts = rounded(np.concatenate([f.points for f in pointed]) if pointed else np.zeros((0, 2)), "a pixel")
+    at = dict(zip(map(id, pointed), zip(ends[:-1].tolist(), ends[1:].tolist(), strict=True), strict=True))
     lines, polylines, conics_, corners = [], [], [], []
-    for f in v.features:
-        common = {"source": world.feature_ids[f.fid], "segment": None if f.segment < 0 else f.segment,
-                  "fragment": None if f.fragment < 0 else f.fragment, "clipped": f.clipped, "occluded": f.occluded}
+    for f in feats:
+        d = {"source": world.feature_ids[f.fid], "segment": None if f.segment < 0 else f.segment,
+             "fragment": None if f.fragment < 0 else f.fragment, "clipped": f.clipped, "occluded": f.occluded,
+             "kind": f.kind}
         if f.kind == "line":
-            lines.append(ImageLine(points=tuple(_pts(f.points)), **common))
+            lo, hi = at[id(f)]
+            d["points"] = pts[lo:hi]
+            lines.append(d)
         elif f.kind == "polyline":
-            polylines.append(ImagePolyline(points=_pts(f.points), closed=f.closed, **common))
+            lo, hi = at[id(f)]
+            d["points"], d["closed"] = pts[lo:hi], f.closed
+            polylines.append(d)
         elif f.kind == "conic":
             centre, axes, angle, arc = f.conic
-            conics_.append(ImageConic(centre=(_r(centre[0]), _r(centre[1])), axes=(_r(axes[0]), _r(axes[1])),
-                                      angle=_r(angle), arc=None if arc is None else (_r(arc[0]), _r(arc[1])),
-                                      **common))
+            d.update(centre=(_r(centre[0]), _r(centre[1])), axes=(_r(axes[0]), _r(axes[1])), angle=_r(angle),
+                     arc=None if arc is None else (_r(arc[0]), _r(arc[1])))
+            conics_.append(d)
         elif f.kind == "corner":
-            corners.append(ImageCorner(at=(_r(f.points[0, 0]), _r(f.points[0, 1])), **common))
+            lo, _ = at[id(f)]
+            d["at"] = pts[lo]
+            corners.append(d)
         else:
             raise ValueError(f"unknown feature kind {f.kind!r}")
+    if id(v.camera) not in cameras:
+        cameras[id(v.camera)] = v.camera.model_dump(mode="json")
     # the camera's pose at full precision: re-projecting through it must give the dumped pixels
-    R = tuple(tuple(_r(x, None) for x in row) for row in v.R_cw)
-    t = tuple(_r(x, None) for x in v.t_cw)
-    return View(camera=v.camera, rotation=R, translation=t, lines=lines, polylines=polylines, conics=conics_,
-                corners=corners)
+    return {"camera": cameras[id(v.camera)], "rotation": _full(v.R_cw).reshape(3, 3), "translation": _full(v.t_cw),
+            "lines": lines, "polylines": polylines, "conics": conics_, "corners": corners}
+
+
+def features_doc(scene: Scene, world: World, results: list[PoseResult], *, pipeline: str | None = None,
+                 stages: list[StageRecord] = (), seed: int | None = None, trial: int | None = None) -> dict:
+    """The features dump as plain data, what `Features(...).model_dump(mode="json")` gives, built from the
+    engine's arrays without a model a feature (numpy arrays in place of lists of numbers: see `to_json`)."""
+    cameras: dict = {}
+    poses = [{"index": r.index, "pose": [_r(x) for x in r.pose], "viewpoint": r.viewpoint,
+              "left": _view(r.left, world, cameras),
+              "right": None if r.right is None else _view(r.right, world, cameras)} for r in results]
+    return {"document": "features", "schema_version": SCHEMA_VERSION, "tool_version": __version__,
+            "scene": scene_ref(scene).model_dump(mode="json"), "pipeline": pipeline,
+            "stages": [s.model_dump(mode="json") for s in stages], "seed": seed, "trial": trial, "poses": poses}
 
 
 def features(scene: Scene, world: World, results: list[PoseResult], *, pipeline: str | None = None,
              stages: list[StageRecord] = (), seed: int | None = None, trial: int | None = None) -> Features:
-    poses = [PoseViews(index=r.index, pose=tuple(_r(x) for x in r.pose), viewpoint=r.viewpoint,
-                       left=_view(r.left, world), right=None if r.right is None else _view(r.right, world))
-             for r in results]
-    return Features(tool_version=__version__, scene=scene_ref(scene), pipeline=pipeline, stages=list(stages),
-                    seed=seed, trial=trial, poses=poses)
+    """The features dump as its pydantic model (validated): `features_doc` read back."""
+    doc = features_doc(scene, world, results, pipeline=pipeline, stages=stages, seed=seed, trial=trial)
+    return Features.model_validate_json(_dumps(doc, None))
+
+
+def _dumps(doc, indent: int | None) -> bytes:
+    import orjson
+
+    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY | (orjson.OPT_INDENT_2 if indent else 0))
 
 
 def to_json(doc, indent: int | None = 1) -> str:
-    return json_text(doc.model_dump(mode="json"), indent=indent, where=doc.document)
+    """JSON text of a document: a pydantic model, or plain data from `features_doc` (numpy arrays serialised as
+    lists; every number in it is checked finite where it was made). Indented by 2 unless `indent` is None.
+
+    orjson writes each float as the shortest text that reads back as the same double, as Python's repr does
+    (1e-6 where repr writes 1e-06)."""
+    if not isinstance(doc, dict):
+        doc = doc.model_dump(mode="json")  # a model refuses non-finite numbers when it is made
+    return _dumps(doc, indent).decode() + "\n"
 
 
 # --------------------------------------------------------------------------- disturbed output
@@ -120,7 +170,7 @@ class JsonLines:
         fd, self.tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
         self.fh = open(fd, "w", encoding="utf-8")  # noqa: SIM115 - closed in close()/abort()
 
-    def write(self, doc: Features) -> None:
+    def write(self, doc: dict | Features) -> None:
         self.fh.write(to_json(doc, indent=None))
 
     def close(self) -> None:
