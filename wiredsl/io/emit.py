@@ -248,12 +248,10 @@ class NpzStream:
                 starts.append(s.start[:-1] + offset)
                 offset += len(s.pts)
                 frag = _json_fragments(s) if renumber else s.fragment
-                rows.append(np.column_stack([trials_of[s.trial], np.full(s.n_strokes, result.index),
-                                             np.full(s.n_strokes, cam), s.fid, s.segment, s.kind, s.clipped, s.closed,
-                                             frag, s.occluded]))
+                rows.append(_int32_rows(trials_of[s.trial], result.index, cam, s.fid, s.segment, s.kind, s.clipped,
+                                        s.closed, frag, s.occluded))
                 corners.append(s.corners)
-                crows.append(np.column_stack([trials_of[s.corner_trial], np.full(len(s.corner_trial), result.index),
-                                              np.full(len(s.corner_trial), cam), s.corner_fid]))
+                crows.append(_int32_rows(trials_of[s.corner_trial], result.index, cam, s.corner_fid))
         b = f"b{self.n:05d}"
         width = len(layout.STROKE_COLUMNS)
         self.member(f"{b}_pts", np.concatenate(pts) if pts else np.zeros((0, 2)), np.float32)
@@ -293,6 +291,16 @@ def _discard(tmp: str, *closers) -> None:
     for close in closers:
         with contextlib.suppress(OSError, ValueError):
             close()
+
+
+def _int32_rows(first: np.ndarray, *columns) -> np.ndarray:
+    """Rows (len(first), 1 + len(columns)) of int32, one column each (a scalar fills its column). Every value
+    fits: trials are below 2**31 (cli.MAX_TRIAL), poses, cameras, features and codes far below."""
+    out = np.empty((len(first), 1 + len(columns)), dtype=np.int32)
+    out[:, 0] = first
+    for j, c in enumerate(columns, 1):
+        out[:, j] = c
+    return out
 
 
 def _rows(parts: list, width: int, dtype: type = np.int64) -> np.ndarray:
