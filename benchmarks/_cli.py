@@ -7,10 +7,12 @@ figure comes from os.wait4 on that one child, so a run's peak RSS is its own, no
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
 
@@ -52,3 +54,9 @@ def best(args: list[str], repeat: int) -> Child:
 def load() -> str:
     """The machine's load averages (1, 5, 15 minutes): the benchmarks print them before and after."""
     return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def lab_folder(folder: Path) -> None:
+    """What a variant of scenes/lab.wd written into `folder` needs beside it: its models and calibration file."""
+    shutil.copytree("scenes/models", folder / "models")
+    shutil.copy("scenes/lab.info", folder / "lab.info")

@@ -13,7 +13,6 @@ import argparse
 import math
 import os
 import re
-import shutil
 import sys
 import tempfile
 import time
@@ -22,7 +21,7 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, os.path.dirname(__file__))
 
-from _cli import load, wiredsl  # noqa: E402
+from _cli import lab_folder, load, wiredsl  # noqa: E402
 
 PLACE = re.compile(r"^place (\w+) as (\w+)(?: at \(([^)]*)\))?(.*)$")
 
@@ -80,8 +79,7 @@ def main() -> None:
     print(load())
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        shutil.copytree("scenes/models", folder / "models")
-        shutil.copy("scenes/lab.info", folder / "lab.info")
+        lab_folder(folder)
         print("| scale | world features | features in the views | view-point lists (s) | projection (s) | "
               "whole ideal build (s) | ms per emitted feature |")
         print("|---|---|---|---|---|---|---|")

@@ -14,14 +14,13 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import shutil
 import sys
 import tempfile
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(__file__))
 
-from _cli import best, load  # noqa: E402
+from _cli import best, lab_folder, load  # noqa: E402
 
 
 def views(folder: str) -> int:
@@ -39,8 +38,7 @@ def main() -> None:
     print(load())
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        shutil.copytree("scenes/models", folder / "models")
-        shutil.copy("scenes/lab.info", folder / "lab.info")
+        lab_folder(folder)
         text = Path("scenes/lab.wd").read_text(encoding="utf-8")
         (folder / "short.wd").write_text(text, encoding="utf-8")
         (folder / "long.wd").write_text(re.sub(r"step 0\.4m", f"step {args.step}m", text), encoding="utf-8")

@@ -6,7 +6,6 @@ import hashlib
 import zipfile
 
 import numpy as np
-
 from click.testing import CliRunner
 
 from wiredsl.cli import main
