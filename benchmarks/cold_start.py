@@ -4,7 +4,8 @@ same run (target: build within 1.5x of the imports).
 
     python benchmarks/cold_start.py [--repeat 7]
 
-`python -X importtime -m wiredsl build ...` shows where the imports' time goes.
+`python -X importtime -m wiredsl build ...` shows where the imports' time goes; `--phases` prints the CPU time
+of each phase of the paper build in a new process (imports, compiling, projection, the trial, dump, SVGs).
 """
 
 from __future__ import annotations
@@ -16,13 +17,47 @@ import tempfile
 
 sys.path.insert(0, os.path.dirname(__file__))
 
-from _cli import best, load  # noqa: E402
+from _cli import best, load, run  # noqa: E402
+
+PHASES = """
+import time
+marks = [("start", time.process_time())]
+def mark(name):
+    marks.append((name, time.process_time()))
+import numpy, lark, click, pydantic; mark("import numpy, lark, click, pydantic")
+import pydantic.main; mark("import pydantic.main (pydantic's models; `import pydantic` is lazy)")
+import wiredsl.cli; mark("import wiredsl.cli")
+import wiredsl.language.compile; mark("import the compiler, the scene's and the effects' models")
+import wiredsl.engine.simulate; mark("import the engine (simulate, visibility, occlusion, conics)")
+import wiredsl.engine.montecarlo, wiredsl.io.emit, wiredsl.io.svg; mark("import montecarlo, emit, svg")
+from wiredsl.language.compile import compile_file
+scene, _, _ = compile_file("scenes/lab.wd"); mark("compile scenes/lab.wd")
+from wiredsl.engine.world import build_world
+from wiredsl.engine.montecarlo import Run
+from wiredsl.engine.simulate import Options
+world = build_world(scene)
+run = Run.create(scene, world, scene.pipeline(), 1, Options()); run.engine = "numpy"
+run.ideal(); mark("world, view-point lists, ideal projection")
+(b, out), = list(run.batches([0])); mark("the paper trial (numpy path)")
+from wiredsl.io import emit, svg
+res = emit.disturbed_results(out, 0)
+emit.to_json(emit.features_doc(scene, world, res, pipeline="paper", stages=emit.stage_records(run), seed=1, trial=0))
+mark("the dump (JSON text)")
+svg.pose_figures(run, res, "overlay", svg.Info("paper", 1, 0, "scene", "overlay")); mark("the SVGs")
+for (_, a), (name, b) in zip(marks, marks[1:]):
+    print(f"  {name:70s} {1e3 * (b - a):6.1f} ms CPU")
+print(f"  {'total':70s} {1e3 * (marks[-1][1] - marks[0][1]):6.1f} ms CPU")
+"""
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--phases", action="store_true", help="only the phases of a paper build, in a new process")
     args = ap.parse_args()
+    if args.phases:
+        run(["-c", PHASES], quiet=False)
+        return
     print(load())
     bare = best(["-c", "pass"], args.repeat)
     imports = best(["-c", "import numpy, lark, click, pydantic"], args.repeat)
