@@ -215,55 +215,10 @@ class NpzStream:
         self.write_batch([0], out, renumber=False)
 
     def write_batch(self, batch: list[int], batch_out, renumber: bool = True) -> None:
-        """One batch's strokes, corners, views (and conics); `fragment` numbered as the JSON dump numbers it."""
-        pts, starts, rows, corners, crows, views, vcams, vposes, conics_, krows = ([] for _ in range(10))
-        offset = 0
-        trials_of = np.asarray(batch, dtype=np.int64)
-        T = len(trials_of)
-        for result, disturbed, per_trial in batch_out:
-            for cam, side in enumerate(("left", "right")):
-                s = disturbed.get(side)
-                if s is None:
-                    continue
-                v = per_trial and per_trial[side]
-                views.append(np.column_stack([trials_of, np.full(T, result.index), np.full(T, cam)]))
-                if v and not callable(v):  # each trial projected from scratch (--exact-calibration)
-                    vcams.append([[float(getattr(b.camera, c)) for c in layout.CAMERA_COLUMNS] for b in v[:T]])
-                    vposes.append([np.concatenate([np.ravel(b.R_cw), b.t_cw]) for b in v[:T]])
-                elif v:  # each trial's perturbed camera, from the batch's arrays
-                    vcams.append(v.cameras(layout.CAMERA_COLUMNS))
-                    vposes.append(v.poses())
-                else:  # every trial sees through the view's own camera
-                    base = getattr(result, side)
-                    vcams.append(np.tile([float(getattr(base.camera, c)) for c in layout.CAMERA_COLUMNS], (T, 1)))
-                    vposes.append(np.tile(np.concatenate([np.ravel(base.R_cw), base.t_cw]), (T, 1)))
-                if not renumber:  # the ideal projection (one trial): its analytic conics too
-                    for t in batch:
-                        for f in getattr(result, side).features:
-                            if f.kind == "conic":
-                                centre, axes, angle, arc = f.conic
-                                conics_.append([*centre, *axes, angle, *(arc if arc is not None else (0.0, 0.0))])
-                                krows.append([t, result.index, cam, f.fid, f.clipped, arc is not None])
-                pts.append(s.pts)
-                starts.append(s.start[:-1] + offset)
-                offset += len(s.pts)
-                frag = _json_fragments(s) if renumber else s.fragment
-                rows.append(_int32_rows(trials_of[s.trial], result.index, cam, s.fid, s.segment, s.kind, s.clipped,
-                                        s.closed, frag, s.occluded))
-                corners.append(s.corners)
-                crows.append(_int32_rows(trials_of[s.corner_trial], result.index, cam, s.corner_fid))
+        """One batch's members (`batch_arrays`), as b{n}_<name>, each in its file type."""
         b = f"b{self.n:05d}"
-        width = len(layout.STROKE_COLUMNS)
-        self.member(f"{b}_pts", np.concatenate(pts) if pts else np.zeros((0, 2)), np.float32)
-        self.member(f"{b}_start", np.concatenate([*starts, [offset]]), np.int64)
-        self.member(f"{b}_strokes", np.concatenate(rows) if rows else np.zeros((0, width), int), np.int32)
-        self.member(f"{b}_corners", np.concatenate(corners).reshape(-1, 2), np.float32)
-        self.member(f"{b}_corner_rows", np.concatenate(crows).reshape(-1, len(layout.CORNER_COLUMNS)), np.int32)
-        self.member(f"{b}_views", _rows(views, len(layout.VIEW_COLUMNS)), np.int32)
-        self.member(f"{b}_view_cameras", _rows(vcams, len(layout.CAMERA_COLUMNS), np.float64))
-        self.member(f"{b}_view_poses", _rows(vposes, 12, np.float64))
-        self.member(f"{b}_conics", np.array(conics_, dtype=np.float64).reshape(-1, 7))
-        self.member(f"{b}_conic_rows", np.array(krows).reshape(-1, len(layout.CONIC_COLUMNS)), np.int32)
+        for name, a in batch_arrays(batch, batch_out, renumber).items():
+            self.member(f"{b}_{name}", a, NPZ_TYPES.get(name))
         self.n += 1
 
     def close(self, feature_ids: list[str], manifest: dict) -> None:
@@ -279,6 +234,67 @@ class NpzStream:
     def abort(self) -> None:
         fh = self.zf.fp
         _discard(self.tmp, self.zf.close, fh.close)
+
+
+NPZ_TYPES = {"pts": np.float32, "start": np.int64, "strokes": np.int32, "corners": np.float32,
+             "corner_rows": np.int32, "views": np.int32, "conic_rows": np.int32}  # the rest: float64
+
+
+def batch_arrays(batch: list[int], batch_out, renumber: bool = True) -> dict[str, np.ndarray]:
+    """One batch's strokes, corners, views (and conics) as the npz members of a batch (layout.py), without
+    the b{n}_ prefix and at full precision; `fragment` numbered as the JSON dump numbers it.
+
+    Whole arrays a view: trials' cameras and poses come from the batch's arrays (montecarlo.TrialViews), not
+    from a camera model a trial."""
+    pts, starts, rows, corners, crows, views, vcams, vposes, conics_, krows = ([] for _ in range(10))
+    offset = 0
+    trials_of = np.asarray(batch, dtype=np.int64)
+    T = len(trials_of)
+    for result, disturbed, per_trial in batch_out:
+        for cam, side in enumerate(("left", "right")):
+            s = disturbed.get(side)
+            if s is None:
+                continue
+            v = per_trial and per_trial[side]
+            views.append(_int32_rows(trials_of, result.index, cam))
+            if v and not callable(v):  # each trial projected from scratch (--exact-calibration)
+                vcams.append([[float(layout.camera_value(b.camera, c)) for c in layout.CAMERA_COLUMNS] for b in v[:T]])
+                vposes.append([np.concatenate([np.ravel(b.R_cw), b.t_cw]) for b in v[:T]])
+            elif v:  # each trial's perturbed camera, from the batch's arrays
+                vcams.append(v.cameras(layout.CAMERA_COLUMNS, layout.camera_value))
+                vposes.append(v.poses())
+            else:  # every trial sees through the view's own camera
+                base = getattr(result, side)
+                vcams.append(np.tile([float(layout.camera_value(base.camera, c)) for c in layout.CAMERA_COLUMNS],
+                                     (T, 1)))
+                vposes.append(np.tile(np.concatenate([np.ravel(base.R_cw), base.t_cw]), (T, 1)))
+            if not renumber:  # the ideal projection (one trial): its analytic conics too
+                for t in batch:
+                    for f in getattr(result, side).features:
+                        if f.kind == "conic":
+                            centre, axes, angle, arc = f.conic
+                            conics_.append([*centre, *axes, angle, *(arc if arc is not None else (0.0, 0.0))])
+                            krows.append([t, result.index, cam, f.fid, f.clipped, arc is not None])
+            pts.append(s.pts)
+            starts.append(s.start[:-1] + offset)
+            offset += len(s.pts)
+            frag = _json_fragments(s) if renumber else s.fragment
+            rows.append(_int32_rows(trials_of[s.trial], result.index, cam, s.fid, s.segment, s.kind, s.clipped,
+                                    s.closed, frag, s.occluded))
+            corners.append(s.corners)
+            crows.append(_int32_rows(trials_of[s.corner_trial], result.index, cam, s.corner_fid))
+    return {
+        "pts": np.concatenate(pts) if pts else np.zeros((0, 2)),
+        "start": np.concatenate([*starts, [offset]]).astype(np.int64),
+        "strokes": _rows(rows, len(layout.STROKE_COLUMNS), np.int32),
+        "corners": np.concatenate(corners).reshape(-1, 2) if corners else np.zeros((0, 2)),
+        "corner_rows": _rows(crows, len(layout.CORNER_COLUMNS), np.int32),
+        "views": _rows(views, len(layout.VIEW_COLUMNS), np.int32),
+        "view_cameras": _rows(vcams, len(layout.CAMERA_COLUMNS), np.float64),
+        "view_poses": _rows(vposes, 12, np.float64),
+        "conics": np.array(conics_, dtype=np.float64).reshape(-1, 7),
+        "conic_rows": np.array(krows).reshape(-1, len(layout.CONIC_COLUMNS)),
+    }
 
 
 def _discard(tmp: str, *closers) -> None:
