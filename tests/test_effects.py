@@ -291,7 +291,7 @@ def test_npz_streams_batches_and_carries_the_manifest(tmp_path):
     assert r.exit_code == 0, r.output
     z = np.load(tmp_path / "features.npz")
     batches = sorted({k.split("_")[0] for k in z.files if k.startswith("b")})
-    assert len(batches) == math.ceil(300 / 256)
+    assert len(batches) == math.ceil(300 / 128)  # the lab's batches: 128 trials (Run.batch_size)
     rows = np.concatenate([z[f"{b}_strokes"] for b in batches])
     assert sorted(set(rows[:, 0].tolist())) == list(range(300))
     manifest = json.loads(str(z["manifest"]))

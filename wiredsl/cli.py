@@ -545,13 +545,15 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
             run = runs.start(scene, pipeline, seed=seed, options=opts, world=world, engine=engine,
                              exact_calibration=exact_calibration)
     shown = only_trial if only_trial is not None else trial_list[0]  # the trial the SVGs show
+    if run.uses_kernel():
+        _numba_without_blas()
     effects = bool(run.stages)
     if effects:
         seed = run.seed  # drawn by start() when not given
     records = emit.stage_records(run)
 
     def doc_for(results, k):
-        return emit.features(scene, world, results, pipeline=pipeline.name if pipeline else None, stages=records,
+        return emit.features_doc(scene, world, results, pipeline=pipeline.name if pipeline else None, stages=records,
                              seed=seed if effects else None, trial=k if effects else None)
 
     if len(trial_list) > 1 and not force:
@@ -625,6 +627,19 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                    f"seed {seed if effects else '-'}"
                    + (f", pipeline {pipeline.name}: {', '.join(e.name for e, _ in run.stages)}" if effects else
                       ", ideal projection") + ")", err=True)
+
+
+def _numba_without_blas() -> None:
+    """Load numba's array functions without looking for a BLAS: the compiled kernels call none, and the look-up
+    imports scipy.linalg (0.15-0.2 s CPU, a third of loading the cached kernel). For this command's process
+    only: a library user's own numba code in the same process keeps its np.dot."""
+    if "numba.np.arraymath" in sys.modules or "scipy.linalg.cython_blas" in sys.modules:
+        return  # too late, or scipy.linalg already paid for
+    sys.modules["scipy.linalg.cython_blas"] = None  # an import of it raises ImportError: "no BLAS"
+    try:
+        import numba.np.arraymath  # noqa: F401
+    finally:
+        del sys.modules["scipy.linalg.cython_blas"]
 
 
 @contextlib.contextmanager

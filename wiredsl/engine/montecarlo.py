@@ -14,7 +14,7 @@ is shared by all trials; with it, each trial projects its own perturbed rig.
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,7 +37,11 @@ from wiredsl.engine.simulate import (
 from wiredsl.engine.world import World
 from wiredsl.scene import Scene
 
-BATCH = 256  # trials per batch: bounds memory whatever the number of trials
+BATCH = 256  # trials per batch at most: bounds memory whatever the number of trials
+BATCH_BYTES = 32 * 2**20  # what one batch may hold (kernel output and the writer's copies), about
+# bytes a trial holds per vertex and per stroke of its views, measured (peak RSS of 1,000 `paper` trials of the
+# lab and of benchmarks/big_scene.py's 10x lab at several batch sizes): the writer's rows weigh on the strokes
+VERTEX_BYTES, STROKE_BYTES = 16, 512
 CULL = 0.25  # raw strokes wholly beyond the image grown by this fraction of its size are not re-projected
 
 
@@ -131,16 +135,31 @@ class Run:
             self._epipoles[key] = e / np.linalg.norm(e)
         return self._epipoles[key]
 
-    def batches(self, trials: Sequence[int], size: int = BATCH
+    def batches(self, trials: Sequence[int], size: int | None = None
                 ) -> Iterator[tuple[Sequence[int], list[tuple[PoseResult, dict]]]]:
         """For each batch of trials: per pose, the ideal result and {side: disturbed ImageSet of the batch}.
 
         `trials` is any sequence (a range for a run: nothing is built for the trials not yet reached), and
-        each trial's output is the same whichever trials share its batch.
+        each trial's output is the same whichever trials share its batch. `size`: trials a batch (default:
+        `batch_size()`, sized to the scene).
         """
+        size = size or self.batch_size()
         for lo in range(0, len(trials), size):
             batch = trials[lo:lo + size]
             yield batch, self._batch(batch)
+
+    def batch_size(self) -> int:
+        """Trials a batch: the largest power of two up to BATCH whose trials' strokes fit in BATCH_BYTES, so
+        that memory stays bounded in a scene with many features in view (one trial at least)."""
+        raw = self.sampler() is not None and not self.exact_calibration
+        vertices = strokes = 0
+        for result in self.ideal():
+            for side in ("left", "right"):
+                if getattr(result, side) is not None:
+                    template = self.template(result, side, raw=raw)[0]
+                    vertices, strokes = vertices + len(template.pts), strokes + template.n_strokes
+        fits = BATCH_BYTES // max(VERTEX_BYTES * vertices + STROKE_BYTES * strokes, 1)
+        return int(min(BATCH, 2 ** int(np.log2(fits)) if fits >= 1 else 1))
 
     def calibration_draws(self, batch: Sequence[int]) -> np.ndarray:
         """The batch's calibration perturbations (T, m), each checked: a draw that leaves a camera without a
@@ -541,12 +560,30 @@ def reproject(view: View, world: World, rig: dict, pose: tuple, side: str, templ
     return rep, view_maker(rig, R_cw, t_cw, side)
 
 
-def view_maker(rig: dict, R_cw: np.ndarray, t_cw: np.ndarray, side: str):
-    """A function giving trial k's View (its perturbed camera and pose) for the dump."""
-    p, cam = rig["params"], rig["camera"]
+def view_maker(rig: dict, R_cw: np.ndarray, t_cw: np.ndarray, side: str) -> TrialViews:
+    """Every trial's View (its perturbed camera and pose) for the dump."""
+    return TrialViews(rig, R_cw, t_cw, side)
 
-    def view_of(k: int) -> View:
-        fields = {key: float(p[key][k]) for key in p}
-        return View(cam.model_copy(update={**fields, "name": f"{cam.name}:{side}"}), R_cw[k], t_cw[k])
 
-    return view_of
+class TrialViews:
+    """The perturbed cameras and poses of a batch's trials for one side: trial k's View by `views(k)`, and all
+    of them as arrays (`cameras`, `poses`) for the npz writer, which needs no model a trial."""
+
+    def __init__(self, rig: dict, R_cw: np.ndarray, t_cw: np.ndarray, side: str):
+        self.params, self.camera, self.R_cw, self.t_cw, self.side = rig["params"], rig["camera"], R_cw, t_cw, side
+
+    def __call__(self, k: int) -> View:
+        cam = self.camera
+        fields = {key: float(self.params[key][k]) for key in self.params}
+        return View(cam.model_copy(update={**fields, "name": f"{cam.name}:{self.side}"}), self.R_cw[k], self.t_cw[k])
+
+    def cameras(self, columns: Sequence[str], value: Callable) -> np.ndarray:
+        """(T, len(columns)) float64: each trial's camera parameter of each column; an unperturbed one is
+        `value(camera, column)` repeated."""
+        T = len(self.R_cw)
+        return np.column_stack([np.broadcast_to(np.asarray(self.params[c], dtype=np.float64), (T,))
+                                if c in self.params else np.full(T, float(value(self.camera, c))) for c in columns])
+
+    def poses(self) -> np.ndarray:
+        """(T, 12) float64: each trial's R_cw (row-major) and t_cw."""
+        return np.concatenate([self.R_cw.reshape(-1, 9), self.t_cw.reshape(-1, 3)], axis=1)

@@ -14,19 +14,9 @@ from wiredsl.engine.simulate import PoseResult
 from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
 from wiredsl.io import layout
-from wiredsl.io.features import (
-    Features,
-    ImageConic,
-    ImageCorner,
-    ImageLine,
-    ImagePolyline,
-    PoseViews,
-    SceneRef,
-    StageRecord,
-    View,
-)
+from wiredsl.io.features import Features, SceneRef, StageRecord
 from wiredsl.io.files import json_text, publish, require_finite
-from wiredsl.scene import Scene
+from wiredsl.scene import SCHEMA_VERSION, Scene
 
 DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable across platforms
 
@@ -44,33 +34,91 @@ def _r(x: float, decimals: int | None = DECIMALS) -> float:
     return 0.0 if v == 0 else v  # no "-0.0" in dumps
 
 
-def _pts(a: np.ndarray) -> list[tuple[float, float]]:
-    return [(_r(p[0]), _r(p[1])) for p in a]
+def rounded(a: np.ndarray, where: str, decimals: int = DECIMALS) -> np.ndarray:
+    """Array `a` rounded to `decimals` exactly as Python's round(x, decimals) rounds each element (no -0.0),
+    or UnwritableValue when an element is not finite.
+
+    np.round scales, rounds to an integer and scales back: it gives round()'s double whenever the scaled value
+    is not within its rounding error of a half-integer, so only those few (and values too large to scale) are
+    rounded one by one."""
+    a = require_finite(np.ascontiguousarray(a, dtype=np.float64), where)
+    scale = 10.0 ** decimals
+    scaled = a * scale
+    out = np.round(scaled) / scale
+    near = (np.abs(scaled - np.floor(scaled) - 0.5) < 1e-3) | (np.abs(scaled) >= 2.0 ** 52)
+    for i in np.flatnonzero(near):
+        out.flat[i] = round(float(a.flat[i]), decimals)
+    return out + 0.0  # -0.0 + 0.0 is 0.0: no "-0.0" in dumps
 
 
-def _view(v: SimView, world: World) -> View:
+def _full(a) -> np.ndarray:
+    """A pose's matrix or vector at full precision, checked finite, without -0.0."""
+    return require_finite(np.ascontiguousarray(a, dtype=np.float64), "a camera pose") + 0.0
+
+
+_CORNER, _STROKE = ("corner",), ("line", "polyline")
+
+
+def _view(v: SimView, world: World, cameras: dict) -> dict:
+    """One view as the dump's `View` document (plain data: numpy arrays where the dump has lists of numbers).
+
+    Every stroke's and corner's pixels are rounded at once; the fields come in the models' order."""
+    feats = v.features
+    pointed = [f for f in feats if f.kind in _STROKE or f.kind in _CORNER]
+    ends = np.cumsum([0] + [len(f.points) for f in pointed])
+    pts = rounded(np.concatenate([f.points for f in pointed]) if pointed else np.zeros((0, 2)), "a pixel")
+    at = dict(zip(map(id, pointed), zip(ends[:-1].tolist(), ends[1:].tolist(), strict=True), strict=True))
     lines, polylines, conics_, corners = [], [], [], []
-    for f in v.features:
-        common = {"source": world.feature_ids[f.fid], "segment": None if f.segment < 0 else f.segment,
-                  "fragment": None if f.fragment < 0 else f.fragment, "clipped": f.clipped, "occluded": f.occluded}
+    for f in feats:
+        d = {"source": world.feature_ids[f.fid], "segment": None if f.segment < 0 else f.segment,
+             "fragment": None if f.fragment < 0 else f.fragment, "clipped": f.clipped, "occluded": f.occluded,
+             "kind": f.kind}
         if f.kind == "line":
-            lines.append(ImageLine(points=tuple(_pts(f.points)), **common))
+            lo, hi = at[id(f)]
+            d["points"] = pts[lo:hi]
+            lines.append(d)
         elif f.kind == "polyline":
-            polylines.append(ImagePolyline(points=_pts(f.points), closed=f.closed, **common))
+            lo, hi = at[id(f)]
+            d["points"], d["closed"] = pts[lo:hi], f.closed
+            polylines.append(d)
         elif f.kind == "conic":
             centre, axes, angle, arc = f.conic
-            conics_.append(ImageConic(centre=(_r(centre[0]), _r(centre[1])), axes=(_r(axes[0]), _r(axes[1])),
-                                      angle=_r(angle), arc=None if arc is None else (_r(arc[0]), _r(arc[1])),
-                                      **common))
+            d.update(centre=(_r(centre[0]), _r(centre[1])), axes=(_r(axes[0]), _r(axes[1])), angle=_r(angle),
+                     arc=None if arc is None else (_r(arc[0]), _r(arc[1])))
+            conics_.append(d)
         elif f.kind == "corner":
-            corners.append(ImageCorner(at=(_r(f.points[0, 0]), _r(f.points[0, 1])), **common))
+            lo, _ = at[id(f)]
+            d["at"] = pts[lo]
+            corners.append(d)
         else:
             raise ValueError(f"unknown feature kind {f.kind!r}")
+    if id(v.camera) not in cameras:
+        cameras[id(v.camera)] = v.camera.model_dump(mode="json")
     # the camera's pose at full precision: re-projecting through it must give the dumped pixels
-    R = tuple(tuple(_r(x, None) for x in row) for row in v.R_cw)
-    t = tuple(_r(x, None) for x in v.t_cw)
-    return View(camera=v.camera, rotation=R, translation=t, lines=lines, polylines=polylines, conics=conics_,
-                corners=corners)
+    return {"camera": cameras[id(v.camera)], "rotation": _full(v.R_cw).reshape(3, 3), "translation": _full(v.t_cw),
+            "lines": lines, "polylines": polylines, "conics": conics_, "corners": corners}
+
+
+def features_doc(scene: Scene, world: World, results: list[PoseResult], *, pipeline: str | None = None,
+                 stages: list[StageRecord] = (), seed: int | None = None, trial: int | None = None) -> dict:
+    """The features dump as plain data, what `Features(...).model_dump(mode="json")` gives, built from the
+    engine's arrays without a model a feature (numpy arrays in place of lists of numbers: see `to_json`)."""
+    cameras: dict = {}
+    poses = [_pose_doc(r, world, cameras) for r in results]
+    return {"document": "features", "schema_version": SCHEMA_VERSION, "tool_version": __version__,
+            "scene": scene_ref(scene).model_dump(mode="json"), "pipeline": pipeline,
+            "stages": [s.model_dump(mode="json") for s in stages], "seed": seed, "trial": trial, "poses": poses}
+
+
+def _pose_doc(r: PoseResult, world: World, cameras: dict) -> dict:
+    """One pose's `PoseViews` document (its `transform` only for a 6-DoF pose, as the model dumps it)."""
+    d = {"index": r.index, "pose": [_r(x) for x in geometry.floor_pose(r.pose)]}
+    transform = _transform(r.pose)
+    if transform is not None:
+        d["transform"] = transform
+    d.update(viewpoint=r.viewpoint, left=_view(r.left, world, cameras),
+             right=None if r.right is None else _view(r.right, world, cameras))
+    return d
 
 
 def _transform(pose: tuple) -> tuple | None:
@@ -83,16 +131,26 @@ def _transform(pose: tuple) -> tuple | None:
 
 def features(scene: Scene, world: World, results: list[PoseResult], *, pipeline: str | None = None,
              stages: list[StageRecord] = (), seed: int | None = None, trial: int | None = None) -> Features:
-    poses = [PoseViews(index=r.index, pose=tuple(_r(x) for x in geometry.floor_pose(r.pose)),
-                       transform=_transform(r.pose), viewpoint=r.viewpoint, left=_view(r.left, world),
-                       right=None if r.right is None else _view(r.right, world))
-             for r in results]
-    return Features(tool_version=__version__, scene=scene_ref(scene), pipeline=pipeline, stages=list(stages),
-                    seed=seed, trial=trial, poses=poses)
+    """The features dump as its pydantic model (validated): `features_doc` read back."""
+    doc = features_doc(scene, world, results, pipeline=pipeline, stages=stages, seed=seed, trial=trial)
+    return Features.model_validate_json(_dumps(doc, None))
+
+
+def _dumps(doc, indent: int | None) -> bytes:
+    import orjson
+
+    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY | (orjson.OPT_INDENT_2 if indent else 0))
 
 
 def to_json(doc, indent: int | None = 1) -> str:
-    return json_text(doc.model_dump(mode="json"), indent=indent, where=doc.document)
+    """JSON text of a document: a pydantic model, or plain data from `features_doc` (numpy arrays serialised as
+    lists; every number in it is checked finite where it was made). Indented by 2 unless `indent` is None.
+
+    orjson writes each float as the shortest text that reads back as the same double, as Python's repr does
+    (1e-6 where repr writes 1e-06)."""
+    if not isinstance(doc, dict):
+        doc = doc.model_dump(mode="json")  # a model refuses non-finite numbers when it is made
+    return _dumps(doc, indent).decode() + "\n"
 
 
 # --------------------------------------------------------------------------- disturbed output
@@ -130,7 +188,7 @@ class JsonLines:
         fd, self.tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=self.path.parent)
         self.fh = open(fd, "w", encoding="utf-8")  # noqa: SIM115 - closed in close()/abort()
 
-    def write(self, doc: Features) -> None:
+    def write(self, doc: dict | Features) -> None:
         self.fh.write(to_json(doc, indent=None))
 
     def close(self) -> None:
@@ -202,47 +260,56 @@ NPZ_TYPES = {"pts": np.float32, "start": np.int64, "strokes": np.int32, "corners
 
 def batch_arrays(batch: list[int], batch_out, renumber: bool = True) -> dict[str, np.ndarray]:
     """One batch's strokes, corners, views (and conics) as the npz members of a batch (layout.py), without
-    the b{n}_ prefix and at full precision; `fragment` numbered as the JSON dump numbers it."""
+    the b{n}_ prefix and at full precision; `fragment` numbered as the JSON dump numbers it.
+
+    Whole arrays a view: trials' cameras and poses come from the batch's arrays (montecarlo.TrialViews), not
+    from a camera model a trial."""
     pts, starts, rows, corners, crows, views, vcams, vposes, conics_, krows = ([] for _ in range(10))
     offset = 0
+    trials_of = np.asarray(batch, dtype=np.int64)
+    T = len(trials_of)
     for result, disturbed, per_trial in batch_out:
         for cam, side in enumerate(("left", "right")):
             s = disturbed.get(side)
             if s is None:
                 continue
-            for k, t in enumerate(batch):  # each trial's camera as projected
-                v = per_trial and per_trial[side]
-                base = getattr(result, side) if not v else v(k) if callable(v) else v[k]
-                views.append((t, result.index, cam))
-                vcams.append([float(layout.camera_value(base.camera, c)) for c in layout.CAMERA_COLUMNS])
-                vposes.append(np.concatenate([np.ravel(base.R_cw), base.t_cw]))
-                if not renumber:  # the ideal projection: its analytic conics too
-                    for f in base.features:
+            v = per_trial and per_trial[side]
+            views.append(_int32_rows(trials_of, result.index, cam))
+            if v and not callable(v):  # each trial projected from scratch (--exact-calibration)
+                vcams.append([[float(layout.camera_value(b.camera, c)) for c in layout.CAMERA_COLUMNS] for b in v[:T]])
+                vposes.append([np.concatenate([np.ravel(b.R_cw), b.t_cw]) for b in v[:T]])
+            elif v:  # each trial's perturbed camera, from the batch's arrays
+                vcams.append(v.cameras(layout.CAMERA_COLUMNS, layout.camera_value))
+                vposes.append(v.poses())
+            else:  # every trial sees through the view's own camera
+                base = getattr(result, side)
+                vcams.append(np.tile([float(layout.camera_value(base.camera, c)) for c in layout.CAMERA_COLUMNS],
+                                     (T, 1)))
+                vposes.append(np.tile(np.concatenate([np.ravel(base.R_cw), base.t_cw]), (T, 1)))
+            if not renumber:  # the ideal projection (one trial): its analytic conics too
+                for t in batch:
+                    for f in getattr(result, side).features:
                         if f.kind == "conic":
                             centre, axes, angle, arc = f.conic
                             conics_.append([*centre, *axes, angle, *(arc if arc is not None else (0.0, 0.0))])
                             krows.append([t, result.index, cam, f.fid, f.clipped, arc is not None])
-            trials = np.asarray(batch)[s.trial]
             pts.append(s.pts)
             starts.append(s.start[:-1] + offset)
             offset += len(s.pts)
             frag = _json_fragments(s) if renumber else s.fragment
-            rows.append(np.column_stack([trials, np.full(s.n_strokes, result.index), np.full(s.n_strokes, cam),
-                                         s.fid, s.segment, s.kind, s.clipped, s.closed, frag, s.occluded]))
-            ctrials = np.asarray(batch)[s.corner_trial]
+            rows.append(_int32_rows(trials_of[s.trial], result.index, cam, s.fid, s.segment, s.kind, s.clipped,
+                                    s.closed, frag, s.occluded))
             corners.append(s.corners)
-            crows.append(np.column_stack([ctrials, np.full(len(ctrials), result.index),
-                                          np.full(len(ctrials), cam), s.corner_fid]))
-    width = len(layout.STROKE_COLUMNS)
+            crows.append(_int32_rows(trials_of[s.corner_trial], result.index, cam, s.corner_fid))
     return {
         "pts": np.concatenate(pts) if pts else np.zeros((0, 2)),
         "start": np.concatenate([*starts, [offset]]).astype(np.int64),
-        "strokes": np.concatenate(rows) if rows else np.zeros((0, width), int),
-        "corners": np.concatenate(corners).reshape(-1, 2),
-        "corner_rows": np.concatenate(crows).reshape(-1, len(layout.CORNER_COLUMNS)),
-        "views": np.array(views).reshape(-1, len(layout.VIEW_COLUMNS)),
-        "view_cameras": np.array(vcams, dtype=np.float64).reshape(-1, len(layout.CAMERA_COLUMNS)),
-        "view_poses": np.array(vposes, dtype=np.float64).reshape(-1, 12),
+        "strokes": _rows(rows, len(layout.STROKE_COLUMNS), np.int32),
+        "corners": np.concatenate(corners).reshape(-1, 2) if corners else np.zeros((0, 2)),
+        "corner_rows": _rows(crows, len(layout.CORNER_COLUMNS), np.int32),
+        "views": _rows(views, len(layout.VIEW_COLUMNS), np.int32),
+        "view_cameras": _rows(vcams, len(layout.CAMERA_COLUMNS), np.float64),
+        "view_poses": _rows(vposes, 12, np.float64),
         "conics": np.array(conics_, dtype=np.float64).reshape(-1, 7),
         "conic_rows": np.array(krows).reshape(-1, len(layout.CONIC_COLUMNS)),
     }
@@ -260,19 +327,41 @@ def _discard(tmp: str, *closers) -> None:
             close()
 
 
+def _int32_rows(first: np.ndarray, *columns) -> np.ndarray:
+    """Rows (len(first), 1 + len(columns)) of int32, one column each (a scalar fills its column). Every value
+    fits: trials are below 2**31 (cli.MAX_TRIAL), poses, cameras, features and codes far below."""
+    out = np.empty((len(first), 1 + len(columns)), dtype=np.int32)
+    out[:, 0] = first
+    for j, c in enumerate(columns, 1):
+        out[:, j] = c
+    return out
+
+
+def _rows(parts: list, width: int, dtype: type = np.int64) -> np.ndarray:
+    """Blocks of rows stacked into one (n, width) array (an empty one when there are none)."""
+    return np.concatenate([np.asarray(p, dtype=dtype).reshape(-1, width) for p in parts]) if parts else \
+        np.zeros((0, width), dtype=dtype)
+
+
 def _json_fragments(s) -> np.ndarray:
     """The fragment numbers the JSON dump gives (montecarlo.features_of): within a trial, the strokes of one
     (feature, segment) are numbered 0, 1, ... in order when the feature was cut, else -1."""
-    if s.n_strokes == 0:
+    n = s.n_strokes
+    if n == 0:
         return np.zeros(0, dtype=int)
-    key = np.column_stack([s.trial, s.fid, s.segment])
-    _, group, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    group = group.ravel()
-    order = np.argsort(group, kind="stable")
-    rank = np.empty(len(group), dtype=int)
-    sorted_group = group[order]
-    first = np.concatenate([[True], sorted_group[1:] != sorted_group[:-1]])
-    starts = np.maximum.accumulate(np.where(first, np.arange(len(group)), 0))
-    rank[order] = np.arange(len(group)) - starts
-    cut = (s.fragment >= 0) | (count[group] > 1)
-    return np.where(cut, rank, -1)
+    # one int64 key a stroke, (trial, feature, segment) in lexicographic order; a stable sort keeps each
+    # group's strokes in their order, so a stroke's rank in its group is its fragment number
+    trial, fid, seg = (np.asarray(a, dtype=np.int64) for a in (s.trial, s.fid, s.segment))
+    nf, ns = int(fid.max()) + 1, int(seg.max()) + 2  # segment -1 (none) is shifted to 0
+    order = np.argsort((trial * nf + fid) * ns + seg + 1, kind="stable")
+    key = ((trial * nf + fid) * ns + seg + 1)[order]
+    first = np.empty(n, dtype=bool)
+    first[0] = True
+    np.not_equal(key[1:], key[:-1], out=first[1:])
+    group_start = np.flatnonzero(first)
+    group = np.cumsum(first) - 1
+    count = np.diff(np.append(group_start, n))[group]
+    rank_sorted = np.arange(n) - group_start[group]
+    rank, counts = np.empty(n, dtype=int), np.empty(n, dtype=int)
+    rank[order], counts[order] = rank_sorted, count
+    return np.where((s.fragment >= 0) | (counts > 1), rank, -1)

@@ -1,0 +1,67 @@
+"""What the speed work must not change: the npz writer's bytes, pinned by a hash of a small run's members."""
+
+from __future__ import annotations
+
+import hashlib
+import zipfile
+
+import numpy as np
+from click.testing import CliRunner
+
+from wiredsl.cli import main
+
+# sha256 of every member but the manifest (it names the tool's version), in name order, of
+# `build scenes/lab.wd --trials 9 --format npz --seed 7 --pose 1 --pose 4 --engine numpy`; computed on the
+# writer that looped over trials and camera models, before it was vectorised (main at 5242684, npz layout 3).
+GOLDEN = "3c56cb961be53f82b3619302c6cca33ae4ee10ef99b0ad0e09e1e787e30961f7"
+
+
+def members_hash(path) -> str:
+    h = hashlib.sha256()
+    with zipfile.ZipFile(path) as z:
+        for name in sorted(z.namelist()):
+            if name != "manifest.npy":
+                h.update(name.encode())
+                h.update(z.read(name))
+    return h.hexdigest()
+
+
+def test_the_npz_writer_writes_the_same_bytes_as_before(tmp_path):
+    args = ["build", "scenes/lab.wd", "--trials", "9", "--format", "npz", "--seed", "7", "--pose", "1", "--pose", "4",
+            "--engine", "numpy", "--no-svg"]
+    result = CliRunner().invoke(main, [*args, "-o", str(tmp_path / "a")])
+    assert result.exit_code == 0, result.output
+    assert members_hash(tmp_path / "a" / "features.npz") == GOLDEN
+
+
+def test_batches_are_sized_to_the_scene_and_trials_do_not_depend_on_them():
+    from wiredsl.engine import montecarlo as mc
+    from wiredsl.engine.simulate import Options
+    from wiredsl.engine.world import build_world
+    from wiredsl.language.compile import compile_file
+
+    scene, _, _ = compile_file("scenes/lab.wd")
+    world = build_world(scene)
+    run = mc.Run.create(scene, world, scene.pipeline("edges"), 3, Options(poses=(1,)))
+    assert run.batch_size() == mc.BATCH  # one pose: every trial of a full batch fits
+    whole = mc.Run.create(scene, world, scene.pipeline("edges"), 3, Options())
+    # the lab's 14 views: 128 trials' strokes fit in BATCH_BYTES, 256 would not
+    assert whole.batch_size() == 128
+    sizes = [len(b) for b, _ in whole.batches(range(300))]
+    assert sizes == [128, 128, 44]
+    one = next(iter(run.batches([5])))[1][0][1]["left"]
+    many = [out for b, out in run.batches(range(300)) if 5 in b][0][0][1]["left"]
+    k = list(range(300)).index(5) % run.batch_size()
+    assert np.array_equal(one.pts, many.pts[np.repeat(many.trial == k, np.diff(many.start))])
+
+
+def test_rounded_arrays_are_pythons_round_to_the_last_bit():
+    from wiredsl.io.emit import rounded
+
+    rng = np.random.default_rng(5)
+    ties = (rng.integers(-10**9, 10**9, 20_000) + 0.5) / 1e6  # half-way in decimal: the hard cases
+    values = np.concatenate([ties, rng.uniform(-2000, 2000, 20_000), rng.normal(0, 1e-6, 2000), [-0.0, -1e-9, 2.5e15]])
+    got = rounded(values, "x")
+    want = [round(float(x), 6) for x in values]
+    assert [float(x).hex() for x in got] == [(w + 0.0).hex() for w in want]
+    assert not np.signbit(got[values == 0]).any()
