@@ -15,7 +15,7 @@ from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
 from wiredsl.io import layout
 from wiredsl.io.features import Features, SceneRef, StageRecord
-from wiredsl.io.files import json_text, publish, require_finite
+from wiredsl.io.files import json_text, printable_path, publish, require_finite
 from wiredsl.scene import SCHEMA_VERSION, Scene
 
 DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable across platforms
@@ -23,7 +23,7 @@ DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable acros
 
 def scene_ref(scene: Scene) -> SceneRef:
     digest = hashlib.sha256(Path(scene.source).read_bytes()).hexdigest()
-    return SceneRef(name=scene.name, file=scene.source, sha256=digest)
+    return SceneRef(name=scene.name, file=printable_path(scene.source), sha256=digest)
 
 
 def _r(x: float, decimals: int | None = DECIMALS) -> float:
