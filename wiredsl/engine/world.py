@@ -106,8 +106,13 @@ def build_world(scene: Scene) -> World:
             w.face_src.append(f"{p.name}.{fc.name}")
             v = to_world(fc.vertices)
             for i in range(1, len(v) - 1):  # a fan: faces are convex polygons
-                tris.append(np.stack([v[0], v[i], v[i + 1]]))
+                tris.append(np.stack([v[0], v[i], v[i + 1]])[None])
                 tri_face.append(len(w.face_src) - 1)
+        for sf in model.surfaces:
+            w.face_src.append(f"{p.name}.{sf.name}")
+            v = to_world(sf.vertices)
+            tris.append(v[np.array(sf.triangles, dtype=int).reshape(-1, 3)])
+            tri_face.extend([len(w.face_src) - 1] * len(sf.triangles))
     w.lines = np.array(lines, dtype=float).reshape(-1, 2, 3)
     w.line_fid = np.array(line_fid, dtype=int)
     w.line_segment = np.array(line_seg, dtype=int)
@@ -121,7 +126,7 @@ def build_world(scene: Scene) -> World:
     w.sil_pair = np.array(sil_pair, dtype=int).reshape(-1, 2)
     w.corners = np.array(corners, dtype=float).reshape(-1, 3)
     w.corner_fid = np.array(corner_fid, dtype=int)
-    w.triangles = np.array(tris, dtype=float).reshape(-1, 3, 3)
+    w.triangles = np.concatenate(tris).astype(float) if tris else _empty((0, 3, 3))  # blocks (k, 3, 3)
     w.triangle_face = np.array(tri_face, dtype=int)
     return w
 
