@@ -339,22 +339,34 @@ def _lines_and_corners(V: np.ndarray, chains: list[tuple[np.ndarray, bool]], out
             out.corners.append((V[v], list(dict.fromkeys(refs))))
 
 
-def contour_edges(V: np.ndarray, F: np.ndarray, eye: np.ndarray) -> np.ndarray:
-    """Occluding-contour edges (k, 2, 3) of the triangles F over V seen from `eye`: edges between a triangle
-    facing the eye and one facing away (the triangles' winding is made consistent per edge)."""
-    if len(F) == 0:
-        return np.zeros((0, 2, 3))
-    N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    front = ((eye - V[F[:, 0]]) * N).sum(1) > 0
-    d = np.stack([F, np.roll(F, -1, axis=1)], axis=2).reshape(-1, 2)
-    _, eid, count = np.unique(np.sort(d, axis=1), axis=0, return_inverse=True, return_counts=True)
-    eid = eid.reshape(-1)
-    order = np.argsort(eid, kind="stable")
-    start = np.concatenate([[0], np.cumsum(count)])
-    two = np.flatnonzero(count == 2)
-    i0, i1 = order[start[two]], order[start[two] + 1]
-    t0, t1 = i0 // 3, i1 // 3
-    consistent = ~(d[i0] == d[i1]).all(axis=1)
-    f0, f1 = front[t0], front[t1]
-    differs = np.where(consistent, f0 != f1, f0 == f1)
-    return V[d[i0[differs]]]
+@dataclass(frozen=True)
+class Contours:
+    """The edges of a smooth surface that can be on its occluding contour: edges between two triangles.
+
+    `seen_from(eye)` gives those between a triangle facing the eye and one facing away (each pair's
+    facing compared with the edge's winding, so an inconsistently wound mesh still reads right).
+    """
+
+    ends: np.ndarray  # (E, 2, 3) the edges' end points
+    normal: np.ndarray  # (E, 2, 3) normals of the edge's two triangles
+    origin: np.ndarray  # (E, 2, 3) a vertex of each
+    flipped: np.ndarray  # (E,) the two triangles are wound inconsistently
+
+    @classmethod
+    def of(cls, V: np.ndarray, F: np.ndarray) -> Contours:
+        """Contour candidates of the triangles F (m, 3) over vertices V (n, 3)."""
+        d = np.stack([F, np.roll(F, -1, axis=1)], axis=2).reshape(-1, 2)
+        _, eid, count = np.unique(np.sort(d, axis=1), axis=0, return_inverse=True, return_counts=True)
+        eid = eid.reshape(-1)
+        order = np.argsort(eid, kind="stable")
+        start = np.concatenate([[0], np.cumsum(count)])
+        two = np.flatnonzero(count == 2)
+        i0, i1 = order[start[two]], order[start[two] + 1]
+        N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+        t = np.stack([i0 // 3, i1 // 3], axis=1)
+        return cls(V[d[i0]], N[t], V[F[t, 0]], (d[i0] == d[i1]).all(axis=1))
+
+    def seen_from(self, eye: np.ndarray) -> np.ndarray:
+        """Boolean (E,): the edges on the occluding contour seen from `eye` (3,)."""
+        front = ((eye - self.origin) * self.normal).sum(-1) > 0  # (E, 2)
+        return (front[:, 0] != front[:, 1]) ^ self.flipped

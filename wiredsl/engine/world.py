@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from wiredsl.engine.mesh import Contours
 from wiredsl.scene import Scene
 
 
@@ -41,6 +42,7 @@ class World:
     face_src: list[str] = field(default_factory=list)
     triangles: np.ndarray = field(default_factory=lambda: _empty((0, 3, 3)))  # occluders (faces, fanned)
     triangle_face: np.ndarray = field(default_factory=lambda: _empty(0, int))  # index into face_src
+    contours: list[tuple[int, Contours]] = field(default_factory=list)  # (fid, edges) of smooth mesh surfaces
 
     @property
     def n_features(self) -> int:
@@ -111,8 +113,11 @@ def build_world(scene: Scene) -> World:
         for sf in model.surfaces:
             w.face_src.append(f"{p.name}.{sf.name}")
             v = to_world(sf.vertices)
-            tris.append(v[np.array(sf.triangles, dtype=int).reshape(-1, 3)])
+            F = np.array(sf.triangles, dtype=int).reshape(-1, 3)
+            tris.append(v[F])
             tri_face.extend([len(w.face_src) - 1] * len(sf.triangles))
+            if sf.contour:  # the outline of its smooth part: a feature of each view (engine/mesh.py)
+                w.contours.append((new_id(sf.name, "contour"), Contours.of(v, F[np.array(sf.contour)])))
     w.lines = np.array(lines, dtype=float).reshape(-1, 2, 3)
     w.line_fid = np.array(line_fid, dtype=int)
     w.line_segment = np.array(line_seg, dtype=int)

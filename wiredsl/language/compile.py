@@ -279,7 +279,8 @@ class Compiler:
         built = mesh_features.as_nodes(found, path)
         for kind, items in built.items():
             for item in items:
-                if self._declare(names, "feature", item.name, fb.stmt.span, kind[:-1]):
+                what = "contour" if kind == "surfaces" and item.contour else kind[:-1]  # its outline is emitted
+                if self._declare(names, "feature", item.name, fb.stmt.span, what):
                     feats[kind].append(item)
 
     def _point(self, fb: Bound, key: str) -> np.ndarray:
