@@ -34,6 +34,9 @@ RAY_END = 1e-7  # fraction of the eye-to-point distance treated as touching the 
 SAMPLES = 128  # samples a segment or a full ellipse against the curved surfaces; a section gets its share
 BISECT = 40  # halvings of a sample step that brackets a change of visibility
 SLIVER = 1e-9  # parameter length below which a visible or hidden piece is dropped (rounding, not geometry)
+GRID_NEAR = 1e-2  # metres from the eye's plane within which a triangle is tested against every query
+GRID_REACH = 10.0  # the grid spans image-plane coordinates (x/z, y/z) within this; beyond, its border cells
+GRID_MAX = 512  # cells a side of the triangle grid
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,7 @@ class Eye:
     def __init__(self, occ: Occluders):
         self.occ = occ
         self.G, self.h = _triangle_conditions(occ.tris)
+        self.grid = _Grid(occ.tris)
         centre = (occ.ca + occ.cb) / 2
         reach = lambda c, U, V: (np.linalg.norm(c - centre, axis=1)  # noqa: E731
                                  + np.maximum(np.linalg.norm(U, axis=1), np.linalg.norm(V, axis=1)))
@@ -80,10 +84,13 @@ class Eye:
         return self.hidden_by_faces(P) | self.hidden_by_surfaces(P)
 
     def hidden_by_faces(self, P: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(P), dtype=bool)
         if len(self.G) == 0 or len(P) == 0:
-            return np.zeros(len(P), dtype=bool)
-        lo, hi = _segment_intervals(self.G, self.h, P, np.zeros_like(P))
-        return (hi > lo).any(axis=1)
+            return out
+        r, t = self.grid.pairs(P, P)
+        lo, hi = _pair_intervals(self.G[t], self.h[t], P[r], np.zeros((len(r), 3)))
+        out[r[hi > lo]] = True
+        return out
 
     def hidden_by_surfaces(self, P: np.ndarray) -> np.ndarray:
         out = np.zeros(len(P), dtype=bool)
@@ -107,9 +114,10 @@ class Eye:
         n = len(A)
         hid_r, hid_a, hid_b = [], [], []
         if len(self.G) and n:
-            lo, hi = _segment_intervals(self.G, self.h, A, B - A)
-            r, _ = np.nonzero(hi > lo)
-            hid_r.append(r)
+            D = B - A
+            r, t = self.grid.pairs(A + t0[:, None] * D, A + t1[:, None] * D)
+            lo, hi = _pair_intervals(self.G[t], self.h[t], A[r], D[r])
+            hid_r.append(r[hi > lo])
             hid_a.append(lo[hi > lo])
             hid_b.append(hi[hi > lo])
         if len(self.sphere_c) and n:
@@ -160,20 +168,81 @@ def _triangle_conditions(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return G, h
 
 
-def _segment_intervals(G: np.ndarray, h: np.ndarray, A: np.ndarray, D: np.ndarray):
-    """The u-interval [lo, hi] (n, T) of A + u D (u in [0, 1]) that each triangle hides (empty when lo >= hi)."""
-    a = np.einsum("tkj,nj->ntk", G, A) + h[None]  # (n, T, 4): a + b u >= 0
-    b = np.einsum("tkj,nj->ntk", G, D)
+def _pair_intervals(G: np.ndarray, h: np.ndarray, A: np.ndarray, D: np.ndarray):
+    """The u-interval [lo, hi] (p,) of A + u D (u in [0, 1]) that the triangle of each pair hides (empty when
+    lo >= hi); pairs: G (p, 4, 3), h (p, 4), A and D (p, 3)."""
+    a = np.einsum("pkj,pj->pk", G, A) + h  # (p, 4): a + b u >= 0
+    b = np.einsum("pkj,pj->pk", G, D)
     with np.errstate(divide="ignore", invalid="ignore"):
         bound = -a / b
     lower = np.where(b > 0, bound, -np.inf)
     upper = np.where(b < 0, bound, np.inf)
     never = (b == 0) & ~(a >= 0)  # also a = -inf (a triangle that hides nothing)
-    lo = np.maximum(lower.max(axis=2), 0.0)
-    hi = np.minimum(upper.min(axis=2), 1.0)
-    hi = np.where(never.any(axis=2), -np.inf, hi)
+    lo = np.maximum(lower.max(axis=1, initial=-np.inf), 0.0)
+    hi = np.minimum(upper.min(axis=1, initial=np.inf), 1.0)
     # a point (D = 0) hidden by every condition: the whole [0, 1]
-    return lo, hi
+    return lo, np.where(never.any(axis=1), -np.inf, hi)
+
+
+class _Grid:
+    """Triangles binned by the image-plane box (x/z, y/z) of their projection, so that a query meets only
+    the triangles over its own box: a uniform grid of about one cell a triangle (at most GRID_MAX a side).
+
+    A point can be hidden only by a triangle that its ray crosses, at a point with the same projection and
+    z > 0: so triangles wholly behind the eye's plane are dropped, and those reaching within GRID_NEAR of it
+    (whose projections are unbounded) are paired with every query, as is a query reaching behind the plane.
+    Boxes beyond the grid's range are clamped to its border cells, which keeps every true pair.
+    """
+
+    def __init__(self, W: np.ndarray):
+        z = W[:, :, 2] if len(W) else np.zeros((0, 3))
+        live = z.max(axis=1) > 0
+        self.live = np.flatnonzero(live)
+        self.always = np.flatnonzero(live & (z.min(axis=1) <= GRID_NEAR))
+        binned = np.flatnonzero(live & (z.min(axis=1) > GRID_NEAR))
+        self.n = len(binned)
+        if self.n == 0:
+            return
+        q = W[binned, :, :2] / z[binned, :, None]
+        lo, hi = q.min(axis=1), q.max(axis=1)
+        self.origin = np.maximum(lo.min(axis=0), -GRID_REACH)
+        extent = np.maximum(np.minimum(hi.max(axis=0), GRID_REACH) - self.origin, 1e-12)
+        self.side = int(np.clip(np.sqrt(self.n), 1, GRID_MAX))
+        self.cell = extent / self.side
+        owner, cells = self._cells(lo, hi)
+        order = np.argsort(cells, kind="stable")
+        self.tri = binned[owner[order]]
+        self.start = np.searchsorted(cells[order], np.arange(self.side * self.side + 1))
+
+    def _cells(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every (box, cell) pair of the boxes [lo, hi] (b, 2) in projected coordinates."""
+        i0 = np.clip(np.floor((lo - self.origin) / self.cell), 0, self.side - 1).astype(int)
+        i1 = np.clip(np.floor((hi - self.origin) / self.cell), 0, self.side - 1).astype(int)
+        nx, ny = i1[:, 0] - i0[:, 0] + 1, i1[:, 1] - i0[:, 1] + 1
+        owner = np.repeat(np.arange(len(lo)), nx * ny)
+        k = np.arange(len(owner)) - np.repeat(np.cumsum(nx * ny) - nx * ny, nx * ny)
+        return owner, (i0[owner, 0] + k % nx[owner]) * self.side + i0[owner, 1] + k // nx[owner]
+
+    def pairs(self, A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row, triangle) of every triangle that may hide part of the segment A B (rows (n, 3)), each once."""
+        rows, tris = [], []
+        ahead = (A[:, 2] > 0) & (B[:, 2] > 0)
+        behind = np.flatnonzero(~ahead)  # reaches the eye's plane: every triangle in front of it
+        rows.append(np.repeat(behind, len(self.live)))
+        tris.append(np.tile(self.live, len(behind)))
+        front = np.flatnonzero(ahead)
+        rows.append(np.repeat(front, len(self.always)))
+        tris.append(np.tile(self.always, len(front)))
+        if self.n and len(front):
+            qa, qb = A[front, :2] / A[front, 2:], B[front, :2] / B[front, 2:]
+            owner, cells = self._cells(np.minimum(qa, qb), np.maximum(qa, qb))
+            count = self.start[cells + 1] - self.start[cells]
+            row = np.repeat(front[owner], count)
+            at = np.repeat(self.start[cells] - np.cumsum(count) + count, count) + np.arange(count.sum())
+            key = np.unique(row * (self.live.max() + 1) + self.tri[at])
+            rows.append(key // (self.live.max() + 1))
+            tris.append(key % (self.live.max() + 1))
+        return np.concatenate(rows).astype(int), np.concatenate(tris).astype(int)
 
 
 def _ray_hits_ruled(P, X, ca, Ua, Va, cb, Ub, Vb) -> np.ndarray:

@@ -53,7 +53,8 @@ def _view(v: SimView, world: World) -> View:
         common = {"source": world.feature_ids[f.fid], "segment": None if f.segment < 0 else f.segment,
                   "fragment": None if f.fragment < 0 else f.fragment, "clipped": f.clipped, "occluded": f.occluded}
         if f.kind == "line":
-            lines.append(ImageLine(points=tuple(_pts(f.points)), **common))
+            lines.append(ImageLine(points=tuple(_pts(f.points)), contour=world.feature_kind[f.fid] == "contour",
+                                   **common))
         elif f.kind == "polyline":
             polylines.append(ImagePolyline(points=_pts(f.points), closed=f.closed, **common))
         elif f.kind == "conic":
