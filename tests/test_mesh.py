@@ -188,3 +188,12 @@ def test_contours_are_marked_in_the_dump_and_cut_by_exact_visibility():
     assert len(crate) == 9  # three faces seen: the crate's three far edges are hidden by its own faces
     cut = [ln for ln in lines if ln["source"] == "crate1.edge11"]
     assert len(cut) == 2 and all(ln["occluded"] for ln in cut)  # its back top edge, broken by the can on it
+
+
+def test_a_fifo_is_refused_without_opening_it(tmp_path):
+    import os
+
+    os.mkfifo(tmp_path / "pipe.stl")  # opening it would block until a writer came
+    path = _scene(tmp_path, 'mesh read "pipe.stl"')
+    r = CliRunner().invoke(main, ["check", str(path)])
+    assert r.exit_code == 1 and "error[E010]" in r.stderr and "FIFO" in r.stderr

@@ -72,12 +72,13 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
     triangles = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
     if len(triangles) == 0:
-        raise MeshFileError(f"holds no triangles (not a {kind.upper()} mesh, or an empty one)")
+        raise MeshFileError(f"holds no triangles (an empty mesh, or not {kind.upper()})")
     if len(triangles) > MAX_TRIANGLES:
         raise MeshTooLarge(f"holds {len(triangles):,} triangles, over the limit of {MAX_TRIANGLES:,}")
     bad = ~np.isfinite(vertices).all(axis=1)
     if bad.any():
-        raise MeshFileError(f"vertex {int(np.flatnonzero(bad)[0]) + 1} is not finite ({bad.sum()} such vertices)")
+        raise MeshFileError(f"vertex {int(np.flatnonzero(bad)[0]) + 1} is not finite ({bad.sum()} of "
+                            f"{len(vertices)} vertices are not)")
     if triangles.min() < 0 or triangles.max() >= len(vertices):
         raise MeshFileError("a triangle refers to a vertex the file does not have")
     return RawMesh(vertices, triangles)

@@ -238,7 +238,7 @@ class Compiler:
         from wiredsl.io.mesh import MAX_MESH_BYTES, MeshFileError, MeshTooLarge, read_mesh
 
         path, where = fb.get("read"), fb.span("read")
-        if feats["surfaces"] or any(k == "mesh" for k in names.values()):
+        if any(d.value == "mesh" for d in names.values()):
             self.out.error("E103", "a model reads one mesh", fb.stmt.keyword_span, "put each mesh in its own model")
             return
         names[f"mesh {path}"] = _Decl("mesh", fb.stmt.span)  # a key no feature name can be
@@ -267,15 +267,15 @@ class Compiler:
         if up != "z":  # the file's up axis becomes z: y-up turns about x, x-up about y
             V = V @ (rotation("x", math.pi / 2) if up == "y" else rotation("y", -math.pi / 2)).T
         found = mesh_features.features(V, raw.triangles, fb.get("crease", math.radians(30)))
+        if not (len(found.lines) + len(found.polylines) + len(found.ellipses) + len(found.faces)
+                + len(found.occluders)):
+            self.out.error("E125", f"mesh file {path}: no triangle has an area", where)
+            return
         if found.degenerate:
             self.out.warning("W125", f"mesh file {path}: {found.degenerate} triangle(s) of no area dropped", where)
         if found.nonmanifold:
             self.out.warning("W126", f"mesh file {path}: {found.nonmanifold} edge(s) shared by more than two "
                                      "triangles (non-manifold), kept as lines", where)
-        if not (len(found.lines) + len(found.polylines) + len(found.ellipses) + len(found.faces)
-                + len(found.occluders)):
-            self.out.error("E125", f"mesh file {path}: no triangle has an area", where)
-            return
         built = mesh_features.as_nodes(found, path)
         for kind, items in built.items():
             for item in items:
