@@ -197,3 +197,12 @@ def test_a_fifo_is_refused_without_opening_it(tmp_path):
     path = _scene(tmp_path, 'mesh read "pipe.stl"')
     r = CliRunner().invoke(main, ["check", str(path)])
     assert r.exit_code == 1 and "error[E010]" in r.stderr and "FIFO" in r.stderr
+
+
+def test_hover_on_mesh_names_its_file_and_counts_what_it_found():
+    from wiredsl.lsp import hover
+
+    text = Path("scenes/meshes.wd").read_text()
+    line = text.splitlines().index('  mesh read "meshes/can.stl" crease 30deg') + 1
+    md = hover(None, text, "scenes/meshes.wd", line, 4)
+    assert "`meshes/can.stl`: 192 triangles" in md and "2 ellipses, 1 silhouettes, 0 corners, 2 faces" in md
