@@ -37,7 +37,7 @@ SLIVER = 1e-9  # parameter length below which a visible or hidden piece is dropp
 GRID_NEAR = 1e-2  # metres from the eye's plane within which a triangle is tested against every query
 GRID_REACH = 10.0  # the grid spans image-plane coordinates (x/z, y/z) within this; beyond, its border cells
 GRID_MAX = 512  # cells a side of the grid of chunks
-CHUNK = 16  # triangles a chunk: the grid bins chunks, so that a view's set-up costs T / CHUNK
+CHUNK = 8  # triangles a chunk: the grid bins chunks, so that a view's set-up costs T / CHUNK
 
 
 @dataclass(frozen=True)
@@ -124,16 +124,33 @@ class Eye:
         out = np.zeros(len(P), dtype=bool)
         if len(self.tris_w) == 0 or len(P) == 0:
             return out
-        r, t = self.grid.pairs(P, P)
-        lo, hi = _pair_intervals(*self._conditions(t), P[r], np.zeros((len(r), 3)))
+        r, G, h = self._pairs(P, P)
+        lo, hi = _pair_intervals(G, h, P[r], np.zeros((len(r), 3)))
         out[r[hi > lo]] = True
         return out
 
-    def _conditions(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """G, h of the triangles t (one row each, repeats allowed), in the camera frame."""
+    def _pairs(self, A: np.ndarray, B: np.ndarray):
+        """(row, G, h): the conditions of every triangle whose image-plane box meets that of segment A B (rows,
+        camera frame), from the chunks the grid gives (the rest cannot hide any of it)."""
+        r, t = self.grid.pairs(A, B)
         u, inv = np.unique(t, return_inverse=True)
-        G, h = _triangle_conditions(self.tris_w[u] @ self.R.T + self.t)
-        return G[inv.reshape(-1)], h[inv.reshape(-1)]
+        inv = inv.reshape(-1)
+        W = self.tris_w[u] @ self.R.T + self.t
+        z = W[:, :, 2]
+        boxed = z.min(axis=1) > GRID_NEAR
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = W[:, :, :2] / np.where(boxed[:, None], z, 1.0)[:, :, None]
+        tlo = np.where(boxed[:, None], q.min(axis=1), -np.inf)
+        thi = np.where(boxed[:, None], q.max(axis=1), np.inf)
+        ahead = (A[:, 2] > 0) & (B[:, 2] > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            qa = A[:, :2] / np.where(ahead, A[:, 2], 1.0)[:, None]
+            qb = B[:, :2] / np.where(ahead, B[:, 2], 1.0)[:, None]
+        qlo = np.where(ahead[:, None], np.minimum(qa, qb), -np.inf)
+        qhi = np.where(ahead[:, None], np.maximum(qa, qb), np.inf)
+        keep = ((tlo[inv] <= qhi[r]) & (thi[inv] >= qlo[r])).all(axis=1) & (z.max(axis=1) > 0)[inv]
+        G, h = _triangle_conditions(W)
+        return r[keep], G[inv[keep]], h[inv[keep]]
 
     def hidden_by_surfaces(self, P: np.ndarray) -> np.ndarray:
         out = np.zeros(len(P), dtype=bool)
@@ -158,8 +175,8 @@ class Eye:
         hid_r, hid_a, hid_b = [], [], []
         if len(self.tris_w) and n:
             D = B - A
-            r, t = self.grid.pairs(A + t0[:, None] * D, A + t1[:, None] * D)
-            lo, hi = _pair_intervals(*self._conditions(t), A[r], D[r])
+            r, G, h = self._pairs(A + t0[:, None] * D, A + t1[:, None] * D)
+            lo, hi = _pair_intervals(G, h, A[r], D[r])
             hid_r.append(r[hi > lo])
             hid_a.append(lo[hi > lo])
             hid_b.append(hi[hi > lo])
@@ -255,6 +272,9 @@ class _Grid:
         extent = np.maximum(np.minimum(hi.max(axis=0), GRID_REACH) - self.origin, 1e-12)
         self.side = int(np.clip(np.sqrt(self.n), 1, GRID_MAX))
         self.cell = extent / self.side
+        self.box_lo = np.full((len(live), 2), -np.inf)
+        self.box_hi = np.full((len(live), 2), np.inf)
+        self.box_lo[binned], self.box_hi[binned] = lo, hi
         owner, cells = self._cells(lo, hi)
         order = np.argsort(cells, kind="stable")
         self.chunk = binned[owner[order]]
@@ -281,12 +301,15 @@ class _Grid:
         chunks.append(np.tile(self.always, len(front)))
         if self.n and len(front):
             qa, qb = A[front, :2] / A[front, 2:], B[front, :2] / B[front, 2:]
-            owner, cells = self._cells(np.minimum(qa, qb), np.maximum(qa, qb))
+            qlo, qhi = np.minimum(qa, qb), np.maximum(qa, qb)
+            owner, cells = self._cells(qlo, qhi)
             count = self.start[cells + 1] - self.start[cells]
-            row = np.repeat(front[owner], count)
+            row = np.repeat(owner, count)
             at = np.repeat(self.start[cells] - np.cumsum(count) + count, count) + np.arange(count.sum())
+            chunk = self.chunk[at]
+            near = ((self.box_lo[chunk] <= qhi[row]) & (self.box_hi[chunk] >= qlo[row])).all(axis=1)
             width = int(self.live.max()) + 1
-            key = np.unique(row * width + self.chunk[at])
+            key = np.unique(front[row[near]] * width + chunk[near])
             rows.append(key // width)
             chunks.append(key % width)
         row, chunk = np.concatenate(rows).astype(int), np.concatenate(chunks).astype(int)
