@@ -206,3 +206,21 @@ def test_hover_on_mesh_names_its_file_and_counts_what_it_found():
     line = text.splitlines().index('  mesh read "meshes/can.stl" crease 30deg') + 1
     md = hover(None, text, "scenes/meshes.wd", line, 4)
     assert "`meshes/can.stl`: 192 triangles" in md and "2 ellipses, 1 silhouettes, 0 corners, 2 faces" in md
+
+
+def test_gltf_reads_embedded_buffers_and_refuses_other_files(tmp_path):
+    import base64
+    import json
+
+    from wiredsl.io.mesh import MeshFileError
+
+    files = trimesh.exchange.gltf.export_gltf(trimesh.Scene(trimesh.creation.box()))
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    doc = json.loads(files["model.gltf"])
+    for b in doc["buffers"]:
+        b["uri"] = "data:application/octet-stream;base64," + base64.b64encode(files[b["uri"]]).decode()
+    (tmp_path / "embedded.gltf").write_text(json.dumps(doc))
+    assert len(read_mesh(tmp_path / "embedded.gltf", (tmp_path / "embedded.gltf").read_bytes()).triangles) == 12
+    with pytest.raises(MeshFileError, match="refers to another file"):
+        read_mesh(tmp_path / "model.gltf", (tmp_path / "model.gltf").read_bytes())

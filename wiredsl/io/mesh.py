@@ -67,6 +67,8 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
     try:
         loaded = trimesh.load(io.BytesIO(data), file_type=kind, process=False, force="mesh",
                               resolver=None if kind != "gltf" else _NoFiles())
+    except MeshFileError:
+        raise
     except Exception as exc:  # trimesh raises anything from ValueError to IndexError on a broken file
         raise MeshFileError(f"not a readable {kind.upper()} mesh ({type(exc).__name__}: {exc})"[:300]) from None
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
@@ -89,6 +91,8 @@ class _NoFiles:
 
     def get(self, name: str) -> bytes:
         raise MeshFileError(f"the glTF refers to another file ({name!r}); use a .glb, which holds its buffers")
+
+    __getitem__ = get
 
     def namespaced(self, namespace: str):
         return self
