@@ -157,9 +157,9 @@ def as_nodes(found: MeshFeatures, file: str) -> dict[str, list]:
     surfaces = []
     if len(found.occluders):
         used, F = np.unique(found.occluders, return_inverse=True)
-        surfaces.append(Surface.model_construct(  # checked already; lists (not tuples) are 5x faster to build
-            name="surface", file=file, vertices=found.vertices[used].tolist(), triangles=F.reshape(-1, 3).tolist(),
-            contour=np.flatnonzero(found.contour).tolist()))
+        surfaces.append(Surface.model_construct(  # checked already: built from lists, not validated point by point
+            name="surface", file=file, vertices=list(map(tuple, found.vertices[used].tolist())),
+            triangles=list(map(tuple, F.reshape(-1, 3).tolist())), contour=np.flatnonzero(found.contour).tolist()))
     return {"lines": lines, "polylines": polylines, "ellipses": ellipses, "silhouettes": silhouettes,
             "corners": corners, "faces": faces, "surfaces": surfaces}
 
