@@ -224,3 +224,18 @@ def test_gltf_reads_embedded_buffers_and_refuses_other_files(tmp_path):
     assert len(read_mesh(tmp_path / "embedded.gltf", (tmp_path / "embedded.gltf").read_bytes()).triangles) == 12
     with pytest.raises(MeshFileError, match="refers to another file"):
         read_mesh(tmp_path / "model.gltf", (tmp_path / "model.gltf").read_bytes())
+
+
+def test_mesh_faces_hide_features_from_view_points(tmp_path):
+    """visibility auto: a wall read from a mesh stands between a view-point and a hand-written line."""
+    from wiredsl.engine import visibility
+
+    trimesh.creation.box(extents=(0.1, 2.0, 2.0)).export(tmp_path / "wall.stl")
+    path = tmp_path / "s.wd"
+    path.write_text('wiredsl 1\nmodel wall {\n  mesh read "wall.stl"\n}\n'
+                    "model post {\n  line p from (0, 0, 0) to (0, 0, 1)\n}\n"
+                    "place wall as w1 at (2m, 0, 1m)\nplace post as p1 at (4m, 0, 0)\n")
+    w = build_world(compile_file(path)[0])
+    seen = visibility.visible_features(w, np.array([[0.0, 0.0, 1.0], [4.0, 3.0, 1.0]]))
+    post = w.feature_ids.index("p1.p")
+    assert not seen[0, post] and seen[1, post]  # behind the wall from the first eye, in the open from the second

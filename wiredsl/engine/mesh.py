@@ -18,7 +18,7 @@
 - A planar region (normals within FLAT of each other) bounded by one convex loop is a `face`. Every other
   smooth or non-convex triangle is kept as an occluder; smooth regions that are not cylinder or cone
   sides are marked `contour`: their outline is view-dependent (edges between a triangle facing the eye
-  and one facing away, `contour_edges`).
+  and one facing away, `Contours`).
 """
 
 from __future__ import annotations
