@@ -101,6 +101,25 @@ def test_validate_rejects_non_json_and_foreign_documents(tmp_path):
     assert "a.json:1:2: error: not JSON" in r.stderr and "not a wiredsl document" in r.stderr
 
 
+def test_validate_points_a_scene_source_at_check():
+    r = run("validate", "scenes/lab.wd")
+    assert r.exit_code == 1
+    assert "scenes/lab.wd: error: a scene source, not a JSON document: check it with 'wiredsl check scenes/lab.wd'" \
+        in r.stderr
+
+
+@pytest.mark.parametrize("args", [["--format", "jsonl", "--trials", "3", "--seed", "1", "--engine", "numpy"],
+                                  ["--no-effects"]])  # each writes several pipe buffers (400 kB, 170 kB)
+def test_a_reader_that_stops_early_is_not_an_error(args):
+    """Issue 15: `build --format jsonl -o - | head` exited 1 with "cannot write: Broken pipe"."""
+    proc = subprocess.Popen([sys.executable, "-m", "wiredsl", "build", "scenes/lab.wd", "-o", "-", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.read(10)
+    proc.stdout.close()  # as `head` does once it has its lines
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and b"Broken pipe" not in err and b"Traceback" not in err, err
+
+
 def test_reference_lists_every_statement():
     from wiredsl.language.statements import CONTEXTS
 
@@ -190,7 +209,8 @@ def test_installed_package_runs_outside_the_checkout(tmp_path):
 # --------------------------------------------------------------------------- options and output folders
 
 def test_diagnostics_option_on_every_command_and_format_only_for_dumps(tmp_path):
-    for cmd in (["check"], ["compile"], ["fmt", "--check"], ["build"], ["viewdep"], ["bench"], ["export-calibration"]):
+    for cmd in (["check"], ["compile"], ["fmt", "--check"], ["build"], ["viewdep"], ["bench"], ["export-calibration"],
+                ["study"]):
         r = run(*cmd, "--diagnostics", "json", "tests/invalid/syntax_unclosed.wd")
         assert r.exit_code == 1, (cmd, r.output)
         assert json.loads(r.stderr)["diagnostics"][0]["line"] > 0, cmd
@@ -206,6 +226,12 @@ def test_o_naming_a_file_or_a_dump_name_is_a_usage_error(tmp_path):
     r = run("build", "scenes/cylinder.wd", "-o", str(tmp_path / "out.json"))
     assert r.exit_code == 2 and "looks like a file name" in r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]
+    for cmd, name in (("export-calibration", "x.yaml"), ("study", "table.csv")):  # folder commands as build
+        r = run(cmd, "scenes/lab.wd" if cmd != "study" else "scenes/studies/lab_study.wd", "-o", str(tmp_path / name))
+        assert r.exit_code == 2 and "looks like a file name; -o names the output folder" in r.stderr, cmd
+        r = run(cmd, "scenes/lab.wd", "-o", str(f))
+        assert r.exit_code == 2 and f"must name a folder: {f} is a file" in r.stderr, cmd
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]  # issue 15: x.yaml was made a folder
     for cmd in ("viewdep", "compile"):  # one-file commands: -o must not be a folder, and no temporary name leaks
         r = run(cmd, "scenes/lab.wd", "-o", f"{tmp_path}/")
         assert r.exit_code == 2 and "must name a file, not a folder" in r.stderr and ".tmp" not in r.stderr, cmd

@@ -173,3 +173,60 @@ def test_a_calibration_too_uncertain_for_its_cameras_is_a_diagnostic(tmp_path):
     r, out = _build(tmp_path, ONE_PARAMETER.replace("SIGMA2", "1e20"), "--trials", "3")
     assert r.exit_code == 1, r.output
     assert "E161" in r.output and "Traceback" not in r.output
+
+
+def axis_ellipse(n: int, j: int, angle: float) -> np.ndarray:
+    """n vertices of an ellipse (semi-axes 100 and 40, centre (320.3, 240.7), major axis at `angle`), vertex j
+    on the major axis (parameter 0) and, for even n, vertex j + n / 2 too."""
+    t = 2 * np.pi * (np.arange(n) - j) / n
+    x, y = 100 * np.cos(t), 40 * np.sin(t)
+    c, s = math.cos(angle), math.sin(angle)
+    return np.column_stack([320.3 + c * x - s * y, 240.7 + s * x + c * y])
+
+
+def halves_reference(pts: np.ndarray, angle: float) -> list[list[tuple[float, float]]]:
+    """The two halves of a closed polyline cut by the line through (320.3, 240.7) at `angle`, in plain
+    Python: walk the loop from vertex 0, a vertex within 1e-9 px of the line being a cut there."""
+    nx, ny = -math.sin(angle), math.cos(angle)
+    side = [(x - 320.3) * nx + (y - 240.7) * ny for x, y in pts.tolist()]
+    side = [0.0 if abs(v) < 1e-9 else v for v in side]
+    n = len(pts)
+    walk: list[tuple[tuple[float, float], bool]] = []  # (point, is a cut) in loop order, vertex 0 first
+    for i in range(n):
+        p, q = pts[i].tolist(), pts[(i + 1) % n].tolist()
+        walk.append(((p[0], p[1]), side[i] == 0))
+        if side[i] * side[(i + 1) % n] < 0:
+            u = side[i] / (side[i] - side[(i + 1) % n])
+            walk.append(((p[0] + u * (q[0] - p[0]), p[1] + u * (q[1] - p[1])), True))
+    cuts = [i for i, (_, c) in enumerate(walk) if c]
+    assert len(cuts) == 2
+    c1, c2 = cuts
+    first = [p for p, _ in walk[c1:c2 + 1]]
+    second = [p for p, _ in walk[c2:] + walk[:c1 + 1]]
+    return [first, second]
+
+
+def kernel_split(s: im.ImageSet) -> list[np.ndarray]:
+    from wiredsl.engine import kernel as K
+
+    meta = np.zeros((1, K.NMETA), np.int64)
+    meta[0, K.KIND], meta[0, K.CLOSED], meta[0, K.FRAG] = K.ELLIPSE, 1, -1
+    pts, start, _ = K._split_ellipses(s.pts.copy(), s.start.astype(np.int64), meta)
+    return [pts[start[k]:start[k + 1]] for k in range(len(start) - 1)]
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.3, 1.1])
+@pytest.mark.parametrize("n", [9, 16, 33, 64, 101])
+def test_ellipse_halves_through_a_vertex_match_an_independent_split_vertex_by_vertex(n, angle):
+    """Issue 15: a half began with an extra copy of the axis vertex (a sliver segment, so that copy was not
+    shifted) and ended with a duplicate; both engines against a separately written split."""
+    pts = axis_ellipse(n, j=3, angle=angle)
+    s = one_stroke(pts, True, im.ELLIPSE)
+    ref = halves_reference(pts, angle)
+    out = split_ellipses(s)
+    numpy_halves = [out.pts[out.start[k]:out.start[k + 1]] for k in range(out.n_strokes)]
+    for halves in (numpy_halves, kernel_split(s)):
+        assert len(halves) == 2
+        for got, want in zip(halves, ref, strict=True):
+            assert got.shape == (len(want), 2)
+            np.testing.assert_allclose(got, np.array(want), atol=1e-6, rtol=0)

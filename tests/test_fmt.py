@@ -69,3 +69,16 @@ def test_scrambled_scene_formats_back(path, tmp_path):
     a = compile_file(path)[0].model_dump(exclude={"source"})
     b = compile_file(copy)[0].model_dump(exclude={"source"})
     assert a == b
+
+
+def test_a_long_list_of_points_wraps_between_points_never_inside_one():
+    """Issue 15: fmt split a point mid-tuple (`(\\n -0.5, 0.3, 0.72,\\n )`)."""
+    points = " ".join(f"({x / 10 - 0.5:.1f}, 0.3, 0.72)" for x in range(40))
+    text = f"wiredsl 1\nmodel m {{\n  polyline p through {points}\n}}\n"
+    once = format_text(text)
+    assert format_text(once) == once
+    body = once.splitlines()[2:-1]
+    assert len(body) > 3 and all(len(line) <= 100 for line in body)
+    for line in body:  # every line holds whole points only
+        assert line.count("(") == line.count(")"), line
+    assert compile_text(once)[0] == compile_text(text)[0]

@@ -61,3 +61,54 @@ def _close(a, b):
         assert b == pytest.approx(a, rel=1e-9, abs=1e-12)
     else:
         assert a == b
+
+
+def test_the_kernel_dispatches_every_effect_by_the_code_the_registry_declares():
+    """Each built-in effect with a kernel runs alone in the kernel and gives what its numpy code gives: so the
+    code it declares (effects/<name>.py) is the kernel's function for it, and its params and stats columns fit."""
+    from wiredsl.effects import BUILTIN
+    from wiredsl.engine import kernel as kn
+    from wiredsl.scene import Pipeline, Stage
+
+    with_kernel = {name: e for name, e in BUILTIN.items() if e.kernel is not None}
+    assert sorted(e.kernel.code for e in with_kernel.values()) == sorted(kn.KNOWN)  # one code each, all known
+    assert set(BUILTIN) - set(with_kernel) == {"calibration_error"}  # the kernel's projection, not a stage
+    scene, _, _ = compile_file("scenes/lab.wd")
+    world = build_world(scene)
+    for name, effect in with_kernel.items():
+        params = {k: v for k, v in effect.Params().model_dump().items()}
+        if name in ("corner_mismatch", "stereo_mismatch"):
+            params["fraction"] = 0.5  # (the paper's 1% would leave most trials untouched)
+        pipe = Pipeline(name=name, stages=[Stage(effect=name, params=params)])
+        runs = {e: Run.create(scene, world, pipe, 5, Options(poses=(0, 3))) for e in ("numpy", "kernel")}
+        got = {e: batches(run, e, range(16)) for e, run in runs.items()}
+        assert runs["kernel"].manifest()["engines"] == {name: "kernel"}
+        for bn, bk in zip(got["numpy"], got["kernel"], strict=True):
+            for (_, dn, _), (_, dk, _) in zip(bn, bk, strict=True):
+                for side, a in dn.items():
+                    for field in DISCRETE:
+                        assert np.array_equal(getattr(a, field), getattr(dk[side], field)), (name, side, field)
+                    assert np.allclose(a.pts, dk[side].pts, atol=1e-9) and np.allclose(a.corners, dk[side].corners,
+                                                                                         atol=1e-9)
+        for sn, sk in zip(runs["numpy"].manifest()["stages"], runs["kernel"].manifest()["stages"], strict=True):
+            _close(sn["measured"], sk["measured"])
+
+
+def test_a_stage_without_a_kernel_runs_the_whole_pipeline_on_numpy():
+    from wiredsl.effects import BUILTIN
+    from wiredsl.scene import Pipeline, Stage
+
+    scene, _, _ = compile_file("scenes/lab.wd")
+
+    class Slow(BUILTIN["lateral_shift"]):  # the same effect, without a compiled kernel
+        kernel = None
+
+    pipe = Pipeline(name="p", stages=[Stage(effect="edge_loss", params={"fraction": 0.3}),
+                                      Stage(effect="lateral_shift", params={"range": 2.0})])
+    run = Run.create(scene, build_world(scene), pipe, 1, Options(poses=(0,)))
+    run.engine = "kernel"
+    run.stages[1] = (Slow, run.stages[1][1])
+    assert not run.uses_kernel()
+    batches(run, "kernel", range(4))
+    assert run.manifest()["engine"] == "numpy" and run.manifest()["engines"] == {"edge_loss": "numpy",
+                                                                                 "lateral_shift": "numpy"}

@@ -16,7 +16,9 @@ import wiredsl
 from wiredsl.cli import main
 from wiredsl.engine.world import build_world
 from wiredsl.io import layout
+from wiredsl.io.load import DumpError
 from wiredsl.language.compile import compile_file
+from wiredsl.scene import Camera
 
 LAB = "scenes/lab.wd"
 
@@ -68,6 +70,51 @@ def test_selection_by_trial_pose_and_camera(disturbed):
     assert arrays["manifest"]["seed"] == 11
 
 
+def test_the_scenes_own_camera_names_select_in_a_json_dump(disturbed):
+    """Issue 15: camera="cam_l" raised `tuple.index(x): x not in tuple`."""
+    for path in (disturbed["jsonl"], disturbed["json"][1]):
+        assert wiredsl.load(path, camera="cam_l") == wiredsl.load(path, camera="left")
+        assert wiredsl.load(path, camera=["cam_r"]) == wiredsl.load(path, camera=1)
+    with pytest.raises(DumpError, match=r"no camera 'cam_x': choose 'left', 'right', 0 or 1, "
+                                                r"or the scene's 'cam_l' and 'cam_r'"):
+        wiredsl.load(disturbed["jsonl"], camera="cam_x")
+    with pytest.raises(DumpError, match=r"no camera 'cam_l': .* \(an npz dump knows its cameras by side"):
+        wiredsl.load(disturbed["npz"], camera="cam_l")
+    with pytest.raises(DumpError, match="no camera 2"):
+        wiredsl.load(disturbed["npz"], camera=2)
+
+
+@pytest.mark.parametrize("kind", ["npz", "jsonl"])
+def test_a_trial_or_pose_outside_the_dump_names_what_it_holds(disturbed, kind):
+    """Issue 15: these returned [] without a word."""
+    with pytest.raises(DumpError, match="holds no trial 3: it holds trials 0-2"):
+        wiredsl.load(disturbed[kind], trial=3)
+    with pytest.raises(DumpError, match="holds no pose 2, 9: it holds poses 1, 4"):
+        wiredsl.load(disturbed[kind], pose=[1, 2, 9])
+    with pytest.raises(DumpError, match="holds no trial 0: it holds trial 2"):
+        wiredsl.load(disturbed["json"][2], trial=0)
+    assert wiredsl.load(disturbed[kind], trial=range(3), pose=(1, 4)) == wiredsl.load(disturbed[kind])
+
+
+def test_a_file_that_is_not_a_dump_says_what_it_is(disturbed, tmp_path):
+    """Issue 15: a manifest, a study table or an SVG raised KeyError or JSONDecodeError."""
+    svg = tmp_path / "view.svg"
+    svg.write_text('<svg xmlns="http://www.w3.org/2000/svg" width="640" height="480"></svg>\n')
+    table = tmp_path / "table.csv"
+    table.write_text("sigma,measure,statistic,mean\n0.1,survival,mean,0.5\n")
+    study = tmp_path / "study.json"
+    study.write_text(json.dumps({"document": "study", "rows": []}))
+    npz = tmp_path / "other.npz"
+    np.savez(npz, x=np.arange(3))
+    cases = [(disturbed["dir"] / "npz" / "manifest.json", "this is a run manifest, not a dump"),
+             (study, "this is a study table, not a dump"), (svg, "is an SVG image, not a dump"),
+             (table, "is a CSV table, not a dump"), (npz, "is an npz file but not a wiredsl dump")]
+    for path, says in cases:
+        with pytest.raises(DumpError, match=says) as err:
+            wiredsl.load(path)
+        assert "pass features.json, features.jsonl or features.npz" in str(err.value)
+
+
 def test_ideal_npz_carries_occlusion_fragments_and_closed_like_json(tmp_path):
     args = ["--no-effects", "--visibility", "exact", "--pose", "1", "--pose", "4"]
     npz = build(tmp_path, "n", *args, "--format", "npz") / "features.npz"
@@ -89,7 +136,9 @@ def test_npz_views_hold_the_json_cameras_rotations_and_translations(disturbed):
             k = rows[(2, p["index"], cam)]
             v = p[side]
             assert a["view_poses"][k].tolist() == [*np.ravel(v["rotation"]), *v["translation"]]  # bit for bit
-            assert a["view_cameras"][k].tolist() == [float(v["camera"][c]) for c in layout.CAMERA_COLUMNS]
+            camera = Camera.model_validate(v["camera"])
+            want = [float(layout.camera_value(camera, c)) for c in layout.CAMERA_COLUMNS]
+            assert a["view_cameras"][k].tolist() == want
 
 
 def test_ideal_conics_round_trip_through_npz(tmp_path):

@@ -67,7 +67,7 @@ def test_study_block_compiles_to_its_design(scene):
     # calibration_error is not in 'edges': it is inserted first (its data-flow place), the rest kept in order
     p = design.pipeline_at(scene, s, X[3])
     assert [st.effect for st in p.stages] == ["calibration_error", "edge_loss", "lateral_shift"]
-    assert p.stages[0].params.sigma == 0.03 and p.stages[2].params.range == 4.0
+    assert p.stages[0].params["sigma"] == 0.03 and p.stages[2].params["range"] == 4.0
 
 
 def test_space_filling_design_is_saltelli_within_ranges(scene):
@@ -371,3 +371,48 @@ def test_build_study_replay_into_a_folder_writes_its_trial_and_figures(scene_fil
     assert (manifest["trials"], manifest["first_trial"], manifest["seed"]) == (1, 5, 5)
     assert json.loads((out / "features.json").read_text())["trial"] == 5
     assert sorted(p.name for p in out.glob("pose_*.svg")) == ["pose_000.svg", "pose_004.svg"]
+
+
+def test_one_factor_sobol_indices_are_the_plain_estimators():
+    """Issue 15: one factor crashed scipy.stats.sobol_indices after every shard ran. With y a function of the
+    factor alone, AB_1 = B, so the estimators are Saltelli's and Jansen's written out here (both near 1)."""
+    s = Study(name="one", design="sobol", points=64, design_seed=3,
+              factors=[Factor(stage="edge_loss", param="fraction", low=0, high=1)])
+    X = design.matrix(s)
+    assert X.shape == (64 * 3, 1)
+    y = np.exp(X[:, 0]) + 0.05 * np.sin(40 * np.arange(len(X)))  # a little noise that is not the factor's
+    got = design.sobol_indices(y, 64, 1)
+    yA, yB, yAB = y[:64], y[64:128], y[128:]
+    mean, var = np.concatenate([yA, yB]).mean(), np.concatenate([yA, yB]).var()
+    first = np.mean((yB - mean) * (yAB - yA)) / var
+    total = 0.5 * np.mean((yA - yAB) ** 2) / var
+    assert got["first_order"] == pytest.approx([first]) and got["total_order"] == pytest.approx([total])
+    assert 0.9 < first <= 1.01 and 0.9 < total <= 1.01
+    lo, hi = got["first_order_ci"]
+    assert lo[0] <= first <= hi[0]
+
+
+def test_a_constant_statistic_has_undefined_indices_not_nan(tmp_path):
+    """Zero variance over the design: indices null with a reason in table.json and empty in sobol.csv."""
+    s = Study(name="flat", design="lhs", points=8, design_seed=1,
+              factors=[Factor(stage="edge_loss", param="fraction", low=0, high=0.4),
+                       Factor(stage="approx_error", param="sigma", low=0, high=1e-3)])
+    from wiredsl.study import report
+
+    X = design.matrix(s)
+    rows = [report.Row(point=p, values={}, measure="m", statistic="c", n=2, n_values=2, mean=1.0, sem=0.0,
+                       q05=1, q25=1, q50=1, q75=1, q95=1) for p in range(len(X))]
+    got = report.sobol(s, rows)
+    assert [(i.first_order, i.total_order) for i in got] == [(None, None)] * 2
+    assert all("same value" in i.undefined for i in got)
+    assert design.sobol_indices(np.ones(len(X)), 8, 2) is None
+
+
+def test_a_one_factor_lhs_study_writes_its_table_and_indices(scene, tmp_path):
+    one = Study(name="one", design="lhs", points=4, design_seed=2, trials=2, poses=[2], seed=1,
+                factors=[Factor(stage="lateral_shift", param="range", low=0, high=4)],
+                measures=scene.study("sources").measures)
+    table = run_study(scene, one, tmp_path, executor="inprocess", registry=REGISTRY)
+    assert len(table.rows) == 4 * 3 * 2 and {i.factor for i in table.sobol} == {"lateral_shift.range"}
+    assert schema.problems(json.loads((tmp_path / "table.json").read_text())) == []
+    assert (tmp_path / "sobol.csv").read_text().count("lateral_shift.range") == 2

@@ -7,10 +7,18 @@ Stages, one module each: parse (lark tree) -> ast (spans) -> compile (Scene)
 __version__ = "0.1.0"
 
 
+_API = ("compile", "simulate", "Simulator", "Batch", "CompileError", "CompileWarning", "Measure", "Effect")
+__all__ = ["load", *_API]
+
+
 def __getattr__(name: str):
-    """`wiredsl.load` is imported on first use, so importing wiredsl stays light (no numpy)."""
+    """The public names are imported on first use, so importing wiredsl stays light (no numpy)."""
     if name == "load":
         from wiredsl.io.load import load
 
         return load
+    if name in _API:
+        from wiredsl import api
+
+        return getattr(api, name)
     raise AttributeError(f"module 'wiredsl' has no attribute {name!r}")

@@ -23,6 +23,7 @@ from wiredsl.engine import geometry, visibility
 from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options, simulate, visibility_masks
 from wiredsl.engine.world import World, ellipse_points
+from wiredsl.run import start
 from wiredsl.scene import Scene
 
 TOLERANCES = (0.01, 0.03, 0.1, 0.3, 1.0, 2.0)
@@ -88,11 +89,13 @@ def _true_curves(world: World, view, fid: int, segment: int) -> np.ndarray:
         t = np.linspace(0, 1, 20001)[:, None]
         P = A + t * (B - A)
     Pc = geometry.world_to_cam(P, view.R_cw, view.t_cw)
-    front = Pc[:, 2] > geometry.NEAR * 1.01
-    Pc = Pc[front]
-    xy = geometry.cam_to_plane(Pc)
-    ok = np.hypot(xy[:, 0], xy[:, 1]) < geometry.fold_radius(cam.k1, cam.k2) * 0.999
-    uv = geometry.cam_to_pixels(Pc[ok], cam)
+    if cam.distortion == "equidistant":  # the near rule of a fisheye, a little inside its limit
+        Pc = Pc[geometry.visible(Pc, 1, geometry.lens_limit(cam) * 0.999)]
+    else:
+        Pc = Pc[Pc[:, 2] > geometry.NEAR * 1.01]
+        xy = geometry.cam_to_plane(Pc)
+        Pc = Pc[np.hypot(xy[:, 0], xy[:, 1]) < geometry.lens_limit(cam) * 0.999]
+    uv = geometry.cam_to_pixels(Pc, cam)
     inside = (uv[:, 0] > 0.5) & (uv[:, 0] < cam.width - 0.5) & (uv[:, 1] > 0.5) & (uv[:, 1] < cam.height - 0.5)
     return uv[inside]
 
@@ -248,7 +251,7 @@ def trials_table(scene: Scene, world: World, budget: float, seed: int = 1) -> Ta
             table.notes.append(f"{n:,} trials not run: at the measured {rate:,.0f} trials/s they would take "
                                f"{n / rate:,.0f} s, over the budget of {budget:g} s (--budget).")
             continue
-        run = Run.create(scene, world, pipeline, seed, Options())
+        run = start(scene, pipeline, seed=seed, world=world)
         t0 = time.perf_counter()
         values = np.concatenate([headline(run, out) for _, out in run.batches(list(range(n)))])
         seconds = time.perf_counter() - t0

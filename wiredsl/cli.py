@@ -5,6 +5,7 @@ Exit codes: 0 ok, 1 invalid input, 2 usage error, 3 internal error (a bug).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -79,7 +80,13 @@ def guarded(fn: Callable) -> Callable:
         main_thread = threading.current_thread() is threading.main_thread()
         previous = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
         try:
-            return fn(*args, **kwargs)
+            out = fn(*args, **kwargs)
+            sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
+            return out
+        except BrokenPipeError:
+            if not _stdout_closed():
+                raise  # another pipe (a worker's): not the reader of our output going away
+            _quiet_exit()
         except WiredslError as err:
             report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diagnostics", "text"))
             sys.exit(EXIT_INVALID)
@@ -112,17 +119,30 @@ def guarded(fn: Callable) -> Callable:
     return wrapper
 
 
+def _stdout_closed() -> bool:
+    """Has the reader of stdout gone away (`wiredsl build -o - | head`)? Not an error: we stop quietly."""
+    import select
+
+    try:
+        poll = select.poll()
+        poll.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poll.poll(0))
+    except (AttributeError, OSError, ValueError):  # no real file descriptor (tests), or no poll
+        return False
+
+
+def _quiet_exit() -> None:
+    """Exit 0 after the reader closed stdout; what Python still holds for it goes to /dev/null, so the
+    interpreter's last flush does not complain either."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    sys.exit(0)
+
+
 def _sources(diags) -> dict[str, str]:
-    """Source text of the files diagnostics point into, for the caret lines."""
-    out = {}
-    for d in diags:
-        if d.span is not None and d.span.file not in out:
-            try:
-                with open(d.span.file, encoding="utf-8") as fh:
-                    out[d.span.file] = fh.read()
-            except (OSError, UnicodeDecodeError):
-                pass
-    return out
+    from wiredsl.diagnostics import read_sources
+
+    return read_sources(diags)
 
 
 diagnostics_option = click.option("--diagnostics", type=click.Choice(["text", "json"]), default="text",
@@ -208,6 +228,7 @@ def fmt(files: tuple[str, ...], check_only: bool, diagnostics: str) -> None:
 
 @main.command()
 @click.argument("name", type=click.Choice(["scene", "features", "viewdep", "manifest", "study", "study-manifest"]))
+@guarded
 def schema(name: str) -> None:
     """Print the JSON Schema of a scene, a features dump, a view-dependency file, a build manifest or a study
     table."""
@@ -221,22 +242,23 @@ def schema(name: str) -> None:
 @guarded
 def validate(dumps: tuple[str, ...]) -> None:
     """Validate scenes, feature dumps (JSON, JSON lines, npz) and manifests against the schemas."""
+    from wiredsl.io.files import read_regular, regular_size
     from wiredsl.io.layout import npz_problems
     from wiredsl.io.schema import problems
 
     bad = 0
     for path in dumps:
-        if _is_zip(path) or path.endswith(".npz"):  # features.npz: its layout and its manifest
-            msgs = npz_problems(path)
-            for m in msgs[:20]:
-                click.echo(f"{path}: error: {m}", err=True)
-            bad += bool(msgs)
-            continue
-        try:
-            with open(path, encoding="utf-8") as fh:
-                text = fh.read()
-        except (OSError, UnicodeDecodeError) as exc:
-            click.echo(f"{path}: error: cannot read: {exc}", err=True)
+        try:  # regular files only: /dev/zero or a FIFO is refused before it is opened
+            regular_size(path, 2**63)
+            if _is_zip(path) or path.endswith(".npz"):  # features.npz: its layout and its manifest
+                msgs = npz_problems(path)
+                for m in msgs[:20]:
+                    click.echo(f"{path}: error: {m}", err=True)
+                bad += bool(msgs)
+                continue
+            text = read_regular(path, MAX_JSON_BYTES).decode("utf-8")
+        except (OSError, ValueError) as exc:  # UnreadableFile and UnicodeDecodeError are ValueErrors
+            click.echo(f"{path}: error: cannot read: {getattr(exc, 'strerror', None) or exc}", err=True)
             bad += 1
             continue
         docs = _documents(path, text)
@@ -262,22 +284,31 @@ def _is_zip(path: str) -> bool:
 
 def _documents(path: str, text: str) -> list[tuple[str, object]]:
     """(location, document or error message) for a JSON or JSON-lines file."""
+    from wiredsl.io.files import json_loads
+
     try:
-        return [(path, json.loads(text))]
+        return [(path, json_loads(text))]
+    except RecursionError:
+        return [(path, "not JSON this reader takes: nested too deeply")]
     except json.JSONDecodeError as exc:
         if path.endswith(".jsonl"):
             out = []
             for i, line in enumerate(text.splitlines(), 1):
                 if line.strip():
                     try:
-                        out.append((f"{path}:{i}", json.loads(line)))
+                        out.append((f"{path}:{i}", json_loads(line)))
+                    except RecursionError:
+                        out.append((f"{path}:{i}", "not JSON this reader takes: nested too deeply"))
                     except json.JSONDecodeError as e:
                         out.append((f"{path}:{i}:{e.colno}", f"not JSON: {e.msg}"))
             return out
+        if path.endswith(".wd") or text.lstrip().startswith(("wiredsl", "#")):
+            return [(path, f"a scene source, not a JSON document: check it with 'wiredsl check {path}'")]
         return [(f"{path}:{exc.lineno}:{exc.colno}", f"not JSON: {exc.msg}")]
 
 
 @main.command()
+@guarded
 def reference() -> None:
     """Print the language reference (Markdown), generated from the statement table."""
     from wiredsl.language.statements import CONTEXTS, takes
@@ -291,9 +322,35 @@ def reference() -> None:
     click.echo("\n".join(out))
 
 
+@main.command()
+def plugins() -> None:
+    """List the effects and measures that installed packages add (entry points wiredsl.effects, wiredsl.measures).
+
+    One line a plug-in on stdout: kind, name, package and version, module:attribute, and ok or why it cannot be
+    used; exit 1 when one cannot."""
+    from wiredsl.effects import REGISTRY as effects
+    from wiredsl.measures import REGISTRY as measures
+    from wiredsl.plugins import installed, lookup
+
+    rows, bad = [], 0
+    for kind, registry in (("effect", effects), ("measure", measures)):
+        clashes = registry.clashes()
+        for p in installed(kind):
+            why = next((c for c in clashes if f"'{p.name}' from {p.origin}" in c), None)
+            if why is None:
+                why = lookup(registry, p.name)[1]
+            bad += why is not None
+            rows.append(f"{kind}\t{p.name}\t{p.package} {p.version}\t{p.value}\t{'ok' if why is None else why}")
+    click.echo("\n".join(rows) if rows else "no plug-ins installed (entry points wiredsl.effects, "
+                                             "wiredsl.measures)")
+    if bad:
+        sys.exit(EXIT_INVALID)
+
+
 TOLERANCE_PX = (1e-3, 100.0)  # finer than 1e-3 px costs vertices (memory, time) without bound, for nothing seen
 MAX_TRIAL = 2**31 - 1  # npz stores the trial in an int32 column
 OUTPUT_LIMIT = 50 * 10**9  # bytes a run may write without --force
+MAX_JSON_BYTES = 1 << 30  # a JSON or JSON-lines file `validate` reads (a JSON dump holds one trial)
 DUMP_SUFFIXES = (".json", ".jsonl", ".npz", ".svg")
 
 
@@ -327,9 +384,16 @@ def _folder_output(output: str | None, scene_name: str, force: bool):
         raise click.BadParameter("must not be empty", param_hint="-o")
     out = Path(output) if output is not None else Path("build") / scene_name
     check_output_folder(out, force)
-    if out.suffix.lower() in DUMP_SUFFIXES and not out.is_dir():
-        raise click.BadParameter(f"{output} looks like a file name; -o names the output folder (the dump is "
-                                 "written into it as features.json, .jsonl or .npz)", param_hint="-o")
+    return _folder_name(out, DUMP_SUFFIXES, "the dump is written into it as features.json, .jsonl or .npz")
+
+
+def _folder_name(out, suffixes: tuple[str, ...], inside: str):
+    """-o of a command that writes a folder: a name that looks like one of its files is a mistake."""
+    if out.exists() and not out.is_dir():
+        raise click.BadParameter(f"must name a folder: {out} is a file", param_hint="-o")
+    if out.suffix.lower() in suffixes and not out.is_dir():
+        raise click.BadParameter(f"{out} looks like a file name; -o names the output folder ({inside})",
+                                 param_hint="-o")
     return out
 
 
@@ -436,11 +500,9 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
           visibility: str, engine: str, exact_calibration: bool, layout: str, force: bool,
           diagnostics: str, study_name: str | None = None, point: int | None = None) -> None:
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
-    import contextlib
-    import secrets
     import time
 
-    from wiredsl.engine.montecarlo import Run
+    from wiredsl import run as runs
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world
     from wiredsl.io import emit
@@ -453,23 +515,12 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         raise click.UsageError("--trial K replays trial K of a run: give that run's --seed (see its manifest.json)")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
-    if scene.path is not None:
-        n = len(scene.path.poses)
-        for p in poses:
-            if not 0 <= p < n:
-                raise click.BadParameter(f"pose {p} is not in 0..{n - 1}", param_hint="--pose")
-    pipeline = None
-    if pipeline_name is not None and not no_effects:
-        pipeline = scene.pipeline(pipeline_name)
-        if pipeline is None:
-            names = ", ".join(p.name for p in scene.pipelines) or "none"
-            raise click.BadParameter(f"no pipeline '{pipeline_name}' in {file} (it has: {names})",
-                                     param_hint="--pipeline")
-    elif not no_effects:
-        pipeline = scene.pipeline()
-        if pipeline is None and scene.pipelines:
-            click.echo("note: no pipeline is marked default; building the ideal projection (choose one with "
-                       "--pipeline: " + ", ".join(p.name for p in scene.pipelines) + ")", err=True)
+    with _setup_errors():
+        chosen_poses = runs.check_poses(scene, poses) if poses else None
+        choice = runs.choose_pipeline(scene, pipeline_name, no_effects)
+    pipeline = choice.pipeline
+    if choice.note is not None:
+        click.echo(f"note: {choice.note}", err=True)
     trial_list = range(only_trial, only_trial + 1) if only_trial is not None else range(trials)
     if layout == "side-by-side" and pipeline is None:
         raise click.BadParameter("side-by-side shows the original beside the disturbed world: give a pipeline",
@@ -484,28 +535,22 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     if out_format == "npz" and out_dir is None:
         raise click.BadParameter("npz cannot go to stdout", param_hint="-o")
     world = build_world(scene)
-    opts = Options(tolerance=tolerance, visibility=visibility, poses=tuple(sorted(set(poses))) or None,
-                   right=cameras == "both")
-    if study_name is not None or point is not None:
-        run, pipeline, trial_list = _study_point(scene, world, study_name, point, only_trial, seed, pipeline_name,
-                                                 no_effects, opts, poses, out_format)
-        seed = run.seed
-    else:
-        run = Run.create(scene, world, pipeline, seed if seed is not None else 0, opts)
-    shown = only_trial if only_trial is not None else trial_list[0]  # the trial the SVGs show
-    run.exact_calibration = exact_calibration
+    opts = Options(tolerance=tolerance, visibility=visibility, poses=chosen_poses, right=cameras == "both")
     if engine == "auto" and only_trial is None and trials == 1:
         engine = "numpy"  # one plain build: not worth loading the compiled kernel
-    if engine == "kernel":
-        import importlib.util
-
-        if importlib.util.find_spec("numba") is None:
-            raise click.BadParameter("the compiled kernel needs numba: pip install 'wiredsl[fast]'",
-                                     param_hint="--engine")
-    run.engine = engine
+    with _setup_errors():
+        if study_name is not None or point is not None:
+            run, pipeline, trial_list = _study_point(scene, world, study_name, point, only_trial, seed,
+                                                     pipeline_name, no_effects, opts, poses, out_format)
+            run.engine, run.exact_calibration = runs.check_engine(engine), exact_calibration
+            seed = run.seed
+        else:
+            run = runs.start(scene, pipeline, seed=seed, options=opts, world=world, engine=engine,
+                             exact_calibration=exact_calibration)
+    shown = only_trial if only_trial is not None else trial_list[0]  # the trial the SVGs show
     effects = bool(run.stages)
-    if seed is None and effects:  # drawn only when something random runs, so ideal runs stay byte-identical
-        seed = run.seed = secrets.randbits(63)
+    if effects:
+        seed = run.seed  # drawn by start() when not given
     records = emit.stage_records(run)
 
     def doc_for(results, k):
@@ -583,6 +628,17 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                    f"seed {seed if effects else '-'}"
                    + (f", pipeline {pipeline.name}: {', '.join(e.name for e, _ in run.stages)}" if effects else
                       ", ideal projection") + ")", err=True)
+
+
+@contextlib.contextmanager
+def _setup_errors():
+    """A run's options that do not fit the scene: a usage error naming the option."""
+    from wiredsl.run import RunSetupError
+
+    try:
+        yield
+    except RunSetupError as err:
+        raise click.BadParameter(str(err), param_hint=err.option) from None
 
 
 def _study_point(scene, world, study_name, point, only_trial, seed, pipeline_name, no_effects, opts, poses,
@@ -753,6 +809,9 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     from wiredsl.io.files import write_atomic
     from wiredsl.language.compile import compile_file
 
+    if output is not None:
+        _folder_name(Path(output), (".yaml", ".yml", ".json", ".xml"),
+                     "stereo.yaml, left.yaml and right.yaml are written into it")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
     if scene.rig is None:
@@ -760,11 +819,10 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     if trial is not None:
         if seed is None:
             raise click.UsageError("--trial needs the run's --seed (see its manifest.json)")
-        from wiredsl.engine.montecarlo import Run
-        from wiredsl.engine.simulate import Options
-        from wiredsl.engine.world import build_world
+        from wiredsl import run as runs
 
-        run = Run.create(scene, build_world(scene), scene.pipeline(pipeline_name), seed, Options())
+        with _setup_errors():
+            run = runs.start(scene, runs.choose_pipeline(scene, pipeline_name).pipeline, seed=seed)
         if run.sampler() is None:
             raise click.UsageError("no calibration_error stage with a rig calibration: each trial has the nominal rig")
         # the run's own checked draw (a refused draw is redrawn), so the files are the rig the trial saw
@@ -785,9 +843,10 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
 @click.option("--workers", type=click.IntRange(1, None), default=None, help="Local processes (default: every core).")
 @click.option("--scheduler", default=None, help="With --executor dask: the scheduler's address (tcp://host:8786).")
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots (needs matplotlib).")
+@diagnostics_option
 @guarded
 def study(file: str, name: str | None, output: str | None, executor: str, workers: int | None,
-          scheduler: str | None, plots: bool) -> None:
+          scheduler: str | None, plots: bool, diagnostics: str) -> None:
     """Run a study of FILE (NAME, or its only one): shards, then table.csv/json, manifest.json and plots."""
     from pathlib import Path
 
@@ -795,8 +854,11 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
     from wiredsl.language.compile import compile_file
     from wiredsl.study import run_study
 
+    if output is not None:
+        _folder_name(Path(output), (".csv", ".json", ".png", ".svg"), "table.csv, table.json and plots/ are written "
+                     "into it")
     scene, warnings, program = compile_file(file)
-    report(warnings, program.sources, "text")
+    report(warnings, program.sources, diagnostics)
     found = scene.study(name)
     if found is None:
         names = ", ".join(s.name for s in scene.studies) or "none"

@@ -54,6 +54,9 @@ class WiredslError(Exception):
         self.diagnostics = list(diagnostics)
         super().__init__("\n".join(f"{d.span}: {d.severity}[{d.code}]: {d.message}" for d in self.diagnostics))
 
+    def __reduce__(self):  # whole across processes (a study's workers)
+        return (self.__class__, (self.diagnostics,))
+
 
 @dataclass
 class Collector:
@@ -90,6 +93,19 @@ def source_lines(text: str) -> list[str]:
     if len(lines) > 1 and lines[-1] == "":
         lines.pop()
     return lines
+
+
+def read_sources(diags: Iterable[Diagnostic]) -> dict[str, str]:
+    """Source text of the files diagnostics point into, for the caret lines (unreadable ones left out)."""
+    out: dict[str, str] = {}
+    for d in diags:
+        if d.span is not None and d.span.file not in out:
+            try:
+                with open(d.span.file, encoding="utf-8") as fh:
+                    out[d.span.file] = fh.read()
+            except (OSError, UnicodeDecodeError):
+                pass
+    return out
 
 
 def did_you_mean(word: str, candidates: Iterable[str]) -> str | None:

@@ -307,8 +307,8 @@ def hover(index: Index | None, text: str, path: str, line: int, col: int) -> str
         item = index.at(path, line, col)
         sym = item if isinstance(item, Symbol) else _resolve(index, item) if isinstance(item, Reference) else None
         if sym is not None:
-            decl = index.files[sym.span.file].source_lines(text)[sym.stmt.span.line - 1].strip() \
-                if sym.span.file in index.files else sym.name
+            declaring = index.files.get(sym.span.file)
+            decl = source_lines(declaring.text)[sym.stmt.span.line - 1].strip() if declaring else sym.name
             return f"{sym.what} `{sym.name}`, declared at {sym.span}:\n```wiredsl\n{decl}\n```"
     return None
 
@@ -394,6 +394,42 @@ def textmate_grammar() -> dict:
 
 
 # --------------------------------------------------------------------------- the server
+
+MAX_MESSAGE_BYTES = 16 * 1024 * 1024  # a document as large as the compiler reads, plus its JSON framing
+MAX_HEADER_BYTES = 64 * 1024
+_SKIPPED = b'{"jsonrpc": "2.0", "method": "$/wiredsl/skipped"}'  # an unknown notification: pygls ignores it
+
+
+class BoundedInput:
+    """The server's stdin: a header line or message body over the limit is skipped, never held in memory.
+
+    pygls reads a message's `Content-Length` bytes in one call, so a header claiming 100 GB was a
+    MemoryError. A body over the limit is read and dropped in small pieces (the next message is still
+    framed right); the end of input ends the server as usual.
+    """
+
+    def __init__(self, raw) -> None:
+        self.raw = raw
+
+    def readline(self) -> bytes:
+        return self.raw.readline(MAX_HEADER_BYTES)
+
+    def read(self, n: int) -> bytes:
+        if n <= MAX_MESSAGE_BYTES:
+            return self.raw.read(n)
+        import sys
+
+        sys.stderr.write(f"wiredsl lsp: skipping a message of {n:,} bytes, over the limit of "
+                         f"{MAX_MESSAGE_BYTES:,}\n")
+        sys.stderr.flush()
+        left = n
+        while left:
+            chunk = self.raw.read(min(left, 1 << 16))
+            if not chunk:
+                return b""  # the input ended inside the message: stop serving
+            left -= len(chunk)
+        return _SKIPPED
+
 
 def serve() -> None:
     """Run the language server on stdin/stdout until the client exits."""
@@ -511,4 +547,6 @@ def serve() -> None:
 
         return [convert(o) for o in symbols(index)] if index else []
 
-    server.start_io()
+    import sys
+
+    server.start_io(stdin=BoundedInput(sys.stdin.buffer))

@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import functools
-import operator
-from typing import Annotated, Literal
+from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, create_model
-
-from wiredsl.effects import REGISTRY
+from pydantic import BaseModel, ConfigDict, Field
 
 SCHEMA_VERSION = "1"
 
@@ -27,6 +23,10 @@ CALIBRATION_PARAMETERS = {
     "k2": "second radial coefficient",
     "p1": "first tangential coefficient",
     "p2": "second tangential coefficient",
+    "k3": "third radial coefficient (radtan: OpenCV's k3; equidistant: k3 of theta^6)",
+    "k4": "fourth coefficient (radtan: OpenCV's rational k4; equidistant: k4 of theta^8)",
+    "k5": "OpenCV's rational k5",
+    "k6": "OpenCV's rational k6",
     "tx": "mount translation along camera x (m)",
     "ty": "mount translation along camera y (m)",
     "tz": "mount translation along camera z (m)",
@@ -114,7 +114,12 @@ class Placement(Node):
 
 
 class Camera(Node):
-    """TINA's camera: u = ax*f*x_d + cx, v = ay*f*y_d + cy, f in pixels (f / pixel size)."""
+    """TINA's camera: u = ax*f*x_d + cx, v = ay*f*y_d + cy, f in pixels (f / pixel size).
+
+    The lens model maps a camera-frame point to (x_d, y_d) (engine/geometry.py): `radtan` is OpenCV's
+    full rational model (k1..k6, p1, p2), `equidistant` OpenCV's fisheye / Kannala-Brandt (k1..k4 on the
+    angle theta from the optical axis; p1 = p2 = k5 = k6 = 0).
+    """
 
     name: str
     f: float = Field(gt=0, description="focal length in pixels")
@@ -128,6 +133,15 @@ class Camera(Node):
     p2: float = 0.0
     width: int = Field(gt=0)
     height: int = Field(gt=0)
+    distortion: Literal["radtan", "equidistant"] = "radtan"
+    k3: float = 0.0
+    k4: float = 0.0
+    k5: float = 0.0
+    k6: float = 0.0
+    fov: float | None = Field(None, gt=0, le=6.283185307179586,
+                              description="equidistant: the lens's full field of view (rad); nothing farther "
+                                          "than fov / 2 from the optical axis is imaged (default: where the "
+                                          "lens's theta_d stops increasing, at most 360 deg)")
 
 
 class Mount(Node):
@@ -166,19 +180,16 @@ class Path(Node):
     poses: list[Vec3] = Field(description="(x, y, heading) in metres and radians")
 
 
-def _stage_model(name: str) -> type[Node]:
-    effect = REGISTRY[name]
-    return create_model(
-        "".join(w.title() for w in name.split("_")) + "Stage",
-        __base__=Node,
-        effect=(Literal[name], ...),
-        params=(effect.Params, effect.Params()),
-    )
+class Stage(Node):
+    """One pipeline stage: an effect's language name and all its parameters (SI units).
 
+    The compiler validates them against the effect's Params model (`wiredsl.effects.REGISTRY`), so the
+    compiled scene needs no effect to exist; the JSON schema lists each effect's parameters
+    (`wiredsl.effects.stage_models`).
+    """
 
-STAGE_MODELS = {name: _stage_model(name) for name in REGISTRY}
-globals().update({m.__name__: m for m in STAGE_MODELS.values()})  # picklable by name: scenes go to worker processes
-Stage = Annotated[functools.reduce(operator.or_, STAGE_MODELS.values()), Field(discriminator="effect")]
+    effect: str
+    params: dict[str, float | int | bool | str] = {}
 
 
 class Pipeline(Node):

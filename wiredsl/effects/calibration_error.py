@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from wiredsl.effects.base import Effect, Params, Stats, keyed_normal, param, stream_key
+from wiredsl.engine import geometry
 
 
 class CalibrationErrorParams(Params):
@@ -94,7 +95,7 @@ def perturb(scene, phi: np.ndarray, order: list[str]):
         mount = getattr(rig, side)
         d = deltas[side]
         cam = cameras[mount.camera]
-        updates = {k: getattr(cam, k) + d[k] for k in ("f", "ax", "ay", "cx", "cy", "k2", "p1", "p2") if k in d}
+        updates = {k: getattr(cam, k) + d[k] for k in CAMERA_KEYS if k in d and k != "k1"}
         if "k" in d:
             updates["k1"] = cam.k1 - d["k"]  # TINA's k = -k1
         new_cam = cam.model_copy(update={**updates, "name": f"{cam.name}:{side}"})
@@ -119,7 +120,7 @@ def rotation_vectors(r: np.ndarray) -> np.ndarray:
     return np.eye(3)[None] + s * K + (1 - c) * (K @ K)
 
 
-CAMERA_KEYS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2")
+CAMERA_KEYS = geometry.CAMERA_KEYS
 ATTEMPTS = 64  # draws tried for one trial before the calibration is refused as too uncertain for its cameras
 SCALE_LIMIT = 1000.0  # a drawn pixel scale beyond this multiple of the nominal one is refused (no real camera)
 

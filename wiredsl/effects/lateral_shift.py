@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from wiredsl.effects.base import Context, Effect, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
 from wiredsl.engine import imageset as im
 
 
@@ -20,6 +20,8 @@ class LateralShiftParams(Params):
 class LateralShift(Effect):
     name = "lateral_shift"
     acts_on = "edges"
+    kernel = KernelStage(1, ("range",),
+                         (("count", "add"), ("sum_abs", "add"), ("max_abs", "peak")))
     Params = LateralShiftParams
     doc = __doc__
 
@@ -79,12 +81,14 @@ def split_ellipses(s: im.ImageSet) -> im.ImageSet:
     # so that an axis through a vertex is one crossing there (t = 0 or 1), not none
     neg = side < 0
     pair = np.flatnonzero(same & (neg[:-1] != neg[1:]) & ell[seg_stroke])
-    t = side[pair] / (side[pair] - side[pair + 1])
-    sc = arc[pair] + t * (arc[pair + 1] - arc[pair])
     kc = stroke_of[pair]
     # a closed loop's crossings are those of its first lap: its own segments, including the closing one
-    first_lap = ~closed[kc] | (pair - s.start[kc] < (s.counts[kc] - 1) // 2)
-    sc, kc = sc[first_lap], kc[first_lap]
+    lap = (s.counts[kc] - 1) // 2
+    first_lap = ~closed[kc] | (pair - s.start[kc] < lap)
+    pair, kc, lap = pair[first_lap], kc[first_lap], lap[first_lap]
+    t = side[pair] / (side[pair] - side[pair + 1])
+    sc = _crossing(arc, pair, t)
+    sc2 = _crossing(arc, np.where(closed[kc], pair + lap, pair), t)  # the same point on the second lap
     cnt = np.bincount(kc, minlength=S)
     off = np.cumsum(cnt) - cnt
     # open arcs: [0, c1], [c1, c2], ..., [ck, L]; a closed ellipse with two crossings: [c1, c2], [c2, c1 + L];
@@ -94,11 +98,21 @@ def split_ellipses(s: im.ImageSet) -> im.ImageSet:
     m = np.where(halves, 2, np.where(split, cnt + 1, 1))
     k = np.repeat(np.arange(S), m)
     j = np.arange(m.sum()) - np.repeat(np.cumsum(m) - m, m)
-    c = lambda i: sc[np.clip(off[k] + i, 0, max(len(sc) - 1, 0))] if len(sc) else np.zeros(len(k))  # noqa: E731
+    c = lambda i, x=sc: x[np.clip(off[k] + i, 0, max(len(x) - 1, 0))] if len(x) else np.zeros(len(k))  # noqa: E731
     a = np.where(halves[k], np.where(j == 0, c(0), c(1)), np.where(j == 0, 0.0, c(j - 1)))
-    b = np.where(halves[k], np.where(j == 0, c(1), c(0) + L[k]), np.where(j == cnt[k], L[k], c(j)))
+    b = np.where(halves[k], np.where(j == 0, c(1), c(0, sc2)), np.where(j == cnt[k], L[k], c(j)))
     # only the loops cut into halves stay unrolled (the same first lap, so the same arc lengths); a loop
     # kept whole is copied verbatim from its own vertices
     s = im.unroll_closed(original, halves)
     return im.keep_intervals(s, k, a, b, np.where(split[k], 0, s.fragment[k]), closed=~split[k] & s.closed[k],
                              whole=~split[k])
+
+
+SNAP_PX = 1e-9  # a crossing closer than this to a vertex is at the vertex: no sliver segment, no copy of it
+
+
+def _crossing(arc: np.ndarray, pair: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Arc length of the point at fraction t of segment pair -> pair + 1, exactly a vertex's when it is one."""
+    seg = arc[pair + 1] - arc[pair]
+    return np.where(t * seg < SNAP_PX, arc[pair], np.where((1 - t) * seg < SNAP_PX, arc[pair + 1],
+                                                           arc[pair] + t * seg))

@@ -165,9 +165,10 @@ def common_tangents(Ha: np.ndarray, Hb: np.ndarray):
     inv = H1_inv[row]
     line = np.einsum("kji,kj->ki", inv, w)  # H1^-T w
     centre_a, centre_b = H1[row, :, 2], H2[row, :, 2]
-    # outer tangent: both ellipses (their centres) on the same side of the line
-    side_a = np.sign((line * centre_a).sum(axis=1)) * np.sign(centre_a[:, 2])
-    side_b = np.sign((line * centre_b).sum(axis=1)) * np.sign(centre_b[:, 2])
+    # outer tangent: both ellipses (their centres) on the same side of the tangent plane through the eye
+    # (the line is that plane's normal); a 3D test, so it holds for centres behind the camera's plane too
+    side_a = np.sign((line * centre_a).sum(axis=1))
+    side_b = np.sign((line * centre_b).sum(axis=1))
     outer = side_a == side_b
     row, s, line = row[outer], s[outer], line[outer]
     Pb = np.einsum("kij,kj->ki", Cb[row], line)

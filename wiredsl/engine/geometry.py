@@ -5,16 +5,29 @@ camera (OpenCV: x right, y down, z along the optical axis); the unit focal
 plane (x/z, y/z, undistorted); pixels (u right, v down, origin at the top-left
 corner of the image).
 
-Camera model (TINA's, in OpenCV's terms):
+Camera models (TINA's, in OpenCV's terms), a camera point P = (X, Y, Z) to
+distorted unit-plane coordinates (x_d, y_d), then u = f ax x_d + cx,
+v = f ay y_d + cy:
+- radtan, OpenCV's full rational model (cv2.projectPoints with the vector
+  (k1, k2, p1, p2, k3, k4, k5, k6)):
     (x, y) = (X/Z, Y/Z),  r^2 = x^2 + y^2
-    x_d = x (1 + k1 r^2 + k2 r^4) + 2 p1 x y + p2 (r^2 + 2 x^2)
-    y_d = y (1 + k1 r^2 + k2 r^4) + p1 (r^2 + 2 y^2) + 2 p2 x y
-    u = f ax x_d + cx,  v = f ay y_d + cy
-with k1 = -k for TINA's k (TINA: v = (1 - k r^2) w).
+    radial = (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)
+    x_d = x radial + 2 p1 x y + p2 (r^2 + 2 x^2)
+    y_d = y radial + p1 (r^2 + 2 y^2) + 2 p2 x y
+  with k1 = -k for TINA's k (TINA: v = (1 - k r^2) w).
+- equidistant, OpenCV's fisheye / Kannala-Brandt (cv2.fisheye.projectPoints
+  with (k1, k2, k3, k4)): theta = atan2(sqrt(X^2 + Y^2), Z), the angle from
+  the optical axis, theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6
+  + k4 theta^8), (x_d, y_d) = theta_d (X, Y) / sqrt(X^2 + Y^2).
 
-Points behind the camera, or nearer than `NEAR` to its plane, are never
-projected: callers clip in 3D first. Points beyond the radius where radial
-distortion folds back (d r_d / d r = 0) are not projected either.
+Which points are imaged (the near rule), with the lens limit of `lens_limit`:
+- radtan: Z >= NEAR and the unit-plane radius below the radius where radial
+  distortion folds back (d r_d / d r = 0, or the rational denominator's zero);
+- equidistant: theta below the lens's largest angle (half its declared `fov`,
+  else where theta_d stops increasing, at most 180 deg) and the point at least
+  NEAR from the camera centre; so a fisheye sees points beside and behind its
+  own plane (Z <= 0) when its field of view passes 180 deg.
+Callers clip in 3D first (`clip_segments_lens`).
 """
 
 from __future__ import annotations
@@ -54,37 +67,156 @@ def cam_to_plane(P_cam: np.ndarray) -> np.ndarray:
     return P_cam[..., :2] / P_cam[..., 2:3]
 
 
-def distort(xy: np.ndarray, k1: float, k2: float = 0.0, p1: float = 0.0, p2: float = 0.0) -> np.ndarray:
-    """Distorted unit-plane coordinates (OpenCV's k1, k2, p1, p2), shape (..., 2)."""
+MODELS = ("radtan", "equidistant")  # a camera's lens model; its code in camera tables is its index
+# A camera's numbers in the engine's tables; the kernel's camera rows add the model code (CAMERA_ROW).
+CAMERA_KEYS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+CAMERA_ROW = (*CAMERA_KEYS, "model")
+
+
+def distort(xy: np.ndarray, k1, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0, k5=0.0, k6=0.0) -> np.ndarray:
+    """Distorted unit-plane coordinates under OpenCV's rational model (k1..k6, p1, p2), shape (..., 2)."""
     x, y = xy[..., 0], xy[..., 1]
     r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + k2 * r2)
+    radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
     return np.stack([xd, yd], axis=-1)
 
 
-def plane_to_pixels(xy_d: np.ndarray, f: float, ax: float, ay: float, cx: float, cy: float) -> np.ndarray:
+def fisheye_plane(P_cam: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0) -> np.ndarray:
+    """Distorted unit-plane coordinates of camera points (..., 3) under the equidistant model, (..., 2).
+
+    theta is the angle from the optical axis, so points beside and behind the camera's plane have an
+    image too; a point on the backward axis (theta = 180 deg) or at the centre has none (NaN).
+    """
+    X, Y, Z = P_cam[..., 0], P_cam[..., 1], P_cam[..., 2]
+    rho = np.hypot(X, Y)
+    theta = np.arctan2(rho, Z)
+    t2 = theta * theta
+    td = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        scale = np.where(rho > 0, td / np.where(rho > 0, rho, 1.0), np.where(Z > 0, 0.0, np.nan))
+    return np.stack([scale * X, scale * Y], axis=-1)
+
+
+def plane_to_pixels(xy_d: np.ndarray, f, ax, ay, cx, cy) -> np.ndarray:
     """Pixels (u, v) from distorted unit-plane coordinates, shape (..., 2)."""
     return np.stack([f * ax * xy_d[..., 0] + cx, f * ay * xy_d[..., 1] + cy], axis=-1)
 
 
+def camera_table(cam) -> dict:
+    """A Camera's numbers by CAMERA_KEYS, with its model code ("model") and lens limit ("limit")."""
+    table = {k: float(getattr(cam, k)) for k in CAMERA_KEYS}
+    table["model"] = MODELS.index(cam.distortion)
+    table["limit"] = lens_limit(cam)
+    return table
+
+
+def project(P_cam: np.ndarray, g: dict) -> np.ndarray:
+    """Pixels (m, 2) of camera points (m, 3) under cameras g: CAMERA_KEYS and "model", each a scalar or (m,).
+
+    A radtan camera gives NaN for points with Z <= 0 (nothing there is imaged; callers clip first), as
+    does a fisheye for the backward axis. A pixel beyond float range is inf.
+    """
+    model = np.broadcast_to(np.asarray(g["model"]), P_cam.shape[:-1])
+    fish = model == 1
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        out = None
+        if not fish.all() or fish.size == 0:
+            xy = np.where(P_cam[..., 2:3] > 0, P_cam[..., :2] / P_cam[..., 2:3], np.nan)
+            out = distort(xy, g["k1"], g["k2"], g["p1"], g["p2"], g["k3"], g["k4"], g["k5"], g["k6"])
+        if fish.any():
+            xy_f = fisheye_plane(P_cam, g["k1"], g["k2"], g["k3"], g["k4"])
+            out = xy_f if out is None else np.where(fish[..., None], xy_f, out)
+        return plane_to_pixels(out, g["f"], g["ax"], g["ay"], g["cx"], g["cy"])
+
+
 def cam_to_pixels(P_cam: np.ndarray, cam) -> np.ndarray:
-    """The whole chain for points in front of the camera: P_cam (..., 3) -> pixels (..., 2)."""
-    xy = cam_to_plane(P_cam)
-    return plane_to_pixels(distort(xy, cam.k1, cam.k2, cam.p1, cam.p2), cam.f, cam.ax, cam.ay, cam.cx, cam.cy)
+    """The whole chain for points the camera images: P_cam (..., 3) -> pixels (..., 2)."""
+    return project(P_cam, camera_table(cam))
 
 
 def is_distorted(cam) -> bool:
-    return any(c != 0.0 for c in (cam.k1, cam.k2, cam.p1, cam.p2))
+    """Whether lines are curves in the camera's image (any fisheye; a radtan with a coefficient)."""
+    return cam.distortion != "radtan" or any(getattr(cam, k) != 0.0 for k in CAMERA_KEYS[5:])
 
 
-def fold_radius(k1: float, k2: float = 0.0) -> float:
-    """Smallest unit-plane radius where r (1 + k1 r^2 + k2 r^4) stops increasing (inf if never).
+def visible(P_cam: np.ndarray, model, limit) -> np.ndarray:
+    """Which camera points (..., 3) a camera images by the near rule (see the module's docstring).
+
+    model and limit (`lens_limit`) are scalars or one per point.
+    """
+    X, Y, Z = P_cam[..., 0], P_cam[..., 1], P_cam[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        zs = np.where(Z > 0, Z, 1.0)
+        radtan = (Z > NEAR) & (np.hypot(X / zs, Y / zs) < limit)
+        fish = (np.arctan2(np.hypot(X, Y), Z) < limit) & (np.sqrt(X * X + Y * Y + Z * Z) > NEAR)
+    return np.where(np.asarray(model) == 1, fish, radtan)
+
+
+def lens_limit(cam, **values) -> float:
+    """radtan: the fold radius on the unit plane; equidistant: the largest angle from the axis imaged (rad).
+
+    values (e.g. k1=...) replace the camera's own coefficients (a perturbed camera).
+    """
+    k = [values.get(n, getattr(cam, n)) for n in ("k1", "k2", "k3", "k4", "k5", "k6")]
+    if cam.distortion == "equidistant":
+        return fisheye_max_angle(*k[:4], cam.fov)
+    return fold_radius(*k)
+
+
+def fisheye_max_angle(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0.0, fov: float | None = None) -> float:
+    """The largest angle from the optical axis an equidistant lens images: half its fov, the first angle where
+    theta_d (theta) stops increasing, and 180 deg, whichever is smallest."""
+    # d theta_d / d theta = 1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3 + 9 k4 s^4 in s = theta^2
+    s = _first_positive_root([1.0, 3.0 * k1, 5.0 * k2, 7.0 * k3, 9.0 * k4])
+    limit = min(math.sqrt(s), math.pi)
+    return min(limit, fov / 2) if fov is not None else limit
+
+
+def fold_radius(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0.0, k5: float = 0.0,
+                k6: float = 0.0) -> float:
+    """Smallest unit-plane radius where r radial(r) stops increasing or the rational denominator
+    vanishes (inf if never).
 
     Beyond it the radial mapping folds back and is no longer one-to-one, so nothing
     there is projected (tangential terms, small in practice, are not considered).
     """
+    if k3 == k4 == k5 == k6 == 0.0:
+        return _fold_radius_quadratic(k1, k2)
+    npoly = np.polynomial.polynomial
+    N, D = np.array([1.0, k1, k2, k3]), np.array([1.0, k4, k5, k6])
+    s_ = np.array([0.0, 1.0])
+    # d/dr (r N(s) / D(s)) = ((N + 2 s N') D - 2 s N D') / D^2 with s = r^2
+    num = npoly.polysub(npoly.polymul(npoly.polyadd(N, 2 * npoly.polymul(s_, npoly.polyder(N))), D),
+                        2 * npoly.polymul(npoly.polymul(s_, N), npoly.polyder(D)))
+    return math.sqrt(min(_first_positive_root(num), _first_positive_root(D)))
+
+
+def _first_positive_root(coef) -> float:
+    """The smallest positive real root of a polynomial (coefficients lowest order first, constant 1), or inf."""
+    c = np.trim_zeros(np.asarray(coef, dtype=float), "b")
+    if len(c) < 2:
+        return math.inf
+    if len(c) == 3:  # the stable quadratic formula: a tiny leading coefficient cannot overflow
+        return _fold_radius_quadratic(c[1] / 3.0, c[2] / 5.0) ** 2
+    with np.errstate(all="ignore"):
+        roots = np.polynomial.polynomial.polyroots(c)
+    real = roots.real[(np.abs(roots.imag) <= 1e-9 * np.maximum(np.abs(roots.real), 1.0)) & (roots.real > 0)]
+    if len(real) == 0:
+        return math.inf
+    s = float(real.min())
+    d = np.polynomial.polynomial.polyder(c)
+    for _ in range(3):  # Newton polish of the eigenvalue root
+        ds = np.polynomial.polynomial.polyval(s, d)
+        if ds == 0:
+            break
+        s = s - np.polynomial.polynomial.polyval(s, c) / ds
+    return s if s > 0 else math.inf
+
+
+def _fold_radius_quadratic(k1: float, k2: float = 0.0) -> float:
+    """fold_radius for k1, k2 only."""
     # d/dr = 1 + 3 k1 r^2 + 5 k2 r^4 = 0: a s^2 + b s + 1 = 0 in s = r^2, solved in the stable form
     # (q = -(b + sign(b) sqrt(disc)) / 2, roots q / a and 1 / q) so that a tiny a cannot overflow
     a, b = 5.0 * k2, 3.0 * k1
@@ -97,6 +229,53 @@ def fold_radius(k1: float, k2: float = 0.0) -> float:
         roots.append(q / a)
     positive = [s for s in roots if math.isfinite(s) and s > 0]
     return math.sqrt(min(positive)) if positive else math.inf
+
+
+def clip_segments_lens(A: np.ndarray, B: np.ndarray, model: np.ndarray, limit: np.ndarray):
+    """The parts of camera-frame segments A->B (n, 3) that their cameras image (the near rule).
+
+    model and limit (n,) as from `lens_limit`. A radtan part is one interval (a convex region); a fisheye
+    may cut a segment in up to three (its region, past 90 deg, is the outside of a backward cone, and the
+    ball of radius NEAR about the centre is cut out). Returns (rows, t0, t1): segment rows[j]'s part j is
+    A + t (B - A) for t in [t0[j], t1[j]], rows sorted.
+    """
+    n = len(A)
+    model = np.broadcast_to(np.asarray(model), (n,))
+    limit = np.broadcast_to(np.asarray(limit, dtype=float), (n,))
+    rad = np.flatnonzero(model != 1)
+    t0, t1, keep = clip_segments_cone(A[rad], B[rad], NEAR, limit[rad] * (1 - 1e-9))
+    rows, lo, hi = [rad[keep]], [t0[keep]], [t1[keep]]
+    fish = np.flatnonzero(model == 1)
+    if len(fish):
+        Af, Bf, lim = A[fish], B[fish], limit[fish] * (1 - 1e-9)  # strictly inside, as `visible` asks
+        narrow = lim <= math.pi / 2
+        # in front of a narrow lens: the convex cone theta <= limit (z >= 0)
+        f0, f1, fk = clip_segments_cone(Af, Bf, 0.0, np.where(narrow, np.tan(np.minimum(lim, math.pi / 2)), 1e7))
+        f0, f1 = np.where(fk & narrow, f0, np.where(narrow, 1.0, 0.0)), np.where(fk & narrow, f1, 1.0)
+        # a wide lens: all but the convex backward cone theta > limit (mirrored: in front of -z)
+        flip = np.array([1.0, 1.0, -1.0])
+        b0, b1, bk = clip_segments_cone(Af * flip, Bf * flip, 0.0, np.tan(math.pi - np.maximum(lim, math.pi / 2)))
+        back = bk & ~narrow
+        e0, e1 = np.where(back, b0, np.inf), np.where(back, b1, np.inf)
+        pieces = [(np.arange(len(fish)), f0, np.minimum(f1, e0)), (np.arange(len(fish)), np.maximum(f0, e1), f1)]
+        # the ball |A + t D| < NEAR
+        D = Bf - Af
+        a, b, c = (D * D).sum(1), 2 * (Af * D).sum(1), (Af * Af).sum(1) - NEAR * NEAR
+        disc = b * b - 4 * a * c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sq = np.sqrt(np.maximum(disc, 0.0))
+            n0, n1 = (-b - sq) / (2 * a), (-b + sq) / (2 * a)
+        inball = (disc > 0) & (a > 0)
+        n0, n1 = np.where(inball, n0, np.inf), np.where(inball, n1, np.inf)
+        for k, p0, p1 in pieces:
+            for q0, q1 in ((p0, np.minimum(p1, n0)), (np.maximum(p0, n1), p1)):
+                ok = (q1 > q0) & ~((a[k] == 0) & (c[k] < 0))
+                rows.append(fish[k[ok]])
+                lo.append(q0[ok])
+                hi.append(q1[ok])
+    rows_, lo_, hi_ = np.concatenate(rows), np.concatenate(lo), np.concatenate(hi)
+    order = np.lexsort((lo_, rows_))
+    return rows_[order].astype(int), lo_[order], hi_[order]
 
 
 def clip_segments_cone(A: np.ndarray, B: np.ndarray, near: float, r_max):

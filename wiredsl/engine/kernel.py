@@ -19,13 +19,10 @@ import sys
 import numpy as np
 from numba import njit
 
-# stage codes, in the order of wiredsl.effects' names
+# the per-stroke functions view_batch dispatches to, by the code each effect declares (its `kernel`,
+# wiredsl.effects.base.KernelStage); a code with no function here is refused before the kernel runs
 EDGE_LOSS, LATERAL_SHIFT, APPROX_ERROR, CORNER_LOSS, CORNER_MISMATCH, STEREO_MISMATCH = range(6)
-CODES = {"edge_loss": EDGE_LOSS, "lateral_shift": LATERAL_SHIFT, "approx_error": APPROX_ERROR,
-         "corner_loss": CORNER_LOSS, "corner_mismatch": CORNER_MISMATCH, "stereo_mismatch": STEREO_MISMATCH}
-PARAMS = {"edge_loss": ("fraction",), "lateral_shift": ("range",), "approx_error": ("sigma",),
-          "corner_loss": ("keep",), "corner_mismatch": ("fraction", "radius"),
-          "stereo_mismatch": ("band", "fraction", "disparity")}  # each stage's parameters, as the kernel takes them
+KNOWN = frozenset(range(6))
 FID, SEG, FRAG, KIND, CLIP, CLOSED, OCC = range(7)  # columns of a stroke's metadata row
 NMETA = 7
 ELLIPSE = 2
@@ -257,6 +254,17 @@ def _edge_loss(pts, start, meta, key, fraction, st):
 
 
 @njit(cache=True)
+def _crossing(arc, i, t):
+    """lateral_shift._crossing: the arc length at fraction t of segment i, snapped to a vertex within 1e-9 px."""
+    seg = arc[i + 1] - arc[i]
+    if t * seg < 1e-9:
+        return arc[i]
+    if (1 - t) * seg < 1e-9:
+        return arc[i + 1]
+    return arc[i] + t * seg
+
+
+@njit(cache=True)
 def _split_ellipses(pts, start, meta):
     """lateral_shift.split_ellipses."""
     S = len(start) - 1
@@ -267,6 +275,7 @@ def _split_ellipses(pts, start, meta):
     upts, ustart, umeta = _unroll(pts, start, meta, closed)
     arc, Lu = _arcs(upts, ustart)
     crossings = np.empty(len(upts))
+    second = np.empty(len(upts))  # each crossing's point on a loop's second lap
     ccount = np.zeros(S, np.int64)
     coff = np.zeros(S + 1, np.int64)
     for k in range(S):
@@ -304,7 +313,8 @@ def _split_ellipses(pts, start, meta):
             nxt = (upts[i + 1, 0] - cx) * nx + (upts[i + 1, 1] - cy) * ny
             if (prev < 0) != (nxt < 0) and i - a < c:
                 t = prev / (prev - nxt)
-                crossings[coff[k + 1]] = arc[i] + t * (arc[i + 1] - arc[i])
+                crossings[coff[k + 1]] = _crossing(arc, i, t)
+                second[coff[k + 1]] = _crossing(arc, i + c, t) if closed[k] else 0.0
                 coff[k + 1] += 1
             prev = nxt
         ccount[k] = coff[k + 1] - coff[k]
@@ -324,7 +334,7 @@ def _split_ellipses(pts, start, meta):
         o = coff[k]
         if halves[k]:
             ps[q], pa[q], pb[q] = k, crossings[o], crossings[o + 1]
-            ps[q + 1], pa[q + 1], pb[q + 1] = k, crossings[o + 1], crossings[o] + L
+            ps[q + 1], pa[q + 1], pb[q + 1] = k, crossings[o + 1], second[o]
             q += 2
         elif not closed[k] and ccount[k] > 0:
             for j in range(ccount[k] + 1):
@@ -542,21 +552,32 @@ def _corner_mismatch(corners, key, fraction, radius, st):
 # ----------------------------------------------------------------------------- cameras and the image
 
 @njit(cache=True)
-def _project(X, R, t, cam, fold, out, ok):
-    """Perturbed camera (R (3, 3), t (3,), cam = f, ax, ay, cx, cy, k1, k2, p1, p2) applied to world points."""
+def _project(X, R, t, cam, limit, out, ok):
+    """Perturbed camera (R (3, 3), t (3,), cam = geometry.CAMERA_ROW, lens limit) applied to world points:
+    geometry.project and geometry.visible, term by term."""
     f, ax, ay, cx, cy, k1, k2, p1, p2 = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5], cam[6], cam[7], cam[8]
+    k3, k4, k5, k6, fisheye = cam[9], cam[10], cam[11], cam[12], cam[13] == 1.0
     for i in range(len(X)):
         Px = R[0, 0] * X[i, 0] + R[0, 1] * X[i, 1] + R[0, 2] * X[i, 2] + t[0]
         Py = R[1, 0] * X[i, 0] + R[1, 1] * X[i, 1] + R[1, 2] * X[i, 2] + t[1]
         Pz = R[2, 0] * X[i, 0] + R[2, 1] * X[i, 1] + R[2, 2] * X[i, 2] + t[2]
-        good = Pz > 1e-3
-        z = Pz if good else 1.0
-        x, y = Px / z, Py / z
-        good = good and math.hypot(x, y) < fold
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + k2 * r2)
-        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        if fisheye:
+            rho = math.hypot(Px, Py)
+            theta = math.atan2(rho, Pz)
+            good = theta < limit and math.sqrt(Px * Px + Py * Py + Pz * Pz) > 1e-3
+            t2 = theta * theta
+            td = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+            scale = td / rho if rho > 0 else 0.0
+            xd, yd = scale * Px, scale * Py
+        else:
+            good = Pz > 1e-3
+            z = Pz if good else 1.0
+            x, y = Px / z, Py / z
+            good = good and math.hypot(x, y) < limit
+            r2 = x * x + y * y
+            radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+            xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+            yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
         ok[i] = good
         out[i, 0] = f * ax * xd + cx if good else 0.0
         out[i, 1] = f * ay * yd + cy if good else 0.0
@@ -730,9 +751,11 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
                 corners, cf = _corner_loss(corners, cf, key, params[g, 0], st)
             elif code == CORNER_MISMATCH:
                 corners = _corner_mismatch(corners, key, params[g, 0], params[g, 1], st)
-            else:
+            elif code == STEREO_MISMATCH:
                 pts, start, meta = _stereo(pts, start, meta, key, epipole, params[g, 0], params[g, 1], params[g, 2],
                                            right, st)
+            else:
+                raise ValueError("kernel: unknown stage code")
         res.append((pts, start, meta))
         cres.append((corners, cf))
     N = 0
@@ -776,7 +799,7 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
     announce_compile()
     return view_batch(f2(tpts, 2), i1(tstart), np.ascontiguousarray(meta, dtype=np.int64).reshape(-1, NMETA),
                       f2(tcorners, 2), i1(cfid), f2(W, 3), f2(CW, 3),
-                      np.ascontiguousarray(R_cw, dtype=np.float64).reshape(-1, 3, 3), f2(t_cw, 3), f2(cams, 9),
+                      np.ascontiguousarray(R_cw, dtype=np.float64).reshape(-1, 3, 3), f2(t_cw, 3), f2(cams, 14),
                       np.ascontiguousarray(folds, dtype=np.float64).reshape(-1), float(width), float(height),
                       bool(calibrated), i1(codes), f2(params, 3),
                       np.ascontiguousarray(keys, dtype=np.uint64).reshape(len(codes), len(folds)),
@@ -807,24 +830,12 @@ def warm() -> None:
     """Compile (or load from the cache) the kernel on a tiny view, e.g. once before parallel test workers."""
     z2, zi = np.zeros((0, 2)), np.zeros(0, np.int64)
     run_view(np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([0, 2]), np.zeros((1, NMETA), np.int64), z2, zi,
-             np.zeros((2, 3)), np.zeros((0, 3)), np.eye(3)[None], np.zeros((1, 3)), np.ones((1, 9)), np.ones(1),
+             np.zeros((2, 3)), np.zeros((0, 3)), np.eye(3)[None], np.zeros((1, 3)), np.ones((1, 14)), np.ones(1),
              10.0, 10.0, True, np.arange(6), np.zeros((6, 3)), np.ones((6, 1), np.uint64), np.ones(3), True,
              np.zeros((6, NSTAT)))
 
 
-# what each stage's statistics row holds: (name, "add" | "peak") by column, as the numpy effects record them
-STATS = {
-    "edge_loss": (("total_length", "add"), ("kept_length", "add")),
-    "lateral_shift": (("count", "add"), ("sum_abs", "add"), ("max_abs", "peak")),
-    "approx_error": (("count", "add"), ("sum_sq", "add")),
-    "corner_loss": (("total", "add"), ("kept", "add")),
-    "corner_mismatch": (("total", "add"), ("shifted", "add"), ("max_distance", "peak")),
-    "stereo_mismatch": (("length_in", "add"), ("length_after_band", "add"), ("right_strokes", "add"),
-                        ("shifted", "add"), ("max_shift", "peak")),
-}
-
-
-def record(name: str, row: np.ndarray, stats) -> None:
-    """Add one view's statistics row of stage `name` to the run's Stats."""
-    for (key, how), value in zip(STATS[name], row, strict=False):
+def record(name: str, columns, row: np.ndarray, stats) -> None:
+    """Add one view's statistics row of stage `name` (its KernelStage's `stats` columns) to the run's Stats."""
+    for (key, how), value in zip(columns, row, strict=False):
         (stats.add if how == "add" else stats.peak)(name, **{key: value})

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from wiredsl.diagnostics import Diagnostic, WiredslError
-from wiredsl.effects import REGISTRY
+from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.effects import calibration_error as calib
 from wiredsl.effects.base import Context, Stats
 from wiredsl.engine import geometry
@@ -67,9 +67,18 @@ class Run:
         stages = []
         for st in (pipeline.stages if pipeline is not None else []):
             effect = REGISTRY[st.effect]
-            if not effect.is_identity(st.params):
-                stages.append((effect, st.params))
+            params = effect.Params(**st.params)
+            if not effect.is_identity(params):
+                stages.append((effect, params))
         return cls(scene, world, stages, seed, options, point=point)
+
+    def share_projection(self, base: Run) -> None:
+        """Take `base`'s ideal projection, visibility and epipoles (a run of the same scene and options):
+        no stage changes them. An optimisation only: what `base` has not computed is computed when needed."""
+        for name in ("_ideal", "_visible"):
+            if getattr(base, name) is not None:
+                setattr(self, name, getattr(base, name))
+        self._epipoles = base._epipoles
 
     @property
     def calibration(self):
@@ -163,8 +172,11 @@ class Run:
         return phis
 
     def uses_kernel(self) -> bool:
-        """Whether batches run in the compiled kernel (never for the from-scratch calibration reference)."""
+        """Whether batches run in the compiled kernel: never for the from-scratch calibration reference, nor when
+        a stage has no compiled kernel (an installed plug-in's, say): then the whole pipeline runs on numpy."""
         if self.engine == "numpy" or self.exact_calibration or not self.stages:
+            return False
+        if any(e.kernel is None for e, _ in self.image_stages):
             return False
         if self.engine == "kernel":
             return True
@@ -172,10 +184,21 @@ class Run:
 
         return importlib.util.find_spec("numba") is not None
 
-    def _batch(self, batch: Sequence[int]):
+    def observe(self, result: PoseResult, trials: Sequence[int]) -> tuple[PoseResult, dict, dict]:
+        """One ideal view (a path pose, or any pose projected with `Run.project_pose`) through the stages,
+        for the given trials: (result, {side: disturbed ImageSet}, views), as `batches` gives each pose.
+
+        The draws are keyed by `result.index`, so a path pose gives exactly what `batches` gives it; nothing is
+        kept for a result that is not one of the run's ideal poses (a closed loop's poses do not pile up)."""
+        if self.exact_calibration:
+            raise ValueError("observe() re-projects the ideal strokes; exact_calibration projects whole runs")
+        keep = any(r is result for r in self.ideal())
+        return self._batch(trials, [result], keep)[0]
+
+    def _batch(self, batch: Sequence[int], results: list[PoseResult] | None = None, keep: bool = True):
         sampler = self.sampler()
         per_trial = rigs = None
-        base = self.ideal()
+        base = self.ideal() if results is None else results
         kernel = self.uses_kernel()
         if sampler is not None:
             order = self.scene.rig.calibration.order
@@ -196,7 +219,7 @@ class Run:
                 if kernel:
                     for effect, _ in self.image_stages:
                         self.trace[effect.name] += 1
-                    sets, views[side] = self._kernel_view(result, side, batch, rigs[side] if rigs else None)
+                    sets, views[side] = self._kernel_view(result, side, batch, rigs[side] if rigs else None, keep)
                     disturbed[side] = sets
                     continue
                 if per_trial is not None:
@@ -204,30 +227,38 @@ class Run:
                     views[side] = [getattr(r[j], side) for r in per_trial]
                 elif rigs is not None:
                     sets, views[side] = reproject(getattr(result, side), self.world, rigs[side], result.pose, side,
-                                                  self.template(result, side, raw=True))
+                                                  self.template(result, side, raw=True, keep=keep))
                 else:
-                    sets = self.template(result, side, raw=False)[0].repeat_trials(len(batch))
+                    sets = self.template(result, side, raw=False, keep=keep)[0].repeat_trials(len(batch))
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
                               point=self.point)
                 for effect, params in self.image_stages:
                     self.trace[effect.name] += 1
-                    sets = effect.apply(params, sets, ctx)
+                    if effect.name in BUILTIN:
+                        sets = effect.apply(params, sets, ctx)
+                    else:  # an installed plug-in: what it raises or returns is checked, and blamed on its package
+                        sets = plugin_apply(effect, params, sets, ctx)
                 disturbed[side] = sets
             out.append((result, disturbed, views))
         return out
 
-    def template(self, result: PoseResult, side: str, raw: bool) -> tuple[im.ImageSet, np.ndarray, np.ndarray]:
+    def template(self, result: PoseResult, side: str, raw: bool, keep: bool = True
+                 ) -> tuple[im.ImageSet, np.ndarray, np.ndarray]:
         """One view's strokes as a trial's ImageSet: raw (before clipping, with world points, for
-        re-projection) or ideal; built once a run."""
+        re-projection) or ideal; built once a run (`keep`), or each time."""
         key = (result.index, side, raw)
-        if key not in self._templates:
-            view = getattr(result, side)
-            self._templates[key] = raw_template(view, self.world) if raw else \
-                (to_imageset(view, self.world), np.zeros((0, 3)), np.zeros((0, 3)))
-        return self._templates[key]
+        if key in self._templates and keep:
+            return self._templates[key]
+        view = getattr(result, side)
+        made = raw_template(view, self.world) if raw else \
+            (to_imageset(view, self.world), np.zeros((0, 3)), np.zeros((0, 3)))
+        if keep:
+            self._templates[key] = made
+        return made
 
-    def _kernel_view(self, result: PoseResult, side: str, batch: Sequence[int], rig: dict | None):
+    def _kernel_view(self, result: PoseResult, side: str, batch: Sequence[int], rig: dict | None,
+                     keep: bool = True):
         """One view of a batch in the compiled kernel: the same stages and draws as the numpy path."""
         from wiredsl.effects.base import CAMERA_INDEX, stream_key
         from wiredsl.engine import kernel as kn
@@ -236,20 +267,23 @@ class Run:
         trials = np.asarray(batch, dtype=np.int64)
         T = len(trials)
         if rig is not None:
-            template, W, CW = self.template(result, side, raw=True)
+            template, W, CW = self.template(result, side, raw=True, keep=keep)
             R_cw, t_cw, cams, folds = trial_cameras(rig, result.pose)
             cam, view_of = rig["camera"], view_maker(rig, R_cw, t_cw, side)
         else:
-            template, W, CW = self.template(result, side, raw=False)
-            R_cw, t_cw, cams, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros((T, 9)), np.zeros(T)
+            template, W, CW = self.template(result, side, raw=False, keep=keep)
+            cams = np.zeros((T, len(geometry.CAMERA_ROW)))
+            R_cw, t_cw, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros(T)
             cam, view_of = view.camera, None
         meta = np.column_stack([template.fid, template.segment, template.fragment, template.kind,
                                 template.clipped, template.closed, template.occluded]).astype(np.int64).reshape(-1, 7)
         stages = self.image_stages
-        codes = np.array([kn.CODES[e.name] for e, _ in stages], dtype=np.int64)
+        codes = np.array([e.kernel.code for e, _ in stages], dtype=np.int64)
+        if not set(codes.tolist()) <= kn.KNOWN:
+            raise ValueError(f"the kernel has no stage of code {sorted(set(codes.tolist()) - kn.KNOWN)}")
         params = np.zeros((len(stages), 3))
         for g, (e, p) in enumerate(stages):
-            params[g, :len(kn.PARAMS[e.name])] = [getattr(p, name) for name in kn.PARAMS[e.name]]
+            params[g, :len(e.kernel.params)] = [getattr(p, name) for name in e.kernel.params]
         keys = np.array([stream_key(e.name, trials, result.index, CAMERA_INDEX[side], self.seed, self.point)
                          for e, _ in stages], dtype=np.uint64).reshape(len(stages), T)
         stereo = any(e.name == "stereo_mismatch" for e, _ in stages)
@@ -259,11 +293,16 @@ class Run:
             template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams, folds,
             cam.width, cam.height, rig is not None, codes, params, keys, epipole, side == "right", stats)
         for (effect, _), row in zip(stages, stats, strict=True):
-            kn.record(effect.name, row, self.stats)
+            kn.record(effect.name, effect.kernel.stats, row, self.stats)
         s = im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2], kind=m[:, 3],
                         clipped=m[:, 4].astype(bool), closed=m[:, 5].astype(bool), trial=trial, corners=corners,
                         corner_fid=cfid, corner_trial=ctrial, occluded=m[:, 6].astype(bool))
         return s, view_of
+
+    def engines(self) -> dict[str, str]:
+        """Which engine ran each stage (calibration_error's draws are numpy's on both: they set the cameras)."""
+        kernel = self.uses_kernel()
+        return {e.name: "kernel" if kernel and e.kernel is not None else "numpy" for e, _ in self.stages}
 
     def manifest(self) -> dict:
         return {
@@ -271,8 +310,47 @@ class Run:
                        for e, p in self.stages],
             "ran": dict(sorted(self.trace.items())),
             "engine": "kernel" if self.uses_kernel() else "numpy",
+            "engines": self.engines(),
             "warnings": self.warnings,
         }
+
+
+def plugin_apply(effect, params, sets: im.ImageSet, ctx: Context) -> im.ImageSet:
+    """An installed effect's stage, its failures and its output's defects reported against its package (E181)."""
+    from wiredsl.plugins import failure
+
+    try:
+        out = effect.apply(params, sets, ctx)
+    except Exception as exc:  # noqa: BLE001 - a plug-in's bug is reported as its own, not as wiredsl's
+        raise failure("effect", effect.name, REGISTRY, f"failed: {type(exc).__name__}: {exc}") from None
+    problem = imageset_problem(out, len(ctx.trials))
+    if problem is not None:
+        raise failure("effect", effect.name, REGISTRY, f"returned {problem}")
+    return out
+
+
+def imageset_problem(s, n_trials: int) -> str | None:
+    """What is wrong with an ImageSet a stage returned (shapes, offsets, trials, finiteness), or None."""
+    if not isinstance(s, im.ImageSet):
+        return f"a {type(s).__name__}, not an ImageSet"
+    pts, start, corners = np.asarray(s.pts), np.asarray(s.start), np.asarray(s.corners)
+    n = len(start) - 1
+    if pts.ndim != 2 or pts.shape[1:] != (2,) or corners.ndim != 2 or corners.shape[1:] != (2,):
+        return f"points of shape {pts.shape} and corners of shape {corners.shape}, not (n, 2)"
+    if n < 0 or start[0] != 0 or start[-1] != len(pts) or np.any(np.diff(start) < 0):
+        return "stroke offsets (start) that do not cover its points in order"
+    per_stroke = ("fid", "segment", "fragment", "kind", "clipped", "closed", "trial", "occluded")
+    bad = [f for f in per_stroke if len(getattr(s, f)) != n]
+    bad += [f for f in ("corner_fid", "corner_trial") if len(getattr(s, f)) != len(corners)]
+    if bad:
+        return "arrays of the wrong length: " + ", ".join(bad)
+    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(corners))):
+        return "non-finite coordinates"
+    for name in ("trial", "corner_trial"):
+        t = np.asarray(getattr(s, name))
+        if len(t) and (t.min() < 0 or t.max() >= n_trials):
+            return f"{name} values outside 0..{n_trials - 1}"
+    return None
 
 
 def to_imageset(view: View, world: World) -> im.ImageSet:
@@ -354,9 +432,10 @@ def raw_template(view: View, world: World) -> tuple[im.ImageSet, np.ndarray, np.
         occluded=np.array([r.occluded for r in raw], dtype=bool))
     W = np.asarray(W, dtype=float).reshape(-1, 3)
     cam = view.camera
-    nominal = np.array([[getattr(cam, k) for k in calib.CAMERA_KEYS]], dtype=float)
+    table = geometry.camera_table(cam)
+    nominal = np.array([[table[k] for k in geometry.CAMERA_ROW]], dtype=float)
     uv, _ = project_trials(W, np.asarray(view.R_cw, float)[None], np.asarray(view.t_cw, float)[None], nominal,
-                           np.array([geometry.fold_radius(cam.k1, cam.k2)]))  # invalid vertices at 0: kept
+                           np.array([table["limit"]]))  # invalid vertices at 0: kept
     mx, my = CULL * cam.width, CULL * cam.height
     outside = np.zeros(template.n_strokes, dtype=bool)
     for cond in (uv[:, 0] < -mx, uv[:, 0] > cam.width + mx, uv[:, 1] < -my, uv[:, 1] > cam.height + my):
@@ -367,40 +446,38 @@ def raw_template(view: View, world: World) -> tuple[im.ImageSet, np.ndarray, np.
 
 
 def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every trial's camera for one side at one pose: R_cw (T, 3, 3), t_cw (T, 3), intrinsics (T, 9) as
-    f, ax, ay, cx, cy, k1, k2, p1, p2, and the fold radius (T,)."""
+    """Every trial's camera for one side at one pose: R_cw (T, 3, 3), t_cw (T, 3), intrinsics (T, 14) as
+    geometry.CAMERA_ROW, and the lens limit (T,) (`geometry.lens_limit`)."""
     p = rig["params"]
     R_wr = geometry.rot_z(pose[2])
     R_wc = (R_wr[None, :, :, None] * rig["rotation"][:, None, :, :]).sum(axis=2)  # row by row: no BLAS
     t_wc = (rig["position"][:, None, :] * R_wr[None, :, :]).sum(axis=2) + np.array([pose[0], pose[1], 0.0])
     R_cw = np.ascontiguousarray(np.transpose(R_wc, (0, 2, 1)))
     t_cw = -(R_cw * t_wc[:, None, :]).sum(axis=2)
-    cams = np.column_stack([p[k] for k in calib.CAMERA_KEYS]).astype(float)
+    cam = rig["camera"]
+    model = geometry.MODELS.index(cam.distortion)
+    cams = np.column_stack([*(p[k] for k in geometry.CAMERA_KEYS), np.full(len(p["f"]), model)]).astype(float)
     if "folds" not in rig:  # the same at every pose: once a batch
-        rig["folds"] = np.array([geometry.fold_radius(k1, k2) for k1, k2 in zip(p["k1"], p["k2"], strict=True)])
+        lens = ("k1", "k2", "k3", "k4", "k5", "k6")
+        rig["folds"] = np.array([geometry.lens_limit(cam, **{k: float(p[k][i]) for k in lens})
+                                 for i in range(len(cams))])
     return R_cw, t_cw, cams, rig["folds"]
 
 
 def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.ndarray, folds: np.ndarray):
-    """World points X (N, 3) seen by every trial's camera: pixels (T * N, 2) trial-major and whether each
-    is valid (in front of the near plane, inside the fold radius); invalid ones are set to 0.
+    """World points X (N, 3) seen by every trial's camera (rows of geometry.CAMERA_ROW, lens limits folds):
+    pixels (T * N, 2) trial-major and whether each is valid (imaged by the near rule); invalid ones are 0.
 
     The arithmetic is the kernel's, term by term, without gathering a matrix per vertex."""
     def cam(i):
         return R_cw[:, i, 0, None] * X[None, :, 0] + R_cw[:, i, 1, None] * X[None, :, 1] \
             + R_cw[:, i, 2, None] * X[None, :, 2] + t_cw[:, i, None]
 
-    Px, Py, Pz = cam(0), cam(1), cam(2)
-    ok = Pz > geometry.NEAR
-    z = np.where(ok, Pz, 1.0)
-    x, y = Px / z, Py / z
-    ok &= np.hypot(x, y) < folds[:, None]
-    f, ax, ay, cx, cy, k1, k2, p1, p2 = (cams[:, i, None] for i in range(9))
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + k2 * r2)
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    uv = np.stack([np.where(ok, f * ax * xd + cx, 0.0), np.where(ok, f * ay * yd + cy, 0.0)], axis=-1)
+    P = np.stack([cam(0), cam(1), cam(2)], axis=-1)
+    g = {k: cams[:, i, None] for i, k in enumerate(geometry.CAMERA_ROW)}
+    ok = geometry.visible(P, g["model"], folds[:, None])
+    uv = geometry.project(np.where(ok[..., None], P, np.array([0.0, 0.0, 1.0])), g)
+    uv = np.where(ok[..., None], uv, 0.0)
     return uv.reshape(-1, 2), ok.ravel()
 
 

@@ -9,10 +9,8 @@ rectangle [0, width] x [0, height] after it.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -30,6 +28,7 @@ class Options:
     visibility: str = "scene"  # "scene" (the mesh's lists), "exact" (per camera and pose), "all"
     poses: tuple[int, ...] | None = None  # None: every pose
     right: bool = True  # project the right camera too
+    viewdep: dict | None = field(default=None, compare=False)  # a view-dependency file's lists (io/viewdep.py)
 
 
 @dataclass
@@ -109,6 +108,41 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
                        by_key.get((i, "right"))) for i in chosen]
 
 
+def project_pose(scene: Scene, world: World, pose, index: int, options: Options = Options(),
+                 lists: dict[int, np.ndarray] | None = None, occluders: occlusion.Occluders | None = None
+                 ) -> PoseResult:
+    """The ideal views of the rig at any robot pose (x, y, heading), numbered `index`.
+
+    What is visible follows the scene's visibility mode as for a path pose: the nearest view-point's list
+    (`lists` keeps the view-point masks computed across calls), or, with options.visibility "exact", the
+    occluders (`occluders`: Occluders.of_world, computed once by the caller), or everything.
+    """
+    require_buildable(scene)
+    pose = tuple(float(v) for v in pose)
+    vp, name = scene.viewpoints, None
+    if vp is None or vp.visibility == "all" or options.visibility in ("all", "exact"):
+        mask = world.mask(None)
+    else:
+        k = int(visibility.nearest_viewpoint(np.array(vp.points, dtype=float), np.array([pose[:2]]))[0])
+        lists = {} if lists is None else lists
+        if k not in lists:
+            lists.update(viewpoint_lists(scene, world, [k], options.viewdep))
+        mask, name = lists[k], vp.names[k]
+    if options.visibility == "exact" and occluders is None:
+        occluders = occlusion.Occluders.of_world(world)
+    sides = ("left", "right") if options.right else ("left",)
+    cams, Rs, ts = [], [], []
+    for side in sides:
+        mount = getattr(scene.rig, side)
+        R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
+        cams.append(scene.camera(mount.camera))
+        Rs.append(R_cw)
+        ts.append(t_cw)
+    views = project_views(world, cams, Rs, ts, [mask] * len(sides), options.tolerance,
+                          occluders if options.visibility == "exact" else None)
+    return PoseResult(index, pose, name, views[0], views[1] if options.right else None)
+
+
 def require_buildable(scene: Scene) -> None:
     """A scene needs a rig and a path to be projected."""
     if scene.rig is None or scene.path is None:
@@ -131,48 +165,29 @@ def visibility_masks(scene: Scene, world: World, options: Options):
         return names, masks
     points = np.array(vp.points, dtype=float)
     nearest = visibility.nearest_viewpoint(points, poses[list(chosen), :2]) if len(list(chosen)) else []
-    lists = viewpoint_lists(scene, world, sorted(set(int(k) for k in nearest)))
+    lists = viewpoint_lists(scene, world, sorted(set(int(k) for k in nearest)), options.viewdep)
     for i, k in zip(chosen, nearest, strict=True):
         names[i] = vp.names[k]
         masks[(i, "left")] = masks[(i, "right")] = lists[int(k)]
     return names, masks
 
 
-def viewpoint_lists(scene: Scene, world: World, which: list[int]) -> dict[int, np.ndarray]:
-    """Visibility masks of the given view-point indices, from wherever the scene says they come."""
+def viewpoint_lists(scene: Scene, world: World, which: list[int], viewdep: dict | None = None
+                    ) -> dict[int, np.ndarray]:
+    """Visibility masks of the given view-point indices, from wherever the scene says they come (`viewdep`:
+    the view-dependency file's lists, `wiredsl.io.viewdep.read`, for view-points with `visibility file`)."""
     vp = scene.viewpoints
     if vp.visibility == "authored":
         return {k: world.mask(set(vp.visible.get(vp.names[k], []))) for k in which}
     if vp.visibility == "file":
-        data = read_viewdep(Path(scene.source).parent / vp.file, scene)
+        if viewdep is None:
+            raise ValueError(f"scene '{scene.name}': the view-points' file {vp.file} was not read "
+                             "(wiredsl.io.viewdep.of_scene, as wiredsl.run.start does)")
+        data = viewdep
         return {k: world.mask(set(data.get(vp.names[k], []))) for k in which}
     eyes = visibility.viewpoint_eyes(scene)[which]
     vis = visibility.visible_features(world, eyes)
     return {k: vis[j] for j, k in enumerate(which)}
-
-
-def read_viewdep(path: Path, scene: Scene) -> dict[str, list[str]]:
-    """View-point -> visible feature ids, from a view-dependency file (schema/viewdep.schema.json)."""
-    from wiredsl.io.schema import problems
-    from wiredsl.language.ast import decode, display_path, read_bytes
-
-    where = Span(display_path(path), 1, 1, 1, 1)
-    try:
-        text = decode(read_bytes(path, "view-dependency file", Span(scene.source, 1, 1, 1, 1)), path,
-                      "view-dependency file")
-        doc = json.loads(text)
-    except WiredslError as err:
-        raise WiredslError([Diagnostic(d.severity, d.code, d.message, d.span,
-                                       "run 'wiredsl viewdep' on the scene to write it") for d in err.diagnostics]
-                           ) from None
-    except json.JSONDecodeError as exc:  # at the line and column of the file where the JSON breaks
-        at = Span(where.file, exc.lineno, exc.colno, exc.lineno, exc.colno + 1)
-        raise WiredslError([Diagnostic("error", "E010", f"cannot read view-dependency file: {exc.msg}", at,
-                                       "run 'wiredsl viewdep' on the scene to write it")]) from None
-    bad = problems(doc)
-    if bad:
-        raise WiredslError([Diagnostic("error", "E142", f"view-dependency file {where.file}: {bad[0]}", where)])
-    return doc["viewpoints"]
 
 
 # --------------------------------------------------------------------------- projection
@@ -203,7 +218,7 @@ def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mask
     out = _Emitted(views)
     eyes = None if occluders is None else [occluders.seen_from(v.R_cw, v.t_cw) for v in views]
     seg = _straight_segments(world, views, cam, masks, eyes)
-    ell = _ellipse_intervals(world, views, masks, eyes)
+    ell = _ellipse_intervals(world, views, cam, masks, eyes)
     _emit_lines(seg, views, cam, out)
     # every curve of every view sampled together: segments under distortion, then ellipse arcs
     curved = np.flatnonzero(seg.keep & cam["distorted"][seg.vid])
@@ -267,31 +282,23 @@ class _Emitted:
 
 
 def _camera_table(cams: list[Camera]) -> dict[str, np.ndarray]:
-    """Per-view camera parameters as arrays (V,), with the fold radius and whether there is distortion."""
-    names = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "width", "height")
-    table = {k: np.array([float(getattr(c, k)) for c in cams]) for k in names}
-    table["fold"] = np.array([geometry.fold_radius(c.k1, c.k2) for c in cams])
+    """Per-view camera parameters as arrays (V,), with the lens model and limit (`geometry.lens_limit`), and
+    whether lines are curves in the image."""
+    rows = [geometry.camera_table(c) for c in cams]
+    table = {k: np.array([r[k] for r in rows]) for k in rows[0]}
+    table["width"] = np.array([float(c.width) for c in cams])
+    table["height"] = np.array([float(c.height) for c in cams])
     table["distorted"] = np.array([geometry.is_distorted(c) for c in cams], dtype=bool)
     return table
 
 
 def _pixels(P: np.ndarray, cam: dict, v: np.ndarray) -> np.ndarray:
-    """Camera-frame points (m, 3) in front of views v (m,) -> pixels (m, 2).
+    """Camera-frame points (m, 3) the cameras of views v (m,) image -> pixels (m, 2).
 
-    A pixel beyond float range (a focal length of 1e300 px) is inf: such points count as outside the image.
+    A pixel beyond float range (a focal length of 1e300 px) is inf: such points count as outside the image;
+    a radtan point that rounding at huge distances left at z <= 0 is NaN (outside every image).
     """
-    xy = _plane(P)
-    g = {k: cam[k][v] for k in _Curves.CAMERA}
-    with np.errstate(over="ignore", invalid="ignore"):
-        return geometry.plane_to_pixels(geometry.distort(xy, g["k1"], g["k2"], g["p1"], g["p2"]),
-                                        g["f"], g["ax"], g["ay"], g["cx"], g["cy"])
-
-
-def _plane(P: np.ndarray) -> np.ndarray:
-    """Unit focal plane of points clipped to z >= NEAR; NaN (outside every image) where rounding at huge
-    distances left z <= 0."""
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        return np.where(P[:, 2:3] > 0, geometry.cam_to_plane(P), np.nan)
+    return geometry.project(P, {k: cam[k][v] for k in _Curves.CAMERA})
 
 
 def _ellipses_cam(world: World, views: list[View]):
@@ -364,7 +371,9 @@ def _straight_segments(world: World, views: list[View], cam: dict, masks: np.nda
     B = np.concatenate([ends[:, 1], sB])[order]
     fid = np.concatenate([world.line_fid[ll], sfid])[order]
     seg = np.concatenate([world.line_segment[ll], sside])[order]
-    t0, t1, keep = geometry.clip_segments_cone(A, B, geometry.NEAR, cam["fold"][vid] * (1 - 1e-9))
+    rows, t0, t1 = geometry.clip_segments_lens(A, B, cam["model"][vid], cam["limit"][vid])
+    vid, A, B, fid, seg = vid[rows], A[rows], B[rows], fid[rows], seg[rows]  # a fisheye may cut one in parts
+    keep = np.ones(len(rows), dtype=bool)
     fid, seg = fid.astype(int), seg.astype(int)
     cut3d = (t0 > 0) | (t1 < 1)
     piece, hid = np.full(len(A), -1), np.zeros(len(A), dtype=bool)
@@ -440,7 +449,7 @@ def _emit_curved_segments(s: _Segments, curved: np.ndarray, runs: np.ndarray, pi
 class _Curves:
     """Curves P(t) = base + X cos t + Y sin t (ellipses) or base + t X (lines, Y = 0), camera frame."""
 
-    CAMERA = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2")
+    CAMERA = (*geometry.CAMERA_KEYS, "model")
 
     def __init__(self, cam: dict, view: np.ndarray, base: np.ndarray, X: np.ndarray, Y: np.ndarray,
                  line: np.ndarray):
@@ -457,10 +466,7 @@ class _Curves:
 
     def pixels(self, c: np.ndarray, t: np.ndarray) -> np.ndarray:
         g = self.table[c]
-        xy = _plane(self.points(c, t, g))
-        f, ax, ay, cx, cy, k1, k2, p1, p2 = g[:, 10:19].T
-        with np.errstate(over="ignore", invalid="ignore"):  # see _pixels
-            return geometry.plane_to_pixels(geometry.distort(xy, k1, k2, p1, p2), f, ax, ay, cx, cy)
+        return geometry.project(self.points(c, t, g), dict(zip(self.CAMERA, g[:, 10:].T, strict=True)))
 
     def sample(self, t0: np.ndarray, t1: np.ndarray, tol: float, start):
         image = (self.cam["width"][self.view], self.cam["height"][self.view])
@@ -555,6 +561,44 @@ def _front_intervals(cz, Az, Bz, arc):
     return owner, a[owner, col], b[owner, col]
 
 
+LENS_SAMPLES = 256  # samples of an ellipse arc where a fisheye's visible parts are sought (then bisected)
+
+
+def _lens_intervals(c, U, V, arc, limit, n: int = LENS_SAMPLES):
+    """Parts of each ellipse's arc that a fisheye images: theta < limit and at least NEAR from the centre.
+
+    The arc is sampled at n + 1 points and each change of side bisected to 1e-15 of the arc, so a part
+    narrower than 1/n of the arc may be missed. For E ellipses: (owner (k,), lo (k,), hi (k,)), in order.
+    """
+    E = len(c)
+    if E == 0:
+        return np.zeros(0, int), np.zeros(0), np.zeros(0)
+    cos_lim = np.cos(limit)
+
+    def h(e, t):  # > 0 where imaged
+        P = c[e] + np.cos(t)[:, None] * U[e] + np.sin(t)[:, None] * V[e]
+        r = np.sqrt((P * P).sum(axis=1))
+        return np.minimum(P[:, 2] - r * cos_lim[e], r - geometry.NEAR)
+
+    T = arc[:, :1] + (arc[:, 1] - arc[:, 0])[:, None] * np.linspace(0.0, 1.0, n + 1)[None, :]
+    T[:, 0], T[:, -1] = arc[:, 0], arc[:, 1]
+    H = h(np.repeat(np.arange(E), n + 1), T.ravel()).reshape(E, n + 1)
+    pos = H > 0
+    ce, cj = np.nonzero(pos[:, :-1] != pos[:, 1:])
+    a, b, in_a = T[ce, cj], T[ce, cj + 1], pos[ce, cj]
+    for _ in range(64):
+        m = 0.5 * (a + b)
+        same = (h(ce, m) > 0) == in_a
+        a, b = np.where(same, m, a), np.where(same, b, m)
+    # a part starts at the arc's start or where it enters; ends where it leaves or at the arc's end
+    s_e = np.concatenate([np.flatnonzero(pos[:, 0]), ce[~in_a]])
+    s_t = np.concatenate([arc[pos[:, 0], 0], b[~in_a]])
+    e_e = np.concatenate([ce[in_a], np.flatnonzero(pos[:, -1])])
+    e_t = np.concatenate([a[in_a], arc[pos[:, -1], 1]])
+    so, eo = np.lexsort((s_t, s_e)), np.lexsort((e_t, e_e))
+    return s_e[so], s_t[so], e_t[eo]
+
+
 @dataclass
 class _Ellipses:
     """The visible ellipses of every view (camera frame) and their arcs in front of the near plane."""
@@ -573,11 +617,21 @@ class _Ellipses:
     hid: np.ndarray  # (E,) occlusion cut it (--visibility exact)
 
 
-def _ellipse_intervals(world: World, views: list[View], masks: np.ndarray, eyes=None) -> _Ellipses:
+def _ellipse_intervals(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes=None) -> _Ellipses:
     vv, ee = np.nonzero(masks[:, world.ell_fid]) if len(world.ell_fid) else (np.zeros(0, int),) * 2
     c, U, V = (x[vv, ee] for x in _ellipses_cam(world, views))
     arc = world.ell_arc[ee]
-    owner, lo, hi = _front_intervals(c[:, 2], U[:, 2], V[:, 2], arc)
+    fish = cam["model"][vv] == 1
+    rad = np.flatnonzero(~fish)
+    owner, lo, hi = _front_intervals(c[rad, 2], U[rad, 2], V[rad, 2], arc[rad])
+    if fish.any():  # the parts a fisheye images (its region is not bounded by a plane)
+        fe = np.flatnonzero(fish)
+        fo, flo, fhi = _lens_intervals(c[fe], U[fe], V[fe], arc[fe], cam["limit"][vv[fe]])
+        owner, lo, hi = np.concatenate([rad[owner], fe[fo]]), np.concatenate([lo, flo]), np.concatenate([hi, fhi])
+        order = np.lexsort((lo, owner))
+        owner, lo, hi = owner[order], lo[order], hi[order]
+    else:
+        owner = rad[owner]
     whole = np.zeros(len(vv), dtype=bool)
     one = np.flatnonzero(np.bincount(owner, minlength=len(vv)) == 1)
     first = np.searchsorted(owner, one)
@@ -598,15 +652,18 @@ def _ellipse_intervals(world: World, views: list[View], masks: np.ndarray, eyes=
 
 
 def _fold_runs(ell: _Ellipses, cam: dict, cid, ts, P, bounds, n_seg: int):
-    """Runs [first, end) of each ellipse interval's samples inside the fold radius, with (interval,
+    """Runs [first, end) of each ellipse interval's samples inside the fold radius (radtan), with (interval,
     raw closed, raw clipped, any sample cut of its ellipse) for each run."""
     lo = bounds[n_seg]
     icid = cid[lo:] - n_seg  # interval of each ellipse sample
     Pe = P[lo:]
     n_int = len(ell.owner)
     e_of = ell.owner[icid]
+    v_of = ell.vid[e_of]
+    # a fisheye's intervals are exact already (their ends lie on its limit); a radtan's are cut at the fold
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        inside = np.hypot(Pe[:, 0] / Pe[:, 2], Pe[:, 1] / Pe[:, 2]) < cam["fold"][ell.vid[e_of]]
+        inside = (cam["model"][v_of] == 1) | (np.hypot(Pe[:, 0] / Pe[:, 2], Pe[:, 1] / Pe[:, 2])
+                                               < cam["limit"][v_of])
     first = np.zeros(len(icid), dtype=bool)
     first[bounds[n_seg:-1] - lo] = True
     last = np.zeros(len(icid), dtype=bool)
@@ -672,14 +729,12 @@ def _emit_corners(world: World, views: list[View], cam: dict, masks: np.ndarray,
     R = np.stack([v.R_cw for v in views])
     t = np.stack([v.t_cw for v in views])
     P = np.einsum("vij,cj->vci", R, world.corners)[cv, cc] + t[cv]
-    ok = P[:, 2] > geometry.NEAR
-    xy = np.where(ok[:, None], P[:, :2] / np.where(ok, P[:, 2], 1.0)[:, None], 0.0)
-    ok &= np.hypot(xy[:, 0], xy[:, 1]) < cam["fold"][cv]
+    ok = geometry.visible(P, cam["model"][cv], cam["limit"][cv])
     if eyes is not None:  # --visibility exact (occlusion.py)
         for k, eye in enumerate(eyes):
             m = np.flatnonzero(cv == k)
             ok[m] &= ~eye.hidden(P[m])
-    uv = _pixels(np.column_stack([xy, np.ones(len(xy))]), cam, cv)
+    uv = _pixels(np.where(ok[:, None], P, np.array([0.0, 0.0, 1.0])), cam, cv)
     front = np.flatnonzero(ok)  # cv is sorted: one split gives every view its corners in front
     cuts = np.searchsorted(cv[front], np.arange(1, len(views)))
     for v, rows in zip(views, np.split(cc[front], cuts), strict=True):

@@ -1,26 +1,34 @@
-"""Calibration files from the tools that make them: OpenCV, ROS and Kalibr.
+"""Calibration files as the tools that write them do: OpenCV, ROS, Kalibr and ORB-SLAM.
 
-Read: OpenCV `cv2.FileStorage` YAML (`%YAML:1.0`, `!!opencv-matrix`) or XML
-with `camera_matrix` / `distortion_coefficients` (one camera) or `M1`, `D1`,
-`M2`, `D2` (`K1`... also), `R`, `T` (a stereo pair, as `stereoCalibrate`
-gives them); ROS `camera_info` YAML; Kalibr `camchain.yaml` (`cam0`, `cam1`:
-`intrinsics`, `distortion_coeffs`, `resolution`, `T_cn_cnm1`) and Kalibr's
-`results-cam.txt` for its standard deviations. Written: OpenCV YAML and ROS
-YAML, so the cameras a trial used can go to anyone's code.
+Read:
+- OpenCV `cv2.FileStorage` YAML in its own dialect (`%YAML:1.0` with a trailing comment, `data:[` with
+  no space, `!!opencv-matrix`), XML and JSON: `camera_matrix` / `distortion_coefficients` (also the
+  calibration tutorial's `Camera_Matrix` / `Distortion_Coefficients`, `cameraMatrix`, `K`, `D`), a
+  `stereoCalibrate` pair's `M1`, `D1`, `M2`, `D2` (or `K1`...), `R`, `T`, and `stereo_calib`'s extrinsics
+  file alone (`R`, `T`). Other matrices of the file (`image_points` of dt `2f`...) are never read.
+- ROS `camera_info` YAML (camera_calibration_parsers) and message dumps: ROS 1 (`height`, `width`, `K`,
+  `D`, `R`, `P`) and ROS 2 (`k`, `d`, `r`, `p`); recognised by their keys.
+- Kalibr camchains (`cam0` ... `camN`; T_cn_cnm1, or extrinsics derived from two cameras' `T_cam_imu`
+  or OpenVINS' `T_imu_cam`) and `results-cam.txt` (its standard deviations).
+- ORB-SLAM2/3 settings: `Camera.fx`..., `Camera1.fx`..., `Camera2`, `Stereo.T_c1_c2`, and ORB-SLAM2's
+  raw stereo `LEFT.K`, `LEFT.D`, `RIGHT.K`... with the rectification `LEFT.R`, `RIGHT.R`, `RIGHT.P`.
 
-Conventions (as the tools have them): intrinsics in pixels, K = [[fx, 0, cx],
-[0, fy, cy], [0, 0, 1]]; distortion OpenCV's (k1, k2, p1, p2), which is ours,
-with k3 and higher refused unless zero; extrinsics map the first camera's
-frame to the second's, X2 = R X1 + T, T in metres (Kalibr's T_cn_cnm1 is the
-same map as a 4x4 matrix). In wiredsl terms f = fx, ax = 1, ay = fy / fx.
+Distortion models: radtan (OpenCV's k1, k2, p1, p2, k3, k4, k5, k6: ROS plumb_bob and
+rational_polynomial, Kalibr radtan) and equidistant (OpenCV fisheye, Kannala-Brandt: k1..k4; ROS
+equidistant and fisheye, Kalibr equidistant, ORB-SLAM3 KannalaBrandt8). Refused, naming what: OpenCV's
+thin-prism (s1..s4) and tilt (taux, tauy) terms, Kalibr's omni, ds, eucm and fov models, skewed K.
+
+Conventions (as the tools have them): intrinsics in pixels, K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]];
+extrinsics map the previous camera's frame to this one's, X = R X_prev + T (Kalibr's T_cn_cnm1 is that
+map), T in the file's units (OpenCV's are the board's, often millimetres: the compiler warns).
 """
 
 from __future__ import annotations
 
+import json
 import math
 import re
-import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +36,13 @@ import numpy as np
 from wiredsl.io.files import require_finite
 
 FORMATS = ("opencv", "ros", "kalibr")
+MAX_BYTES = 4 << 20
+MAX_VALUE = 1e12  # any number a calibration file gives: products of a few stay far from overflow
+MAX_DEPTH = 64  # nesting of a calibration file's mappings and lists (real ones have 3)
+RADTAN = ("plumb_bob", "radtan", "rational_polynomial", "pinhole", "none")
+EQUIDISTANT = ("equidistant", "fisheye", "kannalabrandt8", "kannala_brandt", "kb4")
+KALIBR_MODELS = {"omni": "the unified (Mei) omnidirectional model", "ds": "the double-sphere model",
+                 "eucm": "the extended unified model", "fov": "the FOV (field-of-view) distortion model"}
 
 
 class CalibrationFileError(ValueError):
@@ -43,42 +58,86 @@ class CameraFile:
     fy: float
     cx: float
     cy: float
-    dist: tuple[float, float, float, float]  # OpenCV's k1, k2, p1, p2
+    dist: tuple[float, ...]  # radtan: OpenCV's (k1, k2, p1, p2, k3, k4, k5, k6); equidistant: (k1, k2, k3, k4)
     width: int | None
     height: int | None
     R: np.ndarray | None = None  # (3, 3): from the previous camera's frame to this one's, X = R X_prev + T
-    T: np.ndarray | None = None  # (3,) metres
+    T: np.ndarray | None = None  # (3,) in the file's units (metres for Kalibr and ROS)
     sigma: dict[str, float] = field(default_factory=dict)  # standard deviations, by wiredsl parameter name
+    model: str = "radtan"  # or "equidistant"
+    notes: tuple[str, ...] = ()  # doubts about the file, for a warning
+    intrinsics: bool = True  # False for an extrinsics-only file (stereo_calib's extrinsics.yml)
+
+
+class _Matrix(dict):
+    """An `!!opencv-matrix` (or FileStorage JSON/XML matrix) node, converted only when a reader uses it."""
 
 
 # --------------------------------------------------------------------------- reading
 
 def read(path: str | Path, fmt: str | None = None) -> list[CameraFile]:
-    """The cameras of a calibration file, in file order (format guessed when not given)."""
+    """The cameras of a calibration file, in file order (format recognised from the content when not given)."""
     path = Path(path)
     try:
         raw = path.read_bytes()
     except OSError as exc:
         raise CalibrationFileError(f"cannot read {path}: {exc.strerror}") from None
-    if len(raw) > 4 << 20:
-        raise CalibrationFileError(f"{path} is over 4 MiB: not a calibration file")
+    if len(raw) > MAX_BYTES:
+        raise CalibrationFileError(f"{path.name} is over {MAX_BYTES >> 20} MiB: not a calibration file")
     try:
-        text = raw.decode("utf-8")
+        text = raw.decode("utf-8-sig")
     except UnicodeDecodeError:
-        raise CalibrationFileError(f"{path} is not UTF-8 text") from None
-    if path.name.endswith(".txt") and (fmt in (None, "kalibr")):
+        raise CalibrationFileError(f"{path.name} is not UTF-8 text") from None
+    if fmt in (None, "kalibr") and _is_kalibr_results(text, path):
         return _kalibr_results(text)
-    if text.lstrip().startswith("<"):
+    head = text.lstrip()
+    if head.startswith("<"):
         if fmt not in (None, "opencv"):
-            raise CalibrationFileError(f"{path} is XML, which only OpenCV writes (format opencv)")
-        return _opencv(_xml(text))
-    doc = _yaml(text)
+            raise CalibrationFileError("the file is XML, which only OpenCV writes (format opencv)")
+        doc = _xml(text)
+    elif head.startswith("{"):
+        doc = _json(text)
+    else:
+        doc = _yaml(text)
     if not isinstance(doc, dict):
-        raise CalibrationFileError("expected a mapping of names to values at the top of the file")
-    fmt = fmt or ("kalibr" if "cam0" in doc else "ros" if "camera_name" in doc or "distortion_model" in doc
-                  else "opencv")
+        raise CalibrationFileError(f"expected a mapping of names to values at the top of the file, found {_kind(doc)}")
+    fmt = fmt or ("kalibr" if _is_kalibr(doc) else "ros" if _is_ros(doc) else "opencv")
     return {"opencv": _opencv, "ros": _ros, "kalibr": _kalibr}[fmt](doc)
 
+
+def _is_kalibr_results(text: str, path: Path) -> bool:
+    if path.suffix == ".txt":
+        return True
+    return bool(re.search(r"^\s*projection:\s*\[.*\]\s*\+-", text, flags=re.M)) and "Calibration results" in text
+
+
+def _is_kalibr(doc: dict) -> bool:
+    return any(isinstance(k, str) and re.fullmatch(r"cam\d+", k) for k in doc)
+
+
+def _is_ros(doc: dict) -> bool:
+    keys = {k for k in doc if isinstance(k, str)}
+    if keys & {"M1", "K1", "cameraMatrix1"}:  # a stereo pair is OpenCV's (with a distortion_model when a fisheye)
+        return False
+    return bool(keys & {"camera_name", "distortion_model", "projection_matrix", "rectification_matrix"}) or (
+        {"height", "width"} <= keys and bool(keys & {"K", "k"}))
+
+
+def _kind(v) -> str:
+    if isinstance(v, dict):
+        return "a mapping"
+    if isinstance(v, list | tuple):
+        return "a list"
+    if isinstance(v, str):
+        return "text"
+    if v is None:
+        return "nothing"
+    if isinstance(v, bool):
+        return "a yes/no value"
+    return "a number" if isinstance(v, int | float) else type(v).__name__
+
+
+# ---- the three containers: YAML (OpenCV's dialect), XML, JSON
 
 def _yaml(text: str) -> object:
     try:
@@ -87,25 +146,71 @@ def _yaml(text: str) -> object:
         raise CalibrationFileError("reading YAML calibration files needs PyYAML: pip install 'wiredsl[calib]'") \
             from None
 
-    class Loader(yaml.SafeLoader):
-        pass
+    # libyaml's composer is fast but recursive in C: only for texts whose nesting is bounded by their
+    # brackets and line prefixes, and without aliases; the others get the Python composer's bounded depth
+    prefix = max((len(line) - len(line.lstrip(" \t-?")) for line in text.splitlines()), default=0)
+    shallow = text.count("[") + text.count("{") + prefix < 4 * MAX_DEPTH and "*" not in text
+    base = getattr(yaml, "CSafeLoader", yaml.SafeLoader) if shallow else yaml.SafeLoader
+
+    class Loader(base):
+        depth = 0
+
+        def compose_node(self, parent, index):  # bounded nesting, no aliases: never a RecursionError or a bomb
+            if self.check_event(yaml.AliasEvent):
+                raise CalibrationFileError("YAML aliases (*name) are not used by calibration tools")
+            self.depth += 1
+            try:
+                if self.depth > MAX_DEPTH:
+                    raise CalibrationFileError(f"the file nests mappings or lists over {MAX_DEPTH} deep")
+                return super().compose_node(parent, index)
+            finally:
+                self.depth -= 1
 
     def matrix(loader, node):
-        m = loader.construct_mapping(node, deep=True)
-        return _as_matrix(m)
+        if not isinstance(node, yaml.MappingNode):
+            raise CalibrationFileError(f"an !!opencv-matrix at line {node.start_mark.line + 1} is not a mapping")
+        return _Matrix(loader.construct_mapping(node, deep=True))
 
     Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", matrix)
-    # OpenCV writes "%YAML:1.0", which YAML readers refuse (the directive is "%YAML 1.0").
-    text = re.sub(r"^%YAML:1\.0\s*\n", "", text)
+    Loader.add_implicit_resolver(  # 1e5, 2E-3: floats to OpenCV and JSON, text to YAML 1.1
+        "tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$"),
+        list("-+0123456789."))
+    # OpenCV writes "%YAML:1.0" (YAML's directive is "%YAML 1.0"), may follow it with a comment, and
+    # reads "key:value" with no space after the colon ("data:[" in ORB-SLAM's files).
+    text = re.sub(r"\A\s*%YAML:\d+\.\d+[^\n]*\n", "", text)
+    text = re.sub(r"^(\s*[A-Za-z_][\w.\-]*):(?=[^\s:/])", r"\1: ", text, flags=re.M)
+    if base is not yaml.SafeLoader:
+        del Loader.compose_node  # libyaml composes in C
     try:
         return yaml.load(text, Loader=Loader)  # noqa: S506 (a SafeLoader with one constructor)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise CalibrationFileError(f"not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+        raise CalibrationFileError(f"not valid YAML{where}: {getattr(exc, 'problem', None) or exc}") from None
+    except RecursionError:  # a scalar or flow nesting the composer's bound does not see
+        raise CalibrationFileError(f"the file nests over {MAX_DEPTH} deep") from None
+
+
+def _json(text: str) -> object:
+    depth = deepest = 0
+    for ch in re.sub(r'"(?:[^"\\]|\\.)*"', '""', text):  # brackets outside strings
+        if ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    if deepest > MAX_DEPTH:
+        raise CalibrationFileError(f"the file nests mappings or lists over {MAX_DEPTH} deep")
+    try:
+        doc = json.loads(text, object_hook=lambda d: _Matrix(d) if d.get("type_id") == "opencv-matrix" else d)
+    except ValueError:  # OpenCV 3 wrote numbers such as "1." into JSON, which its reader takes: so does YAML
+        return _yaml(text)
+    return doc
 
 
 def _xml(text: str) -> dict:
+    import xml.etree.ElementTree as ET
+
     try:
         root = ET.fromstring(text)
     except ET.ParseError as exc:
@@ -113,167 +218,420 @@ def _xml(text: str) -> dict:
     out: dict = {}
     for node in root:
         if node.get("type_id") == "opencv-matrix":
-            out[node.tag] = _as_matrix({c.tag: (c.text or "").strip() for c in node})
+            out[node.tag] = _Matrix({c.tag: (c.text or "").strip() for c in node})
+        elif len(node):
+            out[node.tag] = {c.tag: (c.text or "").strip() for c in node}
         else:
             words = (node.text or "").split()
             try:
                 values = [float(w) for w in words]
                 out[node.tag] = values[0] if len(values) == 1 else values
             except ValueError:
-                out[node.tag] = (node.text or "").strip()
+                out[node.tag] = (node.text or "").strip().strip('"')
     return out
 
 
-def _as_matrix(m: dict) -> np.ndarray:
+# ---- values, checked for type before use
+
+def _matrix(m: dict, what: str) -> np.ndarray:
+    """A {rows, cols, data[, dt]} node (OpenCV's or ROS's) as an array, or an error naming `what`."""
+    rows, cols, data = m.get("rows"), m.get("cols"), m.get("data")
     try:
-        rows, cols = int(m["rows"]), int(m["cols"])
-        data = m["data"]
-        data = [float(x) for x in (data.split() if isinstance(data, str) else data)]
-    except (KeyError, TypeError, ValueError):
-        raise CalibrationFileError("a matrix needs rows, cols and data") from None
-    if len(data) != rows * cols:
-        raise CalibrationFileError(f"a {rows}x{cols} matrix needs {rows * cols} values, has {len(data)}")
-    return np.array(data, dtype=float).reshape(rows, cols)
+        rows, cols = _count(rows), _count(cols)
+    except CalibrationFileError:
+        raise CalibrationFileError(f"{what}: a matrix needs whole 'rows' and 'cols'") from None
+    channels = re.match(r"\s*(\d*)", str(m.get("dt", ""))).group(1)
+    n = rows * cols * (int(channels) if channels and int(channels) < 8 else 1)
+    if isinstance(data, str):
+        data = data.split()
+    if not isinstance(data, list):
+        raise CalibrationFileError(f"{what}: a matrix's data must be a list of numbers, is {_kind(data)}")
+    a = _floats(data, what)
+    if a.size != n or n == 0:
+        raise CalibrationFileError(f"{what}: a {rows}x{cols} matrix needs {n} values, has {a.size}")
+    if str(m.get("dt", "")).strip().endswith("f"):  # single precision: the values OpenCV (and the tool) see
+        a = a.astype(np.float32).astype(float)
+    return a.reshape(rows, cols, -1) if n != rows * cols else a.reshape(rows, cols)
+
+
+def _count(v) -> int:
+    if isinstance(v, bool) or not isinstance(v, int | float | str):
+        raise CalibrationFileError("not a count")
+    try:
+        f = float(v)
+    except ValueError:
+        raise CalibrationFileError("not a count") from None
+    if not (f.is_integer() and 0 < f <= 1e6):
+        raise CalibrationFileError("not a count")
+    return int(f)
+
+
+def _floats(v, what: str, n: int | None = None) -> np.ndarray:
+    """A flat float array from a matrix node or a (nested) list of numbers, finite, optionally of n values."""
+    if isinstance(v, dict):
+        v = _matrix(v, what)
+    elif isinstance(v, int | float) and not isinstance(v, bool):
+        v = [v]
+    ok = isinstance(v, np.ndarray) or (isinstance(v, list) and _numbers(v))
+    if not ok:
+        raise CalibrationFileError(f"{what} must be numbers, is {_kind(v)}")
+    a = np.asarray(v, dtype=float).ravel()
+    if n is not None and a.size != n:
+        raise CalibrationFileError(f"{what} must have {n} values, has {a.size}")
+    if not np.all(np.isfinite(a)):
+        raise CalibrationFileError(f"{what} has a value that is not finite")
+    if a.size and np.abs(a).max() > MAX_VALUE:
+        raise CalibrationFileError(f"{what} has a value beyond {MAX_VALUE:g} (|{np.abs(a).max():g}|)")
+    return a
+
+
+def _numbers(v: list, depth: int = 0) -> bool:
+    """A list of numbers, or of equal-length lists of numbers (a matrix written as rows)."""
+    if depth > 2:
+        return False
+    if all(isinstance(x, int | float | str) and not isinstance(x, bool) for x in v):
+        try:
+            [float(x) for x in v]
+        except ValueError:
+            return False
+        return True
+    return (all(isinstance(x, list) for x in v) and len({len(x) for x in v}) == 1
+            and all(_numbers(x, depth + 1) for x in v))
+
+
+def _num(v, what: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise CalibrationFileError(f"{what} must be a number, is {_kind(v)}")
+    return float(_floats([v], what)[0])
+
+
+def _first(doc: dict, *names: str):
+    return next((doc[n] for n in names if n in doc), None)
 
 
 def _get(doc: dict, *names: str):
-    for n in names:
-        if n in doc:
-            return doc[n]
-    raise CalibrationFileError(f"no '{names[0]}' in the file" + (f" (nor {', '.join(names[1:])})" if names[1:] else ""))
+    v = _first(doc, *names)
+    if v is None:
+        raise CalibrationFileError(f"no '{names[0]}' in the file" + (f" (nor {', '.join(names[1:])})"
+                                                                     if names[1:] else ""))
+    return v
 
+
+# ---- cameras
 
 def _intrinsics(name: str, K, D, size, model: str = "plumb_bob") -> CameraFile:
-    K = np.asarray(K, dtype=float)
-    if K.shape != (3, 3):
-        raise CalibrationFileError(f"{name}: the camera matrix must be 3x3, is {'x'.join(map(str, K.shape))}")
-    if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-        raise CalibrationFileError(f"{name}: skewed camera matrices are not supported (K[0,1] must be 0)")
-    return CameraFile(name, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
-                      _distortion(name, D, model), *_size(size))
+    K = _floats(K, f"{name}: the camera matrix", 9).reshape(3, 3)
+    if K[0, 1] != 0:
+        raise CalibrationFileError(f"{name}: skewed camera matrices are not supported (K[0,1] = {K[0, 1]:g}, "
+                                   "must be 0)")
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise CalibrationFileError(f"{name}: the camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise CalibrationFileError(f"{name}: the focal lengths fx, fy must be > 0, are {K[0, 0]:g}, {K[1, 1]:g}")
+    kind, dist = _distortion(name, D, model)
+    return CameraFile(name, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), dist, *_size(name, size),
+                      model=kind)
 
 
-def _distortion(name: str, D, model: str) -> tuple[float, float, float, float]:
-    if model not in ("plumb_bob", "radtan", "rational_polynomial"):
-        raise CalibrationFileError(f"{name}: distortion model '{model}' is not supported: wiredsl's camera has "
-                                   "OpenCV's k1, k2, p1, p2 (plumb_bob / radtan)")
-    d = [float(x) for x in np.asarray(D if D is not None else [], dtype=float).ravel()]
-    if len(d) < 4:
-        d += [0.0] * (4 - len(d))
-    if any(x != 0 for x in d[4:]):
-        raise CalibrationFileError(f"{name}: distortion coefficients beyond k1, k2, p1, p2 (k3 = {d[4]:g}...) are not "
-                                   "supported; recalibrate with them fixed at zero")
-    if not all(math.isfinite(x) for x in d):
-        raise CalibrationFileError(f"{name}: distortion coefficients must be finite")
-    return tuple(d[:4])
+def _distortion(name: str, D, model) -> tuple[str, tuple[float, ...]]:
+    """(model, coefficients): radtan as OpenCV's 8-vector, equidistant as (k1, k2, k3, k4)."""
+    if not isinstance(model, str):
+        raise CalibrationFileError(f"{name}: the distortion model must be a name, is {_kind(model)}")
+    m = model.strip().lower()
+    d = _floats(D, f"{name}: the distortion coefficients") if D is not None else np.zeros(0)
+    if m in EQUIDISTANT:
+        if d.size > 4:
+            raise CalibrationFileError(f"{name}: an equidistant (fisheye) lens has 4 coefficients k1..k4, "
+                                       f"the file has {d.size}")
+        return "equidistant", tuple(float(x) for x in np.pad(d, (0, 4 - d.size)))
+    if m not in RADTAN:
+        raise CalibrationFileError(f"{name}: distortion model '{model}' is not supported: wiredsl reads radtan "
+                                   "(plumb_bob, rational_polynomial) and equidistant (fisheye, Kannala-Brandt)")
+    if d.size > 14 or d.size not in (0, 1, 2, 3, 4, 5, 8, 12, 14):
+        raise CalibrationFileError(f"{name}: OpenCV's distortion vector has 4, 5, 8, 12 or 14 values, the file "
+                                   f"has {d.size}")
+    if np.any(d[8:12] != 0):
+        raise CalibrationFileError(f"{name}: thin-prism distortion (s1..s4 = {_list(d[8:12])}) is not supported; "
+                                   "recalibrate without CALIB_THIN_PRISM_MODEL")
+    if np.any(d[12:14] != 0):
+        raise CalibrationFileError(f"{name}: tilted-sensor distortion (taux, tauy = {_list(d[12:14])}) is not "
+                                   "supported; recalibrate without CALIB_TILTED_MODEL")
+    return "radtan", tuple(float(x) for x in np.pad(d[:8], (0, max(0, 8 - d.size))))
 
 
-def _size(size) -> tuple[int | None, int | None]:
+def _list(a) -> str:
+    return ", ".join(f"{x:g}" for x in a)
+
+
+def _size(name: str, size) -> tuple[int | None, int | None]:
     if size is None:
         return None, None
-    w, h = (float(x) for x in np.asarray(size, dtype=float).ravel()[:2])
-    if not (w > 0 and h > 0 and w.is_integer() and h.is_integer()):
-        raise CalibrationFileError(f"image size must be whole pixels > 0, got {w:g} x {h:g}")
+    w, h = _floats(size, f"{name}: the image size", 2)
+    if not (w > 0 and h > 0 and w.is_integer() and h.is_integer() and max(w, h) <= 1e9):
+        raise CalibrationFileError(f"{name}: the image size must be whole pixels > 0, is {w:g} x {h:g}")
     return int(w), int(h)
 
 
+def _with_pose(cam: CameraFile, R, T, what: str = "R and T") -> CameraFile:
+    R = _floats(R, f"{cam.name}: the rotation", 9).reshape(3, 3)
+    T = _floats(T, f"{cam.name}: the translation", 3)
+    off = float(np.abs(R @ R.T - np.eye(3)).max())
+    if off > 1e-3 or np.linalg.det(R) < 0:
+        raise CalibrationFileError(f"{cam.name}: {what}: R is not a rotation matrix (R R^T must be I and "
+                                   "det R = 1, to 1e-3)")
+    notes = cam.notes
+    if off > 1e-6:  # values rounded to a few digits (OpenVINS' KAIST file has 5): the nearest rotation
+        U, _, Vt = np.linalg.svd(R)
+        R = U @ Vt
+        notes += (f"{cam.name}: {what}: R is a rotation only to {off:.2g} (rounded values); the nearest "
+                  "rotation is used",)
+    return replace(cam, R=R, T=T, notes=notes)
+
+
+def _transform(v, what: str) -> np.ndarray:
+    M = _floats(v, what, 16).reshape(4, 4)
+    if np.abs(M[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise CalibrationFileError(f"{what}: a 4x4 rigid transform's last row is [0, 0, 0, 1]")
+    return M
+
+
+def _inverse(M: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = M[:3, :3].T
+    out[:3, 3] = -M[:3, :3].T @ M[:3, 3]
+    return out
+
+
+# ---- OpenCV (and ORB-SLAM, which writes FileStorage YAML)
+
+_K = ("camera_matrix", "Camera_Matrix", "cameraMatrix", "CameraMatrix", "K", "k", "intrinsic_matrix")
+_D = ("distortion_coefficients", "Distortion_Coefficients", "dist_coeffs", "distCoeffs", "distortion", "D", "d")
+
+
+def _opencv_size(doc: dict, name: str):
+    size = _first(doc, "image_size", "imageSize", "image_Size")
+    if size is None:
+        w = _first(doc, "image_width", "image_Width", "imageWidth", "width")
+        h = _first(doc, "image_height", "image_Height", "imageHeight", "height")
+        if w is not None or h is not None:
+            size = [_num(w, f"{name}: the image width"), _num(h, f"{name}: the image height")]
+    return size
+
+
 def _opencv(doc: dict) -> list[CameraFile]:
-    size = doc.get("image_size", doc.get("imageSize"))
-    if size is None and "image_width" in doc:
-        size = (doc["image_width"], doc["image_height"])
-    if "camera_matrix" in doc or "cameraMatrix" in doc:
-        K = _get(doc, "camera_matrix", "cameraMatrix")
-        D = doc.get("distortion_coefficients", doc.get("dist_coeffs", doc.get("distCoeffs")))
-        return [_intrinsics("camera", K, D, size)]
-    first = _intrinsics("M1", _get(doc, "M1", "K1", "cameraMatrix1"), doc.get("D1", doc.get("distCoeffs1")), size)
-    second = _intrinsics("M2", _get(doc, "M2", "K2", "cameraMatrix2"), doc.get("D2", doc.get("distCoeffs2")), size)
-    R, T = doc.get("R"), doc.get("T")
-    if R is not None and T is not None:
-        second = _with_pose(second, np.asarray(R, float), np.asarray(T, float).ravel())
+    if any(k in doc for k in ("Camera.fx", "Camera1.fx", "LEFT.K")):
+        return _orbslam(doc)
+    fisheye = doc.get("fisheye_model") in (1, True) or str(doc.get("distortion_model", "")).lower() in EQUIDISTANT
+    model = "equidistant" if fisheye else "plumb_bob"
+    size = _opencv_size(doc, "camera")
+    if any(k in doc for k in _K):
+        return [_intrinsics("camera", _get(doc, *_K), _first(doc, *_D), size, model)]
+    names = [("M1", "K1", "cameraMatrix1"), ("M2", "K2", "cameraMatrix2")]
+    if not any(n in doc for ns in names for n in ns):
+        if "R" in doc and "T" in doc:  # stereo_calib's extrinsics.yml: the pose, the intrinsics elsewhere
+            blank = CameraFile("first", math.nan, math.nan, math.nan, math.nan, (), None, None, intrinsics=False)
+            return [blank, _with_pose(replace(blank, name="second"), doc["R"], doc["T"])]
+        raise CalibrationFileError("no camera matrix in the file: expected camera_matrix (or Camera_Matrix, "
+                                   "cameraMatrix), M1 and M2 with R and T, or R and T alone")
+    first = _intrinsics("M1", _get(doc, *names[0]), _first(doc, "D1", "distCoeffs1"), size, model)
+    second = _intrinsics("M2", _get(doc, *names[1]), _first(doc, "D2", "distCoeffs2"), size, model)
+    if "R" in doc and "T" in doc:
+        second = _with_pose(second, doc["R"], doc["T"])
     return [first, second]
 
 
-def _with_pose(cam: CameraFile, R: np.ndarray, T: np.ndarray) -> CameraFile:
-    if R.shape != (3, 3) or T.shape != (3,):
-        raise CalibrationFileError("R must be 3x3 and T three values")
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(T))):
-        raise CalibrationFileError("R and T must be finite")
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
-        raise CalibrationFileError("R is not a rotation matrix (R R^T must be I, det R = 1, to 1e-6)")
-    return CameraFile(**{**cam.__dict__, "R": R, "T": T})
+def _orbslam(doc: dict) -> list[CameraFile]:
+    """ORB-SLAM2/3 settings: the raw stereo pair (LEFT.K, ...) when given, else Camera[1|2].fx, ..."""
+    kind = str(doc.get("Camera.type", "PinHole")).strip()
+    fisheye = kind.lower() in EQUIDISTANT or doc.get("Camera.bFishEye") in (1, True)
+    if "LEFT.K" in doc:  # ORB-SLAM2's EuRoC: raw cameras and the rectification they were given
+        cams = []
+        for side in ("LEFT", "RIGHT"):
+            if f"{side}.K" not in doc:
+                break
+            size = None
+            if f"{side}.width" in doc or f"{side}.height" in doc:
+                size = [doc.get(f"{side}.width"), doc.get(f"{side}.height")]
+            cams.append(_intrinsics(side, doc[f"{side}.K"], doc.get(f"{side}.D"), size,
+                                    "equidistant" if fisheye else "plumb_bob"))
+        if len(cams) == 2 and all(k in doc for k in ("LEFT.R", "RIGHT.R", "RIGHT.P")):
+            R1 = _floats(doc["LEFT.R"], "LEFT.R", 9).reshape(3, 3)
+            R2 = _floats(doc["RIGHT.R"], "RIGHT.R", 9).reshape(3, 3)
+            P2 = _floats(doc["RIGHT.P"], "RIGHT.P", 12).reshape(3, 4)
+            if P2[0, 0] == 0 or P2[1, 1] == 0:
+                raise CalibrationFileError("RIGHT.P: its focal length is zero")
+            t = np.array([P2[0, 3] / P2[0, 0], P2[1, 3] / P2[1, 1], 0.0])  # X_r' = X_l' + t in rectified frames
+            cams[1] = _with_pose(cams[1], R2.T @ R1, R2.T @ t, "LEFT.R, RIGHT.R and RIGHT.P")
+        return cams
+    cams = []
+    for prefix in ("Camera1", "Camera2") if "Camera1.fx" in doc else ("Camera",):
+        if f"{prefix}.fx" not in doc:
+            break
+        v = {k: _num(doc[f"{prefix}.{k}"], f"{prefix}.{k}") for k in ("fx", "fy", "cx", "cy")
+             if f"{prefix}.{k}" in doc}
+        missing = [k for k in ("fx", "fy", "cx", "cy") if k not in v]
+        if missing:
+            raise CalibrationFileError(f"no '{prefix}.{missing[0]}' in the file")
+        coeffs = ("k1", "k2", "k3", "k4") if fisheye else ("k1", "k2", "p1", "p2", "k3")
+        D = [_num(doc.get(f"{prefix}.{k}", 0.0), f"{prefix}.{k}") for k in coeffs]
+        size = None
+        for p in (prefix, "Camera"):
+            if f"{p}.width" in doc:
+                size = [doc.get(f"{p}.width"), doc.get(f"{p}.height")]
+                break
+        K = [[v["fx"], 0, v["cx"]], [0, v["fy"], v["cy"]], [0, 0, 1]]
+        cams.append(_intrinsics(prefix, K, D, size, "equidistant" if fisheye else "plumb_bob"))
+    if len(cams) == 2 and "Stereo.T_c1_c2" in doc:
+        M = _inverse(_transform(doc["Stereo.T_c1_c2"], "Stereo.T_c1_c2"))  # T_c1_c2 maps camera 2's points to 1's
+        cams[1] = _with_pose(cams[1], M[:3, :3], M[:3, 3], "Stereo.T_c1_c2")
+    return cams
 
+
+# ---- ROS
 
 def _ros(doc: dict) -> list[CameraFile]:
-    K = _get(doc, "camera_matrix", "K")
-    D = doc.get("distortion_coefficients", doc.get("D"))
-    return [_intrinsics(str(doc.get("camera_name", "camera")), _ros_matrix(K, 3, 3),
-                        None if D is None else _ros_matrix(D, None, None), (doc.get("image_width"),
-                        doc.get("image_height")) if "image_width" in doc else None,
-                        str(doc.get("distortion_model", "plumb_bob")))]
+    name = doc.get("camera_name", "camera")
+    name = name if isinstance(name, str) and name else "camera"
+    K = _get(doc, "camera_matrix", "K", "k")
+    D = _first(doc, "distortion_coefficients", "D", "d")
+    size = None
+    if any(k in doc for k in ("image_width", "image_height")):
+        size = [doc.get("image_width"), doc.get("image_height")]
+    elif any(k in doc for k in ("width", "height")):
+        size = [doc.get("width"), doc.get("height")]
+    model = doc.get("distortion_model", "plumb_bob")
+    cam = _intrinsics(name, K, D, size, model)
+    P = _first(doc, "projection_matrix", "P", "p")
+    if cam.model == "radtan" and isinstance(model, str) and model.lower() == "plumb_bob" and D is not None:
+        n = _floats(D, f"{name}: the distortion coefficients").size
+        fp = _floats(P, f"{name}: the projection matrix", 12)[0] if P is not None else cam.fx
+        if n == 4 and not 0.5 <= fp / cam.fx <= 2:
+            cam = replace(cam, notes=(
+                f"{name}: labelled plumb_bob but has 4 coefficients (plumb_bob has 5) and a projection matrix "
+                f"whose focal length ({fp:.4g} px) is far from K's ({cam.fx:.4g} px): ROS's fisheye calibrator "
+                "wrote such files; if this camera is a fisheye, the file's distortion_model must be equidistant",))
+    return [cam]
 
 
-def _ros_matrix(m, rows, cols) -> np.ndarray:
-    if isinstance(m, dict):
-        return _as_matrix(m)
-    a = np.asarray(m, dtype=float)
-    return a.reshape(rows, cols) if rows else a
-
+# ---- Kalibr
 
 def _kalibr(doc: dict) -> list[CameraFile]:
-    out = []
+    out: list[CameraFile] = []
+    T_imu: list[np.ndarray | None] = []
     for i in range(len(doc)):
-        cam = doc.get(f"cam{i}")
-        if cam is None:
-            break
         name = f"cam{i}"
-        if cam.get("camera_model", "pinhole") != "pinhole":
-            raise CalibrationFileError(f"{name}: camera model '{cam['camera_model']}' is not supported (pinhole only)")
-        fu, fv, pu, pv = (float(x) for x in _get(cam, "intrinsics"))
-        K = [[fu, 0, pu], [0, fv, pv], [0, 0, 1]]
-        c = _intrinsics(name, K, cam.get("distortion_coeffs"), cam.get("resolution"),
-                        str(cam.get("distortion_model", "radtan")))
+        if name not in doc:
+            break
+        cam = doc[name]
+        if not isinstance(cam, dict):
+            raise CalibrationFileError(f"{name} must be a mapping (camera_model, intrinsics, ...), is {_kind(cam)}")
+        model = cam.get("camera_model", "pinhole")
+        if not isinstance(model, str):
+            raise CalibrationFileError(f"{name}: camera_model must be a name, is {_kind(model)}")
+        if model != "pinhole":
+            what = KALIBR_MODELS.get(model, "unknown")
+            raise CalibrationFileError(f"{name}: Kalibr camera model '{model}' ({what}) is not supported: wiredsl's "
+                                       "cameras are pinhole (with radtan, equidistant or no distortion)")
+        dmodel = cam.get("distortion_model", "radtan")
+        if isinstance(dmodel, str) and dmodel in KALIBR_MODELS:
+            raise CalibrationFileError(f"{name}: Kalibr distortion model '{dmodel}' ({KALIBR_MODELS[dmodel]}) is "
+                                       "not supported: wiredsl reads radtan, equidistant and none")
+        fu, fv, pu, pv = _floats(_get(cam, "intrinsics"), f"{name}: intrinsics [fu, fv, pu, pv]", 4)
+        c = _intrinsics(name, [[fu, 0, pu], [0, fv, pv], [0, 0, 1]], cam.get("distortion_coeffs"),
+                        cam.get("resolution"), dmodel)
+        c = replace(c, name=name)
+        if "T_cam_imu" in cam:
+            T_imu.append(_transform(cam["T_cam_imu"], f"{name}: T_cam_imu"))
+        elif "T_imu_cam" in cam:  # OpenVINS' files: the inverse
+            T_imu.append(_inverse(_transform(cam["T_imu_cam"], f"{name}: T_imu_cam")))
+        else:
+            T_imu.append(None)
         if i > 0 and "T_cn_cnm1" in cam:
-            M = np.asarray(cam["T_cn_cnm1"], dtype=float)
-            if M.shape != (4, 4):
-                raise CalibrationFileError(f"{name}: T_cn_cnm1 must be 4x4")
-            c = _with_pose(c, M[:3, :3], M[:3, 3])
+            M = _transform(cam["T_cn_cnm1"], f"{name}: T_cn_cnm1")
+            c = _with_pose(c, M[:3, :3], M[:3, 3], "T_cn_cnm1")
+        elif i > 0 and T_imu[i] is not None and T_imu[i - 1] is not None:
+            M = T_imu[i] @ _inverse(T_imu[i - 1])  # previous camera -> IMU -> this camera
+            c = _with_pose(c, M[:3, :3], M[:3, 3], f"T_cam_imu of cam{i - 1} and {name}")
         out.append(c)
     if not out:
         raise CalibrationFileError("no 'cam0' in the file")
     return out
 
 
-_PLUSMINUS = re.compile(r"^\s*(\w[\w ]*?):\s*\[([^\]]*)\]\s*\+-\s*\[([^\]]*)\]", re.M)
+_PLUSMINUS = re.compile(r"^\s*(\w[\w ]*?):\s*\[([^\]]*)\]\s*\+-\s*\[([^\]]*)\]")
 
 
 def _kalibr_results(text: str) -> list[CameraFile]:
-    """Kalibr's results-cam.txt: each camera's projection and distortion with their standard deviations."""
-    blocks = re.split(r"^(cam\d+)\b.*$", text, flags=re.M)
-    out = []
-    for name, body in zip(blocks[1::2], blocks[2::2], strict=False):
-        found = {m.group(1).strip(): ([float(x) for x in m.group(2).replace(",", " ").split()],
-                                      [float(x) for x in m.group(3).replace(",", " ").split()])
-                 for m in _PLUSMINUS.finditer(body.split("baseline", 1)[0])}
-        if "projection" not in found:
-            raise CalibrationFileError(f"{name}: no 'projection: [...] +- [...]' line")
-        (fu, fv, pu, pv), (sfu, sfv, spu, spv) = found["projection"]
-        d, sd = found.get("distortion", ([0.0] * 4, [0.0] * 4))
-        sigma = {"f": sfu, "ay": math.hypot(sfv / fu, fv * sfu / fu**2), "cx": spu, "cy": spv,
-                 "k": sd[0], "k2": sd[1], "p1": sd[2], "p2": sd[3]}
-        out.append(CameraFile(name, fu, fv, pu, pv, _distortion(name, d, "radtan"), None, None, sigma=sigma))
-    base = re.search(r"baseline T_1_0:(.*?)(?:^\S|\Z)", text, flags=re.M | re.S)
-    if base and len(out) > 1:
-        found = {m.group(1).strip(): [float(x) for x in m.group(3).replace(",", " ").split()]
-                 for m in _PLUSMINUS.finditer(base.group(1))}
-        extra = {}
-        if "t" in found:
-            extra.update(zip(("tx", "ty", "tz"), found["t"], strict=False))
-        if "q" in found:  # a small rotation of angle theta has quaternion vector part theta / 2
-            extra.update(zip(("rx", "ry", "rz"), (2 * s for s in found["q"][:3]), strict=False))
-        out[1] = CameraFile(**{**out[1].__dict__, "sigma": {**out[1].sigma, **extra}})
+    """Kalibr's results-cam.txt (lines indented with spaces, or a TAB before late 2022): each camera's
+    projection and distortion, and each baseline, with their standard deviations."""
+    cams: list[dict] = []
+    baselines: dict[int, dict] = {}
+    block: dict | None = None
+    for n, line in enumerate(text.splitlines(), 1):
+        s = line.strip()
+        head = re.fullmatch(r"(cam\d+)\s*(?:\(.*\))?\s*:?", s)
+        if head:
+            block = {"name": head.group(1), "line": n}
+            cams.append(block)
+            continue
+        base = re.match(r"baseline T_(\d+)_(\d+)\s*:", s)
+        if base:
+            block = baselines.setdefault(int(base.group(1)), {"line": n})
+            continue
+        if block is None:
+            continue
+        if s.startswith("type:"):
+            block["type"] = s[5:].strip()
+            continue
+        m = _PLUSMINUS.match(line)
+        if m:
+            what = f"line {n}: '{m.group(1).strip()}'"
+            values, sigmas = ([float(x) for x in _floats(g.replace(",", " ").split(), what)] for g in m.group(2, 3))
+            block[m.group(1).strip()] = (values, sigmas, n)
+    out = [_kalibr_camera(c) for c in cams]
     if not out:
-        raise CalibrationFileError("no 'camN' block with a 'projection: [...] +- [...]' line")
+        raise CalibrationFileError("no 'camN' block with a 'projection: [...] +- [...]' line: not Kalibr's "
+                                   "results-cam.txt")
+    for i, b in baselines.items():
+        if 0 < i < len(out):
+            extra = {}
+            for key, names in (("t", ("tx", "ty", "tz")), ("q", ("rx", "ry", "rz"))):
+                if key in b:
+                    if len(b[key][1]) != 3:
+                        raise CalibrationFileError(f"line {b[key][2]}: '{key}' needs 3 standard deviations")
+                    # q's are already rotation-vector sigmas in radians: aslam perturbs the quaternion by an
+                    # axis-angle update (sm::kinematics::updateQuat), and Kalibr prints that update's std
+                    extra.update(zip(names, b[key][1], strict=True))
+            out[i] = replace(out[i], sigma={**out[i].sigma, **extra})
     return out
+
+
+def _kalibr_camera(c: dict) -> CameraFile:
+    name, kind = c["name"], c.get("type", "")
+    for word, model in (("Omni", "omni"), ("DoubleSphere", "ds"), ("ExtendedUnified", "eucm"), ("Fov", "fov")):
+        if word in kind:
+            raise CalibrationFileError(f"{name}: Kalibr camera model '{model}' ({KALIBR_MODELS[model]}) is not "
+                                       "supported: wiredsl's cameras are pinhole (radtan, equidistant or none)")
+    equidistant = "Equidistant" in kind
+    if "projection" not in c:
+        raise CalibrationFileError(f"{name} (line {c['line']}): no 'projection: [...] +- [...]' line")
+    p, sp, n = c["projection"]
+    if len(p) != 4 or len(sp) != 4:
+        raise CalibrationFileError(f"line {n}: a pinhole projection has 4 values [fu, fv, pu, pv] and 4 standard "
+                                   f"deviations, this has {len(p)} and {len(sp)}")
+    (fu, fv, pu, pv), (sfu, sfv, spu, spv) = p, sp
+    if not (fu > 0 and fv > 0):
+        raise CalibrationFileError(f"line {n}: the focal lengths must be > 0")
+    d, sd, dn = c.get("distortion", ([], [], c["line"]))
+    want = 4 if (equidistant or "Distorted" in kind or d) else 0
+    if len(d) != want or len(sd) != want:
+        raise CalibrationFileError(f"line {dn}: {'an equidistant' if equidistant else 'a radtan'} distortion has "
+                                   f"{want} values and {want} standard deviations, this has {len(d)} and {len(sd)}")
+    sigma = {"f": sfu, "ay": math.hypot(sfv / fu, fv * sfu / fu**2), "cx": spu, "cy": spv}
+    names = ("k", "k2", "k3", "k4") if equidistant else ("k", "k2", "p1", "p2")
+    sigma.update(zip(names, sd, strict=False))
+    model, dist = _distortion(name, d, "equidistant" if equidistant else "radtan")
+    return CameraFile(name, fu, fv, pu, pv, dist, None, None, sigma=sigma, model=model)
 
 
 # --------------------------------------------------------------------------- writing
@@ -281,11 +639,14 @@ def _kalibr_results(text: str) -> list[CameraFile]:
 def opencv_yaml(cams: list[dict], R: np.ndarray | None = None, T: np.ndarray | None = None) -> str:
     """OpenCV FileStorage YAML: one camera as camera_matrix / distortion_coefficients, two as M1, D1, M2, D2, R, T.
 
-    Each camera is {"K": (3, 3), "D": (4,), "width": int, "height": int}.
+    Each camera is {"K": (3, 3), "D": (n,), "width": int, "height": int} and optionally "model": an
+    "equidistant" camera's D is OpenCV's fisheye (k1..k4), named by a `distortion_model: equidistant` line.
     """
     lines = ["%YAML:1.0", "---"]
     first = cams[0]
     lines += [f"image_width: {first['width']}", f"image_height: {first['height']}"]
+    if first.get("model", "radtan") != "radtan":
+        lines.append(f"distortion_model: {first['model']}")
     if len(cams) == 1:
         lines += _cv_matrix("camera_matrix", first["K"]) + _cv_matrix("distortion_coefficients", first["D"][None, :])
     else:
@@ -303,7 +664,8 @@ def _cv_matrix(name: str, a: np.ndarray) -> list[str]:
 
 
 def ros_yaml(name: str, cam: dict, R: np.ndarray | None = None, P: np.ndarray | None = None) -> str:
-    """ROS camera_info YAML (plumb_bob); P defaults to [K | 0]."""
+    """ROS camera_info YAML (plumb_bob, rational_polynomial for 8 coefficients, or equidistant for a camera
+    whose "model" is); P defaults to [K | 0]."""
     K = np.asarray(cam["K"], dtype=float)
     R = np.eye(3) if R is None else np.asarray(R, dtype=float)
     P = np.hstack([K, np.zeros((3, 1))]) if P is None else np.asarray(P, dtype=float)
@@ -315,7 +677,9 @@ def ros_yaml(name: str, cam: dict, R: np.ndarray | None = None, P: np.ndarray | 
                 "  data: [" + ", ".join(repr(float(x)) for x in require_finite(a, f"{name} {key}").ravel()) + "]"]
 
     lines = [f"image_width: {cam['width']}", f"image_height: {cam['height']}", f"camera_name: {name}"]
-    lines += block("camera_matrix", K) + ["distortion_model: plumb_bob"] + block("distortion_coefficients", cam["D"])
+    model = "equidistant" if cam.get("model") == "equidistant" else \
+        "rational_polynomial" if len(cam["D"]) == 8 else "plumb_bob"
+    lines += block("camera_matrix", K) + [f"distortion_model: {model}"] + block("distortion_coefficients", cam["D"])
     lines += block("rectification_matrix", R) + block("projection_matrix", P)
     return "\n".join(lines) + "\n"
 
@@ -323,16 +687,92 @@ def ros_yaml(name: str, cam: dict, R: np.ndarray | None = None, P: np.ndarray | 
 # --------------------------------------------------------------------------- a scene's rig as files
 
 def rig_files(scene) -> dict[str, str]:
-    """The rig's cameras as files: OpenCV stereo YAML (M1, D1, M2, D2, R, T) and one ROS camera_info each."""
+    """The rig's cameras as files: OpenCV stereo YAML (M1, D1, M2, D2, R, T) and one ROS camera_info each,
+    with the stereo rectification R and P that ROS's stereo nodes use (radtan cameras of one image size;
+    otherwise R = I and P = [K | 0])."""
     rig, cams = scene.rig, {c.name: c for c in scene.cameras}
     mats = {}
     for side in ("left", "right"):
         c = cams[getattr(rig, side).camera]
         K = np.array([[c.f * c.ax, 0, c.cx], [0, c.f * c.ay, c.cy], [0, 0, 1.0]])
-        mats[side] = {"K": K, "D": np.array([c.k1, c.k2, c.p1, c.p2]), "width": c.width, "height": c.height}
+        mats[side] = {"K": K, "D": distortion_vector(c), "width": c.width, "height": c.height, "model": c.distortion}
     R, T = stereo_extrinsics(rig)
-    return {"stereo.yaml": opencv_yaml([mats["left"], mats["right"]], R, T),
-            "left.yaml": ros_yaml("left", mats["left"]), "right.yaml": ros_yaml("right", mats["right"])}
+    rect: dict = {"left": {}, "right": {}}
+    l, r = mats["left"], mats["right"]
+    if l["model"] == r["model"] == "radtan" and (l["width"], l["height"]) == (r["width"], r["height"]) \
+            and np.linalg.norm(T) > 0:
+        with np.errstate(all="ignore"):  # a wild lens's corners may not undistort: then no rectification
+            R1, R2, P1, P2 = stereo_rectify(l["K"], l["D"], r["K"], r["D"], (l["width"], l["height"]), R, T)
+        if all(np.all(np.isfinite(m)) for m in (R1, R2, P1, P2)):
+            rect = {"left": {"R": R1, "P": P1}, "right": {"R": R2, "P": P2}}
+    return {"stereo.yaml": opencv_yaml([l, r], R, T),
+            "left.yaml": ros_yaml("left", l, **rect["left"]), "right.yaml": ros_yaml("right", r, **rect["right"])}
+
+
+def stereo_rectify(K1, D1, K2, D2, size: tuple[int, int], R, T):
+    """R1, R2, P1, P2 as `cv2.stereoRectify` gives them (alpha -1, CALIB_ZERO_DISPARITY), which is ROS's
+    stereo convention: R rectifies each camera, P2[0, 3] = Tx = -fx' * baseline. OpenCV's steps, with its
+    single-precision image corners: half the rotation to each camera, then the baseline turned onto x;
+    f' the mean of the cameras' fy; the centre from the undistorted corners of each image."""
+    from scipy.spatial.transform import Rotation
+
+    R, T = np.asarray(R, dtype=float), np.asarray(T, dtype=float).ravel()
+    r_r = Rotation.from_rotvec(-0.5 * Rotation.from_matrix(R).as_rotvec()).as_matrix()
+    t = r_r @ T
+    idx = 0 if abs(t[0]) > abs(t[1]) else 1
+    c, nt = t[idx], float(np.linalg.norm(t))
+    uu = np.zeros(3)
+    uu[idx] = 1.0 if c > 0 else -1.0
+    ww = np.cross(t, uu)
+    nw = float(np.linalg.norm(ww))
+    if nw > 0:
+        ww *= math.acos(min(1.0, abs(c) / nt)) / nw
+    wR = Rotation.from_rotvec(ww).as_matrix()
+    R1, R2 = wR @ r_r.T, wR @ r_r
+    t = R2 @ T
+    fc = (K1[idx ^ 1, idx ^ 1] + K2[idx ^ 1, idx ^ 1]) / 2
+    nx, ny = size
+    corners = np.array([[0, 0], [nx - 1, 0], [0, ny - 1], [nx - 1, ny - 1]], dtype=np.float32).astype(float)
+    centres = []
+    for K, D, Rk in ((K1, D1, R1), (K2, D2, R2)):
+        xy = _undistort(corners, np.asarray(K, dtype=float), np.asarray(D, dtype=float)).astype(np.float32)
+        X = np.column_stack([xy.astype(float), np.ones(4)]) @ Rk.T
+        uv = (fc * X[:, :2] / X[:, 2:]).astype(np.float32).astype(float)
+        centres.append(np.array([(nx - 1) / 2, (ny - 1) / 2]) - uv.mean(axis=0))
+    cc = (centres[0] + centres[1]) / 2
+    P1 = np.array([[fc, 0, cc[0], 0], [0, fc, cc[1], 0], [0, 0, 1, 0]])
+    P2 = P1.copy()
+    P2[idx, 3] = t[idx] * fc
+    return R1, R2, P1, P2
+
+
+def _undistort(uv: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Normalised points from pixels under OpenCV's radtan model, as `cv2.undistortPoints` (5 iterations)."""
+    k = np.zeros(8)
+    k[:min(8, D.size)] = D.ravel()[:8]
+    x0 = (uv[:, 0] - K[0, 2]) / K[0, 0]
+    y0 = (uv[:, 1] - K[1, 2]) / K[1, 1]
+    x, y = x0.copy(), y0.copy()
+    stopped = np.zeros(x.shape, dtype=bool)  # a negative icdist stops that point at its distorted position
+    for _ in range(5):
+        r2 = x * x + y * y
+        icdist = (1 + ((k[7] * r2 + k[6]) * r2 + k[5]) * r2) / (1 + ((k[4] * r2 + k[1]) * r2 + k[0]) * r2)
+        stop = ~stopped & (icdist < 0)
+        dx = 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x)
+        dy = k[2] * (r2 + 2 * y * y) + 2 * k[3] * x * y
+        x = np.where(stopped, x, np.where(stop, x0, (x0 - dx) * icdist))
+        y = np.where(stopped, y, np.where(stop, y0, (y0 - dy) * icdist))
+        stopped |= stop
+    return np.column_stack([x, y])
+
+
+def distortion_vector(cam) -> np.ndarray:
+    """A camera's coefficients as OpenCV takes them: fisheye (k1, k2, k3, k4); else (k1, k2, p1, p2, k3), with
+    k4, k5, k6 too when the rational model is used (8)."""
+    if cam.distortion == "equidistant":
+        return np.array([cam.k1, cam.k2, cam.k3, cam.k4])
+    d = [cam.k1, cam.k2, cam.p1, cam.p2, cam.k3]
+    return np.array(d + [cam.k4, cam.k5, cam.k6] if (cam.k4, cam.k5, cam.k6) != (0.0, 0.0, 0.0) else d)
 
 
 def stereo_extrinsics(rig) -> tuple[np.ndarray, np.ndarray]:

@@ -166,49 +166,10 @@ class NpzStream:
         self.write_batch([0], out, renumber=False)
 
     def write_batch(self, batch: list[int], batch_out, renumber: bool = True) -> None:
-        """One batch's strokes, corners, views (and conics); `fragment` numbered as the JSON dump numbers it."""
-        pts, starts, rows, corners, crows, views, vcams, vposes, conics_, krows = ([] for _ in range(10))
-        offset = 0
-        for result, disturbed, per_trial in batch_out:
-            for cam, side in enumerate(("left", "right")):
-                s = disturbed.get(side)
-                if s is None:
-                    continue
-                for k, t in enumerate(batch):  # each trial's camera as projected
-                    v = per_trial and per_trial[side]
-                    base = getattr(result, side) if not v else v(k) if callable(v) else v[k]
-                    views.append((t, result.index, cam))
-                    vcams.append([float(getattr(base.camera, c)) for c in layout.CAMERA_COLUMNS])
-                    vposes.append(np.concatenate([np.ravel(base.R_cw), base.t_cw]))
-                    if not renumber:  # the ideal projection: its analytic conics too
-                        for f in base.features:
-                            if f.kind == "conic":
-                                centre, axes, angle, arc = f.conic
-                                conics_.append([*centre, *axes, angle, *(arc if arc is not None else (0.0, 0.0))])
-                                krows.append([t, result.index, cam, f.fid, f.clipped, arc is not None])
-                trials = np.asarray(batch)[s.trial]
-                pts.append(s.pts)
-                starts.append(s.start[:-1] + offset)
-                offset += len(s.pts)
-                frag = _json_fragments(s) if renumber else s.fragment
-                rows.append(np.column_stack([trials, np.full(s.n_strokes, result.index), np.full(s.n_strokes, cam),
-                                             s.fid, s.segment, s.kind, s.clipped, s.closed, frag, s.occluded]))
-                ctrials = np.asarray(batch)[s.corner_trial]
-                corners.append(s.corners)
-                crows.append(np.column_stack([ctrials, np.full(len(ctrials), result.index),
-                                              np.full(len(ctrials), cam), s.corner_fid]))
+        """One batch's members (`batch_arrays`), as b{n}_<name>, each in its file type."""
         b = f"b{self.n:05d}"
-        width = len(layout.STROKE_COLUMNS)
-        self.member(f"{b}_pts", np.concatenate(pts) if pts else np.zeros((0, 2)), np.float32)
-        self.member(f"{b}_start", np.concatenate([*starts, [offset]]), np.int64)
-        self.member(f"{b}_strokes", np.concatenate(rows) if rows else np.zeros((0, width), int), np.int32)
-        self.member(f"{b}_corners", np.concatenate(corners).reshape(-1, 2), np.float32)
-        self.member(f"{b}_corner_rows", np.concatenate(crows).reshape(-1, len(layout.CORNER_COLUMNS)), np.int32)
-        self.member(f"{b}_views", np.array(views).reshape(-1, len(layout.VIEW_COLUMNS)), np.int32)
-        self.member(f"{b}_view_cameras", np.array(vcams, dtype=np.float64).reshape(-1, len(layout.CAMERA_COLUMNS)))
-        self.member(f"{b}_view_poses", np.array(vposes, dtype=np.float64).reshape(-1, 12))
-        self.member(f"{b}_conics", np.array(conics_, dtype=np.float64).reshape(-1, 7))
-        self.member(f"{b}_conic_rows", np.array(krows).reshape(-1, len(layout.CONIC_COLUMNS)), np.int32)
+        for name, a in batch_arrays(batch, batch_out, renumber).items():
+            self.member(f"{b}_{name}", a, NPZ_TYPES.get(name))
         self.n += 1
 
     def close(self, feature_ids: list[str], manifest: dict) -> None:
@@ -224,6 +185,58 @@ class NpzStream:
     def abort(self) -> None:
         fh = self.zf.fp
         _discard(self.tmp, self.zf.close, fh.close)
+
+
+NPZ_TYPES = {"pts": np.float32, "start": np.int64, "strokes": np.int32, "corners": np.float32,
+             "corner_rows": np.int32, "views": np.int32, "conic_rows": np.int32}  # the rest: float64
+
+
+def batch_arrays(batch: list[int], batch_out, renumber: bool = True) -> dict[str, np.ndarray]:
+    """One batch's strokes, corners, views (and conics) as the npz members of a batch (layout.py), without
+    the b{n}_ prefix and at full precision; `fragment` numbered as the JSON dump numbers it."""
+    pts, starts, rows, corners, crows, views, vcams, vposes, conics_, krows = ([] for _ in range(10))
+    offset = 0
+    for result, disturbed, per_trial in batch_out:
+        for cam, side in enumerate(("left", "right")):
+            s = disturbed.get(side)
+            if s is None:
+                continue
+            for k, t in enumerate(batch):  # each trial's camera as projected
+                v = per_trial and per_trial[side]
+                base = getattr(result, side) if not v else v(k) if callable(v) else v[k]
+                views.append((t, result.index, cam))
+                vcams.append([float(layout.camera_value(base.camera, c)) for c in layout.CAMERA_COLUMNS])
+                vposes.append(np.concatenate([np.ravel(base.R_cw), base.t_cw]))
+                if not renumber:  # the ideal projection: its analytic conics too
+                    for f in base.features:
+                        if f.kind == "conic":
+                            centre, axes, angle, arc = f.conic
+                            conics_.append([*centre, *axes, angle, *(arc if arc is not None else (0.0, 0.0))])
+                            krows.append([t, result.index, cam, f.fid, f.clipped, arc is not None])
+            trials = np.asarray(batch)[s.trial]
+            pts.append(s.pts)
+            starts.append(s.start[:-1] + offset)
+            offset += len(s.pts)
+            frag = _json_fragments(s) if renumber else s.fragment
+            rows.append(np.column_stack([trials, np.full(s.n_strokes, result.index), np.full(s.n_strokes, cam),
+                                         s.fid, s.segment, s.kind, s.clipped, s.closed, frag, s.occluded]))
+            ctrials = np.asarray(batch)[s.corner_trial]
+            corners.append(s.corners)
+            crows.append(np.column_stack([ctrials, np.full(len(ctrials), result.index),
+                                          np.full(len(ctrials), cam), s.corner_fid]))
+    width = len(layout.STROKE_COLUMNS)
+    return {
+        "pts": np.concatenate(pts) if pts else np.zeros((0, 2)),
+        "start": np.concatenate([*starts, [offset]]).astype(np.int64),
+        "strokes": np.concatenate(rows) if rows else np.zeros((0, width), int),
+        "corners": np.concatenate(corners).reshape(-1, 2),
+        "corner_rows": np.concatenate(crows).reshape(-1, len(layout.CORNER_COLUMNS)),
+        "views": np.array(views).reshape(-1, len(layout.VIEW_COLUMNS)),
+        "view_cameras": np.array(vcams, dtype=np.float64).reshape(-1, len(layout.CAMERA_COLUMNS)),
+        "view_poses": np.array(vposes, dtype=np.float64).reshape(-1, 12),
+        "conics": np.array(conics_, dtype=np.float64).reshape(-1, 7),
+        "conic_rows": np.array(krows).reshape(-1, len(layout.CONIC_COLUMNS)),
+    }
 
 
 def _discard(tmp: str, *closers) -> None:

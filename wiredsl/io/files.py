@@ -18,6 +18,7 @@ import secrets
 import shutil
 import signal
 import socket
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -74,6 +75,38 @@ def require_finite(value, where: str = "value", dtype: type | None = None):
     return value
 
 
+class UnreadableFile(ValueError):
+    """A path refused before reading: not a regular file, or larger than the reader's limit."""
+
+
+def regular_size(path: str | os.PathLike, limit: int) -> int:
+    """The size of a regular file of at most `limit` bytes, else UnreadableFile saying why.
+
+    Only a stat: a FIFO or /dev/stdin is never opened (opening one would block), /dev/zero never read.
+    """
+    st = os.stat(path)
+    if stat.S_ISDIR(st.st_mode):
+        raise UnreadableFile("is a directory")
+    if not stat.S_ISREG(st.st_mode):
+        raise UnreadableFile("is not a regular file (a FIFO, device or socket)")
+    if st.st_size > limit:
+        raise UnreadableFile(f"is {st.st_size:,} bytes, over the limit of {limit:,}")
+    return st.st_size
+
+
+def read_regular(path: str | os.PathLike, limit: int) -> bytes:
+    """A regular file's bytes (at most `limit`, even if it grows while read); see `regular_size`.
+
+    The one reader of every input (scenes, includes, matrices, dumps): OSError as open raises it.
+    """
+    regular_size(path, limit)
+    with open(path, "rb") as fh:
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise UnreadableFile(f"is over the limit of {limit:,} bytes")
+    return data
+
+
 def json_text(obj, indent: int | None = 1, sort_keys: bool = False, where: str = "document") -> str:
     """JSON text of plain data, refusing non-finite numbers (located by `require_finite`)."""
     try:
@@ -81,6 +114,25 @@ def json_text(obj, indent: int | None = 1, sort_keys: bool = False, where: str =
     except ValueError:
         require_finite(obj, where)  # names the first offending number
         raise
+
+
+_NON_FINITE = re.compile(r"-?Infinity|NaN")
+
+
+def json_loads(text: str):
+    """json.loads that refuses NaN, Infinity and -Infinity (Python's extensions; not JSON, RFC 8259) with a
+    JSONDecodeError at the token, as for any other text that is not JSON."""
+    def refuse(token: str):
+        at = next((m.start() for m in _NON_FINITE.finditer(text) if m.group() == token
+                   and _outside_strings(text, m.start())), 0)
+        raise json.JSONDecodeError(f"{token} is not a JSON number (JSON has no NaN or infinity)", text, at)
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def _outside_strings(text: str, at: int) -> bool:
+    """Whether position `at` of JSON text is outside every string (an even count of unescaped quotes before)."""
+    return len(re.findall(r'(?<!\\)(?:\\\\)*"', text[:at])) % 2 == 0
 
 
 def _umask() -> int:

@@ -9,8 +9,10 @@ strokes and corners come in batches of trials; batch b's members are named
 from __future__ import annotations
 
 import json
+import math
 
-NPZ_VERSION = 2  # 1: seven stroke columns; 2: closed, fragment, occluded, views and conics added
+NPZ_VERSION = 3  # 1: seven stroke columns; 2: closed, fragment, occluded, views and conics added;
+# 3: view cameras with k3..k6 and the lens model
 
 STROKE_COLUMNS = (
     ("trial", "Monte-Carlo trial (0 for the ideal projection)"),
@@ -35,7 +37,16 @@ VIEW_COLUMNS = (
     ("pose", "index of the pose in the scene's path"),
     ("camera", "0 left, 1 right"),
 )
-CAMERA_COLUMNS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "width", "height")
+# `model`: the lens model's code, 0 radtan, 1 equidistant (geometry.MODELS)
+CAMERA_COLUMNS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "width", "height", "k3", "k4", "k5", "k6",
+                  "model")
+
+
+def camera_value(camera, column: str) -> float:
+    """A camera's number in CAMERA_COLUMNS (the lens model as its code)."""
+    return ("radtan", "equidistant").index(camera.distortion) if column == "model" else getattr(camera, column)
+
+
 CONIC_COLUMNS = (
     ("trial", "Monte-Carlo trial"),
     ("pose", "index of the pose in the scene's path"),
@@ -57,7 +68,8 @@ MEMBERS = (
     ("b_corner_rows", "int32", f"(C, {len(CORNER_COLUMNS)})", "one row a corner; columns below"),
     ("b_views", "int32", f"(V, {len(VIEW_COLUMNS)})", "one row a camera view (trial, pose, camera)"),
     ("b_view_cameras", "float64", f"(V, {len(CAMERA_COLUMNS)})",
-     "each view's camera as projected (perturbed under calibration error): " + ", ".join(CAMERA_COLUMNS)),
+     "each view's camera as projected (perturbed under calibration error): " + ", ".join(CAMERA_COLUMNS)
+     + " (0 radtan, 1 equidistant)"),
     ("b_view_poses", "float64", "(V, 12)", "each view's R (row-major, 9) and t (3) of P_cam = R P_world + t, "
      "full precision"),
     ("b_conics", "float64", "(K, 7)", "analytic ellipse images (undistorted cameras, ideal projection only): "
@@ -87,48 +99,102 @@ def markdown() -> str:
     return "\n".join(out) + "\n"
 
 
-def npz_problems(path) -> list[str]:
-    """Why a file is not a features.npz of this layout (empty when it is): members, dtypes, shapes, manifest."""
+MAX_MEMBER_BYTES = 1 << 30  # an npz member larger than this (uncompressed, as its zip entry declares) is refused
+
+
+class NpzError(ValueError):
+    """An npz file refused before its arrays are read: not a zip of plain .npy arrays of a sane size."""
+
+
+def open_npz(path):
+    """np.load of an npz whose every member was first checked without reading its data.
+
+    A member must be a .npy array of a plain dtype (no pickled Python objects; allow_pickle stays off), whose
+    header's shape accounts for exactly the bytes its zip entry declares, at most MAX_MEMBER_BYTES: a zip
+    bomb or a header claiming a huge shape is refused before anything is inflated. NpzError says why.
+    """
+    import tokenize
     import zipfile
 
     import numpy as np
 
     try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        return [f"not an npz file: {exc}"]
-    with data:
-        names = set(data.files)
-        out = [f"missing member '{m}'" for m in ("feature_ids", "layout", "manifest") if m not in names]
-        if out:
-            return out
-        if int(data["layout"]) != NPZ_VERSION:
-            return [f"layout {int(data['layout'])}, this wiredsl reads {NPZ_VERSION}"]
-        batches = sorted({n.split("_", 1)[0] for n in names if n.startswith("b") and n[1:6].isdigit()})
-        n_ids = len(data["feature_ids"])
-        for b in batches:
-            for m, dtype, _, _ in MEMBERS[:-3]:
-                key = f"{b}_{m[2:]}"
-                if key not in names:
-                    out.append(f"missing member '{key}'")
-                elif data[key].dtype != np.dtype(dtype):
-                    out.append(f"{key}: dtype {data[key].dtype}, expected {dtype}")
-            if out:
-                continue
-            start, strokes, pts = data[f"{b}_start"], data[f"{b}_strokes"], data[f"{b}_pts"]
-            if strokes.shape[1:] != (len(STROKE_COLUMNS),) or len(start) != len(strokes) + 1 \
-                    or start[-1] != len(pts) or (np.diff(start) < 2).any():
-                out.append(f"{b}: strokes, start and pts do not agree")
-            elif len(strokes) and not (0 <= strokes[:, column("feature")].min() <= strokes[:, column("feature")].max()
-                                       < n_ids):
-                out.append(f"{b}: a feature id outside feature_ids")
-            elif not all(np.isfinite(data[f"{b}_{m}"]).all() for m in ("pts", "corners", "view_cameras", "view_poses",
-                                                                        "conics")):
-                out.append(f"{b}: non-finite coordinates")
-        from wiredsl.io.schema import problems
+        with zipfile.ZipFile(path) as z:
+            for info in z.infolist():
+                name = info.filename
+                if not name.endswith(".npy"):
+                    raise NpzError(f"member '{name}' is not a .npy array")
+                if info.file_size > MAX_MEMBER_BYTES:
+                    raise NpzError(f"member '{name}' is {info.file_size:,} bytes uncompressed, over the limit of "
+                                   f"{MAX_MEMBER_BYTES:,}")
+                with z.open(info) as fh:
+                    try:
+                        version = np.lib.format.read_magic(fh)
+                        read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                            np.lib.format.read_array_header_2_0
+                        shape, _, dtype = read(fh)
+                    except (ValueError, SyntaxError, TypeError, KeyError, tokenize.TokenError, EOFError) as exc:
+                        raise NpzError(f"member '{name}' has a damaged array header ({exc})") from None
+                    if dtype.hasobject:
+                        raise NpzError(f"member '{name}' holds Python objects (a pickle): refused, never unpickled")
+                    need = math.prod(shape) * dtype.itemsize
+                    if need != info.file_size - fh.tell():
+                        raise NpzError(f"member '{name}': its header's shape {shape} ({dtype}) needs {need:,} bytes, "
+                                       f"the member holds {info.file_size - fh.tell():,}")
+        return np.load(path, allow_pickle=False)
+    except (OSError, zipfile.BadZipFile, zipfile.LargeZipFile, EOFError) as exc:
+        raise NpzError(f"not an npz file: {exc}") from None
 
-        try:
-            manifest = json.loads(str(data["manifest"]))
-        except json.JSONDecodeError as exc:
-            return [*out, f"manifest: not JSON: {exc.msg}"]
-        return out + [f"manifest: {m}" for m in problems(manifest)]
+
+def npz_problems(path) -> list[str]:
+    """Why a file is not a features.npz of this layout (empty when it is): members, dtypes, shapes, manifest."""
+
+    import zipfile
+
+    try:
+        with open_npz(path) as data:
+            return _layout_problems(data)
+    except NpzError as exc:
+        return [str(exc)]
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # a member's data damaged (CRC, length)
+        return [f"a damaged member: {exc}"]
+
+
+def _layout_problems(data) -> list[str]:
+    """npz_problems of an opened npz."""
+    import numpy as np
+
+    names = set(data.files)
+    out = [f"missing member '{m}'" for m in ("feature_ids", "layout", "manifest") if m not in names]
+    if out:
+        return out
+    if int(data["layout"]) != NPZ_VERSION:
+        return [f"layout {int(data['layout'])}, this wiredsl reads {NPZ_VERSION}"]
+    batches = sorted({n.split("_", 1)[0] for n in names if n.startswith("b") and n[1:6].isdigit()})
+    n_ids = len(data["feature_ids"])
+    for b in batches:
+        for m, dtype, _, _ in MEMBERS[:-3]:
+            key = f"{b}_{m[2:]}"
+            if key not in names:
+                out.append(f"missing member '{key}'")
+            elif data[key].dtype != np.dtype(dtype):
+                out.append(f"{key}: dtype {data[key].dtype}, expected {dtype}")
+        if out:
+            continue
+        start, strokes, pts = data[f"{b}_start"], data[f"{b}_strokes"], data[f"{b}_pts"]
+        if strokes.shape[1:] != (len(STROKE_COLUMNS),) or len(start) != len(strokes) + 1 \
+                or start[-1] != len(pts) or (np.diff(start) < 2).any():
+            out.append(f"{b}: strokes, start and pts do not agree")
+        elif len(strokes) and not (0 <= strokes[:, column("feature")].min() <= strokes[:, column("feature")].max()
+                                   < n_ids):
+            out.append(f"{b}: a feature id outside feature_ids")
+        elif not all(np.isfinite(data[f"{b}_{m}"]).all() for m in ("pts", "corners", "view_cameras", "view_poses",
+                                                                    "conics")):
+            out.append(f"{b}: non-finite coordinates")
+    from wiredsl.io.schema import problems
+
+    try:
+        manifest = json.loads(str(data["manifest"]))
+    except json.JSONDecodeError as exc:
+        return [*out, f"manifest: not JSON: {exc.msg}"]
+    return out + [f"manifest: {m}" for m in problems(manifest)]

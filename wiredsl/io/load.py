@@ -16,26 +16,42 @@ import json
 from pathlib import Path
 
 from wiredsl.io import layout
+from wiredsl.io.files import json_loads
 
 KIND_ORDER = ("lines", "polylines", "conics", "corners")
+
+
+class DumpError(ValueError):
+    """The file is not a features dump, or the selection asks for what the dump does not hold."""
+
+
+_NOT_A_DUMP = "pass features.json, features.jsonl or features.npz"
+_DOCUMENTS = {"manifest": "a run manifest", "study": "a study table", "study-manifest": "a study manifest",
+              "viewdep": "a view-dependency file", "scene": "a compiled scene"}
 
 
 def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
     """Records (list of dicts) of a dump, or its arrays (npz only), selected by trial, pose and camera.
 
-    Each selector is None (everything), one value or a collection; camera is "left", "right", 0 or 1.
+    Each selector is None (everything), one value or a collection; camera is "left", "right", 0 or 1,
+    or (JSON dumps, which name them) the scene's camera, e.g. "cam_l". A file that is not a dump, or a
+    trial, pose or camera the dump does not hold, raises DumpError naming what it does hold.
     """
     path = Path(path)
-    pick = _selector(trial), _selector(pose), _selector(_camera_index(camera))
     with open(path, "rb") as fh:
-        is_zip = fh.read(4) == b"PK\x03\x04"
-    if is_zip:
+        head = fh.read(4)
+    if head == b"PK\x03\x04":
+        held = _npz_held(path)
+        pick = _pick(path, held, trial, pose, camera, names=None)
         return _npz_arrays(path, *pick) if arrays else _npz_records(path, *pick)
     if arrays:
-        raise ValueError(f"{path}: arrays=True reads npz dumps; this is JSON")
-    text = path.read_text(encoding="utf-8")
-    docs = [json.loads(line) for line in text.splitlines() if line.strip()] if path.suffix == ".jsonl" \
-        else [json.loads(text)]
+        raise DumpError(f"{path}: arrays=True reads npz dumps; this is JSON")
+    docs = _json_docs(path)
+    held = ({d.get("trial") or 0 for d in docs}, {p["index"] for d in docs for p in d["poses"]})
+    first = docs[0]["poses"][0] if docs and docs[0]["poses"] else {}
+    names = [str((first.get(side) or {}).get("camera", {}).get("name", "")).split(":")[0] or None
+             for side in layout.CAMERAS]  # the scene's camera of each side, e.g. "cam_l:left" -> "cam_l"
+    pick = _pick(path, (*held, None), trial, pose, camera, names)
     out = []
     for doc in docs:
         t = doc.get("trial") or 0
@@ -52,17 +68,107 @@ def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
     return out
 
 
-def _camera_index(camera):
+def _json_docs(path: Path) -> list[dict]:
+    """The features documents of a JSON or JSON-lines dump, or DumpError saying what the file is instead."""
+    data = path.read_bytes()
+    start = data.lstrip()[:200]
+    if start.startswith((b"<svg", b"<?xml")):
+        raise DumpError(f"{path} is an SVG image, not a dump; {_NOT_A_DUMP}")
+    try:
+        text = data.decode("utf-8")
+        lines = [line for line in text.splitlines() if line.strip()]
+        docs = [json_loads(line) for line in lines] if path.suffix == ".jsonl" else [json_loads(text)]
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        what = "a CSV table" if b"," in start.split(b"\n", 1)[0] and not start.startswith((b"{", b"[")) \
+            else "not JSON"
+        raise DumpError(f"{path} is {what}, not a dump ({exc}); {_NOT_A_DUMP}") from None
+    for doc in docs:
+        kind = doc.get("document") if isinstance(doc, dict) else None
+        if kind != "features" or not isinstance(doc.get("poses"), list):
+            what = _DOCUMENTS.get(kind, "not a wiredsl features document")
+            raise DumpError(f"{path}: this is {what}, not a dump; {_NOT_A_DUMP}")
+    return docs
+
+
+def _npz_held(path: Path) -> tuple[set[int], set[int], None]:
+    """The trials and poses an npz dump holds (from its views), or DumpError when it is not a dump."""
+    import numpy as np
+
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            batches = _batches(data)
+            if "manifest" not in data.files or "feature_ids" not in data.files or not batches:
+                raise DumpError(f"{path} is an npz file but not a wiredsl dump (no manifest, feature_ids or "
+                                f"batches); {_NOT_A_DUMP}")
+            views = np.concatenate([data[f"{b}_views"] for b in batches])
+    except (OSError, ValueError, KeyError) as exc:
+        if isinstance(exc, DumpError):
+            raise
+        raise DumpError(f"{path} is not a readable npz dump ({exc}); {_NOT_A_DUMP}") from None
+    return set(views[:, 0].tolist()), set(views[:, 1].tolist()), None
+
+
+def _pick(path: Path, held, trial, pose, camera, names: list[str] | None):
+    """Selectors for trial, pose and camera index; DumpError for a value the dump does not hold."""
+    trials, poses, _ = held
+    out = []
+    for what, value, have in (("trial", trial, trials), ("pose", pose, poses)):
+        wanted = _values(what, value)
+        missing = sorted(wanted - have) if wanted is not None else []
+        if missing:
+            raise DumpError(f"{path} holds no {what} {', '.join(map(str, missing))}: it holds {what}"
+                            f"{'s' * (len(have) != 1)} {_ranges(sorted(have))}")
+        out.append(_selector(wanted))
+    out.append(_selector(_camera_index(path, camera, names)))
+    return out
+
+
+def _values(what: str, value) -> set[int] | None:
+    if value is None:
+        return None
+    many = value if isinstance(value, (list, tuple, set, frozenset, range)) else [value]
+    try:
+        return {int(v) for v in many}
+    except (TypeError, ValueError):
+        raise DumpError(f"{what} must be an integer or a collection of integers, not {value!r}") from None
+
+
+def _ranges(xs: list[int]) -> str:
+    """1, 3-5, 8: a sorted list of integers, runs written as ranges."""
+    if not xs:
+        return "none"
+    runs, start = [], xs[0]
+    for a, b in zip(xs, [*xs[1:], None], strict=True):
+        if b != a + 1:
+            runs.append(f"{start}" if start == a else f"{start}-{a}")
+            start = b
+    return ", ".join(runs)
+
+
+def _camera_index(path: Path, camera, names: list[str] | None) -> set[int] | None:
     if camera is None:
         return None
-    many = camera if isinstance(camera, (list, tuple, set)) else [camera]
-    return [layout.CAMERAS.index(c) if isinstance(c, str) else int(c) for c in many]
+    many = camera if isinstance(camera, (list, tuple, set, frozenset)) else [camera]
+    out = set()
+    for c in many:
+        if c in layout.CAMERAS:
+            out.add(layout.CAMERAS.index(c))
+        elif names and c in names:
+            out.add(names.index(c))
+        elif not isinstance(c, str) and c in (0, 1):
+            out.add(int(c))
+        else:
+            named = [n for n in names or () if n]
+            choices = "'left', 'right', 0 or 1" + (f", or the scene's {' and '.join(map(repr, named))}"
+                                                   if named else "")
+            extra = "" if names is not None else " (an npz dump knows its cameras by side only)"
+            raise DumpError(f"{path}: no camera {c!r}: choose {choices}{extra}")
+    return out
 
 
-def _selector(value):
-    if value is None:
+def _selector(wanted: set[int] | None):
+    if wanted is None:
         return lambda x: True
-    wanted = {int(v) for v in value} if isinstance(value, (list, tuple, set, range)) else {int(value)}
     return lambda x: int(x) in wanted
 
 
@@ -81,7 +187,11 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
     # member -> the member whose rows select it
     selected_by = {"corners": "corner_rows", "corner_rows": "corner_rows", "views": "views",
                    "view_cameras": "views", "view_poses": "views", "conics": "conic_rows", "conic_rows": "conic_rows"}
-    with np.load(path, allow_pickle=False) as data:
+    try:
+        data = layout.open_npz(path)
+    except layout.NpzError as exc:
+        raise layout.NpzError(f"{path}: {exc}") from None
+    with data:
         out = {k: [] for k in ("pts", "strokes", *selected_by)}
         start = [0]
         for b in _batches(data):
@@ -93,6 +203,10 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
             for m, by in selected_by.items():
                 out[m].append(data[f"{b}_{m}"][chosen(data[f"{b}_{by}"])])
         arrays = {k: np.concatenate(v) for k, v in out.items() if v}
+        bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
+        if bad:
+            raise ValueError(f"{path}: its {bad[0]} hold NaN or infinity: not a dump wiredsl wrote "
+                             f"(wiredsl validate {path} says which member)")
         arrays["start"] = np.array(start, dtype=np.int64)
         arrays["feature_ids"] = data["feature_ids"].tolist()
         arrays["manifest"] = json.loads(str(data["manifest"]))
@@ -101,7 +215,12 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
 
 def _npz_records(path: Path, *pick) -> list[dict]:
     """The JSON dump's feature records, rebuilt from the npz arrays."""
-    a = _npz_arrays(path, *pick)
+    return records(_npz_arrays(path, *pick))
+
+
+def records(a: dict) -> list[dict]:
+    """The JSON dump's feature records from one run's arrays (the npz members of its batches, without the
+    b{n}_ prefix, with `feature_ids`): what `load` gives, in its order."""
     ids, col = a["feature_ids"], {n: i for i, (n, _) in enumerate(layout.STROKE_COLUMNS)}
     groups: dict[tuple[int, int, int], dict[str, list]] = {}
 

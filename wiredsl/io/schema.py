@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from pathlib import Path
 
 from pydantic import BaseModel
@@ -14,13 +15,29 @@ NAMES = ("scene", "features", "viewdep", "manifest", "study", "study-manifest")
 
 def _model(name: str) -> type[BaseModel]:
     if name == "scene":
-        from wiredsl.scene import Scene
-        return Scene
+        return _scene_with_stages()
     if name in ("study", "study-manifest"):
         from wiredsl.study.report import StudyManifest, StudyTable
         return StudyTable if name == "study" else StudyManifest
     from wiredsl.io import features
     return {"features": features.Features, "viewdep": features.ViewDependency, "manifest": features.Manifest}[name]
+
+
+def _scene_with_stages() -> type[BaseModel]:
+    """The Scene model with each pipeline stage's parameters spelt out per effect (built-in and installed):
+    the compiled scene keeps a stage as a name and a dict, which the compiler checked against the effect."""
+    import functools as ft
+    import operator
+    from typing import Annotated
+
+    from pydantic import Field, create_model
+
+    from wiredsl.effects import stage_models
+    from wiredsl.scene import Pipeline, Scene
+
+    stage = Annotated[ft.reduce(operator.or_, stage_models().values()), Field(discriminator="effect")]
+    pipeline = create_model("Pipeline", __base__=Pipeline, __doc__=Pipeline.__doc__, stages=(list[stage], []))
+    return create_model("Scene", __base__=Scene, __doc__=Scene.__doc__, pipelines=(list[pipeline], []))
 
 
 def generate(name: str) -> dict:
@@ -57,7 +74,22 @@ def problems(doc: object) -> list[str]:
         return [f"not a wiredsl document: 'document' must be one of {', '.join(NAMES)}"]
     errors = sorted(validator(kind).iter_errors(doc), key=lambda e: list(map(str, e.absolute_path)))
     errors = [x for e in errors for x in _explain(e)]
-    return [f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {_short(e.message)}" for e in errors]
+    return _non_finite(doc) + [f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {_short(e.message)}"
+                               for e in errors]
+
+
+def _non_finite(doc: object) -> list[str]:
+    """Every NaN or infinity in a document (jsonschema's "number" admits them; JSON cannot hold them)."""
+    out, stack = [], [((), doc)]
+    while stack:
+        path, v = stack.pop()
+        if isinstance(v, float) and not math.isfinite(v):
+            out.append(f"{'/'.join(map(str, path)) or '(root)'}: {v} is not a finite number")
+        elif isinstance(v, dict):
+            stack += [((*path, k), x) for k, x in v.items()]
+        elif isinstance(v, list):
+            stack += [((*path, i), x) for i, x in enumerate(v)]
+    return sorted(out)
 
 
 def _short(message: str, limit: int = 160) -> str:

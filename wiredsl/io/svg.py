@@ -13,11 +13,13 @@ same input; coordinates are rounded to 0.01 units.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from html import escape
 
 import numpy as np
 
+from wiredsl.engine import geometry
 from wiredsl.engine.simulate import PoseResult, View
 from wiredsl.engine.world import World
 from wiredsl.io.files import require_finite
@@ -221,10 +223,19 @@ def _eye(view: View) -> np.ndarray:
 
 
 def _fov_rays(view: View) -> np.ndarray:
-    """World xy directions through the image's left edge, centre column and right edge (pinhole, at cy)."""
+    """World xy directions through the image's left edge, centre column and right edge (at cy; a fisheye's
+    reach no farther than its lens limit, past 90 deg when it is wider)."""
     cam = view.camera
     us = np.linspace(0.0, cam.width, 17)
-    rays = np.column_stack([(us - cam.cx) / (cam.f * cam.ax), np.zeros_like(us), np.ones_like(us)])
+    xd = (us - cam.cx) / (cam.f * cam.ax)
+    if cam.distortion == "equidistant":  # theta from theta_d on a table (monotone up to the limit)
+        theta = np.linspace(0.0, geometry.lens_limit(cam), 4001)
+        t2 = theta * theta
+        td = theta * (1 + t2 * (cam.k1 + t2 * (cam.k2 + t2 * (cam.k3 + t2 * cam.k4))))
+        th = np.interp(np.abs(xd), td, theta)
+        rays = np.column_stack([np.sign(xd) * np.sin(th), np.zeros_like(us), np.cos(th)])
+    else:
+        rays = np.column_stack([xd, np.zeros_like(us), np.ones_like(us)])
     d = rays @ view.R_cw  # camera to world: R_cw.T @ ray for each row
     d = d[:, :2]
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
@@ -445,7 +456,8 @@ def _compose(scene: Scene, world: World, result: PoseResult, panes: list[Pane], 
             f'width="{_f(width)}" height="{_f(height)}">',
             f"<title>{escape(lines[0])}</title>",
             f'<rect x="0" y="0" width="{_f(width)}" height="{_f(height)}" fill="#ffffff"/>']
-    return "\n".join(head + body + caption + ["</svg>"]) + "\n"
+    # a path that is not UTF-8 (os.fsdecode keeps its bytes as lone surrogates) shows U+FFFD: SVG is UTF-8 text
+    return re.sub("[\ud800-\udfff]", "\ufffd", "\n".join(head + body + caption + ["</svg>"]) + "\n")
 
 
 def _cam_title(scene: Scene, side: str, what: str = "") -> str:

@@ -7,8 +7,8 @@ each file read once, cycles and chains deeper than 64 refused) into a
 
 from __future__ import annotations
 
+import dataclasses
 import os
-import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Union
@@ -97,6 +97,11 @@ class Program:
     included_from: dict[str, Span] = field(default_factory=dict)
     resolved: set[Path] = field(default_factory=set)  # every file read, for include-once
     statements: list[Statement] = field(default_factory=list)
+    # What could not be loaded: syntax errors (the statements around them are set aside, the rest kept)
+    # and includes that could not be read. The compiler reports these first and, while there are any,
+    # no reference to an unknown name: that name may be declared in what did not load.
+    errors: list[Diagnostic] = field(default_factory=list)
+    partial: set[str] = field(default_factory=set)  # files with statements set aside
 
     @property
     def sources(self) -> dict[str, str]:
@@ -186,10 +191,38 @@ _TO_AST = ToAst()
 
 
 def parse_text(text: str, path: str = "<string>") -> File:
-    """Parse one file's text into a File AST (includes are not followed)."""
+    """Parse one file's text into a File AST (includes are not followed); raise on a syntax error."""
+    file, errors = parse_partial(text, path)
+    if errors:
+        raise WiredslError(errors)
+    return file
+
+
+def parse_partial(text: str, path: str = "<string>") -> tuple[File, list[Diagnostic]]:
+    """Parse one file's text, keeping every statement a syntax error did not touch; and the errors."""
     _TO_AST.path = path
-    stmts, comments = parse.run(parse.parser(_TO_AST), text, path)
-    return File(path, text, stmts or (), tuple(Comment(str(c), c.line, c.column) for c in comments))
+    parsed = parse.run(parse.parser(_TO_AST), text, path)
+    stmts = parsed.result or ()
+    if parsed.errors:
+        stmts = _whole(stmts, parsed.broken)
+    return File(path, text, stmts, tuple(Comment(str(c), c.line, c.column) for c in parsed.comments)), parsed.errors
+
+
+def _whole(stmts: tuple[Statement, ...], broken: list[tuple[int, int]]) -> tuple[Statement, ...]:
+    """The statements without those the parser had to skip a token in or stand in for a bracket of.
+
+    A block keeps its whole statements when the trouble is on a line of its own, not on the header's.
+    """
+    kept = []
+    for s in stmts:
+        inside = [p for p in broken if (s.span.line, s.span.col) <= p <= (s.span.end_line, s.span.end_col)]
+        if not inside:
+            kept.append(s)
+            continue
+        head = s.args[-1].span if s.args else s.keyword_span
+        if s.block is not None and all(p[0] > head.end_line for p in inside):  # on a line of its block
+            kept.append(dataclasses.replace(s, block=_whole(s.block, inside)))
+    return tuple(kept)
 
 
 def display_path(path: Path) -> str:
@@ -210,23 +243,14 @@ def read_bytes(path: Path, what: str, where: Span | None = None, limit: int | No
 
     The stat comes first so that a FIFO or /dev/stdin is never opened (opening one would block).
     """
+    from wiredsl.io.files import read_regular
+
     limit = MAX_SOURCE_BYTES if limit is None else limit
     shown = display_path(path) if "\0" not in str(path) else repr(str(path))
     try:
         if "\0" in str(path):
             raise ValueError("a path cannot contain a NUL byte")
-        st = path.stat()
-        if stat.S_ISDIR(st.st_mode):
-            raise ValueError("is a directory")
-        if not stat.S_ISREG(st.st_mode):
-            raise ValueError("is not a regular file (a FIFO, device or socket)")
-        if st.st_size > limit:
-            raise ValueError(f"is {st.st_size:,} bytes, over the limit of {limit:,}")
-        with open(path, "rb") as fh:
-            data = fh.read(limit + 1)
-        if len(data) > limit:
-            raise ValueError(f"is over the limit of {limit:,} bytes")
-        return data
+        return read_regular(path, limit)
     except FileNotFoundError:
         msg = f"no such file: {shown}" if what == "file" else f"cannot read {what} {shown}: no such file"
     except ValueError as exc:
@@ -255,13 +279,26 @@ def read_source(path: Path, where: Span | None = None) -> str:
 
 
 def load(path: str | os.PathLike, text: str | None = None) -> Program:
-    """Parse a file (or `text` standing for it, as an editor has it) and, recursively, its includes."""
+    """Parse a file (or `text` standing for it, as an editor has it) and, recursively, its includes.
+
+    Only an unreadable root file raises; syntax errors and includes that cannot be read are kept in
+    `Program.errors` with everything else that loaded, for the compiler to report with its own.
+    """
     root_path = Path(path)
     text = read_source(root_path) if text is None else text
-    root = parse_text(text, display_path(root_path))
+    root, errors = parse_partial(text, display_path(root_path))
     program = Program(root)
+    _loaded(program, root, errors)
     _add(program, root, root_path.resolve(), (root_path.resolve(),))
+    order = {f: i for i, f in enumerate(program.files)}
+    program.errors.sort(key=lambda d: (order.get(d.span.file, 0), d.span.line, d.span.col) if d.span else (0, 0, 0))
     return program
+
+
+def _loaded(program: Program, file: File, errors: list[Diagnostic]) -> None:
+    program.errors += errors
+    if errors:
+        program.partial.add(file.path)
 
 
 def _add(program: Program, file: File, resolved: Path, stack: tuple[Path, ...]) -> None:
@@ -277,21 +314,23 @@ def _add(program: Program, file: File, resolved: Path, stack: tuple[Path, ...]) 
             continue
         where = stmt.args[0].span
         notes = program.include_notes(file.path)
-        target = _include_target(resolved.parent, stmt.args[0].value, where, notes)
-        if target in stack:
-            chain = " -> ".join(display_path(p) for p in (*stack[stack.index(target):], target))
-            raise WiredslError([Diagnostic("error", "E011", f"include cycle: {chain}", where, notes=notes)])
-        if target in program.resolved:
-            continue  # include once: a second include of a file adds nothing
-        if len(stack) >= MAX_INCLUDE_DEPTH:
-            raise WiredslError([Diagnostic("error", "E011", f"includes nested deeper than {MAX_INCLUDE_DEPTH} files",
-                                           where, "a chain this deep is almost certainly generated by mistake",
-                                           notes)])
         try:
-            child = parse_text(read_source(target, where), display_path(target))
-        except WiredslError as err:
-            raise WiredslError([_with_notes(d, program, file.path, where) for d in err.diagnostics]) from None
+            target = _include_target(resolved.parent, stmt.args[0].value, where, notes)
+            if target in stack:
+                chain = " -> ".join(display_path(p) for p in (*stack[stack.index(target):], target))
+                raise WiredslError([Diagnostic("error", "E011", f"include cycle: {chain}", where, notes=notes)])
+            if target in program.resolved:
+                continue  # include once: a second include of a file adds nothing
+            if len(stack) >= MAX_INCLUDE_DEPTH:
+                raise WiredslError([Diagnostic("error", "E011", f"includes nested deeper than "
+                                               f"{MAX_INCLUDE_DEPTH} files", where,
+                                               "a chain this deep is almost certainly generated by mistake", notes)])
+            child, errors = parse_partial(read_source(target, where), display_path(target))
+        except WiredslError as err:  # this include is left out; the rest of the program still loads
+            program.errors += [_with_notes(d, program, file.path, where) for d in err.diagnostics]
+            continue
         program.included_from[child.path] = where
+        _loaded(program, child, [_with_notes(d, program, file.path, where) for d in errors])
         _add(program, child, target, (*stack, target))
 
 

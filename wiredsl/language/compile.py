@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path as FsPath
 
 import numpy as np
@@ -18,39 +18,32 @@ import pydantic
 from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
+from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
 from wiredsl.language.statements import MAX_MAGNITUDE, Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
 from wiredsl.scene import (
-    CALIBRATION_PARAMETERS,
-    STAGE_MODELS,
-    Calibration,
     Camera,
     Corner,
     Ellipse,
     Face,
     Line,
     Model,
-    Mount,
     Path,
     Pipeline,
     Placement,
     Polyline,
-    Rig,
     Scene,
     Silhouette,
+    Stage,
     Viewpoints,
 )
 
 FORMAT_VERSION = 1
 MAX_VIEWPOINTS = 100_000
 MAX_POSES = 100_000
-MAX_MATRIX = 1_000
 COUNTABLE = 1e15  # a count of grid points or poses below this is exact in a float, so it may be computed
 GEOM_EPS = 1e-9  # metres: shorter is degenerate
 PERP_TOL = 1e-6  # |cos| between an ellipse's axis and normal
-BARE_FOCAL_METRES = 0.1  # a bare focal length this long (in m) is more likely mm written without its unit
-PLAUSIBLE_FOV = 1000  # f over the image's larger side beyond which a focal length is probably missing its unit
-MAX_MATRIX_ENTRY = 1e100  # calibration entries: inverses, square roots and products of them stay finite
 
 
 def compile_file(path: str | os.PathLike) -> tuple[Scene, list[Diagnostic], ast.Program]:
@@ -61,9 +54,22 @@ def compile_file(path: str | os.PathLike) -> tuple[Scene, list[Diagnostic], ast.
 
 
 def compile_program(program: ast.Program) -> tuple[Scene, list[Diagnostic]]:
-    """Compile a loaded program; returns the scene and its warnings."""
+    """Compile a loaded program; returns the scene and its warnings.
+
+    What did not load (syntax errors, includes that cannot be read) is reported first, then the
+    errors of everything that did, except references to unknown names: while part of the program is
+    missing, such a name may well be declared there, so one note counts them instead.
+    """
     out = Collector()
-    scene = Compiler(program, out).run()
+    out.extend(program.errors)
+    compiler = Compiler(program, out)
+    scene = compiler.run()
+    if compiler.unknown_unreported:
+        first = out.diagnostics[0]
+        n = compiler.unknown_unreported
+        note = (f"{n} reference{'s' * (n != 1)} to unknown names not reported: they may be declared in what "
+                f"did not load")
+        out.diagnostics[0] = replace(first, notes=(*first.notes, note))
     out.diagnostics = [_noted(d, program) for d in out.diagnostics]
     out.raise_if_errors()
     return scene, out.diagnostics
@@ -84,7 +90,7 @@ class _Decl:
     span: Span
 
 
-class Compiler:
+class Compiler(CameraCompiler):
     def __init__(self, program: ast.Program, out: Collector):
         self.program = program
         self.out = out
@@ -100,6 +106,7 @@ class Compiler:
         self.calibration_stages: list[Span] = []  # where pipelines call calibration_error
         self.scene_name: str | None = None
         self.rig_without_calibration = False
+        self.unknown_unreported = 0  # references to unknown names while part of the program did not load
 
     # ------------------------------------------------------------------ driver
     def run(self) -> Scene:
@@ -158,7 +165,7 @@ class Compiler:
                         units["angle"] = b.get("angle", units["angle"])
             self.units[path] = units
             versions = [s for s in file.statements if s.keyword == "wiredsl"]
-            if not versions and file is self.program.root:
+            if not versions and file is self.program.root and path not in self.program.partial:
                 first = file.statements[0].keyword_span if file.statements else Span(path, 1, 1, 1, 2)
                 self.out.error("E012", "missing format version", first, "start the file with 'wiredsl 1'")
             for stmt in versions:
@@ -185,6 +192,9 @@ class Compiler:
     def _ref(self, table, what: str, name: str, span: Span, context: str = "") -> bool:
         if name in table:
             return True
+        if self.program.errors:
+            self.unknown_unreported += 1
+            return False
         self.out.error("E104", f"unknown {what} '{name}'{context}", span, did_you_mean(name, table))
         return False
 
@@ -391,166 +401,6 @@ class Compiler:
         placement = Placement(name=name, model=model, position=b.get("at", (0.0, 0.0, 0.0)), rotation=_mat(R))
         self._declare(self.placements, "placement", name, b.span("as"), placement)
 
-    # ------------------------------------------------------------------ cameras
-    def _camera_decl(self, b: Bound) -> None:
-        if b.name in self.camera_stmts:
-            self.out.error("E105", f"duplicate camera '{b.name}'", b.name_span,
-                           f"first declared at {self.camera_stmts[b.name].name_span}")
-            return
-        self.camera_stmts[b.name] = b
-
-    def _resolve_cameras(self) -> None:
-        settings: dict[str, dict[str, tuple[object, Span]] | None] = {}
-        failed: set[str] = set()
-
-        def resolve(name: str, chain: tuple[str, ...]) -> dict | None:
-            if name in settings:
-                return settings[name]
-            b = self.camera_stmts[name]
-            base: dict = {}
-            if b.has("like"):
-                parent = b.get("like")
-                if parent in chain:
-                    self.out.error("E104", "cameras are declared like each other in a cycle: "
-                                           + " -> ".join((*chain, parent)), b.span("like"))
-                    settings[name] = None
-                    return None
-                if not self._ref(self.camera_stmts, "camera", parent, b.span("like")):
-                    settings[name] = None
-                    return None
-                base = resolve(parent, (*chain, parent))
-                if base is None:
-                    settings[name] = None
-                    return None
-            own = dict(base)
-            here: set[str] = set()
-            for stmt in b.stmt.block or ():
-                if stmt.keyword == "read":
-                    sb = bind(stmt, "camera", self._units(stmt), self.out)
-                    if sb is not None and sb.ok:
-                        read = self._camera_file(sb)
-                        if read is None:  # reported: no cascade of "needs focal"
-                            settings[name] = None
-                            return None
-                        own.update(read)
-            for stmt in b.stmt.block or ():
-                if stmt.keyword == "read":
-                    continue
-                sb = bind(stmt, "camera", self._units(stmt), self.out)
-                if sb is None or not sb.ok:
-                    failed.add(name)  # what it would have set is unknown: no 'needs' errors on top
-                    continue
-                here.add(stmt.keyword)
-                if stmt.keyword in ("k", "k1"):
-                    if here >= {"k", "k1"}:
-                        self.out.error("E103", "give either TINA's 'k' or OpenCV's 'k1', not both",
-                                       stmt.keyword_span, "k1 = -k")
-                    own.pop("k1" if stmt.keyword == "k" else "k", None)  # one parameter, two spellings
-                own[stmt.keyword] = (sb.pos(0), sb.positional[0].span)
-            settings[name] = own
-            return own
-
-        for name, b in self.camera_stmts.items():
-            s = resolve(name, (name,))
-            if s is not None and name not in failed:
-                cam = self._camera(b, s)
-                if cam is not None:
-                    self.cameras[name] = cam
-
-    def _calibration_file(self, sb: Bound, path_span: Span, path: str, fmt: str | None):
-        """The cameras of a calibration file named in a statement, or None (reported)."""
-        from wiredsl.io.calibration import CalibrationFileError, read
-
-        try:
-            target = FsPath(sb.stmt.span.file).parent / path
-            ast.read_bytes(target, "calibration file", path_span)  # a regular file, not a FIFO (would block)
-            return read(target, fmt)
-        except WiredslError as err:
-            self.out.extend(err.diagnostics)
-        except CalibrationFileError as exc:
-            self.out.error("E141", f"calibration file {path}: {exc}", path_span)
-        except ValueError as exc:  # e.g. a NUL byte in the path
-            self.out.error("E010", f"cannot read calibration file {path!r}: {exc}", path_span)
-        return None
-
-    def _camera_file(self, sb: Bound) -> dict[str, tuple[object, Span]] | None:
-        """A camera's settings from a calibration file, as if written as statements at `read`."""
-        cams = self._calibration_file(sb, sb.positional[0].span, sb.pos(0), sb.get("format"))
-        if cams is None:
-            return None
-        i = 1 if sb.get("entry") == "second" else 0
-        if i >= len(cams):
-            self.out.error("E104", f"calibration file {sb.pos(0)} has one camera; there is no second",
-                           sb.span("entry"))
-            return None
-        c, span = cams[i], sb.stmt.span
-        if not all(math.isfinite(v) and abs(v) <= MAX_MAGNITUDE for v in (c.fx, c.fy, c.cx, c.cy)):
-            self.out.error("E141", f"calibration file {sb.pos(0)}: the camera matrix has a value that is not "
-                                   f"finite or beyond {MAX_MAGNITUDE:g} px", sb.positional[0].span)
-            return None
-        out = {"focal": ((c.fx, "image", "px"), span), "aspect": ((1.0, c.fy / c.fx), span),
-               "centre": ((c.cx, c.cy), span), "k1": (c.dist[0], span), "k2": (c.dist[1], span),
-               "p1": (c.dist[2], span), "p2": (c.dist[3], span)}
-        if c.width is not None:
-            out["size"] = ((c.width, c.height), span)
-        return out
-
-    def _camera(self, b: Bound, s: dict[str, tuple[object, Span]]) -> Camera | None:
-        n0 = self.out.n_errors
-        where = b.name_span
-
-        def need(key: str, what: str) -> None:
-            if key not in s:
-                self.out.error("E102", f"camera '{b.name}' needs '{key}' ({what})", where)
-
-        need("focal", "focal length")
-        need("size", "image size")
-        if n0 != self.out.n_errors:
-            return None
-        (f, kind, unit), fspan = s["focal"]
-        written = f
-        if kind == "length":
-            if "pixel" not in s:
-                self.out.error("E102", f"camera '{b.name}' gives its focal length in {kind} units and needs 'pixel'",
-                               fspan, "add e.g. 'pixel 0.01mm', or give the focal length in px")
-                return None
-            pixel, pspan = s["pixel"]
-            self._positive(pixel, "pixel size", pspan)
-            f = f / pixel if pixel > 0 else f
-        self._positive(f, "focal length", fspan)
-        (w, h), sspan = s["size"]
-        for v in (w, h):
-            if not (v > 0 and float(v).is_integer()):
-                self.out.error("E110", f"image size must be whole pixels > 0, got {v:g}", sspan)
-        ax, ay = s.get("aspect", ((1.0, 1.0), None))[0]
-        for v in (ax, ay):
-            self._positive(v, "aspect scale", s.get("aspect", (None, where))[1])
-        if self.out.n_errors == n0:
-            fx = f * max(ax, ay)
-            if not fx <= MAX_MAGNITUDE:  # also catches inf from a huge focal over a tiny pixel
-                self.out.error("E110", f"camera '{b.name}': focal length of {fx:.3g} px (with aspect) is beyond "
-                                       f"the limit of {MAX_MAGNITUDE:g} px", fspan)
-            else:
-                bare_metres = unit is None and kind == "length" and self.units[fspan.file]["length"] == "m"
-                hint = f"did you mean {written:g}mm?" if bare_metres else None
-                if f < 1 or f > PLAUSIBLE_FOV * max(w, h):
-                    fov = math.degrees(2 * math.atan(max(w, h) / (2 * f)))
-                    self.out.warning("W111", f"camera '{b.name}': a focal length of {f:.4g} px gives a field of "
-                                             f"view of {fov:.3g} deg over its {max(w, h):g} px image", fspan, hint)
-                elif bare_metres and written >= BARE_FOCAL_METRES:  # a bare number is metres: 6 is a 6 m lens
-                    self.out.warning("W111", f"camera '{b.name}': a bare focal length is in metres, so "
-                                             f"{written:g} is a {written:g} m lens", fspan, hint)
-        k1 = -s["k"][0] if "k" in s else s.get("k1", (0.0, None))[0]
-        cx, cy = s.get("centre", ((w / 2, h / 2), None))[0]
-        if self.out.n_errors != n0:
-            return None
-        return Camera(name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, k2=s.get("k2", (0.0,))[0],
-                      p1=s.get("p1", (0.0,))[0], p2=s.get("p2", (0.0,))[0], width=int(w), height=int(h))
-
-    def _positive(self, v: float, what: str, span: Span | None) -> None:
-        if not v > 0:
-            self.out.error("E110", f"{what} must be > 0, got {v:g}", span)
-
     # ------------------------------------------------------------------ rig, viewpoints, path
     def _single(self, b: Bound) -> None:
         kind = b.stmt.keyword
@@ -559,165 +409,6 @@ class Compiler:
                            b.name_span, f"the first is at {self.singles[kind].name_span}")
             return
         self.singles[kind] = b
-
-    def _rig(self, b: Bound) -> Rig | None:
-        mounts: dict[str, Mount] = {}
-        calibration = None
-        seen: dict[str, Span] = {}
-        for stmt in b.stmt.block:
-            sb = bind(stmt, "rig", self._units(stmt), self.out)
-            if sb is None or not sb.ok:
-                continue
-            if stmt.keyword in seen:
-                self.out.error("E105", f"'{stmt.keyword}' given twice in rig '{b.name}'", stmt.keyword_span)
-                continue
-            seen[stmt.keyword] = stmt.keyword_span
-            if stmt.keyword == "calibration":
-                calibration = self._calibration(sb)
-            else:
-                mount = self._mount(sb)
-                if mount is not None:
-                    mounts[stmt.keyword] = mount
-        for side in ("left", "right"):
-            if side not in seen:
-                self.out.error("E102", f"rig '{b.name}' needs a '{side}' camera", b.name_span)
-        self.rig_without_calibration = "calibration" not in seen and not any(
-            s.keyword == "calibration" for s in b.stmt.block)  # a calibration with errors is reported already
-        for side, other in (("left", "right"), ("right", "left")):
-            if isinstance(mounts.get(side), Bound):
-                mounts[side] = self._relative_mount(mounts[side], mounts.get(other), side)
-        if len(mounts) != 2 or not all(isinstance(m, Mount) for m in mounts.values()):
-            return None
-        return Rig(name=b.name, left=mounts["left"], right=mounts["right"], calibration=calibration)
-
-    def _mount(self, sb: Bound) -> Mount | Bound | None:
-        """A mount, or its statement when it is `relative` to the other camera (resolved in `_rig`)."""
-        cam = sb.pos(0)
-        ok = self._ref(self.camera_stmts, "camera", cam, sb.positional[0].span)
-        if sb.has("relative"):
-            for key in ("at", "looking", "roll"):
-                if sb.has(key):
-                    self.out.error("E103", f"'{key}' and 'relative' both give the mount's pose: keep one",
-                                   sb.span(key))
-                    return None
-            return sb if ok else None
-        for key in ("at", "looking"):
-            if not sb.has(key):
-                self.out.error("E102", f"'{sb.stmt.keyword}' needs '{key}' ({sb.sig.clauses[key].doc}), or "
-                                       "'relative' with a stereo calibration file", sb.stmt.span,
-                               f"e.g. {sb.sig.example}")
-                return None
-        look = _unit(np.array(sb.get("looking"), dtype=float))
-        if np.linalg.norm(look) == 0:
-            self.out.error("E121", "viewing direction is zero", sb.span("looking"))
-            return None
-        R = camera_rotation(look, sb.get("roll", 0.0))
-        if R is None:
-            self.out.error("E122", "viewing direction is vertical: the camera's image axes are undefined",
-                           sb.span("looking"), "tilt it slightly, e.g. (0.01, 0, -1)")
-            return None
-        return Mount(camera=cam, position=sb.get("at"), rotation=_mat(R)) if ok else None
-
-    def _relative_mount(self, sb: Bound, other: Mount | Bound | None, side: str) -> Mount | None:
-        """A camera's mount from a stereo file's extrinsics (X2 = R X1 + T, from the first camera to the
-        second) and the other camera's mount: the file's second camera is the right one."""
-        if not isinstance(other, Mount):
-            if isinstance(other, Bound):
-                self.out.error("E103", "only one camera of a rig can be 'relative' to the other", sb.span("relative"))
-            return None
-        cams = self._calibration_file(sb, sb.span("relative"), sb.get("relative"), None)
-        if cams is None:
-            return None
-        posed = next((c for c in cams if c.R is not None), None)
-        if posed is None:
-            self.out.error("E141", f"calibration file {sb.get('relative')} has no extrinsics (R and T, or "
-                                   "T_cn_cnm1)", sb.span("relative"))
-            return None
-        R_o, p_o = np.array(other.rotation), np.array(other.position)  # camera -> robot
-        if side == "right":  # X_r = R X_l + T: the right camera in the robot frame
-            R_s = R_o @ posed.R.T
-            p_s = p_o - R_s @ posed.T
-        else:  # X_r = R X_l + T, with the right camera known
-            R_s = R_o @ posed.R
-            p_s = p_o + R_o @ posed.T
-        if not np.abs(p_s).max() <= MAX_MAGNITUDE:  # T near the float limit overflows here
-            self.out.error("E141", f"calibration file {sb.get('relative')}: the translation T is beyond "
-                                   f"{MAX_MAGNITUDE:g} m", sb.span("relative"))
-            return None
-        return Mount(camera=sb.pos(0), position=tuple(float(x) for x in p_s), rotation=_mat(R_s))
-
-    def _calibration(self, sb: Bound) -> Calibration | None:
-        kind = sb.pos(0)
-        if sb.has("kalibr"):
-            return self._kalibr_calibration(sb)
-        if not sb.has("order"):
-            self.out.error("E102", "'calibration' needs 'order' (the parameter of each row), or 'kalibr' with "
-                                   "Kalibr's results-cam.txt", sb.stmt.span, f"e.g. {sb.sig.example}")
-            return None
-        order = sb.get("order")
-        n0 = self.out.n_errors
-        seen = set()
-        for item in order:
-            side, _, param = item.value.partition(".")
-            if side not in ("left", "right") or param not in CALIBRATION_PARAMETERS:
-                choices = [f"{s}.{p}" for s in ("left", "right") for p in CALIBRATION_PARAMETERS]
-                self.out.error("E104", f"unknown calibration parameter '{item.value}'", item.span,
-                               did_you_mean(item.value, choices) or "parameters are left.<p> or right.<p> with <p> "
-                               "one of " + ", ".join(CALIBRATION_PARAMETERS))
-            elif item.value in seen:
-                self.out.error("E105", f"calibration parameter '{item.value}' listed twice", item.span)
-            seen.add(item.value)
-        if sb.has("matrix") == sb.has("file"):
-            self.out.error("E102", "calibration needs exactly one of 'matrix' or 'file'", sb.stmt.span)
-            return None
-        if sb.has("matrix"):
-            matrix, mspan = sb.get("matrix"), sb.span("matrix")
-        else:
-            mspan = sb.span("file")
-            matrix = read_matrix_file(FsPath(sb.stmt.span.file).parent / sb.get("file"), len(order), mspan, self.out)
-            if matrix is None:
-                return None
-        n = len(order)
-        if n > MAX_MATRIX:
-            self.out.error("E151", f"calibration of {n} parameters exceeds the limit of {MAX_MATRIX}", sb.span("order"))
-            return None
-        if len(matrix) != n or any(len(r) != n for r in matrix):
-            shape = f"{len(matrix)} x {max((len(r) for r in matrix), default=0)}"
-            self.out.error("E140", f"calibration matrix is {shape}, but 'order' names {n} parameters "
-                                   f"(expected {n} x {n})", mspan)
-            return None
-        M = np.array(matrix, dtype=float)
-        problem = matrix_problem(M)
-        if problem:
-            self.out.error("E140", f"calibration {kind} matrix {problem}", mspan)
-        if self.out.n_errors != n0:
-            return None
-        return Calibration(kind=kind, order=[o.value for o in order], matrix=M.tolist())
-
-    def _kalibr_calibration(self, sb: Bound) -> Calibration | None:
-        """The rig's calibration uncertainty as Kalibr reports it: independent standard deviations
-        (cam0 is the left camera, cam1 the right; the baseline's as the right mount's)."""
-        for key in ("matrix", "file"):
-            if sb.has(key):
-                self.out.error("E103", f"'{key}' and 'kalibr' both give the matrix: keep one", sb.span(key))
-                return None
-        if sb.pos(0) != "covariance":
-            self.out.error("E103", "Kalibr reports standard deviations: the calibration kind is 'covariance'",
-                           sb.positional[0].span)
-            return None
-        cams = self._calibration_file(sb, sb.span("kalibr"), sb.get("kalibr"), "kalibr")
-        if cams is None:
-            return None
-        sigma = {f"{side}.{k}": v for side, cam in zip(("left", "right"), cams, strict=False)
-                 for k, v in cam.sigma.items() if v > 0}
-        names = [(o.value, o.span) for o in sb.get("order")] if sb.has("order") else [(k, None) for k in sigma]
-        for name, span in names:
-            if name not in sigma:
-                self.out.error("E104", f"Kalibr's file gives no standard deviation for '{name}'", span,
-                               did_you_mean(name, sigma) or "it has: " + ", ".join(sigma))
-                return None
-        return Calibration(kind="covariance", order=[n for n, _ in names],
-                           matrix=np.diag([sigma[n] ** 2 for n, _ in names]).tolist())
 
     def _viewpoints(self, b: Bound) -> Viewpoints | None:
         names: list[str] = []
@@ -931,7 +622,7 @@ class Compiler:
             last = (rank, name) if last is None or rank >= last[0] else last
             params = {k: sb.get(k) for k in sb.clauses}
             try:
-                stages.append(STAGE_MODELS[name](effect=name, params=effect.Params(**params)))
+                stages.append(Stage(effect=name, params=effect.Params(**params).model_dump()))
             except pydantic.ValidationError as exc:
                 for err in exc.errors():
                     key = str(err["loc"][0]) if err["loc"] else ""
@@ -984,96 +675,3 @@ def _range_message(err: dict, value: object) -> str:
         if key in ctx:
             return f"must be {word} {ctx[key]:g}, got {value:g}"
     return err["msg"]
-
-
-def rotation(axis: str, angle: float) -> np.ndarray:
-    """Right-handed rotation matrix about a coordinate axis."""
-    c, s = math.cos(angle), math.sin(angle)
-    if axis == "x":
-        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-    if axis == "y":
-        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-def camera_rotation(look: np.ndarray, roll: float) -> np.ndarray | None:
-    """robot_from_camera for an OpenCV camera frame (x right, y down, z along `look`); z is up."""
-    z = look / np.linalg.norm(look)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    if np.linalg.norm(x) < 1e-9:
-        return None
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    c, s = math.cos(roll), math.sin(roll)
-    x, y = c * x + s * y, -s * x + c * y
-    return np.column_stack([x, y, z])
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    """v scaled so its largest component is 1 (zero stays zero): norms of huge or tiny vectors stay finite."""
-    big = float(np.abs(v).max())
-    return v / big if big > 0 else v
-
-
-def _mat(R: np.ndarray):
-    return tuple(tuple(float(v) for v in row) for row in R)
-
-
-def matrix_problem(M: np.ndarray) -> str | None:
-    """Why a matrix is not a usable covariance or information matrix, or None."""
-    if not np.all(np.isfinite(M)):
-        return "has a value that is not finite"
-    scale = float(np.abs(M).max()) if M.size else 0.0
-    if scale > MAX_MATRIX_ENTRY:
-        return f"has an entry of {scale:.3g}, beyond the limit of {MAX_MATRIX_ENTRY:g}"
-    unit = scale if scale > 0 else 1.0
-    M = M / unit  # judged at unit scale (differences and eigenvalues of huge entries overflow), reported unscaled
-    asym = float(np.abs(M - M.T).max()) if M.size else 0.0
-    if asym > 1e-9:
-        i, j = np.unravel_index(np.argmax(np.abs(M - M.T)), M.shape)
-        return f"is not symmetric (entry [{i + 1}, {j + 1}] differs from [{j + 1}, {i + 1}] by {asym * unit:.3g})"
-    if M.size:
-        low = float(np.linalg.eigvalsh((M + M.T) / 2).min())
-        if low < -1e-9:
-            return f"is not positive semi-definite (smallest eigenvalue {low * unit:.3g})"
-    return None
-
-
-def read_matrix_file(path: FsPath, n: int, span: Span, out: Collector) -> list[list[float]] | None:
-    """A matrix from a file: plain rows of numbers, or TINA's covariance format
-    (n, a label, the n x n matrix, then the n mean parameters)."""
-    try:
-        text = ast.read_bytes(path, "calibration file", span).decode("utf-8")
-    except WiredslError as err:
-        out.extend(err.diagnostics)
-        return None
-    except UnicodeDecodeError as exc:
-        out.error("E010", f"calibration file {ast.display_path(path)} is not UTF-8 text ({exc.reason} at byte "
-                          f"{exc.start})", span)
-        return None
-    words = [w for line in text.splitlines() for w in line.partition("#")[0].split()]
-    try:
-        if len(words) >= 2 and words[0].isdigit() and not _is_number(words[1]):
-            size = int(words[0])
-            nums = [float(w) for w in words[2:]]
-            if len(nums) != size * size + size:
-                raise ValueError(f"TINA covariance file of size {size} needs {size * size + size} numbers, "
-                                 f"has {len(nums)}")
-        else:
-            nums = [float(w) for w in words]
-            size = n
-            if len(nums) != n * n:
-                raise ValueError(f"expected {n} x {n} = {n * n} numbers for the {n} parameters of 'order', "
-                                 f"found {len(nums)}")
-    except ValueError as exc:
-        out.error("E141", f"{ast.display_path(path)}: {exc}", span)
-        return None
-    return [nums[i * size:(i + 1) * size] for i in range(size)]
-
-
-def _is_number(word: str) -> bool:
-    try:
-        float(word)
-    except ValueError:
-        return False
-    return True

@@ -2,7 +2,8 @@
 
 Canonical form: two-space indents, one space between arguments, `(a, b)` and
 `[a, b]` with a space after each comma, numbers as written, at most one blank
-line between statements, long lists wrapped. Comments stay with the statement
+line between statements, long lists wrapped and long statements continued
+with `\\` between arguments (a point is never split). Comments stay with the statement
 they precede or end; the output parses to the same AST (so compiles to the
 same scene) and formatting it again changes nothing.
 """
@@ -88,20 +89,33 @@ class _Printer:
         flat = " ".join([s.keyword, *(_flat(a) for a in s.args)])
         if len(pad) + len(flat) <= WIDTH:
             return [pad + flat]
-        # Too long: wrap inside the widest list or tuple, which the grammar allows.
+        # Too long: wrap inside a list or tuple of compound items (the grammar allows newlines there), and
+        # between arguments with a `\` continuation; a point's tuple is never split.
         parts = [s.keyword]
         lines: list[str] = []
+        cont = pad + INDENT * 2
         for arg in s.args:
-            if isinstance(arg, (ast.List, ast.Tuple)) and len(pad + " ".join(parts) + " " + _flat(arg)) > WIDTH:
+            flat_arg = _flat(arg)
+            here = " ".join(parts) if lines else pad + " ".join(parts)
+            if len(here) + 1 + len(flat_arg) <= WIDTH:
+                parts.append(flat_arg)
+                continue
+            if isinstance(arg, ast.List) or (isinstance(arg, ast.Tuple) and not all(map(_scalar, arg.items))):
                 opener, closer = ("[", "]") if isinstance(arg, ast.List) else ("(", ")")
-                lines.append(pad + " ".join(parts) + " " + opener)
+                lines.append(here + " " + opener)
                 lines += _wrap([_flat(x) for x in arg.items], pad + INDENT * 2,
                                one_per_line=all(isinstance(x, ast.List) for x in arg.items))
                 parts = [pad + INDENT + closer]
                 continue
-            parts.append(_flat(arg))
+            lines.append(here + " \\")
+            parts = [cont + flat_arg]
         lines.append(" ".join(parts) if lines else pad + " ".join(parts))
         return lines
+
+
+def _scalar(arg: ast.Arg) -> bool:
+    """A number, string or name; a tuple of them (a point) is kept on one line."""
+    return isinstance(arg, (ast.Number, ast.String, ast.Ref))
 
 
 def _trail(lines: list[str], comments: list[ast.Comment]) -> list[str]:

@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from wiredsl.diagnostics import Collector, Span, did_you_mean
-from wiredsl.effects import REGISTRY
+from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.language import ast
 from wiredsl.language.units import KIND_NAMES, UNITS
+from wiredsl.plugins import lookup
 
 SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "integer")
 MAX_MAGNITUDE = 1e9  # metres or pixels: squares and products of a few stay far from float overflow
@@ -150,12 +152,25 @@ _CAMERA = [
     Sig("k2", "OpenCV's second radial coefficient", (S("number", "k2"),), example="k2 0.001"),
     Sig("p1", "OpenCV's first tangential coefficient", (S("number", "p1"),), example="p1 0"),
     Sig("p2", "OpenCV's second tangential coefficient", (S("number", "p2"),), example="p2 0"),
+    Sig("k3", "third radial coefficient: OpenCV's k3 (r^6), or the fisheye's k3 (theta^6)", (S("number", "k3"),),
+        example="k3 0.0001"),
+    Sig("k4", "OpenCV's rational k4 (denominator's r^2), or the fisheye's k4 (theta^8)", (S("number", "k4"),),
+        example="k4 0"),
+    Sig("k5", "OpenCV's rational k5 (denominator's r^4)", (S("number", "k5"),), example="k5 0"),
+    Sig("k6", "OpenCV's rational k6 (denominator's r^6)", (S("number", "k6"),), example="k6 0"),
+    Sig("distortion", "the lens model: radtan (OpenCV's k1..k6, p1, p2; the default) or equidistant "
+        "(OpenCV's fisheye, Kannala-Brandt: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8))",
+        (S("word", "model", "radtan", "equidistant"),), example="distortion equidistant"),
+    Sig("fov", "equidistant: the lens's full field of view; nothing farther than half of it from the optical "
+        "axis is imaged (default: where theta_d stops increasing, at most 360 deg)", (S("angle", "field of view"),),
+        example="fov 190deg"),
     Sig("read", "take the camera's parameters from a calibration file (OpenCV, ROS or Kalibr); "
         "statements beside it override them", (S("str", "path"),),
         {"format": C("the file's format (default: recognised from its content)",
                      S("word", "format", "opencv", "ros", "kalibr")),
-         "entry": C("which camera of a file with several: first or second (OpenCV's M1/M2, Kalibr's cam0/cam1)",
-                    S("word", "entry", "first", "second"))},
+         "entry": C("which camera of a file with several: first, second, third (OpenCV's M1/M2, Kalibr's "
+                    "cam0/cam1...) or Kalibr's camN", S("word", "entry", "first", "second", "third",
+                                                          *(f"cam{i}" for i in range(10))))},
         example='read "calib/stereo.yaml" entry second'),
 ]
 
@@ -242,14 +257,43 @@ def _effect_sig(name: str) -> Sig:
     return Sig(name, (effect.doc or "").strip(), clauses=clauses)
 
 
-CONTEXTS: dict[str, dict[str, Sig]] = {
+class _StageSigs(Mapping):
+    """A pipeline block's statements: one a stage the effects registry knows (built-in, then installed plug-ins,
+    looked up only for a name not built in), each signature made on first use from the effect's Params."""
+
+    def __init__(self) -> None:
+        self._sigs: dict[str, Sig] = {}
+
+    def __getitem__(self, name: str) -> Sig:
+        if name in self._sigs:
+            return self._sigs[name]
+        effect, _ = lookup(REGISTRY, name) if isinstance(name, str) else (None, None)
+        if effect is None:
+            raise KeyError(name)
+        sig = _effect_sig(name)
+        if name in BUILTIN:  # a plug-in's is made again: packages come and go (plugins.rescan)
+            self._sigs[name] = sig
+        return sig
+
+    def __iter__(self):
+        return (name for name in REGISTRY if lookup(REGISTRY, name)[0] is not None)
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    def problem(self, name: str) -> str | None:
+        """Why an installed plug-in of this name cannot be used (naming its package), else None."""
+        return lookup(REGISTRY, name)[1]
+
+
+CONTEXTS: dict[str, Mapping[str, Sig]] = {
     "top": {s.keyword: s for s in _TOP},
     "model": {s.keyword: s for s in _MODEL},
     "camera": {s.keyword: s for s in _CAMERA},
     "rig": {s.keyword: s for s in _RIG},
     "viewpoints": {s.keyword: s for s in _VIEWPOINTS},
     "path": {s.keyword: s for s in _PATH},
-    "pipeline": {name: _effect_sig(name) for name in REGISTRY},
+    "pipeline": _StageSigs(),
     "study": {s.keyword: s for s in _STUDY},
 }
 
@@ -317,6 +361,10 @@ def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collecto
     """Match a statement's arguments to its signature in `context`; None if unknown."""
     sigs = CONTEXTS[context]
     sig = sigs.get(stmt.keyword)
+    problem = sigs.problem(stmt.keyword) if sig is None and isinstance(sigs, _StageSigs) else None
+    if problem is not None:  # an installed plug-in of that name that cannot be used
+        out.error("E180", problem, stmt.keyword_span, "see 'wiredsl plugins'")
+        return None
     if sig is None:
         where = "at the top level" if context == "top" else f"in a {context} block"
         hint = did_you_mean(stmt.keyword, sigs) or _elsewhere(stmt.keyword, context)

@@ -29,7 +29,17 @@ class Params(_EffectParams):
 
 
 class Measure:
-    """A downstream consumer of the features: per pose and trial, named finite statistics."""
+    """A downstream consumer of the features: per pose and trial, named finite statistics. Subclass it for a
+    plug-in (entry point group `wiredsl.measures`, named by `name`).
+
+    Declare `name` (a study's `measure NAME`), `Params` (a frozen pydantic model, subclass `Params`, its fields
+    made with `param(default, kind, doc, ...)`: the statement's parameters), `statistics` (a tuple of names),
+    optionally `weights`, and `doc`. Define `measure(params, prepared, pose, disturbed, n_trials)`, returning
+    {statistic: (n_trials,) finite floats}, and optionally `prepare(params, run)` (see below). A measure that
+    raises or returns another shape or a non-finite value is reported as its package's error (E181). Outside a
+    study, call it yourself on the batches of `wiredsl.simulate` or `wiredsl.Simulator.observe`
+    (`batch.disturbed` holds, per pose, the ideal PoseResult and {side: ImageSet}).
+    """
 
     name: ClassVar[str]
     Params: ClassVar[type[Params]]

@@ -43,7 +43,7 @@ def pipeline_at(scene: Scene, study: Study, values: np.ndarray) -> Pipeline:
     """The study's pipeline with one design point's values substituted; stages it lacks are inserted at
     their data-flow position, with default parameters for what the study does not vary."""
     base = scene.pipeline(study.pipeline) if study.pipeline else None
-    stages = {s.effect: dict(s.params.model_dump()) for s in (base.stages if base else [])}
+    stages = {s.effect: dict(s.params) for s in (base.stages if base else [])}
     order = [s.effect for s in (base.stages if base else [])]
     for f, v in zip(study.factors, values, strict=True):
         if f.stage.startswith("camera."):
@@ -54,26 +54,37 @@ def pipeline_at(scene: Scene, study: Study, values: np.ndarray) -> Pipeline:
             at = next((i for i, name in enumerate(order) if REGISTRY[name].flow_rank() > rank), len(order))
             order.insert(at, f.stage)
         stages[f.stage][f.param] = float(v)
-    return Pipeline(name=f"{study.name}", stages=[{"effect": e, "params": REGISTRY[e].Params(**stages[e])}
+    return Pipeline(name=f"{study.name}", stages=[{"effect": e, "params": REGISTRY[e].Params(**stages[e]).model_dump()}
                                                   for e in order])
 
 
-def sobol_indices(y: np.ndarray, n: int, d: int, seed: int = 0, resamples: int = 199) -> dict[str, np.ndarray]:
+def sobol_indices(y: np.ndarray, n: int, d: int, seed: int = 0,
+                  resamples: int = 199) -> dict[str, np.ndarray] | None:
     """First-order and total Sobol' indices of outputs y (n (d + 2) values in the design's order), with
-    bootstrap 95% intervals: scipy.stats.sobol_indices (Saltelli 2010 first order, Jansen 1999 total)."""
+    bootstrap 95% intervals: scipy.stats.sobol_indices (Saltelli 2010 first order, Jansen 1999 total).
+
+    None when y does not vary over A and B (the indices divide by that variance: they are undefined).
+    """
     from scipy.stats import sobol_indices as scipy_sobol
 
     y = np.asarray(y, dtype=float)
     f_A, f_B = y[:n][None], y[n:2 * n][None]
+    base = y[:2 * n]
+    if not np.ptp(base) > 1e-12 * np.abs(base).max(initial=0.0):
+        return None
     f_AB = y[2 * n:].reshape(d, 1, n)
+    if d == 1:  # scipy fails for one factor; a copy of it as a second factor leaves its indices as they are
+        f_AB = np.concatenate([f_AB, f_AB])
     res = scipy_sobol(func={"f_A": f_A, "f_B": f_B, "f_AB": f_AB}, n=n, rng=np.random.default_rng(seed))
-    out = {"first_order": np.atleast_1d(res.first_order), "total_order": np.atleast_1d(res.total_order)}
+    out = {"first_order": np.atleast_1d(res.first_order)[:d], "total_order": np.atleast_1d(res.total_order)[:d]}
     if n >= 4 and resamples > 0:
-        ci = res.bootstrap(confidence_level=0.95, n_resamples=resamples)  # resamples with the rng above
+        with warnings.catch_warnings():  # resamples of (nearly) constant values: NaN bounds, dropped by callers
+            warnings.simplefilter("ignore", RuntimeWarning)
+            ci = res.bootstrap(confidence_level=0.95, n_resamples=resamples)  # resamples with the rng above
         out["first_order_ci"] = np.stack([np.atleast_1d(ci.first_order.confidence_interval.low),
-                                          np.atleast_1d(ci.first_order.confidence_interval.high)])
+                                          np.atleast_1d(ci.first_order.confidence_interval.high)])[:, :d]
         out["total_order_ci"] = np.stack([np.atleast_1d(ci.total_order.confidence_interval.low),
-                                          np.atleast_1d(ci.total_order.confidence_interval.high)])
+                                          np.atleast_1d(ci.total_order.confidence_interval.high)])[:, :d]
     return out
 
 

@@ -132,7 +132,8 @@ def _sobol(plt, table: StudyTable, stats, folder: Path) -> str:
         idx = {s.factor: s for s in table.sobol if (s.measure, s.statistic) == (measure, stat)}
         pos = np.arange(d)
         for shift, key, colour in ((-0.2, "first_order", "C0"), (0.2, "total_order", "C1")):
-            vals = np.array([getattr(idx[f], key) for f in table.factors])
+            vals = np.array([np.nan if getattr(idx[f], key) is None else getattr(idx[f], key)
+                             for f in table.factors])  # undefined (a constant statistic): no bar
             cis = [getattr(idx[f], key + "_ci") for f in table.factors]
             err = None
             if all(c is not None for c in cis):

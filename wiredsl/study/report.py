@@ -52,10 +52,11 @@ class SobolIndex(_Node):
     measure: str
     statistic: str
     factor: str
-    first_order: float
-    total_order: float
+    first_order: float | None = Field(description="None when undefined (see `undefined`)")
+    total_order: float | None = Field(description="None when undefined (see `undefined`)")
     first_order_ci: tuple[float, float] | None = None
     total_order_ci: tuple[float, float] | None = None
+    undefined: str | None = Field(None, description="why the indices are undefined (None when they are not)")
 
 
 class StudyTable(_Node):
@@ -112,6 +113,9 @@ def rows(study: Study, X: np.ndarray, per_point: list[dict[str, np.ndarray]],
     return out
 
 
+CONSTANT = "the statistic has the same value at every point of A and B: no variance to apportion"
+
+
 def sobol(study: Study, table: list[Row]) -> list[SobolIndex]:
     """First-order and total indices of every statistic's per-point mean (space-filling designs)."""
     if study.design == "grid" or not study.factors:
@@ -123,6 +127,10 @@ def sobol(study: Study, table: list[Row]) -> list[SobolIndex]:
         if len(y) != n * (d + 2):  # some point had no value of it: no indices
             continue
         s = design.sobol_indices(y, n, d, seed=study.design_seed)
+        if s is None:
+            out += [SobolIndex(measure=measure, statistic=stat, factor=f.label, first_order=None, total_order=None,
+                               undefined=CONSTANT) for f in study.factors]
+            continue
         for i, f in enumerate(study.factors):
             ci = {k: (_f(s[k][0][i]), _f(s[k][1][i])) for k in ("first_order_ci", "total_order_ci") if k in s
                   and np.isfinite(s[k][:, i]).all()}
@@ -154,9 +162,13 @@ def sobol_csv(table: StudyTable) -> str:
                 "total_order_lo", "total_order_hi"])
     for s in table.sobol:
         ci1, cit = s.first_order_ci or ("", ""), s.total_order_ci or ("", "")
-        w.writerow([s.measure, s.statistic, s.factor, repr(s.first_order), *map(str, ci1), repr(s.total_order),
+        w.writerow([s.measure, s.statistic, s.factor, _cell(s.first_order), *map(str, ci1), _cell(s.total_order),
                     *map(str, cit)])
     return buf.getvalue()
+
+
+def _cell(x: float | None) -> str:
+    return "" if x is None else repr(x)
 
 
 def to_json(doc: BaseModel) -> str:

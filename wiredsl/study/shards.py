@@ -21,6 +21,9 @@ from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
 from wiredsl.io.files import write_atomic
+from wiredsl.measures import BUILTIN, REGISTRY
+from wiredsl.plugins import failure
+from wiredsl.run import start
 from wiredsl.scene import Scene, Study
 from wiredsl.study import design
 
@@ -67,15 +70,9 @@ def point_run(scene: Scene, world: World, study: Study, point: int, values, opts
     pipeline parameter changes.
     """
     values = np.asarray(values, dtype=float)
-    pipeline = design.pipeline_at(scene, study, values)
-    run = Run.create(design.scene_at(scene, study, values), world, pipeline, study.seed, opts or options(study),
-                     point=point)
-    if design.varies_scene(study):  # each point projects its own cameras
-        return run
-    for cache in ("_ideal", "_visible", "_epipoles"):  # an optimisation only: absent caches just cost time
-        if base is not None and getattr(base, cache, None) is not None and hasattr(run, cache):
-            setattr(run, cache, getattr(base, cache))
-    return run
+    lend = None if design.varies_scene(study) else base  # a point that varies the cameras projects its own
+    return start(design.scene_at(scene, study, values), design.pipeline_at(scene, study, values), seed=study.seed,
+                 options=opts or options(study), world=world, point=point, base=lend)
 
 
 _WORKER: dict = {}  # per process: digest -> (world, base run, prepared); (digest, point) -> (run, prepared)
@@ -90,7 +87,7 @@ def compute(job: Job) -> dict[str, np.ndarray]:
     if job.digest not in _WORKER:
         world = build_world(scene)
         _WORKER.clear()  # one study at a time per worker
-        base = Run.create(scene, world, None, 0, options(study))
+        base = start(scene, None, options=options(study), world=world)
         base.ideal()
         # a measure's reference data come from the ideal scene, which no pipeline parameter changes:
         # prepared once per study (with the run of no stages), unless the study varies the cameras
@@ -117,12 +114,21 @@ def measure_batches(run: Run, prepared, trials: list[int]) -> dict[str, np.ndarr
     for batch, batch_out in run.batches(trials):
         for j, (result, disturbed, _views) in enumerate(batch_out):
             for measure, params, prep in prepared:
-                got = measure.measure(params, prep, result, disturbed, len(batch))
+                try:
+                    got = measure.measure(params, prep, result, disturbed, len(batch))
+                except Exception as exc:
+                    if measure.name in BUILTIN:
+                        raise
+                    raise failure("measure", measure.name, REGISTRY, f"failed: {type(exc).__name__}: {exc}"
+                                  ) from None
                 for stat in measure.statistics:
-                    v = np.asarray(got[stat], dtype=float)
-                    if v.shape != (len(batch),) or not np.all(np.isfinite(v)):
-                        raise ValueError(f"measure '{measure.name}' statistic '{stat}' gave shape {v.shape} "
-                                         f"or non-finite values for {len(batch)} trials")
+                    v = np.asarray(got[stat], dtype=float) if isinstance(got, dict) and stat in got else None
+                    if v is None or v.shape != (len(batch),) or not np.all(np.isfinite(v)):
+                        what = "nothing" if v is None else f"shape {v.shape}" if v.shape != (len(batch),) \
+                            else "non-finite values"
+                        raise failure("measure", measure.name, REGISTRY,
+                                      f"gave {what} for statistic '{stat}' ({len(batch)} trials: one finite "
+                                      "value a trial)")
                     rows = parts.setdefault(f"{measure.name}.{stat}", [])
                     if len(rows) <= j:
                         rows.append([])

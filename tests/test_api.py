@@ -1,0 +1,166 @@
+"""The public Python API: compile, simulate and Simulator against what `build` writes and `load` reads."""
+
+from __future__ import annotations
+
+import re
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import wiredsl
+from wiredsl.cli import main
+
+LAB = "scenes/lab.wd"
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def build(tmp_path: Path, *args: str) -> Path:
+    out = tmp_path / "out"
+    result = CliRunner().invoke(main, ["build", LAB, "-o", str(out), "--no-svg", "--format", "npz", *args])
+    assert result.exit_code == 0, result.output
+    return out / "features.npz"
+
+
+def same_records(a: list[dict], b: list[dict]) -> None:
+    """Equal records: every field exactly, pixels within float32 rounding (the npz keeps float32)."""
+    assert len(a) == len(b) and len(a) > 0
+    for x, y in zip(a, b, strict=True):
+        assert x.keys() == y.keys(), (x, y)
+        for k in x:
+            if k in ("points", "at"):
+                assert np.allclose(x[k], y[k], rtol=2e-7, atol=1e-4), (k, x, y)
+            else:
+                assert x[k] == y[k], (k, x, y)
+
+
+@pytest.fixture(scope="module")
+def lab():
+    return wiredsl.compile(LAB)
+
+
+def test_importing_wiredsl_loads_no_numpy():
+    import subprocess
+
+    code = "import sys, wiredsl; wiredsl.__all__; print('numpy' in sys.modules, 'wiredsl.api' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.split() == ["False", "False"]
+
+
+def test_simulate_gives_what_load_reads_from_the_same_build(tmp_path, lab):
+    path = build(tmp_path, "--seed", "11", "--trials", "300", "--pose", "1", "--pose", "4")
+    batches = list(wiredsl.simulate(lab, trials=300, seed=11, poses=[1, 4]))
+    assert [b.n_trials for b in batches] == [256, 44]  # bounded batches, like build's
+    arrays = wiredsl.load(path, arrays=True)
+    for name in ("strokes", "corner_rows", "views", "view_cameras", "view_poses"):
+        got = np.concatenate([b[name] for b in batches])
+        assert np.array_equal(got, arrays[name]), name
+    for name in ("pts", "corners"):
+        got = np.concatenate([b[name] for b in batches])
+        assert got.dtype == np.float64 and np.array_equal(got.astype(np.float32), arrays[name]), name
+    same_records(batches[1].records(), wiredsl.load(path, trial=range(256, 300)))
+    same_records(batches[0].records()[:2000], wiredsl.load(path, trial=range(0, 256))[:2000])
+
+
+def test_simulate_of_an_ideal_run_is_builds_trial_zero(tmp_path, lab):
+    path = build(tmp_path, "--no-effects", "--pose", "2")
+    (batch,) = wiredsl.simulate(lab, trials=5, seed=0, pipeline=lab.pipelines[0].model_copy(update={"stages": []}),
+                                poses=[2])
+    assert batch.n_trials == 1 and batch.trials.tolist() == [0]
+    assert np.array_equal(batch["conic_rows"], wiredsl.load(path, arrays=True)["conic_rows"])
+    same_records(batch.records(), wiredsl.load(path))
+
+
+@pytest.mark.parametrize("engine", ["numpy", "kernel"])
+def test_observe_a_path_pose_is_builds_pose_of_that_trial_bit_for_bit(engine, lab):
+    pytest.importorskip("numba") if engine == "kernel" else None
+    built = {b.n_trials: b for b in wiredsl.simulate(lab, trials=8, seed=2024, poses=[3], engine=engine)}[8]
+    sim = wiredsl.Simulator(lab, seed=2024, engine=engine)
+    for trial in (0, 5):
+        seen = sim.observe(3, trial=trial)
+        rows = built["strokes"][:, 0] == trial
+        mine = seen["strokes"]
+        assert np.array_equal(mine, built["strokes"][rows])
+        keep = np.repeat(rows, np.diff(built["start"]))
+        assert np.array_equal(seen["pts"], built["pts"][keep])  # float64 both: bit for bit
+        crows = built["corner_rows"][:, 0] == trial
+        assert np.array_equal(seen["corners"], built["corners"][crows])
+
+
+def test_observe_of_an_arbitrary_pose_equals_the_path_pose_it_is(lab):
+    sim = wiredsl.Simulator(lab, seed=9)
+    at = lab.path.poses[2]
+    by_index = sim.observe(2, trial=3)
+    by_pose = sim.observe(tuple(at), trial=3, step=2)
+    assert np.array_equal(by_index["pts"], by_pose["pts"])
+    c, s = np.cos(at[2]), np.sin(at[2])
+    T = np.array([[c, -s, 0, at[0]], [s, c, 0, at[1]], [0, 0, 1, 0], [0, 0, 0, 1]])
+    assert np.allclose(sim.observe(T, trial=3, step=2)["pts"], by_index["pts"], atol=1e-9)
+    other_step = sim.observe(tuple(at), trial=3, step=7)  # other draws
+    assert not np.array_equal(other_step["pts"], by_index["pts"][: len(other_step["pts"])]) \
+        or len(other_step["pts"]) != len(by_index["pts"])
+
+
+def test_observe_refuses_what_is_not_a_floor_pose(lab):
+    sim = wiredsl.Simulator(lab, seed=1)
+    tilted = np.eye(4)
+    tilted[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
+    with pytest.raises(ValueError, match="turn about the vertical"):
+        sim.observe(tilted, step=0)
+    with pytest.raises(ValueError, match="needs step"):
+        sim.observe((0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="not in 0.."):
+        sim.observe(999)
+    with pytest.raises(ValueError, match="not finite"):
+        sim.observe((np.nan, 0, 0), step=1)
+
+
+def test_observe_follows_the_nearest_viewpoint(lab):
+    sim = wiredsl.Simulator(lab, seed=1, pipeline=lab.pipelines[0].model_copy(update={"stages": []}))
+    vp = lab.viewpoints
+    for k, (x, y) in enumerate(vp.points[:3]):
+        seen = sim.observe((x, y, 0.0), step=50 + k)
+        view = seen.disturbed[0][0]
+        assert view.viewpoint == vp.names[k]
+
+
+def test_compile_error_carries_the_diagnostics_check_prints(tmp_path):
+    bad = tmp_path / "bad.wd"
+    bad.write_text("scene s\nmodel m {\n  line a (0, 0, 0) (1, 0, 0)\n  line a (0, 0, 0) (0, 1, 0)\n}\n")
+    with pytest.raises(wiredsl.CompileError) as err:
+        wiredsl.compile(str(bad))
+    checked = CliRunner().invoke(main, ["check", str(bad)])
+    assert checked.exit_code == 1
+    assert [d.code for d in err.value.diagnostics] == re.findall(r"error\[(E\d+)\]", checked.stderr)
+    assert str(err.value) + "\n" == checked.stderr
+    assert f"{bad}:4:" in str(err.value) and "^" in str(err.value)
+    with pytest.raises(wiredsl.CompileError, match=r"<string>:1:"):
+        wiredsl.compile("scene\n")
+
+
+def test_compile_takes_text_and_paths_alike(lab, monkeypatch):
+    text = Path(LAB).read_text()
+    monkeypatch.chdir("scenes")  # a text's includes and files: from the current folder
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert wiredsl.compile(Path("lab.wd")).models == lab.models
+    from_text = wiredsl.compile(text)
+    assert [m.name for m in from_text.models] == [m.name for m in lab.models]
+
+
+def readme_examples() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Python API"):]
+    section = section[:section.index("\n## ", 5)]
+    return re.findall(r"```python\n(.*?)```", section, re.S)
+
+
+def test_readme_python_api_examples_run(tmp_path, monkeypatch):
+    blocks = readme_examples()
+    assert len(blocks) >= 3
+    namespace: dict = {}
+    for block in blocks:
+        exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102 - the README's own examples

@@ -1,0 +1,294 @@
+"""Effects and measures from installed packages (entry points), and scene files that cannot import code.
+
+The package is a real distribution: a module and a `.dist-info` with `entry_points.txt`, put on sys.path, which
+is what `pip install` leaves in site-packages; importlib.metadata finds it as it finds any installed package.
+"""
+
+from __future__ import annotations
+
+import builtins
+import json
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import wiredsl
+from wiredsl import plugins
+from wiredsl.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+MODULE = '''
+from typing import ClassVar
+
+import numpy as np
+
+from wiredsl.effects.base import Effect, Params, param
+from wiredsl.engine import imageset as im
+from wiredsl.measures.base import Measure
+
+
+class CentreNoiseParams(Params):
+    sigma: float = param(0.5, "image", "corner noise at the image's corner (grows from 0 at the centre)", ge=0)
+
+
+class CentreNoise(Effect):
+    """Corner localisation noise that grows with the distance from the image centre."""
+
+    name = "centre_noise"
+    acts_on = "corner detection"
+    Params = CentreNoiseParams
+    doc = "corner noise growing from the image centre outwards"
+
+    @classmethod
+    def is_identity(cls, p):
+        return p.sigma == 0
+
+    @classmethod
+    def disturb(cls, p, s, ctx):
+        n = ctx.draws(cls.name, s.corner_trial, per_item=2, normal=True)
+        r = np.hypot(*(s.corners - [320.0, 240.0]).T)[:, None] / 400.0
+        return im.replace(s, corners=s.corners + p.sigma * r * n)
+
+
+class Wrong(CentreNoise):
+    name = "wrong_shape"
+
+    @classmethod
+    def disturb(cls, p, s, ctx):
+        return im.replace(s, corners=s.corners[:, :1])
+
+
+class CornerCountParams(Params):
+    scale: float = param(1.0, "number", "multiplies the count", gt=0)
+
+
+class CornerCount(Measure):
+    name = "corner_count"
+    Params = CornerCountParams
+    statistics: ClassVar[tuple[str, ...]] = ("corners",)
+    doc = "left corners a trial"
+
+    @classmethod
+    def measure(cls, p, prepared, pose, disturbed, n_trials):
+        return {"corners": p.scale * np.bincount(disturbed["left"].corner_trial, minlength=n_trials)}
+
+
+class NanMeasure(CornerCount):
+    name = "nan_measure"
+
+    @classmethod
+    def measure(cls, p, prepared, pose, disturbed, n_trials):
+        return {"corners": np.full(n_trials, np.nan)}
+
+
+class NotAnEffect:
+    name = "not_an_effect"
+'''
+
+ENTRY_POINTS = '''
+[wiredsl.effects]
+centre_noise = wdplug:CentreNoise
+wrong_shape = wdplug:Wrong
+broken_import = wdplug.missing:Thing
+not_an_effect = wdplug:NotAnEffect
+edge_loss = wdplug:CentreNoise
+
+[wiredsl.measures]
+corner_count = wdplug:CornerCount
+nan_measure = wdplug:NanMeasure
+'''
+
+
+def make_dist(folder: Path, name: str = "wdplug", module: str = MODULE, entry_points: str = ENTRY_POINTS) -> Path:
+    (folder / name).mkdir(parents=True)
+    (folder / name / "__init__.py").write_text(module)
+    info = folder / f"{name}-0.3.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 0.3\n")
+    (info / "entry_points.txt").write_text(entry_points)
+    return folder
+
+
+@pytest.fixture
+def installed(tmp_path, monkeypatch):
+    """The wdplug distribution installed (on sys.path) for this test only."""
+    monkeypatch.syspath_prepend(str(make_dist(tmp_path / "site")))
+    plugins.rescan()
+    yield tmp_path / "site"
+    plugins.rescan()
+    for m in [m for m in sys.modules if m == "wdplug" or m.startswith("wdplug.")]:
+        del sys.modules[m]
+
+
+LAB_PLUS = textwrap.dedent('''\
+    wiredsl 1
+    include "{lab}"
+    pipeline plug {{
+      corner_loss keep 0.9
+      centre_noise sigma 4px
+    }}
+    ''')
+
+
+def scene_file(tmp_path: Path, body: str) -> Path:
+    f = tmp_path / "plug.wd"
+    f.write_text(LAB_PLUS.format(lab=ROOT / "scenes" / "lab.wd") + body)
+    return f
+
+
+def test_a_plugin_effect_runs_in_a_build_on_numpy_and_the_manifest_says_so(installed, tmp_path):
+    f = scene_file(tmp_path, "")
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["build", str(f), "--pipeline", "plug", "--seed", "3", "--trials", "4",
+                                  "--format", "npz", "--no-svg", "-o", str(out), "--engine", "kernel"])
+    assert r.exit_code == 0, r.output
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["engine"] == "numpy"
+    assert manifest["engines"] == {"corner_loss": "numpy", "centre_noise": "numpy"}
+    assert any("no compiled kernel for centre_noise" in w for w in manifest["warnings"])
+    scene = wiredsl.compile(str(f))
+    ideal = next(wiredsl.simulate(scene, trials=1, seed=3, pipeline=scene.pipeline("plug").model_copy(
+        update={"stages": []})))
+    moved = wiredsl.load(out / "features.npz", arrays=True)["corners"]
+    assert len(moved) and not np.isin(moved, ideal["corners"].astype(np.float32)).all()  # the noise moved them
+
+
+def test_a_plugin_measure_ranks_in_a_study(installed, tmp_path):
+    f = scene_file(tmp_path, textwrap.dedent('''
+        study s {
+          pipeline plug
+          vary centre_noise.sigma values [0, 8px]
+          trials 4
+          poses [0]
+          measure corner_count scale 2
+        }
+        '''))
+    r = CliRunner().invoke(main, ["study", str(f), "s", "-o", str(tmp_path / "st"), "--executor", "inprocess",
+                                  "--no-plots"])
+    assert r.exit_code == 0, r.output
+    table = json.loads((tmp_path / "st" / "table.json").read_text())
+    assert "corner_count" in json.dumps(table)
+
+
+def test_check_reference_and_schema_know_a_plugins_parameters(installed, tmp_path):
+    bad = scene_file(tmp_path, "").read_text().replace("sigma 4px", "sigma 4px wobble 2")
+    (tmp_path / "bad.wd").write_text(bad)
+    r = CliRunner().invoke(main, ["check", str(tmp_path / "bad.wd")])
+    assert r.exit_code == 1 and "wobble" in r.stderr and "sigma" in r.stderr
+    ref = CliRunner().invoke(main, ["reference"]).output
+    assert "`centre_noise`" in ref and "[sigma <sigma>]" in ref
+    from wiredsl.io import schema
+
+    assert "CentreNoiseParams" in json.dumps(schema.generate("scene"))
+    from wiredsl import lsp
+
+    text = bad.replace(" sigma 4px wobble 2", " ")
+    lines = text.splitlines()
+    line = next(i for i, s in enumerate(lines, 1) if "centre_noise" in s)
+    assert "image centre outwards" in lsp.hover(None, text, "x.wd", line, 3)
+    assert "centre_noise" in [c.label for c in lsp.completions(None, text, line, 1)]
+    sigma = [c for c in lsp.completions(None, text, line, len(lines[line - 1]) + 1) if c.label == "sigma"]
+    assert sigma and "default 0.5 px" in sigma[0].detail
+
+
+def test_broken_plugins_get_a_diagnostic_naming_their_package(installed, tmp_path):
+    for stage, why in (("broken_import", "failed to import: ModuleNotFoundError"),
+                       ("not_an_effect", "is not a subclass of wiredsl.Effect")):
+        f = tmp_path / f"{stage}.wd"
+        f.write_text(f'wiredsl 1\ninclude "{ROOT / "scenes" / "lab.wd"}"\npipeline p {{\n  {stage}\n}}\n')
+        r = CliRunner().invoke(main, ["check", str(f)])
+        assert r.exit_code == 1, r.output
+        assert "E180" in r.stderr and "package 'wdplug' 0.3" in r.stderr and why in r.stderr, r.stderr
+    f = tmp_path / "wrong.wd"
+    f.write_text(f'wiredsl 1\ninclude "{ROOT / "scenes" / "lab.wd"}"\npipeline p {{\n  wrong_shape\n}}\n')
+    r = CliRunner().invoke(main, ["build", str(f), "--pipeline", "p", "--seed", "1", "--no-svg",
+                                  "-o", str(tmp_path / "o")])
+    assert r.exit_code == 1 and "E181" in r.stderr and "wdplug" in r.stderr and "(n, 2)" in r.stderr, r.output
+    f = scene_file(tmp_path, "study s {\n pipeline plug\n vary centre_noise.sigma values [1px]\n trials 2\n poses [0]\n"
+                                "measure nan_measure\n}\n")
+    r = CliRunner().invoke(main, ["study", str(f), "-o", str(tmp_path / "st"), "--executor", "inprocess",
+                                  "--no-plots"])
+    assert r.exit_code == 1 and "E181" in r.stderr and "non-finite" in r.stderr and "wdplug" in r.stderr, r.output
+
+
+def test_plugins_lists_packages_and_clashes(installed):
+    r = CliRunner().invoke(main, ["plugins"])
+    assert r.exit_code == 1
+    lines = {tuple(line.split("\t")[:3]): line for line in r.output.splitlines()}
+    assert lines[("effect", "centre_noise", "wdplug 0.3")].endswith("\tok")
+    assert lines[("measure", "corner_count", "wdplug 0.3")].endswith("\tok")
+    assert "named like the built-in one" in lines[("effect", "edge_loss", "wdplug 0.3")]
+    assert "failed to import" in lines[("effect", "broken_import", "wdplug 0.3")]
+
+
+def test_two_packages_claiming_a_name_are_both_named(tmp_path, monkeypatch):
+    for pkg in ("wdone", "wdtwo"):
+        make_dist(tmp_path / pkg, pkg, MODULE, "[wiredsl.effects]\ncentre_noise = " + pkg + ":CentreNoise\n")
+        monkeypatch.syspath_prepend(str(tmp_path / pkg))
+    plugins.rescan()
+    try:
+        f = tmp_path / "s.wd"
+        f.write_text(f'wiredsl 1\ninclude "{ROOT / "scenes" / "lab.wd"}"\npipeline p {{\n  centre_noise\n}}\n')
+        r = CliRunner().invoke(main, ["check", str(f)])
+        assert r.exit_code == 1 and "'wdone'" in r.stderr and "'wdtwo'" in r.stderr, r.stderr
+    finally:
+        plugins.rescan()
+
+
+def test_built_in_names_never_scan_installed_packages(monkeypatch):
+    def refuse(kind):
+        raise AssertionError(f"scanned the entry points of {kind}s for a built-in name")
+
+    from wiredsl.language import compile_study
+    from wiredsl.measures import REGISTRY
+
+    monkeypatch.setattr(compile_study, "measure_registry", lambda: REGISTRY)  # (the tests' own measure aside)
+    monkeypatch.setattr(plugins, "installed", refuse)
+    wiredsl.compile("scenes/studies/lab_study.wd")
+
+
+HOSTILE = '''wiredsl 1
+include "{lab}"
+pipeline p {{
+  os.system
+  {mod}
+  __import__
+}}
+study s {{
+  vary {mod}.x values [1]
+  measure {mod}
+  measure os.system
+}}
+'''
+
+
+def test_a_scene_file_cannot_make_check_import_anything(tmp_path, monkeypatch):
+    """Names a file writes are looked up among installed entry points only: nothing the file names is imported."""
+    trap = tmp_path / "trap"
+    trap.mkdir()
+    (trap / "wdtrap.py").write_text("raise SystemExit('imported by a scene file')\n")
+    monkeypatch.syspath_prepend(str(trap))
+    for command in ("check", "compile", "fmt"):  # the modules each command imports lazily, once
+        CliRunner().invoke(main, [command, "scenes/lab.wd"] + (["--check"] if command == "fmt" else []))
+    imported: list[str] = []
+    real = builtins.__import__
+
+    def spy(name, *args, **kwargs):
+        imported.append(name)
+        return real(name, *args, **kwargs)
+
+    f = tmp_path / "hostile.wd"
+    f.write_text(HOSTILE.format(lab=ROOT / "scenes" / "lab.wd", mod="wdtrap"))
+    before = set(sys.modules)
+    monkeypatch.setattr(builtins, "__import__", spy)
+    for command in (["check", str(f)], ["compile", str(f)], ["fmt", "--check", str(f)]):
+        r = CliRunner().invoke(main, command)
+        assert r.exit_code in (0, 1), r.output
+    monkeypatch.setattr(builtins, "__import__", real)
+    assert "wdtrap" not in sys.modules and not any("wdtrap" in n or n.startswith("os.") for n in imported)
+    assert not {m for m in set(sys.modules) - before if not m.startswith(("importlib", "email", "zipfile", "csv"))}

@@ -1,0 +1,231 @@
+"""The public Python API: compile a scene, run its Monte-Carlo trials, observe any pose in a closed loop.
+
+    import wiredsl
+
+    scene = wiredsl.compile("scenes/lab.wd")
+    for batch in wiredsl.simulate(scene, trials=1000, seed=7):
+        batch["pts"], batch["strokes"]        # the npz members of one batch (io/layout.py)
+        batch.records()                       # what wiredsl.load gives for these trials
+
+    sim = wiredsl.Simulator(scene, seed=7)
+    seen = sim.observe((1.0, 0.5, 0.3), trial=0, step=12)   # any robot pose, draws keyed by step
+
+Every name here is exported from `wiredsl` itself (lazily: importing wiredsl loads none of this).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Iterator, Sequence
+
+import numpy as np
+
+from wiredsl.diagnostics import Diagnostic, WiredslError
+from wiredsl.effects.base import Effect
+from wiredsl.measures.base import Measure
+from wiredsl.scene import Pipeline, Scene
+
+__all__ = ["Batch", "CompileError", "CompileWarning", "Effect", "Measure", "Simulator", "compile", "simulate"]
+
+
+class CompileError(WiredslError):
+    """A scene that does not compile: `diagnostics` are what `wiredsl check` reports, and str(err) renders
+    them as `check` prints them (file:line:column, the source line, a caret)."""
+
+    def __init__(self, diagnostics: Sequence[Diagnostic], sources: dict[str, str] | None = None):
+        super().__init__(diagnostics)
+        self.sources = sources if sources is not None else {}
+
+    def __str__(self) -> str:
+        from wiredsl.diagnostics import read_sources, render
+
+        return render(self.diagnostics, {**read_sources(self.diagnostics), **self.sources}).rstrip("\n")
+
+
+class CompileWarning(UserWarning):
+    """A warning `wiredsl check` would print about a scene that compiles."""
+
+
+def compile(source: str | os.PathLike) -> Scene:  # noqa: A001 - the stage's name, as in the README's flow
+    """The compiled scene of a file (a path: os.PathLike, or a str ending in `.wd` without a line break) or of
+    scene text (any other str; its includes are found from the current folder).
+
+    Raises CompileError with every diagnostic; warnings are issued as CompileWarning.
+    """
+    import warnings
+
+    from wiredsl.language import ast
+    from wiredsl.language.compile import compile_program
+
+    is_path = isinstance(source, os.PathLike) or (isinstance(source, str) and "\n" not in source
+                                                   and source.endswith(".wd"))
+    text = None if is_path else str(source)
+    try:
+        program = ast.load(source, None) if is_path else ast.load("<string>", text)
+        scene, diags = compile_program(program)
+    except WiredslError as err:
+        raise CompileError(err.diagnostics, {"<string>": text} if text is not None else None) from None
+    for d in diags:
+        warnings.warn(CompileWarning(str(CompileError([d], program.sources))), stacklevel=2)
+    return scene
+
+
+class Batch:
+    """Some trials of a run: `n_trials`, `trials` (their numbers), the npz members of one batch by name
+    (`batch["pts"]`, without the bNNNNN_ prefix; float64 where the file has float32), and `records()`."""
+
+    def __init__(self, trials: Sequence[int], arrays: dict[str, np.ndarray], feature_ids: list[str],
+                 disturbed: list | None = None):
+        self.trials = np.asarray(trials, dtype=np.int64)
+        self.arrays = arrays
+        self.feature_ids = feature_ids
+        self.disturbed = disturbed  # per pose: (ideal PoseResult, {side: ImageSet}, views), for measures
+
+    @property
+    def n_trials(self) -> int:
+        return len(self.trials)
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.arrays[name]
+
+    def keys(self):
+        return self.arrays.keys()
+
+    def records(self) -> list[dict]:
+        """The feature records of these trials, as `wiredsl.load` gives them from the same run's dump."""
+        from wiredsl.io.load import records
+
+        return records({**self.arrays, "feature_ids": self.feature_ids})
+
+    def __repr__(self) -> str:
+        return f"Batch(trials {self.trials[0]}..{self.trials[-1]}, {len(self.arrays['strokes'])} strokes)"
+
+
+def _pipeline(scene: Scene, pipeline: Pipeline | str | None) -> Pipeline | None:
+    from wiredsl.run import choose_pipeline
+
+    return choose_pipeline(scene, pipeline).pipeline if not isinstance(pipeline, Pipeline) else pipeline
+
+
+def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str | None = None,
+             poses: Sequence[int] | None = None, engine: str = "auto") -> Iterator[Batch]:
+    """The run's trials 0..trials-1, batch by batch (memory stays bounded however many trials).
+
+    The same values as `wiredsl build --seed SEED --trials TRIALS --format npz` (whose file keeps float32
+    pixels). `pipeline` is a pipeline's name or Pipeline (None: the scene's default, as build chooses it);
+    `poses` the path pose indices (None: every pose). A run without stages is the ideal projection: one
+    batch of one trial, numbered 0, with the analytic conics, as build writes it.
+    """
+    from wiredsl import run as runs
+    from wiredsl.engine.simulate import Options
+    from wiredsl.io.emit import batch_arrays
+
+    if trials < 1:
+        raise ValueError(f"trials must be at least 1, not {trials}")
+    opts = Options(poses=runs.check_poses(scene, poses))
+    run = runs.start(scene, _pipeline(scene, pipeline), seed=int(seed), options=opts, engine=engine)
+    ids = run.world.feature_ids
+    if not run.stages:
+        out = [(r, {side: _ideal_set(run, r, side) for side in ("left", "right") if getattr(r, side) is not None},
+                None) for r in run.ideal()]
+        yield Batch([0], batch_arrays([0], out, renumber=False), ids, out)
+        return
+    for batch, batch_out in run.batches(range(trials)):
+        yield Batch(batch, batch_arrays(batch, batch_out), ids, batch_out)
+
+
+def _ideal_set(run, result, side: str):
+    from wiredsl.engine.montecarlo import to_imageset
+
+    return to_imageset(getattr(result, side), run.world)
+
+
+class Simulator:
+    """One run of a scene for closed loops: `observe` any pose of the robot, trial by trial.
+
+    Draws are keyed by (seed, stage, trial, step, camera), so `observe(i, trial=K)` is exactly what
+    `build --seed S` gives pose i of trial K, and a controller that revisits a step sees the same draws.
+    """
+
+    def __init__(self, scene: Scene, seed: int, pipeline: Pipeline | str | None = None, *,
+                 cameras: str = "both", visibility: str = "scene", engine: str = "auto"):
+        from wiredsl import run as runs
+        from wiredsl.engine.simulate import Options
+
+        self.scene = scene
+        opts = Options(visibility=visibility, right=cameras == "both")
+        self.run = runs.start(scene, _pipeline(scene, pipeline), seed=int(seed), options=opts, engine=engine)
+        self._lists: dict = {}  # view-point masks met so far
+        self._occluders = None
+
+    @property
+    def seed(self) -> int:
+        return self.run.seed
+
+    def observe(self, pose, trial: int = 0, step: int | None = None) -> Batch:
+        """What the rig sees at `pose` in trial `trial`: a Batch of one trial (its arrays and `records()`).
+
+        `pose` is a path pose index (then `step` defaults to it), a robot pose (x, y, heading) in metres and
+        radians on the floor, or a 4x4 world-from-robot transform (planar: a turn about the vertical).
+        `step` keys the draws (and numbers the pose in the output); an arbitrary pose needs one.
+        """
+        from wiredsl.io.emit import batch_arrays
+
+        result, step = self._ideal(pose, step)
+        trials = [int(trial)]
+        if self.run.stages:
+            out = [self.run.observe(result, trials)]
+        else:
+            out = [(result, {side: _ideal_set(self.run, result, side) for side in ("left", "right")
+                             if getattr(result, side) is not None}, None)]
+        return Batch(trials, batch_arrays(trials, out, renumber=bool(self.run.stages)), self.run.world.feature_ids,
+                     out)
+
+    def _ideal(self, pose, step: int | None):
+        import dataclasses
+
+        from wiredsl.engine.simulate import project_pose
+
+        if isinstance(pose, (int, np.integer)):
+            ideal = self.run.ideal()
+            if not 0 <= pose < len(ideal):
+                raise ValueError(f"pose {pose} is not in 0..{len(ideal) - 1} (the path's poses)")
+            result = ideal[int(pose)]
+            if step is None or step == pose:
+                return result, int(pose)
+            pose = result.pose  # the path's pose, with the draws of another step
+        if step is None:
+            raise ValueError("an arbitrary pose needs step=N: the draws are keyed by it")
+        xyh = robot_pose(pose)
+        if self._occluders is None and self.run.options.visibility == "exact":
+            from wiredsl.engine.occlusion import Occluders
+
+            self._occluders = Occluders.of_world(self.run.world)
+        result = project_pose(self.scene, self.run.world, xyh, int(step), self.run.options, self._lists,
+                              self._occluders)
+        return dataclasses.replace(result, index=int(step)), int(step)
+
+
+PLANAR = 1e-9  # how far from a turn about the vertical a 4x4 transform may be (rotation entries, metres)
+
+
+def robot_pose(pose) -> tuple[float, float, float]:
+    """(x, y, heading) of a robot pose given as such or as a 4x4 world-from-robot transform on the floor."""
+    a = np.asarray(pose, dtype=float)
+    if a.shape == (3,):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"pose {tuple(a)} is not finite")
+        return float(a[0]), float(a[1]), float(a[2])
+    if a.shape != (4, 4):
+        raise ValueError(f"a pose is a path index, (x, y, heading) or a 4x4 transform, not shape {a.shape}")
+    R, t = a[:3, :3], a[:3, 3]
+    if not np.all(np.isfinite(a)) or np.abs(a[3] - [0, 0, 0, 1]).max() > PLANAR \
+            or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+        raise ValueError("a 4x4 pose must be a rigid transform (rotation and translation, last row 0 0 0 1)")
+    # TODO(lead): h17traj generalises the engine's poses to 6-DoF; pass the transform through then
+    if abs(R[2, 2] - 1) > PLANAR or np.abs(R[2, :2]).max() > PLANAR or np.abs(R[:2, 2]).max() > PLANAR \
+            or abs(t[2]) > PLANAR:
+        raise ValueError("the engine places the robot on the floor: a 4x4 pose must be a turn about the "
+                         "vertical (z) axis with no height (z translation 0)")
+    return float(t[0]), float(t[1]), math.atan2(R[1, 0], R[0, 0])

@@ -1,0 +1,106 @@
+"""The one place that sets up a Monte-Carlo run: pipeline choice, seed resolution, `Run.create`.
+
+Every face starts its runs here: `wiredsl build`, `wiredsl export-calibration`, a study's shards and the
+public Python API (`wiredsl.simulate`, `wiredsl.Simulator`). The faces only parse their options and call.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import secrets
+from dataclasses import dataclass
+
+from wiredsl.engine.montecarlo import Run
+from wiredsl.engine.simulate import Options
+from wiredsl.engine.world import World, build_world
+from wiredsl.io import viewdep
+from wiredsl.scene import Pipeline, Scene
+
+ENGINES = ("auto", "kernel", "numpy")
+
+
+class RunSetupError(ValueError):
+    """A run's options do not fit the scene (an unknown pipeline, a pose off the path, ...).
+
+    `option` names the command-line option at fault, for the command line's message.
+    """
+
+    def __init__(self, message: str, option: str | None = None):
+        super().__init__(message)
+        self.option = option
+
+
+@dataclass(frozen=True)
+class PipelineChoice:
+    pipeline: Pipeline | None
+    note: str | None = None  # said to the user when the choice is not obvious
+
+
+def choose_pipeline(scene: Scene, name: str | None = None, no_effects: bool = False) -> PipelineChoice:
+    """The named pipeline, else the scene's default (marked, or the only one); None: the ideal projection."""
+    if no_effects:
+        return PipelineChoice(None)
+    if name is not None:
+        pipeline = scene.pipeline(name)
+        if pipeline is None:
+            names = ", ".join(p.name for p in scene.pipelines) or "none"
+            raise RunSetupError(f"no pipeline '{name}' in {scene.source} (it has: {names})", "--pipeline")
+        return PipelineChoice(pipeline)
+    pipeline = scene.pipeline()
+    if pipeline is None and scene.pipelines:
+        return PipelineChoice(None, "no pipeline is marked default; building the ideal projection (choose one "
+                                    "with --pipeline: " + ", ".join(p.name for p in scene.pipelines) + ")")
+    return PipelineChoice(pipeline)
+
+
+def check_poses(scene: Scene, poses) -> tuple[int, ...] | None:
+    """The chosen pose indices, sorted and unique (None: every pose); a pose off the path is refused."""
+    if poses is None:
+        return None
+    chosen = tuple(sorted({int(p) for p in poses}))
+    if scene.path is not None:
+        n = len(scene.path.poses)
+        for p in chosen:
+            if not 0 <= p < n:
+                raise RunSetupError(f"pose {p} is not in 0..{n - 1}", "--pose")
+    return chosen or None
+
+
+def check_engine(engine: str) -> str:
+    """The engine, if it can run here: "kernel" needs numba installed."""
+    if engine not in ENGINES:
+        raise RunSetupError(f"engine {engine!r} is not one of {', '.join(ENGINES)}", "--engine")
+    if engine == "kernel":
+        import importlib.util
+
+        if importlib.util.find_spec("numba") is None:
+            raise RunSetupError("the compiled kernel needs numba: pip install 'wiredsl[fast]'", "--engine")
+    return engine
+
+
+def start(scene: Scene, pipeline: Pipeline | str | None = None, *, seed: int | None = None,
+          options: Options | None = None, world: World | None = None, point: int | None = None,
+          engine: str = "auto", exact_calibration: bool = False, base: Run | None = None) -> Run:
+    """A Run of the scene through `pipeline` (a Pipeline, a pipeline's name, or None: no stages).
+
+    `seed` None draws one at random when something random runs (kept in `run.seed`); an ideal run keeps 0,
+    so its output is byte-identical whatever the seed. `base`, a run of the same scene and options, lends its
+    ideal projection and visibility (which no stage changes).
+    """
+    if isinstance(pipeline, str):
+        pipeline = choose_pipeline(scene, pipeline).pipeline
+    options = options if options is not None else Options()
+    if options.viewdep is None:
+        options = dataclasses.replace(options, viewdep=viewdep.of_scene(scene))
+    run = Run.create(scene, world if world is not None else build_world(scene), pipeline,
+                     seed if seed is not None else 0, options, point=point)
+    if seed is None and run.stages:  # drawn only when something random runs, so ideal runs stay byte-identical
+        run.seed = secrets.randbits(63)
+    run.engine = check_engine(engine)
+    if engine == "kernel" and not run.uses_kernel() and run.stages and not exact_calibration:
+        lacking = ", ".join(e.name for e, _ in run.image_stages if e.kernel is None)
+        run.warnings.append(f"the whole pipeline runs on numpy: no compiled kernel for {lacking}")
+    run.exact_calibration = exact_calibration
+    if base is not None:
+        run.share_projection(base)
+    return run
