@@ -297,7 +297,9 @@ def hover(index: Index | None, text: str, path: str, line: int, col: int) -> str
     first = _WORD.match(src.lstrip())
     sig = CONTEXTS[context].get(first.group()) if first else None
     if sig is not None and word.start() == len(src) - len(src.lstrip()):
-        return f"```wiredsl\n{signature(sig)}\n```\n{sig.doc}" + (f"\n\ne.g. `{sig.example}`" if sig.example else "")
+        found = mesh_summary(path, src) if sig.keyword == "mesh" and context == "model" else ""
+        return f"```wiredsl\n{signature(sig)}\n```\n{sig.doc}" + (f"\n\ne.g. `{sig.example}`" if sig.example else "") \
+            + found
     if sig is not None and word.group() in sig.clauses:
         clause = sig.clauses[word.group()]
         return f"`{_clause_detail(sig, word.group())}`: {clause.doc}"
@@ -309,6 +311,31 @@ def hover(index: Index | None, text: str, path: str, line: int, col: int) -> str
             decl = source_lines(declaring.text)[sym.stmt.span.line - 1].strip() if declaring else sym.name
             return f"{sym.what} `{sym.name}`, declared at {sym.span}:\n```wiredsl\n{decl}\n```"
     return None
+
+
+def mesh_summary(path: str, src: str) -> str:
+    """What a `mesh read` line finds in its mesh: the file and the count of each kind of feature."""
+    import math
+
+    from wiredsl.engine import mesh as mesh_features
+    from wiredsl.io.mesh import MAX_MESH_BYTES, MeshFileError, read_mesh
+
+    try:
+        stmt = ast.parse_text(src.strip() + "\n", path).statements[0]
+        b = bind(stmt, "model", DEFAULT_UNITS, Collector())
+        if b is None or not b.ok:
+            return ""
+        target = Path(path).parent / b.get("read")
+        raw = read_mesh(target, ast.read_bytes(target, "mesh file", limit=MAX_MESH_BYTES))
+        found = mesh_features.features(raw.vertices, raw.triangles, b.get("crease", math.radians(30)))
+    except (WiredslError, MeshFileError, IndexError) as exc:
+        why = exc.diagnostics[0].message if isinstance(exc, WiredslError) else str(exc)
+        return f"\n\n**cannot read the mesh**: {why}"
+    counts = {"lines": len(found.lines), "polylines": len(found.polylines), "ellipses": len(found.ellipses),
+              "silhouettes": len(found.silhouettes), "corners": len(found.corners), "faces": len(found.faces),
+              "occluding triangles": len(found.occluders), "of them smooth (contours)": int(found.contour.sum())}
+    return (f"\n\n`{b.get('read')}`: {len(raw.triangles):,} triangles, {len(raw.vertices):,} vertices; found "
+            + ", ".join(f"{n} {k}" for k, n in counts.items()))
 
 
 @dataclass(frozen=True)

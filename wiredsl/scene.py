@@ -96,6 +96,17 @@ class Face(Node):
     vertices: list[Vec3] = Field(min_length=3)
 
 
+class Surface(Node):
+    """Triangles of a mesh kept as occluders, never emitted (`mesh read`): those of planar regions that are
+    not one convex face, and those of smooth surfaces (`contour`: their outline is view-dependent)."""
+
+    name: str
+    file: str = Field(description="the mesh file, as the scene names it")
+    vertices: list[Vec3]
+    triangles: list[tuple[int, int, int]] = Field(description="indices into vertices")
+    contour: list[int] = Field([], description="indices of the triangles of smooth surfaces")
+
+
 class Model(Node):
     name: str
     lines: list[Line] = []
@@ -104,6 +115,7 @@ class Model(Node):
     silhouettes: list[Silhouette] = []
     corners: list[Corner] = []
     faces: list[Face] = []
+    surfaces: list[Surface] = []
 
 
 class Placement(Node):

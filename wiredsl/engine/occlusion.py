@@ -34,11 +34,20 @@ RAY_END = 1e-7  # fraction of the eye-to-point distance treated as touching the 
 SAMPLES = 128  # samples a segment or a full ellipse against the curved surfaces; a section gets its share
 BISECT = 40  # halvings of a sample step that brackets a change of visibility
 SLIVER = 1e-9  # parameter length below which a visible or hidden piece is dropped (rounding, not geometry)
+GRID_NEAR = 1e-2  # metres from the eye's plane within which a triangle is tested against every query
+GRID_REACH = 10.0  # the grid spans image-plane coordinates (x/z, y/z) within this; beyond, its border cells
+GRID_MAX = 512  # cells a side of the grid of chunks
+CHUNK = 8  # triangles a chunk: the grid bins chunks, so that a view's set-up costs T / CHUNK
 
 
 @dataclass(frozen=True)
 class Occluders:
-    """Occluding geometry, world or camera frame: triangles (T, 3, 3) and surfaces' two ellipses (S, 3) each."""
+    """Occluding geometry, world or camera frame: triangles (T, 3, 3) and surfaces' two ellipses (S, 3) each.
+
+    The triangles are kept in chunks of CHUNK neighbours (ordered along a Morton curve of their centroids),
+    each with its bounding sphere (`chunk_c`, `chunk_r`), so that a view meets only the chunks over what
+    it asks about and never transforms or tests the rest: the cost of a view grows more slowly than T.
+    """
 
     tris: np.ndarray
     ca: np.ndarray
@@ -47,6 +56,15 @@ class Occluders:
     cb: np.ndarray
     Ub: np.ndarray
     Vb: np.ndarray
+    chunk_c: np.ndarray | None = None
+    chunk_r: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.chunk_c is None:
+            tris, c, r = _chunks(np.asarray(self.tris, float).reshape(-1, 3, 3))
+            object.__setattr__(self, "tris", tris)
+            object.__setattr__(self, "chunk_c", c)
+            object.__setattr__(self, "chunk_r", r)
 
     @classmethod
     def of_world(cls, w: World) -> Occluders:
@@ -55,16 +73,39 @@ class Occluders:
 
     def seen_from(self, R_cw: np.ndarray, t_cw: np.ndarray) -> Eye:
         """The occluders in a camera's frame (P_cam = R P_world + t): the eye at the origin."""
-        return Eye(Occluders(self.tris @ R_cw.T + t_cw, self.ca @ R_cw.T + t_cw, self.Ua @ R_cw.T, self.Va @ R_cw.T,
-                             self.cb @ R_cw.T + t_cw, self.Ub @ R_cw.T, self.Vb @ R_cw.T))
+        return Eye(self, np.asarray(R_cw, float), np.asarray(t_cw, float))
+
+
+def _chunks(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangles reordered along a Morton curve, and the bounding spheres (K, 3), (K,) of each CHUNK of them."""
+    T = len(tris)
+    if T == 0:
+        return tris, np.zeros((0, 3)), np.zeros(0)
+    cen = tris.mean(axis=1)
+    lo, span = cen.min(axis=0), np.maximum(np.ptp(cen, axis=0), 1e-300)
+    q = np.minimum((cen - lo) / span * 1024, 1023).astype(np.int64)
+    code = np.zeros(T, np.int64)
+    for bit in range(10):  # interleave the bits of x, y, z
+        for axis in range(3):
+            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
+    tris = tris[np.argsort(code, kind="stable")]
+    pad = (-T) % CHUNK
+    V = np.concatenate([tris, np.repeat(tris[-1:], pad, axis=0)]).reshape(-1, CHUNK * 3, 3)
+    c = (V.max(axis=1) + V.min(axis=1)) / 2
+    r = np.linalg.norm(V - c[:, None], axis=2).max(axis=1) * (1 + 1e-9)
+    return tris, c, r
 
 
 class Eye:
-    """What hides what from an eye at the origin of the occluders' frame."""
+    """What hides what from an eye at the origin of a camera's frame (P_cam = R P_world + t)."""
 
-    def __init__(self, occ: Occluders):
+    def __init__(self, world: Occluders, R: np.ndarray, t: np.ndarray):
+        self.R, self.t = R, t
+        self.tris_w = world.tris
+        occ = Occluders(world.tris[:0], world.ca @ R.T + t, world.Ua @ R.T, world.Va @ R.T,
+                        world.cb @ R.T + t, world.Ub @ R.T, world.Vb @ R.T, np.zeros((0, 3)), np.zeros(0))
         self.occ = occ
-        self.G, self.h = _triangle_conditions(occ.tris)
+        self.grid = _Grid(world.chunk_c @ R.T + t, world.chunk_r, len(world.tris))
         centre = (occ.ca + occ.cb) / 2
         reach = lambda c, U, V: (np.linalg.norm(c - centre, axis=1)  # noqa: E731
                                  + np.maximum(np.linalg.norm(U, axis=1), np.linalg.norm(V, axis=1)))
@@ -80,10 +121,36 @@ class Eye:
         return self.hidden_by_faces(P) | self.hidden_by_surfaces(P)
 
     def hidden_by_faces(self, P: np.ndarray) -> np.ndarray:
-        if len(self.G) == 0 or len(P) == 0:
-            return np.zeros(len(P), dtype=bool)
-        lo, hi = _segment_intervals(self.G, self.h, P, np.zeros_like(P))
-        return (hi > lo).any(axis=1)
+        out = np.zeros(len(P), dtype=bool)
+        if len(self.tris_w) == 0 or len(P) == 0:
+            return out
+        r, G, h = self._pairs(P, P)
+        lo, hi = _pair_intervals(G, h, P[r], np.zeros((len(r), 3)))
+        out[r[hi > lo]] = True
+        return out
+
+    def _pairs(self, A: np.ndarray, B: np.ndarray):
+        """(row, G, h): the conditions of every triangle whose image-plane box meets that of segment A B (rows,
+        camera frame), from the chunks the grid gives (the rest cannot hide any of it)."""
+        r, t = self.grid.pairs(A, B)
+        u, inv = np.unique(t, return_inverse=True)
+        inv = inv.reshape(-1)
+        W = self.tris_w[u] @ self.R.T + self.t
+        z = W[:, :, 2]
+        boxed = z.min(axis=1) > GRID_NEAR
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = W[:, :, :2] / np.where(boxed[:, None], z, 1.0)[:, :, None]
+        tlo = np.where(boxed[:, None], q.min(axis=1), -np.inf)
+        thi = np.where(boxed[:, None], q.max(axis=1), np.inf)
+        ahead = (A[:, 2] > 0) & (B[:, 2] > 0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            qa = A[:, :2] / np.where(ahead, A[:, 2], 1.0)[:, None]
+            qb = B[:, :2] / np.where(ahead, B[:, 2], 1.0)[:, None]
+        qlo = np.where(ahead[:, None], np.minimum(qa, qb), -np.inf)
+        qhi = np.where(ahead[:, None], np.maximum(qa, qb), np.inf)
+        keep = ((tlo[inv] <= qhi[r]) & (thi[inv] >= qlo[r])).all(axis=1) & (z.max(axis=1) > 0)[inv]
+        G, h = _triangle_conditions(W)
+        return r[keep], G[inv[keep]], h[inv[keep]]
 
     def hidden_by_surfaces(self, P: np.ndarray) -> np.ndarray:
         out = np.zeros(len(P), dtype=bool)
@@ -106,10 +173,11 @@ class Eye:
         """Visible parts of segments A + u (B - A), u in [t0, t1] (rows (n,)): (row, u0, u1) of each piece."""
         n = len(A)
         hid_r, hid_a, hid_b = [], [], []
-        if len(self.G) and n:
-            lo, hi = _segment_intervals(self.G, self.h, A, B - A)
-            r, _ = np.nonzero(hi > lo)
-            hid_r.append(r)
+        if len(self.tris_w) and n:
+            D = B - A
+            r, G, h = self._pairs(A + t0[:, None] * D, A + t1[:, None] * D)
+            lo, hi = _pair_intervals(G, h, A[r], D[r])
+            hid_r.append(r[hi > lo])
             hid_a.append(lo[hi > lo])
             hid_b.append(hi[hi > lo])
         if len(self.sphere_c) and n:
@@ -160,20 +228,95 @@ def _triangle_conditions(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return G, h
 
 
-def _segment_intervals(G: np.ndarray, h: np.ndarray, A: np.ndarray, D: np.ndarray):
-    """The u-interval [lo, hi] (n, T) of A + u D (u in [0, 1]) that each triangle hides (empty when lo >= hi)."""
-    a = np.einsum("tkj,nj->ntk", G, A) + h[None]  # (n, T, 4): a + b u >= 0
-    b = np.einsum("tkj,nj->ntk", G, D)
+def _pair_intervals(G: np.ndarray, h: np.ndarray, A: np.ndarray, D: np.ndarray):
+    """The u-interval [lo, hi] (p,) of A + u D (u in [0, 1]) that the triangle of each pair hides (empty when
+    lo >= hi); pairs: G (p, 4, 3), h (p, 4), A and D (p, 3)."""
+    a = np.einsum("pkj,pj->pk", G, A) + h  # (p, 4): a + b u >= 0
+    b = np.einsum("pkj,pj->pk", G, D)
     with np.errstate(divide="ignore", invalid="ignore"):
         bound = -a / b
     lower = np.where(b > 0, bound, -np.inf)
     upper = np.where(b < 0, bound, np.inf)
     never = (b == 0) & ~(a >= 0)  # also a = -inf (a triangle that hides nothing)
-    lo = np.maximum(lower.max(axis=2), 0.0)
-    hi = np.minimum(upper.min(axis=2), 1.0)
-    hi = np.where(never.any(axis=2), -np.inf, hi)
+    lo = np.maximum(lower.max(axis=1, initial=-np.inf), 0.0)
+    hi = np.minimum(upper.min(axis=1, initial=np.inf), 1.0)
     # a point (D = 0) hidden by every condition: the whole [0, 1]
-    return lo, hi
+    return lo, np.where(never.any(axis=1), -np.inf, hi)
+
+
+class _Grid:
+    """Chunks of triangles binned by the image-plane box (x/z, y/z) of their bounding spheres, so that a query
+    meets only the triangles of the chunks over its own box: a uniform grid of about one cell a chunk (at
+    most GRID_MAX a side).
+
+    A point can be hidden only by a triangle that its ray crosses, at a point with the same projection and
+    z > 0: so chunks wholly behind the eye's plane are dropped, and those reaching within GRID_NEAR of it
+    (whose projections are unbounded) are paired with every query, as is a query reaching behind the plane.
+    Boxes beyond the grid's range are clamped to its border cells, which keeps every true pair.
+    """
+
+    def __init__(self, c: np.ndarray, r: np.ndarray, n_tris: int):
+        self.n_tris = n_tris
+        live = c[:, 2] + r > 0
+        self.live = np.flatnonzero(live)
+        self.always = np.flatnonzero(live & (c[:, 2] - r <= GRID_NEAR))
+        binned = np.flatnonzero(live & (c[:, 2] - r > GRID_NEAR))
+        self.n = len(binned)
+        if self.n == 0:
+            return
+        c, r = c[binned], r[binned, None]
+        near, far = c[:, 2:] - r, c[:, 2:] + r  # a conservative box of x/z, y/z over the sphere's box
+        lo = np.where(c[:, :2] - r < 0, (c[:, :2] - r) / near, (c[:, :2] - r) / far)
+        hi = np.where(c[:, :2] + r > 0, (c[:, :2] + r) / near, (c[:, :2] + r) / far)
+        self.origin = np.maximum(lo.min(axis=0), -GRID_REACH)
+        extent = np.maximum(np.minimum(hi.max(axis=0), GRID_REACH) - self.origin, 1e-12)
+        self.side = int(np.clip(np.sqrt(self.n), 1, GRID_MAX))
+        self.cell = extent / self.side
+        self.box_lo = np.full((len(live), 2), -np.inf)
+        self.box_hi = np.full((len(live), 2), np.inf)
+        self.box_lo[binned], self.box_hi[binned] = lo, hi
+        owner, cells = self._cells(lo, hi)
+        order = np.argsort(cells, kind="stable")
+        self.chunk = binned[owner[order]]
+        self.start = np.searchsorted(cells[order], np.arange(self.side * self.side + 1))
+
+    def _cells(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every (box, cell) pair of the boxes [lo, hi] (b, 2) in projected coordinates."""
+        i0 = np.clip(np.floor((lo - self.origin) / self.cell), 0, self.side - 1).astype(int)
+        i1 = np.clip(np.floor((hi - self.origin) / self.cell), 0, self.side - 1).astype(int)
+        nx, ny = i1[:, 0] - i0[:, 0] + 1, i1[:, 1] - i0[:, 1] + 1
+        owner = np.repeat(np.arange(len(lo)), nx * ny)
+        k = np.arange(len(owner)) - np.repeat(np.cumsum(nx * ny) - nx * ny, nx * ny)
+        return owner, (i0[owner, 0] + k % nx[owner]) * self.side + i0[owner, 1] + k // nx[owner]
+
+    def pairs(self, A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row, triangle) of every triangle that may hide part of the segment A B (rows (n, 3)), each once."""
+        rows, chunks = [], []
+        ahead = (A[:, 2] > 0) & (B[:, 2] > 0)
+        behind = np.flatnonzero(~ahead)  # reaches the eye's plane: every chunk in front of it
+        rows.append(np.repeat(behind, len(self.live)))
+        chunks.append(np.tile(self.live, len(behind)))
+        front = np.flatnonzero(ahead)
+        rows.append(np.repeat(front, len(self.always)))
+        chunks.append(np.tile(self.always, len(front)))
+        if self.n and len(front):
+            qa, qb = A[front, :2] / A[front, 2:], B[front, :2] / B[front, 2:]
+            qlo, qhi = np.minimum(qa, qb), np.maximum(qa, qb)
+            owner, cells = self._cells(qlo, qhi)
+            count = self.start[cells + 1] - self.start[cells]
+            row = np.repeat(owner, count)
+            at = np.repeat(self.start[cells] - np.cumsum(count) + count, count) + np.arange(count.sum())
+            chunk = self.chunk[at]
+            near = ((self.box_lo[chunk] <= qhi[row]) & (self.box_hi[chunk] >= qlo[row])).all(axis=1)
+            width = int(self.live.max()) + 1
+            key = np.unique(front[row[near]] * width + chunk[near])
+            rows.append(key // width)
+            chunks.append(key % width)
+        row, chunk = np.concatenate(rows).astype(int), np.concatenate(chunks).astype(int)
+        # each chunk's triangles; the last chunk may be short
+        row, tri = np.repeat(row, CHUNK), (chunk[:, None] * CHUNK + np.arange(CHUNK)).ravel()
+        keep = tri < self.n_tris
+        return row[keep], tri[keep]
 
 
 def _ray_hits_ruled(P, X, ca, Ua, Va, cb, Ub, Vb) -> np.ndarray:

@@ -357,6 +357,7 @@ class _Segments:
 def _straight_segments(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes=None) -> _Segments:
     """Lines, polyline segments and silhouette sides of every view, in that order within a view."""
     sv, sA, sB, sfid, sside = silhouettes_cams(world, views, masks)
+    sv, sA, sB, sfid, sside = _with_contours(world, views, masks, (sv, sA, sB, sfid, sside))
     lv, ll = np.nonzero(masks[:, world.line_fid]) if len(world.line_fid) else (np.zeros(0, int),) * 2
     R = np.stack([v.R_cw for v in views])
     t = np.stack([v.t_cw for v in views])
@@ -387,6 +388,22 @@ def _straight_segments(world: World, views: list[View], cam: dict, masks: np.nda
         vid, A, B, fid, seg, t0, t1 = vid[rows], A[rows], B[rows], fid[rows], seg[rows], u0, u1
         keep = np.ones(len(rows), dtype=bool)
     return _Segments(vid, A, B - A, fid, seg, t0, t1, keep, cut3d, piece.astype(int), hid.astype(bool))
+
+
+def _with_contours(world: World, views: list[View], masks: np.ndarray, sil: tuple) -> tuple:
+    """The silhouette sides and the occluding-contour edges of smooth mesh surfaces (engine/mesh.py) of
+    every view: (view, A, B, fid, segment), camera frame; a contour's segment is the edge's index."""
+    if not world.contours:
+        return sil
+    parts = [sil]
+    for k, v in enumerate(views):
+        eye = -v.R_cw.T @ v.t_cw  # the camera's centre in the world
+        for fid, cont in world.contours:
+            if masks[k, fid]:
+                e = np.flatnonzero(cont.seen_from(eye))
+                P = cont.ends[e] @ v.R_cw.T + v.t_cw
+                parts.append((np.full(len(e), k), P[:, 0], P[:, 1], np.full(len(e), fid), e))
+    return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
 
 
 def _emit_lines(s: _Segments, views: list[View], cam: dict, out: _Emitted) -> None:

@@ -231,6 +231,9 @@ def visible_features(w: World, eyes: np.ndarray, threshold: float = THRESHOLD) -
     # silhouettes follow their ellipses
     for fid_s, (a, b) in zip(w.sil_fid, w.sil_pair, strict=True):
         out[:, fid_s] = out[:, w.ell_fid[a]] | out[:, w.ell_fid[b]]
+    # a smooth surface's outline is made for each view (engine/mesh.py), so it is always listed
+    for fid_c, _ in w.contours:
+        out[:, fid_c] = True
     return out
 
 

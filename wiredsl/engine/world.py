@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from wiredsl.engine.mesh import Contours
 from wiredsl.scene import Scene
 
 
@@ -40,6 +41,8 @@ class World:
     corners: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
     face_src: list[str] = field(default_factory=list)
     triangles: np.ndarray = field(default_factory=lambda: _empty((0, 3, 3)))  # occluders (faces, fanned)
+    triangle_face: np.ndarray = field(default_factory=lambda: _empty(0, int))  # index into face_src
+    contours: list[tuple[int, Contours]] = field(default_factory=list)  # (fid, edges) of smooth mesh surfaces
 
     @property
     def n_features(self) -> int:
@@ -59,7 +62,7 @@ def build_world(scene: Scene) -> World:
     ec, eU, eV, earc, efull, efid = [], [], [], [], [], []
     sil_fid, sil_pair = [], []
     corners, corner_fid = [], []
-    tris = []
+    tris, tri_face = [], []
     for p in scene.placements:
         model = scene.model(p.model)
         R = np.array(p.rotation)
@@ -105,7 +108,16 @@ def build_world(scene: Scene) -> World:
             w.face_src.append(f"{p.name}.{fc.name}")
             v = to_world(fc.vertices)
             for i in range(1, len(v) - 1):  # a fan: faces are convex polygons
-                tris.append(np.stack([v[0], v[i], v[i + 1]]))
+                tris.append(np.stack([v[0], v[i], v[i + 1]])[None])
+                tri_face.append(len(w.face_src) - 1)
+        for sf in model.surfaces:
+            w.face_src.append(f"{p.name}.{sf.name}")
+            v = to_world(sf.vertices)
+            F = np.array(sf.triangles, dtype=int).reshape(-1, 3)
+            tris.append(v[F])
+            tri_face.extend([len(w.face_src) - 1] * len(sf.triangles))
+            if sf.contour:  # the outline of its smooth part: a feature of each view (engine/mesh.py)
+                w.contours.append((new_id(sf.name, "contour"), Contours.of(v, F[np.array(sf.contour)])))
     w.lines = np.array(lines, dtype=float).reshape(-1, 2, 3)
     w.line_fid = np.array(line_fid, dtype=int)
     w.line_segment = np.array(line_seg, dtype=int)
@@ -119,7 +131,8 @@ def build_world(scene: Scene) -> World:
     w.sil_pair = np.array(sil_pair, dtype=int).reshape(-1, 2)
     w.corners = np.array(corners, dtype=float).reshape(-1, 3)
     w.corner_fid = np.array(corner_fid, dtype=int)
-    w.triangles = np.array(tris, dtype=float).reshape(-1, 3, 3)
+    w.triangles = np.concatenate(tris).astype(float) if tris else _empty((0, 3, 3))  # blocks (k, 3, 3)
+    w.triangle_face = np.array(tri_face, dtype=int)
     return w
 
 

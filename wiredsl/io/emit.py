@@ -76,6 +76,8 @@ def _view(v: SimView, world: World, cameras: dict) -> dict:
         if f.kind == "line":
             lo, hi = at[id(f)]
             d["points"] = pts[lo:hi]
+            if world.feature_kind[f.fid] == "contour":  # written only when true: dumps without meshes unchanged
+                d["contour"] = True
             lines.append(d)
         elif f.kind == "polyline":
             lo, hi = at[id(f)]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import ConfigDict, Field
+from pydantic import ConfigDict, Field, model_serializer
 
 from wiredsl.scene import SCHEMA_VERSION, Camera, Mat34, Vec2, Vec3, omitted_when_none
 from wiredsl.scene import Node as SceneNode
@@ -30,6 +30,15 @@ class Feature(Node):
 class ImageLine(Feature):
     kind: Literal["line"] = "line"
     points: tuple[Vec2, Vec2]
+    contour: bool = Field(False, description="an edge of a smooth mesh surface's occluding contour in this view: "
+                                             "view-dependent, not a fixed edge of the object (written only when true)")
+
+    @model_serializer(mode="wrap")
+    def _omit_plain(self, handler):  # dumps of scenes without meshes stay as they were
+        out = handler(self)
+        if not self.contour:
+            out.pop("contour", None)
+        return out
 
 
 class ImagePolyline(Feature):

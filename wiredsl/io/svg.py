@@ -38,8 +38,9 @@ SANS = 'font-family="DejaVu Sans, Arial, Helvetica, sans-serif"'
 
 # camera panes: colour by what the vision system extracts
 KIND_COLOURS = {"line": "#1f4e79", "polyline": "#1f4e79", "ellipse": "#2e7d32", "silhouette": "#b35900",
-                "corner": "#c62828"}
-KIND_LABELS = {"#1f4e79": "line, polyline", "#2e7d32": "ellipse", "#b35900": "silhouette", "#c62828": "corner"}
+                "corner": "#c62828", "contour": "#6d4c41"}
+KIND_LABELS = {"#1f4e79": "line, polyline", "#2e7d32": "ellipse", "#b35900": "silhouette", "#c62828": "corner",
+               "#6d4c41": "contour (a mesh's smooth outline)"}
 IDEAL = "#b0b0b0"  # the ideal features beneath the disturbed ones
 HIDDEN = "#d81b60"  # features that view-dependency hides
 # top view: colour by object; the largest (the room) is drawn first in grey, so that what lies on its
@@ -210,6 +211,9 @@ def _footprints(world: World) -> dict[str, list[np.ndarray]]:
         t = np.linspace(world.ell_arc[e, 0], world.ell_arc[e, 1], 73) if not world.ell_full[e] else ring
         pts = world.ell_c[e, :2] + np.cos(t)[:, None] * world.ell_U[e, :2] + np.sin(t)[:, None] * world.ell_V[e, :2]
         out.setdefault(owner[fid], []).append(pts)
+    for fid, cont in world.contours:  # a smooth mesh surface: its outline seen from high above
+        above = cont.ends.reshape(-1, 3).mean(axis=0) + (0.0, 0.0, 1e6)
+        out.setdefault(owner[fid], []).extend(cont.ends[cont.seen_from(above)][:, :, :2])
     return out
 
 

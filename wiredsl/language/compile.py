@@ -20,7 +20,7 @@ from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
 from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
 from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE, Bound, bind
-from wiredsl.language.units import DEFAULT_UNITS
+from wiredsl.language.units import DEFAULT_UNITS, UNITS
 from wiredsl.scene import (
     Camera,
     Corner,
@@ -196,12 +196,16 @@ class Compiler(CameraCompiler):
 
     # ------------------------------------------------------------------ models
     def _model(self, b: Bound) -> None:
-        feats: dict[str, list] = {k: [] for k in ("lines", "polylines", "ellipses", "silhouettes", "corners", "faces")}
+        feats: dict[str, list] = {k: [] for k in ("lines", "polylines", "ellipses", "silhouettes", "corners", "faces",
+                                                      "surfaces")}
         names: dict[str, _Decl] = {}
         silhouettes, corners = [], []  # checked once every feature name is known
         for stmt in b.stmt.block:
             fb = bind(stmt, "model", self._units(stmt), self.out)
             if fb is None or not fb.ok:
+                continue
+            if stmt.keyword == "mesh":
+                self._mesh(fb, feats, names)
                 continue
             if not self._declare(names, "feature", fb.name, fb.name_span, stmt.keyword):
                 continue
@@ -233,6 +237,57 @@ class Compiler(CameraCompiler):
         model = Model(name=b.name, **feats)
         if self._declare(self.models, "model", b.name, b.name_span, model):
             self.features[b.name] = kinds
+
+    def _mesh(self, fb: Bound, feats: dict[str, list], names: dict[str, _Decl]) -> None:
+        """`mesh read`: the mesh's features added to the model's (engine/mesh.py says what becomes what)."""
+        from wiredsl.engine import mesh as mesh_features
+        from wiredsl.io.mesh import MAX_MESH_BYTES, MeshFileError, MeshTooLarge, read_mesh
+
+        path, where = fb.get("read"), fb.span("read")
+        if any(d.value == "mesh" for d in names.values()):
+            self.out.error("E103", "a model reads one mesh", fb.stmt.keyword_span, "put each mesh in its own model")
+            return
+        names[f"mesh {path}"] = _Decl("mesh", fb.stmt.span)  # a key no feature name can be
+        try:
+            target = FsPath(fb.stmt.span.file).parent / path
+            data = ast.read_bytes(target, "mesh file", where, limit=MAX_MESH_BYTES)
+            raw = read_mesh(target, data)
+        except WiredslError as err:
+            self.out.extend(err.diagnostics)
+            return
+        except MeshTooLarge as exc:
+            self.out.error("E151", f"mesh file {path} {exc}", where, "simplify the mesh (decimate it) first")
+            return
+        except MeshFileError as exc:
+            self.out.error("E125", f"mesh file {path}: {exc}", where)
+            return
+        scale = fb.get("scale", UNITS[self._units(fb.stmt)["length"]][1])
+        if not (0 < scale <= MAX_MAGNITUDE):
+            self.out.error("E110", f"mesh scale must be positive, got {scale:g}", fb.span("scale"))
+            return
+        V = raw.vertices * scale
+        if np.abs(V).max() > MAX_MAGNITUDE:
+            self.out.error("E110", f"mesh file {path} has a vertex beyond {MAX_MAGNITUDE:g} m", where)
+            return
+        up = fb.get("up", "z")
+        if up != "z":  # the file's up axis becomes z: y-up turns about x, x-up about y
+            V = V @ (rotation("x", math.pi / 2) if up == "y" else rotation("y", -math.pi / 2)).T
+        found = mesh_features.features(V, raw.triangles, fb.get("crease", math.radians(30)))
+        if not (len(found.lines) + len(found.polylines) + len(found.ellipses) + len(found.faces)
+                + len(found.occluders)):
+            self.out.error("E125", f"mesh file {path}: no triangle has an area", where)
+            return
+        if found.degenerate:
+            self.out.warning("W125", f"mesh file {path}: {found.degenerate} triangle(s) of no area dropped", where)
+        if found.nonmanifold:
+            self.out.warning("W126", f"mesh file {path}: {found.nonmanifold} edge(s) shared by more than two "
+                                     "triangles (non-manifold), kept as lines", where)
+        built = mesh_features.as_nodes(found, path)
+        for kind, items in built.items():
+            for item in items:
+                what = "contour" if kind == "surfaces" and item.contour else kind[:-1]  # its outline is emitted
+                if self._declare(names, "feature", item.name, fb.stmt.span, what):
+                    feats[kind].append(item)
 
     def _point(self, fb: Bound, key: str) -> np.ndarray:
         return np.array(fb.get(key), dtype=float)
@@ -496,7 +551,7 @@ class Compiler(CameraCompiler):
         return []
 
     def _emitted(self, model: str) -> dict[str, str]:
-        return {n: k for n, k in self.features.get(model, {}).items() if k != "face"}
+        return {n: k for n, k in self.features.get(model, {}).items() if k not in ("face", "surface", "mesh")}
 
     def _path(self, b: Bound, rig: Rig | None) -> Path | None:
         poses: list[tuple[float, float, float]] = []

@@ -131,6 +131,16 @@ _MODEL = [
     Sig("face", "a planar polygon that occludes but is never emitted", (NAME,),
         {"through": C("the vertices, at least three, coplanar", S("pts", "vertices"), required=True)},
         example="face lid through (0, 0, 1) (1, 0, 1) (1, 1, 1) (0, 1, 1)"),
+    Sig("mesh", "features read from a triangle mesh: crease edges as lines, rims as ellipses, cylinder and cone "
+        "sides as silhouettes, corners, faces; its other triangles occlude",
+        clauses={"read": C("the mesh file (OBJ, PLY, STL, glTF/GLB), relative to this file", S("str", "path"),
+                           required=True),
+                 "crease": C("edges whose triangles' normals differ by more than this are features (default 30deg)",
+                             S("angle", "angle")),
+                 "scale": C("metres per unit of the file (default: this file's length unit)", S("number", "scale")),
+                 "up": C("the file's up axis, turned to z (default z; OBJ and glTF are often y-up)",
+                         S("word", "axis", "x", "y", "z"))},
+        example='mesh read "crate.obj" crease 30deg scale 0.001 up y'),
 ]
 
 _CAMERA = [
