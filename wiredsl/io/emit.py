@@ -43,9 +43,10 @@ def rounded(a: np.ndarray, where: str, decimals: int = DECIMALS) -> np.ndarray:
     rounded one by one."""
     a = require_finite(np.ascontiguousarray(a, dtype=np.float64), where)
     scale = 10.0 ** decimals
-    scaled = a * scale
-    out = np.round(scaled) / scale
-    near = (np.abs(scaled - np.floor(scaled) - 0.5) < 1e-3) | (np.abs(scaled) >= 2.0 ** 52)
+    with np.errstate(over="ignore", invalid="ignore"):  # a value too large to scale is rounded one by one below
+        scaled = a * scale
+        out = np.round(scaled) / scale
+        near = (np.abs(scaled - np.floor(scaled) - 0.5) < 1e-3) | ~(np.abs(scaled) < 2.0 ** 52)
     for i in np.flatnonzero(near):
         out.flat[i] = round(float(a.flat[i]), decimals)
     return out + 0.0  # -0.0 + 0.0 is 0.0: no "-0.0" in dumps
