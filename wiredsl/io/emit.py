@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 from pathlib import Path
 
@@ -130,9 +131,15 @@ def to_json(doc, indent: int | None = 1) -> str:
 
     orjson writes each float as the shortest text that reads back as the same double, as Python's repr does
     (1e-6 where repr writes 1e-06)."""
+    import orjson
+
     if not isinstance(doc, dict):
         doc = doc.model_dump(mode="json")  # a model refuses non-finite numbers when it is made
-    return _dumps(doc, indent).decode() + "\n"
+    try:
+        return _dumps(doc, indent).decode() + "\n"
+    except orjson.JSONEncodeError:  # a lone surrogate (a file name that is not UTF-8): escaped as json escapes it
+        return json.dumps(doc, indent=2 if indent else None, separators=(",", ": ") if indent else (",", ":"),
+                          allow_nan=False, default=lambda a: a.tolist()) + "\n"
 
 
 # --------------------------------------------------------------------------- disturbed output
