@@ -40,3 +40,23 @@ def _study_measures():
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(compile_study, "measure_registry", lambda: {**installed(), **study_measures.REGISTRY})
         yield
+
+
+@pytest.fixture(params=["numpy", "kernel"])
+def engine(request, monkeypatch):
+    """Run a test on both engines: with "kernel", every built-in stage applied by hand (`Effect.apply`) runs in
+    the compiled kernel instead (`montecarlo.kernel_apply`), with the same draws."""
+    if request.param == "kernel":
+        pytest.importorskip("numba")
+        from wiredsl.effects.base import Effect
+        from wiredsl.engine.montecarlo import kernel_apply
+
+        on_numpy = Effect.apply.__func__
+
+        def apply(cls, params, features, ctx):
+            if cls.kernel is None:
+                return on_numpy(cls, params, features, ctx)
+            return kernel_apply(cls, params, features, ctx)
+
+        monkeypatch.setattr(Effect, "apply", classmethod(apply))
+    return request.param

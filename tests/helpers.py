@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from wiredsl.diagnostics import WiredslError
+from wiredsl.engine import conics
 from wiredsl.language.ast import Program, parse_text
 from wiredsl.language.compile import compile_program
 
@@ -43,3 +46,19 @@ def out_of_range(field) -> list[float]:
             if v is not None:
                 bad.append(v + delta * max(abs(v), 1.0) if delta else v)
     return bad
+
+
+def ellipse_params(Cstar: np.ndarray):
+    """(centre, semi-axes (major, minor), angle of the major axis) of one dual conic, or None (not an ellipse)."""
+    ok, centre, axes, angle = conics.ellipse_params_batch(Cstar[None])
+    return (centre[0], axes[0], float(angle[0])) if ok[0] else None
+
+
+def silhouette_segments(ca, Ua, Va, cb, Ub, Vb, arc_a=None, arc_b=None):
+    """Camera-frame 3D segments (start on a, end on b) of the visible sides between two ellipses."""
+    full_a, full_b = np.array([arc_a is None]), np.array([arc_b is None])
+    arcs_a = np.array([arc_a if arc_a is not None else (0.0, 2 * math.pi)], dtype=float)
+    arcs_b = np.array([arc_b if arc_b is not None else (0.0, 2 * math.pi)], dtype=float)
+    _, A, B = conics.silhouette_segments_batch(*(np.asarray(x, dtype=float)[None] for x in (ca, Ua, Va, cb, Ub, Vb)),
+                                               arcs_a, full_a, arcs_b, full_b)
+    return list(zip(A, B, strict=True))

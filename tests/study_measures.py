@@ -20,6 +20,7 @@ class Kept:
     name: ClassVar[str] = "kept"
     Params: ClassVar[type[BaseModel]] = KeptParams
     statistics: ClassVar[tuple[str, ...]] = ("strokes", "length")
+    units: ClassVar[dict[str, str]] = {"strokes": "fraction", "length": "px"}
 
     @classmethod
     def prepare(cls, params, run) -> object:

@@ -20,7 +20,7 @@ from wiredsl.engine.world import build_world
 from wiredsl.io import emit, schema
 from wiredsl.language.compile import compile_file
 
-BUILDABLE = ["lab", "cylinder", "box"]
+BUILDABLE = ["lab", "cylinder", "box", "handheld"]
 GOLDEN = Path("tests/golden")
 
 

@@ -336,3 +336,20 @@ def test_a_fisheye_rig_exported_reads_back_as_the_same_cameras(tmp_path):
         assert (c.model, c.fx, c.dist) == ("equidistant", 290.0, (0.02, -0.01, 0.003, -0.0004)), name
     fs = cv2.FileStorage(str(tmp_path / "cal" / "stereo.yaml"), cv2.FILE_STORAGE_READ)
     assert np.array_equal(fs.getNode("D2").mat().ravel(), [0.02, -0.01, 0.003, -0.0004])
+
+
+def test_a_size_given_for_a_file_without_one_is_checked_against_its_centre(tmp_path):
+    (tmp_path / "kitti.yaml").write_text("%YAML:1.0\nCamera.fx: 718.856\nCamera.fy: 718.856\nCamera.cx: 607.1928\n"
+                                         "Camera.cy: 185.2157\n")
+    _, warnings = _compile(tmp_path, 'camera c {\n  read "kitti.yaml"\n  size (1241px, 376px)\n}')
+    assert not [w for w in warnings if w.code == "W143"]
+    _, warnings = _compile(tmp_path, 'camera c {\n  read "kitti.yaml"\n  size (600px, 376px)\n}')
+    (w,) = [w for w in warnings if w.code == "W143"]
+    assert "centre (607.193, 185.216) is outside the 600 x 376 image" in w.message
+
+
+def test_a_focal_length_that_underflows_is_refused(tmp_path):
+    """Found by the fuzzing: Kalibr's projection with fu = 1e-320 divided by fu**2 = 0."""
+    (tmp_path / "results-cam.txt").write_text(_results("\t").replace("[530.  531.5", "[1e-320  531.5"))
+    with pytest.raises(cf.CalibrationFileError, match="focal lengths must be at least 1e-06 px"):
+        cf.read(tmp_path / "results-cam.txt")

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from helpers import circle
+from helpers import circle, ellipse_params, silhouette_segments
 from test_projection import _dist_to_polyline
 
 from wiredsl.engine import conics, geometry
@@ -45,7 +45,7 @@ def random_cylinders(n, seed=3, cone=False):
 def test_conic_parameters_fit_the_projected_ellipse_points():
     for (c, U, V), _ in random_cylinders(50):
         H = K @ conics.homography(c, U, V)
-        centre, axes, angle = conics.ellipse_params(conics.dual_conic(H))
+        centre, axes, angle = ellipse_params(conics.dual_conic(H))
         t = np.linspace(0, 2 * np.pi, 200)
         uv = pixels(c + np.cos(t)[:, None] * U + np.sin(t)[:, None] * V)
         C = conic_matrix(centre, axes, angle)
@@ -67,7 +67,7 @@ def test_silhouettes_are_tangent_to_both_ellipse_images(cone):
     t = np.linspace(0, 2 * np.pi, 20001)
     count = 0
     for (ca, Ua, Va), (cb, Ub, Vb) in random_cylinders(60, seed=11, cone=cone):
-        segs = conics.silhouette_segments(ca, Ua, Va, cb, Ub, Vb)
+        segs = silhouette_segments(ca, Ua, Va, cb, Ub, Vb)
         if not cone:
             assert len(segs) == 2, "a cylinder seen from outside always has two sides"
         for A, B in segs:
@@ -83,7 +83,7 @@ def test_silhouettes_are_tangent_to_both_ellipse_images(cone):
 
 def test_camera_inside_a_cylinder_sees_no_sides():
     a, b = circle([0, -0.5, 0.0], [0, 1, 0], 0.3), circle([0, 0.5, 0.0], [0, 1, 0], 0.3)
-    assert conics.silhouette_segments(*a, *b) == []
+    assert silhouette_segments(*a, *b) == []
 
 
 def test_nearly_concentric_and_edge_on_views_stay_finite():
@@ -91,11 +91,11 @@ def test_nearly_concentric_and_edge_on_views_stay_finite():
     for tilt in (0.0, 1e-9, 1e-6, 1e-3):
         a = circle([0, 0, 3.0], [tilt, 0, 1], 0.3)
         b = circle([0, 0, 4.0], [tilt, 0, 1], 0.3)
-        for A, B in conics.silhouette_segments(*a, *b):
+        for A, B in silhouette_segments(*a, *b):
             assert np.isfinite(A).all() and np.isfinite(B).all()
     # the rim exactly edge-on (camera in its plane): the sides end at the rim's end points
     a, b = circle([0, 0, 3.0], [0, 1, 0], 0.3), circle([0, 1, 3.0], [0, 1, 0], 0.3)
-    segs = conics.silhouette_segments(*a, *b)
+    segs = silhouette_segments(*a, *b)
     assert len(segs) == 2
     ends = sorted(float(pixels(A)[0, 0]) for A, _ in segs)
     # the viewing rays from the camera touch the circle (radius r, distance d) at x = +-r sqrt(d^2 - r^2) / d
@@ -106,7 +106,7 @@ def test_nearly_concentric_and_edge_on_views_stay_finite():
 
 def test_camera_exactly_on_the_surface_of_a_cylinder_is_finite():
     a, b = circle([0.3, -0.5, 0.0], [0, 1, 0], 0.3), circle([0.3, 0.5, 0.0], [0, 1, 0], 0.3)
-    for A, B in conics.silhouette_segments(*a, *b):
+    for A, B in silhouette_segments(*a, *b):
         assert np.isfinite(A).all() and np.isfinite(B).all()
 
 

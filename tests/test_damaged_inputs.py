@@ -87,6 +87,25 @@ def test_a_zip_bomb_member_is_refused_before_it_is_inflated(dump, tmp_path, monk
         wiredsl.load(bomb)
 
 
+@pytest.mark.parametrize(("member", "change", "message"), [
+    ("layout", lambda a: np.zeros(0, np.int64), "layout: shape (0,), expected ()"),  # the fuzz campaign's exit 3
+    ("layout", lambda a: np.array(1), f"layout 1, this wiredsl reads {layout.NPZ_VERSION}"),
+    ("b00000_strokes", lambda a: a[:, :7], "b00000_strokes: shape"),
+    ("b00000_strokes", lambda a: np.where(np.arange(a.shape[1]) == 2, 5, a).astype(np.int32), "a camera other than"),
+    ("b00000_corner_rows", lambda a: a[:-1], "corners and corner_rows differ in length"),
+    ("feature_ids", lambda a: np.array(7), "feature_ids: dtype int64, expected unicode"),
+    ("b00000_pts", lambda a: a.astype(np.complex64), "b00000_pts: dtype complex64, expected float32"),  # fuzz
+])
+def test_a_member_of_the_wrong_shape_or_values_is_a_diagnostic_not_a_crash(dump, tmp_path, member, change, message):
+    arrays = dict(np.load(dump))
+    arrays[member] = change(arrays[member])
+    np.savez(tmp_path / "bad.npz", **arrays)
+    code, out = validate(tmp_path / "bad.npz")
+    assert code == 1 and message in out and "internal error" not in out, out
+    with pytest.raises(ValueError, match="bad.npz"):
+        wiredsl.load(tmp_path / "bad.npz")
+
+
 def test_a_dump_with_nan_is_refused_by_validate_and_load(dump, tmp_path):
     arrays = dict(np.load(dump))
     arrays["b00000_pts"][3, 1] = np.nan
@@ -162,3 +181,15 @@ def test_a_scene_whose_path_is_not_utf8_builds_its_svgs(tmp_path):
     assert p.returncode == 0, p.stderr
     svg = (tmp_path / "out" / "pose_000.svg").read_bytes().decode("utf-8")
     assert "lab\ufffd.wd" in svg and svg.startswith("<svg")
+
+
+REGRESSIONS = sorted(Path(__file__).parent.joinpath("fuzz_regressions").glob("*"))
+
+
+@pytest.mark.parametrize("path", REGRESSIONS, ids=[p.name for p in REGRESSIONS])
+def test_every_input_the_fuzz_campaign_crashed_on_is_now_a_diagnostic(path):
+    """The inputs tests/fuzz_campaign.py found (exit 3 in validate, an exception in load), kept as they were."""
+    code, out = validate(path)
+    assert code == 1 and "internal error" not in out and out.startswith(f"{path}: error: "), out
+    with pytest.raises(ValueError, match=str(path.name)):
+        wiredsl.load(path)

@@ -17,6 +17,8 @@ from wiredsl.effects.base import Context, Stats
 from wiredsl.effects.lateral_shift import split_ellipses
 from wiredsl.engine import imageset as im
 
+pytestmark = pytest.mark.usefixtures("engine")  # every reference on both engines
+
 
 def one_stroke(pts: np.ndarray, closed: bool, kind: int = im.CURVE) -> im.ImageSet:
     z = np.zeros(1, int)

@@ -238,8 +238,22 @@ def test_fisheye_ends_at_the_image_border_and_at_the_lens_limit_lie_on_the_true_
                 d = np.hypot(*(uv - end).T)
                 k = int(np.nanargmin(d))
                 assert d[k] < 0.2, (f.fid, end)  # on the curve to the dense sampling's resolution
-                border = min(abs(end[0]), abs(end[0] - 900), abs(end[1]), abs(end[1] - 700))
-                if border < 1e-9:
+                on = [abs(end[0]), abs(end[0] - 900), abs(end[1]), abs(end[1] - 700)]
+                side = int(np.argmin(on))
+                if on[side] < 1e-9:  # where the true curve crosses that border: bisected on the curve
+                    axis, level = (0, 0.0) if side == 0 else (0, 900.0) if side == 1 else (1, 0.0) if side == 2 \
+                        else (1, 700.0)
+                    g = uv[:, axis] - level
+                    cross = np.flatnonzero(np.sign(g[:-1]) * np.sign(g[1:]) < 0)
+                    j = cross[np.argmin(np.abs(cross - k))]
+                    a, b = t[j], t[j + 1]
+                    ga = g[j]
+                    for _ in range(60):
+                        m = 0.5 * (a + b)
+                        gm = geometry.cam_to_pixels(_curve(w, f.fid, np.array([m])), cam)[0, axis] - level
+                        a, b, ga = (m, b, gm) if np.sign(gm) == np.sign(ga) else (a, m, ga)
+                    truth = geometry.cam_to_pixels(_curve(w, f.fid, np.array([0.5 * (a + b)])), cam)[0]
+                    assert np.abs(truth - end).max() < 1e-6, (end, truth)
                     on_border += 1
                 else:  # cut by the lens limit: the point there is at theta = limit
                     P = _curve(w, f.fid, t[k:k + 1])[0]
@@ -361,3 +375,18 @@ def test_a_study_varies_a_fisheye_coefficient(tmp_path):
     assert [r.scene.camera("cam_l").k3 for r in runs] == [-0.0372, 0.01]
     a, b = (max((f.points for f in r.ideal()[0].left.features), key=len) for r in runs)
     assert a.shape != b.shape or not np.allclose(a, b)
+
+
+def test_a_study_may_not_vary_a_coefficient_a_fisheye_has_not(tmp_path):
+    from pathlib import Path
+
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+
+    path = tmp_path / "bad.wd"
+    path.write_text(f'wiredsl 1\ninclude "{Path("scenes/fisheye.wd").resolve().as_posix()}"\n'
+                    "study s {\n  vary camera.cam_l.p1 values [0, 0.001]\n  measure kept\n}\n")
+    r = CliRunner().invoke(main, ["check", str(path)])
+    assert r.exit_code == 1
+    assert "4:8: error[E104]: camera 'cam_l' has an equidistant lens, which has no 'p1'" in r.stderr.splitlines()[0]

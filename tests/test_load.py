@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -163,7 +164,7 @@ def test_manifests_and_npz_validate_and_a_broken_npz_does_not(disturbed, tmp_pat
     broken = tmp_path / "old.npz"
     np.savez(broken, **data)
     result = CliRunner().invoke(main, ["validate", str(broken)])
-    assert result.exit_code == 1 and "strokes, start and pts do not agree" in result.output
+    assert result.exit_code == 1 and "b00000_strokes: shape (" in result.output and "expected (S, 10)" in result.output
     (tmp_path / "text.npz").write_text("not a zip")
     result = CliRunner().invoke(main, ["validate", str(tmp_path / "text.npz")])
     assert result.exit_code == 1 and "not an npz file" in result.output
@@ -200,3 +201,11 @@ def test_the_readme_documents_the_npz_layout():
 def test_importing_wiredsl_does_not_import_numpy():
     code = "import sys, wiredsl; assert 'numpy' not in sys.modules; assert callable(wiredsl.load)"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_a_device_or_fifo_is_refused_unopened(tmp_path):
+    fifo = tmp_path / "features.jsonl"
+    os.mkfifo(fifo)
+    for path in (fifo, "/dev/zero"):
+        with pytest.raises(DumpError, match="is not a regular file"):
+            wiredsl.load(path)

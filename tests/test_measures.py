@@ -94,7 +94,8 @@ def test_survival_follows_the_declared_losses():
 def test_when_everything_is_lost_the_placeholders_are_the_documented_ones():
     lost = pipeline("edge_loss fraction 1\ncorner_loss keep 0")
     for out in run_measure("pgh", lost, 2):
-        assert all((v == 0).all() for v in out.values())
+        assert all((v == 0).all() for k, v in out.items() if k != "viewpoint_cameras")
+        assert (out["viewpoint_cameras"] > 0).all()  # a weight: the cameras that had a mesh to rank
     for out in run_measure("stereo3d", lost, 2):
         assert all((v == 0).all() for v in out.values())  # errors are 0 with weight (points) 0
     for out in run_measure("survival", lost, 2):
@@ -117,3 +118,11 @@ def test_finite_from_anywhere_in_the_room_even_inside_furniture():
             for result, disturbed, _ in results:
                 out = m.measure(p, prep, result, disturbed, len(batch))
                 assert all(v.shape == (2,) and np.isfinite(v).all() for v in out.values()), (name, result.pose)
+
+
+def test_every_statistic_declares_its_unit():
+    """Plots label their axes with them (stereo3d's errors are metres)."""
+    for name, m in REGISTRY.items():
+        assert set(m.units) == set(m.statistics), name
+        assert set(m.units.values()) <= {"m", "px", "count", "fraction"}, name
+    assert REGISTRY["stereo3d"].units["error_median"] == "m"

@@ -167,7 +167,7 @@ def _true_points(w: World, fid: int, n: int = 20001) -> np.ndarray:
 
 @pytest.mark.parametrize("tol", [0.1, 0.02])
 def test_polylines_stay_within_tolerance_of_a_dense_reference(tol):
-    """Every true curve point (OpenCV, 20,001 a feature) inside the image lies within tol of its polylines."""
+    """Every true curve point (OpenCV, 5,001 a feature) inside the image lies within tol of its polylines."""
     rng = np.random.default_rng(8 if tol == 0.1 else 9)
     worst = 0.0
     for _ in range(25):
@@ -175,7 +175,9 @@ def test_polylines_stay_within_tolerance_of_a_dense_reference(tol):
         r_fold = geometry.fold_radius(cam.k1, cam.k2)
         view = project_view(w, cam, np.eye(3), np.zeros(3), np.ones(w.n_features, bool), tol)
         for fid in range(w.n_features):
-            P = _true_points(w, fid)
+            # 5,001 points a feature: under 0.3 px apart on these curves, where the deviation from a polyline
+            # segment (a parabola peaking mid-segment, segments px long) varies by far less than tol between them
+            P = _true_points(w, fid, 5001)
             P = P[np.hypot(P[:, 0] / P[:, 2], P[:, 1] / P[:, 2]) < r_fold * (1 - 1e-6)]
             truth = _opencv_pixels(P, cam)
             inside = (truth[:, 0] >= 0) & (truth[:, 0] <= 640) & (truth[:, 1] >= 0) & (truth[:, 1] <= 480)

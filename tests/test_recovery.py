@@ -9,6 +9,7 @@ from click.testing import CliRunner
 
 from wiredsl import lsp
 from wiredsl.cli import main
+from wiredsl.language import ast
 
 CAMERA_WITHOUT_SIZE = "camera c {\n  focal 600px\n}\n"  # E102 at 'c'
 ZERO_LINE = "model m {\n  line z from (0, 0, 0) to (0, 0, 0)\n}\n"  # E120
@@ -68,6 +69,10 @@ def test_a_multi_line_list_missing_a_comma_is_still_an_error_in_the_list(tmp_pat
     """A list may span lines: a point on the next line is not mistaken for an unclosed bracket."""
     text = "wiredsl 1\nmodel box {\n  polyline p through [\n    (0, 0, 0),\n    (1, 0, 0)\n    (1, 1, 0),\n  ]\n}\n"
     assert _check(tmp_path, text)[0] == ("E001", 6, 5)
+    # Nor is a reference that starts like a statement keyword (`right` is one, in a rig block).
+    broken = "wiredsl 1\nrig r {\n  calibration information file \"a\" order [left.f, left.cx\n    right.f]\n}\n"
+    (d,) = ast.parse_partial(broken)[1]
+    assert (d.code, d.span.line, d.span.col, d.message) == ("E001", 4, 5, "unexpected 'right' in a list")
 
 
 def test_the_editor_gets_the_other_errors_while_an_include_is_being_typed(tmp_path):
@@ -75,3 +80,22 @@ def test_the_editor_gets_the_other_errors_while_an_include_is_being_typed(tmp_pa
     index = lsp.analyse(str(tmp_path / "s.wd"), text)
     assert [(d.code, d.span.line) for d in index.diagnostics] == [("E010", 2), ("E120", 5)]
     assert index.symbol("model", "m") is not None  # hover and completion still know the rest
+
+
+def test_a_study_whose_scene_include_is_missing_gives_that_error_alone(tmp_path):
+    """The lab study's own file, copied where its `include "../lab.wd"` finds nothing: its studies' pipeline and
+    cameras are the missing file's, so they are not reported unknown."""
+    (tmp_path / "s.wd").write_text(open("scenes/studies/lab_study.wd").read())
+    assert _check(tmp_path, (tmp_path / "s.wd").read_text()) == [("E010", 4, 9)]
+    (note,) = _notes(tmp_path)
+    assert note.endswith("not reported: they may be declared in what did not load")
+
+
+def test_the_note_on_unreported_names_is_on_the_include_that_failed(tmp_path):
+    text = 'wiredsl 1\nscene s )\ninclude "nothere.wd"\nplace bin as b1\n'
+    (tmp_path / "s.wd").write_text(text)
+    r = CliRunner().invoke(main, ["check", "--diagnostics", "json", str(tmp_path / "s.wd")])
+    diags = json.loads(r.stderr)["diagnostics"]
+    assert [(d["code"], d["line"], d.get("notes")) for d in diags] == [
+        ("E001", 2, None),
+        ("E010", 3, ["1 reference to unknown names not reported: they may be declared in what did not load"])]

@@ -45,3 +45,12 @@ def test_schema_rejects_an_out_of_range_stage(tmp_path):
     bad.write_text(json.dumps(doc))
     result = CliRunner().invoke(main, ["validate", str(bad)])
     assert result.exit_code == 1 and "pipelines/0/stages/1/params/fraction" in result.stderr
+
+
+def test_the_grammars_comments_cite_files_that_exist():
+    """Issue 15: they cited wiredsl/language.py and wiredsl/parse.py, long since moved."""
+    import re
+
+    text = Path("grammar/wiredsl.lark").read_text()
+    cited = re.findall(r"[\w/]+\.(?:py|md|lark|json)", text)
+    assert cited and all(Path(c).is_file() for c in cited), cited

@@ -416,3 +416,62 @@ def test_a_one_factor_lhs_study_writes_its_table_and_indices(scene, tmp_path):
     assert len(table.rows) == 4 * 3 * 2 and {i.factor for i in table.sobol} == {"lateral_shift.range"}
     assert schema.problems(json.loads((tmp_path / "table.json").read_text())) == []
     assert (tmp_path / "sobol.csv").read_text().count("lateral_shift.range") == 2
+
+
+def test_study_plots_as_svg_and_pdf_with_units_on_every_y_axis(scene_file, tmp_path):
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["study", str(scene_file), "sources", "-o", str(out), "--workers", "1",
+                                  "--plot-format", "svg", "--dpi", "72"])
+    assert r.exit_code == 0, r.output
+    import xml.etree.ElementTree as ET
+
+    texts = {name: "".join(ET.parse(out / "plots" / name).getroot().itertext())
+             for name in ("kept.strokes.svg", "kept.length.svg", "sobol.svg")}
+    assert "kept.strokes (fraction)" in texts["kept.strokes.svg"] and "kept.length (px)" in texts["kept.length.svg"]
+    assert "edge_loss.fraction" in texts["kept.length.svg"] and "Sobol' index (share of variance)" in texts["sobol.svg"]
+    r = CliRunner().invoke(main, ["study", str(scene_file), "sources", "-o", str(out), "--plot-format", "pdf"])
+    assert r.exit_code == 0, r.output
+    assert (out / "plots" / "sobol.pdf").read_bytes()[:5] == b"%PDF-"
+
+
+def test_sobol_plot_marks_cut_bars_and_draws_negative_indices_with_their_intervals():
+    from wiredsl.io.features import SceneRef
+    from wiredsl.study import plots, report
+
+    def idx(factor, s1, st, ci1=None, cit=None):
+        return report.SobolIndex(measure="m", statistic="s", factor=factor, first_order=s1, total_order=st,
+                                 first_order_ci=ci1, total_order_ci=cit)
+
+    table = report.StudyTable(tool_version="0", scene=SceneRef(name="x", file="x.wd", sha256="0" * 64),
+                              study="t", design="sobol", factors=["a.x", "b.y"], seed=0, trials=1, rows=[],
+                              sobol=[idx("a.x", -0.3, 2.3, (-0.6, 0.1), (0.9, 3.1)), idx("b.y", 0.4, 0.5)])
+    plt = plots._pyplot()
+    fig = plots.sobol_figure(plt, table, [("m", "s")])
+    ax = fig.axes[0]
+    lo, hi = ax.get_ylim()
+    assert -0.7 < lo < -0.5 and 1.5 < hi < 1.7  # cut at the limits (and a margin), not stretched to 3.1
+    heights = sorted(round(p.get_height(), 6) for p in ax.patches)
+    assert heights == [-0.3, 0.4, 0.5, 1.5]  # the negative first order drawn downwards; 2.3 cut at 1.5
+    segments = [line.get_ydata() for line in ax.lines if len(line.get_xdata()) == 2]
+    assert any(min(y) == pytest.approx(-0.5) and max(y) == pytest.approx(0.1) for y in segments)  # its interval
+    cut = [line for line in ax.lines if line.get_marker() in ("^", "v")]
+    assert {line.get_marker() for line in cut} == {"^", "v"}  # 2.3 (and 3.1) above, -0.6 below
+    labels = {t.get_text() for t in ax.texts}
+    assert {"2.3", "-0.6"} <= labels
+    plt.close(fig)
+
+
+def test_a_scene_without_a_view_point_mesh_has_no_pgh_viewpoint_rows(tmp_path):
+    """pgh.viewpoint is undefined without a mesh: weighted by viewpoint_cameras (0 there), it has no row."""
+    from wiredsl.language.compile_study import measure_registry
+
+    text = Path("scenes/box.wd").read_text()
+    start = text.index("viewpoints around")
+    text = text[:start] + text[text.index("}", start) + 1:]
+    text += ("study s {\n  vary lateral_shift.range values [0, 2px]\n  trials 2\n  poses [0]\n  measure pgh\n}\n")
+    (tmp_path / "b.wd").write_text(text)
+    scene = compile_file(tmp_path / "b.wd")[0]
+    assert scene.viewpoints is None
+    table = run_study(scene, scene.study("s"), tmp_path / "out", executor="inprocess", registry=measure_registry())
+    stats = {r.statistic for r in table.rows}
+    assert "recognition" in stats and "viewpoint" not in stats

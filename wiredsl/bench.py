@@ -29,6 +29,8 @@ from wiredsl.scene import Scene
 TOLERANCES = (0.01, 0.03, 0.1, 0.3, 1.0, 2.0)
 SPACINGS = (0.25, 0.5, 1.0, 2.0)
 TRIALS = (10, 100, 1000, 10_000, 100_000)
+PRECISION_POINTS = 1_000_000  # scene points projected in float32 and float64
+MIN_SECONDS = 0.3  # a timed call is repeated until it has taken this long (above timer noise)
 
 
 @dataclass
@@ -58,8 +60,9 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def _timed(fn, min_seconds: float = 0.3):
+def _timed(fn, min_seconds: float | None = None):
     """(result, seconds per call), repeating fast calls to measure them above timer noise."""
+    min_seconds = MIN_SECONDS if min_seconds is None else min_seconds
     t0 = time.perf_counter()
     result = fn()
     elapsed = time.perf_counter() - t0
@@ -151,15 +154,15 @@ def _grid(lo, hi, spacing):
 
 def viewdep_table(scene: Scene, world: World) -> Table:
     table = Table("View-dependency: manifold against exact per-camera visibility",
-                  ["visibility from", "view-points", "wrong visibility", "time for the path (s)",
-                   "wrong image length vs hidden lines"], plot=(3, 2),
+                  ["visibility from", "view-points", "wrong visibility (fraction)", "time for the path (s)",
+                   "wrong image length vs hidden lines (fraction)"], plot=(3, 2),
                   short="view-point mesh spacing")
-    poses = np.array(scene.path.poses, dtype=float)
     rig = scene.rig
     eyes, keys = [], []
-    for i, pose in enumerate(poses):
+    poses = np.array(scene.path.poses, dtype=float)  # floor projections
+    for i in range(len(poses)):
         for mount in (rig.left, rig.right):
-            R_cw, t_cw = geometry.camera_from_world(tuple(pose), mount.rotation, mount.position)
+            R_cw, t_cw = geometry.camera_from_world(scene.path.pose(i), mount.rotation, mount.position)
             eyes.append(-R_cw.T @ t_cw)
             keys.append(i)
     t0 = time.perf_counter()
@@ -244,8 +247,14 @@ def trials_table(scene: Scene, world: World, budget: float, seed: int = 1) -> Ta
     if pipeline is None:
         table.notes.append("The scene has no default pipeline: nothing to measure.")
         return table
+    if len(world.corners) == 0:
+        table.notes.append("The scene has no corners: no displacement to measure.")
+        return table
     spent = 0.0
     rate = None
+    warm = Run.create(scene, world, pipeline, seed, Options())
+    for _, out in warm.batches([0]):  # compiles and caches what a first batch needs: in no row's time
+        headline(warm, out)
     for n in TRIALS:
         if rate is not None and spent + n / rate > budget:
             table.notes.append(f"{n:,} trials not run: at the measured {rate:,.0f} trials/s they would take "
@@ -264,19 +273,19 @@ def trials_table(scene: Scene, world: World, budget: float, seed: int = 1) -> Ta
 # --------------------------------------------------------------------------- 4. float32
 
 def precision_table(scene: Scene, world: World) -> Table:
-    table = Table("float32 against float64: projection of 1,000,000 scene points",
+    table = Table(f"float32 against float64: projection of {PRECISION_POINTS:,} scene points",
                   ["arithmetic", "max difference (px)", "time (ms)"], plot=(2, 1), short="float32 against float64")
     rng = np.random.default_rng(0)
     pts, _ = visibility.samples(world)  # points on every feature of the scene
     if len(pts) == 0:
         table.notes.append("The scene has no features: nothing to measure.")
         return table
-    idx = rng.integers(0, len(pts), 1_000_000)
-    other = rng.integers(0, len(pts), 1_000_000)
-    t = rng.random((1_000_000, 1))
+    idx = rng.integers(0, len(pts), PRECISION_POINTS)
+    other = rng.integers(0, len(pts), PRECISION_POINTS)
+    t = rng.random((PRECISION_POINTS, 1))
     P = pts[idx] + t * (pts[other] - pts[idx])  # points on and between the scene's edges
     mount = scene.rig.left
-    R_cw, t_cw = geometry.camera_from_world(tuple(scene.path.poses[0]), mount.rotation, mount.position)
+    R_cw, t_cw = geometry.camera_from_world(scene.path.pose(0), mount.rotation, mount.position)
     cam = scene.camera(mount.camera)
 
     def project(dtype):
@@ -300,8 +309,8 @@ def precision_table(scene: Scene, world: World) -> Table:
 
 # --------------------------------------------------------------------------- the figure
 
-def plot(tables: list[Table], fmt: str = "svg") -> bytes:
-    """Error against cost, one log-log panel per table (matplotlib, imported only here); SVG or PNG bytes.
+def plot(tables: list[Table], fmt: str = "svg", dpi: int = 150) -> bytes:
+    """Error against cost, one log-log panel per table (matplotlib, imported only here); SVG, PDF or PNG bytes.
 
     Points are joined in order of their x value. A zero error (float64 against itself, exact visibility) has no
     place on a log axis: it is drawn as a hollow triangle on a dotted floor a decade below the smallest
@@ -322,8 +331,8 @@ def plot(tables: list[Table], fmt: str = "svg") -> bytes:
         for ax in axes[len(tables):]:
             ax.set_visible(False)
         buf = io.BytesIO()
-        meta = {"Date": None} if fmt == "svg" else {"Software": None}
-        fig.savefig(buf, format=fmt, dpi=150, metadata=meta)
+        meta = {"svg": {"Date": None}, "pdf": {"CreationDate": None, "Producer": None}}.get(fmt, {"Software": None})
+        fig.savefig(buf, format=fmt, dpi=dpi, metadata=meta)
     return buf.getvalue()
 
 
@@ -358,22 +367,53 @@ def _panel(ax, t: Table) -> None:
         for y0 in (floor * 1.8, floor * 2.2):  # break marks: the axis does not reach zero
             ax.plot([-0.015, 0.015], [y0 / 1.1, y0 * 1.1], transform=ax.get_yaxis_transform(), color="#333333",
                     lw=1.2, clip_on=False)
-    for i, (x, y, name, p) in enumerate(zip(xs, ys, names, pos, strict=True)):
-        if p:  # alternate below and above, so that neighbours' labels do not overlap
-            ax.annotate(name, (x, y), xytext=(6, -13 if i % 2 == 0 else 6), textcoords="offset points",
-                        fontsize=8.5, color="#444444")
-        else:
-            ax.annotate(f"{name.split(' (')[0]}: zero error", (x, floor), xytext=(0, 8), textcoords="offset points",
-                        fontsize=8.5, color="#c62828", ha="center")
-    ax.text(0.98, 0.97, f"points labelled by {t.columns[0]}", transform=ax.transAxes, ha="right", va="top",
+    for x, name in zip(xs[~pos], np.array(names, dtype=object)[~pos], strict=True):
+        ax.annotate(f"{name.split(' (')[0]}: zero error", (x, floor), xytext=(0, 8), textcoords="offset points",
+                    fontsize=8.5, color="#c62828", ha="center")
+    note = f"points labelled by {t.columns[0]}"
+    ax.text(0.98, 0.97, note, transform=ax.transAxes, ha="right", va="top",
             fontsize=8.5, color="#444444")
     ax.grid(True, which="major", color="#e0e0e0", lw=0.8)
     lo, hi = xs.min(), xs.max()
     ax.set_xlim(lo / 2, hi * 3)
+    w = 0.56 * LABEL_PT * len(note)  # the note's corner is no place for a label
+    _labels(ax, xs[pos], ys[pos], [n for n, p in zip(names, pos, strict=True) if p],
+            reserved=[(0.98 * AXES_PT[0] - w, 0.97 * AXES_PT[1] - LABEL_PT - 2, AXES_PT[0], AXES_PT[1])])
     for axis in (ax.xaxis, ax.yaxis):  # 1-2-5 ticks as plain numbers; no crowded minor labels
         axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
         axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
         axis.set_minor_formatter(NullFormatter())
+
+
+LABEL_PT = 8.5  # the points' label size
+AXES_PT = (290.0, 190.0)  # a panel's plotting area in points, about (a 10 x 7.2 in figure of 2 x 2 panels)
+
+
+def _labels(ax, xs: np.ndarray, ys: np.ndarray, names: list[str], reserved: list[tuple] = ()) -> None:
+    """Label each point where its text overlaps no other label and no point: the first free place of right-below,
+    right-above, left-above, left-below, further below, further above. Points at the same place share a label."""
+    ax.get_xlim(), ax.get_ylim()  # settle the autoscaled limits first
+    to_axes = ax.transScale + ax.transLimits  # data -> axes fraction, on the log scales
+    at = to_axes.transform(np.column_stack([xs, ys])) * AXES_PT
+    groups: dict[tuple[float, float], list[int]] = {}
+    for i, (px, py) in enumerate(at):
+        groups.setdefault((round(px, 1), round(py, 1)), []).append(i)
+    boxes = [(px - 4, py - 4, px + 4, py + 4) for px, py in at] + list(reserved)  # the markers, the note
+    for members in groups.values():
+        i = members[0]
+        text = " = ".join(names[j] for j in members)
+        w, h = 0.56 * LABEL_PT * len(text), LABEL_PT
+        px, py = at[i]
+        for dx, dy in ((6, -13), (6, 5), (-6 - w, 5), (-6 - w, -13), (6, -24), (6, 16), (-6 - w, -24),
+                       (-6 - w, 16)):
+            box = (px + dx, py + dy, px + dx + w, py + dy + h)
+            free = all(box[2] <= b[0] or b[2] <= box[0] or box[3] <= b[1] or b[3] <= box[1] for b in boxes)
+            inside = 0 <= box[0] and box[2] <= AXES_PT[0] and 0 <= box[1] and box[3] <= AXES_PT[1]
+            if free and inside:
+                break
+        boxes.append(box)
+        ax.annotate(text, (xs[i], ys[i]), xytext=(dx, dy), textcoords="offset points", fontsize=LABEL_PT,
+                    color="#444444")
 
 
 def run_all(scene: Scene, world: World, budget: float, progress=lambda msg: None) -> list[Table]:

@@ -81,7 +81,8 @@ def guarded(fn: Callable) -> Callable:
         previous = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
         try:
             out = fn(*args, **kwargs)
-            sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
+            if not sys.stdout.closed:  # (the language server's client closes it on exit)
+                sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
             return out
         except BrokenPipeError:
             if not _stdout_closed():
@@ -288,8 +289,6 @@ def _documents(path: str, text: str) -> list[tuple[str, object]]:
 
     try:
         return [(path, json_loads(text))]
-    except RecursionError:
-        return [(path, "not JSON this reader takes: nested too deeply")]
     except json.JSONDecodeError as exc:
         if path.endswith(".jsonl"):
             out = []
@@ -297,8 +296,6 @@ def _documents(path: str, text: str) -> list[tuple[str, object]]:
                 if line.strip():
                     try:
                         out.append((f"{path}:{i}", json_loads(line)))
-                    except RecursionError:
-                        out.append((f"{path}:{i}", "not JSON this reader takes: nested too deeply"))
                     except json.JSONDecodeError as e:
                         out.append((f"{path}:{i}:{e.colno}", f"not JSON: {e.msg}"))
             return out
@@ -762,12 +759,15 @@ def viewdep(file: str, output: str | None, threshold: float, diagnostics: str) -
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", default=None,
-              help="The plot: .svg, or .png for a raster (default build/<scene name>/bench.svg). Needs wiredsl[plot].")
+              help="The plot: .svg, .pdf, or .png for a raster (default build/<scene name>/bench.svg). Needs "
+                   "wiredsl[plot].")
 @click.option("--budget", type=click.FloatRange(1, None), default=60.0, show_default=True,
               help="Seconds the Monte-Carlo table may spend; rows beyond it are not run.")
+@click.option("--dpi", type=click.IntRange(20, 1200), default=150, show_default=True,
+              help="The plot's resolution in dots per inch (a .png).")
 @diagnostics_option
 @guarded
-def bench(file: str, output: str | None, budget: float, diagnostics: str) -> None:
+def bench(file: str, output: str | None, budget: float, dpi: int, diagnostics: str) -> None:
     """Measure what each accuracy knob costs in time on a scene: four tables (stdout) and a plot."""
     import platform
     from pathlib import Path
@@ -783,8 +783,8 @@ def bench(file: str, output: str | None, budget: float, diagnostics: str) -> Non
     require_buildable(scene)
     world = build_world(scene)
     out = Path(_file_output(output)) if output is not None else Path("build") / scene.name / "bench.svg"
-    if out.suffix.lower() not in (".svg", ".png"):
-        raise click.BadParameter("the plot is written as .svg or .png", param_hint="-o")
+    if out.suffix.lower() not in (".svg", ".png", ".pdf"):
+        raise click.BadParameter("the plot is written as .svg, .pdf or .png", param_hint="-o")
     try:
         import matplotlib  # noqa: F401  (checked before the minutes of measuring, not after)
     except ImportError:
@@ -794,7 +794,7 @@ def bench(file: str, output: str | None, budget: float, diagnostics: str) -> Non
                f"Python {platform.python_version()}, numpy {__import__('numpy').__version__}.\n")
     for t in tables:
         click.echo(t.markdown())
-    write_atomic(out, bench_mod.plot(tables, out.suffix.lower()[1:]))
+    write_atomic(out, bench_mod.plot(tables, out.suffix.lower()[1:], dpi))
     click.echo(f"wrote {out}", err=True)
 
 
@@ -868,11 +868,15 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
               show_default=True, help="processes: local processes on every core; dask: a Dask cluster.")
 @click.option("--workers", type=click.IntRange(1, None), default=None, help="Local processes (default: every core).")
 @click.option("--scheduler", default=None, help="With --executor dask: the scheduler's address (tcp://host:8786).")
-@click.option("--plots/--no-plots", default=True, show_default=True, help="Write the PNG plots (needs matplotlib).")
+@click.option("--plots/--no-plots", default=True, show_default=True, help="Write the plots (needs matplotlib).")
+@click.option("--plot-format", type=click.Choice(["png", "svg", "pdf"]), default="png", show_default=True,
+              help="The plots' format: png (raster), or svg / pdf (vector, for publication).")
+@click.option("--dpi", type=click.IntRange(20, 1200), default=110, show_default=True,
+              help="The plots' resolution in dots per inch (png; embedded rasters in svg / pdf).")
 @diagnostics_option
 @guarded
 def study(file: str, name: str | None, output: str | None, executor: str, workers: int | None,
-          scheduler: str | None, plots: bool, diagnostics: str) -> None:
+          scheduler: str | None, plots: bool, plot_format: str, dpi: int, diagnostics: str) -> None:
     """Run a study of FILE (NAME, or its only one): shards, then table.csv/json, manifest.json and plots."""
     from pathlib import Path
 
@@ -906,5 +910,5 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
     if plots:
         from wiredsl.study import plots as plots_mod
 
-        written += plots_mod.write_all(table, found, out / "plots")
+        written += plots_mod.write_all(table, found, out / "plots", fmt=plot_format, dpi=dpi)
     click.echo(f"wrote {out}: " + ", ".join(written), err=True)

@@ -64,10 +64,21 @@ class Collector:
 
     diagnostics: list[Diagnostic] = field(default_factory=list)
     n_errors: int = 0  # kept as they come: counting the list at every statement made checks quadratic
+    # While part of a program did not load (a missing include, a syntax error), a reference to an unknown
+    # name may well be to a name declared there: `unknown` then counts it instead of reporting it.
+    hold_unknown: bool = False
+    unknown_held: int = 0
 
     def error(self, code: str, message: str, span: Span | None, hint: str | None = None) -> None:
         self.diagnostics.append(Diagnostic("error", code, message, span, hint))
         self.n_errors += 1
+
+    def unknown(self, message: str, span: Span | None, hint: str | None = None) -> None:
+        """E104 for a reference to a name the program does not declare (held back, see `hold_unknown`)."""
+        if self.hold_unknown:
+            self.unknown_held += 1
+        else:
+            self.error("E104", message, span, hint)
 
     def warning(self, code: str, message: str, span: Span | None, hint: str | None = None) -> None:
         self.diagnostics.append(Diagnostic("warning", code, message, span, hint))

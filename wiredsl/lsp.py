@@ -370,7 +370,7 @@ def textmate_grammar() -> dict:
 
 MAX_MESSAGE_BYTES = 16 * 1024 * 1024  # a document as large as the compiler reads, plus its JSON framing
 MAX_HEADER_BYTES = 64 * 1024
-_SKIPPED = b'{"jsonrpc": "2.0", "method": "$/wiredsl/skipped"}'  # an unknown notification: pygls ignores it
+_SKIPPED = b'{"jsonrpc": "2.0", "method": "$/wiredsl/skipped", "params": {}}'  # an unknown notification: ignored
 
 
 class BoundedInput:
@@ -418,6 +418,12 @@ def serve() -> None:
     def doc_path(uri: str) -> str:
         return server.workspace.get_text_document(uri).path
 
+    def opened(uri: str):
+        """The document if the client opened it, else None: pygls would read any other URI from disk, without
+        bound (file:///dev/zero) or failing (a file that does not exist)."""
+        doc = server.workspace.get_text_document(uri)
+        return doc if doc.version is not None else None
+
     def to_range(span: Span | None) -> T.Range:
         if span is None:
             return T.Range(T.Position(0, 0), T.Position(0, 0))
@@ -427,7 +433,9 @@ def serve() -> None:
         return Path(file).resolve().as_uri()
 
     def refresh(uri: str) -> None:
-        doc = server.workspace.get_text_document(uri)
+        doc = opened(uri)
+        if doc is None:
+            return
         index = analyse(doc.path, doc.source)
         indexes[uri] = index
         by_uri: dict[str, list] = {uri: []}
@@ -462,8 +470,11 @@ def serve() -> None:
 
     @server.feature(T.TEXT_DOCUMENT_COMPLETION, T.CompletionOptions(trigger_characters=[" ", "."]))
     def completion(ls, params: T.CompletionParams):
+        doc = opened(params.text_document.uri)
+        if doc is None:
+            return None
         index, _, line, col = where(params.text_document.uri, params.position)
-        text = server.workspace.get_text_document(params.text_document.uri).source
+        text = doc.source
         kinds = {"keyword": T.CompletionItemKind.Keyword, "clause": T.CompletionItemKind.Property,
                  "name": T.CompletionItemKind.Reference}
         return T.CompletionList(is_incomplete=False, items=[
@@ -472,8 +483,11 @@ def serve() -> None:
 
     @server.feature(T.TEXT_DOCUMENT_HOVER)
     def on_hover(ls, params: T.HoverParams):
+        doc = opened(params.text_document.uri)
+        if doc is None:
+            return None
         index, path, line, col = where(params.text_document.uri, params.position)
-        text = server.workspace.get_text_document(params.text_document.uri).source
+        text = doc.source
         md = hover(index, text, path, line, col)
         return T.Hover(T.MarkupContent(T.MarkupKind.Markdown, md)) if md else None
 
@@ -496,7 +510,9 @@ def serve() -> None:
     def on_format(ls, params: T.DocumentFormattingParams):
         from wiredsl.language.fmt import format_text
 
-        doc = server.workspace.get_text_document(params.text_document.uri)
+        doc = opened(params.text_document.uri)
+        if doc is None:
+            return None
         try:
             new = format_text(doc.source, doc.path)
         except WiredslError:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_serializer
 
 SCHEMA_VERSION = "1"
 
@@ -39,6 +39,20 @@ CALIBRATION_PARAMETERS = {
 class Node(BaseModel):
     # allow_inf_nan=False: a non-finite number is refused at construction, so no dump or JSON can carry one
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+
+
+def omitted_when_none(*names: str):
+    """A model serializer leaving out these fields while they are None: documents without them stay as they
+    were before the fields existed (use as `_dump = omitted_when_none("field")` in the class body)."""
+    @model_serializer(mode="wrap")
+    def dump(self, handler):
+        out = handler(self)
+        for name in names:
+            if getattr(self, name) is None:
+                out.pop(name, None)
+        return out
+
+    return dump
 
 
 class Line(Node):
@@ -163,9 +177,23 @@ class Viewpoints(Node):
     visible: dict[str, list[str]] = Field({}, description="authored: view-point name -> visible feature ids")
 
 
+Vec4 = tuple[float, float, float, float]
+Mat34 = tuple[Vec4, Vec4, Vec4]
+
+
 class Path(Node):
     name: str
-    poses: list[Vec3] = Field(description="(x, y, heading) in metres and radians")
+    poses: list[Vec3] = Field(description="(x, y, heading) in metres and radians; of a path read from a "
+                                          "trajectory file, its poses' projections onto the floor")
+    transforms: list[Mat34] | None = Field(None, description="of a path read from a trajectory file: every "
+                                           "pose's world_from_robot [R | t] (rows), in full 6-DoF")
+    _dump = omitted_when_none("transforms")
+
+    def pose(self, i: int) -> tuple[float, ...]:
+        """Pose i as the engine takes it (geometry.world_from_robot): (x, y, heading), or [R | t] row-major."""
+        if self.transforms is not None:
+            return tuple(float(v) for row in self.transforms[i] for v in row)
+        return tuple(float(v) for v in self.poses[i])
 
 
 class Stage(Node):

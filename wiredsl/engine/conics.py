@@ -17,7 +17,6 @@ is returned as a 3D segment on the surface (a contour generator).
 Every function works on stacks of ellipses at once ((n, 3, 3) homographies): the
 quartics of all silhouettes of all views are solved together as the eigenvalues
 of their companion matrices, so projecting a view has no Python loop per feature.
-The single-ellipse forms (`ellipse_params`, `common_tangent_params`, ...) wrap them.
 """
 
 from __future__ import annotations
@@ -43,18 +42,10 @@ def dual_conic(H: np.ndarray) -> np.ndarray:
     return (H * np.array([1.0, 1.0, -1.0])) @ np.swapaxes(H, -1, -2)
 
 
-def ellipse_params(Cstar: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """(centre, semi-axes (major, minor), angle of the major axis) of a dual conic, or None.
-
-    None when the conic is not a real ellipse (a parabola or hyperbola: the ellipse
-    crosses the camera's principal plane), or is degenerate (seen edge-on).
-    """
-    ok, centre, axes, angle = ellipse_params_batch(Cstar[None])
-    return (centre[0], axes[0], float(angle[0])) if ok[0] else None
-
-
 def ellipse_params_batch(Cstar: np.ndarray):
-    """`ellipse_params` of a stack (n, 3, 3): (ok (n,), centre (n, 2), axes (n, 2), angle (n,))."""
+    """(ok (n,), centre (n, 2), semi-axes (major, minor) (n, 2), angle of the major axis (n,)) of dual conics
+    (n, 3, 3); not ok when a conic is not a real ellipse (a parabola or hyperbola: the ellipse crosses the
+    camera's principal plane) or is degenerate (seen edge-on)."""
     n = len(Cstar)
     s = Cstar[:, 2, 2]
     finite = np.isfinite(Cstar).all(axis=(1, 2))
@@ -71,11 +62,6 @@ def ellipse_params_batch(Cstar: np.ndarray):
     axes = np.sqrt(np.where(ok[:, None], w[:, ::-1], 1.0))
     angle = np.arctan2(Q[:, 1, 1], Q[:, 0, 1]) if n else np.zeros(0)
     return ok, centre, axes, angle
-
-
-def parameter_on(H: np.ndarray, P: np.ndarray) -> float:
-    """The ellipse parameter t whose image H (cos t, sin t, 1) is the point P (homogeneous)."""
-    return float(parameters_on(H[None], P[None])[0])
 
 
 def parameters_on(H: np.ndarray, P: np.ndarray) -> np.ndarray:
@@ -116,12 +102,6 @@ def _conditioning(H: np.ndarray) -> np.ndarray:
     s = np.linalg.svd(np.where(finite[:, None, None], H, 0.0), compute_uv=False) if len(H) else np.zeros((0, 3))
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(finite & (s[:, 0] > 0), s[:, -1] / np.where(s[:, 0] > 0, s[:, 0], 1.0), 0.0)
-
-
-def common_tangent_params(Ha: np.ndarray, Hb: np.ndarray) -> list[tuple[float, float]]:
-    """Outer common tangents of two ellipse images: [(t_a, t_b)] parameters of the tangent points."""
-    _, ta, tb = common_tangents(Ha[None], Hb[None])
-    return [(float(a), float(b)) for a, b in zip(ta, tb, strict=True)]
 
 
 def common_tangents(Ha: np.ndarray, Hb: np.ndarray):
@@ -196,16 +176,6 @@ def _quartic_roots(coeffs: np.ndarray, ok: np.ndarray) -> np.ndarray:
         z = np.roots(coeffs[r])
         out[r, :len(z)] = z
     return out
-
-
-def silhouette_segments(ca, Ua, Va, cb, Ub, Vb, arc_a=None, arc_b=None):
-    """Camera-frame 3D segments (start on a, end on b) of the visible sides between two ellipses."""
-    full_a, full_b = np.array([arc_a is None]), np.array([arc_b is None])
-    arcs_a = np.array([arc_a if arc_a is not None else (0.0, 2 * math.pi)], dtype=float)
-    arcs_b = np.array([arc_b if arc_b is not None else (0.0, 2 * math.pi)], dtype=float)
-    _, A, B = silhouette_segments_batch(*(np.asarray(x, dtype=float)[None] for x in (ca, Ua, Va, cb, Ub, Vb)),
-                                        arcs_a, full_a, arcs_b, full_b)
-    return list(zip(A, B, strict=True))
 
 
 def silhouette_segments_batch(ca, Ua, Va, cb, Ub, Vb, arc_a, full_a, arc_b, full_b):

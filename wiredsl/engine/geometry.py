@@ -44,15 +44,40 @@ def rot_z(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def camera_from_world(pose: tuple[float, float, float], mount_rotation, mount_position):
+def world_from_robot(pose) -> tuple[np.ndarray, np.ndarray]:
+    """(R_wr (3, 3), t_wr (3,)) with P_world = R_wr @ P_robot + t_wr: the robot's rigid pose in the world.
+
+    `pose` is one of: (x, y, heading), a robot on the floor turned by heading about z; the 12 numbers of
+    the row-major [R | t] (3, 4) world_from_robot matrix (a path read from a trajectory file); or a (3, 4)
+    or (4, 4) array of it. A floor pose gives exactly rot_z(heading) and (x, y, 0).
+    """
+    if len(pose) == 3 and np.ndim(pose) == 1:
+        x, y, heading = pose
+        return rot_z(heading), np.array([x, y, 0.0])
+    M = np.asarray(pose, dtype=float)
+    if M.shape not in ((12,), (3, 4), (4, 4)):
+        raise ValueError(f"a pose is (x, y, heading), [R | t] (3, 4) or (4, 4), not of shape {M.shape}")
+    M = M.reshape(-1, 4)
+    return M[:3, :3], M[:3, 3].copy()
+
+
+def floor_pose(pose) -> tuple[float, float, float]:
+    """(x, y, heading) of a pose on the floor: its position's x and y, and the heading of its x axis
+    projected onto the floor (0 when that axis is vertical). A floor pose is returned as it is."""
+    if len(pose) == 3 and np.ndim(pose) == 1:
+        return tuple(float(v) for v in pose)
+    R, t = world_from_robot(pose)
+    return float(t[0]), float(t[1]), math.atan2(R[1, 0], R[0, 0])
+
+
+def camera_from_world(pose, mount_rotation, mount_position):
     """(R_cw, t_cw) with P_cam = R_cw @ P_world + t_cw, for a camera mounted on the robot at `pose`.
 
-    pose = (x, y, heading); mount_rotation is robot_from_camera (3, 3); mount_position in the robot frame.
+    pose: see `world_from_robot`; mount_rotation is robot_from_camera (3, 3); mount_position in the robot frame.
     """
-    x, y, heading = pose
-    R_wr = rot_z(heading)
+    R_wr, t_wr = world_from_robot(pose)
     R_wc = R_wr @ np.asarray(mount_rotation, dtype=float)
-    t_wc = R_wr @ np.asarray(mount_position, dtype=float) + np.array([x, y, 0.0])
+    t_wc = R_wr @ np.asarray(mount_position, dtype=float) + t_wr
     R_cw = R_wc.T
     return R_cw, -R_cw @ t_wc
 
@@ -91,12 +116,28 @@ def fisheye_plane(P_cam: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0) -> np.ndarray:
     """
     X, Y, Z = P_cam[..., 0], P_cam[..., 1], P_cam[..., 2]
     rho = np.hypot(X, Y)
-    theta = np.arctan2(rho, Z)
-    t2 = theta * theta
-    td = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    td = fisheye_theta_d(np.arctan2(rho, Z), k1, k2, k3, k4)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         scale = np.where(rho > 0, td / np.where(rho > 0, rho, 1.0), np.where(Z > 0, 0.0, np.nan))
     return np.stack([scale * X, scale * Y], axis=-1)
+
+
+def fisheye_theta_d(theta, k1, k2=0.0, k3=0.0, k4=0.0):
+    """The equidistant model's distorted angle theta_d of angles theta from the optical axis."""
+    t2 = theta * theta
+    return theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+
+
+def fisheye_theta(theta_d: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0, steps: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """The angles theta (n,) whose theta_d are given (Newton's method), and the residual |theta_d(theta) - given|
+    (n,); the caller bounds theta by the lens limit, below which the map is one-to-one."""
+    theta = np.array(theta_d, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        for _ in range(steps):
+            t2 = theta * theta
+            slope = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+            theta = theta - (fisheye_theta_d(theta, k1, k2, k3, k4) - theta_d) / slope
+        return theta, np.abs(fisheye_theta_d(theta, k1, k2, k3, k4) - theta_d)
 
 
 def plane_to_pixels(xy_d: np.ndarray, f, ax, ay, cx, cy) -> np.ndarray:
@@ -147,11 +188,19 @@ def visible(P_cam: np.ndarray, model, limit) -> np.ndarray:
     model and limit (`lens_limit`) are scalars or one per point.
     """
     X, Y, Z = P_cam[..., 0], P_cam[..., 1], P_cam[..., 2]
+    fisheye = np.asarray(model) == 1
+    radtan = fish = None
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        zs = np.where(Z > 0, Z, 1.0)
-        radtan = (Z > NEAR) & (np.hypot(X / zs, Y / zs) < limit)
-        fish = (np.arctan2(np.hypot(X, Y), Z) < limit) & (np.sqrt(X * X + Y * Y + Z * Z) > NEAR)
-    return np.where(np.asarray(model) == 1, fish, radtan)
+        if not fisheye.all():
+            zs = np.where(Z > 0, Z, 1.0)
+            radtan = (Z > NEAR) & (np.hypot(X / zs, Y / zs) < limit)
+        if fisheye.any():
+            fish = (np.arctan2(np.hypot(X, Y), Z) < limit) & (np.sqrt(X * X + Y * Y + Z * Z) > NEAR)
+    if fish is None or radtan is None:
+        out = fish if radtan is None else radtan
+        shape = np.broadcast_shapes(X.shape, fisheye.shape)
+        return out if out.shape == shape else np.array(np.broadcast_to(out, shape))
+    return np.where(fisheye, fish, radtan)
 
 
 def lens_limit(cam, **values) -> float:
@@ -218,13 +267,17 @@ def _first_positive_root(coef) -> float:
 def _fold_radius_quadratic(k1: float, k2: float = 0.0) -> float:
     """fold_radius for k1, k2 only."""
     # d/dr = 1 + 3 k1 r^2 + 5 k2 r^4 = 0: a s^2 + b s + 1 = 0 in s = r^2, solved in the stable form
-    # (q = -(b + sign(b) sqrt(disc)) / 2, roots q / a and 1 / q) so that a tiny a cannot overflow
-    a, b = 5.0 * k2, 3.0 * k1
-    disc = b * b - 4.0 * a
+    # (q = -(b + sign(b) sqrt(disc)) / 2, roots c / q and q / a) so that a tiny a cannot overflow; the whole
+    # equation is first divided by its largest coefficient, so that a huge k1 or k2 cannot overflow b^2 either
+    m = max(abs(float(k1)), abs(float(k2)), 1.0)
+    a, b, c = 5.0 * (k2 / m), 3.0 * (k1 / m), 1.0 / m
+    if a == 0:  # linear (no k2): b s + c = 0 directly, as b * b could underflow below
+        return math.sqrt(-c / b) if b < 0 else math.inf
+    disc = b * b - 4.0 * a * c
     if disc < 0:
         return math.inf
     q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
-    roots = [1.0 / q if q != 0 else math.inf]
+    roots = [c / q if q != 0 else math.inf]
     if a != 0:
         roots.append(q / a)
     positive = [s for s in roots if math.isfinite(s) and s > 0]

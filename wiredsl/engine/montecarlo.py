@@ -334,6 +334,40 @@ class Run:
         }
 
 
+def kernel_apply(effect, params, s: im.ImageSet, ctx: Context) -> im.ImageSet:
+    """One stage on any ImageSet in the compiled kernel, trial by trial: what `effect.apply` gives on the numpy
+    path, with the same keyed draws (so tests run hand-made inputs through both engines)."""
+    from wiredsl.effects.base import CAMERA_INDEX, stream_key
+    from wiredsl.engine import kernel as kn
+
+    if effect.is_identity(params):
+        return s
+    if effect.kernel is None:
+        raise ValueError(f"effect '{effect.name}' has no compiled kernel")
+    codes = np.array([effect.kernel.code], dtype=np.int64)
+    row = np.zeros((1, 3))
+    row[0, :len(effect.kernel.params)] = [getattr(params, name) for name in effect.kernel.params]
+    epipole = ctx.epipole() if effect.kernel.code == kn.STEREO_MISMATCH and ctx.epipole else np.zeros(3)
+    parts = []
+    for k, t in enumerate(np.asarray(ctx.trials, dtype=np.int64)):
+        one = s.take(s.trial == k).take_corners(s.corner_trial == k)
+        meta = np.column_stack([one.fid, one.segment, one.fragment, one.kind, one.clipped, one.closed,
+                                one.occluded]).astype(np.int64).reshape(-1, 7)
+        keys = stream_key(effect.name, np.array([t]), ctx.pose, CAMERA_INDEX[ctx.side], ctx.seed, ctx.point)
+        stats = np.zeros((1, kn.NSTAT))
+        z3 = np.zeros((0, 3))
+        pts, start, m, _, corners, cfid, _ = kn.run_view(
+            one.pts, one.start, meta, one.corners, one.corner_fid, z3, z3, np.zeros((1, 3, 3)), np.zeros((1, 3)),
+            np.zeros((1, len(geometry.CAMERA_ROW))), np.zeros(1), 0.0, 0.0, False, codes, row, keys.reshape(1, 1),
+            epipole, ctx.side == "right", stats)
+        kn.record(effect.name, effect.kernel.stats, stats[0], ctx.stats)
+        parts.append(im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2],
+                                 kind=m[:, 3], clipped=m[:, 4].astype(bool), closed=m[:, 5].astype(bool),
+                                 trial=np.zeros(len(m), dtype=int), corners=corners, corner_fid=cfid,
+                                 corner_trial=np.zeros(len(corners), dtype=int), occluded=m[:, 6].astype(bool)))
+    return concat_trials(parts) if parts else s
+
+
 def plugin_apply(effect, params, sets: im.ImageSet, ctx: Context) -> im.ImageSet:
     """An installed effect's stage, its failures and its output's defects reported against its package (E181)."""
     from wiredsl.plugins import failure
@@ -468,9 +502,9 @@ def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.nd
     """Every trial's camera for one side at one pose: R_cw (T, 3, 3), t_cw (T, 3), intrinsics (T, 14) as
     geometry.CAMERA_ROW, and the lens limit (T,) (`geometry.lens_limit`)."""
     p = rig["params"]
-    R_wr = geometry.rot_z(pose[2])
+    R_wr, t_wr = geometry.world_from_robot(pose)
     R_wc = (R_wr[None, :, :, None] * rig["rotation"][:, None, :, :]).sum(axis=2)  # row by row: no BLAS
-    t_wc = (rig["position"][:, None, :] * R_wr[None, :, :]).sum(axis=2) + np.array([pose[0], pose[1], 0.0])
+    t_wc = (rig["position"][:, None, :] * R_wr[None, :, :]).sum(axis=2) + t_wr
     R_cw = np.ascontiguousarray(np.transpose(R_wc, (0, 2, 1)))
     t_cw = -(R_cw * t_wc[:, None, :]).sum(axis=2)
     cam = rig["camera"]
@@ -495,7 +529,9 @@ def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.n
     P = np.stack([cam(0), cam(1), cam(2)], axis=-1)
     g = {k: cams[:, i, None] for i, k in enumerate(geometry.CAMERA_ROW)}
     ok = geometry.visible(P, g["model"], folds[:, None])
-    uv = geometry.project(np.where(ok[..., None], P, np.array([0.0, 0.0, 1.0])), g)
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge k1 > 0 (no fold): pixels beyond any image
+        uv = geometry.project(np.where(ok[..., None], P, np.array([0.0, 0.0, 1.0])), g)
+    ok &= np.isfinite(uv).all(axis=-1)  # checked here: what overflowed is invalid, like a folded point
     uv = np.where(ok[..., None], uv, 0.0)
     return uv.reshape(-1, 2), ok.ravel()
 

@@ -72,7 +72,7 @@ class View:
 @dataclass
 class PoseResult:
     index: int
-    pose: tuple[float, float, float]
+    pose: tuple[float, ...]  # see geometry.world_from_robot: (x, y, heading), or [R | t] row-major
     viewpoint: str | None
     left: View
     right: View | None
@@ -86,15 +86,14 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
     """
     require_buildable(scene)
     world = world or build_world(scene)
-    poses = np.array(scene.path.poses, dtype=float)
-    chosen = range(len(poses)) if options.poses is None else options.poses
+    chosen = range(len(scene.path.poses)) if options.poses is None else options.poses
     vp_names, masks = visible if visible is not None else visibility_masks(scene, world, options)
     # --visibility exact: hidden lines removed, features cut at occlusion boundaries (occlusion.py)
     occluders = occlusion.Occluders.of_world(world) if options.visibility == "exact" else None
     sides = ("left", "right") if options.right else ("left",)
     specs = []  # (pose index, side, camera, R_cw, t_cw, mask) of every view, projected together
     for i in chosen:
-        pose = tuple(float(v) for v in poses[i])
+        pose = scene.path.pose(i)
         for side in sides:
             mount = getattr(scene.rig, side)
             R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
@@ -104,7 +103,7 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
         _, _, cams, Rs, ts, ms = zip(*specs, strict=True)
         views = project_views(world, list(cams), list(Rs), list(ts), list(ms), options.tolerance, occluders)
     by_key = {(i, side): v for (i, side, *_), v in zip(specs, views, strict=True)}
-    return [PoseResult(i, tuple(float(v) for v in poses[i]), vp_names.get(i), by_key[(i, "left")],
+    return [PoseResult(i, scene.path.pose(i), vp_names.get(i), by_key[(i, "left")],
                        by_key.get((i, "right"))) for i in chosen]
 
 

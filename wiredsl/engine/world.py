@@ -40,7 +40,6 @@ class World:
     corners: np.ndarray = field(default_factory=lambda: _empty((0, 3)))
     face_src: list[str] = field(default_factory=list)
     triangles: np.ndarray = field(default_factory=lambda: _empty((0, 3, 3)))  # occluders (faces, fanned)
-    triangle_face: np.ndarray = field(default_factory=lambda: _empty(0, int))  # index into face_src
 
     @property
     def n_features(self) -> int:
@@ -60,7 +59,7 @@ def build_world(scene: Scene) -> World:
     ec, eU, eV, earc, efull, efid = [], [], [], [], [], []
     sil_fid, sil_pair = [], []
     corners, corner_fid = [], []
-    tris, tri_face = [], []
+    tris = []
     for p in scene.placements:
         model = scene.model(p.model)
         R = np.array(p.rotation)
@@ -107,7 +106,6 @@ def build_world(scene: Scene) -> World:
             v = to_world(fc.vertices)
             for i in range(1, len(v) - 1):  # a fan: faces are convex polygons
                 tris.append(np.stack([v[0], v[i], v[i + 1]]))
-                tri_face.append(len(w.face_src) - 1)
     w.lines = np.array(lines, dtype=float).reshape(-1, 2, 3)
     w.line_fid = np.array(line_fid, dtype=int)
     w.line_segment = np.array(line_seg, dtype=int)
@@ -122,7 +120,6 @@ def build_world(scene: Scene) -> World:
     w.corners = np.array(corners, dtype=float).reshape(-1, 3)
     w.corner_fid = np.array(corner_fid, dtype=int)
     w.triangles = np.array(tris, dtype=float).reshape(-1, 3, 3)
-    w.triangle_face = np.array(tri_face, dtype=int)
     return w
 
 

@@ -38,6 +38,7 @@ from wiredsl.io.files import require_finite
 FORMATS = ("opencv", "ros", "kalibr")
 MAX_BYTES = 4 << 20
 MAX_VALUE = 1e12  # any number a calibration file gives: products of a few stay far from overflow
+MIN_FOCAL = 1e-6  # px: a focal length below is no camera, and its square underflows
 MAX_DEPTH = 64  # nesting of a calibration file's mappings and lists (real ones have 3)
 RADTAN = ("plumb_bob", "radtan", "rational_polynomial", "pinhole", "none")
 EQUIDISTANT = ("equidistant", "fisheye", "kannalabrandt8", "kannala_brandt", "kb4")
@@ -326,8 +327,9 @@ def _intrinsics(name: str, K, D, size, model: str = "plumb_bob") -> CameraFile:
                                    "must be 0)")
     if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
         raise CalibrationFileError(f"{name}: the camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
-    if not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise CalibrationFileError(f"{name}: the focal lengths fx, fy must be > 0, are {K[0, 0]:g}, {K[1, 1]:g}")
+    if not (K[0, 0] >= MIN_FOCAL and K[1, 1] >= MIN_FOCAL):
+        raise CalibrationFileError(f"{name}: the focal lengths fx, fy must be at least {MIN_FOCAL:g} px, are "
+                                   f"{K[0, 0]:g}, {K[1, 1]:g}")
     kind, dist = _distortion(name, D, model)
     return CameraFile(name, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), dist, *_size(name, size),
                       model=kind)
@@ -620,8 +622,8 @@ def _kalibr_camera(c: dict) -> CameraFile:
         raise CalibrationFileError(f"line {n}: a pinhole projection has 4 values [fu, fv, pu, pv] and 4 standard "
                                    f"deviations, this has {len(p)} and {len(sp)}")
     (fu, fv, pu, pv), (sfu, sfv, spu, spv) = p, sp
-    if not (fu > 0 and fv > 0):
-        raise CalibrationFileError(f"line {n}: the focal lengths must be > 0")
+    if not (fu >= MIN_FOCAL and fv >= MIN_FOCAL):
+        raise CalibrationFileError(f"line {n}: the focal lengths must be at least {MIN_FOCAL:g} px")
     d, sd, dn = c.get("distortion", ([], [], c["line"]))
     want = 4 if (equidistant or "Distorted" in kind or d) else 0
     if len(d) != want or len(sd) != want:

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl import __version__
+from wiredsl.engine import geometry
 from wiredsl.engine.simulate import PoseResult
 from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
@@ -104,12 +105,25 @@ def features_doc(scene: Scene, world: World, results: list[PoseResult], *, pipel
     """The features dump as plain data, what `Features(...).model_dump(mode="json")` gives, built from the
     engine's arrays without a model a feature (numpy arrays in place of lists of numbers: see `to_json`)."""
     cameras: dict = {}
-    poses = [{"index": r.index, "pose": [_r(x) for x in r.pose], "viewpoint": r.viewpoint,
-              "left": _view(r.left, world, cameras),
-              "right": None if r.right is None else _view(r.right, world, cameras)} for r in results]
+    poses = []
+    for r in results:
+        pose = {"index": r.index, "pose": [_r(x) for x in geometry.floor_pose(r.pose)]}
+        transform = _transform(r.pose)
+        if transform is not None:  # left out of floor paths' dumps, as the model leaves it out
+            pose["transform"] = transform
+        poses.append({**pose, "viewpoint": r.viewpoint, "left": _view(r.left, world, cameras),
+                      "right": None if r.right is None else _view(r.right, world, cameras)})
     return {"document": "features", "schema_version": SCHEMA_VERSION, "tool_version": __version__,
             "scene": scene_ref(scene).model_dump(mode="json"), "pipeline": pipeline,
             "stages": [s.model_dump(mode="json") for s in stages], "seed": seed, "trial": trial, "poses": poses}
+
+
+def _transform(pose: tuple) -> tuple | None:
+    """A 6-DoF pose's [R | t] rows at full precision (None for a floor pose: dumps of floor paths unchanged)."""
+    if len(pose) == 3:
+        return None
+    R, t = geometry.world_from_robot(pose)
+    return tuple(tuple(_r(x, None) for x in (*R[i], t[i])) for i in range(3))
 
 
 def features(scene: Scene, world: World, results: list[PoseResult], *, pipeline: str | None = None,

@@ -6,7 +6,7 @@ from typing import Any, Literal
 
 from pydantic import ConfigDict, Field
 
-from wiredsl.scene import SCHEMA_VERSION, Camera, Vec2, Vec3
+from wiredsl.scene import SCHEMA_VERSION, Camera, Mat34, Vec2, Vec3, omitted_when_none
 from wiredsl.scene import Node as SceneNode
 
 
@@ -69,10 +69,13 @@ class PoseViews(Node):
     """Both cameras' views at one pose of the path."""
 
     index: int
-    pose: Vec3 = Field(description="(x, y, heading) of the robot")
+    pose: Vec3 = Field(description="(x, y, heading) of the robot (of a 6-DoF pose: its projection on the floor)")
+    transform: Mat34 | None = Field(None, description="a 6-DoF pose (a path read from a trajectory file): "
+                                    "world_from_robot [R | t] (rows)")
     viewpoint: str | None = Field(None, description="the view-point whose visibility list was used")
     left: View
     right: View | None = None
+    _dump = omitted_when_none("transform")
 
 
 class SceneRef(Node):

@@ -127,7 +127,16 @@ def json_loads(text: str):
                    and _outside_strings(text, m.start())), 0)
         raise json.JSONDecodeError(f"{token} is not a JSON number (JSON has no NaN or infinity)", text, at)
 
-    return json.loads(text, parse_constant=refuse)
+    def number(token: str) -> float:
+        x = float(token)
+        if not math.isfinite(x):  # 1e999: Python reads it as infinity
+            raise json.JSONDecodeError(f"{token} is beyond the range of a double", text, text.find(token))
+        return x
+
+    try:
+        return json.loads(text, parse_constant=refuse, parse_float=number)
+    except RecursionError:
+        raise json.JSONDecodeError("nested too deeply for this reader", text, 0) from None
 
 
 def _outside_strings(text: str, at: int) -> bool:
@@ -231,8 +240,8 @@ def write_atomic(path: str | os.PathLike, data: str | bytes, tidy: bool = True) 
 # --------------------------------------------------------------------------- output folders
 
 # What other commands (viewdep, bench, export-calibration) write into a build folder: a rebuild keeps it.
-KEPT = ("viewdep.json", "bench.svg", "bench.png", "calibration")
-_OURS = re.compile(r"^(manifest\.json|features\.(json|jsonl|npz)|pose_\d+\.svg|viewdep\.json|bench\.(svg|png)"
+KEPT = ("viewdep.json", "bench.svg", "bench.png", "bench.pdf", "calibration")
+_OURS = re.compile(r"^(manifest\.json|features\.(json|jsonl|npz)|pose_\d+\.svg|viewdep\.json|bench\.(svg|png|pdf)"
                    r"|calibration)$")
 
 

@@ -142,8 +142,9 @@ def open_npz(path):
                         raise NpzError(f"member '{name}': its header's shape {shape} ({dtype}) needs {need:,} bytes, "
                                        f"the member holds {info.file_size - fh.tell():,}")
         return np.load(path, allow_pickle=False)
-    except (OSError, zipfile.BadZipFile, zipfile.LargeZipFile, EOFError) as exc:
-        raise NpzError(f"not an npz file: {exc}") from None
+    except (OSError, zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError) as exc:
+        # NotImplementedError: a zip feature Python does not read (a compression method, a version)
+        raise NpzError(f"not an npz file this reader takes: {exc}") from None
 
 
 def npz_problems(path) -> list[str]:
@@ -156,8 +157,37 @@ def npz_problems(path) -> list[str]:
             return _layout_problems(data)
     except NpzError as exc:
         return [str(exc)]
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # a member's data damaged (CRC, length)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError) as exc:  # damaged data (CRC)
         return [f"a damaged member: {exc}"]
+
+
+def _shape_problems(key: str, a, dtype: str, shape: str) -> list[str]:
+    """A member's dtype and shape against its row of MEMBERS ("(N, 2)": two dimensions, the second 2)."""
+    import numpy as np
+
+    dims = [d.strip() for d in shape.strip("()").split(",") if d.strip()]
+    kind_ok = a.dtype.kind == "U" if dtype == "unicode" else a.dtype == np.dtype(dtype)
+    if not kind_ok:
+        return [f"{key}: dtype {a.dtype}, expected {dtype}"]
+    if a.ndim != len(dims) or any(d.isdigit() and a.shape[i] != int(d) for i, d in enumerate(dims)):
+        return [f"{key}: shape {a.shape}, expected {shape}"]
+    return []
+
+
+def _rows_problems(data, b: str, n_ids: int) -> list[str]:
+    """Each batch's row members: one row per value, cameras 0 or 1, feature ids within feature_ids."""
+    out = []
+    for values, rows in (("corners", "corner_rows"), ("view_cameras", "views"), ("view_poses", "views"),
+                         ("conics", "conic_rows")):
+        if len(data[f"{b}_{values}"]) != len(data[f"{b}_{rows}"]):
+            out.append(f"{b}: {values} and {rows} differ in length")
+    for rows, has_feature in (("strokes", True), ("corner_rows", True), ("views", False), ("conic_rows", True)):
+        r = data[f"{b}_{rows}"]
+        if len(r) and not ((r[:, 2] == 0) | (r[:, 2] == 1)).all():
+            out.append(f"{b}_{rows}: a camera other than 0 (left) or 1 (right)")
+        if len(r) and ((r[:, :2] < 0).any() or (has_feature and not (0 <= r[:, 3].min() <= r[:, 3].max() < n_ids))):
+            out.append(f"{b}_{rows}: a negative trial or pose, or a feature id outside feature_ids")
+    return out
 
 
 def _layout_problems(data) -> list[str]:
@@ -168,17 +198,21 @@ def _layout_problems(data) -> list[str]:
     out = [f"missing member '{m}'" for m in ("feature_ids", "layout", "manifest") if m not in names]
     if out:
         return out
+    for m, dtype, shape, _ in MEMBERS[-3:]:
+        out += _shape_problems(m, data[m], dtype, shape)
+    if out:
+        return out
     if int(data["layout"]) != NPZ_VERSION:
         return [f"layout {int(data['layout'])}, this wiredsl reads {NPZ_VERSION}"]
     batches = sorted({n.split("_", 1)[0] for n in names if n.startswith("b") and n[1:6].isdigit()})
     n_ids = len(data["feature_ids"])
     for b in batches:
-        for m, dtype, _, _ in MEMBERS[:-3]:
+        for m, dtype, shape, _ in MEMBERS[:-3]:
             key = f"{b}_{m[2:]}"
             if key not in names:
                 out.append(f"missing member '{key}'")
-            elif data[key].dtype != np.dtype(dtype):
-                out.append(f"{key}: dtype {data[key].dtype}, expected {dtype}")
+            else:
+                out += _shape_problems(key, data[key], dtype, shape)
         if out:
             continue
         start, strokes, pts = data[f"{b}_start"], data[f"{b}_strokes"], data[f"{b}_pts"]
@@ -191,6 +225,8 @@ def _layout_problems(data) -> list[str]:
         elif not all(np.isfinite(data[f"{b}_{m}"]).all() for m in ("pts", "corners", "view_cameras", "view_poses",
                                                                     "conics")):
             out.append(f"{b}: non-finite coordinates")
+        else:
+            out += _rows_problems(data, b, n_ids)
     from wiredsl.io.schema import problems
 
     try:

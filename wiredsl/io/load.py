@@ -13,12 +13,14 @@ camera, rotation and translation.
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 from wiredsl.io import layout
-from wiredsl.io.files import json_loads
+from wiredsl.io.files import UnreadableFile, json_loads, read_regular, regular_size
 
 KIND_ORDER = ("lines", "polylines", "conics", "corners")
+MAX_JSON_BYTES = 1 << 30  # a JSON or JSON-lines dump read whole (as `validate` reads one)
 
 
 class DumpError(ValueError):
@@ -38,12 +40,22 @@ def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
     trial, pose or camera the dump does not hold, raises DumpError naming what it does hold.
     """
     path = Path(path)
+    try:
+        regular_size(path, MAX_JSON_BYTES if path.suffix != ".npz" else 2**63)  # FIFOs and devices stay unopened
+    except UnreadableFile as exc:
+        raise DumpError(f"{path} {exc}") from None
     with open(path, "rb") as fh:
         head = fh.read(4)
     if head == b"PK\x03\x04":
         held = _npz_held(path)
         pick = _pick(path, held, trial, pose, camera, names=None)
-        return _npz_arrays(path, *pick) if arrays else _npz_records(path, *pick)
+        try:
+            return _npz_arrays(path, *pick) if arrays else _npz_records(path, *pick)
+        except (KeyError, IndexError, TypeError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError) as exc:
+            if isinstance(exc, DumpError) or str(exc).startswith(f"{path}: "):  # ours, naming the file already
+                raise
+            raise layout.NpzError(f"{path}: not a features.npz of layout {layout.NPZ_VERSION} ({type(exc).__name__}:"
+                                  f" {exc}); `wiredsl validate {path}` says what is wrong") from None
     if arrays:
         raise DumpError(f"{path}: arrays=True reads npz dumps; this is JSON")
     docs = _json_docs(path)
@@ -70,7 +82,10 @@ def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
 
 def _json_docs(path: Path) -> list[dict]:
     """The features documents of a JSON or JSON-lines dump, or DumpError saying what the file is instead."""
-    data = path.read_bytes()
+    try:
+        data = read_regular(path, MAX_JSON_BYTES)
+    except UnreadableFile as exc:
+        raise DumpError(f"{path} {exc}") from None
     start = data.lstrip()[:200]
     if start.startswith((b"<svg", b"<?xml")):
         raise DumpError(f"{path} is an SVG image, not a dump; {_NOT_A_DUMP}")
@@ -79,9 +94,9 @@ def _json_docs(path: Path) -> list[dict]:
         lines = [line for line in text.splitlines() if line.strip()]
         docs = [json_loads(line) for line in lines] if path.suffix == ".jsonl" else [json_loads(text)]
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        what = "a CSV table" if b"," in start.split(b"\n", 1)[0] and not start.startswith((b"{", b"[")) \
-            else "not JSON"
-        raise DumpError(f"{path} is {what}, not a dump ({exc}); {_NOT_A_DUMP}") from None
+        if b"," in start.split(b"\n", 1)[0] and not start.startswith((b"{", b"[")):
+            raise DumpError(f"{path} is a CSV table, not a dump; {_NOT_A_DUMP}") from None
+        raise DumpError(f"{path} is not JSON ({exc}); {_NOT_A_DUMP}") from None
     for doc in docs:
         kind = doc.get("document") if isinstance(doc, dict) else None
         if kind != "features" or not isinstance(doc.get("poses"), list):
@@ -95,17 +110,25 @@ def _npz_held(path: Path) -> tuple[set[int], set[int], None]:
     import numpy as np
 
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with _open_npz(path) as data:
             batches = _batches(data)
             if "manifest" not in data.files or "feature_ids" not in data.files or not batches:
                 raise DumpError(f"{path} is an npz file but not a wiredsl dump (no manifest, feature_ids or "
                                 f"batches); {_NOT_A_DUMP}")
             views = np.concatenate([data[f"{b}_views"] for b in batches])
     except (OSError, ValueError, KeyError) as exc:
-        if isinstance(exc, DumpError):
+        if isinstance(exc, (DumpError, layout.NpzError)):
             raise
         raise DumpError(f"{path} is not a readable npz dump ({exc}); {_NOT_A_DUMP}") from None
     return set(views[:, 0].tolist()), set(views[:, 1].tolist()), None
+
+
+def _open_npz(path: Path):
+    """The npz, its members checked before any is read (layout.open_npz), or NpzError naming the file."""
+    try:
+        return layout.open_npz(path)
+    except layout.NpzError as exc:
+        raise layout.NpzError(f"{path}: {exc}") from None
 
 
 def _pick(path: Path, held, trial, pose, camera, names: list[str] | None):
@@ -187,11 +210,16 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
     # member -> the member whose rows select it
     selected_by = {"corners": "corner_rows", "corner_rows": "corner_rows", "views": "views",
                    "view_cameras": "views", "view_poses": "views", "conics": "conic_rows", "conic_rows": "conic_rows"}
-    try:
-        data = layout.open_npz(path)
-    except layout.NpzError as exc:
-        raise layout.NpzError(f"{path}: {exc}") from None
+    return _read_npz(_open_npz(path), path, selected_by, chosen)
+
+
+def _read_npz(data, path: Path, selected_by: dict, chosen) -> dict:
+    import numpy as np
+
     with data:
+        if data["layout"].shape != () or int(data["layout"]) != layout.NPZ_VERSION:
+            raise layout.NpzError(f"{path}: layout {data['layout'].tolist()}, this wiredsl reads "
+                                  f"{layout.NPZ_VERSION}")
         out = {k: [] for k in ("pts", "strokes", *selected_by)}
         start = [0]
         for b in _batches(data):
@@ -203,6 +231,11 @@ def _npz_arrays(path: Path, want_trial, want_pose, want_cam) -> dict:
             for m, by in selected_by.items():
                 out[m].append(data[f"{b}_{m}"][chosen(data[f"{b}_{by}"])])
         arrays = {k: np.concatenate(v) for k, v in out.items() if v}
+        dtypes = {m[2:]: d for m, d, _, _ in layout.MEMBERS if m.startswith("b_")}
+        wrong = [k for k, v in arrays.items() if v.dtype != np.dtype(dtypes[k])]
+        if wrong:
+            raise layout.NpzError(f"{path}: its {wrong[0]} are {arrays[wrong[0]].dtype}, the layout's are "
+                                  f"{dtypes[wrong[0]]} (`wiredsl validate {path}` says more)")
         bad = [k for k, v in arrays.items() if v.dtype.kind == "f" and not np.isfinite(v).all()]
         if bad:
             raise ValueError(f"{path}: its {bad[0]} hold NaN or infinity: not a dump wiredsl wrote "

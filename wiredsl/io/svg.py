@@ -224,11 +224,11 @@ def _fov_rays(view: View) -> np.ndarray:
     cam = view.camera
     us = np.linspace(0.0, cam.width, 17)
     xd = (us - cam.cx) / (cam.f * cam.ax)
-    if cam.distortion == "equidistant":  # theta from theta_d on a table (monotone up to the limit)
-        theta = np.linspace(0.0, geometry.lens_limit(cam), 4001)
-        t2 = theta * theta
-        td = theta * (1 + t2 * (cam.k1 + t2 * (cam.k2 + t2 * (cam.k3 + t2 * cam.k4))))
-        th = np.interp(np.abs(xd), td, theta)
+    if cam.distortion == "equidistant":  # theta from theta_d, no farther than the lens limit
+        limit = geometry.lens_limit(cam)
+        reach = geometry.fisheye_theta_d(limit, cam.k1, cam.k2, cam.k3, cam.k4)
+        th, _ = geometry.fisheye_theta(np.minimum(np.abs(xd), reach), cam.k1, cam.k2, cam.k3, cam.k4)
+        th = np.clip(np.nan_to_num(th, nan=limit), 0.0, limit)
         rays = np.column_stack([np.sign(xd) * np.sin(th), np.zeros_like(us), np.cos(th)])
     else:
         rays = np.column_stack([xd, np.zeros_like(us), np.ones_like(us)])
@@ -327,7 +327,7 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
         ring = keys.use("top view", NEAREST, "nearest view-point", "ring")
         out.append(f'<circle class="map" cx="{_f(p[0])}" cy="{_f(p[1])}" r="7" fill="none" stroke="{ring}" '
                    f'stroke-width="2.2"><title>nearest view-point {escape(result.viewpoint)}</title></circle>')
-    px, py, heading = result.pose
+    px, py, heading = geometry.floor_pose(result.pose)
     tail = m(np.array([[px, py], [px - 0.4 * math.cos(heading), py - 0.4 * math.sin(heading)]]))
     robot = keys.use("top view", ROBOT, "robot (dot) and its tail", "robot")
     out.append(f'<polyline class="map" points="{_pts(tail)}" fill="none" stroke="{robot}" stroke-width="2.6"/>')
@@ -415,9 +415,10 @@ def _swatch(x: float, y: float, colour: str, mark: str, label: str) -> str:
 
 
 def _caption(scene: Scene, result: PoseResult, info: Info) -> list[str]:
-    x, y, hd = result.pose
+    x, y, hd = geometry.floor_pose(result.pose)
     n = len(scene.path.poses)
-    first = (f"{scene.name} ({scene.source}): pose {result.index} of 0..{n - 1} at x = {x:.2f} m, y = {y:.2f} m, "
+    z = "" if len(result.pose) == 3 else f", z = {geometry.world_from_robot(result.pose)[1][2]:.2f} m"
+    first = (f"{scene.name} ({scene.source}): pose {result.index} of 0..{n - 1} at x = {x:.2f} m, y = {y:.2f} m{z}, "
              f"heading {math.degrees(hd):.1f} deg" + (f", nearest view-point {result.viewpoint}"
                                                       if result.viewpoint else ""))
     if info.layout == "visibility":  # Figure 4 compares the ideal world seen two ways

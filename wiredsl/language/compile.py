@@ -15,11 +15,11 @@ from pathlib import Path as FsPath
 import numpy as np
 import pydantic
 
-from wiredsl.diagnostics import Collector, Diagnostic, Span, did_you_mean
+from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
 from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
-from wiredsl.language.statements import Bound, bind
+from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE, Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS
 from wiredsl.scene import (
     Camera,
@@ -32,6 +32,7 @@ from wiredsl.scene import (
     Pipeline,
     Placement,
     Polyline,
+    Rig,
     Scene,
     Silhouette,
     Stage,
@@ -60,16 +61,15 @@ def compile_program(program: ast.Program) -> tuple[Scene, list[Diagnostic]]:
     errors of everything that did, except references to unknown names: while part of the program is
     missing, such a name may well be declared there, so one note counts them instead.
     """
-    out = Collector()
+    out = Collector(hold_unknown=bool(program.errors))
     out.extend(program.errors)
-    compiler = Compiler(program, out)
-    scene = compiler.run()
-    if compiler.unknown_unreported:
-        first = out.diagnostics[0]
-        n = compiler.unknown_unreported
+    scene = Compiler(program, out).run()
+    if out.unknown_held:  # noted at the first include that failed, else at the first syntax error
+        i = next((i for i, d in enumerate(program.errors) if d.code in ("E010", "E011")), 0)
+        n = out.unknown_held
         note = (f"{n} reference{'s' * (n != 1)} to unknown names not reported: they may be declared in what "
                 f"did not load")
-        out.diagnostics[0] = replace(first, notes=(*first.notes, note))
+        out.diagnostics[i] = replace(out.diagnostics[i], notes=(*out.diagnostics[i].notes, note))
     out.diagnostics = [_noted(d, program) for d in out.diagnostics]
     out.raise_if_errors()
     return scene, out.diagnostics
@@ -106,7 +106,6 @@ class Compiler(CameraCompiler):
         self.calibration_stages: list[Span] = []  # where pipelines call calibration_error
         self.scene_name: str | None = None
         self.rig_without_calibration = False
-        self.unknown_unreported = 0  # references to unknown names while part of the program did not load
 
     # ------------------------------------------------------------------ driver
     def run(self) -> Scene:
@@ -124,7 +123,7 @@ class Compiler(CameraCompiler):
         self._resolve_cameras()
         rig = self._rig(self.singles["rig"]) if "rig" in self.singles else None
         viewpoints = self._viewpoints(self.singles["viewpoints"]) if "viewpoints" in self.singles else None
-        path = self._path(self.singles["path"]) if "path" in self.singles else None
+        path = self._path(self.singles["path"], rig) if "path" in self.singles else None
         self._check_defaults()
         studies = self._studies(path)
         if self.rig_without_calibration:
@@ -192,10 +191,7 @@ class Compiler(CameraCompiler):
     def _ref(self, table, what: str, name: str, span: Span, context: str = "") -> bool:
         if name in table:
             return True
-        if self.program.errors:
-            self.unknown_unreported += 1
-            return False
-        self.out.error("E104", f"unknown {what} '{name}'{context}", span, did_you_mean(name, table))
+        self.out.unknown(f"unknown {what} '{name}'{context}", span, did_you_mean(name, table))
         return False
 
     # ------------------------------------------------------------------ models
@@ -334,17 +330,25 @@ class Compiler(CameraCompiler):
         name = b.get("as")
         if not self._ref(self.models, "model", model, b.positional[0].span):
             return
+        R = self._rotation(b)
+        if R is None:
+            return
+        placement = Placement(name=name, model=model, position=b.get("at", (0.0, 0.0, 0.0)), rotation=_mat(R))
+        self._declare(self.placements, "placement", name, b.span("as"), placement)
+
+    def _rotation(self, b: Bound) -> np.ndarray | None:
+        """The rotation of a statement's `rotate` clauses (in order) or `ypr`, identity without them; None when
+        both are given (reported)."""
         if b.has("rotate") and b.has("ypr"):
             self.out.error("E103", "give either 'rotate' or 'ypr', not both", b.span("ypr"))
-            return
+            return None
         R = np.eye(3)
         for axis, angle in b.clauses.get("rotate", []):
             R = rotation(axis.value, angle.value) @ R
         if b.has("ypr"):
             yaw, pitch, roll = b.get("ypr")
             R = rotation("z", yaw) @ rotation("y", pitch) @ rotation("x", roll)
-        placement = Placement(name=name, model=model, position=b.get("at", (0.0, 0.0, 0.0)), rotation=_mat(R))
-        self._declare(self.placements, "placement", name, b.span("as"), placement)
+        return R
 
     # ------------------------------------------------------------------ rig, viewpoints, path
     def _single(self, b: Bound) -> None:
@@ -494,12 +498,18 @@ class Compiler(CameraCompiler):
     def _emitted(self, model: str) -> dict[str, str]:
         return {n: k for n, k in self.features.get(model, {}).items() if k != "face"}
 
-    def _path(self, b: Bound) -> Path | None:
+    def _path(self, b: Bound, rig: Rig | None) -> Path | None:
         poses: list[tuple[float, float, float]] = []
         n0 = self.out.n_errors
+        reads: dict[str, Bound] = {}  # read, body, world
         for stmt in b.stmt.block:
             sb = bind(stmt, "path", self._units(stmt), self.out)
             if sb is None or not sb.ok:
+                continue
+            if stmt.keyword in ("read", "body", "world"):
+                if stmt.keyword in reads:
+                    self.out.error("E103", f"a path takes one '{stmt.keyword}'", stmt.keyword_span)
+                reads.setdefault(stmt.keyword, sb)
                 continue
             if stmt.keyword == "pose":
                 if len(poses) == MAX_POSES:
@@ -530,11 +540,154 @@ class Compiler(CameraCompiler):
             for i in range(n):
                 t = i * step / length
                 poses.append((x0 + t * (x1 - x0), y0 + t * (y1 - y0), heading))
+        if reads:
+            if "read" not in reads:
+                sb = reads.get("body") or reads["world"]
+                self.out.error("E102", f"'{sb.stmt.keyword}' places the poses of a trajectory file: the path has "
+                                       "no 'read'", sb.stmt.keyword_span, f"e.g. {CONTEXTS['path']['read'].example}")
+                return None
+            if poses:
+                self.out.error("E103", "a path read from a trajectory file takes no 'pose' or 'straight'",
+                               reads["read"].stmt.keyword_span)
+                return None
+            return self._trajectory(b, reads, rig) if self.out.n_errors == n0 else None
         if not poses:
             if self.out.n_errors == n0:  # else the statements that failed are the reason, reported already
                 self.out.error("E102", f"path '{b.name}' has no poses", b.name_span)
             return None
         return Path(name=b.name, poses=poses)
+
+    def _trajectory(self, b: Bound, reads: dict[str, Bound], rig: Rig | None) -> Path | None:
+        """A 6-DoF path from a trajectory file: world_from_robot = world_from_file . file_from_body .
+        body_from_robot, each pose."""
+        from wiredsl.io import trajectory
+
+        sb = reads["read"]
+        body = self._body(reads.get("body"), rig)
+        world = reads.get("world")
+        R_sf = self._rotation(world) if world is not None else np.eye(3)
+        if body is None or R_sf is None:
+            return None
+        t_sf = np.array(world.get("at", (0.0, 0.0, 0.0)) if world is not None else (0.0, 0.0, 0.0))
+        file_arg = sb.positional[0]
+        target = FsPath(sb.stmt.span.file).parent / sb.pos(0)
+        where = f"read by path '{b.name}' at {sb.stmt.span}"
+        try:
+            text = ast.decode(ast.read_bytes(target, "trajectory file", file_arg.span), target, "trajectory file",
+                              file_arg.span)
+            times = None
+            if sb.has("times"):
+                t_target = FsPath(sb.stmt.span.file).parent / sb.get("times")
+                t_text = ast.decode(ast.read_bytes(t_target, "times file", sb.span("times")), t_target,
+                                    "times file", sb.span("times"))
+                try:
+                    times = trajectory.read_times(t_text)
+                except trajectory.TrajectoryError as exc:
+                    return self._trajectory_error(exc, t_target, t_text, where, sb.span("times"))
+        except WiredslError as err:
+            self.out.extend(err.diagnostics)
+            return None
+        for key in ("every", "limit", "rate"):
+            if sb.has(key) and not sb.get(key) > 0:
+                self.out.error("E110", f"{key} must be > 0, got {sb.get(key):g}", sb.span(key))
+                return None
+        try:
+            traj = trajectory.read(text, sb.get("format"), times, sb.get("rate"))
+        except trajectory.TrajectoryError as exc:
+            return self._trajectory_error(exc, target, text, where, file_arg.span)
+        if traj.normalised:
+            line, message = traj.normalised[0]
+            more = f" (and {len(traj.normalised) - 1} more)" if len(traj.normalised) > 1 else ""
+            self.out.extend([Diagnostic("warning", "W145", message + more, _line_span(target, text, line),
+                                        notes=(where,))])
+        try:
+            P, R = trajectory.resample(traj, sb.get("every"), sb.get("from"), sb.get("to"),
+                                       int(sb.get("limit")) if sb.has("limit") else None, MAX_POSES)
+        except trajectory.TrajectoryError as exc:
+            return self._trajectory_error(exc, target, text, where, sb.span("every") if sb.has("every")
+                                          else file_arg.span)
+        if len(P) == 0:
+            self.out.error("E145", f"trajectory file {ast.display_path(target)}: no pose in the window",
+                           sb.span("from") if sb.has("from") else file_arg.span)
+            return None
+        if len(P) > MAX_POSES:
+            self.out.error("E151", f"{len(P):,} poses exceed the limit of {MAX_POSES:,}", file_arg.span,
+                           "resample with 'every', or give a 'limit'")
+            return None
+        R_wr, t_wr = trajectory.world_from_robot(P, R, body, (R_sf, t_sf))
+        if not np.all(np.abs(t_wr) <= MAX_MAGNITUDE):
+            self.out.error("E110", f"trajectory file {ast.display_path(target)} places the robot beyond "
+                                   f"{MAX_MAGNITUDE:g} m", file_arg.span)
+            return None
+        for message, hint in trajectory.implausible(R_wr, t_wr):
+            self.out.warning("W146", message, sb.stmt.keyword_span, hint)
+        floor = [(float(t[0]), float(t[1]), math.atan2(r[1, 0], r[0, 0])) for r, t in zip(R_wr, t_wr, strict=True)]
+        transforms = [tuple(tuple(float(v) for v in row) for row in np.column_stack([r, t])) for r, t
+                      in zip(R_wr, t_wr, strict=True)]
+        return Path(name=b.name, poses=floor, transforms=transforms)
+
+    def _trajectory_error(self, exc, target: FsPath, text: str, where: str, span: Span) -> None:
+        """Report a TrajectoryError at its line of the file, else at `span` of the statement."""
+        if exc.line is None:
+            self.out.error("E145", f"trajectory file {ast.display_path(target)}: {exc}", span)
+        else:
+            self.out.extend([Diagnostic("error", "E145", str(exc), _line_span(target, text, exc.line),
+                                        notes=(where,))])
+
+    def _body(self, sb: Bound | None, rig: Rig | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """robot_from_body (R, p) of a path's `body` statement (identity without one); None when reported."""
+        if sb is None:
+            return np.eye(3), np.zeros(3)
+        given = [k for k in ("at", "rotate", "ypr", "camera", "kalibr") if sb.has(k)]
+        if sum(k in given for k in ("camera", "kalibr")) + any(k in given for k in ("at", "rotate", "ypr")) > 1:
+            self.out.error("E103", f"'{given[-1]}' and '{given[0]}' both place the body: keep one", sb.span(given[-1]))
+            return None
+        if "camera" not in given and "kalibr" not in given:
+            R = self._rotation(sb)
+            return None if R is None else (R, np.array(sb.get("at", (0.0, 0.0, 0.0)), dtype=float))
+        if rig is None:
+            self.out.error("E102", f"'{given[0]}' places the body by the rig's cameras: the scene has no rig",
+                           sb.span(given[0]))
+            return None
+        mount = rig.left if sb.get("camera", "left") == "left" else rig.right
+        R_m, p_m = np.array(mount.rotation), np.array(mount.position)
+        if "camera" in given:
+            return R_m, p_m
+        T = self._kalibr_imu(sb)
+        return None if T is None else (R_m @ T[:3, :3], R_m @ T[:3, 3] + p_m)
+
+    def _kalibr_imu(self, sb: Bound) -> np.ndarray | None:
+        """cam0's T_cam_imu (4, 4) of a Kalibr camchain, its rotation made exact; None when reported."""
+        from wiredsl.io.calibration import CalibrationFileError, _yaml
+
+        span = sb.span("kalibr")
+        target = FsPath(sb.stmt.span.file).parent / sb.get("kalibr")
+        try:
+            doc = _yaml(ast.decode(ast.read_bytes(target, "Kalibr camchain", span), target, "Kalibr camchain", span))
+        except WiredslError as err:
+            self.out.extend(err.diagnostics)
+            return None
+        except CalibrationFileError as exc:
+            self.out.error("E141", f"Kalibr camchain {sb.get('kalibr')}: {exc}", span)
+            return None
+        cam0 = doc.get("cam0") if isinstance(doc, dict) else None
+        T = cam0.get("T_cam_imu") if isinstance(cam0, dict) else None
+        try:
+            T = np.array(T, dtype=float)
+        except (TypeError, ValueError):
+            T = np.zeros(0)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            self.out.error("E141", f"Kalibr camchain {sb.get('kalibr')}: cam0 has no 4 x 4 T_cam_imu of finite "
+                                   "numbers (a camchain-imucam.yaml has one)", span)
+            return None
+        R = T[:3, :3]
+        if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or np.linalg.det(R) <= 0:
+            self.out.error("E141", f"Kalibr camchain {sb.get('kalibr')}: cam0's T_cam_imu has no rotation in its "
+                                   "upper-left 3 x 3", span)
+            return None
+        U, _, Vt = np.linalg.svd(R)
+        T[:3, :3] = U @ Vt
+        return T
 
     # ------------------------------------------------------------------ pipelines
     def _pipeline(self, b: Bound) -> None:
@@ -587,7 +740,7 @@ class Compiler(CameraCompiler):
                 if (stmt.keyword == "vary" and stmt.args and isinstance(stmt.args[0], ast.Ref)
                         and stmt.args[0].parts[0] == "calibration_error"):
                     self.calibration_stages.append(stmt.args[0].span)
-            study = compile_study(b, pipelines, n_poses, self._units, self.out, tuple(self.cameras))
+            study = compile_study(b, pipelines, n_poses, self._units, self.out, dict(self.cameras))
             if study is not None:
                 self._declare(studies, "study", b.name, b.name_span, study)
         return [d.value for d in studies.values()]
@@ -597,6 +750,12 @@ class Compiler(CameraCompiler):
         for d in marked[1:]:
             self.out.error("E105", f"pipeline '{d.value.name}' is a second default", d.span,
                            f"'{marked[0].value.name}' is already the default")
+
+
+def _line_span(path: FsPath, text: str, line: int) -> Span:
+    """The whole of one line of a file read by a statement."""
+    lines = text.splitlines()
+    return Span(ast.display_path(path), line, 1, line, len(lines[line - 1]) + 1 if line <= len(lines) else 2)
 
 
 def _ignore(b: Bound) -> None:

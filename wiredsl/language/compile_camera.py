@@ -159,8 +159,16 @@ class CameraCompiler:
         return out
 
     def _rescaled(self, name: str, own: dict) -> None:
-        """A `size` beside `read` that differs from the file's: the file's K scaled to it (or refused)."""
+        """A `size` beside `read` that differs from the file's: the file's K scaled to it (or refused).
+        A size given for a file that has none is checked against the file's centre."""
         (_, _, read), _ = own["_read"]
+        if "size" in own and "size" not in read and own.get("centre") is read["centre"]:
+            (cx, cy), (w, h) = read["centre"][0], own["size"][0]
+            if not (0 <= cx <= w and 0 <= cy <= h):
+                self.out.warning("W143", f"camera '{name}': the calibration file's centre ({cx:.6g}, {cy:.6g}) is "
+                                         f"outside the {w:g} x {h:g} image", own["size"][1],
+                                 "give the size the camera was calibrated at")
+            return
         if "size" not in read or own["size"] is read["size"]:
             return
         (W, H), (w, h) = read["size"][0], own["size"][0]
@@ -293,9 +301,25 @@ class CameraCompiler:
                 mounts[side] = self._relative_mount(mounts[side], mounts.get(other), side)
         if len(mounts) != 2 or not all(isinstance(m, Mount) for m in mounts.values()):
             return None
+        if calibration is not None and not self._calibration_fits_lenses(calibration, mounts, seen["calibration"]):
+            return None
         rig = Rig(name=b.name, left=mounts["left"], right=mounts["right"], calibration=calibration)
         self._check_stereo(rig, seen["right"])
         return rig
+
+    def _calibration_fits_lenses(self, calibration: Calibration, mounts: dict[str, Mount], span: Span) -> bool:
+        """A calibration may not perturb a coefficient its camera's lens model has not (a fisheye's p1):
+        such a draw would change nothing, silently."""
+        for item in calibration.order:
+            side, _, param = item.partition(".")
+            cam = self.cameras.get(mounts[side].camera)
+            if cam is not None and cam.distortion == "equidistant" and param in ("p1", "p2", "k5", "k6"):
+                self.out.error("E104", f"calibration parameter '{item}' does not belong to the equidistant lens of "
+                                       f"camera '{cam.name}'", span,
+                               "a fisheye's coefficients are k1..k4 (as left.k, which is -k1, left.k2, left.k3, "
+                               "left.k4)")
+                return False
+        return True
 
     def _mount(self, sb: Bound) -> Mount | Bound | None:
         """A mount, or its statement when it is `relative` to the other camera (resolved in `_rig`)."""

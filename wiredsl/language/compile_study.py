@@ -43,7 +43,7 @@ def measure_registry() -> Mapping:
 
 
 def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None, units_of, out: Collector,
-                  cameras: tuple[str, ...] = ()) -> Study | None:
+                  cameras: dict | tuple[str, ...] = ()) -> Study | None:
     """One `study NAME { ... }` block as a Study; None after reporting its errors."""
     n_errors = len(out.errors)
     seen: dict[str, Span] = {}
@@ -66,8 +66,8 @@ def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None,
         pb = first["pipeline"]
         pipeline = pb.pos(0)
         if pipeline not in pipelines:
-            out.error("E104", f"unknown pipeline '{pipeline}' in study '{b.name}'", pb.positional[0].span,
-                      did_you_mean(pipeline, pipelines) or "pipelines: " + (", ".join(pipelines) or "none"))
+            out.unknown(f"unknown pipeline '{pipeline}' in study '{b.name}'", pb.positional[0].span,
+                        did_you_mean(pipeline, pipelines) or "pipelines: " + (", ".join(pipelines) or "none"))
     else:
         defaults = [p.name for p in pipelines.values() if p.default] or (
             list(pipelines) if len(pipelines) == 1 else [])
@@ -157,7 +157,7 @@ def _size(kind: str, factors: list[Factor], points: int | None) -> int:
     return points * (len(factors) + 2)
 
 
-def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras: tuple[str, ...] = ()
+def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras: dict | tuple[str, ...] = ()
             ) -> Factor | None:
     """A `vary stage.param ...` (or `camera.<name>.<param>`) statement: the target and parameter known,
     the values in range."""
@@ -199,17 +199,22 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras
 
 
 def _camera_factor(sb: Bound, ref: ast.Ref, kind: str, units: dict[str, str], out: Collector,
-                   cameras: tuple[str, ...]) -> Factor | None:
+                   cameras: dict | tuple[str, ...]) -> Factor | None:
     """`camera.<name>.<param>`: a camera's own parameter (what the robot has and believes), not an error."""
     _, name, param = ref.parts
     span = sb.positional[0].span
     if name not in cameras:
-        out.error("E104", f"unknown camera '{name}'", span, did_you_mean(name, cameras)
-                  or "cameras: " + (", ".join(cameras) or "none"))
+        out.unknown(f"unknown camera '{name}'", span, did_you_mean(name, cameras)
+                    or "cameras: " + (", ".join(cameras) or "none"))
         return None
     if param not in CAMERA_FACTORS:
         out.error("E104", f"unknown camera parameter '{param}'", span,
                   did_you_mean(param, CAMERA_FACTORS) or "parameters: " + ", ".join(CAMERA_FACTORS))
+        return None
+    cam = cameras.get(name) if isinstance(cameras, dict) else None
+    if getattr(cam, "distortion", None) == "equidistant" and param in ("p1", "p2", "k5", "k6"):
+        out.error("E104", f"camera '{name}' has an equidistant lens, which has no '{param}'", span,
+                  "a fisheye's coefficients are k1..k4 (and k, which is -k1)")
         return None
     value_kind, low, _ = CAMERA_FACTORS[param]
     return _values(sb, f"camera.{name}", param, value_kind,

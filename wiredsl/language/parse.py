@@ -70,7 +70,7 @@ class Brackets:
                 self.last_nl = True
                 yield tok
                 continue
-            if tok.line in self.close_before and self.last is not None:
+            if self.close_before and tok.line in self.close_before and self.last is not None:
                 yield from self._close_blocks(self.close_before.pop(tok.line))
             self.last_nl = False
             if kind in _CLOSER:
@@ -177,6 +177,7 @@ def run(p: lark.Lark, text: str, path: str, close_before: dict[int, int] | None 
     errors: list[Diagnostic] = []
     broken: list[tuple[int, int]] = []
     unclosed: dict[int, int] = {}  # line -> blocks to close before it, for a second parse
+    lines = source_lines(text)  # once: recovery may be called for every token of a long broken line
 
     def add(d: Diagnostic) -> None:
         if not errors or errors[-1].span.line != d.span.line or d.code == "E003":  # the rest of a line is echo
@@ -188,16 +189,17 @@ def run(p: lark.Lark, text: str, path: str, close_before: dict[int, int] | None 
             opened = _BRACKETS.open_at(tok)
             if tok.type == "$END" and opened:
                 for b in opened:
-                    add(unclosed_diagnostic(b, text, path, None))
+                    add(unclosed_diagnostic(b, lines, path, None))
+                    # a bracket's statement is set aside; for a block, only the last statement (cut short?)
                     broken.append((b.line, b.column) if b.type != "LBRACE" else (tok.line, tok.column))
                     if b.type == "LBRACE" and close_before is None:
-                        line = _block_end_guess(b, text)
+                        line = _block_end_guess(b, lines)
                         if line is not None:
                             unclosed[line] = unclosed.get(line, 0) + 1
                 return _close(exc, opened, None) and len(errors) <= MAX_REPORTED
             inner = _open_parens(opened)
-            if inner and _starts_statement(tok, text) and inner[0].line < tok.line:
-                add(unclosed_diagnostic(inner[0], text, path, tok))
+            if inner and inner[0].line < tok.line and _starts_statement(tok, lines):
+                add(unclosed_diagnostic(inner[0], lines, path, tok))
                 broken.append((inner[0].line, inner[0].column))
                 return _close(exc, inner, tok) and len(errors) <= MAX_REPORTED
         d = syntax_diagnostic(exc, text, path)
@@ -219,7 +221,8 @@ def run(p: lark.Lark, text: str, path: str, close_before: dict[int, int] | None 
         _CommentSink.tokens = []
     if unclosed:  # parse again with each block closed where its indentation says it ends
         again = run(p, text, path, unclosed)
-        opened_here = [d for d in errors if d.code == "E003" and d.message.startswith("'{'")]
+        seen = {d.span for d in again.errors}
+        opened_here = [d for d in errors if d.code == "E003" and d.message.startswith("'{'") and d.span not in seen]
         again.errors = sorted(opened_here + again.errors, key=lambda d: (d.span.line, d.span.col))
         return again
     return Parsed(result, comments, errors, broken)
@@ -233,25 +236,25 @@ def _open_parens(opened: list[lark.Token]) -> list[lark.Token]:
     return opened[i:]
 
 
-def _starts_statement(tok: lark.Token, text: str) -> bool:
+def _starts_statement(tok: lark.Token, lines: list[str]) -> bool:
     """Is `tok` the first on its line and a `}` or a statement's keyword? Then a bracket left open on an
     earlier line, not this token, is the mistake."""
-    lines = source_lines(text)
     if not 0 < tok.line <= len(lines) or lines[tok.line - 1][: tok.column - 1].strip():
         return False
     if tok.type == "RBRACE":
         return True
+    if lines[tok.line - 1][tok.end_column - 1: tok.end_column] == ".":  # `right.f`: a reference, not `right`
+        return False
     from wiredsl.language.statements import CONTEXTS
 
     return tok.type == "WORD" and any(str(tok) in sigs for sigs in CONTEXTS.values())
 
 
-def _block_end_guess(brace: lark.Token, text: str) -> int | None:
+def _block_end_guess(brace: lark.Token, lines: list[str]) -> int | None:
     """The first line after an unclosed `{` that starts at or left of its statement's indentation with a
     statement keyword (the block was meant to end before it); None when there is none."""
     from wiredsl.language.statements import CONTEXTS
 
-    lines = source_lines(text)
     opening = lines[brace.line - 1]
     indent = len(opening) - len(opening.lstrip())
     keywords = set(CONTEXTS["top"]) if indent == 0 else {k for sigs in CONTEXTS.values() for k in sigs}
@@ -284,20 +287,20 @@ def _close(exc: lark.exceptions.UnexpectedToken, brackets: list[lark.Token], tok
     return True
 
 
-def unclosed_diagnostic(bracket: lark.Token, text: str, path: str, noticed: lark.Token | None) -> Diagnostic:
-    """E003 at a bracket never closed, with a note of where the parser found out."""
+def unclosed_diagnostic(bracket: lark.Token, lines: list[str], path: str, noticed: lark.Token | None) -> Diagnostic:
+    """E003 at a bracket never closed, with a note of where the parser found out (None: the end of the file)."""
     char = _CHAR[bracket.type]
     span = Span(path, bracket.line, bracket.column, bracket.line, bracket.column + 1)
     if noticed is None:
-        lines = source_lines(text) or [""]
-        where = f"{path}:{len(lines)}:{len(lines[-1]) + 1}"
+        last = lines[-1] if lines else ""
+        where = f"{path}:{max(len(lines), 1)}:{len(last) + 1}"
         note = f"the parser noticed at the end of the file ({where})"
     else:
         what = "starts the next statement" if noticed.type == "WORD" else "ends the block"
         note = f"the parser noticed at {path}:{noticed.line}:{noticed.column}, where {str(noticed)!r} {what}"
     hint = f"close it with '{_CHAR[_CLOSER[bracket.type]]}'"
     if bracket.type == "LBRACE":
-        line = _block_end_guess(bracket, text)
+        line = _block_end_guess(bracket, lines)
         if line is not None:
             hint = f"perhaps a '}}' is missing before line {line}"
     return Diagnostic("error", "E003", f"'{char}' opened here is never closed", span, hint, (note,))

@@ -19,7 +19,7 @@ from wiredsl.language import ast
 from wiredsl.language.units import KIND_NAMES, UNITS
 from wiredsl.plugins import lookup
 
-SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "integer")
+SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "integer", "time")
 MAX_MAGNITUDE = 1e9  # metres or pixels: squares and products of a few stay far from float overflow
 
 
@@ -65,6 +65,13 @@ P3 = S("vec3:length", "point (x, y, z)")
 P2 = S("vec2:length", "floor point (x, y)")
 DIR = S("vec3:number", "direction (x, y, z)")
 
+_ROTATE = {
+    "rotate": C("rotation about a world axis, applied in order", S("word", "axis", "x", "y", "z"),
+                S("angle", "angle"), repeat=True),
+    "ypr": C("R = Rz(yaw) Ry(pitch) Rx(roll): yaw about z, then pitch about the turned y, then roll",
+             S("vec3:angle", "(yaw, pitch, roll)")),
+}
+
 _TOP = [
     Sig("wiredsl", "format version of the file; must be 1", (S("integer", "version"),), example="wiredsl 1"),
     Sig("scene", "the scene's name (default: the file name)", (NAME,), example="scene lab"),
@@ -80,10 +87,7 @@ _TOP = [
         (S("ref", "model"),),
         {"as": C("the placement's name", NAME, required=True),
          "at": C("position of the model's origin", P3),
-         "rotate": C("rotation about a world axis, applied in order", S("word", "axis", "x", "y", "z"),
-                     S("angle", "angle"), repeat=True),
-         "ypr": C("R = Rz(yaw) Ry(pitch) Rx(roll): yaw about z, then pitch about the turned y, then roll",
-                  S("vec3:angle", "(yaw, pitch, roll)"))},
+         **_ROTATE},
         example="place bin as bin1 at (2m, 1m, 0) rotate z 30deg"),
     Sig("camera", "a camera model C = F(f, ax, ay, ox, oy, k, R, T)", (NAME,),
         {"like": C("start from another camera's parameters", S("ref", "camera"))},
@@ -92,7 +96,8 @@ _TOP = [
         block_required=True, example="rig head { ... }"),
     Sig("viewpoints", "the triangular mesh of view-points on the floor", (NAME,), block="viewpoints",
         block_required=True, example="viewpoints floor { grid from (0, 0) to (6m, 4m) spacing 1m }"),
-    Sig("path", "the robot's poses on the floor", (NAME,), block="path", block_required=True,
+    Sig("path", "the robot's poses: on the floor, or 6-DoF from a trajectory file", (NAME,), block="path",
+        block_required=True,
         example="path run { straight from (1, 1) to (5, 1) step 0.5m }"),
     Sig("pipeline", "an ordered list of uncertainty stages", (NAME,),
         {"default": C("the pipeline a build runs without --pipeline")},
@@ -210,6 +215,29 @@ _PATH = [
         {"from": C("start", P2, required=True), "to": C("end", P2, required=True),
          "step": C("distance between poses", S("length", "step"), required=True)},
         example="straight from (1, 1) to (5, 1) step 0.5m"),
+    Sig("read", "6-DoF poses from a trajectory file (TUM, EuRoC ground truth, KITTI poses, CSV with a header), "
+        "resampled by time", (S("str", "path"),),
+        {"format": C("the file's format (default: recognised from its content)",
+                     S("word", "format", "tum", "euroc", "kitti", "csv")),
+         "every": C("one pose every this long: positions linear, rotations slerp (default: the file's poses)",
+                    S("time", "period")),
+         "from": C("start of the window, from the file's first pose", S("time", "start")),
+         "to": C("end of the window, from the file's first pose", S("time", "end")),
+         "limit": C("at most this many poses (the first)", S("integer", "n")),
+         "rate": C("poses a second of a file without timestamps (KITTI)", S("number", "rate (Hz)")),
+         "times": C("a file of timestamps, one a line, for a file without them (KITTI's times.txt)",
+                    S("str", "path"))},
+        example='read "run.tum" format tum every 0.1s from 2s to 10s'),
+    Sig("body", "the frame the file's poses are of, on the robot (default: the robot frame)", (),
+        {"at": C("its origin in the robot frame (x forward, y left, z up)", P3), **_ROTATE,
+         "camera": C("the file's poses are this rig camera's, OpenCV axes (TUM RGB-D, KITTI)",
+                     S("word", "side", "left", "right")),
+         "kalibr": C("the file's poses are the IMU's (EuRoC): the left camera is cam0 at T_cam_imu of this "
+                     "Kalibr camchain", S("str", "path"))},
+        example="body camera left"),
+    Sig("world", "the file's world frame in the scene (default: the scene's; the scene's z is up)", (),
+        {"at": C("its origin in the scene", P3), **_ROTATE},
+        example="world at (1m, 2m, 0) rotate x -90deg rotate z -90deg"),
 ]
 
 

@@ -13,10 +13,12 @@ UNITS: dict[str, tuple[str, float]] = {
     "rad": ("angle", 1.0),
     "px": ("image", 1.0),
     "%": ("fraction", 0.01),
+    "s": ("time", 1.0),
+    "ms": ("time", 1e-3),
 }
 
 # What a bare number means for each kind when the file sets no `units`.
-DEFAULT_UNITS: dict[str, str] = {"length": "m", "angle": "deg", "image": "px"}
+DEFAULT_UNITS: dict[str, str] = {"length": "m", "angle": "deg", "image": "px", "time": "s"}
 
 KIND_NAMES = {
     "length": "a length",
@@ -24,4 +26,5 @@ KIND_NAMES = {
     "image": "an image distance",
     "number": "a plain number",
     "fraction": "a fraction",
+    "time": "a time",
 }

@@ -45,6 +45,7 @@ class Measure:
     Params: ClassVar[type[Params]]
     statistics: ClassVar[tuple[str, ...]]
     weights: ClassVar[dict[str, str]] = {}  # statistic -> count statistic that weights it across trials
+    units: ClassVar[dict[str, str]] = {}  # statistic -> its unit (m, px, count, fraction), shown on plots' axes
     doc: ClassVar[str]
 
     @classmethod

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wiredsl.engine import geometry, visibility
 from wiredsl.engine import imageset as im
-from wiredsl.engine import visibility
 from wiredsl.engine.montecarlo import to_imageset
 from wiredsl.engine.simulate import simulate
 from wiredsl.measures.base import Measure, Params, param, segments, source_key
@@ -282,7 +282,11 @@ class Prepared:
 class PGH(Measure):
     name = "pgh"
     Params = PGHParams
-    statistics = ("match", "recognition", "viewpoint")
+    statistics = ("match", "recognition", "viewpoint", "viewpoint_cameras")
+    # viewpoint is defined only where a camera has a view-point mesh to rank: weighted by those cameras, a scene
+    # without a mesh gets no viewpoint row (not a 0 that reads as "never located")
+    weights = {"viewpoint": "viewpoint_cameras"}
+    units = {"match": "fraction", "recognition": "fraction", "viewpoint": "fraction", "viewpoint_cameras": "count"}
     doc = __doc__
 
     @classmethod
@@ -300,10 +304,10 @@ class PGH(Measure):
         points = np.array(vp.points, dtype=float).reshape(-1, 2)
         sets: dict[float, dict] = {}
         for result in ideal:
-            heading = result.pose[2]
+            x, y, heading = geometry.floor_pose(result.pose)
             if heading not in sets:  # the ideal view from every view-point, with this heading
                 sets[heading] = _viewpoint_views(run, points, heading, p)
-            xy = np.array(result.pose[:2])[None]
+            xy = np.array([x, y])[None]
             truth = int(visibility.nearest_viewpoint(points, xy)[0])
             order = np.argsort(((points - xy) ** 2).sum(1), kind="stable")
             chosen = order[:p.viewpoints] if p.viewpoints else np.arange(len(points))
@@ -347,7 +351,7 @@ class PGH(Measure):
         some = total > 0
         return {"match": np.where(some, matched / np.where(some, total, 1.0), 0.0),
                 "recognition": np.where(some, recognised / np.where(some, total, 1.0), 0.0),
-                "viewpoint": located / max(cameras, 1)}
+                "viewpoint": located / max(cameras, 1), "viewpoint_cameras": np.full(n_trials, float(cameras))}
 
 
 def _own_scores(root: np.ndarray, key: np.ndarray, ref: Reference) -> tuple[np.ndarray, np.ndarray]:
@@ -401,7 +405,8 @@ def _viewpoint_views(run, points: np.ndarray, heading: float, p: PGHParams) -> d
         cache = {}
         _VIEWS[id(run.world)] = (weakref.ref(run.world), cache)
     if key not in cache:
-        path = scene.path.model_copy(update={"poses": [(float(x), float(y), heading) for x, y in points]})
+        path = scene.path.model_copy(update={"poses": [(float(x), float(y), heading) for x, y in points],
+                                            "transforms": None})
         options = dataclasses.replace(run.options, poses=None, right=False)
         results = simulate(scene.model_copy(update={"path": path}), options, run.world)
         cache[key] = [to_imageset(r.left, run.world) for r in results]

@@ -92,17 +92,9 @@ def undistort(uv: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
 def _undistort_fisheye(xd: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
     """`undistort` for an equidistant camera: theta from theta_d by Newton's method, kept below the lens limit
     and below 90 deg (a ray at or past 90 deg has no point on the unit plane, so it is not triangulated)."""
-    k1, k2, k3, k4 = cam.k1, cam.k2, cam.k3, cam.k4
     rd = np.hypot(xd[:, 0], xd[:, 1])
-    theta = rd.copy()
+    theta, res = geometry.fisheye_theta(rd, cam.k1, cam.k2, cam.k3, cam.k4, NEWTON_STEPS)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        for _ in range(NEWTON_STEPS):
-            t2 = theta * theta
-            g = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - rd
-            dg = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-            theta = theta - g / dg
-        t2 = theta * theta
-        res = np.abs(theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - rd)
         ok = np.isfinite(theta) & (res < 1e-12) & (theta >= 0) \
             & (theta < min(geometry.lens_limit(cam), math.pi / 2 - 1e-6))
         scale = np.where(rd > 0, np.tan(np.where(ok, theta, 0.0)) / np.where(rd > 0, rd, 1.0), 1.0)
@@ -166,6 +158,8 @@ class Stereo3D(Measure):
                   "corners", "corner_error", "line_points", "line_error")
     weights = {"error_mean": "points", "error_median": "points", "error_rms": "points", "outliers": "points",
                "corner_error": "corners", "line_error": "line_points"}
+    units = {"points": "count", "error_mean": "m", "error_median": "m", "error_rms": "m", "outliers": "fraction",
+             "corners": "count", "corner_error": "m", "line_points": "count", "line_error": "m"}
     doc = __doc__
 
     @classmethod

@@ -27,6 +27,8 @@ class Survival(Measure):
     Params = SurvivalParams
     statistics = ("features", "length", "corners", "ideal_features", "ideal_corners")
     weights = {"features": "ideal_features", "length": "ideal_features", "corners": "ideal_corners"}
+    units = {"features": "fraction", "length": "fraction", "corners": "fraction", "ideal_features": "count",
+             "ideal_corners": "count"}
     doc = __doc__
 
     @classmethod

@@ -27,17 +27,38 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path: Path) -> None:
+FORMATS = ("png", "svg", "pdf")
+DPI = 110  # the default raster resolution; SVG and PDF are vector (dpi sizes only embedded rasters)
+SOBOL_LIMITS = (-0.5, 1.5)  # indices are shares of variance: a heavy-tailed statistic's wild estimate is cut here
+
+
+def _save(fig, path: Path, fmt: str, dpi: int) -> None:
+    """The figure as `fmt` bytes, written atomically; no date or software stamp, so reruns give equal files."""
     import io
 
+    import matplotlib
+
+    meta = {"png": {"Software": None}, "svg": {"Date": None}, "pdf": {"CreationDate": None, "Producer": None}}[fmt]
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
+    with matplotlib.rc_context({"svg.hashsalt": "wiredsl", "svg.fonttype": "none"}):
+        fig.savefig(buf, format=fmt, dpi=dpi, metadata=meta)
     write_atomic(path, buf.getvalue())
 
 
-def write_all(table: StudyTable, study: Study, folder: Path) -> list[str]:
-    """Every plot of the study into `folder`; returns the written names."""
+def units_of(study: Study) -> dict[str, str]:
+    """{"measure.statistic": unit} from the measures' declarations (`Measure.units`)."""
+    from wiredsl.language.compile_study import measure_registry
+
+    registry = measure_registry()
+    return {f"{m.name}.{stat}": unit for m in study.measures
+            for stat, unit in (getattr(registry.get(m.name), "units", None) or {}).items()}
+
+
+def write_all(table: StudyTable, study: Study, folder: Path, fmt: str = "png", dpi: int = DPI,
+              units: dict[str, str] | None = None) -> list[str]:
+    """Every plot of the study into `folder` as `fmt` (png, svg or pdf); returns the written names."""
     plt = _pyplot()
+    units = units_of(study) if units is None else units
     written = []
     stats = list(dict.fromkeys((r.measure, r.statistic) for r in table.rows))
     for measure, stat in stats:
@@ -47,22 +68,23 @@ def write_all(table: StudyTable, study: Study, folder: Path) -> list[str]:
         d = len(table.factors)
         cols = min(d, 4)
         fig, axes = plt.subplots(-(-d // cols), cols, figsize=(4.2 * cols, 3.3 * -(-d // cols)), squeeze=False)
+        unit = units.get(f"{measure}.{stat}")
         for ax, f in itertools.zip_longest(axes.ravel(), table.factors):
             if f is None:
                 ax.axis("off")
                 continue
             (_grid if study.design == "grid" else _scatter)(ax, rows, f, table.factors)
             ax.set_xlabel(_label(f))
-            ax.set_ylabel(f"{measure}.{stat}")
+            ax.set_ylabel(f"{measure}.{stat}" + (f" ({unit})" if unit else ""))
             ax.grid(alpha=0.3)
         fig.suptitle(f"{table.study}: {measure}.{stat} (mean, 95% band)", fontsize=10)
         fig.tight_layout()
-        name = f"{measure}.{stat}.png"
-        _save(fig, folder / name)
+        name = f"{measure}.{stat}.{fmt}"
+        _save(fig, folder / name, fmt, dpi)
         plt.close(fig)
         written.append(f"plots/{name}")
     if table.sobol:
-        written.append(_sobol(plt, table, stats, folder))
+        written.append(_sobol(plt, table, stats, folder, fmt, dpi))
     return written
 
 
@@ -118,12 +140,25 @@ def _scatter(ax, rows, f: str, factors: list[str]) -> None:
     ax.fill_between(mids, means - half, means + half, color=line.get_color(), alpha=0.25, lw=0)
 
 
-def _sobol(plt, table: StudyTable, stats, folder: Path) -> str:
-    """First-order and total indices of every statistic, one panel each, with bootstrap 95% intervals."""
+def _sobol(plt, table: StudyTable, stats, folder: Path, fmt: str, dpi: int) -> str:
+    fig = sobol_figure(plt, table, stats)
+    _save(fig, folder / f"sobol.{fmt}", fmt, dpi)
+    plt.close(fig)
+    return f"plots/sobol.{fmt}"
+
+
+def sobol_figure(plt, table: StudyTable, stats):
+    """First-order and total indices of every statistic, one panel each, with bootstrap 95% intervals.
+
+    Bars and intervals beyond SOBOL_LIMITS are cut there and marked with a triangle and their value; a
+    negative first-order index (an estimate of a share near 0) is drawn downwards with its interval; an
+    undefined index (a statistic constant over the design) is written as such in place of its bars.
+    """
+    lo_lim, hi_lim = SOBOL_LIMITS
     n = len(stats)
     cols = min(n, 3)
     nrows = -(-n // cols)
-    fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.2 * nrows), squeeze=False)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.4 * nrows), squeeze=False)
     d = len(table.factors)
     for ax, (measure, stat) in itertools.zip_longest(axes.ravel(), stats):
         if measure is None:
@@ -131,26 +166,46 @@ def _sobol(plt, table: StudyTable, stats, folder: Path) -> str:
             continue
         idx = {s.factor: s for s in table.sobol if (s.measure, s.statistic) == (measure, stat)}
         pos = np.arange(d)
+        shown = [0.0, 1.0]  # what the axis must hold: 0, 1, every value and interval (within the limits)
         for shift, key, colour in ((-0.2, "first_order", "C0"), (0.2, "total_order", "C1")):
-            vals = np.array([np.nan if getattr(idx[f], key) is None else getattr(idx[f], key)
-                             for f in table.factors])  # undefined (a constant statistic): no bar
-            cis = [getattr(idx[f], key + "_ci") for f in table.factors]
-            err = None
-            if all(c is not None for c in cis):
-                lo = np.array([c[0] for c in cis])
-                hi = np.array([c[1] for c in cis])
-                err = np.stack([np.clip(vals - lo, 0, None), np.clip(hi - vals, 0, None)])
-            ax.bar(pos + shift, vals, 0.4, yerr=err, color=colour, capsize=2,
-                   label="first order" if key == "first_order" else "total")
-        lo, hi = ax.get_ylim()  # indices are shares of variance: a heavy-tailed statistic's wild interval is cut
-        ax.set_ylim(max(lo, -0.5), min(hi, 1.5))
+            for i, f in enumerate(table.factors):
+                s = idx.get(f)
+                v = None if s is None else getattr(s, key)
+                x = pos[i] + shift
+                if v is None:
+                    continue
+                ci = getattr(s, key + "_ci")
+                ax.bar(x, min(max(v, lo_lim), hi_lim), 0.4, color=colour,
+                       label=("first order" if key == "first_order" else "total") if i == 0 else None)
+                shown += [v] + (list(ci) if ci else [])
+                if ci is not None:
+                    a, b = max(ci[0], lo_lim), min(ci[1], hi_lim)
+                    ax.plot([x, x], [a, b], color="0.15", lw=1)
+                    for end, inside in ((a, ci[0] >= lo_lim), (b, ci[1] <= hi_lim)):
+                        if inside:  # a cap; a cut end gets the triangle below instead
+                            ax.plot([x - 0.07, x + 0.07], [end, end], color="0.15", lw=1)
+                for beyond, edge, marker, va in ((v > hi_lim or (ci and ci[1] > hi_lim), hi_lim, "^", "bottom"),
+                                                 (v < lo_lim or (ci and ci[0] < lo_lim), lo_lim, "v", "top")):
+                    if beyond:  # cut at the axis limit: say so, with the value that does not fit
+                        ax.plot(x, edge, marker=marker, color="C3", ms=6, clip_on=False, zorder=5)
+                        far = v if (v > hi_lim or v < lo_lim) else (ci[1] if edge == hi_lim else ci[0])
+                        ax.annotate(f"{far:.2g}", (x, edge), xytext=(0, 5 if va == "bottom" else -5),
+                                    textcoords="offset points", ha="center", va=va, fontsize=6.5, color="C3",
+                                    annotation_clip=False)
+        if all(idx.get(f) is None or idx[f].first_order is None for f in table.factors):
+            ax.text(0.5, 0.5, "undefined:\nthe statistic is constant\nover the design", ha="center", va="center",
+                    fontsize=8, transform=ax.transAxes)
+        low = max(min(shown), lo_lim)
+        high = min(max(shown), hi_lim)
+        pad = 0.08 * (high - low)
+        ax.set_ylim(low - pad, high + pad)
+        ax.set_xlim(-0.6, d - 0.4)
         ax.set_xticks(pos, [f.rsplit(".", 1)[0] for f in table.factors], rotation=35, ha="right", fontsize=7)
         ax.set_title(f"{measure}.{stat}", fontsize=9)
+        ax.set_ylabel("Sobol' index (share of variance)", fontsize=8)
         ax.axhline(0, color="0.5", lw=0.5)
         ax.grid(axis="y", alpha=0.3)
     axes.ravel()[0].legend(fontsize=7)
-    fig.suptitle(f"{table.study}: Sobol' indices (bootstrap 95%)", fontsize=10)
+    fig.suptitle(f"{table.study}: Sobol' indices (bootstrap 95%; ▲▼ cut at the axis limit)", fontsize=10)
     fig.tight_layout()
-    _save(fig, folder / "sobol.png")
-    plt.close(fig)
-    return "plots/sobol.png"
+    return fig

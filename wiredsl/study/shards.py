@@ -8,6 +8,7 @@ whose file has the expected key and checksum, and recomputes any other.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -104,8 +105,24 @@ def compute(job: Job) -> dict[str, np.ndarray]:
 
 
 def _prepare(study: Study, registry: dict, run: Run) -> list:
-    return [(registry[m.name], p := registry[m.name].Params(**m.params), registry[m.name].prepare(p, run))
-            for m in study.measures]
+    out = []
+    for m in study.measures:
+        measure = registry[m.name]
+        params = measure.Params(**m.params)
+        with _blamed(measure):
+            out.append((measure, params, measure.prepare(params, run)))
+    return out
+
+
+@contextlib.contextmanager
+def _blamed(measure):
+    """An installed measure's exception reported as its package's error (E181); a built-in's stays a bug."""
+    try:
+        yield
+    except Exception as exc:
+        if measure.name in BUILTIN:
+            raise
+        raise failure("measure", measure.name, REGISTRY, f"failed: {type(exc).__name__}: {exc}") from None
 
 
 def measure_batches(run: Run, prepared, trials: list[int]) -> dict[str, np.ndarray]:
@@ -114,15 +131,11 @@ def measure_batches(run: Run, prepared, trials: list[int]) -> dict[str, np.ndarr
     for batch, batch_out in run.batches(trials):
         for j, (result, disturbed, _views) in enumerate(batch_out):
             for measure, params, prep in prepared:
-                try:
+                with _blamed(measure):
                     got = measure.measure(params, prep, result, disturbed, len(batch))
-                except Exception as exc:
-                    if measure.name in BUILTIN:
-                        raise
-                    raise failure("measure", measure.name, REGISTRY, f"failed: {type(exc).__name__}: {exc}"
-                                  ) from None
                 for stat in measure.statistics:
-                    v = np.asarray(got[stat], dtype=float) if isinstance(got, dict) and stat in got else None
+                    with _blamed(measure):
+                        v = np.asarray(got[stat], dtype=float) if isinstance(got, dict) and stat in got else None
                     if v is None or v.shape != (len(batch),) or not np.all(np.isfinite(v)):
                         what = "nothing" if v is None else f"shape {v.shape}" if v.shape != (len(batch),) \
                             else "non-finite values"
