@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 from pathlib import Path
 
@@ -16,7 +15,7 @@ from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
 from wiredsl.io import layout
 from wiredsl.io.features import Features, SceneRef, StageRecord
-from wiredsl.io.files import json_text, publish, require_finite
+from wiredsl.io.files import json_text, printable_path, publish, require_finite
 from wiredsl.scene import SCHEMA_VERSION, Scene
 
 DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable across platforms
@@ -24,7 +23,7 @@ DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable acros
 
 def scene_ref(scene: Scene) -> SceneRef:
     digest = hashlib.sha256(Path(scene.source).read_bytes()).hexdigest()
-    return SceneRef(name=scene.name, file=scene.source, sha256=digest)
+    return SceneRef(name=scene.name, file=printable_path(scene.source), sha256=digest)
 
 
 def _r(x: float, decimals: int | None = DECIMALS) -> float:
@@ -105,17 +104,21 @@ def features_doc(scene: Scene, world: World, results: list[PoseResult], *, pipel
     """The features dump as plain data, what `Features(...).model_dump(mode="json")` gives, built from the
     engine's arrays without a model a feature (numpy arrays in place of lists of numbers: see `to_json`)."""
     cameras: dict = {}
-    poses = []
-    for r in results:
-        pose = {"index": r.index, "pose": [_r(x) for x in geometry.floor_pose(r.pose)]}
-        transform = _transform(r.pose)
-        if transform is not None:  # left out of floor paths' dumps, as the model leaves it out
-            pose["transform"] = transform
-        poses.append({**pose, "viewpoint": r.viewpoint, "left": _view(r.left, world, cameras),
-                      "right": None if r.right is None else _view(r.right, world, cameras)})
+    poses = [_pose_doc(r, world, cameras) for r in results]
     return {"document": "features", "schema_version": SCHEMA_VERSION, "tool_version": __version__,
             "scene": scene_ref(scene).model_dump(mode="json"), "pipeline": pipeline,
             "stages": [s.model_dump(mode="json") for s in stages], "seed": seed, "trial": trial, "poses": poses}
+
+
+def _pose_doc(r: PoseResult, world: World, cameras: dict) -> dict:
+    """One pose's `PoseViews` document (its `transform` only for a 6-DoF pose, as the model dumps it)."""
+    d = {"index": r.index, "pose": [_r(x) for x in geometry.floor_pose(r.pose)]}
+    transform = _transform(r.pose)
+    if transform is not None:
+        d["transform"] = transform
+    d.update(viewpoint=r.viewpoint, left=_view(r.left, world, cameras),
+             right=None if r.right is None else _view(r.right, world, cameras))
+    return d
 
 
 def _transform(pose: tuple) -> tuple | None:
@@ -145,15 +148,9 @@ def to_json(doc, indent: int | None = 1) -> str:
 
     orjson writes each float as the shortest text that reads back as the same double, as Python's repr does
     (1e-6 where repr writes 1e-06)."""
-    import orjson
-
     if not isinstance(doc, dict):
         doc = doc.model_dump(mode="json")  # a model refuses non-finite numbers when it is made
-    try:
-        return _dumps(doc, indent).decode() + "\n"
-    except orjson.JSONEncodeError:  # a lone surrogate (a file name that is not UTF-8): escaped as json escapes it
-        return json.dumps(doc, indent=2 if indent else None, separators=(",", ": ") if indent else (",", ":"),
-                          allow_nan=False, default=lambda a: a.tolist()) + "\n"
+    return _dumps(doc, indent).decode() + "\n"
 
 
 # --------------------------------------------------------------------------- disturbed output

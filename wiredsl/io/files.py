@@ -317,3 +317,9 @@ def _swap(stage: Path, target: Path) -> None:
         raise OSError(f"{target} kept being replaced by other runs")
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+
+
+def printable_path(text: str) -> str:
+    """Text for a UTF-8 document (JSON, SVG) from text that may hold a path that is not UTF-8: os.fsdecode keeps
+    such bytes as lone surrogates, which no UTF-8 writer takes, so each shows as U+FFFD."""
+    return re.sub("[\ud800-\udfff]", "\ufffd", text)

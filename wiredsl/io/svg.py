@@ -13,7 +13,6 @@ same input; coordinates are rounded to 0.01 units.
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from html import escape
 
@@ -22,7 +21,7 @@ import numpy as np
 from wiredsl.engine import geometry
 from wiredsl.engine.simulate import PoseResult, View
 from wiredsl.engine.world import World
-from wiredsl.io.files import require_finite
+from wiredsl.io.files import printable_path, require_finite
 from wiredsl.scene import Scene
 
 LAYOUTS = ("overlay", "side-by-side", "visibility")
@@ -453,8 +452,7 @@ def _compose(scene: Scene, world: World, result: PoseResult, panes: list[Pane], 
             f'width="{_f(width)}" height="{_f(height)}">',
             f"<title>{escape(lines[0])}</title>",
             f'<rect x="0" y="0" width="{_f(width)}" height="{_f(height)}" fill="#ffffff"/>']
-    # a path that is not UTF-8 (os.fsdecode keeps its bytes as lone surrogates) shows U+FFFD: SVG is UTF-8 text
-    return re.sub("[\ud800-\udfff]", "\ufffd", "\n".join(head + body + caption + ["</svg>"]) + "\n")
+    return printable_path("\n".join(head + body + caption + ["</svg>"]) + "\n")
 
 
 def _cam_title(scene: Scene, side: str, what: str = "") -> str:
