@@ -65,3 +65,19 @@ def test_rounded_arrays_are_pythons_round_to_the_last_bit():
     want = [round(float(x), 6) for x in values]
     assert [float(x).hex() for x in got] == [(w + 0.0).hex() for w in want]
     assert not np.signbit(got[values == 0]).any()
+
+
+def test_a_dump_on_stdout_is_utf8_whatever_the_terminals_encoding(tmp_path):
+    import json
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    shutil.copytree("scenes/models", tmp_path / "models")
+    shutil.copy("scenes/lab.info", tmp_path / "lab.info")
+    shutil.copy("scenes/lab.wd", tmp_path / "läb.wd")
+    p = subprocess.run([sys.executable, "-m", "wiredsl", "build", "läb.wd", "--no-effects", "--pose", "0", "-o", "-"],
+                       cwd=tmp_path, capture_output=True, timeout=120, env={**os.environ, "PYTHONIOENCODING": "ascii"})
+    assert p.returncode == 0, p.stderr
+    assert json.loads(p.stdout.decode("utf-8"))["scene"]["file"] == "läb.wd"

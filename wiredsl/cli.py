@@ -593,13 +593,13 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                             for r in res:
                                 line = doc_for([r], t)
                                 if writer is None:
-                                    sys.stdout.write(emit.to_json(line, indent=None))
+                                    _stdout_utf8(emit.to_json(line, indent=None))
                                 else:
                                     writer.write(line)
                         elif out_format == "json":
                             text = emit.to_json(doc_for(res, t))
                             if stage is None:
-                                sys.stdout.write(text)
+                                _stdout_utf8(text)
                             else:
                                 write_atomic(stage / what, text, tidy=False)
                     bar.update(len(batch))
@@ -627,6 +627,17 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                    f"seed {seed if effects else '-'}"
                    + (f", pipeline {pipeline.name}: {', '.join(e.name for e, _ in run.stages)}" if effects else
                       ", ideal projection") + ")", err=True)
+
+
+def _stdout_utf8(text: str) -> None:
+    """A dump on stdout in UTF-8 (JSON's encoding) whatever the terminal's: orjson writes non-ASCII as is."""
+    buffer = getattr(sys.stdout, "buffer", None)
+    if buffer is None:
+        sys.stdout.write(text)
+        return
+    sys.stdout.flush()
+    buffer.write(text.encode("utf-8", "surrogateescape"))
+    buffer.flush()
 
 
 def _numba_without_blas() -> None:
