@@ -13,7 +13,6 @@ from click.testing import CliRunner
 
 import wiredsl
 from wiredsl.cli import main
-from wiredsl.io import layout
 
 LAB = "scenes/lab.wd"
 ROOT = Path(__file__).resolve().parent.parent

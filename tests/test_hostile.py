@@ -276,7 +276,7 @@ def test_needs_a_rig_points_at_the_file(tmp_path):
 
 
 def test_viewdep_file_problems_are_located(tmp_path):
-    from wiredsl.engine.simulate import read_viewdep
+    from wiredsl.io.viewdep import read as read_viewdep
 
     scene, _ = compile_text("wiredsl 1\n", str(tmp_path / "s.wd"))
     (tmp_path / "v.json").write_text('{\n  "document": "viewdep",\n  oops\n}\n')

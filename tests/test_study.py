@@ -67,7 +67,7 @@ def test_study_block_compiles_to_its_design(scene):
     # calibration_error is not in 'edges': it is inserted first (its data-flow place), the rest kept in order
     p = design.pipeline_at(scene, s, X[3])
     assert [st.effect for st in p.stages] == ["calibration_error", "edge_loss", "lateral_shift"]
-    assert p.stages[0].params.sigma == 0.03 and p.stages[2].params.range == 4.0
+    assert p.stages[0].params["sigma"] == 0.03 and p.stages[2].params["range"] == 4.0
 
 
 def test_space_filling_design_is_saltelli_within_ranges(scene):

@@ -103,7 +103,7 @@ class Batch:
 
 
 def _pipeline(scene: Scene, pipeline: Pipeline | str | None) -> Pipeline | None:
-    from wiredsl.engine.run import choose_pipeline
+    from wiredsl.run import choose_pipeline
 
     return choose_pipeline(scene, pipeline).pipeline if not isinstance(pipeline, Pipeline) else pipeline
 
@@ -117,7 +117,7 @@ def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str |
     `poses` the path pose indices (None: every pose). A run without stages is the ideal projection: one
     batch of one trial, numbered 0, with the analytic conics, as build writes it.
     """
-    from wiredsl.engine import run as runs
+    from wiredsl import run as runs
     from wiredsl.engine.simulate import Options
     from wiredsl.io.emit import batch_arrays
 
@@ -150,7 +150,7 @@ class Simulator:
 
     def __init__(self, scene: Scene, seed: int, pipeline: Pipeline | str | None = None, *,
                  cameras: str = "both", visibility: str = "scene", engine: str = "auto"):
-        from wiredsl.engine import run as runs
+        from wiredsl import run as runs
         from wiredsl.engine.simulate import Options
 
         self.scene = scene

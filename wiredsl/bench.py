@@ -23,6 +23,7 @@ from wiredsl.engine import geometry, visibility
 from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options, simulate, visibility_masks
 from wiredsl.engine.world import World, ellipse_points
+from wiredsl.run import start
 from wiredsl.scene import Scene
 
 TOLERANCES = (0.01, 0.03, 0.1, 0.3, 1.0, 2.0)
@@ -248,7 +249,7 @@ def trials_table(scene: Scene, world: World, budget: float, seed: int = 1) -> Ta
             table.notes.append(f"{n:,} trials not run: at the measured {rate:,.0f} trials/s they would take "
                                f"{n / rate:,.0f} s, over the budget of {budget:g} s (--budget).")
             continue
-        run = Run.create(scene, world, pipeline, seed, Options())
+        run = start(scene, pipeline, seed=seed, world=world)
         t0 = time.perf_counter()
         values = np.concatenate([headline(run, out) for _, out in run.batches(list(range(n)))])
         seconds = time.perf_counter() - t0

@@ -285,6 +285,31 @@ def reference() -> None:
     click.echo("\n".join(out))
 
 
+@main.command()
+def plugins() -> None:
+    """List the effects and measures that installed packages add (entry points wiredsl.effects, wiredsl.measures).
+
+    One line a plug-in on stdout: kind, name, package and version, module:attribute, and ok or why it cannot be
+    used; exit 1 when one cannot."""
+    from wiredsl.effects import REGISTRY as effects
+    from wiredsl.measures import REGISTRY as measures
+    from wiredsl.plugins import installed, lookup
+
+    rows, bad = [], 0
+    for kind, registry in (("effect", effects), ("measure", measures)):
+        clashes = registry.clashes()
+        for p in installed(kind):
+            why = next((c for c in clashes if f"'{p.name}' from {p.origin}" in c), None)
+            if why is None:
+                why = lookup(registry, p.name)[1]
+            bad += why is not None
+            rows.append(f"{kind}\t{p.name}\t{p.package} {p.version}\t{p.value}\t{'ok' if why is None else why}")
+    click.echo("\n".join(rows) if rows else "no plug-ins installed (entry points wiredsl.effects, "
+                                             "wiredsl.measures)")
+    if bad:
+        sys.exit(EXIT_INVALID)
+
+
 TOLERANCE_PX = (1e-3, 100.0)  # finer than 1e-3 px costs vertices (memory, time) without bound, for nothing seen
 MAX_TRIAL = 2**31 - 1  # npz stores the trial in an int32 column
 OUTPUT_LIMIT = 50 * 10**9  # bytes a run may write without --force
@@ -432,7 +457,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     """Project the scene for every pose of its path, through its uncertainty pipeline; write the dumps."""
     import time
 
-    from wiredsl.engine import run as runs
+    from wiredsl import run as runs
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world
     from wiredsl.io import emit
@@ -563,7 +588,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
 @contextlib.contextmanager
 def _setup_errors():
     """A run's options that do not fit the scene: a usage error naming the option."""
-    from wiredsl.engine.run import RunSetupError
+    from wiredsl.run import RunSetupError
 
     try:
         yield
@@ -746,7 +771,7 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     if trial is not None:
         if seed is None:
             raise click.UsageError("--trial needs the run's --seed (see its manifest.json)")
-        from wiredsl.engine import run as runs
+        from wiredsl import run as runs
 
         with _setup_errors():
             run = runs.start(scene, runs.choose_pipeline(scene, pipeline_name).pipeline, seed=seed)

@@ -54,6 +54,9 @@ class WiredslError(Exception):
         self.diagnostics = list(diagnostics)
         super().__init__("\n".join(f"{d.span}: {d.severity}[{d.code}]: {d.message}" for d in self.diagnostics))
 
+    def __reduce__(self):  # whole across processes (a study's workers)
+        return (self.__class__, (self.diagnostics,))
+
 
 @dataclass
 class Collector:

@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import functools
-import operator
-from typing import Annotated, Literal
+from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, create_model
-
-from wiredsl.effects import REGISTRY
+from pydantic import BaseModel, ConfigDict, Field
 
 SCHEMA_VERSION = "1"
 
@@ -154,19 +150,16 @@ class Path(Node):
     poses: list[Vec3] = Field(description="(x, y, heading) in metres and radians")
 
 
-def _stage_model(name: str) -> type[Node]:
-    effect = REGISTRY[name]
-    return create_model(
-        "".join(w.title() for w in name.split("_")) + "Stage",
-        __base__=Node,
-        effect=(Literal[name], ...),
-        params=(effect.Params, effect.Params()),
-    )
+class Stage(Node):
+    """One pipeline stage: an effect's language name and all its parameters (SI units).
 
+    The compiler validates them against the effect's Params model (`wiredsl.effects.REGISTRY`), so the
+    compiled scene needs no effect to exist; the JSON schema lists each effect's parameters
+    (`wiredsl.effects.stage_models`).
+    """
 
-STAGE_MODELS = {name: _stage_model(name) for name in REGISTRY}
-globals().update({m.__name__: m for m in STAGE_MODELS.values()})  # picklable by name: scenes go to worker processes
-Stage = Annotated[functools.reduce(operator.or_, STAGE_MODELS.values()), Field(discriminator="effect")]
+    effect: str
+    params: dict[str, float | int | bool | str] = {}
 
 
 class Pipeline(Node):

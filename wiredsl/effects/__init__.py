@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from wiredsl.effects.approx_error import ApproxError
 from wiredsl.effects.base import FLOW, Effect, Params
 from wiredsl.effects.calibration_error import CalibrationError
@@ -10,10 +12,42 @@ from wiredsl.effects.corner_mismatch import CornerMismatch
 from wiredsl.effects.edge_loss import EdgeLoss
 from wiredsl.effects.lateral_shift import LateralShift
 from wiredsl.effects.stereo_mismatch import StereoMismatch
+from wiredsl.plugins import Registry
 
-REGISTRY: dict[str, type[Effect]] = {
+BUILTIN: dict[str, type[Effect]] = {
     e.name: e
     for e in (CalibrationError, EdgeLoss, LateralShift, ApproxError, CornerLoss, CornerMismatch, StereoMismatch)
 }
+KINDS = ("length", "angle", "image", "number", "fraction")  # the unit kinds a stage parameter may have
 
-__all__ = ["FLOW", "REGISTRY", "Effect", "Params"]
+
+def _check(effect: type[Effect]) -> str | None:
+    """What an installed effect lacks for the language and the engine, or None."""
+    if getattr(effect, "acts_on", None) not in FLOW or effect.acts_on == "cameras":
+        return f"acts on {getattr(effect, 'acts_on', None)!r}: one of " + ", ".join(FLOW[1:])
+    for key, f in effect.Params.model_fields.items():
+        kind = (f.json_schema_extra or {}).get("kind") if isinstance(f.json_schema_extra, dict) else None
+        if kind not in KINDS:
+            return (f"parameter '{key}' has unit kind {kind!r}: declare it with wiredsl.effects.base.param(default, "
+                    f"kind, doc), kind one of {', '.join(KINDS)}")
+    for method in ("is_identity", "disturb"):
+        if getattr(effect, method).__func__ is getattr(Effect, method).__func__:
+            return f"does not define {method}()"
+    return None
+
+
+REGISTRY = Registry("effect", BUILTIN, Effect, _check)  # the built-ins, then the installed plug-ins
+
+__all__ = ["BUILTIN", "FLOW", "REGISTRY", "Effect", "Params"]
+
+
+def stage_models() -> dict[str, type]:
+    """A model per effect the registry knows (built-in and installed), `{effect: <name>, params: <its Params>}`,
+    for the JSON schema of a pipeline's stages (the compiled scene keeps a stage as name and parameters)."""
+    from pydantic import create_model
+
+    from wiredsl.scene import Node
+
+    return {name: create_model("".join(w.title() for w in name.split("_")) + "Stage", __base__=Node,
+                               effect=(Literal[name], ...), params=(REGISTRY[name].Params, REGISTRY[name].Params()))
+            for name in REGISTRY}

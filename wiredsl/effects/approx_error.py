@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from wiredsl.effects.base import Context, Effect, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
 from wiredsl.engine import imageset as im
 
 
@@ -20,6 +20,8 @@ class ApproxErrorParams(Params):
 class ApproxError(Effect):
     name = "approx_error"
     acts_on = "fitting"
+    kernel = KernelStage(2, ("sigma",),
+                         (("count", "add"), ("sum_sq", "add")))
     Params = ApproxErrorParams
     doc = __doc__
 

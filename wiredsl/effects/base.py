@@ -127,13 +127,48 @@ class Context:
         return fn(keys[batch_index][:, None], index).reshape(len(batch_index), per_item)
 
 
+@dataclass(frozen=True)
+class KernelStage:
+    """How the compiled kernel (engine/kernel.py) runs an effect, declared by the effect beside its numpy code.
+
+    `code` is the kernel's stage code (its per-stroke function), `params` the Params fields it takes in order (at
+    most three), `stats` the columns of its statistics row: (Stats key, "add" or "peak"), recorded as the numpy
+    path records them. An effect without one (kernel None) runs on the numpy path, and so does every run it is in.
+    """
+
+    code: int
+    params: tuple[str, ...]
+    stats: tuple[tuple[str, str], ...]
+
+
 class Effect:
-    """An uncertainty source of the paper, applied as one pipeline stage."""
+    """An uncertainty source: one pipeline stage, named in scene files by `name`. Subclass it for a plug-in.
+
+    Declare, as class attributes:
+
+    - `name`: the stage's language name (a plug-in's must equal its entry point's name);
+    - `acts_on`: where it acts in a real system, one of FLOW after "cameras" (sets the data-flow check);
+    - `Params`: a frozen pydantic model (subclass `wiredsl.effects.base.Params`) whose fields, each made with
+      `param(default, kind, doc, ge=..., le=...)`, are the stage's clauses: the language converts units by
+      `kind` ("length", "angle", "image", "number", "fraction") and checks the bounds;
+    - `doc`: one paragraph for the reference and the editor;
+    - `kernel`: optionally, a KernelStage for the compiled engine (None: the numpy path).
+
+    Define `is_identity(params)` (True when the parameters change nothing: the stage is then skipped) and
+    `disturb(params, features, ctx)`: it takes an ImageSet (`wiredsl.engine.imageset`) holding every trial of a
+    batch (strokes `pts`/`start`, per stroke `fid`, `segment`, `fragment`, `kind`, `clipped`, `closed`,
+    `occluded` and `trial`; `corners`, `corner_fid`, `corner_trial`) and returns a new one of the same layout,
+    with finite coordinates and trial numbers in range. Draw randomness only with `ctx.draws(name, ...)`: keyed by
+    (seed, stage, trial, pose, camera), so a trial's values do not depend on its batch or on other stages. A stage
+    that raises or returns a malformed set is reported as its package's error (E171). `report(params, stats)`
+    may add measured statistics to the run manifest.
+    """
 
     name: ClassVar[str]
     acts_on: ClassVar[str]  # one of FLOW
     Params: ClassVar[type[Params]]
     doc: ClassVar[str]
+    kernel: ClassVar[KernelStage | None] = None
 
     @classmethod
     def flow_rank(cls) -> int:

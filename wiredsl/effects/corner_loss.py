@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from wiredsl.effects.base import Context, Effect, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
 from wiredsl.engine import imageset as im
 
 
@@ -13,6 +13,8 @@ class CornerLossParams(Params):
 class CornerLoss(Effect):
     name = "corner_loss"
     acts_on = "corner detection"
+    kernel = KernelStage(3, ("keep",),
+                         (("total", "add"), ("kept", "add")))
     Params = CornerLossParams
     doc = __doc__
 

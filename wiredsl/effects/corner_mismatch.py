@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from wiredsl.effects.base import Context, Effect, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
 from wiredsl.engine import imageset as im
 
 
@@ -16,6 +16,8 @@ class CornerMismatchParams(Params):
 class CornerMismatch(Effect):
     name = "corner_mismatch"
     acts_on = "corner matching"
+    kernel = KernelStage(4, ("fraction", "radius"),
+                         (("total", "add"), ("shifted", "add"), ("max_distance", "peak")))
     Params = CornerMismatchParams
     doc = __doc__
 

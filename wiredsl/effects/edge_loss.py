@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from wiredsl.effects.base import Context, Effect, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
 from wiredsl.engine import imageset as im
 
 
@@ -20,6 +20,8 @@ class EdgeLossParams(Params):
 class EdgeLoss(Effect):
     name = "edge_loss"
     acts_on = "edges"
+    kernel = KernelStage(0, ("fraction",),
+                         (("total_length", "add"), ("kept_length", "add")))
     Params = EdgeLossParams
     doc = __doc__
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from wiredsl.effects.base import Context, Effect, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
 from wiredsl.engine import imageset as im
 
 
@@ -20,6 +20,8 @@ class LateralShiftParams(Params):
 class LateralShift(Effect):
     name = "lateral_shift"
     acts_on = "edges"
+    kernel = KernelStage(1, ("range",),
+                         (("count", "add"), ("sum_abs", "add"), ("max_abs", "peak")))
     Params = LateralShiftParams
     doc = __doc__
 

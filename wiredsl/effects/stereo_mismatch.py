@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from wiredsl.effects.base import Context, Effect, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
 from wiredsl.engine import imageset as im
 
 
@@ -58,6 +58,9 @@ def in_band(a: np.ndarray, b: np.ndarray, epipole: np.ndarray, band: float) -> n
 class StereoMismatch(Effect):
     name = "stereo_mismatch"
     acts_on = "stereo"
+    kernel = KernelStage(5, ("band", "fraction", "disparity"),
+                         (("length_in", "add"), ("length_after_band", "add"), ("right_strokes", "add"),
+                                  ("shifted", "add"), ("max_shift", "peak")))
     Params = StereoMismatchParams
     doc = __doc__
 

@@ -19,13 +19,10 @@ import sys
 import numpy as np
 from numba import njit
 
-# stage codes, in the order of wiredsl.effects' names
+# the per-stroke functions view_batch dispatches to, by the code each effect declares (its `kernel`,
+# wiredsl.effects.base.KernelStage); a code with no function here is refused before the kernel runs
 EDGE_LOSS, LATERAL_SHIFT, APPROX_ERROR, CORNER_LOSS, CORNER_MISMATCH, STEREO_MISMATCH = range(6)
-CODES = {"edge_loss": EDGE_LOSS, "lateral_shift": LATERAL_SHIFT, "approx_error": APPROX_ERROR,
-         "corner_loss": CORNER_LOSS, "corner_mismatch": CORNER_MISMATCH, "stereo_mismatch": STEREO_MISMATCH}
-PARAMS = {"edge_loss": ("fraction",), "lateral_shift": ("range",), "approx_error": ("sigma",),
-          "corner_loss": ("keep",), "corner_mismatch": ("fraction", "radius"),
-          "stereo_mismatch": ("band", "fraction", "disparity")}  # each stage's parameters, as the kernel takes them
+KNOWN = frozenset(range(6))
 FID, SEG, FRAG, KIND, CLIP, CLOSED, OCC = range(7)  # columns of a stroke's metadata row
 NMETA = 7
 ELLIPSE = 2
@@ -730,9 +727,11 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
                 corners, cf = _corner_loss(corners, cf, key, params[g, 0], st)
             elif code == CORNER_MISMATCH:
                 corners = _corner_mismatch(corners, key, params[g, 0], params[g, 1], st)
-            else:
+            elif code == STEREO_MISMATCH:
                 pts, start, meta = _stereo(pts, start, meta, key, epipole, params[g, 0], params[g, 1], params[g, 2],
                                            right, st)
+            else:
+                raise ValueError("kernel: unknown stage code")
         res.append((pts, start, meta))
         cres.append((corners, cf))
     N = 0
@@ -812,19 +811,7 @@ def warm() -> None:
              np.zeros((6, NSTAT)))
 
 
-# what each stage's statistics row holds: (name, "add" | "peak") by column, as the numpy effects record them
-STATS = {
-    "edge_loss": (("total_length", "add"), ("kept_length", "add")),
-    "lateral_shift": (("count", "add"), ("sum_abs", "add"), ("max_abs", "peak")),
-    "approx_error": (("count", "add"), ("sum_sq", "add")),
-    "corner_loss": (("total", "add"), ("kept", "add")),
-    "corner_mismatch": (("total", "add"), ("shifted", "add"), ("max_distance", "peak")),
-    "stereo_mismatch": (("length_in", "add"), ("length_after_band", "add"), ("right_strokes", "add"),
-                        ("shifted", "add"), ("max_shift", "peak")),
-}
-
-
-def record(name: str, row: np.ndarray, stats) -> None:
-    """Add one view's statistics row of stage `name` to the run's Stats."""
-    for (key, how), value in zip(STATS[name], row, strict=False):
+def record(name: str, columns, row: np.ndarray, stats) -> None:
+    """Add one view's statistics row of stage `name` (its KernelStage's `stats` columns) to the run's Stats."""
+    for (key, how), value in zip(columns, row, strict=False):
         (stats.add if how == "add" else stats.peak)(name, **{key: value})

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from wiredsl.diagnostics import Diagnostic, WiredslError
-from wiredsl.effects import REGISTRY
+from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.effects import calibration_error as calib
 from wiredsl.effects.base import Context, Stats
 from wiredsl.engine import geometry
@@ -67,8 +67,9 @@ class Run:
         stages = []
         for st in (pipeline.stages if pipeline is not None else []):
             effect = REGISTRY[st.effect]
-            if not effect.is_identity(st.params):
-                stages.append((effect, st.params))
+            params = effect.Params(**st.params)
+            if not effect.is_identity(params):
+                stages.append((effect, params))
         return cls(scene, world, stages, seed, options, point=point)
 
     def share_projection(self, base: Run) -> None:
@@ -171,8 +172,11 @@ class Run:
         return phis
 
     def uses_kernel(self) -> bool:
-        """Whether batches run in the compiled kernel (never for the from-scratch calibration reference)."""
+        """Whether batches run in the compiled kernel: never for the from-scratch calibration reference, nor when
+        a stage has no compiled kernel (an installed plug-in's, say): then the whole pipeline runs on numpy."""
         if self.engine == "numpy" or self.exact_calibration or not self.stages:
+            return False
+        if any(e.kernel is None for e, _ in self.image_stages):
             return False
         if self.engine == "kernel":
             return True
@@ -231,7 +235,10 @@ class Run:
                               point=self.point)
                 for effect, params in self.image_stages:
                     self.trace[effect.name] += 1
-                    sets = effect.apply(params, sets, ctx)
+                    if effect.name in BUILTIN:
+                        sets = effect.apply(params, sets, ctx)
+                    else:  # an installed plug-in: what it raises or returns is checked, and blamed on its package
+                        sets = plugin_apply(effect, params, sets, ctx)
                 disturbed[side] = sets
             out.append((result, disturbed, views))
         return out
@@ -270,10 +277,12 @@ class Run:
         meta = np.column_stack([template.fid, template.segment, template.fragment, template.kind,
                                 template.clipped, template.closed, template.occluded]).astype(np.int64).reshape(-1, 7)
         stages = self.image_stages
-        codes = np.array([kn.CODES[e.name] for e, _ in stages], dtype=np.int64)
+        codes = np.array([e.kernel.code for e, _ in stages], dtype=np.int64)
+        if not set(codes.tolist()) <= kn.KNOWN:
+            raise ValueError(f"the kernel has no stage of code {sorted(set(codes.tolist()) - kn.KNOWN)}")
         params = np.zeros((len(stages), 3))
         for g, (e, p) in enumerate(stages):
-            params[g, :len(kn.PARAMS[e.name])] = [getattr(p, name) for name in kn.PARAMS[e.name]]
+            params[g, :len(e.kernel.params)] = [getattr(p, name) for name in e.kernel.params]
         keys = np.array([stream_key(e.name, trials, result.index, CAMERA_INDEX[side], self.seed, self.point)
                          for e, _ in stages], dtype=np.uint64).reshape(len(stages), T)
         stereo = any(e.name == "stereo_mismatch" for e, _ in stages)
@@ -283,11 +292,16 @@ class Run:
             template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams, folds,
             cam.width, cam.height, rig is not None, codes, params, keys, epipole, side == "right", stats)
         for (effect, _), row in zip(stages, stats, strict=True):
-            kn.record(effect.name, row, self.stats)
+            kn.record(effect.name, effect.kernel.stats, row, self.stats)
         s = im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2], kind=m[:, 3],
                         clipped=m[:, 4].astype(bool), closed=m[:, 5].astype(bool), trial=trial, corners=corners,
                         corner_fid=cfid, corner_trial=ctrial, occluded=m[:, 6].astype(bool))
         return s, view_of
+
+    def engines(self) -> dict[str, str]:
+        """Which engine ran each stage (calibration_error's draws are numpy's on both: they set the cameras)."""
+        kernel = self.uses_kernel()
+        return {e.name: "kernel" if kernel and e.kernel is not None else "numpy" for e, _ in self.stages}
 
     def manifest(self) -> dict:
         return {
@@ -295,8 +309,47 @@ class Run:
                        for e, p in self.stages],
             "ran": dict(sorted(self.trace.items())),
             "engine": "kernel" if self.uses_kernel() else "numpy",
+            "engines": self.engines(),
             "warnings": self.warnings,
         }
+
+
+def plugin_apply(effect, params, sets: im.ImageSet, ctx: Context) -> im.ImageSet:
+    """An installed effect's stage, its failures and its output's defects reported against its package (E171)."""
+    from wiredsl.plugins import failure
+
+    try:
+        out = effect.apply(params, sets, ctx)
+    except Exception as exc:  # noqa: BLE001 - a plug-in's bug is reported as its own, not as wiredsl's
+        raise failure("effect", effect.name, REGISTRY, f"failed: {type(exc).__name__}: {exc}") from None
+    problem = imageset_problem(out, len(ctx.trials))
+    if problem is not None:
+        raise failure("effect", effect.name, REGISTRY, f"returned {problem}")
+    return out
+
+
+def imageset_problem(s, n_trials: int) -> str | None:
+    """What is wrong with an ImageSet a stage returned (shapes, offsets, trials, finiteness), or None."""
+    if not isinstance(s, im.ImageSet):
+        return f"a {type(s).__name__}, not an ImageSet"
+    pts, start, corners = np.asarray(s.pts), np.asarray(s.start), np.asarray(s.corners)
+    n = len(start) - 1
+    if pts.ndim != 2 or pts.shape[1:] != (2,) or corners.ndim != 2 or corners.shape[1:] != (2,):
+        return f"points of shape {pts.shape} and corners of shape {corners.shape}, not (n, 2)"
+    if n < 0 or start[0] != 0 or start[-1] != len(pts) or np.any(np.diff(start) < 0):
+        return "stroke offsets (start) that do not cover its points in order"
+    per_stroke = ("fid", "segment", "fragment", "kind", "clipped", "closed", "trial", "occluded")
+    bad = [f for f in per_stroke if len(getattr(s, f)) != n]
+    bad += [f for f in ("corner_fid", "corner_trial") if len(getattr(s, f)) != len(corners)]
+    if bad:
+        return "arrays of the wrong length: " + ", ".join(bad)
+    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(corners))):
+        return "non-finite coordinates"
+    for name in ("trial", "corner_trial"):
+        t = np.asarray(getattr(s, name))
+        if len(t) and (t.min() < 0 or t.max() >= n_trials):
+            return f"{name} values outside 0..{n_trials - 1}"
+    return None
 
 
 def to_imageset(view: View, world: World) -> im.ImageSet:

@@ -9,10 +9,8 @@ rectangle [0, width] x [0, height] after it.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -30,6 +28,7 @@ class Options:
     visibility: str = "scene"  # "scene" (the mesh's lists), "exact" (per camera and pose), "all"
     poses: tuple[int, ...] | None = None  # None: every pose
     right: bool = True  # project the right camera too
+    viewdep: dict | None = field(default=None, compare=False)  # a view-dependency file's lists (io/viewdep.py)
 
 
 @dataclass
@@ -127,7 +126,7 @@ def project_pose(scene: Scene, world: World, pose, index: int, options: Options 
         k = int(visibility.nearest_viewpoint(np.array(vp.points, dtype=float), np.array([pose[:2]]))[0])
         lists = {} if lists is None else lists
         if k not in lists:
-            lists.update(viewpoint_lists(scene, world, [k]))
+            lists.update(viewpoint_lists(scene, world, [k], options.viewdep))
         mask, name = lists[k], vp.names[k]
     if options.visibility == "exact" and occluders is None:
         occluders = occlusion.Occluders.of_world(world)
@@ -166,48 +165,29 @@ def visibility_masks(scene: Scene, world: World, options: Options):
         return names, masks
     points = np.array(vp.points, dtype=float)
     nearest = visibility.nearest_viewpoint(points, poses[list(chosen), :2]) if len(list(chosen)) else []
-    lists = viewpoint_lists(scene, world, sorted(set(int(k) for k in nearest)))
+    lists = viewpoint_lists(scene, world, sorted(set(int(k) for k in nearest)), options.viewdep)
     for i, k in zip(chosen, nearest, strict=True):
         names[i] = vp.names[k]
         masks[(i, "left")] = masks[(i, "right")] = lists[int(k)]
     return names, masks
 
 
-def viewpoint_lists(scene: Scene, world: World, which: list[int]) -> dict[int, np.ndarray]:
-    """Visibility masks of the given view-point indices, from wherever the scene says they come."""
+def viewpoint_lists(scene: Scene, world: World, which: list[int], viewdep: dict | None = None
+                    ) -> dict[int, np.ndarray]:
+    """Visibility masks of the given view-point indices, from wherever the scene says they come (`viewdep`:
+    the view-dependency file's lists, `wiredsl.io.viewdep.read`, for view-points with `visibility file`)."""
     vp = scene.viewpoints
     if vp.visibility == "authored":
         return {k: world.mask(set(vp.visible.get(vp.names[k], []))) for k in which}
     if vp.visibility == "file":
-        data = read_viewdep(Path(scene.source).parent / vp.file, scene)
+        if viewdep is None:
+            raise ValueError(f"scene '{scene.name}': the view-points' file {vp.file} was not read "
+                             "(wiredsl.io.viewdep.of_scene, as wiredsl.run.start does)")
+        data = viewdep
         return {k: world.mask(set(data.get(vp.names[k], []))) for k in which}
     eyes = visibility.viewpoint_eyes(scene)[which]
     vis = visibility.visible_features(world, eyes)
     return {k: vis[j] for j, k in enumerate(which)}
-
-
-def read_viewdep(path: Path, scene: Scene) -> dict[str, list[str]]:
-    """View-point -> visible feature ids, from a view-dependency file (schema/viewdep.schema.json)."""
-    from wiredsl.io.schema import problems
-    from wiredsl.language.ast import decode, display_path, read_bytes
-
-    where = Span(display_path(path), 1, 1, 1, 1)
-    try:
-        text = decode(read_bytes(path, "view-dependency file", Span(scene.source, 1, 1, 1, 1)), path,
-                      "view-dependency file")
-        doc = json.loads(text)
-    except WiredslError as err:
-        raise WiredslError([Diagnostic(d.severity, d.code, d.message, d.span,
-                                       "run 'wiredsl viewdep' on the scene to write it") for d in err.diagnostics]
-                           ) from None
-    except json.JSONDecodeError as exc:  # at the line and column of the file where the JSON breaks
-        at = Span(where.file, exc.lineno, exc.colno, exc.lineno, exc.colno + 1)
-        raise WiredslError([Diagnostic("error", "E010", f"cannot read view-dependency file: {exc.msg}", at,
-                                       "run 'wiredsl viewdep' on the scene to write it")]) from None
-    bad = problems(doc)
-    if bad:
-        raise WiredslError([Diagnostic("error", "E142", f"view-dependency file {where.file}: {bad[0]}", where)])
-    return doc["viewpoints"]
 
 
 # --------------------------------------------------------------------------- projection

@@ -126,4 +126,7 @@ class Manifest(Node):
     ran: dict[str, int] = Field({}, description="how often each piece of work ran (the run's trace)")
     engine: Literal["kernel", "numpy"] = Field("numpy", description="the Monte-Carlo engine that ran the trials "
                                                 "(the same draws; a replay is byte-identical with the same one)")
+    engines: dict[str, Literal["kernel", "numpy"]] = Field(
+        {}, description="the engine that ran each stage: a pipeline with a stage that has no compiled kernel (an "
+                        "installed plug-in's, say) runs wholly on numpy")
     warnings: list[str] = []

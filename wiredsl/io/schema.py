@@ -14,13 +14,29 @@ NAMES = ("scene", "features", "viewdep", "manifest", "study", "study-manifest")
 
 def _model(name: str) -> type[BaseModel]:
     if name == "scene":
-        from wiredsl.scene import Scene
-        return Scene
+        return _scene_with_stages()
     if name in ("study", "study-manifest"):
         from wiredsl.study.report import StudyManifest, StudyTable
         return StudyTable if name == "study" else StudyManifest
     from wiredsl.io import features
     return {"features": features.Features, "viewdep": features.ViewDependency, "manifest": features.Manifest}[name]
+
+
+def _scene_with_stages() -> type[BaseModel]:
+    """The Scene model with each pipeline stage's parameters spelt out per effect (built-in and installed):
+    the compiled scene keeps a stage as a name and a dict, which the compiler checked against the effect."""
+    import functools as ft
+    import operator
+    from typing import Annotated
+
+    from pydantic import Field, create_model
+
+    from wiredsl.effects import stage_models
+    from wiredsl.scene import Pipeline, Scene
+
+    stage = Annotated[ft.reduce(operator.or_, stage_models().values()), Field(discriminator="effect")]
+    pipeline = create_model("Pipeline", __base__=Pipeline, __doc__=Pipeline.__doc__, stages=(list[stage], []))
+    return create_model("Scene", __base__=Scene, __doc__=Scene.__doc__, pipelines=(list[pipeline], []))
 
 
 def generate(name: str) -> dict:

@@ -22,7 +22,6 @@ from wiredsl.language.statements import MAX_MAGNITUDE, Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS
 from wiredsl.scene import (
     CALIBRATION_PARAMETERS,
-    STAGE_MODELS,
     Calibration,
     Camera,
     Corner,
@@ -38,6 +37,7 @@ from wiredsl.scene import (
     Rig,
     Scene,
     Silhouette,
+    Stage,
     Viewpoints,
 )
 
@@ -876,7 +876,7 @@ class Compiler:
             last = (rank, name) if last is None or rank >= last[0] else last
             params = {k: sb.get(k) for k in sb.clauses}
             try:
-                stages.append(STAGE_MODELS[name](effect=name, params=effect.Params(**params)))
+                stages.append(Stage(effect=name, params=effect.Params(**params).model_dump()))
             except pydantic.ValidationError as exc:
                 for err in exc.errors():
                     key = str(err["loc"][0]) if err["loc"] else ""

@@ -9,6 +9,7 @@ can rank all seven sources while starting from a pipeline that has only some of 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import pydantic
 
@@ -16,6 +17,7 @@ from wiredsl.diagnostics import Collector, Span, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
 from wiredsl.language.statements import Bound, Value, bind, quantity
+from wiredsl.plugins import lookup
 from wiredsl.scene import Factor, MeasureUse, Pipeline, Study
 
 MAX_POINTS = 100_000  # design points of one study
@@ -30,12 +32,10 @@ CAMERA_FACTORS = {
 MAX_TRIALS = 10**9  # design points x trials
 
 
-def measure_registry() -> dict:
-    """The measures a study may name: `wiredsl.measures.REGISTRY` (empty when not installed)."""
-    try:
-        from wiredsl.measures import REGISTRY as measures
-    except ImportError:
-        return {}
+def measure_registry() -> Mapping:
+    """The measures a study may name: `wiredsl.measures.REGISTRY`, built-in then installed (a mapping)."""
+    from wiredsl.measures import REGISTRY as measures
+
     return measures
 
 
@@ -167,7 +167,10 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras
                   "e.g. lateral_shift.range")
         return None
     stage, param = ref.parts
-    effect = REGISTRY.get(stage)
+    effect, problem = lookup(REGISTRY, stage)
+    if problem is not None:
+        out.error("E170", problem, span)
+        return None
     if effect is None:
         out.error("E104", f"unknown stage '{stage}'", span, did_you_mean(stage, REGISTRY)
                   or "stages: " + ", ".join(REGISTRY))
@@ -284,7 +287,10 @@ def _measure(sb: Bound, units: dict[str, str], out: Collector) -> MeasureUse | N
     """A `measure NAME [param value]...` statement, checked against the measure's parameter model."""
     name, span = sb.pos(0), sb.positional[0].span
     registry = measure_registry()
-    measure = registry.get(name)
+    measure, problem = lookup(registry, name)
+    if problem is not None:
+        out.error("E170", problem, span)
+        return None
     if measure is None:
         out.error("E104", f"unknown measure '{name}'", span,
                   did_you_mean(name, registry) or ("measures: " + ", ".join(registry) if registry

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,6 +17,7 @@ from wiredsl.diagnostics import Collector, Span, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
 from wiredsl.language.units import KIND_NAMES, UNITS
+from wiredsl.plugins import lookup
 
 SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "integer")
 MAX_MAGNITUDE = 1e9  # metres or pixels: squares and products of a few stay far from float overflow
@@ -232,14 +234,40 @@ def _effect_sig(name: str) -> Sig:
     return Sig(name, (effect.doc or "").strip(), clauses=clauses)
 
 
-CONTEXTS: dict[str, dict[str, Sig]] = {
+class _StageSigs(Mapping):
+    """A pipeline block's statements: one a stage the effects registry knows (built-in, then installed plug-ins,
+    looked up only for a name not built in), each signature made on first use from the effect's Params."""
+
+    def __init__(self) -> None:
+        self._sigs: dict[str, Sig] = {}
+
+    def __getitem__(self, name: str) -> Sig:
+        if name not in self._sigs:
+            effect, _ = lookup(REGISTRY, name) if isinstance(name, str) else (None, None)
+            if effect is None:
+                raise KeyError(name)
+            self._sigs[name] = _effect_sig(name)
+        return self._sigs[name]
+
+    def __iter__(self):
+        return (name for name in REGISTRY if lookup(REGISTRY, name)[0] is not None)
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    def problem(self, name: str) -> str | None:
+        """Why an installed plug-in of this name cannot be used (naming its package), else None."""
+        return lookup(REGISTRY, name)[1]
+
+
+CONTEXTS: dict[str, Mapping[str, Sig]] = {
     "top": {s.keyword: s for s in _TOP},
     "model": {s.keyword: s for s in _MODEL},
     "camera": {s.keyword: s for s in _CAMERA},
     "rig": {s.keyword: s for s in _RIG},
     "viewpoints": {s.keyword: s for s in _VIEWPOINTS},
     "path": {s.keyword: s for s in _PATH},
-    "pipeline": {name: _effect_sig(name) for name in REGISTRY},
+    "pipeline": _StageSigs(),
     "study": {s.keyword: s for s in _STUDY},
 }
 
@@ -307,6 +335,10 @@ def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collecto
     """Match a statement's arguments to its signature in `context`; None if unknown."""
     sigs = CONTEXTS[context]
     sig = sigs.get(stmt.keyword)
+    problem = sigs.problem(stmt.keyword) if sig is None and isinstance(sigs, _StageSigs) else None
+    if problem is not None:  # an installed plug-in of that name that cannot be used
+        out.error("E170", problem, stmt.keyword_span, "see 'wiredsl plugins'")
+        return None
     if sig is None:
         where = "at the top level" if context == "top" else f"in a {context} block"
         hint = did_you_mean(stmt.keyword, sigs) or _elsewhere(stmt.keyword, context)

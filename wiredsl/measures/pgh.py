@@ -22,6 +22,7 @@ paper's equation 1, sum_i sqrt(a_i b_i) (1.0 for identical histograms).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import weakref
 from dataclasses import dataclass
@@ -31,7 +32,7 @@ import numpy as np
 from wiredsl.engine import imageset as im
 from wiredsl.engine import visibility
 from wiredsl.engine.montecarlo import to_imageset
-from wiredsl.engine.simulate import Options, simulate
+from wiredsl.engine.simulate import simulate
 from wiredsl.measures.base import Measure, Params, param, segments, source_key
 
 POINT_SPAN = 1e-6  # px: a segment spanning less distance than this (parallel to the reference) is a point mass
@@ -401,7 +402,7 @@ def _viewpoint_views(run, points: np.ndarray, heading: float, p: PGHParams) -> d
         _VIEWS[id(run.world)] = (weakref.ref(run.world), cache)
     if key not in cache:
         path = scene.path.model_copy(update={"poses": [(float(x), float(y), heading) for x, y in points]})
-        options = Options(tolerance=run.options.tolerance, visibility=run.options.visibility, right=False)
+        options = dataclasses.replace(run.options, poses=None, right=False)
         results = simulate(scene.model_copy(update={"path": path}), options, run.world)
         cache[key] = [to_imageset(r.left, run.world) for r in results]
     return {"left": [Reference.of(s, p) for s in cache[key]]}

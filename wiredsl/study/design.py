@@ -43,7 +43,7 @@ def pipeline_at(scene: Scene, study: Study, values: np.ndarray) -> Pipeline:
     """The study's pipeline with one design point's values substituted; stages it lacks are inserted at
     their data-flow position, with default parameters for what the study does not vary."""
     base = scene.pipeline(study.pipeline) if study.pipeline else None
-    stages = {s.effect: dict(s.params.model_dump()) for s in (base.stages if base else [])}
+    stages = {s.effect: dict(s.params) for s in (base.stages if base else [])}
     order = [s.effect for s in (base.stages if base else [])]
     for f, v in zip(study.factors, values, strict=True):
         if f.stage.startswith("camera."):
@@ -54,7 +54,7 @@ def pipeline_at(scene: Scene, study: Study, values: np.ndarray) -> Pipeline:
             at = next((i for i, name in enumerate(order) if REGISTRY[name].flow_rank() > rank), len(order))
             order.insert(at, f.stage)
         stages[f.stage][f.param] = float(v)
-    return Pipeline(name=f"{study.name}", stages=[{"effect": e, "params": REGISTRY[e].Params(**stages[e])}
+    return Pipeline(name=f"{study.name}", stages=[{"effect": e, "params": REGISTRY[e].Params(**stages[e]).model_dump()}
                                                   for e in order])
 
 

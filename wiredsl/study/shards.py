@@ -18,10 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl.engine.montecarlo import Run
-from wiredsl.engine.run import start
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
 from wiredsl.io.files import write_atomic
+from wiredsl.measures import BUILTIN, REGISTRY
+from wiredsl.plugins import failure
+from wiredsl.run import start
 from wiredsl.scene import Scene, Study
 from wiredsl.study import design
 
@@ -112,12 +114,21 @@ def measure_batches(run: Run, prepared, trials: list[int]) -> dict[str, np.ndarr
     for batch, batch_out in run.batches(trials):
         for j, (result, disturbed, _views) in enumerate(batch_out):
             for measure, params, prep in prepared:
-                got = measure.measure(params, prep, result, disturbed, len(batch))
+                try:
+                    got = measure.measure(params, prep, result, disturbed, len(batch))
+                except Exception as exc:
+                    if measure.name in BUILTIN:
+                        raise
+                    raise failure("measure", measure.name, REGISTRY, f"failed: {type(exc).__name__}: {exc}"
+                                  ) from None
                 for stat in measure.statistics:
-                    v = np.asarray(got[stat], dtype=float)
-                    if v.shape != (len(batch),) or not np.all(np.isfinite(v)):
-                        raise ValueError(f"measure '{measure.name}' statistic '{stat}' gave shape {v.shape} "
-                                         f"or non-finite values for {len(batch)} trials")
+                    v = np.asarray(got[stat], dtype=float) if isinstance(got, dict) and stat in got else None
+                    if v is None or v.shape != (len(batch),) or not np.all(np.isfinite(v)):
+                        what = "nothing" if v is None else f"shape {v.shape}" if v.shape != (len(batch),) \
+                            else "non-finite values"
+                        raise failure("measure", measure.name, REGISTRY,
+                                      f"gave {what} for statistic '{stat}' ({len(batch)} trials: one finite "
+                                      "value a trial)")
                     rows = parts.setdefault(f"{measure.name}.{stat}", [])
                     if len(rows) <= j:
                         rows.append([])

@@ -6,12 +6,14 @@ public Python API (`wiredsl.simulate`, `wiredsl.Simulator`). The faces only pars
 
 from __future__ import annotations
 
+import dataclasses
 import secrets
 from dataclasses import dataclass
 
 from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
+from wiredsl.io import viewdep
 from wiredsl.scene import Pipeline, Scene
 
 ENGINES = ("auto", "kernel", "numpy")
@@ -77,7 +79,7 @@ def check_engine(engine: str) -> str:
 
 
 def start(scene: Scene, pipeline: Pipeline | str | None = None, *, seed: int | None = None,
-          options: Options = Options(), world: World | None = None, point: int | None = None,
+          options: Options | None = None, world: World | None = None, point: int | None = None,
           engine: str = "auto", exact_calibration: bool = False, base: Run | None = None) -> Run:
     """A Run of the scene through `pipeline` (a Pipeline, a pipeline's name, or None: no stages).
 
@@ -87,11 +89,17 @@ def start(scene: Scene, pipeline: Pipeline | str | None = None, *, seed: int | N
     """
     if isinstance(pipeline, str):
         pipeline = choose_pipeline(scene, pipeline).pipeline
+    options = options if options is not None else Options()
+    if options.viewdep is None:
+        options = dataclasses.replace(options, viewdep=viewdep.of_scene(scene))
     run = Run.create(scene, world if world is not None else build_world(scene), pipeline,
                      seed if seed is not None else 0, options, point=point)
     if seed is None and run.stages:  # drawn only when something random runs, so ideal runs stay byte-identical
         run.seed = secrets.randbits(63)
     run.engine = check_engine(engine)
+    if engine == "kernel" and not run.uses_kernel() and run.stages and not exact_calibration:
+        lacking = ", ".join(e.name for e, _ in run.image_stages if e.kernel is None)
+        run.warnings.append(f"the whole pipeline runs on numpy: no compiled kernel for {lacking}")
     run.exact_calibration = exact_calibration
     if base is not None:
         run.share_projection(base)
