@@ -113,6 +113,7 @@ class Context:
     stats: Stats
     epipole: Callable[[], np.ndarray] | None = None  # homogeneous epipole in this camera's pixels
     point: int | None = None  # a study's design point: one more key component
+    camera: Any = None  # the view's nominal camera (wiredsl.scene.Camera: image size, intrinsics, lens)
 
     def draws(self, stage: str, batch_index: np.ndarray, per_item: int = 1, normal: bool = False) -> np.ndarray:
         """Draws (n, per_item) for items of trials `batch_index` (n,), sorted: item j of a trial gets the

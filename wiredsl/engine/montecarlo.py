@@ -251,7 +251,7 @@ class Run:
                     sets = self.template(result, side, raw=False, keep=keep)[0].repeat_trials(len(batch))
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
-                              point=self.point)
+                              point=self.point, camera=getattr(result, side).camera)
                 for effect, params in self.image_stages:
                     self.trace[effect.name] += 1
                     if effect.name in BUILTIN:
