@@ -475,3 +475,24 @@ def test_a_scene_without_a_view_point_mesh_has_no_pgh_viewpoint_rows(tmp_path):
     table = run_study(scene, scene.study("s"), tmp_path / "out", executor="inprocess", registry=measure_registry())
     stats = {r.statistic for r in table.rows}
     assert "recognition" in stats and "viewpoint" not in stats
+
+
+def test_a_study_without_factors_runs_its_one_point(tmp_path):
+    """No `vary`: the pipeline as declared, `trials` trials, its measures; a table of one point, no indices."""
+    path = tmp_path / "one.wd"
+    path.write_text(f'wiredsl 1\ninclude "{Path("scenes/lab.wd").resolve().as_posix()}"\n'
+                    "study plain {\n  pipeline edges\n  trials 3\n  poses [2]\n  measure kept\n}\n")
+    scene = compile_file(path)[0]
+    study = scene.study("plain")
+    assert study.factors == [] and design.matrix(study).shape == (1, 0)
+    table = run_study(scene, study, tmp_path / "out", executor="inprocess", registry=REGISTRY)
+    assert {r.point for r in table.rows} == {0} and table.sobol == [] and table.factors == []
+    assert all(r.n == 3 for r in table.rows)
+    assert not (tmp_path / "out" / "sobol.csv").exists()
+    assert schema.problems(json.loads((tmp_path / "out" / "table.json").read_text())) == []
+    header, *rows = (tmp_path / "out" / "table.csv").read_text().splitlines()
+    assert header.startswith("point,measure,") and len(rows) == len(table.rows) > 0
+    r = CliRunner().invoke(main, ["study", str(path), "-o", str(tmp_path / "cli"), "--executor", "inprocess"])
+    assert r.exit_code == 0, r.output
+    assert "1 points x 3 trials" in r.stderr and (tmp_path / "cli" / "table.csv").is_file()
+    assert not (tmp_path / "cli" / "sobol.csv").exists() and "varies nothing: one point" in r.stderr

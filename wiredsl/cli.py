@@ -911,4 +911,7 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
         from wiredsl.study import plots as plots_mod
 
         written += plots_mod.write_all(table, found, out / "plots", fmt=plot_format, dpi=dpi)
+        if not table.factors:
+            click.echo(f"study {found.name} varies nothing: one point, no plots against factors and no Sobol' "
+                       "indices (table.csv holds its statistics)", err=True)
     click.echo(f"wrote {out}: " + ", ".join(written), err=True)

@@ -18,11 +18,13 @@ from wiredsl.scene import Pipeline, Scene, Study
 
 
 def matrix(study: Study) -> np.ndarray:
-    """The design points, shape (n_points, n_factors), in the factors' SI units."""
+    """The design points, shape (n_points, n_factors), in the factors' SI units.
+
+    A study without factors (a grid of none) has one point: the pipeline as declared."""
     d = len(study.factors)
     if study.design == "grid":
-        axes = [f.values for f in study.factors]
-        return np.array(list(itertools.product(*axes)), dtype=float).reshape(-1, d)
+        points = list(itertools.product(*(f.values for f in study.factors)))  # no factors: one point, ()
+        return np.array(points, dtype=float).reshape(len(points), d)
     n = study.points
     from scipy.stats import qmc
 
