@@ -344,3 +344,61 @@ def test_stereo_rectify_matches_opencv_for_random_rigs():
         got = cf.stereo_rectify(K1, D1, K2, D2, size, R, T)
         for a, b in zip(want, got, strict=True):
             assert np.abs(a - b).max() < 1e-9
+
+
+def _fisheye_rigs(n: int, seed: int):
+    """Random fisheye rigs (about 100 to 150 deg across) with OpenCV's flag of whether it can rectify them:
+    its undistortion of a side's midpoint gives up (-1e6) where its Newton steps do not converge."""
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        f = rng.uniform(600, 800)
+        K1 = np.array([[f, 0, rng.uniform(620, 660)], [0, f * rng.uniform(0.98, 1.02), rng.uniform(460, 500)],
+                       [0, 0, 1]])
+        K2 = K1 + np.diag([rng.uniform(-5, 5), rng.uniform(-5, 5), 0])
+        D1, D2 = rng.normal(0, 0.02, 4), rng.normal(0, 0.02, 4)
+        R = cv2.Rodrigues(rng.normal(0, 0.05, 3))[0]
+        T = np.array([[-0.12], [0.002], [0.001]]) + rng.normal(0, 0.003, (3, 1))
+        w, h = 1280 + int(rng.integers(0, 3)), 960 + int(rng.integers(0, 3))
+        mids = np.array([[[w // 2, 0], [w, h // 2], [w // 2, h], [0, h // 2]]], dtype=float)
+        ok = all((cv2.fisheye.undistortPoints(mids, K, D) > -1e5).all() for K, D in ((K1, D1), (K2, D2)))
+        yield (K1, D1, K2, D2, (w, h), R, T), ok
+
+
+def test_fisheye_stereo_rectify_matches_opencv_for_random_rigs():
+    """cv2.fisheye.stereoRectify with CALIB_ZERO_DISPARITY, balance 0, fov_scale 1: every matrix to 1e-9."""
+    compared = 0
+    for args, ok in _fisheye_rigs(50, 5):
+        want = cv2.fisheye.stereoRectify(*args, cv2.CALIB_ZERO_DISPARITY, balance=0.0, fov_scale=1.0)[:4]
+        got = cf.fisheye_stereo_rectify(*args)
+        assert np.abs(want[0] - got[0]).max() < 1e-12 and np.abs(want[1] - got[1]).max() < 1e-12
+        assert np.all(np.isfinite(got[2])) and got[3][0, 3] < 0
+        if ok:
+            compared += 1
+            assert np.abs(want[2] - got[2]).max() < 1e-9 and np.abs(want[3] - got[3]).max() < 1e-9
+    assert compared >= 45
+
+
+def test_ros_export_of_a_190_degree_fisheye_rig_is_rectified(tmp_path):
+    """scenes/fisheye.wd: past 180 deg OpenCV's new focal length is meaningless (its undistortion turns the
+    sides' midpoints, 95 deg off the axis, through the centre to the opposite side): R1, R2 and Tx / f' are
+    OpenCV's, f' the smaller of the cameras' fy and the principal point the mean of theirs (documented rule)."""
+    out = tmp_path / "cal"
+    r = CliRunner().invoke(main, ["export-calibration", "scenes/fisheye.wd", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    fs = cv2.FileStorage(str(out / "stereo.yaml"), cv2.FILE_STORAGE_READ)
+    size = (int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()))
+    M1, M2, T = fs.getNode("M1").mat(), fs.getNode("M2").mat(), fs.getNode("T").mat()
+    want = cv2.fisheye.stereoRectify(M1, fs.getNode("D1").mat(), M2, fs.getNode("D2").mat(), size,
+                                     fs.getNode("R").mat(), T, cv2.CALIB_ZERO_DISPARITY)[:4]
+    top = np.array([[[size[0] // 2, 0]]], dtype=float)
+    assert cv2.fisheye.undistortPoints(top, M1, fs.getNode("D1").mat())[0, 0, 1] > 0  # the top turned to the bottom
+    f = min(M1[1, 1], M2[1, 1])
+    for side, R_want in (("left", want[0]), ("right", want[1])):
+        ros = cv2.FileStorage(str(out / f"{side}.yaml"), cv2.FILE_STORAGE_READ)
+        R = np.array([ros.getNode("rectification_matrix").getNode("data").at(i).real() for i in range(9)]).reshape(3, 3)
+        P = np.array([ros.getNode("projection_matrix").getNode("data").at(i).real() for i in range(12)]).reshape(3, 4)
+        assert np.abs(R - R_want).max() < 1e-12 and ros.getNode("distortion_model").string() == "equidistant"
+        assert P[0, 0] == P[1, 1] == pytest.approx(f, rel=1e-15)
+        assert P[:2, 2] == pytest.approx((M1[:2, 2] + M2[:2, 2]) / 2, rel=1e-15)
+    assert P[0, 3] / P[0, 0] == pytest.approx((want[1] @ T)[0, 0], rel=1e-12)  # Tx = -f' * baseline
+    assert P[0, 3] == pytest.approx(-f * np.linalg.norm(T), rel=1e-3)

@@ -690,8 +690,8 @@ def ros_yaml(name: str, cam: dict, R: np.ndarray | None = None, P: np.ndarray | 
 
 def rig_files(scene) -> dict[str, str]:
     """The rig's cameras as files: OpenCV stereo YAML (M1, D1, M2, D2, R, T) and one ROS camera_info each,
-    with the stereo rectification R and P that ROS's stereo nodes use (radtan cameras of one image size;
-    otherwise R = I and P = [K | 0])."""
+    with the stereo rectification R and P that ROS's stereo nodes use (two radtan or two equidistant cameras
+    of one image size; otherwise R = I and P = [K | 0])."""
     rig, cams = scene.rig, {c.name: c for c in scene.cameras}
     mats = {}
     for side in ("left", "right"):
@@ -701,10 +701,11 @@ def rig_files(scene) -> dict[str, str]:
     R, T = stereo_extrinsics(rig)
     rect: dict = {"left": {}, "right": {}}
     l, r = mats["left"], mats["right"]
-    if l["model"] == r["model"] == "radtan" and (l["width"], l["height"]) == (r["width"], r["height"]) \
+    rectify = {"radtan": stereo_rectify, "equidistant": fisheye_stereo_rectify}.get(l["model"])
+    if rectify and l["model"] == r["model"] and (l["width"], l["height"]) == (r["width"], r["height"]) \
             and np.linalg.norm(T) > 0:
         with np.errstate(all="ignore"):  # a wild lens's corners may not undistort: then no rectification
-            R1, R2, P1, P2 = stereo_rectify(l["K"], l["D"], r["K"], r["D"], (l["width"], l["height"]), R, T)
+            R1, R2, P1, P2 = rectify(l["K"], l["D"], r["K"], r["D"], (l["width"], l["height"]), R, T)
         if all(np.all(np.isfinite(m)) for m in (R1, R2, P1, P2)):
             rect = {"left": {"R": R1, "P": P1}, "right": {"R": R2, "P": P2}}
     return {"stereo.yaml": opencv_yaml([l, r], R, T),
@@ -716,21 +717,8 @@ def stereo_rectify(K1, D1, K2, D2, size: tuple[int, int], R, T):
     stereo convention: R rectifies each camera, P2[0, 3] = Tx = -fx' * baseline. OpenCV's steps, with its
     single-precision image corners: half the rotation to each camera, then the baseline turned onto x;
     f' the mean of the cameras' fy; the centre from the undistorted corners of each image."""
-    from scipy.spatial.transform import Rotation
-
     R, T = np.asarray(R, dtype=float), np.asarray(T, dtype=float).ravel()
-    r_r = Rotation.from_rotvec(-0.5 * Rotation.from_matrix(R).as_rotvec()).as_matrix()
-    t = r_r @ T
-    idx = 0 if abs(t[0]) > abs(t[1]) else 1
-    c, nt = t[idx], float(np.linalg.norm(t))
-    uu = np.zeros(3)
-    uu[idx] = 1.0 if c > 0 else -1.0
-    ww = np.cross(t, uu)
-    nw = float(np.linalg.norm(ww))
-    if nw > 0:
-        ww *= math.acos(min(1.0, abs(c) / nt)) / nw
-    wR = Rotation.from_rotvec(ww).as_matrix()
-    R1, R2 = wR @ r_r.T, wR @ r_r
+    R1, R2, idx = _rectifying_rotations(R, T)
     t = R2 @ T
     fc = (K1[idx ^ 1, idx ^ 1] + K2[idx ^ 1, idx ^ 1]) / 2
     nx, ny = size
@@ -746,6 +734,83 @@ def stereo_rectify(K1, D1, K2, D2, size: tuple[int, int], R, T):
     P2 = P1.copy()
     P2[idx, 3] = t[idx] * fc
     return R1, R2, P1, P2
+
+
+def _rectifying_rotations(R: np.ndarray, T: np.ndarray, axis: int | None = None):
+    """R1, R2 and the baseline's axis (0: x, 1: y) as OpenCV's stereoRectify (and its fisheye twin, which
+    always takes x) turn the cameras: half the rotation to each, then the baseline onto the axis."""
+    from scipy.spatial.transform import Rotation
+
+    r_r = Rotation.from_rotvec(-0.5 * Rotation.from_matrix(R).as_rotvec()).as_matrix()
+    t = r_r @ T
+    idx = (0 if abs(t[0]) > abs(t[1]) else 1) if axis is None else axis
+    c, nt = t[idx], float(np.linalg.norm(t))
+    uu = np.zeros(3)
+    uu[idx] = 1.0 if c > 0 else -1.0
+    ww = np.cross(t, uu)
+    nw = float(np.linalg.norm(ww))
+    if nw > 0:
+        ww *= math.acos(min(1.0, abs(c) / nt)) / nw
+    wR = Rotation.from_rotvec(ww).as_matrix()
+    return wR @ r_r.T, wR @ r_r, idx
+
+
+def fisheye_stereo_rectify(K1, D1, K2, D2, size: tuple[int, int], R, T):
+    """R1, R2, P1, P2 of an equidistant (Kannala-Brandt) rig as `cv2.fisheye.stereoRectify` gives them with
+    CALIB_ZERO_DISPARITY, balance 0 and fov_scale 1 (ROS's stereo convention, P2[0, 3] = Tx = -f' * baseline).
+    OpenCV's steps: the rotations of `stereo_rectify` with the baseline always on x; each camera's new focal
+    length from the midpoints of its image's four sides, undistorted and rotated (the largest of the four
+    focal lengths that put a midpoint on its side: balance 0); f' the smaller of the two cameras'; the
+    principal point the mean of the two.
+
+    OpenCV's rule needs each midpoint's pinhole image: a lens whose sides reach 90 deg off the rectified axis
+    (a field of view of 180 deg or more) has none, and OpenCV then returns NaN, a focal length near 0, or one
+    from midpoints its undistortion turned through the centre (theta past 90 deg).
+    There f' is the smaller of the two cameras' own fy (the equidistant image's scale at its centre) and the
+    principal point the mean of the two cameras' own: the rotations and Tx / f' stay OpenCV's."""
+    R, T = np.asarray(R, dtype=float), np.asarray(T, dtype=float).ravel()
+    R1, R2, _ = _rectifying_rotations(R, T, axis=0)
+    w, h = size
+    mids = np.array([[w // 2, 0], [w, h // 2], [w // 2, h], [0, h // 2]], dtype=float)
+    news = []
+    cams = [(np.asarray(K, dtype=float), np.asarray(D, dtype=float).ravel(), Rk) for K, D, Rk in
+            ((K1, D1, R1), (K2, D2, R2))]
+    for K, D, Rk in cams:
+        xy = _undistort_fisheye(mids, K, D)
+        X = np.column_stack([xy, np.ones(4)]) @ Rk.T
+        if not (np.all(np.isfinite(X)) and np.all(X[:, 2] > 1e-6 * np.linalg.norm(X, axis=1))):
+            news = [(K[1, 1], K[:2, 2]) for K, _, _ in cams]  # a side at or past 90 deg: no pinhole image
+            break
+        p = X[:, :2] / X[:, 2:]
+        cn = p.mean(axis=0)
+        aspect = K[0, 0] / K[1, 1]
+        cn[1] *= aspect  # y in x's pixel units
+        p[:, 1] *= aspect
+        fs = [w * 0.5 / (cn[0] - p[:, 0].min()), w * 0.5 / (p[:, 0].max() - cn[0]),
+              h * 0.5 * aspect / (cn[1] - p[:, 1].min()), h * 0.5 * aspect / (p[:, 1].max() - cn[1])]
+        f = max(fs)
+        c = -cn * f + np.array([w, h * aspect]) * 0.5
+        news.append((f / aspect, np.array([c[0], c[1] / aspect])))
+    fc = min(news[0][0], news[1][0])
+    cc = (news[0][1] + news[1][1]) / 2
+    P1 = np.array([[fc, 0, cc[0], 0], [0, fc, cc[1], 0], [0, 0, 1, 0]])
+    P2 = P1.copy()
+    P2[0, 3] = (R2 @ T)[0] * fc
+    return R1, R2, P1, P2
+
+
+def _undistort_fisheye(uv: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Normalised points from pixels under the equidistant model, as `cv2.fisheye.undistortPoints`: theta_d
+    clipped to [-pi/2, pi/2], theta by Newton's method; NaN where no theta of the same sign solves it."""
+    from wiredsl.engine.geometry import fisheye_theta
+
+    pw = np.column_stack([(uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1]])
+    theta_d = np.minimum(np.hypot(pw[:, 0], pw[:, 1]), math.pi / 2)
+    theta, residual = fisheye_theta(theta_d, *D[:4])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(theta_d > 1e-8, np.tan(theta) / np.where(theta_d > 0, theta_d, 1.0), 1.0)
+    bad = (theta_d > 1e-8) & ~((theta > 0) & (theta < math.pi / 2) & (residual < 1e-9))
+    return pw * np.where(bad, np.nan, scale)[:, None]
 
 
 def _undistort(uv: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
