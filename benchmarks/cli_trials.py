@@ -96,7 +96,7 @@ def split(trials: int) -> tuple[float, float, float]:
             t1 = time.process_time()
             if got is None:
                 break
-            writer.write_batch(*got)
+            writer.write_batch(*got, run.world)
             batches, writing = batches + t1 - t0, writing + time.process_time() - t1
         writer.abort()
     kn.run_view = run_view

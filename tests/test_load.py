@@ -164,7 +164,7 @@ def test_manifests_and_npz_validate_and_a_broken_npz_does_not(disturbed, tmp_pat
     broken = tmp_path / "old.npz"
     np.savez(broken, **data)
     result = CliRunner().invoke(main, ["validate", str(broken)])
-    assert result.exit_code == 1 and "b00000_strokes: shape (" in result.output and "expected (S, 10)" in result.output
+    assert result.exit_code == 1 and "b00000_strokes: shape (" in result.output and "expected (S, 11)" in result.output
     (tmp_path / "text.npz").write_text("not a zip")
     result = CliRunner().invoke(main, ["validate", str(tmp_path / "text.npz")])
     assert result.exit_code == 1 and "not an npz file" in result.output
@@ -209,3 +209,32 @@ def test_a_device_or_fifo_is_refused_unopened(tmp_path):
     for path in (fifo, "/dev/zero"):
         with pytest.raises(DumpError, match="is not a regular file"):
             wiredsl.load(path)
+
+
+@pytest.mark.parametrize("effects", [False, True])
+def test_mesh_contours_round_trip_through_npz_like_json(tmp_path, effects):
+    """scenes/meshes.wd: the smooth ball's occluding contour is `contour: true` in the JSON dump; the npz
+    carries it (stroke column `contour`) and wiredsl.load gives the same records from both."""
+    scene = tmp_path / "m.wd"  # scenes/meshes.wd with a pipeline (edge loss cuts contours into fragments)
+    scene.write_text(f'wiredsl 1\ninclude "{Path("scenes/meshes.wd").resolve().as_posix()}"\n'
+                     "pipeline p default {\n  edge_loss fraction 40%\n  approx_error sigma 0.3px\n}\n")
+
+    def build_mesh(name, *args):
+        out = tmp_path / name
+        r = CliRunner().invoke(main, ["build", str(scene), "-o", str(out), "--no-svg", "--pose", "1", *args])
+        assert r.exit_code == 0, r.output
+        return out
+
+    if effects:  # trial 1 of a disturbed run: the npz holds trials 0 and 1
+        js = wiredsl.load(build_mesh("j", "--seed", "3", "--trial", "1") / "features.json")
+        npz_path = build_mesh("n", "--seed", "3", "--trials", "2", "--format", "npz") / "features.npz"
+        npz = wiredsl.load(npz_path, trial=1)
+    else:
+        js = wiredsl.load(build_mesh("j", "--no-effects") / "features.json")
+        npz_path = build_mesh("n", "--no-effects", "--format", "npz") / "features.npz"
+        npz = wiredsl.load(npz_path)
+    same_records(npz, js, px=1e-4)
+    marked = [r for r in npz if r.get("contour")]
+    assert marked and {r["source"] for r in marked} == {r["source"] for r in js if r.get("contour")}
+    strokes = wiredsl.load(npz_path, arrays=True)["strokes"]
+    assert strokes[:, layout.column("contour")].sum() >= len(marked) > 0

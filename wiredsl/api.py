@@ -119,7 +119,7 @@ def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str |
     """
     from wiredsl import run as runs
     from wiredsl.engine.simulate import Options
-    from wiredsl.io.emit import batch_arrays
+    from wiredsl.io.emit import batch_arrays, contours
 
     if trials < 1:
         raise ValueError(f"trials must be at least 1, not {trials}")
@@ -129,10 +129,10 @@ def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str |
     if not run.stages:
         out = [(r, {side: _ideal_set(run, r, side) for side in ("left", "right") if getattr(r, side) is not None},
                 None) for r in run.ideal()]
-        yield Batch([0], batch_arrays([0], out, renumber=False), ids, out)
+        yield Batch([0], batch_arrays([0], out, contours(run.world), renumber=False), ids, out)
         return
     for batch, batch_out in run.batches(range(trials)):
-        yield Batch(batch, batch_arrays(batch, batch_out), ids, batch_out)
+        yield Batch(batch, batch_arrays(batch, batch_out, contours(run.world)), ids, batch_out)
 
 
 def _ideal_set(run, result, side: str):
@@ -170,7 +170,7 @@ class Simulator:
         radians on the floor, or a 4x4 world-from-robot transform (planar: a turn about the vertical).
         `step` keys the draws (and numbers the pose in the output); an arbitrary pose needs one.
         """
-        from wiredsl.io.emit import batch_arrays
+        from wiredsl.io.emit import batch_arrays, contours
 
         result, step = self._ideal(pose, step)
         trials = [int(trial)]
@@ -179,8 +179,8 @@ class Simulator:
         else:
             out = [(result, {side: _ideal_set(self.run, result, side) for side in ("left", "right")
                              if getattr(result, side) is not None}, None)]
-        return Batch(trials, batch_arrays(trials, out, renumber=bool(self.run.stages)), self.run.world.feature_ids,
-                     out)
+        arrays = batch_arrays(trials, out, contours(self.run.world), renumber=bool(self.run.stages))
+        return Batch(trials, arrays, self.run.world.feature_ids, out)
 
     def _ideal(self, pose, step: int | None):
         import dataclasses

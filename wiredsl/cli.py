@@ -576,7 +576,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
             with click.progressbar(length=len(trial_list), label="trials", file=sys.stderr if show else _Null()) as bar:
                 for batch, batch_out in batches:
                     if out_format == "npz" and effects:
-                        writer.write_batch(batch, batch_out)
+                        writer.write_batch(batch, batch_out, world)
                     elif out_format == "npz":  # the ideal projection as trial 0, in the same layout
                         writer.write_ideal([r for r, _, _ in batch_out], world)
                     for k, t in enumerate(batch):

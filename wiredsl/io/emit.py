@@ -83,6 +83,8 @@ def _view(v: SimView, world: World, cameras: dict) -> dict:
         elif f.kind == "polyline":
             lo, hi = at[id(f)]
             d["points"], d["closed"] = pts[lo:hi], f.closed
+            if world.feature_kind[f.fid] == "contour":
+                d["contour"] = True
             polylines.append(d)
         elif f.kind == "conic":
             centre, axes, angle, arc = f.conic
@@ -233,12 +235,12 @@ class NpzStream:
 
         out = [(r, {side: to_imageset(getattr(r, side), world) for side in ("left", "right")
                     if getattr(r, side) is not None}, None) for r in results]
-        self.write_batch([0], out, renumber=False)
+        self.write_batch([0], out, world, renumber=False)
 
-    def write_batch(self, batch: list[int], batch_out, renumber: bool = True) -> None:
+    def write_batch(self, batch: list[int], batch_out, world: World, renumber: bool = True) -> None:
         """One batch's members (`batch_arrays`), as b{n}_<name>, each in its file type."""
         b = f"b{self.n:05d}"
-        for name, a in batch_arrays(batch, batch_out, renumber).items():
+        for name, a in batch_arrays(batch, batch_out, contours(world), renumber).items():
             self.member(f"{b}_{name}", a, NPZ_TYPES.get(name))
         self.n += 1
 
@@ -261,9 +263,15 @@ NPZ_TYPES = {"pts": np.float32, "start": np.int64, "strokes": np.int32, "corners
              "corner_rows": np.int32, "views": np.int32, "conic_rows": np.int32}  # the rest: float64
 
 
-def batch_arrays(batch: list[int], batch_out, renumber: bool = True) -> dict[str, np.ndarray]:
+def contours(world: World) -> np.ndarray:
+    """True for each feature id that is a smooth mesh surface's occluding contour (the dump's `contour`)."""
+    return np.array([k == "contour" for k in world.feature_kind], dtype=bool)
+
+
+def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: bool = True) -> dict[str, np.ndarray]:
     """One batch's strokes, corners, views (and conics) as the npz members of a batch (layout.py), without
-    the b{n}_ prefix and at full precision; `fragment` numbered as the JSON dump numbers it.
+    the b{n}_ prefix and at full precision; `fragment` numbered as the JSON dump numbers it; `contour` is
+    `contours(world)`.
 
     Whole arrays a view: trials' cameras and poses come from the batch's arrays (montecarlo.TrialViews), not
     from a camera model a trial."""
@@ -301,7 +309,7 @@ def batch_arrays(batch: list[int], batch_out, renumber: bool = True) -> dict[str
             offset += len(s.pts)
             frag = _json_fragments(s) if renumber else s.fragment
             rows.append(_int32_rows(trials_of[s.trial], result.index, cam, s.fid, s.segment, s.kind, s.clipped,
-                                    s.closed, frag, s.occluded))
+                                    s.closed, frag, s.occluded, contour[s.fid]))
             corners.append(s.corners)
             crows.append(_int32_rows(trials_of[s.corner_trial], result.index, cam, s.corner_fid))
     return {

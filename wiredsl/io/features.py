@@ -27,24 +27,31 @@ class Feature(Node):
     occluded: bool = Field(False, description="a visible part of a feature that occlusion cut (--visibility exact)")
 
 
+def _contour_field():
+    return Field(False, description="(part of) a smooth mesh surface's occluding contour in this view: "
+                                    "view-dependent, not a fixed edge of the object (written only when true)")
+
+
+def _omit_plain(self, handler):  # dumps of scenes without meshes stay as they were
+    out = handler(self)
+    if not self.contour:
+        out.pop("contour", None)
+    return out
+
+
 class ImageLine(Feature):
     kind: Literal["line"] = "line"
     points: tuple[Vec2, Vec2]
-    contour: bool = Field(False, description="an edge of a smooth mesh surface's occluding contour in this view: "
-                                             "view-dependent, not a fixed edge of the object (written only when true)")
-
-    @model_serializer(mode="wrap")
-    def _omit_plain(self, handler):  # dumps of scenes without meshes stay as they were
-        out = handler(self)
-        if not self.contour:
-            out.pop("contour", None)
-        return out
+    contour: bool = _contour_field()
+    _omit_plain = model_serializer(mode="wrap")(_omit_plain)
 
 
 class ImagePolyline(Feature):
     kind: Literal["polyline"] = "polyline"
     points: list[Vec2] = Field(min_length=2)
     closed: bool = False
+    contour: bool = _contour_field()
+    _omit_plain = model_serializer(mode="wrap")(_omit_plain)
 
 
 class ImageConic(Feature):

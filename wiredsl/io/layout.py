@@ -11,8 +11,8 @@ from __future__ import annotations
 import json
 import math
 
-NPZ_VERSION = 3  # 1: seven stroke columns; 2: closed, fragment, occluded, views and conics added;
-# 3: view cameras with k3..k6 and the lens model
+NPZ_VERSION = 4  # 1: seven stroke columns; 2: closed, fragment, occluded, views and conics added;
+# 3: view cameras with k3..k6 and the lens model; 4: the stroke column `contour`
 
 STROKE_COLUMNS = (
     ("trial", "Monte-Carlo trial (0 for the ideal projection)"),
@@ -25,6 +25,8 @@ STROKE_COLUMNS = (
     ("closed", "1 when the last vertex joins the first (a whole ellipse)"),
     ("fragment", "the JSON dump's `fragment`: piece number after a cut; -1 when whole (null in JSON)"),
     ("occluded", "1 for a visible part of a feature that occlusion cut (--visibility exact)"),
+    ("contour", "1 for (part of) a smooth mesh surface's occluding contour in this view: view-dependent "
+     "(the JSON dump's `contour`)"),
 )
 CORNER_COLUMNS = (
     ("trial", "Monte-Carlo trial"),

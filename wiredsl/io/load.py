@@ -269,6 +269,8 @@ def records(a: dict) -> list[dict]:
                "points": [[float(u), float(v)] for u, v in xy]}
         if not straight:
             rec["closed"] = bool(row[col["closed"]])
+        if row[col["contour"]]:  # written only when true, as in the JSON dump
+            rec["contour"] = True
         group(*row[:3])["lines" if straight else "polylines"].append(rec)
     for (u, v), row in zip(a["corners"].tolist(), a["corner_rows"], strict=True):
         group(*row[:3])["corners"].append({"source": ids[row[3]], "segment": None, "fragment": None,
