@@ -301,3 +301,23 @@ def test_a_robot_on_its_side_or_climbing_is_warned(tmp_path, block, warned):
     _, diags, _ = compile_file(f)
     messages = [d.message for d in diags if d.code == "W146"]
     assert (warned is None and not messages) or (warned is not None and any(warned in m for m in messages))
+
+
+def test_a_csv_without_a_time_column_takes_its_declared_rate(tmp_path):
+    """`rate 4` on a CSV of x, y, yaw: poses 0.25 s apart, resampled `every 0.125s` to midpoints; a rate on a
+    CSV with its own t column, or neither, is E145 with a hint."""
+    text = "x [m], y [m], yaw [deg]\n0, 0, 0\n1, 0, 90\n1, 1, 180\n"
+    traj = trajectory.read(text, rate=4.0)
+    np.testing.assert_array_equal(traj.times, [0, 0.25, 0.5])
+    f = scene_file(tmp_path, '  read "r.csv" rate 4 every 0.125s', {"r.csv": text})
+    scene, _, _ = compile_file(f)
+    T = np.array(scene.path.transforms)
+    assert len(T) == 5
+    np.testing.assert_allclose(T[1, :, 3], [0.5, 0, 0], atol=1e-12)  # halfway in position and in yaw (45 deg)
+    np.testing.assert_allclose(T[1, :, :3], rot("z", 45), atol=1e-12)
+    for block, files, message in (
+            ('  read "t.csv" rate 4', {"t.csv": "t, x, y, yaw\n0, 0, 0, 0\n"}, "its own timestamps (column 't')"),
+            ('  read "r.csv"', {"r.csv": text}, "(or declare 'rate' for poses at a fixed rate)")):
+        with pytest.raises(WiredslError) as err:
+            compile_file(scene_file(tmp_path, block, files))
+        assert [d.code for d in err.value.diagnostics] == ["E145"] and message in err.value.diagnostics[0].message

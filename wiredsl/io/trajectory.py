@@ -8,7 +8,8 @@ Formats (each pose is the file's frame, the "body", in the file's world):
 - `kitti`: KITTI odometry poses, 12 numbers a line, the row-major [R | t] of camera 0 in camera 0's frame
   at the first pose (x right, y down, z forward); no timestamps: a `rate` or a times file gives them;
 - `csv`: a header naming the columns (comma or white-space separated): t, x, y, z and qx, qy, qz, qw or
-  roll, pitch, yaw (R = Rz(yaw) Ry(pitch) Rx(roll)); a unit in brackets, `t [ns]`, `yaw [deg]`, `x [mm]`.
+  roll, pitch, yaw (R = Rz(yaw) Ry(pitch) Rx(roll)); a unit in brackets, `t [ns]`, `yaw [deg]`, `x [mm]`;
+  without a t column, a `rate` gives the timestamps.
 
 Every problem is a `TrajectoryError` naming the line of the file it is on.
 """
@@ -77,9 +78,12 @@ def guess_format(text: str) -> str:
 
 def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rate: float | None = None
          ) -> Trajectory:
-    """The poses of a trajectory file's text; KITTI's timestamps from `times` (`read_times`) or `rate`."""
+    """The poses of a trajectory file's text; KITTI's timestamps from `times` (`read_times`) or `rate`, a CSV's
+    without a time column from `rate`."""
     fmt = fmt or guess_format(text)
-    if fmt == "kitti":
+    if fmt == "csv" and times is None:
+        traj = _csv(text, fmt, rate)
+    elif fmt == "kitti":
         traj = _kitti(text)
         if times is not None:
             stamps = times - times[0] if len(times) else times
@@ -90,7 +94,8 @@ def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rat
             traj = Trajectory(np.arange(len(traj.lines)) / rate, traj.positions, traj.rotations, traj.lines,
                               traj.normalised)
     elif times is not None or rate is not None:
-        raise TrajectoryError("the file has its own timestamps: 'rate' and 'times' are for KITTI's poses")
+        raise TrajectoryError("the file has its own timestamps: 'rate' is for KITTI's poses and a CSV without a "
+                              "time column, 'times' for KITTI's poses")
     elif fmt == "tum":
         traj = _tum(text)
     else:
@@ -183,7 +188,8 @@ def _split(s: str, sep: str | None) -> list[str]:
     return words[:-1] if sep and words and words[-1] == "" else words  # a trailing comma ends some writers' rows
 
 
-def _csv(text: str, fmt: str) -> Trajectory:
+def _csv(text: str, fmt: str, rate: float | None = None) -> Trajectory:
+    """A CSV with a header; without a `t` column the poses are `rate` per second apart."""
     line0, names, sep = _header(text)
     cols: dict[str, tuple[int, float]] = {}  # role -> (column, factor to SI)
     for k, name in enumerate(names):
@@ -199,11 +205,16 @@ def _csv(text: str, fmt: str) -> Trajectory:
             raise TrajectoryError(f"column '{name}': unit '{unit}' is not one of {', '.join(factors)}", line0)
         cols[role] = (k, factors.get(unit, 1.0) if unit else 1.0)
     quaternion = all(f"q{a}" in cols for a in "wxyz")
-    need = ["t", "x", "y"] + ([] if quaternion or "yaw" in cols else ["qw, qx, qy, qz (or yaw)"])
+    if rate is not None and "t" in cols:
+        raise TrajectoryError(f"the file has its own timestamps (column '{names[cols['t'][0]]}'): 'rate' is for a "
+                              "CSV without a time column", line0)
+    need = ([] if rate is not None else ["t"]) + ["x", "y"] + (
+        [] if quaternion or "yaw" in cols else ["qw, qx, qy, qz (or yaw)"])
     missing = [n for n in need if n not in cols and n.split(",")[0] not in cols]
     if missing:
-        raise TrajectoryError(f"the header names no column {' or '.join(missing)} (it names {', '.join(names)})",
-                              line0)
+        hint = " (or declare 'rate' for poses at a fixed rate)" if missing[0] == "t" else ""
+        raise TrajectoryError(f"the header names no column {' or '.join(missing)} (it names {', '.join(names)})"
+                              + hint, line0)
     lines, a, words = _table(text, len(names), f"one a column of the header at line {line0}", sep, line0)
 
     def col(role: str, default: float = 0.0) -> np.ndarray:
@@ -220,6 +231,8 @@ def _csv(text: str, fmt: str) -> Trajectory:
 
         ypr = np.column_stack([col("yaw"), col("pitch"), col("roll")])
         R, fixed = Rotation.from_euler("ZYX", ypr).as_matrix(), ()
+    if rate is not None:
+        return Trajectory(np.arange(len(a)) / rate, positions, R, lines, fixed)
     k, factor = cols["t"]
     t = _seconds([w[k] for w in words], factor)
     return Trajectory(t, positions, R, lines, fixed)
