@@ -273,9 +273,10 @@ def validate(c: Campaign, n: int, work: Path, seed: int) -> None:
             with warnings.catch_warnings():
                 warnings.simplefilter("error", RuntimeWarning)
                 records = wiredsl.load(f)
-            for r in records:
-                for v in r.get("points", []) + [r.get("at") or []]:
-                    if any(isinstance(x, float) and not math.isfinite(x) for x in v):
+            for r in records:  # load passes a JSON dump's values through: look at whatever lists there are
+                pts = r.get("points") if isinstance(r.get("points"), list) else []
+                for v in pts + [r.get("at") if isinstance(r.get("at"), list) else []]:
+                    if isinstance(v, list) and any(isinstance(x, float) and not math.isfinite(x) for x in v):
                         c.found("load", "nonfinite", data, str(r)[:500])
                         break
         except Hang:

@@ -144,8 +144,8 @@ def open_npz(path):
                         raise NpzError(f"member '{name}': its header's shape {shape} ({dtype}) needs {need:,} bytes, "
                                        f"the member holds {info.file_size - fh.tell():,}")
         return np.load(path, allow_pickle=False)
-    except (OSError, zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError) as exc:
-        # NotImplementedError: a zip feature Python does not read (a compression method, a version)
+    except (OSError, zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, NotImplementedError, RuntimeError) as exc:
+        # NotImplementedError: a zip feature Python does not read (a method, a version); RuntimeError: encrypted
         raise NpzError(f"not an npz file this reader takes: {exc}") from None
 
 
@@ -159,7 +159,7 @@ def npz_problems(path) -> list[str]:
             return _layout_problems(data)
     except NpzError as exc:
         return [str(exc)]
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError) as exc:  # damaged data (CRC)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError, RuntimeError) as exc:  # damaged
         return [f"a damaged member: {exc}"]
 
 

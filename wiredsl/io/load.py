@@ -51,7 +51,8 @@ def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
         pick = _pick(path, held, trial, pose, camera, names=None)
         try:
             return _npz_arrays(path, *pick) if arrays else _npz_records(path, *pick)
-        except (KeyError, IndexError, TypeError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError) as exc:
+        except (KeyError, IndexError, TypeError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError,
+                RuntimeError) as exc:  # RuntimeError: an encrypted member
             if isinstance(exc, DumpError) or str(exc).startswith(f"{path}: "):  # ours, naming the file already
                 raise
             raise layout.NpzError(f"{path}: not a features.npz of layout {layout.NPZ_VERSION} ({type(exc).__name__}:"
