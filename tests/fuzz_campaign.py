@@ -283,8 +283,8 @@ def validate(c: Campaign, n: int, work: Path, seed: int) -> None:
             c.found("load", "hang", data, name)
         except (ValueError, OSError, KeyError, EOFError) as exc:  # a clear refusal of a damaged dump
             # KeyError / JSONDecodeError name what is missing; anything else is a finding
-            if type(exc).__name__ not in ("JSONDecodeError", "NpzError", "ValueError", "UnicodeDecodeError",
-                                          "KeyError", "BadZipFile", "OSError", "EOFError"):
+            if type(exc).__name__ not in ("JSONDecodeError", "NpzError", "DumpError", "ValueError",
+                                          "UnicodeDecodeError", "KeyError", "BadZipFile", "OSError", "EOFError"):
                 c.found("load", "exception", data, traceback.format_exc())
             else:
                 c.counts[f"load:refused:{type(exc).__name__}"] += 1
