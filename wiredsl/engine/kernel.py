@@ -548,7 +548,7 @@ def announce_compile(batch) -> None:
     except AttributeError:  # numba's internals moved: say it anyway rather than stay silent for a minute
         index = None
     if index is None or not os.path.exists(index):
-        print("wiredsl: compiling the Monte-Carlo kernel (once; numba caches it for later runs)...",
+        print("wiredsl: compiling the Monte-Carlo kernel for these stages (once; numba caches it for later runs)...",
               file=sys.stderr, flush=True)
 
 
