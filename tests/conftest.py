@@ -14,15 +14,17 @@ def _at_root(monkeypatch):
 
 
 def pytest_configure(config):
-    """Compile the Monte-Carlo kernel once, before any test worker starts, so that the workers share the
-    compiled code through numba's cache instead of each compiling it."""
+    """Compile the Monte-Carlo kernel once (its shared parts and every built-in stage's function, through the
+    built-ins' stage list), before any test worker starts, so that the workers share the compiled code through
+    numba's cache instead of each compiling it."""
     import importlib.util
 
     if hasattr(config, "workerinput") or importlib.util.find_spec("numba") is None:
         return
+    from wiredsl.effects import BUILTIN
     from wiredsl.engine import kernel
 
-    kernel.warm()
+    kernel.warm(tuple(e.kernel.function for e in BUILTIN.values() if e.kernel is not None))
 
 
 @pytest.fixture(autouse=True, scope="session")

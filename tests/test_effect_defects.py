@@ -209,11 +209,12 @@ def halves_reference(pts: np.ndarray, angle: float) -> list[list[tuple[float, fl
 
 
 def kernel_split(s: im.ImageSet) -> list[np.ndarray]:
+    from wiredsl.effects.lateral_shift_kernel import _split_ellipses
     from wiredsl.engine import kernel as K
 
     meta = np.zeros((1, K.NMETA), np.int64)
     meta[0, K.KIND], meta[0, K.CLOSED], meta[0, K.FRAG] = K.ELLIPSE, 1, -1
-    pts, start, _ = K._split_ellipses(s.pts.copy(), s.start.astype(np.int64), meta)
+    pts, start, _ = _split_ellipses(s.pts.copy(), s.start.astype(np.int64), meta)
     return [pts[start[k]:start[k + 1]] for k in range(len(start) - 1)]
 
 

@@ -27,7 +27,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from wiredsl.effects.base import Effect, Params, param
+from wiredsl.effects.base import Effect, KernelStage, Params, param
 from wiredsl.engine import imageset as im
 from wiredsl.measures.base import Measure
 
@@ -63,6 +63,11 @@ class Wrong(CentreNoise):
         return im.replace(s, corners=s.corners[:, :1])
 
 
+class BadKernel(CentreNoise):
+    name = "bad_kernel"
+    kernel = KernelStage("wdplug.kernel:stage", ("sigma", "nope"), ())
+
+
 class CornerCountParams(Params):
     scale: float = param(1.0, "number", "multiplies the count", gt=0)
 
@@ -96,6 +101,7 @@ centre_noise = wdplug:CentreNoise
 wrong_shape = wdplug:Wrong
 broken_import = wdplug.missing:Thing
 not_an_effect = wdplug:NotAnEffect
+bad_kernel = wdplug:BadKernel
 edge_loss = wdplug:CentreNoise
 
 [wiredsl.measures]
@@ -198,7 +204,8 @@ def test_check_reference_and_schema_know_a_plugins_parameters(installed, tmp_pat
 
 def test_broken_plugins_get_a_diagnostic_naming_their_package(installed, tmp_path):
     for stage, why in (("broken_import", "failed to import: ModuleNotFoundError"),
-                       ("not_an_effect", "is not a subclass of wiredsl.Effect")):
+                       ("not_an_effect", "is not a subclass of wiredsl.Effect"),
+                       ("bad_kernel", "its kernel takes 'nope', not among its parameters")):
         f = tmp_path / f"{stage}.wd"
         f.write_text(f'wiredsl 1\ninclude "{ROOT / "scenes" / "lab.wd"}"\npipeline p {{\n  {stage}\n}}\n')
         r = CliRunner().invoke(main, ["check", str(f)])
@@ -292,3 +299,100 @@ def test_a_scene_file_cannot_make_check_import_anything(tmp_path, monkeypatch):
     monkeypatch.setattr(builtins, "__import__", real)
     assert "wdtrap" not in sys.modules and not any("wdtrap" in n or n.startswith("os.") for n in imported)
     assert not {m for m in set(sys.modules) - before if not m.startswith(("importlib", "email", "zipfile", "csv"))}
+
+
+KERNEL_EFFECT = '''
+import numpy as np
+
+from wiredsl.effects.base import Effect, KernelStage, Params, param
+from wiredsl.engine import imageset as im
+
+
+class JitterParams(Params):
+    sigma: float = param(1.0, "image", "corner noise (normal, each axis)", ge=0)
+    shift: float = param(0.0, "image", "every stroke moved right by this", ge=0)
+
+
+class Jitter(Effect):
+    name = "jitter"
+    acts_on = "corner detection"
+    Params = JitterParams
+    doc = "normal corner noise and a rightward shift of the strokes"
+    kernel = KernelStage("wdkern.kernel:stage", ("sigma", "shift"), (("count", "add"), ("sum_sq", "add")))
+
+    @classmethod
+    def is_identity(cls, p):
+        return p.sigma == 0 and p.shift == 0
+
+    @classmethod
+    def disturb(cls, p, s, ctx):
+        d = p.sigma * ctx.draws(cls.name, s.corner_trial, per_item=2, normal=True)
+        ctx.stats.add(cls.name, count=len(d), sum_sq=float((d * d).sum()))
+        return im.replace(s, corners=s.corners + d, pts=s.pts + [p.shift, 0.0])
+
+    @classmethod
+    def report(cls, p, stats):
+        s = stats.sums[cls.name]
+        return {"rms": float(np.sqrt(s["sum_sq"] / max(2 * s["count"], 1)))}
+'''
+
+KERNEL_STAGE = '''
+from numba import njit
+
+from wiredsl.engine.kernel import _normal_pair
+
+
+@njit(cache=True)
+def stage(pts, start, meta, corners, cfid, key, params, epipole, right, stats):
+    sigma, shift = params[0], params[1]
+    out = corners.copy()
+    for c in range(len(corners)):
+        gx, gy = _normal_pair(key, c)  # normals 2c and 2c + 1: ctx.draws(..., per_item=2, normal=True)
+        dx, dy = sigma * gx, sigma * gy
+        out[c, 0] = corners[c, 0] + dx
+        out[c, 1] = corners[c, 1] + dy
+        stats[0] += 1
+        stats[1] += dx * dx + dy * dy
+    moved = pts.copy()
+    for i in range(len(pts)):
+        moved[i, 0] = pts[i, 0] + shift
+    return moved, start, meta, out, cfid
+'''
+
+
+def test_a_plugin_effect_ships_its_own_kernel_and_runs_on_the_kernel_engine(tmp_path, monkeypatch):
+    """A plug-in's numba stage (its own module, named by its KernelStage) is composed with the built-ins' in the
+    compiled loop and gives what its numpy code gives; importing the effect does not import numba's code."""
+    site = make_dist(tmp_path / "site", "wdkern", KERNEL_EFFECT, "[wiredsl.effects]\njitter = wdkern:Jitter\n")
+    (site / "wdkern" / "kernel.py").write_text(KERNEL_STAGE)
+    monkeypatch.syspath_prepend(str(site))
+    plugins.rescan()
+    try:
+        f = tmp_path / "k.wd"
+        f.write_text(LAB_PLUS.format(lab=ROOT / "scenes" / "lab.wd").replace("centre_noise sigma 4px",
+                                                                              "jitter sigma 2px shift 0.5px"))
+        scene = wiredsl.compile(str(f))
+        assert "wdkern" in sys.modules and "wdkern.kernel" not in sys.modules
+        out = tmp_path / "out"
+        r = CliRunner().invoke(main, ["build", str(f), "--pipeline", "plug", "--seed", "3", "--trials", "4",
+                                      "--format", "npz", "--no-svg", "-o", str(out), "--engine", "kernel"])
+        assert r.exit_code == 0, r.output
+        manifest = json.loads((out / "manifest.json").read_text())
+        assert manifest["engine"] == "kernel" and manifest["engines"] == {"corner_loss": "kernel", "jitter": "kernel"}
+        got = {e: list(wiredsl.simulate(scene, trials=6, seed=3, pipeline="plug", poses=(0, 3), engine=e))
+               for e in ("numpy", "kernel")}
+        moved = 0
+        for bn, bk in zip(got["numpy"], got["kernel"], strict=True):
+            assert set(bn.keys()) == set(bk.keys())
+            for name in bn.keys():
+                a, b = np.asarray(bn[name]), np.asarray(bk[name])
+                if a.dtype.kind == "f":
+                    assert a.shape == b.shape and np.abs(a - b).max(initial=0) < 1e-9, name
+                else:
+                    assert np.array_equal(a, b), name
+            moved += len(bn["corners"])
+        assert moved > 0
+    finally:
+        plugins.rescan()
+        for m in [m for m in sys.modules if m == "wdkern" or m.startswith("wdkern.")]:
+            del sys.modules[m]

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Literal
 
 from wiredsl.effects.approx_error import ApproxError
-from wiredsl.effects.base import FLOW, Effect, Params
+from wiredsl.effects.base import FLOW, Effect, KernelStage, Params
 from wiredsl.effects.calibration_error import CalibrationError
 from wiredsl.effects.corner_loss import CornerLoss
 from wiredsl.effects.corner_mismatch import CornerMismatch
@@ -30,6 +30,14 @@ def _check(effect: type[Effect]) -> str | None:
         if kind not in KINDS:
             return (f"parameter '{key}' has unit kind {kind!r}: declare it with wiredsl.effects.base.param(default, "
                     f"kind, doc), kind one of {', '.join(KINDS)}")
+    k = getattr(effect, "kernel", None)
+    if k is not None:
+        if not isinstance(k, KernelStage) or not isinstance(k.function, str) or k.function.count(":") != 1:
+            return "declares a kernel that is not a KernelStage('module:function', params, stats)"
+        if unknown := [name for name in k.params if name not in effect.Params.model_fields]:
+            return f"its kernel takes {', '.join(map(repr, unknown))}, not among its parameters"
+        if any(len(c) != 2 or c[1] not in ("add", "peak") for c in k.stats):
+            return "its kernel's stats columns are not (key, 'add' or 'peak') pairs"
     for method in ("is_identity", "disturb"):
         if getattr(effect, method).__func__ is getattr(Effect, method).__func__:
             return f"does not define {method}()"

@@ -20,7 +20,7 @@ class ApproxErrorParams(Params):
 class ApproxError(Effect):
     name = "approx_error"
     acts_on = "fitting"
-    kernel = KernelStage(2, ("sigma",),
+    kernel = KernelStage("wiredsl.effects.approx_error_kernel:stage", ("sigma",),
                          (("count", "add"), ("sum_sq", "add")))
     Params = ApproxErrorParams
     doc = __doc__

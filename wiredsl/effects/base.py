@@ -132,14 +132,23 @@ class Context:
 class KernelStage:
     """How the compiled kernel (engine/kernel.py) runs an effect, declared by the effect beside its numpy code.
 
-    `code` is the kernel's stage code (its per-stroke function), `params` the Params fields it takes in order (at
-    most three), `stats` the columns of its statistics row: (Stats key, "add" or "peak"), recorded as the numpy
-    path records them. An effect without one (kernel None) runs on the numpy path, and so does every run it is in.
+    `function` names the stage's numba function as "module:attribute", imported only when a run uses the kernel
+    (so that importing the effect does not import numba). It is an `@njit(cache=True)` function of one trial's
+    view, `(pts, start, meta, corners, cfid, key, params, epipole, right, stats) -> (pts, start, meta, corners,
+    cfid)`: packed strokes (float64 (n, 2) points, int64 stroke starts, int64 (strokes, 7) metadata rows, see
+    `wiredsl.engine.kernel`), corners (float64 (c, 2)) and their feature ids, the stage's uint64 key for this
+    trial (draw with `wiredsl.engine.kernel._uniform(key, i)` / `_normal_pair`, as `ctx.draws` does), its
+    parameters (float64, `params` below in order), the view's epipole (homogeneous, when `epipole`), whether the
+    view is the right camera, and its statistics row (float64, one slot per `stats` column, added to in place).
+    `params` are the Params fields it takes, `stats` the columns of its statistics row: (Stats key, "add" or
+    "peak"), recorded as the numpy path records them. An effect without one (kernel None) runs on the numpy path,
+    and so does every run it is in.
     """
 
-    code: int
+    function: str
     params: tuple[str, ...]
     stats: tuple[tuple[str, str], ...]
+    epipole: bool = False  # the stage needs the view's epipole
 
 
 class Effect:

@@ -13,7 +13,7 @@ class CornerLossParams(Params):
 class CornerLoss(Effect):
     name = "corner_loss"
     acts_on = "corner detection"
-    kernel = KernelStage(3, ("keep",),
+    kernel = KernelStage("wiredsl.effects.corner_loss_kernel:stage", ("keep",),
                          (("total", "add"), ("kept", "add")))
     Params = CornerLossParams
     doc = __doc__

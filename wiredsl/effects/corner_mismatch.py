@@ -16,7 +16,7 @@ class CornerMismatchParams(Params):
 class CornerMismatch(Effect):
     name = "corner_mismatch"
     acts_on = "corner matching"
-    kernel = KernelStage(4, ("fraction", "radius"),
+    kernel = KernelStage("wiredsl.effects.corner_mismatch_kernel:stage", ("fraction", "radius"),
                          (("total", "add"), ("shifted", "add"), ("max_distance", "peak")))
     Params = CornerMismatchParams
     doc = __doc__

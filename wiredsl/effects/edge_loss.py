@@ -20,7 +20,7 @@ class EdgeLossParams(Params):
 class EdgeLoss(Effect):
     name = "edge_loss"
     acts_on = "edges"
-    kernel = KernelStage(0, ("fraction",),
+    kernel = KernelStage("wiredsl.effects.edge_loss_kernel:stage", ("fraction",),
                          (("total_length", "add"), ("kept_length", "add")))
     Params = EdgeLossParams
     doc = __doc__

@@ -20,7 +20,7 @@ class LateralShiftParams(Params):
 class LateralShift(Effect):
     name = "lateral_shift"
     acts_on = "edges"
-    kernel = KernelStage(1, ("range",),
+    kernel = KernelStage("wiredsl.effects.lateral_shift_kernel:stage", ("range",),
                          (("count", "add"), ("sum_abs", "add"), ("max_abs", "peak")))
     Params = LateralShiftParams
     doc = __doc__

@@ -58,9 +58,9 @@ def in_band(a: np.ndarray, b: np.ndarray, epipole: np.ndarray, band: float) -> n
 class StereoMismatch(Effect):
     name = "stereo_mismatch"
     acts_on = "stereo"
-    kernel = KernelStage(5, ("band", "fraction", "disparity"),
+    kernel = KernelStage("wiredsl.effects.stereo_mismatch_kernel:stage", ("band", "fraction", "disparity"),
                          (("length_in", "add"), ("length_after_band", "add"), ("right_strokes", "add"),
-                                  ("shifted", "add"), ("max_shift", "peak")))
+                                  ("shifted", "add"), ("max_shift", "peak")), epipole=True)
     Params = StereoMismatchParams
     doc = __doc__
 

@@ -7,8 +7,15 @@ that grow with the output only. It is a transcription of the numpy path (`wireds
 `wiredsl.engine.imageset`) with the same keyed draws and the same arithmetic, so that the two agree
 in every discrete decision and to rounding in coordinates (tests hold them together).
 
-numba is imported only here, and this module only when a run uses the kernel; compiled code is cached
-on disk, and the one-time compile is announced on stderr.
+Each image stage's numba function lives with its effect (its KernelStage names it, e.g.
+`wiredsl.effects.edge_loss_kernel:stage`), with the one signature
+
+    stage(pts, start, meta, corners, cfid, key, params, epipole, right, stats) -> (pts, start, meta, corners, cfid)
+
+and may call the shared parts here (keyed draws `_bits`/`_uniform`/`_normal_pair`, `_arcs`, `_total_length`,
+`_keep`, `_unroll`, the metadata columns FID..OCC). `compose` builds the loop over a stage list from those
+names, so this module names no effect. numba is imported only here and by those functions' modules, and
+they only when a run uses the kernel; compiled code is cached on disk, and a compile is announced on stderr.
 """
 
 from __future__ import annotations
@@ -19,14 +26,10 @@ import sys
 import numpy as np
 from numba import njit
 
-# the per-stroke functions view_batch dispatches to, by the code each effect declares (its `kernel`,
-# wiredsl.effects.base.KernelStage); a code with no function here is refused before the kernel runs
-EDGE_LOSS, LATERAL_SHIFT, APPROX_ERROR, CORNER_LOSS, CORNER_MISMATCH, STEREO_MISMATCH = range(6)
-KNOWN = frozenset(range(6))
 FID, SEG, FRAG, KIND, CLIP, CLOSED, OCC = range(7)  # columns of a stroke's metadata row
 NMETA = 7
 ELLIPSE = 2
-NSTAT = 6  # statistics a stage records, per stage (see `stage_stats`)
+NSTAT = 6  # the least width of a stage's statistics row (montecarlo.stage_rows)
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -218,337 +221,6 @@ def _unroll(pts, start, meta, which):
     return out, ostart, ometa
 
 
-# ----------------------------------------------------------------------------- the image stages
-
-@njit(cache=True)
-def _edge_loss(pts, start, meta, key, fraction, st):
-    S = len(start) - 1
-    closed = meta[:, CLOSED] != 0
-    upts, ustart, umeta = _unroll(pts, start, meta, np.ones(S, np.bool_))
-    arc, Lu = _arcs(upts, ustart)
-    n = 0
-    for k in range(S):
-        n += 1 if closed[k] else 2
-    ps = np.empty(n, np.int64)
-    pa = np.empty(n)
-    pb = np.empty(n)
-    pf = np.zeros(n, np.int64)
-    zeros = np.zeros(n, np.int64)
-    q = 0
-    for k in range(S):
-        L = Lu[k] / 2 if closed[k] else Lu[k]
-        u = _uniform(key, k)
-        gap = fraction * L
-        g0 = u * (L if closed[k] else L - gap)
-        st[0] += L
-        if closed[k]:
-            ps[q], pa[q], pb[q] = k, g0 + gap, g0 + L
-            q += 1
-        else:
-            ps[q], pa[q], pb[q] = k, 0.0, g0
-            ps[q + 1], pa[q + 1], pb[q + 1], pf[q + 1] = k, g0 + gap, L, 1
-            q += 2
-    out = _keep(upts, ustart, umeta, arc, Lu, ps, pa, pb, pf, zeros, zeros, np.zeros(n, np.bool_), n)
-    st[1] += _total_length(out[0], out[1])
-    return out
-
-
-@njit(cache=True)
-def _crossing(arc, i, t):
-    """lateral_shift._crossing: the arc length at fraction t of segment i, snapped to a vertex within 1e-9 px."""
-    seg = arc[i + 1] - arc[i]
-    if t * seg < 1e-9:
-        return arc[i]
-    if (1 - t) * seg < 1e-9:
-        return arc[i + 1]
-    return arc[i] + t * seg
-
-
-@njit(cache=True)
-def _split_ellipses(pts, start, meta):
-    """lateral_shift.split_ellipses."""
-    S = len(start) - 1
-    ell = meta[:, KIND] == ELLIPSE
-    if not ell.any():
-        return pts, start, meta
-    closed = (meta[:, CLOSED] != 0) & ell
-    upts, ustart, umeta = _unroll(pts, start, meta, closed)
-    arc, Lu = _arcs(upts, ustart)
-    crossings = np.empty(len(upts))
-    second = np.empty(len(upts))  # each crossing's point on a loop's second lap
-    ccount = np.zeros(S, np.int64)
-    coff = np.zeros(S + 1, np.int64)
-    for k in range(S):
-        a, b = ustart[k], ustart[k + 1]
-        coff[k + 1] = coff[k]
-        if not ell[k] or b - a < 2:
-            continue
-        # centre and second moments of segment midpoints weighted by length (bincount order: by segment)
-        tot, cx, cy = 0.0, 0.0, 0.0
-        for i in range(a, b - 1):
-            dx = upts[i + 1, 0] - upts[i, 0]
-            dy = upts[i + 1, 1] - upts[i, 1]
-            w = math.sqrt(dx * dx + dy * dy)
-            tot += w
-            cx += w * ((upts[i, 0] + upts[i + 1, 0]) / 2)
-            cy += w * ((upts[i, 1] + upts[i + 1, 1]) / 2)
-        tot = max(tot, 1e-300)
-        cx /= tot
-        cy /= tot
-        sxx, sxy, syy = 0.0, 0.0, 0.0
-        for i in range(a, b - 1):
-            dx = upts[i + 1, 0] - upts[i, 0]
-            dy = upts[i + 1, 1] - upts[i, 1]
-            w = math.sqrt(dx * dx + dy * dy)
-            mx = (upts[i, 0] + upts[i + 1, 0]) / 2 - cx
-            my = (upts[i, 1] + upts[i + 1, 1]) / 2 - cy
-            sxx += w * (mx * mx)
-            sxy += w * (mx * my)
-            syy += w * (my * my)
-        theta = 0.5 * math.atan2(2 * sxy, sxx - syy)
-        nx, ny = -math.sin(theta), math.cos(theta)
-        c = (b - a - 1) // 2 if closed[k] else b - a  # a loop's own segments: its first lap
-        prev = (upts[a, 0] - cx) * nx + (upts[a, 1] - cy) * ny
-        for i in range(a, b - 1):
-            nxt = (upts[i + 1, 0] - cx) * nx + (upts[i + 1, 1] - cy) * ny
-            if (prev < 0) != (nxt < 0) and i - a < c:
-                t = prev / (prev - nxt)
-                crossings[coff[k + 1]] = _crossing(arc, i, t)
-                second[coff[k + 1]] = _crossing(arc, i + c, t) if closed[k] else 0.0
-                coff[k + 1] += 1
-            prev = nxt
-        ccount[k] = coff[k + 1] - coff[k]
-    halves = closed & (ccount >= 2)
-    n = 0
-    for k in range(S):
-        n += 2 if halves[k] else (ccount[k] + 1 if (not closed[k] and ccount[k] > 0) else 1)
-    ps = np.empty(n, np.int64)
-    pa = np.zeros(n)
-    pb = np.zeros(n)
-    pf = np.zeros(n, np.int64)
-    pc = np.zeros(n, np.int64)
-    pw = np.zeros(n, np.bool_)
-    q = 0
-    for k in range(S):
-        L = Lu[k] / 2 if closed[k] else Lu[k]
-        o = coff[k]
-        if halves[k]:
-            ps[q], pa[q], pb[q] = k, crossings[o], crossings[o + 1]
-            ps[q + 1], pa[q + 1], pb[q + 1] = k, crossings[o + 1], second[o]
-            q += 2
-        elif not closed[k] and ccount[k] > 0:
-            for j in range(ccount[k] + 1):
-                ps[q] = k
-                pa[q] = 0.0 if j == 0 else crossings[o + j - 1]
-                pb[q] = L if j == ccount[k] else crossings[o + j]
-                q += 1
-        else:
-            ps[q], pf[q], pc[q], pw[q] = k, meta[k, FRAG], meta[k, CLOSED], True
-            q += 1
-    if (halves == closed).all():  # every loop is cut into halves: the unrolled strokes are the ones to cut
-        return _keep(upts, ustart, umeta, arc, Lu, ps, pa, pb, pf, pc, np.zeros(n, np.int64), pw, n)
-    vpts, vstart, vmeta = _unroll(pts, start, meta, halves)
-    varc, vL = _arcs(vpts, vstart)
-    return _keep(vpts, vstart, vmeta, varc, vL, ps, pa, pb, pf, pc, np.zeros(n, np.int64), pw, n)
-
-
-@njit(cache=True)
-def _lateral_shift(pts, start, meta, key, rng, st):
-    pts, start, meta = _split_ellipses(pts, start, meta)
-    S = len(start) - 1
-    out = pts.copy()
-    for k in range(S):
-        u = _uniform(key, k)
-        d = rng * (2 * u - 1)
-        st[0] += 1
-        st[1] += abs(d)
-        st[2] = max(st[2], abs(d))
-        a, b = start[k], start[k + 1]
-        for i in range(a, b):
-            tx, ty = 0.0, 0.0
-            if i + 1 < b:  # the step to the next vertex
-                dx = pts[i + 1, 0] - pts[i, 0]
-                dy = pts[i + 1, 1] - pts[i, 1]
-                ln = math.sqrt(dx * dx + dy * dy)
-                if ln > 0:
-                    tx, ty = 0.0 + dx / ln, 0.0 + dy / ln
-            if i > a:  # the step from the previous one
-                dx = pts[i, 0] - pts[i - 1, 0]
-                dy = pts[i, 1] - pts[i - 1, 1]
-                ln = math.sqrt(dx * dx + dy * dy)
-                if ln > 0:
-                    tx, ty = tx + dx / ln, ty + dy / ln
-            nrm = math.sqrt(tx * tx + ty * ty)
-            if nrm > 0:
-                tx, ty = tx / nrm, ty / nrm
-            else:
-                tx, ty = 0.0, 0.0
-            out[i, 0] = pts[i, 0] + d * -ty
-            out[i, 1] = pts[i, 1] + d * tx
-    return out, start, meta
-
-
-@njit(cache=True)
-def _approx_error(pts, start, meta, key, sigma, st):
-    out = np.empty_like(pts)
-    for v in range(len(pts)):
-        gx, gy = _normal_pair(key, v)
-        nx, ny = sigma * gx, sigma * gy
-        out[v, 0] = pts[v, 0] + nx
-        out[v, 1] = pts[v, 1] + ny
-        st[0] += 2
-        st[1] += nx * nx + ny * ny
-    return out, start, meta
-
-
-@njit(cache=True)
-def _epi_dir(x, y, e):
-    dx = x * e[2] - e[0]
-    dy = y * e[2] - e[1]
-    n = math.sqrt(dx * dx + dy * dy)
-    if n > 0:
-        return dx / n, dy / n
-    return 1.0, 0.0
-
-
-@njit(cache=True)
-def _in_band(ax, ay, bx, by, e, tanb, everything):
-    """stereo_mismatch.in_band for one segment."""
-    if everything:
-        return True
-    lx = (ax + bx) / 2 * e[2] - e[0]
-    ly = (ay + by) / 2 * e[2] - e[1]
-    if lx == 0 and ly == 0:
-        lx, ly = 1.0, 0.0
-    dx, dy = bx - ax, by - ay
-    return abs(dx * ly - dy * lx) <= tanb * abs(dx * lx + dy * ly)
-
-
-@njit(cache=True)
-def _drop_band(pts, start, meta, e, band):
-    """stereo_mismatch._drop_band. Each segment's angle is computed once: slot start[k] + i holds segment
-    i of stroke k, the last slot of a closed stroke its closing segment (an unrolled loop reuses them)."""
-    S = len(start) - 1
-    everything = band >= math.pi / 2
-    tanb = math.tan(band) if not everything else 0.0
-    inside = np.zeros(len(pts), np.bool_)
-    cut_loop = np.zeros(S, np.bool_)
-    intact = np.zeros(S, np.bool_)
-    for k in range(S):
-        a, b = start[k], start[k + 1]
-        hit = False
-        for i in range(a, b - 1):
-            inside[i] = _in_band(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1], e, tanb, everything)
-            hit = hit or inside[i]
-        if meta[k, CLOSED] != 0:
-            if b - a > 1:
-                inside[b - 1] = _in_band(pts[b - 1, 0], pts[b - 1, 1], pts[a, 0], pts[a, 1], e, tanb, everything)
-                hit = hit or inside[b - 1]
-            cut_loop[k] = hit
-            intact[k] = not hit
-    upts, ustart, umeta = _unroll(pts, start, meta, cut_loop)
-    arc, uL = _arcs(upts, ustart)
-    n_max = len(upts) + S
-    ps = np.empty(n_max, np.int64)
-    pa = np.empty(n_max)
-    pb = np.empty(n_max)
-    pf = np.zeros(n_max, np.int64)
-    pc = np.zeros(n_max, np.int64)
-    pw = np.zeros(n_max, np.bool_)
-    q = 0
-    for k in range(S):
-        a, b = ustart[k], ustart[k + 1]
-        if intact[k]:
-            ps[q], pf[q], pc[q], pw[q] = k, umeta[k, FRAG], 1, True
-            q += 1
-            continue
-        c = start[k + 1] - start[k]
-        p0 = -1
-        if cut_loop[k]:
-            for i in range(c):
-                if inside[start[k] + i]:
-                    p0 = i
-                    break
-        run = -1
-        for i in range(a, b):  # pairs i -> i + 1, and a sentinel at i = b - 1
-            keep = False
-            if i < b - 1:
-                local = i - a
-                keep = not inside[start[k] + (local % c if cut_loop[k] else local)]
-                if cut_loop[k]:
-                    keep = keep and local > p0 and local < p0 + c
-            if keep and run < 0:
-                run = i
-            elif not keep and run >= 0:
-                ps[q], pa[q], pb[q] = k, arc[run], arc[i]
-                if run == a and i == b - 1 and not cut_loop[k]:
-                    pw[q], pf[q] = True, umeta[k, FRAG]
-                q += 1
-                run = -1
-    return _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, np.zeros(q, np.int64), pw, q)
-
-
-@njit(cache=True)
-def _stereo(pts, start, meta, key, e, band, fraction, disparity, right, st):
-    st[0] += _total_length(pts, start)
-    if band > 0 and len(start) > 1:
-        pts, start, meta = _drop_band(pts, start, meta, e, band)
-        st[1] += _total_length(pts, start)
-    else:
-        st[1] += _total_length(pts, start)
-    if not right or fraction == 0 or disparity == 0:
-        return pts, start, meta
-    out = pts.copy()
-    for k in range(len(start) - 1):
-        u0, u1 = _uniform(key, 2 * k), _uniform(key, 2 * k + 1)
-        hit = u0 < fraction
-        shift = disparity * (2 * u1 - 1) if hit else 0.0
-        a, b = start[k], start[k + 1]
-        mx, my = 0.0, 0.0
-        for i in range(a, b):
-            mx += pts[i, 0]
-            my += pts[i, 1]
-        mx /= b - a
-        my /= b - a
-        dx, dy = _epi_dir(mx, my, e)
-        for i in range(a, b):
-            out[i, 0] = pts[i, 0] + shift * dx
-            out[i, 1] = pts[i, 1] + shift * dy
-        st[2] += 1
-        st[3] += 1 if hit else 0
-        st[4] = max(st[4], abs(shift))
-    return out, start, meta
-
-
-@njit(cache=True)
-def _corner_loss(corners, cfid, key, keep, st):
-    n = len(corners)
-    mask = np.zeros(n, np.bool_)
-    for c in range(n):
-        mask[c] = _uniform(key, c) < keep
-    st[0] += n
-    st[1] += mask.sum()
-    return corners[mask], cfid[mask]
-
-
-@njit(cache=True)
-def _corner_mismatch(corners, key, fraction, radius, st):
-    out = corners.copy()
-    for c in range(len(corners)):
-        u0, u1, u2 = _uniform(key, 3 * c), _uniform(key, 3 * c + 1), _uniform(key, 3 * c + 2)
-        hit = u0 < fraction
-        r = radius * math.sqrt(u1)
-        theta = 2 * math.pi * u2
-        mx = r * math.cos(theta) if hit else 0.0
-        my = r * math.sin(theta) if hit else 0.0
-        out[c, 0] = corners[c, 0] + mx
-        out[c, 1] = corners[c, 1] + my
-        st[0] += 1
-        st[1] += 1 if hit else 0
-        st[2] = max(st[2], math.sqrt(mx * mx + my * my))
-    return out
-
-
 # ----------------------------------------------------------------------------- cameras and the image
 
 @njit(cache=True)
@@ -713,51 +385,32 @@ def _clip_part(k, a, b, j, t0, e, t1, arc, pts, seg_e, meta, ps, pa, pb, pf, pc,
 # ----------------------------------------------------------------------------- one view of a batch
 
 @njit(cache=True)
-def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated,
-               codes, params, keys, epipole, right, stats):
-    """Every trial of a batch for one view. Returns packed strokes (pts, start, meta, trial) and corners
-    (corners, fid, trial), strokes and corners ordered by trial."""
-    T = keys.shape[1]
-    res = []
-    cres = []
-    for t in range(T):
-        if calibrated:
-            pts = np.empty((len(W), 2))
-            ok = np.empty(len(W), np.bool_)
-            _project(W, R[t], tv[t], cams[t], folds[t], pts, ok)
-            start, meta = tstart, tmeta
-            if not ok.all():  # (when all are valid, the cut keeps every stroke verbatim: skip it)
-                pts, start, meta = _keep_vertex_runs(pts, tstart, tmeta, ok)
-            if not _inside(pts, width, height):
-                pts, start, meta = _clip_rect(pts, start, meta, width, height)
-            cp = np.empty((len(CW), 2))
-            cok = np.empty(len(CW), np.bool_)
-            _project(CW, R[t], tv[t], cams[t], folds[t], cp, cok)
-            for c in range(len(CW)):
-                cok[c] = cok[c] and cp[c, 0] >= 0 and cp[c, 0] <= width and cp[c, 1] >= 0 and cp[c, 1] <= height
-            corners, cf = cp[cok], cfid[cok]
-        else:
-            pts, start, meta = tpts, tstart, tmeta
-            corners, cf = tcorners, cfid
-        for g in range(len(codes)):
-            code, key, st = codes[g], keys[g, t], stats[g]
-            if code == EDGE_LOSS:
-                pts, start, meta = _edge_loss(pts, start, meta, key, params[g, 0], st)
-            elif code == LATERAL_SHIFT:
-                pts, start, meta = _lateral_shift(pts, start, meta, key, params[g, 0], st)
-            elif code == APPROX_ERROR:
-                pts, start, meta = _approx_error(pts, start, meta, key, params[g, 0], st)
-            elif code == CORNER_LOSS:
-                corners, cf = _corner_loss(corners, cf, key, params[g, 0], st)
-            elif code == CORNER_MISMATCH:
-                corners = _corner_mismatch(corners, key, params[g, 0], params[g, 1], st)
-            elif code == STEREO_MISMATCH:
-                pts, start, meta = _stereo(pts, start, meta, key, epipole, params[g, 0], params[g, 1], params[g, 2],
-                                           right, st)
-            else:
-                raise ValueError("kernel: unknown stage code")
-        res.append((pts, start, meta))
-        cres.append((corners, cf))
+def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated, t):
+    """Trial t's view before the image stages: the strokes and corners through its cameras (when calibrated),
+    cut at invalid vertices and at the image border, or the template's as they are."""
+    if calibrated:
+        pts = np.empty((len(W), 2))
+        ok = np.empty(len(W), np.bool_)
+        _project(W, R[t], tv[t], cams[t], folds[t], pts, ok)
+        start, meta = tstart, tmeta
+        if not ok.all():  # (when all are valid, the cut keeps every stroke verbatim: skip it)
+            pts, start, meta = _keep_vertex_runs(pts, tstart, tmeta, ok)
+        if not _inside(pts, width, height):
+            pts, start, meta = _clip_rect(pts, start, meta, width, height)
+        cp = np.empty((len(CW), 2))
+        cok = np.empty(len(CW), np.bool_)
+        _project(CW, R[t], tv[t], cams[t], folds[t], cp, cok)
+        for c in range(len(CW)):
+            cok[c] = cok[c] and cp[c, 0] >= 0 and cp[c, 0] <= width and cp[c, 1] >= 0 and cp[c, 1] <= height
+        return pts, start, meta, cp[cok], cfid[cok]
+    return tpts, tstart, tmeta, tcorners, cfid
+
+
+@njit(cache=True)
+def _pack(res, cres):
+    """The trials' packed strokes res [(pts, start, meta)] and corners cres [(corners, fid)] as one batch:
+    (pts, start, meta, trial, corners, fid, trial)."""
+    T = len(res)
     N = 0
     S = 0
     C = 0
@@ -791,48 +444,129 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
     return opts, ostart, ometa, otrial, ocorners, ocfid, octrial
 
 
+def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated,
+               params, keys, epipole, right, stats):
+    """Every trial of a batch for one view. Returns packed strokes (pts, start, meta, trial) and corners
+    (corners, fid, trial), strokes and corners ordered by trial.
+
+    The template of the compiled loop: `compose` compiles it once per stage list, in a module of its own, with
+    the line that calls `_stages` replaced by a call of each stage's function in order (so that the kernel
+    names no effect, and a plug-in's function is composed as a built-in's is)."""
+    res = []
+    cres = []
+    for t in range(keys.shape[1]):
+        pts, start, meta, corners, cf = _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds,
+                                                     width, height, calibrated, t)
+        pts, start, meta, corners, cf = _stages(pts, start, meta, corners, cf, keys, t, params, epipole,  # noqa: F821
+                                                right, stats)
+        res.append((pts, start, meta))
+        cres.append((corners, cf))
+    return _pack(res, cres)
+
+
 def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds, width, height, calibrated,
-             codes, params, keys, epipole, right, stats):
-    """view_batch with every argument in the one layout it is compiled for (no second compile)."""
+             functions, params, keys, epipole, right, stats):
+    """The compiled view_batch of the stage functions `functions` (KernelStage.function, in order), with every
+    argument in the one layout it is compiled for (no second compile)."""
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
-    announce_compile()
-    return view_batch(f2(tpts, 2), i1(tstart), np.ascontiguousarray(meta, dtype=np.int64).reshape(-1, NMETA),
+    batch = compose(tuple(functions))
+    announce_compile(batch)
+    return batch(f2(tpts, 2), i1(tstart), np.ascontiguousarray(meta, dtype=np.int64).reshape(-1, NMETA),
                       f2(tcorners, 2), i1(cfid), f2(W, 3), f2(CW, 3),
                       np.ascontiguousarray(R_cw, dtype=np.float64).reshape(-1, 3, 3), f2(t_cw, 3), f2(cams, 14),
                       np.ascontiguousarray(folds, dtype=np.float64).reshape(-1), float(width), float(height),
-                      bool(calibrated), i1(codes), f2(params, 3),
-                      np.ascontiguousarray(keys, dtype=np.uint64).reshape(len(codes), len(folds)),
+                      bool(calibrated), f2(params, params.shape[-1]),
+                      np.ascontiguousarray(keys, dtype=np.uint64).reshape(len(functions), len(folds)),
                       np.ascontiguousarray(epipole, dtype=np.float64).reshape(3), bool(right), stats)
+
+
+_composed: dict[tuple[str, ...], object] = {}
+
+
+def compose(functions: tuple[str, ...]):
+    """view_batch compiled for the stage functions `functions` ("module:attribute" each), in order: a module
+    written once per stage list (and per version of the files involved, since numba's cache does not follow a
+    change in a called function's file) into the user's cache folder, whose `_stages` calls each stage's
+    function with its own row of keys, parameters and statistics. Compiled code is cached on disk by numba."""
+    batch = _composed.get(functions)
+    if batch is None:
+        batch = _composed[functions] = _load(functions)
+    return batch
+
+
+def _load(functions: tuple[str, ...]):
+    import hashlib
+    import importlib.util
+    import inspect
+    import os
+    import re
+    import tempfile
+    from pathlib import Path
+
+    from wiredsl.io.files import write_atomic
+
+    parts = [f.split(":") for f in functions]
+    calls = "".join(f"        pts, start, meta, corners, cf = _s{g}(pts, start, meta, corners, cf, keys[{g}, t], "
+                    f"params[{g}], epipole, right, stats[{g}])\n" for g in range(len(functions)))
+    template = inspect.getsource(view_batch)
+    stages = re.search(r"^ *pts, start, meta, corners, cf = _stages\(.*?stats\)\n", template, re.M | re.S).group()
+    source = ("from numba import njit\n\n"
+              "from wiredsl.engine.kernel import _pack, _trial_input\n"
+              + "".join(f"from {module} import {name} as _s{g}\n" for g, (module, name) in enumerate(parts))
+              + "\n\n@njit(cache=True)\n" + template.replace(stages, calls))
+    stamp = hashlib.sha256(source.encode())
+    for module in [__name__] + [module for module, _ in parts]:
+        origin = importlib.util.find_spec(module).origin
+        st = os.stat(origin)
+        stamp.update(f"{origin}:{st.st_mtime_ns}:{st.st_size}".encode())
+    name = "wiredsl_stages_" + stamp.hexdigest()[:20]
+    text = "# generated by wiredsl.engine.kernel.compose for " + ", ".join(functions) + "\n" + source
+    home = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "wiredsl" / "kernels"
+    for folder in (home, Path(tempfile.gettempdir()) / f"wiredsl-kernels-{getattr(os, 'getuid', int)()}"):  # (a read-only home)
+        path = folder / f"{name}.py"
+        try:
+            if not path.exists():  # never rewritten: numba's cache of it is keyed by the file's time stamp
+                folder.mkdir(parents=True, exist_ok=True)
+                write_atomic(path, text)
+            break
+        except OSError:
+            continue
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module.view_batch
 
 
 _announced = False
 
 
-def announce_compile() -> None:
-    """Say on stderr, once, when the kernel is about to be compiled (not when it is loaded from the cache)."""
+def announce_compile(batch) -> None:
+    """Say on stderr, once, when a kernel is about to be compiled (not when it is loaded from the cache)."""
     import os
 
     global _announced
-    if _announced or view_batch.signatures:
+    if _announced or batch.signatures:
         return
     _announced = True
     try:
-        index = view_batch._cache._cache_file._index_path
+        index = batch._cache._cache_file._index_path
     except AttributeError:  # numba's internals moved: say it anyway rather than stay silent for a minute
         index = None
     if index is None or not os.path.exists(index):
-        print("wiredsl: compiling the Monte-Carlo kernel (once; numba caches it for later runs)...",
+        print("wiredsl: compiling the Monte-Carlo kernel for these stages (once; numba caches it for later runs)...",
               file=sys.stderr, flush=True)
 
 
-def warm() -> None:
-    """Compile (or load from the cache) the kernel on a tiny view, e.g. once before parallel test workers."""
-    z2, zi = np.zeros((0, 2)), np.zeros(0, np.int64)
+def warm(functions: tuple[str, ...] = ()) -> None:
+    """Compile (or load from the cache) the kernel of a stage list on a tiny view, e.g. once before parallel test
+    workers."""
+    z2, zi, G = np.zeros((0, 2)), np.zeros(0, np.int64), len(functions)
     run_view(np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([0, 2]), np.zeros((1, NMETA), np.int64), z2, zi,
              np.zeros((2, 3)), np.zeros((0, 3)), np.eye(3)[None], np.zeros((1, 3)), np.ones((1, 14)), np.ones(1),
-             10.0, 10.0, True, np.arange(6), np.zeros((6, 3)), np.ones((6, 1), np.uint64), np.ones(3), True,
-             np.zeros((6, NSTAT)))
+             10.0, 10.0, True, functions, np.zeros((G, 3)), np.ones((G, 1), np.uint64), np.ones(3), True,
+             np.zeros((G, NSTAT)))
 
 
 def record(name: str, columns, row: np.ndarray, stats) -> None:

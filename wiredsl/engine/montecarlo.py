@@ -297,20 +297,13 @@ class Run:
         meta = np.column_stack([template.fid, template.segment, template.fragment, template.kind,
                                 template.clipped, template.closed, template.occluded]).astype(np.int64).reshape(-1, 7)
         stages = self.image_stages
-        codes = np.array([e.kernel.code for e, _ in stages], dtype=np.int64)
-        if not set(codes.tolist()) <= kn.KNOWN:
-            raise ValueError(f"the kernel has no stage of code {sorted(set(codes.tolist()) - kn.KNOWN)}")
-        params = np.zeros((len(stages), 3))
-        for g, (e, p) in enumerate(stages):
-            params[g, :len(e.kernel.params)] = [getattr(p, name) for name in e.kernel.params]
+        functions, params, stats = stage_rows(stages)
         keys = np.array([stream_key(e.name, trials, result.index, CAMERA_INDEX[side], self.seed, self.point)
                          for e, _ in stages], dtype=np.uint64).reshape(len(stages), T)
-        stereo = any(e.name == "stereo_mismatch" for e, _ in stages)
-        epipole = self.epipole(result.pose, side) if stereo else np.zeros(3)
-        stats = np.zeros((len(stages), kn.NSTAT))
+        epipole = self.epipole(result.pose, side) if any(e.kernel.epipole for e, _ in stages) else np.zeros(3)
         pts, start, m, trial, corners, cfid, ctrial = kn.run_view(
             template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams, folds,
-            cam.width, cam.height, rig is not None, codes, params, keys, epipole, side == "right", stats)
+            cam.width, cam.height, rig is not None, functions, params, keys, epipole, side == "right", stats)
         for (effect, _), row in zip(stages, stats, strict=True):
             kn.record(effect.name, effect.kernel.stats, row, self.stats)
         s = im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2], kind=m[:, 3],
@@ -334,6 +327,16 @@ class Run:
         }
 
 
+def stage_rows(stages) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+    """The compiled kernel's view of image stages [(effect, params)]: their functions (KernelStage.function), a
+    row of parameters each (KernelStage.params in order, zero-padded) and a zeroed statistics row each."""
+    functions = tuple(e.kernel.function for e, _ in stages)
+    params = np.zeros((len(stages), max([3] + [len(e.kernel.params) for e, _ in stages])))
+    for g, (e, p) in enumerate(stages):
+        params[g, :len(e.kernel.params)] = [getattr(p, name) for name in e.kernel.params]
+    return functions, params, np.zeros((len(stages), max([6] + [len(e.kernel.stats) for e, _ in stages])))
+
+
 def kernel_apply(effect, params, s: im.ImageSet, ctx: Context) -> im.ImageSet:
     """One stage on any ImageSet in the compiled kernel, trial by trial: what `effect.apply` gives on the numpy
     path, with the same keyed draws (so tests run hand-made inputs through both engines)."""
@@ -344,21 +347,19 @@ def kernel_apply(effect, params, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         return s
     if effect.kernel is None:
         raise ValueError(f"effect '{effect.name}' has no compiled kernel")
-    codes = np.array([effect.kernel.code], dtype=np.int64)
-    row = np.zeros((1, 3))
-    row[0, :len(effect.kernel.params)] = [getattr(params, name) for name in effect.kernel.params]
-    epipole = ctx.epipole() if effect.kernel.code == kn.STEREO_MISMATCH and ctx.epipole else np.zeros(3)
+    functions, row, _ = stage_rows([(effect, params)])
+    epipole = ctx.epipole() if effect.kernel.epipole and ctx.epipole else np.zeros(3)
     parts = []
     for k, t in enumerate(np.asarray(ctx.trials, dtype=np.int64)):
         one = s.take(s.trial == k).take_corners(s.corner_trial == k)
         meta = np.column_stack([one.fid, one.segment, one.fragment, one.kind, one.clipped, one.closed,
                                 one.occluded]).astype(np.int64).reshape(-1, 7)
         keys = stream_key(effect.name, np.array([t]), ctx.pose, CAMERA_INDEX[ctx.side], ctx.seed, ctx.point)
-        stats = np.zeros((1, kn.NSTAT))
+        _, _, stats = stage_rows([(effect, params)])
         z3 = np.zeros((0, 3))
         pts, start, m, _, corners, cfid, _ = kn.run_view(
             one.pts, one.start, meta, one.corners, one.corner_fid, z3, z3, np.zeros((1, 3, 3)), np.zeros((1, 3)),
-            np.zeros((1, len(geometry.CAMERA_ROW))), np.zeros(1), 0.0, 0.0, False, codes, row, keys.reshape(1, 1),
+            np.zeros((1, len(geometry.CAMERA_ROW))), np.zeros(1), 0.0, 0.0, False, functions, row, keys.reshape(1, 1),
             epipole, ctx.side == "right", stats)
         kn.record(effect.name, effect.kernel.stats, stats[0], ctx.stats)
         parts.append(im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2],

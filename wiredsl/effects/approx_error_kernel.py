@@ -1,0 +1,23 @@
+"""The compiled kernel of approx_error (numba), its stage function `stage` (see wiredsl.engine.kernel for the
+signature); imported only when a run uses the kernel."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from wiredsl.engine.kernel import _normal_pair
+
+
+@njit(cache=True)
+def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
+    sigma = params[0]
+    out = np.empty_like(pts)
+    for v in range(len(pts)):
+        gx, gy = _normal_pair(key, v)
+        nx, ny = sigma * gx, sigma * gy
+        out[v, 0] = pts[v, 0] + nx
+        out[v, 1] = pts[v, 1] + ny
+        st[0] += 2
+        st[1] += nx * nx + ny * ny
+    return out, start, meta, corners, cfid

@@ -1,0 +1,43 @@
+"""The compiled kernel of edge_loss (numba), its stage function `stage` (see wiredsl.engine.kernel for the
+signature); imported only when a run uses the kernel."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from wiredsl.engine.kernel import CLOSED, _arcs, _keep, _total_length, _uniform, _unroll
+
+
+@njit(cache=True)
+def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
+    fraction = params[0]
+    S = len(start) - 1
+    closed = meta[:, CLOSED] != 0
+    upts, ustart, umeta = _unroll(pts, start, meta, np.ones(S, np.bool_))
+    arc, Lu = _arcs(upts, ustart)
+    n = 0
+    for k in range(S):
+        n += 1 if closed[k] else 2
+    ps = np.empty(n, np.int64)
+    pa = np.empty(n)
+    pb = np.empty(n)
+    pf = np.zeros(n, np.int64)
+    zeros = np.zeros(n, np.int64)
+    q = 0
+    for k in range(S):
+        L = Lu[k] / 2 if closed[k] else Lu[k]
+        u = _uniform(key, k)
+        gap = fraction * L
+        g0 = u * (L if closed[k] else L - gap)
+        st[0] += L
+        if closed[k]:
+            ps[q], pa[q], pb[q] = k, g0 + gap, g0 + L
+            q += 1
+        else:
+            ps[q], pa[q], pb[q] = k, 0.0, g0
+            ps[q + 1], pa[q + 1], pb[q + 1], pf[q + 1] = k, g0 + gap, L, 1
+            q += 2
+    out = _keep(upts, ustart, umeta, arc, Lu, ps, pa, pb, pf, zeros, zeros, np.zeros(n, np.bool_), n)
+    st[1] += _total_length(out[0], out[1])
+    return out[0], out[1], out[2], corners, cfid
