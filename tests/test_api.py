@@ -158,9 +158,15 @@ def readme_examples() -> list[str]:
     return re.findall(r"```python\n(.*?)```", section, re.S)
 
 
-def test_readme_python_api_examples_run(tmp_path, monkeypatch):
+def test_readme_python_api_examples_run(tmp_path, monkeypatch, capsys):
+    """Every example runs, and a `print(...)  # text` line prints what its comment shows (up to a `...`)."""
     blocks = readme_examples()
     assert len(blocks) >= 3
     namespace: dict = {}
     for block in blocks:
         exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102 - the README's own examples
+    printed = capsys.readouterr().out
+    shown = re.findall(r"^\s*print\(.*\)\s+# (.+)$", "".join(blocks), re.M)
+    assert shown
+    for text in shown:
+        assert text.split("...")[0].strip() in printed, (text, printed)
