@@ -118,6 +118,39 @@ def test_observe_refuses_what_is_not_a_floor_pose(lab):
         sim.observe((np.nan, 0, 0), step=1)
 
 
+@pytest.mark.parametrize("bad", [-1, 2**63, 1.5, True, "7"])
+def test_seeds_trials_and_steps_out_of_range_are_refused_by_name(lab, bad):
+    """As the command line's --seed and --trial: integers in range, else a ValueError naming the argument
+    (never numpy's OverflowError, a truncated 1.5 or a trial numbered -1)."""
+    with pytest.raises(ValueError, match="seed must be an integer"):
+        next(wiredsl.simulate(lab, trials=1, seed=bad))
+    with pytest.raises(ValueError, match="seed must be an integer"):
+        wiredsl.Simulator(lab, seed=bad)
+    sim = wiredsl.Simulator(lab, seed=1)
+    with pytest.raises(ValueError, match="trial must be an integer"):
+        sim.observe(0, trial=bad)
+    with pytest.raises(ValueError, match="step must be an integer"):
+        sim.observe((1.0, 2.0, 0.0), step=bad)
+    with pytest.raises(ValueError, match="trials must be an integer"):
+        next(wiredsl.simulate(lab, trials=bad if bad != 2**63 else 0, seed=1))
+
+
+def test_observe_refuses_a_pose_beyond_the_languages_lengths(lab):
+    """1e300 m squared overflows: a pose is held to the 1e9 m a scene's lengths are (E110), with plain numbers."""
+    sim = wiredsl.Simulator(lab, seed=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"pose \(1e\+300, 1.0, 0.0\) is beyond 1e\+09 m"):
+            sim.observe((1e300, 1.0, 0.0), step=0)
+        far = np.eye(4)
+        far[0, 3] = -2e9
+        with pytest.raises(ValueError, match="beyond"):
+            sim.observe(far, step=0)
+        with pytest.raises(ValueError, match=r"pose \(nan, 1.0, 0.0\) is not finite"):
+            sim.observe((np.nan, 1, 0), step=0)
+    assert sim.observe((1e9, 1.0, 0.0), step=0).n_trials == 1
+
+
 def test_observe_follows_the_nearest_viewpoint(lab):
     sim = wiredsl.Simulator(lab, seed=1, pipeline=lab.pipelines[0].model_copy(update={"stages": []}))
     vp = lab.viewpoints

@@ -102,6 +102,18 @@ class Batch:
         return f"Batch(trials {self.trials[0]}..{self.trials[-1]}, {len(self.arrays['strokes'])} strokes)"
 
 
+MAX_SEED = 2**63 - 1  # as the command line's --seed
+MAX_TRIAL = 2**31 - 1  # as its --trial (cli.MAX_TRIAL): npz numbers trials, and poses by step, in int32
+
+
+def _integer(name: str, value, lo: int, hi: int) -> int:
+    """`value` as an int in lo..hi, else a ValueError naming the argument (never a truncated 1.5, a bool, or
+    numpy's OverflowError from deep inside the keyed draws)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not lo <= value <= hi:
+        raise ValueError(f"{name} must be an integer in {lo}..{hi}, not {value!r}")
+    return int(value)
+
+
 def _pipeline(scene: Scene, pipeline: Pipeline | str | None) -> Pipeline | None:
     from wiredsl.run import choose_pipeline
 
@@ -121,10 +133,10 @@ def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str |
     from wiredsl.engine.simulate import Options
     from wiredsl.io.emit import batch_arrays
 
-    if trials < 1:
-        raise ValueError(f"trials must be at least 1, not {trials}")
+    trials = _integer("trials", trials, 1, MAX_TRIAL + 1)
     opts = Options(poses=runs.check_poses(scene, poses))
-    run = runs.start(scene, _pipeline(scene, pipeline), seed=int(seed), options=opts, engine=engine)
+    run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED), options=opts,
+                     engine=engine)
     ids = run.world.feature_ids
     if not run.stages:
         out = [(r, {side: _ideal_set(run, r, side) for side in ("left", "right") if getattr(r, side) is not None},
@@ -155,7 +167,8 @@ class Simulator:
 
         self.scene = scene
         opts = Options(visibility=visibility, right=cameras == "both")
-        self.run = runs.start(scene, _pipeline(scene, pipeline), seed=int(seed), options=opts, engine=engine)
+        self.run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED),
+                              options=opts, engine=engine)
         self._lists: dict = {}  # view-point masks met so far
         self._occluders = None
 
@@ -172,8 +185,8 @@ class Simulator:
         """
         from wiredsl.io.emit import batch_arrays
 
-        result, step = self._ideal(pose, step)
-        trials = [int(trial)]
+        result, step = self._ideal(pose, None if step is None else _integer("step", step, 0, MAX_TRIAL))
+        trials = [_integer("trial", trial, 0, MAX_TRIAL)]
         if self.run.stages:
             out = [self.run.observe(result, trials)]
         else:
@@ -212,11 +225,16 @@ PLANAR = 1e-9  # how far from a turn about the vertical a 4x4 transform may be (
 
 def robot_pose(pose) -> tuple[float, float, float]:
     """(x, y, heading) of a robot pose given as such or as a 4x4 world-from-robot transform on the floor."""
+    from wiredsl.language.statements import MAX_MAGNITUDE
+
     a = np.asarray(pose, dtype=float)
     if a.shape == (3,):
+        shown = tuple(float(v) for v in a)
         if not np.all(np.isfinite(a)):
-            raise ValueError(f"pose {tuple(a)} is not finite")
-        return float(a[0]), float(a[1]), float(a[2])
+            raise ValueError(f"pose {shown} is not finite")
+        if np.abs(a[:2]).max() > MAX_MAGNITUDE:  # as a scene's lengths (E110): squares of it stay finite
+            raise ValueError(f"pose {shown} is beyond {MAX_MAGNITUDE:g} m from the origin")
+        return shown
     if a.shape != (4, 4):
         raise ValueError(f"a pose is a path index, (x, y, heading) or a 4x4 transform, not shape {a.shape}")
     R, t = a[:3, :3], a[:3, 3]
@@ -228,4 +246,4 @@ def robot_pose(pose) -> tuple[float, float, float]:
             or abs(t[2]) > PLANAR:
         raise ValueError("the engine places the robot on the floor: a 4x4 pose must be a turn about the "
                          "vertical (z) axis with no height (z translation 0)")
-    return float(t[0]), float(t[1]), math.atan2(R[1, 0], R[0, 0])
+    return robot_pose((t[0], t[1], math.atan2(R[1, 0], R[0, 0])))
