@@ -119,6 +119,12 @@ def positive(text: str) -> int:
     return int(text)
 
 
+def seed(text: str) -> int:
+    if not text.isdigit() or int(text) >= 2**63:
+        raise argparse.ArgumentTypeError(f"not a seed (an integer in 0..2**63-1): {text!r}")
+    return int(text)
+
+
 def shift_ranges(text: str) -> list[float]:
     try:
         values = [float(s) for s in text.split(",")]
@@ -137,7 +143,7 @@ def main(argv=None) -> int:
     ap.add_argument("--stop", type=float, default=1.2, help="stop this far from the bin's side (m)")
     ap.add_argument("--tolerance", type=float, default=0.1, help="success: within this of --stop (m)")
     ap.add_argument("--max-steps", type=positive, default=60)
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seed", type=seed, default=1)
     ap.add_argument("-o", "--out", default="build/closed_loop")
     ap.add_argument("--no-plot", action="store_true")
     a = ap.parse_args(argv)
