@@ -135,6 +135,22 @@ def test_seeds_trials_and_steps_out_of_range_are_refused_by_name(lab, bad):
         next(wiredsl.simulate(lab, trials=bad if bad != 2**63 else 0, seed=1))
 
 
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"visibility": "bogus"}, "visibility must be one of scene, exact, all"),  # was the scene's lists, silently
+    ({"cameras": "none"}, "cameras must be one of both, left"),  # was the left camera alone, silently
+])
+def test_simulator_options_are_checked(lab, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        wiredsl.Simulator(lab, seed=1, **kwargs)
+
+
+@pytest.mark.parametrize("poses", [[], [0.5], "0", [True]])
+def test_simulate_refuses_poses_that_are_not_path_indices(lab, poses):
+    """[] ran every pose, 0.5 pose 0 and "0" the characters of a string."""
+    with pytest.raises(ValueError, match="poses must be"):
+        next(wiredsl.simulate(lab, trials=1, seed=1, poses=poses))
+
+
 def test_observe_refuses_a_pose_beyond_the_languages_lengths(lab):
     """1e300 m squared overflows: a pose is held to the 1e9 m a scene's lengths are (E110), with plain numbers."""
     sim = wiredsl.Simulator(lab, seed=1)

@@ -114,6 +114,21 @@ def _integer(name: str, value, lo: int, hi: int) -> int:
     return int(value)
 
 
+def _choice(name: str, value, choices: tuple[str, ...]) -> str:
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {', '.join(choices)}, not {value!r}")
+    return value
+
+
+def _poses(poses) -> list[int] | None:
+    """Path pose indices as given (None: every pose); an empty list, a string or a 0.5 is refused."""
+    if poses is None:
+        return None
+    if isinstance(poses, (str, bytes)) or not len(poses):
+        raise ValueError(f"poses must be a non-empty list of path pose indices, not {poses!r}")
+    return [_integer("poses must be path pose indices: each", p, 0, MAX_TRIAL) for p in poses]
+
+
 def _pipeline(scene: Scene, pipeline: Pipeline | str | None) -> Pipeline | None:
     from wiredsl.run import choose_pipeline
 
@@ -134,7 +149,7 @@ def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str |
     from wiredsl.io.emit import batch_arrays
 
     trials = _integer("trials", trials, 1, MAX_TRIAL + 1)
-    opts = Options(poses=runs.check_poses(scene, poses))
+    opts = Options(poses=runs.check_poses(scene, _poses(poses)))
     run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED), options=opts,
                      engine=engine)
     ids = run.world.feature_ids
@@ -166,7 +181,8 @@ class Simulator:
         from wiredsl.engine.simulate import Options
 
         self.scene = scene
-        opts = Options(visibility=visibility, right=cameras == "both")
+        opts = Options(visibility=_choice("visibility", visibility, ("scene", "exact", "all")),
+                       right=_choice("cameras", cameras, ("both", "left")) == "both")
         self.run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED),
                               options=opts, engine=engine)
         self._lists: dict = {}  # view-point masks met so far
