@@ -13,6 +13,7 @@ from click.testing import CliRunner
 
 import wiredsl
 from wiredsl.cli import main
+from wiredsl.scene import Pipeline
 
 LAB = "scenes/lab.wd"
 ROOT = Path(__file__).resolve().parent.parent
@@ -104,12 +105,34 @@ def test_observe_of_an_arbitrary_pose_equals_the_path_pose_it_is(lab):
         or len(other_step["pts"]) != len(by_index["pts"])
 
 
-def test_observe_refuses_what_is_not_a_floor_pose(lab):
+def test_observe_a_6dof_path_pose_under_other_draws_and_as_its_transform(monkeypatch):
+    """A path read from a trajectory file: observe(i, step=K) was refused (its pose has 12 numbers), and a
+    tilted 4x4 too. Its transform, observed as an arbitrary pose with step i, is the path's pose i exactly
+    (the nearest view-point chosen from the transform's floor position, not from R's first row)."""
+    lab = Path(LAB).read_text()
+    tum = (ROOT / "tests/data/trajectories/tum_fr1_xyz_groundtruth.txt").as_posix()
+    run = 'path run {\n  straight from (0.8m, 2.5m) to (3.2m, 1.5m) step 0.4m\n}'
+    assert run in lab  # the lab's view-points decide what each pose sees
+    monkeypatch.chdir(ROOT / "scenes")  # the text's includes
+    scene = wiredsl.compile(lab.replace(run, f'path run {{\n  read "{tum}"\n  body camera left\n'
+                                             '  world at (2m, 1.5m, 0) rotate z 20deg\n}'))
+    sim = wiredsl.Simulator(scene, seed=4, pipeline=Pipeline(name="none"))
+    for i in range(len(scene.path.poses)):
+        M = np.vstack([np.array(scene.path.transforms[i], dtype=float), [0, 0, 0, 1]])
+        assert abs(M[2, 2] - 1) > 1e-6  # tilted: a handheld camera's roll and pitch
+        by_index, by_transform = sim.observe(i), sim.observe(M, step=i)
+        (ideal, _, _), = by_transform.disturbed
+        assert ideal.viewpoint == by_index.disturbed[0][0].viewpoint == "g3_2"  # nearest to (3.49, 2.82)
+        assert np.array_equal(by_index["strokes"], by_transform["strokes"])
+        assert np.allclose(by_index["pts"], by_transform["pts"], atol=1e-9)
+        assert np.array_equal(sim.observe(i, step=7)["strokes"][:, 2:], by_index["strokes"][:, 2:])
+
+
+def test_observe_refuses_what_is_not_a_rigid_pose(lab):
     sim = wiredsl.Simulator(lab, seed=1)
-    tilted = np.eye(4)
-    tilted[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
-    with pytest.raises(ValueError, match="turn about the vertical"):
-        sim.observe(tilted, step=0)
+    mirrored = np.diag([1.0, -1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="rigid transform"):
+        sim.observe(mirrored, step=0)
     with pytest.raises(ValueError, match="needs step"):
         sim.observe((0.0, 0.0, 0.0))
     with pytest.raises(ValueError, match="not in 0.."):

@@ -236,11 +236,13 @@ class Simulator:
         return dataclasses.replace(result, index=int(step)), int(step)
 
 
-PLANAR = 1e-9  # how far from a turn about the vertical a 4x4 transform may be (rotation entries, metres)
+PLANAR = 1e-9  # how far from a turn about the vertical a transform may be to be taken as a floor pose
 
 
-def robot_pose(pose) -> tuple[float, float, float]:
-    """(x, y, heading) of a robot pose given as such or as a 4x4 world-from-robot transform on the floor."""
+def robot_pose(pose) -> tuple[float, ...]:
+    """A robot pose as the engine takes it (geometry.world_from_robot): (x, y, heading) on the floor, given as
+    such or as a transform that is a turn about the vertical; else the 12 numbers of a 6-DoF [R | t]. A
+    transform is (4, 4), (3, 4) or its 12 numbers row-major (a trajectory path's pose)."""
     from wiredsl.language.statements import MAX_MAGNITUDE
 
     a = np.asarray(pose, dtype=float)
@@ -251,15 +253,16 @@ def robot_pose(pose) -> tuple[float, float, float]:
         if np.abs(a[:2]).max() > MAX_MAGNITUDE:  # as a scene's lengths (E110): squares of it stay finite
             raise ValueError(f"pose {shown} is beyond {MAX_MAGNITUDE:g} m from the origin")
         return shown
-    if a.shape != (4, 4):
+    if a.shape not in ((4, 4), (3, 4), (12,)):
         raise ValueError(f"a pose is a path index, (x, y, heading) or a 4x4 transform, not shape {a.shape}")
+    a = np.vstack([a.reshape(-1, 4), [0, 0, 0, 1]])[:4]
     R, t = a[:3, :3], a[:3, 3]
     if not np.all(np.isfinite(a)) or np.abs(a[3] - [0, 0, 0, 1]).max() > PLANAR \
             or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
         raise ValueError("a 4x4 pose must be a rigid transform (rotation and translation, last row 0 0 0 1)")
-    # TODO(lead): h17traj generalises the engine's poses to 6-DoF; pass the transform through then
+    if np.abs(t).max() > MAX_MAGNITUDE:
+        raise ValueError(f"pose's translation {tuple(float(v) for v in t)} is beyond {MAX_MAGNITUDE:g} m")
     if abs(R[2, 2] - 1) > PLANAR or np.abs(R[2, :2]).max() > PLANAR or np.abs(R[:2, 2]).max() > PLANAR \
             or abs(t[2]) > PLANAR:
-        raise ValueError("the engine places the robot on the floor: a 4x4 pose must be a turn about the "
-                         "vertical (z) axis with no height (z translation 0)")
+        return tuple(float(v) for v in a[:3].ravel())  # 6-DoF: height, roll and pitch
     return robot_pose((t[0], t[1], math.atan2(R[1, 0], R[0, 0])))
