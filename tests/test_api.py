@@ -213,6 +213,13 @@ def test_compile_error_carries_the_diagnostics_check_prints(tmp_path):
         wiredsl.compile("scene\n")
 
 
+@pytest.mark.parametrize("source", [None, b"wiredsl 1\n", 5])
+def test_compile_refuses_what_is_neither_text_nor_a_path(source):
+    """None was compiled as the text 'None' (E012, E100), bytes as "b'wiredsl 1\\n'"."""
+    with pytest.raises(TypeError, match="scene text .str. or a path"):
+        wiredsl.compile(source)
+
+
 def test_compile_takes_text_and_paths_alike(lab, monkeypatch):
     text = Path(LAB).read_text()
     monkeypatch.chdir("scenes")  # a text's includes and files: from the current folder

@@ -58,6 +58,8 @@ def compile(source: str | os.PathLike) -> Scene:  # noqa: A001 - the stage's nam
     from wiredsl.language import ast
     from wiredsl.language.compile import compile_program
 
+    if not isinstance(source, (str, os.PathLike)):
+        raise TypeError(f"compile takes scene text (str) or a path (os.PathLike), not {type(source).__name__}")
     is_path = isinstance(source, os.PathLike) or (isinstance(source, str) and "\n" not in source
                                                    and source.endswith(".wd"))
     text = None if is_path else str(source)
