@@ -149,7 +149,8 @@ def test_closed_loop_refuses_bad_arguments_before_it_drives(tmp_path, monkeypatc
     finally:
         sys.path.pop(0)
     for argv in (["--trials", "0", "--no-plot"], ["--shifts", "0,x", "--no-plot"], ["--shifts", "nan", "--no-plot"],
-                 ["--shifts", "-1", "--no-plot"], ["--max-steps", "0", "--no-plot"], ["--seed", "-1", "--no-plot"]):
+                 ["--shifts", "-1", "--no-plot"], ["--max-steps", "0", "--no-plot"], ["--seed", "-1", "--no-plot"],
+                 ["--shifts", "0,5000", "--no-plot"]):  # beyond lateral_shift's 1000 px: was a CompileError
         with pytest.raises(SystemExit) as stop:
             drive_to_bin.main([*argv, "-o", str(tmp_path)])
         assert stop.value.code == 2, argv

@@ -152,9 +152,12 @@ def main(argv=None) -> int:
             import matplotlib  # noqa: F401  (checked before the trials run, not after)
         except ImportError:
             ap.error("the plot needs matplotlib: pip install 'wiredsl[plot]', or give --no-plot")
+    try:  # every scene before the first trial: a shift the effect refuses is a usage error, not a traceback
+        scenes = [(shift, scene_with_shift(shift)) for shift in a.shifts]
+    except wiredsl.CompileError as err:
+        ap.error(f"--shifts: {err}")
     rows = []
-    for shift in a.shifts:
-        scene = scene_with_shift(shift)
+    for shift, scene in scenes:
         sim = wiredsl.Simulator(scene, seed=a.seed, pipeline="drive")
         runs = [drive(sim, scene, k, a.stop, a.max_steps) for k in range(a.trials)]
         stopped = [abs(r["true_distance"] - a.stop) for r in runs if r["stopped"]]
