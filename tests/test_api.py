@@ -13,6 +13,7 @@ from click.testing import CliRunner
 
 import wiredsl
 from wiredsl.cli import main
+from wiredsl.scene import Pipeline
 
 LAB = "scenes/lab.wd"
 ROOT = Path(__file__).resolve().parent.parent
@@ -104,18 +105,89 @@ def test_observe_of_an_arbitrary_pose_equals_the_path_pose_it_is(lab):
         or len(other_step["pts"]) != len(by_index["pts"])
 
 
-def test_observe_refuses_what_is_not_a_floor_pose(lab):
+def test_observe_a_6dof_path_pose_under_other_draws_and_as_its_transform(monkeypatch):
+    """A path read from a trajectory file: observe(i, step=K) was refused (its pose has 12 numbers), and a
+    tilted 4x4 too. Its transform, observed as an arbitrary pose with step i, is the path's pose i exactly
+    (the nearest view-point chosen from the transform's floor position, not from R's first row)."""
+    lab = Path(LAB).read_text()
+    tum = (ROOT / "tests/data/trajectories/tum_fr1_xyz_groundtruth.txt").as_posix()
+    run = 'path run {\n  straight from (0.8m, 2.5m) to (3.2m, 1.5m) step 0.4m\n}'
+    assert run in lab  # the lab's view-points decide what each pose sees
+    monkeypatch.chdir(ROOT / "scenes")  # the text's includes
+    scene = wiredsl.compile(lab.replace(run, f'path run {{\n  read "{tum}"\n  body camera left\n'
+                                             '  world at (2m, 1.5m, 0) rotate z 20deg\n}'))
+    sim = wiredsl.Simulator(scene, seed=4, pipeline=Pipeline(name="none"))
+    for i in range(len(scene.path.poses)):
+        M = np.vstack([np.array(scene.path.transforms[i], dtype=float), [0, 0, 0, 1]])
+        assert abs(M[2, 2] - 1) > 1e-6  # tilted: a handheld camera's roll and pitch
+        by_index, by_transform = sim.observe(i), sim.observe(M, step=i)
+        (ideal, _, _), = by_transform.disturbed
+        assert ideal.viewpoint == by_index.disturbed[0][0].viewpoint == "g3_2"  # nearest to (3.49, 2.82)
+        assert np.array_equal(by_index["strokes"], by_transform["strokes"])
+        assert np.allclose(by_index["pts"], by_transform["pts"], atol=1e-9)
+        assert np.array_equal(sim.observe(i, step=7)["strokes"][:, 2:], by_index["strokes"][:, 2:])
+
+
+def test_observe_refuses_what_is_not_a_rigid_pose(lab):
     sim = wiredsl.Simulator(lab, seed=1)
-    tilted = np.eye(4)
-    tilted[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
-    with pytest.raises(ValueError, match="turn about the vertical"):
-        sim.observe(tilted, step=0)
+    mirrored = np.diag([1.0, -1.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="rigid transform"):
+        sim.observe(mirrored, step=0)
     with pytest.raises(ValueError, match="needs step"):
         sim.observe((0.0, 0.0, 0.0))
     with pytest.raises(ValueError, match="not in 0.."):
         sim.observe(999)
     with pytest.raises(ValueError, match="not finite"):
         sim.observe((np.nan, 0, 0), step=1)
+
+
+@pytest.mark.parametrize("bad", [-1, 2**63, 1.5, True, "7"])
+def test_seeds_trials_and_steps_out_of_range_are_refused_by_name(lab, bad):
+    """As the command line's --seed and --trial: integers in range, else a ValueError naming the argument
+    (never numpy's OverflowError, a truncated 1.5 or a trial numbered -1)."""
+    with pytest.raises(ValueError, match="seed must be an integer"):
+        next(wiredsl.simulate(lab, trials=1, seed=bad))
+    with pytest.raises(ValueError, match="seed must be an integer"):
+        wiredsl.Simulator(lab, seed=bad)
+    sim = wiredsl.Simulator(lab, seed=1)
+    with pytest.raises(ValueError, match="trial must be an integer"):
+        sim.observe(0, trial=bad)
+    with pytest.raises(ValueError, match="step must be an integer"):
+        sim.observe((1.0, 2.0, 0.0), step=bad)
+    with pytest.raises(ValueError, match="trials must be an integer"):
+        next(wiredsl.simulate(lab, trials=bad if bad != 2**63 else 0, seed=1))
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"visibility": "bogus"}, "visibility must be one of scene, exact, all"),  # was the scene's lists, silently
+    ({"cameras": "none"}, "cameras must be one of both, left"),  # was the left camera alone, silently
+])
+def test_simulator_options_are_checked(lab, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        wiredsl.Simulator(lab, seed=1, **kwargs)
+
+
+@pytest.mark.parametrize("poses", [[], [0.5], "0", [True]])
+def test_simulate_refuses_poses_that_are_not_path_indices(lab, poses):
+    """[] ran every pose, 0.5 pose 0 and "0" the characters of a string."""
+    with pytest.raises(ValueError, match="poses must be"):
+        next(wiredsl.simulate(lab, trials=1, seed=1, poses=poses))
+
+
+def test_observe_refuses_a_pose_beyond_the_languages_lengths(lab):
+    """1e300 m squared overflows: a pose is held to the 1e9 m a scene's lengths are (E110), with plain numbers."""
+    sim = wiredsl.Simulator(lab, seed=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"pose \(1e\+300, 1.0, 0.0\) is beyond 1e\+09 m"):
+            sim.observe((1e300, 1.0, 0.0), step=0)
+        far = np.eye(4)
+        far[0, 3] = -2e9
+        with pytest.raises(ValueError, match="beyond"):
+            sim.observe(far, step=0)
+        with pytest.raises(ValueError, match=r"pose \(nan, 1.0, 0.0\) is not finite"):
+            sim.observe((np.nan, 1, 0), step=0)
+    assert sim.observe((1e9, 1.0, 0.0), step=0).n_trials == 1
 
 
 def test_observe_follows_the_nearest_viewpoint(lab):
@@ -141,6 +213,13 @@ def test_compile_error_carries_the_diagnostics_check_prints(tmp_path):
         wiredsl.compile("scene\n")
 
 
+@pytest.mark.parametrize("source", [None, b"wiredsl 1\n", 5])
+def test_compile_refuses_what_is_neither_text_nor_a_path(source):
+    """None was compiled as the text 'None' (E012, E100), bytes as "b'wiredsl 1\\n'"."""
+    with pytest.raises(TypeError, match="scene text .str. or a path"):
+        wiredsl.compile(source)
+
+
 def test_compile_takes_text_and_paths_alike(lab, monkeypatch):
     text = Path(LAB).read_text()
     monkeypatch.chdir("scenes")  # a text's includes and files: from the current folder
@@ -158,9 +237,15 @@ def readme_examples() -> list[str]:
     return re.findall(r"```python\n(.*?)```", section, re.S)
 
 
-def test_readme_python_api_examples_run(tmp_path, monkeypatch):
+def test_readme_python_api_examples_run(tmp_path, monkeypatch, capsys):
+    """Every example runs, and a `print(...)  # text` line prints what its comment shows (up to a `...`)."""
     blocks = readme_examples()
     assert len(blocks) >= 3
     namespace: dict = {}
     for block in blocks:
         exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102 - the README's own examples
+    printed = capsys.readouterr().out
+    shown = re.findall(r"^\s*print\(.*\)\s+# (.+)$", "".join(blocks), re.M)
+    assert shown
+    for text in shown:
+        assert text.split("...")[0].strip() in printed, (text, printed)

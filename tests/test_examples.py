@@ -138,3 +138,25 @@ def test_closed_loop_reaches_the_bin_and_degrades_with_lateral_shift(tmp_path):
     # the same seed, the same file
     assert drive_to_bin.main(["--trials", "6", "--shifts", "0,32", "--no-plot", "-o", str(tmp_path / "again")]) == 0
     assert (tmp_path / "again" / "closed_loop.json").read_bytes() == first
+
+
+def test_closed_loop_refuses_bad_arguments_before_it_drives(tmp_path, monkeypatch, capsys):
+    """Usage errors (exit 2, no traceback, nothing written): no trials (was a ZeroDivisionError after the
+    loop), a shift that is not a number, and a plot without matplotlib (was an ImportError after every trial)."""
+    sys.path.insert(0, str(ROOT / "examples" / "closed_loop"))
+    try:
+        import drive_to_bin
+    finally:
+        sys.path.pop(0)
+    for argv in (["--trials", "0", "--no-plot"], ["--shifts", "0,x", "--no-plot"], ["--shifts", "nan", "--no-plot"],
+                 ["--shifts", "-1", "--no-plot"], ["--max-steps", "0", "--no-plot"], ["--seed", "-1", "--no-plot"],
+                 ["--shifts", "0,5000", "--no-plot"]):  # beyond lateral_shift's 1000 px: was a CompileError
+        with pytest.raises(SystemExit) as stop:
+            drive_to_bin.main([*argv, "-o", str(tmp_path)])
+        assert stop.value.code == 2, argv
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # as if not installed
+    with pytest.raises(SystemExit) as stop:
+        drive_to_bin.main(["--trials", "1", "-o", str(tmp_path)])
+    assert stop.value.code == 2
+    assert "wiredsl[plot]" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())

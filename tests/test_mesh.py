@@ -12,6 +12,7 @@ import trimesh
 from click.testing import CliRunner
 
 from wiredsl.cli import main
+from wiredsl.diagnostics import WiredslError
 from wiredsl.engine.mesh import RIM_TOL, Contours, features
 from wiredsl.engine.occlusion import CHUNK, Occluders
 from wiredsl.engine.world import build_world
@@ -238,3 +239,18 @@ def test_mesh_faces_hide_features_from_view_points(tmp_path):
     seen = visibility.visible_features(w, np.array([[0.0, 0.0, 1.0], [4.0, 3.0, 1.0]]))
     post = w.feature_ids.index("p1.p")
     assert not seen[0, post] and seen[1, post]  # behind the wall from the first eye, in the open from the second
+
+
+@pytest.mark.parametrize(("clause", "message", "col"), [
+    ("crease -5deg", "crease angle must be in 0..180 deg, got -5 deg", 28),
+    ("crease 200deg", "crease angle must be in 0..180 deg, got 200 deg", 28),
+    ("scale 1e30", "mesh scale must be in (0, 1e+09], got 1e+30", 27),
+])
+def test_a_crease_or_scale_out_of_range_is_refused_at_its_value(tmp_path, clause, message, col):
+    """A negative crease made every edge a feature (the diagonals of flat faces too), over 180 deg none; a
+    scale of 1e30 was refused as 'must be positive'."""
+    trimesh.creation.box(extents=(1.0, 1.0, 1.0)).export(tmp_path / "b.obj")
+    with pytest.raises(WiredslError) as info:
+        compile_file(_scene(tmp_path, f'mesh read "b.obj" {clause}'))
+    got = [(d.code, d.message, d.span.line, d.span.col) for d in info.value.diagnostics]
+    assert got == [("E110", message, 3, col)]

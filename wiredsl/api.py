@@ -58,6 +58,8 @@ def compile(source: str | os.PathLike) -> Scene:  # noqa: A001 - the stage's nam
     from wiredsl.language import ast
     from wiredsl.language.compile import compile_program
 
+    if not isinstance(source, (str, os.PathLike)):
+        raise TypeError(f"compile takes scene text (str) or a path (os.PathLike), not {type(source).__name__}")
     is_path = isinstance(source, os.PathLike) or (isinstance(source, str) and "\n" not in source
                                                    and source.endswith(".wd"))
     text = None if is_path else str(source)
@@ -102,6 +104,33 @@ class Batch:
         return f"Batch(trials {self.trials[0]}..{self.trials[-1]}, {len(self.arrays['strokes'])} strokes)"
 
 
+MAX_SEED = 2**63 - 1  # as the command line's --seed
+MAX_TRIAL = 2**31 - 1  # as its --trial (cli.MAX_TRIAL): npz numbers trials, and poses by step, in int32
+
+
+def _integer(name: str, value, lo: int, hi: int) -> int:
+    """`value` as an int in lo..hi, else a ValueError naming the argument (never a truncated 1.5, a bool, or
+    numpy's OverflowError from deep inside the keyed draws)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not lo <= value <= hi:
+        raise ValueError(f"{name} must be an integer in {lo}..{hi}, not {value!r}")
+    return int(value)
+
+
+def _choice(name: str, value, choices: tuple[str, ...]) -> str:
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {', '.join(choices)}, not {value!r}")
+    return value
+
+
+def _poses(poses) -> list[int] | None:
+    """Path pose indices as given (None: every pose); an empty list, a string or a 0.5 is refused."""
+    if poses is None:
+        return None
+    if isinstance(poses, (str, bytes)) or not len(poses):
+        raise ValueError(f"poses must be a non-empty list of path pose indices, not {poses!r}")
+    return [_integer("poses must be path pose indices: each", p, 0, MAX_TRIAL) for p in poses]
+
+
 def _pipeline(scene: Scene, pipeline: Pipeline | str | None) -> Pipeline | None:
     from wiredsl.run import choose_pipeline
 
@@ -121,10 +150,10 @@ def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str |
     from wiredsl.engine.simulate import Options
     from wiredsl.io.emit import batch_arrays, contours
 
-    if trials < 1:
-        raise ValueError(f"trials must be at least 1, not {trials}")
-    opts = Options(poses=runs.check_poses(scene, poses))
-    run = runs.start(scene, _pipeline(scene, pipeline), seed=int(seed), options=opts, engine=engine)
+    trials = _integer("trials", trials, 1, MAX_TRIAL + 1)
+    opts = Options(poses=runs.check_poses(scene, _poses(poses)))
+    run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED), options=opts,
+                     engine=engine)
     ids = run.world.feature_ids
     if not run.stages:
         out = [(r, {side: _ideal_set(run, r, side) for side in ("left", "right") if getattr(r, side) is not None},
@@ -154,8 +183,10 @@ class Simulator:
         from wiredsl.engine.simulate import Options
 
         self.scene = scene
-        opts = Options(visibility=visibility, right=cameras == "both")
-        self.run = runs.start(scene, _pipeline(scene, pipeline), seed=int(seed), options=opts, engine=engine)
+        opts = Options(visibility=_choice("visibility", visibility, ("scene", "exact", "all")),
+                       right=_choice("cameras", cameras, ("both", "left")) == "both")
+        self.run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED),
+                              options=opts, engine=engine)
         self._lists: dict = {}  # view-point masks met so far
         self._occluders = None
 
@@ -172,8 +203,8 @@ class Simulator:
         """
         from wiredsl.io.emit import batch_arrays, contours
 
-        result, step = self._ideal(pose, step)
-        trials = [int(trial)]
+        result, step = self._ideal(pose, None if step is None else _integer("step", step, 0, MAX_TRIAL))
+        trials = [_integer("trial", trial, 0, MAX_TRIAL)]
         if self.run.stages:
             out = [self.run.observe(result, trials)]
         else:
@@ -207,25 +238,33 @@ class Simulator:
         return dataclasses.replace(result, index=int(step)), int(step)
 
 
-PLANAR = 1e-9  # how far from a turn about the vertical a 4x4 transform may be (rotation entries, metres)
+PLANAR = 1e-9  # how far from a turn about the vertical a transform may be to be taken as a floor pose
 
 
-def robot_pose(pose) -> tuple[float, float, float]:
-    """(x, y, heading) of a robot pose given as such or as a 4x4 world-from-robot transform on the floor."""
+def robot_pose(pose) -> tuple[float, ...]:
+    """A robot pose as the engine takes it (geometry.world_from_robot): (x, y, heading) on the floor, given as
+    such or as a transform that is a turn about the vertical; else the 12 numbers of a 6-DoF [R | t]. A
+    transform is (4, 4), (3, 4) or its 12 numbers row-major (a trajectory path's pose)."""
+    from wiredsl.language.statements import MAX_MAGNITUDE
+
     a = np.asarray(pose, dtype=float)
     if a.shape == (3,):
+        shown = tuple(float(v) for v in a)
         if not np.all(np.isfinite(a)):
-            raise ValueError(f"pose {tuple(a)} is not finite")
-        return float(a[0]), float(a[1]), float(a[2])
-    if a.shape != (4, 4):
+            raise ValueError(f"pose {shown} is not finite")
+        if np.abs(a[:2]).max() > MAX_MAGNITUDE:  # as a scene's lengths (E110): squares of it stay finite
+            raise ValueError(f"pose {shown} is beyond {MAX_MAGNITUDE:g} m from the origin")
+        return shown
+    if a.shape not in ((4, 4), (3, 4), (12,)):
         raise ValueError(f"a pose is a path index, (x, y, heading) or a 4x4 transform, not shape {a.shape}")
+    a = np.vstack([a.reshape(-1, 4), [0, 0, 0, 1]])[:4]
     R, t = a[:3, :3], a[:3, 3]
     if not np.all(np.isfinite(a)) or np.abs(a[3] - [0, 0, 0, 1]).max() > PLANAR \
             or np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
         raise ValueError("a 4x4 pose must be a rigid transform (rotation and translation, last row 0 0 0 1)")
-    # TODO(lead): h17traj generalises the engine's poses to 6-DoF; pass the transform through then
+    if np.abs(t).max() > MAX_MAGNITUDE:
+        raise ValueError(f"pose's translation {tuple(float(v) for v in t)} is beyond {MAX_MAGNITUDE:g} m")
     if abs(R[2, 2] - 1) > PLANAR or np.abs(R[2, :2]).max() > PLANAR or np.abs(R[:2, 2]).max() > PLANAR \
             or abs(t[2]) > PLANAR:
-        raise ValueError("the engine places the robot on the floor: a 4x4 pose must be a turn about the "
-                         "vertical (z) axis with no height (z translation 0)")
-    return float(t[0]), float(t[1]), math.atan2(R[1, 0], R[0, 0])
+        return tuple(float(v) for v in a[:3].ravel())  # 6-DoF: height, roll and pitch
+    return robot_pose((t[0], t[1], math.atan2(R[1, 0], R[0, 0])))

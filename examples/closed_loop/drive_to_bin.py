@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import wiredsl
+from wiredsl.io.files import write_atomic
 
 HERE = Path(__file__).resolve().parent
 LAB = HERE.parent.parent / "scenes" / "lab.wd"
@@ -112,20 +113,51 @@ def drive(sim, scene, trial: int, stop: float, max_steps: int, gain: float = 0.5
     return {"stopped": False, "steps": max_steps, "true_distance": float(np.hypot(*(BIN - (x, y)))) - BIN_RADIUS}
 
 
+def positive(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"not a positive integer: {text!r}")
+    return int(text)
+
+
+def seed(text: str) -> int:
+    if not text.isdigit() or int(text) >= 2**63:
+        raise argparse.ArgumentTypeError(f"not a seed (an integer in 0..2**63-1): {text!r}")
+    return int(text)
+
+
+def shift_ranges(text: str) -> list[float]:
+    try:
+        values = [float(s) for s in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or not all(math.isfinite(v) and v >= 0 for v in values):
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of ranges >= 0 (px): {text!r}")
+    return values
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--trials", type=int, default=100)
-    ap.add_argument("--shifts", default="0,2,4,8,16,32", help="lateral shift ranges (px), comma-separated")
+    ap.add_argument("--trials", type=positive, default=100)
+    ap.add_argument("--shifts", type=shift_ranges, default="0,2,4,8,16,32",
+                    help="lateral shift ranges (px), comma-separated")
     ap.add_argument("--stop", type=float, default=1.2, help="stop this far from the bin's side (m)")
     ap.add_argument("--tolerance", type=float, default=0.1, help="success: within this of --stop (m)")
-    ap.add_argument("--max-steps", type=int, default=60)
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--max-steps", type=positive, default=60)
+    ap.add_argument("--seed", type=seed, default=1)
     ap.add_argument("-o", "--out", default="build/closed_loop")
     ap.add_argument("--no-plot", action="store_true")
     a = ap.parse_args(argv)
+    if not a.no_plot:
+        try:
+            import matplotlib  # noqa: F401  (checked before the trials run, not after)
+        except ImportError:
+            ap.error("the plot needs matplotlib: pip install 'wiredsl[plot]', or give --no-plot")
+    try:  # every scene before the first trial: a shift the effect refuses is a usage error, not a traceback
+        scenes = [(shift, scene_with_shift(shift)) for shift in a.shifts]
+    except wiredsl.CompileError as err:
+        ap.error(f"--shifts: {err}")
     rows = []
-    for shift in [float(s) for s in a.shifts.split(",")]:
-        scene = scene_with_shift(shift)
+    for shift, scene in scenes:
         sim = wiredsl.Simulator(scene, seed=a.seed, pipeline="drive")
         runs = [drive(sim, scene, k, a.stop, a.max_steps) for k in range(a.trials)]
         stopped = [abs(r["true_distance"] - a.stop) for r in runs if r["stopped"]]
@@ -139,7 +171,7 @@ def main(argv=None) -> int:
               f"steps {rows[-1]['mean_steps'] or float('nan'):.1f}", file=sys.stderr)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "closed_loop.json").write_text(json.dumps({"seed": a.seed, "rows": rows}, indent=2) + "\n")
+    write_atomic(out / "closed_loop.json", json.dumps({"seed": a.seed, "rows": rows}, indent=2, allow_nan=False) + "\n")
     if not a.no_plot:
         plot(rows, out / "closed_loop.png")
     return 0

@@ -110,7 +110,7 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
 def project_pose(scene: Scene, world: World, pose, index: int, options: Options = Options(),
                  lists: dict[int, np.ndarray] | None = None, occluders: occlusion.Occluders | None = None
                  ) -> PoseResult:
-    """The ideal views of the rig at any robot pose (x, y, heading), numbered `index`.
+    """The ideal views of the rig at any robot pose (x, y, heading, or a 6-DoF [R | t]), numbered `index`.
 
     What is visible follows the scene's visibility mode as for a path pose: the nearest view-point's list
     (`lists` keeps the view-point masks computed across calls), or, with options.visibility "exact", the
@@ -122,7 +122,8 @@ def project_pose(scene: Scene, world: World, pose, index: int, options: Options 
     if vp is None or vp.visibility == "all" or options.visibility in ("all", "exact"):
         mask = world.mask(None)
     else:
-        k = int(visibility.nearest_viewpoint(np.array(vp.points, dtype=float), np.array([pose[:2]]))[0])
+        at = geometry.floor_pose(pose)[:2]  # a 6-DoF pose's floor position, as for a path read from a file
+        k = int(visibility.nearest_viewpoint(np.array(vp.points, dtype=float), np.array([at]))[0])
         lists = {} if lists is None else lists
         if k not in lists:
             lists.update(viewpoint_lists(scene, world, [k], options.viewdep))

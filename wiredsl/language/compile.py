@@ -263,7 +263,12 @@ class Compiler(CameraCompiler):
             return
         scale = fb.get("scale", UNITS[self._units(fb.stmt)["length"]][1])
         if not (0 < scale <= MAX_MAGNITUDE):
-            self.out.error("E110", f"mesh scale must be positive, got {scale:g}", fb.span("scale"))
+            self.out.error("E110", f"mesh scale must be in (0, {MAX_MAGNITUDE:g}], got {scale:g}", fb.span("scale"))
+            return
+        crease = fb.get("crease", math.radians(30))
+        if not 0 <= crease <= math.pi:  # below 0 every edge would be a feature, above 180 deg none
+            self.out.error("E110", f"crease angle must be in 0..180 deg, got {math.degrees(crease):g} deg",
+                           fb.span("crease"))
             return
         V = raw.vertices * scale
         if np.abs(V).max() > MAX_MAGNITUDE:
@@ -272,7 +277,7 @@ class Compiler(CameraCompiler):
         up = fb.get("up", "z")
         if up != "z":  # the file's up axis becomes z: y-up turns about x, x-up about y
             V = V @ (rotation("x", math.pi / 2) if up == "y" else rotation("y", -math.pi / 2)).T
-        found = mesh_features.features(V, raw.triangles, fb.get("crease", math.radians(30)))
+        found = mesh_features.features(V, raw.triangles, crease)
         if not (len(found.lines) + len(found.polylines) + len(found.ellipses) + len(found.faces)
                 + len(found.occluders)):
             self.out.error("E125", f"mesh file {path}: no triangle has an area", where)
