@@ -73,7 +73,8 @@ def test_kitti_excerpt_is_the_matrix_itself_with_times_or_a_rate():
     traj = trajectory.read((DATA / "kitti_00_poses.txt").read_text(), None, times)
     np.testing.assert_array_equal(traj.positions, a[:, :, 3])
     np.testing.assert_allclose(traj.rotations, a[:, :, :3], atol=2e-6)  # 7 printed digits
-    np.testing.assert_allclose(traj.rotations @ traj.rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), a[:, :, :3].shape), atol=1e-12)
+    np.testing.assert_allclose(traj.rotations @ traj.rotations.transpose(0, 2, 1),
+                               np.broadcast_to(np.eye(3), a[:, :, :3].shape), atol=1e-12)
     np.testing.assert_array_equal(traj.times, rows("kitti_00_times.txt")[:, 0])
     assert trajectory.read((DATA / "kitti_00_poses.txt").read_text(), "kitti", rate=10.0).times[3] == 0.3
     assert trajectory.read((DATA / "kitti_00_poses.txt").read_text()).times is None
@@ -230,7 +231,8 @@ def test_a_6dof_dump_carries_the_transform_and_floor_dumps_do_not(tmp_path):
 
     f = scene_file(tmp_path, '  read "a.tum"', {"a.tum": "0 1 2 0.5 0.1 0 0 0.995\n"},
                    "camera c {\n  focal 500px\n  size (640px, 480px)\n}\n"
-                   "rig r {\n  left c at (0, 0.1, 0) looking (1, 0, 0)\n  right c at (0, -0.1, 0) looking (1, 0, 0)\n}\n")
+                   "rig r {\n  left c at (0, 0.1, 0) looking (1, 0, 0)\n"
+                   "  right c at (0, -0.1, 0) looking (1, 0, 0)\n}\n")
     scene, _, _ = compile_file(f)
     doc = features(scene, None, simulate(scene)).model_dump(mode="json")
     assert len(doc["poses"][0]["transform"]) == 3 and doc["poses"][0]["pose"][:2] == [1.0, 2.0]
