@@ -47,9 +47,8 @@ def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
     with open(path, "rb") as fh:
         head = fh.read(4)
     if head == b"PK\x03\x04":
-        held = _npz_held(path)
-        pick = _pick(path, held, trial, pose, camera, names=None)
         try:
+            pick = _pick(path, _npz_held(path), trial, pose, camera, names=None)
             return _npz_arrays(path, *pick) if arrays else _npz_records(path, *pick)
         except (KeyError, IndexError, TypeError, ValueError, EOFError, zipfile.BadZipFile, NotImplementedError,
                 RuntimeError) as exc:  # RuntimeError: an encrypted member
