@@ -459,6 +459,10 @@ def test_sobol_plot_marks_cut_bars_and_draws_negative_indices_with_their_interva
     labels = {t.get_text() for t in ax.texts}
     assert {"2.3", "-0.6"} <= labels
     plt.close(fig)
+    # four statistics on a grid of three columns: the two cells past the last are left empty (was a TypeError)
+    fig = plots.sobol_figure(plt, table, [("m", "s")] * 4)
+    assert sum(a.axison for a in fig.axes) == 4 and len(fig.axes) == 6
+    plt.close(fig)
 
 
 def test_a_scene_without_a_view_point_mesh_has_no_pgh_viewpoint_rows(tmp_path):

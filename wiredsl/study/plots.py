@@ -160,10 +160,11 @@ def sobol_figure(plt, table: StudyTable, stats):
     nrows = -(-n // cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.4 * nrows), squeeze=False)
     d = len(table.factors)
-    for ax, (measure, stat) in itertools.zip_longest(axes.ravel(), stats):
-        if measure is None:
+    for ax, shown_stat in itertools.zip_longest(axes.ravel(), stats):
+        if shown_stat is None:  # a grid cell past the last statistic
             ax.axis("off")
             continue
+        measure, stat = shown_stat
         idx = {s.factor: s for s in table.sobol if (s.measure, s.statistic) == (measure, stat)}
         pos = np.arange(d)
         shown = [0.0, 1.0]  # what the axis must hold: 0, 1, every value and interval (within the limits)
