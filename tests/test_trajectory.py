@@ -323,3 +323,18 @@ def test_a_csv_without_a_time_column_takes_its_declared_rate(tmp_path):
         with pytest.raises(WiredslError) as err:
             compile_file(scene_file(tmp_path, block, files))
         assert [d.code for d in err.value.diagnostics] == ["E145"] and message in err.value.diagnostics[0].message
+
+
+@pytest.mark.parametrize("header, message", [
+    ("t, x, y, z, qx, qy, qz, qw, yaw", "the orientation twice: a quaternion and yaw"),
+    ("t, x, y, z, qx, qy, qz, qw, roll, pitch", "the orientation twice: a quaternion and roll, pitch"),
+    ("t, x, y, z, qx, qy, qz, yaw", "part of a quaternion: no column qw")])
+def test_an_orientation_given_two_ways_or_in_part_is_refused_at_the_header(tmp_path, header, message):
+    """A CSV with a quaternion and Euler angles (or three of a quaternion's four columns) is E145 at its header
+    line, not read silently with one of them ignored."""
+    row = ", ".join(["0"] * (header.count(",") + 1))
+    f = scene_file(tmp_path, '  read "q.csv"', {"q.csv": f"{header}\n{row}\n"})
+    with pytest.raises(WiredslError) as err:
+        compile_file(f)
+    (d,) = err.value.diagnostics
+    assert d.code == "E145" and message in d.message and d.span.line == 1

@@ -205,6 +205,13 @@ def _csv(text: str, fmt: str, rate: float | None = None) -> Trajectory:
             raise TrajectoryError(f"column '{name}': unit '{unit}' is not one of {', '.join(factors)}", line0)
         cols[role] = (k, factors.get(unit, 1.0) if unit else 1.0)
     quaternion = all(f"q{a}" in cols for a in "wxyz")
+    partial = [f"q{a}" for a in "wxyz" if f"q{a}" not in cols]
+    euler = [names[cols[r][0]] for r in ("roll", "pitch", "yaw") if r in cols]
+    if quaternion and euler:
+        raise TrajectoryError(f"the header gives the orientation twice: a quaternion and {', '.join(euler)} "
+                              "(keep one; wiredsl would not know which to believe)", line0)
+    if 0 < len(partial) < 4:
+        raise TrajectoryError(f"the header names part of a quaternion: no column {', '.join(partial)}", line0)
     if rate is not None and "t" in cols:
         raise TrajectoryError(f"the file has its own timestamps (column '{names[cols['t'][0]]}'): 'rate' is for a "
                               "CSV without a time column", line0)
