@@ -500,3 +500,24 @@ def test_a_study_without_factors_runs_its_one_point(tmp_path):
     assert r.exit_code == 0, r.output
     assert "1 points x 3 trials" in r.stderr and (tmp_path / "cli" / "table.csv").is_file()
     assert not (tmp_path / "cli" / "sobol.csv").exists() and "varies nothing: one point" in r.stderr
+
+
+def test_grid_plot_legend_names_each_other_factor_whole_with_its_unit():
+    """A grid plot's lines are labelled `stage.param=value unit` for the factors held fixed, not the stage alone
+    (`calibration_error=0.02` said neither which parameter nor in what unit)."""
+    from types import SimpleNamespace
+
+    from wiredsl.study import plots
+
+    plt = plots._pyplot()
+    fig, ax = plt.subplots()
+    rows = [SimpleNamespace(values={"lateral_shift.range": r, "calibration_error.sigma": s}, mean=r + s, sem=0.1)
+            for r in (1.0, 2.0) for s in (0.01, 0.02)]
+    plots._grid(ax, rows, "lateral_shift.range", ["lateral_shift.range", "calibration_error.sigma"])
+    by_range = [t.get_text() for t in ax.get_legend().get_texts()]
+    ax.clear()
+    plots._grid(ax, rows, "calibration_error.sigma", ["lateral_shift.range", "calibration_error.sigma"])
+    by_sigma = [t.get_text() for t in ax.get_legend().get_texts()]
+    plt.close(fig)
+    assert by_range == ["calibration_error.sigma=0.01", "calibration_error.sigma=0.02"]  # a number: no unit
+    assert by_sigma == ["lateral_shift.range=1 px", "lateral_shift.range=2 px"]

@@ -88,8 +88,8 @@ def write_all(table: StudyTable, study: Study, folder: Path, fmt: str = "png", d
     return written
 
 
-def _label(factor: str) -> str:
-    """The factor with the SI unit of its kind (the unit the table's values are in)."""
+def _unit(factor: str) -> str:
+    """The SI unit of the factor's kind (the unit the table's values are in), or "" for a plain number."""
     from wiredsl.effects import REGISTRY
 
     stage, param = factor.rsplit(".", 1)
@@ -99,7 +99,12 @@ def _label(factor: str) -> str:
         kind = CAMERA_FACTORS[param][0]
     else:
         kind = (REGISTRY[stage].Params.model_fields[param].json_schema_extra or {}).get("kind")
-    unit = {"image": "px", "angle": "rad", "length": "m"}.get(kind, "")
+    return {"image": "px", "angle": "rad", "length": "m"}.get(kind, "")
+
+
+def _label(factor: str) -> str:
+    """The factor with its unit, for an axis."""
+    unit = _unit(factor)
     return f"{factor} ({unit})" if unit else factor
 
 
@@ -114,7 +119,8 @@ def _grid(ax, rows, f: str, factors: list[str]) -> None:
         xs = sorted({r.values[f] for r in sel})
         mean = np.array([np.mean([r.mean for r in sel if r.values[f] == x]) for x in xs])
         sem = np.array([np.sqrt(np.mean([(r.sem or 0.0) ** 2 for r in sel if r.values[f] == x])) for x in xs])
-        label = ", ".join(f"{g.rsplit('.', 1)[0]}={v:g}" for g, v in zip(others, combo, strict=True)) or None
+        label = ", ".join(f"{g}={v:g}{(' ' + _unit(g)) if _unit(g) else ''}"
+                          for g, v in zip(others, combo, strict=True)) or None
         line, = ax.plot(xs, mean, marker="o", ms=3, label=label)
         ax.fill_between(xs, mean - Z95 * sem, mean + Z95 * sem, color=line.get_color(), alpha=0.2, lw=0)
     if others:
