@@ -116,6 +116,27 @@ def test_a_file_that_is_not_a_dump_says_what_it_is(disturbed, tmp_path):
         assert "pass features.json, features.jsonl or features.npz" in str(err.value)
 
 
+@pytest.mark.parametrize("damage, says", [
+    (lambda f: f.update(points=True), "polylines/0/points: Input should be a valid array"),
+    (lambda f: f["points"][0].append(1.0), "polylines/0/points/0: Tuple should have at most 2 items"),
+    (lambda f: f.update(kind="blob"), "polylines/0/kind"),
+    (lambda f: f.pop("source"), "polylines/0/source: Field required")])
+def test_a_dump_with_a_value_of_the_wrong_type_or_shape_is_refused_at_its_line(disturbed, tmp_path, damage, says):
+    """A damaged JSON-lines dump (one value edited on its third line) is a DumpError naming the line and the
+    value's place, not records passed on with `points: true` or a KeyError."""
+    lines = disturbed["jsonl"].read_text().splitlines()
+    doc = json.loads(lines[2])
+    view = next(p[s] for p in doc["poses"] for s in ("left", "right") if p[s] and p[s]["polylines"])
+    damage(view["polylines"][0])
+    lines[2] = json.dumps(doc)
+    bad = tmp_path / "features.jsonl"
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DumpError) as err:
+        wiredsl.load(bad)
+    assert f"{bad}: line 3 is not a features document wiredsl wrote: poses/" in str(err.value)
+    assert says in str(err.value) and f"`wiredsl validate {bad}`" in str(err.value)
+
+
 def test_ideal_npz_carries_occlusion_fragments_and_closed_like_json(tmp_path):
     args = ["--no-effects", "--visibility", "exact", "--pose", "1", "--pose", "4"]
     npz = build(tmp_path, "n", *args, "--format", "npz") / "features.npz"

@@ -91,8 +91,8 @@ def _json_docs(path: Path) -> list[dict]:
         raise DumpError(f"{path} is an SVG image, not a dump; {_NOT_A_DUMP}")
     try:
         text = data.decode("utf-8")
-        lines = [line for line in text.splitlines() if line.strip()]
-        docs = [json_loads(line) for line in lines] if path.suffix == ".jsonl" else [json_loads(text)]
+        lines = [(n, line) for n, line in enumerate(text.splitlines(), 1) if line.strip()]
+        docs = [json_loads(line) for _, line in lines] if path.suffix == ".jsonl" else [json_loads(text)]
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         if b"," in start.split(b"\n", 1)[0] and not start.startswith((b"{", b"[")):
             raise DumpError(f"{path} is a CSV table, not a dump; {_NOT_A_DUMP}") from None
@@ -102,7 +102,27 @@ def _json_docs(path: Path) -> list[dict]:
         if kind != "features" or not isinstance(doc.get("poses"), list):
             what = _DOCUMENTS.get(kind, "not a wiredsl features document")
             raise DumpError(f"{path}: this is {what}, not a dump; {_NOT_A_DUMP}")
+    _check_features(path, lines if path.suffix == ".jsonl" else [(None, text)])
     return docs
+
+
+def _check_features(path: Path, texts: list[tuple[int | None, str]]) -> None:
+    """Each document against the features model (the schema's source), strictly: a value of the wrong type or
+    shape (`"points": true`, a corner at three numbers) is a DumpError naming where, not a record passed on."""
+    from pydantic import ValidationError
+
+    from wiredsl.io.features import Features
+
+    for line, text in texts:
+        try:
+            Features.model_validate_json(text, strict=True)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            where = "the document" if line is None else f"line {line}"
+            at = "/".join(map(str, err["loc"])) or "(root)"
+            more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+            raise DumpError(f"{path}: {where} is not a features document wiredsl wrote: {at}: {err['msg']}{more}; "
+                            f"`wiredsl validate {path}` says what is wrong") from None
 
 
 def _npz_held(path: Path) -> tuple[set[int], set[int], None]:
