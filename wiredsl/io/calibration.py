@@ -249,7 +249,7 @@ def _matrix(m: dict, what: str) -> np.ndarray:
         raise CalibrationFileError(f"{what}: a matrix's data must be a list of numbers, is {_kind(data)}")
     a = _floats(data, what)
     if a.size != n or n == 0:
-        raise CalibrationFileError(f"{what}: a {rows}x{cols} matrix needs {n} values, has {a.size}")
+        raise CalibrationFileError(f"{what}: a {rows}x{cols} matrix needs {n} values, not {a.size}")
     if str(m.get("dt", "")).strip().endswith("f"):  # single precision: the values OpenCV (and the tool) see
         a = a.astype(np.float32).astype(float)
     return a.reshape(rows, cols, -1) if n != rows * cols else a.reshape(rows, cols)
@@ -278,7 +278,7 @@ def _floats(v, what: str, n: int | None = None) -> np.ndarray:
         raise CalibrationFileError(f"{what} must be numbers, is {_kind(v)}")
     a = np.asarray(v, dtype=float).ravel()
     if n is not None and a.size != n:
-        raise CalibrationFileError(f"{what} must have {n} values, has {a.size}")
+        raise CalibrationFileError(f"{what} must have {n} values, not {a.size}")
     if not np.all(np.isfinite(a)):
         raise CalibrationFileError(f"{what} has a value that is not finite")
     if a.size and np.abs(a).max() > MAX_VALUE:

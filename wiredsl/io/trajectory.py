@@ -88,7 +88,8 @@ def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rat
         if times is not None:
             stamps = times - times[0] if len(times) else times
             if len(stamps) != len(traj.lines):
-                raise TrajectoryError(f"the times file has {len(stamps)} timestamps for {len(traj.lines)} poses")
+                n, m = len(stamps), len(traj.lines)
+                raise TrajectoryError(f"the times file has {n} timestamp{'s' * (n != 1)} for {m} pose{'s' * (m != 1)}")
             traj = Trajectory(stamps, traj.positions, traj.rotations, traj.lines, traj.normalised)
         elif rate is not None:
             traj = Trajectory(np.arange(len(traj.lines)) / rate, traj.positions, traj.rotations, traj.lines,
