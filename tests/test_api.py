@@ -105,6 +105,28 @@ def test_observe_of_an_arbitrary_pose_equals_the_path_pose_it_is(lab):
         or len(other_step["pts"]) != len(by_index["pts"])
 
 
+def test_a_scene_without_a_path_is_observed_at_the_callers_poses(lab, tmp_path):
+    """A closed loop's scene needs no path: the lab with its path deleted gives, at the lab's pose 2 with step 2,
+    what the lab gives at its path pose 2 (every stage, the calibration draws too). A path index is refused by
+    name, and `build` still needs a path (E102)."""
+    import shutil
+
+    shutil.copytree("scenes", tmp_path / "scenes")
+    pathless = tmp_path / "scenes" / "lab.wd"
+    pathless.write_text(re.sub(r"\npath run \{[^}]*\}\n", "\n", Path(LAB).read_text()))
+    scene = wiredsl.compile(pathless)
+    assert scene.path is None
+    sim, with_path = wiredsl.Simulator(scene, seed=9), wiredsl.Simulator(lab, seed=9)
+    got = sim.observe(tuple(lab.path.poses[2]), trial=3, step=2)
+    want = with_path.observe(2, trial=3)
+    assert len(got["pts"]) > 100 and np.array_equal(got["pts"], want["pts"])
+    assert got.records() == want.records()
+    with pytest.raises(ValueError, match="has no path: pass a robot pose"):
+        sim.observe(0)
+    r = CliRunner().invoke(main, ["build", str(pathless), "-o", str(tmp_path / "out")])
+    assert r.exit_code == 1 and "E102" in r.output and "needs a path to be built" in r.output
+
+
 def test_observe_a_6dof_path_pose_under_other_draws_and_as_its_transform(monkeypatch):
     """A path read from a trajectory file: observe(i, step=K) was refused (its pose has 12 numbers), and a
     tilted 4x4 too. Its transform, observed as an arbitrary pose with step i, is the path's pose i exactly

@@ -186,7 +186,7 @@ class Simulator:
         opts = Options(visibility=_choice("visibility", visibility, ("scene", "exact", "all")),
                        right=_choice("cameras", cameras, ("both", "left")) == "both")
         self.run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED),
-                              options=opts, engine=engine)
+                              options=opts, engine=engine, need_path=False)
         self._lists: dict = {}  # view-point masks met so far
         self._occluders = None
 
@@ -219,6 +219,9 @@ class Simulator:
         from wiredsl.engine.simulate import project_pose
 
         if isinstance(pose, (int, np.integer)):
+            if self.scene.path is None:
+                raise ValueError(f"scene '{self.scene.name}' has no path: pass a robot pose (x, y, heading) or a "
+                                 "4x4 transform, with step=N")
             ideal = self.run.ideal()
             if not 0 <= pose < len(ideal):
                 raise ValueError(f"pose {pose} is not in 0..{len(ideal) - 1} (the path's poses)")

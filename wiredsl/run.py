@@ -80,12 +80,13 @@ def check_engine(engine: str) -> str:
 
 def start(scene: Scene, pipeline: Pipeline | str | None = None, *, seed: int | None = None,
           options: Options | None = None, world: World | None = None, point: int | None = None,
-          engine: str = "auto", exact_calibration: bool = False, base: Run | None = None) -> Run:
+          engine: str = "auto", exact_calibration: bool = False, base: Run | None = None,
+          need_path: bool = True) -> Run:
     """A Run of the scene through `pipeline` (a Pipeline, a pipeline's name, or None: no stages).
 
     `seed` None draws one at random when something random runs (kept in `run.seed`); an ideal run keeps 0,
     so its output is byte-identical whatever the seed. `base`, a run of the same scene and options, lends its
-    ideal projection and visibility (which no stage changes).
+    ideal projection and visibility (which no stage changes). `need_path` False: poses come from the caller.
     """
     if isinstance(pipeline, str):
         pipeline = choose_pipeline(scene, pipeline).pipeline
@@ -93,7 +94,7 @@ def start(scene: Scene, pipeline: Pipeline | str | None = None, *, seed: int | N
     if options.viewdep is None:
         options = dataclasses.replace(options, viewdep=viewdep.of_scene(scene))
     run = Run.create(scene, world if world is not None else build_world(scene), pipeline,
-                     seed if seed is not None else 0, options, point=point)
+                     seed if seed is not None else 0, options, point=point, need_path=need_path)
     if seed is None and run.stages:  # drawn only when something random runs, so ideal runs stay byte-identical
         run.seed = secrets.randbits(63)
     run.engine = check_engine(engine)

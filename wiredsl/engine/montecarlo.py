@@ -66,8 +66,8 @@ class Run:
 
     @classmethod
     def create(cls, scene: Scene, world: World, pipeline, seed: int, options: Options,
-               point: int | None = None) -> Run:
-        require_buildable(scene)
+               point: int | None = None, need_path: bool = True) -> Run:
+        require_buildable(scene, need_path)
         stages = []
         for st in (pipeline.stages if pipeline is not None else []):
             effect = REGISTRY[st.effect]
@@ -211,7 +211,7 @@ class Run:
         kept for a result that is not one of the run's ideal poses (a closed loop's poses do not pile up)."""
         if self.exact_calibration:
             raise ValueError("observe() re-projects the ideal strokes; exact_calibration projects whole runs")
-        keep = any(r is result for r in self.ideal())
+        keep = self.scene.path is not None and any(r is result for r in self.ideal())
         return self._batch(trials, [result], keep)[0]
 
     def _batch(self, batch: Sequence[int], results: list[PoseResult] | None = None, keep: bool = True):

@@ -116,7 +116,7 @@ def project_pose(scene: Scene, world: World, pose, index: int, options: Options 
     (`lists` keeps the view-point masks computed across calls), or, with options.visibility "exact", the
     occluders (`occluders`: Occluders.of_world, computed once by the caller), or everything.
     """
-    require_buildable(scene)
+    require_buildable(scene, path=False)  # the pose is given
     pose = tuple(float(v) for v in pose)
     vp, name = scene.viewpoints, None
     if vp is None or vp.visibility == "all" or options.visibility in ("all", "exact"):
@@ -143,9 +143,9 @@ def project_pose(scene: Scene, world: World, pose, index: int, options: Options 
     return PoseResult(index, pose, name, views[0], views[1] if options.right else None)
 
 
-def require_buildable(scene: Scene) -> None:
-    """A scene needs a rig and a path to be projected."""
-    if scene.rig is None or scene.path is None:
+def require_buildable(scene: Scene, path: bool = True) -> None:
+    """A scene needs a rig, and a path unless its poses come from elsewhere (the API's Simulator)."""
+    if scene.rig is None or (path and scene.path is None):
         missing = "a rig" if scene.rig is None else "a path"
         start = Span(scene.source, 1, 1, 1, 1)  # the scene has no statement to point at: its file's start
         raise WiredslError([Diagnostic("error", "E102", f"scene '{scene.name}' needs {missing} to be built", start)])
