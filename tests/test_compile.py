@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from helpers import compile_text, errors_of
 
+from wiredsl.diagnostics import WiredslError
 from wiredsl.language.compile import compile_file
 
 SCENES = sorted(Path("scenes").glob("*.wd"))
@@ -162,3 +163,19 @@ def test_many_errors_are_capped_in_the_report():
     out = render(info.value.diagnostics, {})
     assert out.count("error[E120]") == MAX_REPORTED
     assert out.rstrip().endswith(f"... and {30 - MAX_REPORTED} more")
+
+
+def test_the_scene_is_named_by_its_own_file_not_by_what_it_includes(tmp_path):
+    """`scene` in an included file names that file's builds: the including file takes its own `scene`, else its
+    file name (the lab study was named `lab` and its default output folders were the lab's); a root file that
+    names itself twice is still E105."""
+    (tmp_path / "base.wd").write_text("wiredsl 1\nscene base\n")
+    (tmp_path / "named.wd").write_text('wiredsl 1\ninclude "base.wd"\nscene mine\n')
+    (tmp_path / "plain.wd").write_text('wiredsl 1\ninclude "base.wd"\n')
+    (tmp_path / "twice.wd").write_text('wiredsl 1\ninclude "base.wd"\nscene a\nscene b\n')
+    assert [compile_file(tmp_path / f"{n}.wd")[0].name for n in ("base", "named", "plain")] == ["base", "mine", "plain"]
+    assert compile_file("scenes/studies/lab_study.wd")[0].name == "lab_study"
+    with pytest.raises(WiredslError) as err:
+        compile_file(tmp_path / "twice.wd")
+    assert [(d.code, d.span.line, d.message) for d in err.value.diagnostics] == [(
+        "E105", 4, "the scene is named twice")]

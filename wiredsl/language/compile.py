@@ -177,6 +177,8 @@ class Compiler(CameraCompiler):
         pass  # followed by ast.load; a malformed include is reported by bind
 
     def _scene(self, b: Bound) -> None:
+        if b.name_span.file != self.program.root.path:
+            return  # an included file's name is its own builds' name: the scene is the including file's
         if self.scene_name is not None:
             self.out.error("E105", "the scene is named twice", b.name_span)
         self.scene_name = b.name
