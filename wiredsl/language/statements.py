@@ -74,7 +74,8 @@ _ROTATE = {
 
 _TOP = [
     Sig("wiredsl", "format version of the file; must be 1", (S("integer", "version"),), example="wiredsl 1"),
-    Sig("scene", "the scene's name (default: the file name; ignored in an included file)", (NAME,), example="scene lab"),
+    Sig("scene", "the scene's name (default: the file name; ignored in an included file)", (NAME,),
+        example="scene lab"),
     Sig("units", "units of bare numbers in this file (default m, deg, px)",
         clauses={"length": C("length unit", S("word", "unit", "mm", "cm", "m")),
                  "angle": C("angle unit", S("word", "unit", "deg", "rad"))},
