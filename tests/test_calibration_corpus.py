@@ -120,8 +120,9 @@ def test_every_real_file_projects_as_opencv_projects_its_own_values(name, tmp_pa
         text = _scene(path, ("first", "second")[i])
         if not size_given:
             text = text.replace("  size (640px, 480px)\n", "")
-        scene, _ = compile_text(text, str(tmp_path / "a.wd"))
+        scene, warnings = compile_text(text, str(tmp_path / "a.wd"))
         cam = scene.cameras[0]
+        _check_fold_warning(cam, want["K"], d, [w.message for w in warnings if w.code == "W147"])
         ours = geometry.cam_to_pixels(X, cam)
         if got.model == "equidistant":
             theirs = cv2.fisheye.projectPoints(X[:, None, :], np.zeros(3), np.zeros(3), want["K"], d)[0]
@@ -165,3 +166,24 @@ def test_a_real_stereo_files_extrinsics_place_the_right_camera(name, second_from
     tol = 1e-6 if "orbslam3" in name else 1e-9  # an inverse against a transpose (its T_c1_c2 is single precision)
     assert np.abs(R - M[:3, :3]).max() < tol and np.abs(T - M[:3, 3]).max() < tol / 10
     assert 0.05 < np.linalg.norm(T) < 0.15 and not [w for w in warnings if w.code == "W144"]
+
+
+def _check_fold_warning(cam, K, d, messages: list[str]) -> None:
+    """W147 against OpenCV: the largest image radius cv2.projectPoints reaches along the x axis (rays up to
+    89.9 deg off axis; beyond the fold its images come back inwards) is the warning's radius, and a camera
+    without the warning loses under 1.5% of its image to the fold."""
+    if cam.distortion == "equidistant":  # images beyond 90 deg, where cv2.fisheye (x = X / Z) does not go
+        assert not messages or cam.fov is None
+        return
+    theta = np.radians(np.linspace(0.0, 89.9, 20000))
+    rays = np.column_stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)])
+    uv = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, d)[0].reshape(-1, 2)
+    reach = np.max(uv[:, 0] - K[0, 2])  # px along x
+    u, v = np.meshgrid(np.linspace(0.5, cam.width - 0.5, 64), np.linspace(0.5, cam.height - 0.5, 48))
+    lost = np.mean(np.hypot(u - cam.cx, (v - cam.cy) * cam.f * cam.ax / (cam.f * cam.ay)) > reach)
+    if messages:
+        (m,) = messages
+        said = float(m.split("farther than ")[1].split(" px")[0])
+        assert abs(said - reach) < 5e-3 * reach and lost > 0.005, (m, reach, lost)
+    else:
+        assert lost < 0.015, (reach, lost)

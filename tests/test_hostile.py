@@ -122,7 +122,9 @@ def test_a_chain_at_the_depth_limit_compiles(tmp_path):
     (tmp_path / f"d{ast.MAX_INCLUDE_DEPTH - 2}.wd").write_text("scene deep\n")
     (tmp_path / "s.wd").write_text('wiredsl 1\ninclude "d0.wd"\n')
     scene, _, program = compile_file(tmp_path / "s.wd")
-    assert scene.name == "deep" and len(program.files) == ast.MAX_INCLUDE_DEPTH
+    assert len(program.files) == ast.MAX_INCLUDE_DEPTH and any(
+        str(f).endswith(f"d{ast.MAX_INCLUDE_DEPTH - 2}.wd") for f in program.files)
+    assert scene.name == "s"  # the deepest file's `scene` names its own builds, not the including scene
 
 
 # --------------------------------------------------------------------------- numbers and derived sizes

@@ -390,3 +390,30 @@ def test_a_study_may_not_vary_a_coefficient_a_fisheye_has_not(tmp_path):
     r = CliRunner().invoke(main, ["check", str(path)])
     assert r.exit_code == 1
     assert "4:8: error[E104]: camera 'cam_l' has an equidistant lens, which has no 'p1'" in r.stderr.splitlines()[0]
+
+
+def _w147(lens: str) -> list[str]:
+    from helpers import compile_text
+
+    _, warnings = compile_text(f"wiredsl 1\ncamera c {{\n  focal 500px\n  size (640px, 480px)\n{lens}}}\n", "t.wd")
+    return [w.message for w in warnings if w.code == "W147"]
+
+
+def test_a_lens_that_does_not_image_its_own_image_is_w147():
+    """k1 = -0.5 folds 39.2 deg off axis (d/dr r (1 + k1 r^2) = 0 at r^2 = 2/3, radius r (1 - 1/3)); k1 = 1e6
+    squeezes the image into a sliver (the corner's unit-plane radius from cv2.undistortPoints); a fisheye whose
+    polynomial stops rising at 100 deg warns unless its fov bounds it; ordinary lenses say nothing."""
+    (fold,) = _w147("  k1 -0.5\n")
+    r = math.sqrt(2 / 3)
+    assert f"folds back {math.degrees(math.atan(r)):.3g} deg" in fold and f"{500 * r * 2 / 3:.4g} px" in fold
+    (sliver,) = _w147("  k1 1e6\n")
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    xy = cv2.undistortPoints(np.array([[[640.0, 480.0]]]), K, np.array([1e6, 0, 0, 0]),
+                             criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 500, 1e-15)).reshape(2)
+    assert f"spans {math.degrees(2 * math.atan(np.hypot(*xy))):.3g} deg" in sliver
+    assert f"gives {math.degrees(2 * math.atan(0.8)):.3g} deg" in sliver
+    k1 = -1 / (3 * math.radians(100) ** 2)  # d theta_d / d theta = 1 + 3 k1 theta^2 = 0 at 100 deg
+    (fisheye,) = _w147(f"  distortion equidistant\n  k1 {k1!r}\n  focal 150px\n")
+    assert "folds back 100 deg" in fisheye
+    assert _w147(f"  distortion equidistant\n  k1 {k1!r}\n  focal 150px\n  fov 190deg\n") == []
+    assert _w147("  k1 -0.2\n  k2 0.05\n") == [] and _w147("  distortion equidistant\n  k1 0.01\n") == []

@@ -244,7 +244,56 @@ class CameraCompiler:
         lens = self._lens(b, s)
         if self.out.n_errors != n0 or lens is None:
             return None
-        return Camera(name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, width=int(w), height=int(h), **lens)
+        cam = Camera(name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, width=int(w), height=int(h), **lens)
+        span = next((s[k][1] for k in ("k1", "k", "k2", "k3", "k4", "k5", "k6", "distortion") if k in s), where)
+        self._lens_reach(cam, span)
+        return cam
+
+    def _lens_reach(self, cam: Camera, span: Span) -> None:
+        """W147, a lens that does not image its own image: its distortion folds back inside the image (a real
+        calibration can, past where its target was seen; a sign error does), so the part beyond the fold is never
+        reached; or (radtan) it scales the corner's radius by over 4x or under 1/4x (a k1 of 1e6 read from a
+        file), so the image spans a sliver of the view its focal length gives. A fisheye bounded by its
+        declared fov, or imaging to 180 deg, is left alone: its circular image is the lens's."""
+        from wiredsl.engine import geometry
+
+        k = (cam.k1, cam.k2, cam.k3, cam.k4)
+        corners = np.array([[0.0, 0.0], [cam.width, 0.0], [0.0, cam.height], [cam.width, cam.height]])
+        corner = float(np.hypot((corners[:, 0] - cam.cx) / (cam.f * cam.ax),
+                                (corners[:, 1] - cam.cy) / (cam.f * cam.ay)).max())
+        if cam.distortion == "equidistant":
+            stop = geometry.fisheye_max_angle(*k)
+            if stop >= math.pi or (cam.fov is not None and cam.fov / 2 <= stop):
+                return
+            reach, angle = float(geometry.fisheye_theta_d(stop, *k)), stop
+        else:
+            def radius(r: float) -> float:  # the distorted radius of unit-plane radius r (radial terms)
+                return float(geometry.distort(np.array([r, 0.0]), cam.k1, cam.k2, 0.0, 0.0, *k[2:], cam.k5,
+                                              cam.k6)[0])
+
+            angle = math.atan(geometry.lens_limit(cam))
+            reach = radius(math.tan(angle)) if angle < math.pi / 2 else math.inf
+            if corner <= reach:
+                lo, hi = 0.0, math.tan(angle) if angle < math.pi / 2 else corner * 1e6
+                for _ in range(200):  # the unit-plane radius imaged at the corner (radius rises to the fold)
+                    mid = 0.5 * (lo + hi)
+                    lo, hi = (mid, hi) if radius(mid) < corner else (lo, mid)
+                scale = corner / hi if hi > 0 else 1.0
+                if not 0.25 <= scale <= 4.0:
+                    seen, bare = (math.degrees(2 * math.atan(x)) for x in (hi, corner))
+                    self.out.warning("W147", f"camera '{cam.name}': its distortion scales the image corner's "
+                                             f"radius by {scale:.3g}, so its image spans {seen:.3g} deg across the "
+                                             f"diagonal where its focal length alone gives {bare:.3g} deg", span,
+                                     "check the coefficients (their signs, a file's units)")
+                return
+        u, v = np.meshgrid(np.linspace(0.5, cam.width - 0.5, 64), np.linspace(0.5, cam.height - 0.5, 48))
+        lost = float(np.mean(np.hypot((u - cam.cx) / (cam.f * cam.ax), (v - cam.cy) / (cam.f * cam.ay)) > reach))
+        if lost >= 0.01:
+            self.out.warning("W147", f"camera '{cam.name}': its distortion folds back {math.degrees(angle):.3g} deg "
+                                     f"from the optical axis, so {lost:.0%} of its image (farther than "
+                                     f"{reach * cam.f:.4g} px from the centre) is never reached", span,
+                             "beyond the fold the lens model is not one-to-one: a calibration holds where its "
+                             "target was seen; check the coefficients if this is not expected")
 
     def _lens(self, b: Bound, s: dict[str, tuple[object, Span]]) -> dict | None:
         """The lens model and its coefficients beside k1; None after reporting a clause the model has not."""
