@@ -60,6 +60,7 @@ def one(k: int) -> dict:
         ball.export(Path(tmp) / "ball.stl")
         path = Path(tmp) / "s.wd"
         path.write_text(SCENE.format(root=Path.cwd().as_posix()))
+        os.environ["XDG_CACHE_HOME"] = tmp  # a first read: the mesh cache (io/mesh.py) starts empty
         t0 = time.process_time()
         scene, _, _ = compile_file(path)
         t_import = time.process_time() - t0

@@ -254,3 +254,61 @@ def test_a_crease_or_scale_out_of_range_is_refused_at_its_value(tmp_path, clause
         compile_file(_scene(tmp_path, f'mesh read "b.obj" {clause}'))
     got = [(d.code, d.message, d.span.line, d.span.col) for d in info.value.diagnostics]
     assert got == [("E110", message, 3, col)]
+
+
+MESH_FILES = sorted(p for p in Path("scenes/meshes").iterdir() if p.suffix in (".obj", ".ply", ".stl", ".glb"))
+
+
+def test_a_mesh_read_again_comes_from_the_cache_bit_for_bit(tmp_path, monkeypatch):
+    """Every mesh of scenes/meshes and the CAD bracket: the second read is served from the cache (trimesh is
+    not called) with the very arrays trimesh gave; a damaged cache file is read afresh and replaced; the cache
+    keeps the CACHE_FILES most recently used; without a cache folder the mesh is still read."""
+    from wiredsl.io import mesh as io_mesh
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    files = [*MESH_FILES, Path("tests/meshes/lbracket.stl")]
+    first = [read_mesh(p, p.read_bytes()) for p in files]
+    folder = tmp_path / "wiredsl" / "meshes"
+    assert len(list(folder.glob("*.npz"))) == len(files)
+
+    def no_trimesh(*a, **k):
+        raise AssertionError("trimesh was called for a cached mesh")
+
+    with monkeypatch.context() as m:
+        m.setattr(trimesh, "load", no_trimesh)
+        again = [read_mesh(p, p.read_bytes()) for p in files]
+    for a, b in zip(first, again, strict=True):
+        assert a.vertices.dtype == b.vertices.dtype and np.array_equal(a.vertices, b.vertices)
+        assert a.triangles.dtype == b.triangles.dtype and np.array_equal(a.triangles, b.triangles)
+    victim = sorted(folder.glob("*.npz"))[0]
+    for damage in (b"not an npz", victim.read_bytes()[:100]):
+        victim.write_bytes(damage)
+        assert [np.array_equal(r.vertices, f.vertices) for r, f in
+                zip((read_mesh(p, p.read_bytes()) for p in files), first, strict=True)] == [True] * len(files)
+        assert np.load(victim)["vertices"].dtype == np.float64  # rewritten
+    monkeypatch.setattr(io_mesh, "CACHE_FILES", 2)
+    obj = Path("scenes/meshes/crate.obj")
+    read_mesh(obj, obj.read_bytes() + b"\n")  # a new file: the cache is cut to the 2 newest
+    assert len(list(folder.glob("*.npz"))) == 2
+    monkeypatch.setattr("wiredsl.io.files.cache_folder", lambda kind: None)
+    assert np.array_equal(read_mesh(obj, obj.read_bytes() + b"\n\n").triangles, first[files.index(obj)].triangles)
+
+
+def test_a_mesh_scene_built_again_does_not_import_trimesh(tmp_path):
+    """Through the command line: the second build of scenes/meshes.wd reads its four meshes from the cache, so
+    trimesh (half a second of CPU) is not imported, and the dump is the same bytes."""
+    import subprocess
+    import sys
+
+    script = ("import sys\nfrom wiredsl.cli import main\n"
+              "try:\n    main(sys.argv[1:])\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
+              "print('trimesh' in sys.modules)\n")
+    env = {**__import__("os").environ, "XDG_CACHE_HOME": str(tmp_path / "cache")}
+    seen = []
+    for out in ("a", "b"):
+        proc = subprocess.run([sys.executable, "-c", script, "build", "scenes/meshes.wd", "--no-svg", "-o",
+                               str(tmp_path / out)], capture_output=True, text=True, env=env)
+        assert proc.returncode == 0, proc.stderr
+        seen.append(proc.stdout.strip().splitlines()[-1])
+    assert seen == ["True", "False"]
+    assert (tmp_path / "a" / "features.json").read_bytes() == (tmp_path / "b" / "features.json").read_bytes()

@@ -323,3 +323,19 @@ def printable_path(text: str) -> str:
     """Text for a UTF-8 document (JSON, SVG) from text that may hold a path that is not UTF-8: os.fsdecode keeps
     such bytes as lone surrogates, which no UTF-8 writer takes, so each shows as U+FFFD."""
     return re.sub("[\ud800-\udfff]", "\ufffd", text)
+
+
+def cache_folder(kind: str) -> Path | None:
+    """wiredsl's on-disk cache of `kind` (kernels, meshes): $XDG_CACHE_HOME/wiredsl/kind (default ~/.cache), else
+    a folder of this user's under the temporary directory when the home is read-only; None if neither can be
+    made. A cache only saves time: callers go on without one."""
+    home = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "wiredsl" / kind
+    spare = Path(tempfile.gettempdir()) / f"wiredsl-{kind}-{getattr(os, 'getuid', int)()}"
+    for folder in (home, spare):
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            continue
+        if os.access(folder, os.W_OK | os.X_OK):
+            return folder
+    return None

@@ -4,11 +4,17 @@ trimesh parses the formats (the optional extra `mesh`, imported here only). Befo
 read through the same gate as an included file (a regular file under MAX_MESH_BYTES: never a FIFO or a
 device), and the triangle count the file declares (PLY's `element face`, binary STL's count, OBJ's `f`
 lines) is checked against MAX_TRIANGLES, so a size bomb is refused before any array is allocated.
+
+What trimesh reads is kept in wiredsl's cache (`files.cache_folder("meshes")`, an npz a file keyed by the
+sha256 of its bytes, its format and trimesh's version), so a scene built again does not import trimesh (half
+a second of CPU); the cache keeps the CACHE_FILES most recently used meshes.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
+import os
 import re
 import struct
 from dataclasses import dataclass
@@ -19,6 +25,8 @@ import numpy as np
 MAX_MESH_BYTES = 256 * 1024 * 1024  # a mesh file larger than this is refused
 MAX_TRIANGLES = 2_000_000  # triangles a mesh may declare or hold
 FORMATS = {".obj": "obj", ".ply": "ply", ".stl": "stl", ".gltf": "gltf", ".glb": "glb"}
+CACHE_FILES = 64  # meshes kept in the cache, the least recently used removed first
+READER = 1  # this reader's version in the cache key: a change of what is kept makes new keys
 
 
 class MeshFileError(ValueError):
@@ -60,6 +68,10 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
     declared = declared_triangles(data, kind)
     if declared > MAX_TRIANGLES:
         raise MeshTooLarge(f"declares {declared:,} triangles, over the limit of {MAX_TRIANGLES:,}")
+    key = _cache_key(data, kind)
+    cached = _from_cache(key) if key is not None else None
+    if cached is not None:
+        return _checked(*cached, kind)
     try:
         import trimesh
     except ImportError as exc:  # pragma: no cover - the extra is part of `test`
@@ -73,6 +85,13 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
         raise MeshFileError(f"not a readable {kind.upper()} mesh ({type(exc).__name__}: {exc})"[:300]) from None
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
     triangles = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+    raw = _checked(vertices, triangles, kind)
+    if key is not None:
+        _to_cache(key, raw)
+    return raw
+
+
+def _checked(vertices: np.ndarray, triangles: np.ndarray, kind: str) -> RawMesh:
     if len(triangles) == 0:
         raise MeshFileError(f"holds no triangles (an empty mesh, or not {kind.upper()})")
     if len(triangles) > MAX_TRIANGLES:
@@ -84,6 +103,56 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
     if triangles.min() < 0 or triangles.max() >= len(vertices):
         raise MeshFileError("a triangle refers to a vertex the file does not have")
     return RawMesh(vertices, triangles)
+
+
+def _cache_key(data: bytes, kind: str) -> str | None:
+    """The file's cache name: its bytes, format, trimesh's version and this reader's; None without trimesh."""
+    from importlib import metadata
+
+    try:
+        version = metadata.version("trimesh")
+    except metadata.PackageNotFoundError:
+        return None
+    return hashlib.sha256(data + f"\0{kind}\0{version}\0{READER}".encode()).hexdigest()[:40]
+
+
+def _from_cache(key: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """A cached mesh's arrays, or None (not cached, or a cache file that is not one: it is read afresh)."""
+    from wiredsl.io.files import cache_folder
+
+    folder = cache_folder("meshes")
+    path = folder / f"{key}.npz" if folder is not None else None
+    if path is None or not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            V, F = z["vertices"], z["triangles"]
+        if V.dtype != np.float64 or F.dtype != np.int64 or V.ndim != 2 or F.ndim != 2 or V.shape[1] != 3 \
+                or F.shape[1] != 3:
+            return None
+        os.utime(path)  # recently used
+        return V, F
+    except Exception:  # a damaged or foreign file in the cache only costs a fresh read
+        return None
+
+
+def _to_cache(key: str, raw: RawMesh) -> None:
+    """Keep a mesh's arrays (written atomically; a cache that cannot be written is no error), and remove the
+    least recently used beyond CACHE_FILES."""
+    from wiredsl.io.files import cache_folder, write_atomic
+
+    folder = cache_folder("meshes")
+    if folder is None:
+        return
+    buf = io.BytesIO()
+    np.savez(buf, vertices=raw.vertices, triangles=raw.triangles)
+    try:
+        write_atomic(folder / f"{key}.npz", buf.getvalue(), tidy=False)
+        kept = sorted(folder.glob("*.npz"), key=lambda p: p.stat().st_mtime_ns, reverse=True)
+        for old in kept[CACHE_FILES:]:
+            old.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 class _NoFiles:
