@@ -505,7 +505,6 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     from wiredsl.io import emit
     from wiredsl.io.features import Manifest
     from wiredsl.io.files import json_text, output_folder, write_atomic
-    from wiredsl.io.svg import Info as svg_info
     from wiredsl.language.compile import compile_file
 
     if only_trial is not None and seed is None and study_name is None and not no_effects:
@@ -586,9 +585,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                             break
                         res = emit.disturbed_results(batch_out, k) if effects else [r for r, _, _ in batch_out]
                         if t == shown and svg and stage is not None:
-                            _write_svgs(stage, res, run, svg_info(pipeline.name if effects else None,
-                                                                  seed if effects else None, t if effects else None,
-                                                                  visibility, layout))
+                            _write_svgs(stage, res, run, pipeline.name if effects else None,
+                                        seed if effects else None, t if effects else None, visibility, layout)
                         if out_format == "jsonl":
                             for r in res:
                                 line = doc_for([r], t)
@@ -706,11 +704,13 @@ class _Null:
         return False
 
 
-def _write_svgs(folder, results, run, info) -> None:
-    """One SVG a pose of these results, in the chosen layout (disturbed over ideal when the pipeline ran)."""
+def _write_svgs(folder, results, run, *caption) -> None:
+    """One SVG a pose of these results, in the chosen layout (disturbed over ideal when the pipeline ran);
+    `caption` is the svg.Info's fields (io.svg is imported only when SVGs are written)."""
     from wiredsl.io import svg as svg_mod
     from wiredsl.io.files import write_atomic
 
+    info = svg_mod.Info(*caption)
     for name, text in svg_mod.pose_figures(run, results, info.layout, info).items():
         write_atomic(folder / name, text, tidy=False)
 
