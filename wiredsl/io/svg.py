@@ -60,6 +60,8 @@ def _f(x: float) -> str:
 
 
 def _pts(points) -> str:
+    if isinstance(points, np.ndarray):  # Python floats format several times faster than numpy scalars
+        points = points.tolist()
     return " ".join(f"{_f(x)},{_f(y)}" for x, y in points)
 
 
