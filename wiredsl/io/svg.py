@@ -182,11 +182,11 @@ def _pane(pane: Pane, world: World, x: float, y: float, w: float, clip: str, key
                                   "circle" if kind == "corner" else "line")
                 note = style if style != "kind" else "shown"
             tip = _tooltip(world, f, note)
-            P = np.column_stack([X0 + f.points[:, 0] * s, Y0 + f.points[:, 1] * s])
+            P = (f.points * s + np.array((X0, Y0), f.points.dtype)).tolist()  # as X0 + x * s, Y0 + y * s
             dash = ' stroke-dasharray="6 4"' if style == "hidden" else ""
             if f.kind == "corner":
                 dash = ' stroke-dasharray="3 2"' if dash else ""
-                out.append(f'<circle class="feature" cx="{_f(P[0, 0])}" cy="{_f(P[0, 1])}" r="4.5" fill="none" '
+                out.append(f'<circle class="feature" cx="{_f(P[0][0])}" cy="{_f(P[0][1])}" r="4.5" fill="none" '
                            f'stroke="{colour}" stroke-width="{STROKE}"{dash}>{tip}</circle>')
             else:
                 tag = "polygon" if f.closed and len(P) > 2 else "polyline"
