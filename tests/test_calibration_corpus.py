@@ -162,7 +162,7 @@ def test_a_real_stereo_files_extrinsics_place_the_right_camera(name, second_from
         "camera c {", f'camera c2 {{\n  read "{path}" entry second\n}}\ncamera c {{').replace(
         "right c at (0, -0.06, 1) looking (1, 0, 0)", f'right c2 relative "{path}"')
     scene, warnings = compile_text(text, str(tmp_path / "a.wd"))
-    R, T = cf.stereo_extrinsics(scene.rig)
+    R, T = scene.rig.stereo_extrinsics()
     tol = 1e-6 if "orbslam3" in name else 1e-9  # an inverse against a transpose (its T_c1_c2 is single precision)
     assert np.abs(R - M[:3, :3]).max() < tol and np.abs(T - M[:3, 3]).max() < tol / 10
     assert 0.05 < np.linalg.norm(T) < 0.15 and not [w for w in warnings if w.code == "W144"]

@@ -183,7 +183,7 @@ def test_a_rig_from_a_kalibr_camchain(tmp_path):
         "camera c {", "camera c1 {\n  read \"camchain.yaml\" entry second\n}\ncamera c {").replace(
         "right c at (0, -0.06, 1) looking (1, 0, 0)", 'right c1 relative "camchain.yaml"')
     scene, _ = compile_text(text, str(tmp_path / "a.wd"))
-    R, T = cf.stereo_extrinsics(scene.rig)
+    R, T = scene.rig.stereo_extrinsics()
     assert np.abs(R - R_KALIBR).max() < 1e-12 and np.abs(T - T_KALIBR).max() < 1e-12
 
 

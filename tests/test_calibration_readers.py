@@ -85,7 +85,7 @@ def test_stereo_calibs_two_files_intrinsics_and_extrinsics(tmp_path):
                'camera c2 {\n  read "intrinsics.yml" entry second\n  size (640px, 480px)\n}')
     scene, warnings = _compile(tmp_path, cameras, 'left c at (0, 0.06, 1) looking (1, 0, 0)\n'
                                                   'right c2 relative "extrinsics.yml"')
-    R_got, T_got = cf.stereo_extrinsics(scene.rig)
+    R_got, T_got = scene.rig.stereo_extrinsics()
     assert np.abs(R_got - R).max() < 1e-12 and np.abs(T_got - T.ravel()).max() < 1e-12 and not warnings
     (e,) = _error(tmp_path, 'camera c {\n  read "extrinsics.yml"\n}')
     assert e.code == "E141" and "extrinsics only" in e.message
@@ -148,12 +148,12 @@ def test_a_kalibr_chain_of_three_cameras_and_pinhole_none(tmp_path):
     # a rig of the chain's cam1 and cam2: the extrinsics between those entries
     cameras = ('camera a {\n  read "chain.yaml" entry cam1\n}\ncamera b {\n  read "chain.yaml" entry cam2\n}')
     scene, _ = _compile(tmp_path, cameras, 'left a at (0, 0.05, 1) looking (1, 0, 0)\nright b relative "chain.yaml"')
-    R, T = cf.stereo_extrinsics(scene.rig)
+    R, T = scene.rig.stereo_extrinsics()
     assert np.abs(R - T2[:3, :3]).max() < 1e-12 and np.abs(T - T2[:3, 3]).max() < 1e-12
     # and cam0 to cam2 composes the two steps
     cameras = cameras.replace("entry cam1", "entry cam0")
     scene, _ = _compile(tmp_path, cameras, 'left a at (0, 0.05, 1) looking (1, 0, 0)\nright b relative "chain.yaml"')
-    R, T = cf.stereo_extrinsics(scene.rig)
+    R, T = scene.rig.stereo_extrinsics()
     M = T2 @ T1
     assert np.abs(R - M[:3, :3]).max() < 1e-12 and np.abs(T - M[:3, 3]).max() < 1e-12
     e = _error(tmp_path, cameras.replace("entry cam0", "entry cam5"))[0]

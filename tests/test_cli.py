@@ -206,6 +206,45 @@ def test_installed_package_runs_outside_the_checkout(tmp_path):
     assert json.loads(r.stdout)["$id"] == "urn:wiredsl:schema:scene:1"
 
 
+_IMPORTED = """
+import json, sys
+from wiredsl.cli import main
+try:
+    main(sys.argv[1:], standalone_mode=False)
+except SystemExit as e:
+    if e.code:
+        raise
+print(json.dumps(sorted(sys.modules)))
+"""
+
+# Never on the lab's check or one-trial build: the optional extras, the readers of files the lab does not have,
+# and the parts of wiredsl other commands use (each costs the cold start its import; see benchmarks/cold_start.py).
+NOT_FOR_THE_LAB = {
+    "numba", "llvmlite", "scipy", "matplotlib", "trimesh", "yaml", "dask", "pygls", "jsonschema", "cv2",
+    "wiredsl.api", "wiredsl.bench", "wiredsl.lsp", "wiredsl.study", "wiredsl.measures", "wiredsl.engine.kernel",
+    "wiredsl.engine.mesh", "wiredsl.io.calibration", "wiredsl.io.trajectory", "wiredsl.io.mesh", "wiredsl.io.load",
+    "wiredsl.io.schema", "wiredsl.language.compile_study", "wiredsl.language.fmt",
+    *(f"wiredsl.effects.{e}_kernel" for e in ("approx_error", "corner_loss", "corner_mismatch", "edge_loss",
+                                               "lateral_shift", "stereo_mismatch")),
+}
+NOT_FOR_CHECK = {"orjson", "wiredsl.run", "wiredsl.engine.world", "wiredsl.engine.simulate",
+                 "wiredsl.engine.montecarlo", "wiredsl.io.emit", "wiredsl.io.features", "wiredsl.io.svg"}
+
+
+@pytest.mark.parametrize("args, absent", [
+    (["check", "scenes/lab.wd"], NOT_FOR_THE_LAB | NOT_FOR_CHECK),
+    (["build", "scenes/lab.wd", "--no-svg", "-o", "{out}"], NOT_FOR_THE_LAB | {"wiredsl.io.svg"}),
+])
+def test_the_labs_check_and_build_import_only_what_they_use(args, absent, tmp_path):
+    args = [a.format(out=tmp_path / "out") for a in args]
+    r = subprocess.run([sys.executable, "-c", _IMPORTED, *args], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    imported = set(json.loads(r.stdout.strip().splitlines()[-1]))
+    assert "wiredsl.language.compile" in imported and "pydantic.main" in imported  # the probe saw the command run
+    loaded = sorted(m for m in imported if m in absent or any(m.startswith(f"{a}.") for a in absent))
+    assert not loaded, f"`wiredsl {' '.join(args)}` imported {loaded}"
+
+
 # --------------------------------------------------------------------------- options and output folders
 
 def test_diagnostics_option_on_every_command_and_format_only_for_dumps(tmp_path):

@@ -178,6 +178,14 @@ class Rig(Node):
     right: Mount
     calibration: Calibration | None = None
 
+    def stereo_extrinsics(self):
+        """(R, T) numpy arrays from the left camera's frame to the right's, X_r = R X_l + T, from the mounts."""
+        import numpy as np
+
+        R_l, p_l = np.array(self.left.rotation), np.array(self.left.position)  # camera -> robot
+        R_r, p_r = np.array(self.right.rotation), np.array(self.right.position)
+        return R_r.T @ R_l, R_r.T @ (p_l - p_r)
+
 
 class Viewpoints(Node):
     name: str

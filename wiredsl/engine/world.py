@@ -9,11 +9,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from wiredsl.engine.mesh import Contours
 from wiredsl.scene import Scene
+
+if TYPE_CHECKING:  # engine.mesh is imported only for a scene with smooth mesh surfaces
+    from wiredsl.engine.mesh import Contours
 
 
 def _empty(shape, dtype=float) -> np.ndarray:
@@ -117,6 +120,8 @@ def build_world(scene: Scene) -> World:
             tris.append(v[F])
             tri_face.extend([len(w.face_src) - 1] * len(sf.triangles))
             if sf.contour:  # the outline of its smooth part: a feature of each view (engine/mesh.py)
+                from wiredsl.engine.mesh import Contours
+
                 w.contours.append((new_id(sf.name, "contour"), Contours.of(v, F[np.array(sf.contour)])))
     w.lines = np.array(lines, dtype=float).reshape(-1, 2, 3)
     w.line_fid = np.array(line_fid, dtype=int)

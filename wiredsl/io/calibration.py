@@ -698,7 +698,7 @@ def rig_files(scene) -> dict[str, str]:
         c = cams[getattr(rig, side).camera]
         K = np.array([[c.f * c.ax, 0, c.cx], [0, c.f * c.ay, c.cy], [0, 0, 1.0]])
         mats[side] = {"K": K, "D": distortion_vector(c), "width": c.width, "height": c.height, "model": c.distortion}
-    R, T = stereo_extrinsics(rig)
+    R, T = rig.stereo_extrinsics()
     rect: dict = {"left": {}, "right": {}}
     l, r = mats["left"], mats["right"]
     rectify = {"radtan": stereo_rectify, "equidistant": fisheye_stereo_rectify}.get(l["model"])
@@ -841,9 +841,3 @@ def distortion_vector(cam) -> np.ndarray:
     d = [cam.k1, cam.k2, cam.p1, cam.p2, cam.k3]
     return np.array(d + [cam.k4, cam.k5, cam.k6] if (cam.k4, cam.k5, cam.k6) != (0.0, 0.0, 0.0) else d)
 
-
-def stereo_extrinsics(rig) -> tuple[np.ndarray, np.ndarray]:
-    """(R, T) from the left camera's frame to the right's, X_r = R X_l + T, from the rig's mounts."""
-    R_l, p_l = np.array(rig.left.rotation), np.array(rig.left.position)  # camera -> robot
-    R_r, p_r = np.array(rig.right.rotation), np.array(rig.right.position)
-    return R_r.T @ R_l, R_r.T @ (p_l - p_r)

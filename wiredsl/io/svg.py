@@ -13,6 +13,7 @@ same input; coordinates are rounded to 0.01 units.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from html import escape
 
@@ -60,6 +61,8 @@ def _f(x: float) -> str:
 
 
 def _pts(points) -> str:
+    if isinstance(points, np.ndarray):  # Python floats format several times faster than numpy scalars
+        points = points.tolist()
     return " ".join(f"{_f(x)},{_f(y)}" for x, y in points)
 
 
@@ -179,11 +182,11 @@ def _pane(pane: Pane, world: World, x: float, y: float, w: float, clip: str, key
                                   "circle" if kind == "corner" else "line")
                 note = style if style != "kind" else "shown"
             tip = _tooltip(world, f, note)
-            P = np.column_stack([X0 + f.points[:, 0] * s, Y0 + f.points[:, 1] * s])
+            P = (f.points * s + np.array((X0, Y0), f.points.dtype)).tolist()  # as X0 + x * s, Y0 + y * s
             dash = ' stroke-dasharray="6 4"' if style == "hidden" else ""
             if f.kind == "corner":
                 dash = ' stroke-dasharray="3 2"' if dash else ""
-                out.append(f'<circle class="feature" cx="{_f(P[0, 0])}" cy="{_f(P[0, 1])}" r="4.5" fill="none" '
+                out.append(f'<circle class="feature" cx="{_f(P[0][0])}" cy="{_f(P[0][1])}" r="4.5" fill="none" '
                            f'stroke="{colour}" stroke-width="{STROKE}"{dash}>{tip}</circle>')
             else:
                 tag = "polygon" if f.closed and len(P) > 2 else "polyline"
@@ -240,9 +243,24 @@ def _fov_rays(view: View) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
-def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: float, h: float,
-         keys: Keys) -> list[str]:
-    """Top view (north up) in a fixed box: objects, view-point mesh, path, fields of view, robot."""
+@dataclass
+class TopView:
+    """The parts of the top view that are the same for every pose of a run (one scene, world and box): drawn
+    once, then each pose adds its fields of view, nearest view-point and robot."""
+
+    m: Callable[[np.ndarray], np.ndarray]  # world xy (n, 2) -> SVG coordinates (n, 2)
+    reach: float  # metres: a field of view's fan reaches past the box
+    head: list[str]  # title, box, axes, the clipped group's start
+    mesh: list[str]  # the view-point mesh's triangles
+    points: list[str]  # the view-points
+    objects: list[tuple[str, str, list[str]]]  # (placement, colour, its outlines), largest first
+    path: str
+    labels: list[str]  # the placements' names (drawn over the rest)
+    tail: list[str]  # the scale bar and the frame
+
+
+def top_view(scene: Scene, world: World, x: float, y: float, w: float, h: float) -> TopView:
+    """The static top view (north up) in a fixed box: objects, view-point mesh, path, labels."""
     foot = _footprints(world)
     pts = [p for polys in foot.values() for p in polys]
     if scene.viewpoints is not None:
@@ -263,32 +281,22 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
         p = np.atleast_2d(p)
         return np.column_stack([X0 + (p[:, 0] - xr[0]) * s, Y0 + (yr[1] - p[:, 1]) * s])
 
-    out = [_text(x, y + 16, "top view (x east, y north)"),
-           f'<rect class="axis" x="{_f(X0)}" y="{_f(Y0)}" width="{_f(bw)}" height="{_f(bh)}" fill="#ffffff"/>',
-           f'<clipPath id="clip-map"><rect x="{_f(X0)}" y="{_f(Y0)}" width="{_f(bw)}" height="{_f(bh)}"/></clipPath>']
-    out += _axes(X0, Y0, bw, bh, xr, yr, "x (m)", "y (m)", y_down=False, grid=True)[:-1]  # frame drawn last
-    out.append('<g clip-path="url(#clip-map)">')
-    # fields of view: a fan from each camera out past the box
+    head = [_text(x, y + 16, "top view (x east, y north)"),
+            f'<rect class="axis" x="{_f(X0)}" y="{_f(Y0)}" width="{_f(bw)}" height="{_f(bh)}" fill="#ffffff"/>',
+            f'<clipPath id="clip-map"><rect x="{_f(X0)}" y="{_f(Y0)}" width="{_f(bw)}" height="{_f(bh)}"/></clipPath>']
+    head += _axes(X0, Y0, bw, bh, xr, yr, "x (m)", "y (m)", y_down=False, grid=True)[:-1]  # frame drawn last
+    head.append('<g clip-path="url(#clip-map)">')
     reach = float(np.hypot(*(np.array([xr[1] - xr[0], yr[1] - yr[0]]))))
-    views = [("left", result.left)] + ([("right", result.right)] if result.right is not None else [])
-    for side, view in views:
-        colour = keys.use("top view", FOV[side], f"{side} camera's field of view", "wedge")
-        e = _eye(view)[:2]
-        fan = np.vstack([e, e + reach * _fov_rays(view), e])
-        out.append(f'<polygon class="map" points="{_pts(m(fan))}" fill="{colour}" fill-opacity="0.08" '
-                   f'stroke="{colour}" stroke-width="1.5" stroke-dasharray="5 3">'
-                   f"<title>{side} camera ({escape(view.camera.name)}): field of view</title></polygon>")
     vp = scene.viewpoints
+    mesh, points = [], []
     if vp is not None:
         P = m(np.array(vp.points, dtype=float))
-        mesh = keys.use("top view", MESH, f"view-point mesh '{vp.name}'")
         for a, b, c in vp.triangles:
-            out.append(f'<polygon class="map" points="{_pts(P[[a, b, c]])}" fill="none" stroke="{mesh}" '
-                       'stroke-width="1.3"/>')
-        keys.use("top view", MESH_POINT, "view-point", "dot")
+            mesh.append(f'<polygon class="map" points="{_pts(P[[a, b, c]])}" fill="none" stroke="{MESH}" '
+                        'stroke-width="1.3"/>')
         for name, p in zip(vp.names, P, strict=True):
-            out.append(f'<circle class="map" cx="{_f(p[0])}" cy="{_f(p[1])}" r="2.5" fill="{MESH_POINT}">'
-                       f"<title>view-point {escape(name)}</title></circle>")
+            points.append(f'<circle class="map" cx="{_f(p[0])}" cy="{_f(p[1])}" r="2.5" fill="{MESH_POINT}">'
+                          f"<title>view-point {escape(name)}</title></circle>")
     # objects, largest first, so that what lies on the room's lines is drawn over them
     def area(name):
         q = np.concatenate(foot[name])
@@ -307,12 +315,13 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
             k += 1
     labels: list[tuple[float, float, str, str, str]] = []
     placed: list[tuple[float, float, float, float]] = []
+    objects = []
     for n in order:
-        colour = keys.use("top view", colour_of[n], n)
+        colour = colour_of[n]
         width = 3.0 if n == room else 2.0
-        for poly in foot[n]:
-            out.append(f'<polyline class="map" points="{_pts(m(poly))}" fill="none" stroke="{colour}" '
-                       f'stroke-width="{width}" stroke-linecap="round"><title>{escape(n)}</title></polyline>')
+        objects.append((n, colour, [f'<polyline class="map" points="{_pts(m(poly))}" fill="none" stroke="{colour}" '
+                                    f'stroke-width="{width}" stroke-linecap="round"><title>{escape(n)}</title>'
+                                    "</polyline>" for poly in foot[n]]))
         q = m(np.concatenate(foot[n]))
         qlo, qhi = q.min(0), q.max(0)
         mid = (qlo + qhi) / 2
@@ -322,9 +331,50 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
             tries = [(mid[0], qlo[1] - 6, "middle"), (mid[0], qhi[1] + 15, "middle"),
                      (qhi[0] + 5, mid[1] + 4, "start"), (qlo[0] - 5, mid[1] + 4, "end")]
         labels.append(_place_label(n, colour, tries, placed, (X0, Y0, X0 + bw, Y0 + bh)))
-    path = keys.use("top view", PATH, f"path '{scene.path.name}'", "dash")
-    out.append(f'<polyline class="map" points="{_pts(m(np.array(scene.path.poses, dtype=float)[:, :2]))}" '
-               f'fill="none" stroke="{path}" stroke-width="1.6" stroke-dasharray="6 4"/>')
+    path = (f'<polyline class="map" points="{_pts(m(np.array(scene.path.poses, dtype=float)[:, :2]))}" '
+            f'fill="none" stroke="{PATH}" stroke-width="1.6" stroke-dasharray="6 4"/>')
+    texts = []
+    for tx, ty, anchor, n, colour in labels:  # a white halo beneath (paint-order is not drawn everywhere)
+        texts.append(_text(tx, ty, n, SMALL, anchor, ' class="axis" fill="#ffffff" stroke="#ffffff" stroke-width="4" '
+                           'stroke-linejoin="round" font-weight="bold"'))
+        texts.append(_text(tx, ty, n, SMALL, anchor, f' class="label" fill="{colour}" font-weight="bold"'))
+    tail = _scale_bar(X0 + bw, Y0 - 8, s, bw)  # in the title line: it hides nothing
+    tail.append(f'<rect class="axis" x="{_f(X0)}" y="{_f(Y0)}" width="{_f(bw)}" height="{_f(bh)}" fill="none" '
+                'stroke="#333333" stroke-width="1.2"/>')
+    return TopView(m, reach, head, mesh, points, objects, path, texts, tail)
+
+
+def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: float, h: float,
+         keys: Keys, views: dict | None = None) -> list[str]:
+    """Top view (north up) in a fixed box: objects, view-point mesh, path, fields of view, robot. `views`
+    keeps the static part (TopView) of each box drawn, for the next pose."""
+    box = (x, y, w, h)
+    tv = views.get(box) if views is not None else None
+    if tv is None:
+        tv = top_view(scene, world, *box)
+        if views is not None:
+            views[box] = tv
+    m = tv.m
+    out = list(tv.head)
+    # fields of view: a fan from each camera out past the box
+    for side, view in [("left", result.left)] + ([("right", result.right)] if result.right is not None else []):
+        colour = keys.use("top view", FOV[side], f"{side} camera's field of view", "wedge")
+        e = _eye(view)[:2]
+        fan = np.vstack([e, e + tv.reach * _fov_rays(view), e])
+        out.append(f'<polygon class="map" points="{_pts(m(fan))}" fill="{colour}" fill-opacity="0.08" '
+                   f'stroke="{colour}" stroke-width="1.5" stroke-dasharray="5 3">'
+                   f"<title>{side} camera ({escape(view.camera.name)}): field of view</title></polygon>")
+    vp = scene.viewpoints
+    if vp is not None:
+        keys.use("top view", MESH, f"view-point mesh '{vp.name}'")
+        out += tv.mesh
+        keys.use("top view", MESH_POINT, "view-point", "dot")
+        out += tv.points
+    for n, colour, outlines in tv.objects:
+        keys.use("top view", colour, n)
+        out += outlines
+    keys.use("top view", PATH, f"path '{scene.path.name}'", "dash")
+    out.append(tv.path)
     if vp is not None and result.viewpoint is not None:
         p = m(np.array(vp.points[vp.names.index(result.viewpoint)], dtype=float))[0]
         ring = keys.use("top view", NEAREST, "nearest view-point", "ring")
@@ -336,14 +386,9 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
     out.append(f'<polyline class="map" points="{_pts(tail)}" fill="none" stroke="{robot}" stroke-width="2.6"/>')
     out.append(f'<circle class="map" cx="{_f(tail[0, 0])}" cy="{_f(tail[0, 1])}" r="5" fill="{robot}">'
                f"<title>robot at pose {result.index}</title></circle>")
-    for tx, ty, anchor, n, colour in labels:  # a white halo beneath (paint-order is not drawn everywhere)
-        out.append(_text(tx, ty, n, SMALL, anchor, ' class="axis" fill="#ffffff" stroke="#ffffff" stroke-width="4" '
-                         'stroke-linejoin="round" font-weight="bold"'))
-        out.append(_text(tx, ty, n, SMALL, anchor, f' class="label" fill="{colour}" font-weight="bold"'))
+    out += tv.labels
     out.append("</g>")
-    out += _scale_bar(X0 + bw, Y0 - 8, s, bw)  # in the title line: it hides nothing
-    out.append(f'<rect class="axis" x="{_f(X0)}" y="{_f(Y0)}" width="{_f(bw)}" height="{_f(bh)}" fill="none" '
-               'stroke="#333333" stroke-width="1.2"/>')
+    out += tv.tail
     return out
 
 
@@ -432,13 +477,13 @@ def _caption(scene: Scene, result: PoseResult, info: Info) -> list[str]:
 
 
 def _compose(scene: Scene, world: World, result: PoseResult, panes: list[Pane], info: Info,
-             width: float = WIDTH) -> str:
+             width: float = WIDTH, views: dict | None = None) -> str:
     """Cells two a row: the camera panes, then the top view and the legend; the caption beneath."""
     keys = Keys()
     cw = (width - 2 * MARGIN - GAP) / 2
     cells = [_pane(pane, world, 0.0, 0.0, cw, f"clip-pane{i}", keys) for i, pane in enumerate(panes)]
     map_h = max(cells[0][1], 380.0)
-    cells.append((_map(scene, world, result, 0.0, 0.0, cw, map_h, keys), map_h))
+    cells.append((_map(scene, world, result, 0.0, 0.0, cw, map_h, keys, views), map_h))
     cells.append(_legend(keys, 0.0, 0.0, cw))  # last: it lists what the others drew
     body: list[str] = []
     y = MARGIN
@@ -468,26 +513,28 @@ def _sides(result: PoseResult) -> list[tuple[str, View]]:
 
 
 def overlay(scene: Scene, world: World, result: PoseResult, ideal: PoseResult | None = None,
-            info: Info = Info()) -> str:
+            info: Info = Info(), views: dict | None = None) -> str:
     """Figures 3 and 9 overlaid: each camera's (disturbed) features in colour over the ideal ones in grey."""
     panes = []
     for side, view in _sides(result):
         under = None if ideal is None else getattr(ideal, side)
         layers = ([(under, "ideal")] if under is not None else []) + [(view, "kind")]
         panes.append(Pane(_cam_title(scene, side), layers))
-    return _compose(scene, world, result, panes, info)
+    return _compose(scene, world, result, panes, info, views=views)
 
 
-def side_by_side(scene: Scene, world: World, result: PoseResult, ideal: PoseResult, info: Info = Info()) -> str:
+def side_by_side(scene: Scene, world: World, result: PoseResult, ideal: PoseResult, info: Info = Info(),
+                 views: dict | None = None) -> str:
     """Figure 9 side by side: each camera's original (ideal) world beside its disturbed one."""
     panes = []
     for side, view in _sides(result):
         panes.append(Pane(_cam_title(scene, side, "original"), [(getattr(ideal, side), "kind")]))
         panes.append(Pane(_cam_title(scene, side, f"disturbed ({info.pipeline})"), [(view, "disturbed")]))
-    return _compose(scene, world, result, panes, info)
+    return _compose(scene, world, result, panes, info, views=views)
 
 
-def visibility_pair(scene: Scene, world: World, without: PoseResult, with_: PoseResult, info: Info = Info()) -> str:
+def visibility_pair(scene: Scene, world: World, without: PoseResult, with_: PoseResult, info: Info = Info(),
+                    views: dict | None = None) -> str:
     """Figure 4: the left camera without view-dependency (what it hides dashed) and with it."""
     kept = {f.fid for f in with_.left.features}
     hidden = View(without.left.camera, without.left.R_cw, without.left.t_cw,
@@ -496,7 +543,7 @@ def visibility_pair(scene: Scene, world: World, without: PoseResult, with_: Pose
                  [f for f in without.left.features if f.fid in kept])
     panes = [Pane(_cam_title(scene, "left", "without view-dependency"), [(shown, "kind"), (hidden, "hidden")]),
              Pane(_cam_title(scene, "left", f"with view-dependency ({info.visibility})"), [(with_.left, "kind")])]
-    return _compose(scene, world, with_, panes, info)
+    return _compose(scene, world, with_, panes, info, views=views)
 
 
 def pose_figures(run, results: list[PoseResult], layout: str, info: Info) -> dict[str, str]:
@@ -506,16 +553,17 @@ def pose_figures(run, results: list[PoseResult], layout: str, info: Info) -> dic
     from wiredsl.engine.simulate import simulate
 
     ideal = {r.index: r for r in run.ideal()} if run.stages else {}
-    out = {}
+    out: dict[str, str] = {}
+    views: dict = {}  # the top view's static part, drawn once for all poses
     if layout == "visibility":
         everything = {r.index: r for r in simulate(run.scene, replace(run.options, visibility="all"), run.world)}
         for r in run.ideal():
-            out[f"pose_{r.index:03d}.svg"] = visibility_pair(run.scene, run.world, everything[r.index], r, info)
+            out[f"pose_{r.index:03d}.svg"] = visibility_pair(run.scene, run.world, everything[r.index], r, info, views)
         return out
     for r in results:
         if layout == "side-by-side":
-            text = side_by_side(run.scene, run.world, r, ideal.get(r.index, r), info)
+            text = side_by_side(run.scene, run.world, r, ideal.get(r.index, r), info, views)
         else:
-            text = overlay(run.scene, run.world, r, ideal.get(r.index), info)
+            text = overlay(run.scene, run.world, r, ideal.get(r.index), info, views)
         out[f"pose_{r.index:03d}.svg"] = text
     return out

@@ -792,6 +792,8 @@ class Compiler(CameraCompiler):
         self._declare(self.pipelines, "pipeline", b.name, b.name_span, pipeline)
 
     def _studies(self, path: Path | None) -> list:
+        if not self.study_stmts:
+            return []
         from wiredsl.language.compile_study import compile_study
 
         pipelines = {name: d.value for name, d in self.pipelines.items()}

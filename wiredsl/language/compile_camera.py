@@ -440,9 +440,7 @@ class CameraCompiler:
 
     def _check_stereo(self, rig: Rig, span: Span) -> None:
         """Warnings for a rig that is probably not what was meant: a baseline in millimetres, sides swapped."""
-        from wiredsl.io.calibration import stereo_extrinsics
-
-        _, T = stereo_extrinsics(rig)
+        _, T = rig.stereo_extrinsics()
         relative = getattr(self, "relative_file", None)
         where = f" (from {relative})" if relative else ""
         if np.linalg.norm(T) > STEREO_BASELINE:
