@@ -275,7 +275,7 @@ class CameraCompiler:
             reach = radius(math.tan(angle)) if angle < math.pi / 2 else math.inf
             if corner <= reach:
                 lo, hi = 0.0, math.tan(angle) if angle < math.pi / 2 else corner * 1e6
-                for _ in range(200):  # the unit-plane radius imaged at the corner (radius rises to the fold)
+                for _ in range(64):  # the unit-plane radius imaged at the corner (radius rises to the fold)
                     mid = 0.5 * (lo + hi)
                     lo, hi = (mid, hi) if radius(mid) < corner else (lo, mid)
                 scale = corner / hi if hi > 0 else 1.0
