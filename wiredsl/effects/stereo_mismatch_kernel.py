@@ -8,26 +8,26 @@ import math
 import numpy as np
 from numba import njit
 
-from wiredsl.engine.kernel import CLOSED, FRAG, _arcs, _keep, _total_length, _uniform, _unroll
+from wiredsl.engine.kernel import CLIP, CLOSED, FRAG, _arcs, _keep, _pieces, _total_length, _uniform, _unroll
 
 
-@njit(cache=True)
-def _epi_dir(x, y, e):
-    dx = x * e[2] - e[0]
-    dy = y * e[2] - e[1]
+@njit(cache=True, inline="always")
+def _epi_dir(x, y, e0, e1, e2):
+    dx = x * e2 - e0
+    dy = y * e2 - e1
     n = math.sqrt(dx * dx + dy * dy)
     if n > 0:
         return dx / n, dy / n
     return 1.0, 0.0
 
 
-@njit(cache=True)
-def _in_band(ax, ay, bx, by, e, tanb, everything):
-    """stereo_mismatch.in_band for one segment."""
+@njit(cache=True, inline="always")
+def _in_band(ax, ay, bx, by, e0, e1, e2, tanb, everything):
+    """stereo_mismatch.in_band for one segment (the epipole e0, e1, e2 as scalars: no array per call)."""
     if everything:
         return True
-    lx = (ax + bx) / 2 * e[2] - e[0]
-    ly = (ay + by) / 2 * e[2] - e[1]
+    lx = (ax + bx) / 2 * e2 - e0
+    ly = (ay + by) / 2 * e2 - e1
     if lx == 0 and ly == 0:
         lx, ly = 1.0, 0.0
     dx, dy = bx - ax, by - ay
@@ -36,35 +36,39 @@ def _in_band(ax, ay, bx, by, e, tanb, everything):
 
 @njit(cache=True)
 def _drop_band(pts, start, meta, e, band):
-    """stereo_mismatch._drop_band. Each segment's angle is computed once: slot start[k] + i holds segment
-    i of stroke k, the last slot of a closed stroke its closing segment (an unrolled loop reuses them)."""
+    """stereo_mismatch._drop_band, and whether it cut anything (if not, the strokes are returned as they are).
+    Each segment's angle is computed once: slot start[k] + i holds segment i of stroke k, the last slot of a
+    closed stroke its closing segment (an unrolled loop reuses them)."""
     S = len(start) - 1
     everything = band >= math.pi / 2
+    e0, e1, e2 = e[0], e[1], e[2]
     tanb = math.tan(band) if not everything else 0.0
     inside = np.zeros(len(pts), np.bool_)
     cut_loop = np.zeros(S, np.bool_)
     intact = np.zeros(S, np.bool_)
+    any_hit, verbatim = False, True
     for k in range(S):
         a, b = start[k], start[k + 1]
         hit = False
         for i in range(a, b - 1):
-            inside[i] = _in_band(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1], e, tanb, everything)
+            inside[i] = _in_band(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1], e0, e1, e2, tanb, everything)
             hit = hit or inside[i]
         if meta[k, CLOSED] != 0:
             if b - a > 1:
-                inside[b - 1] = _in_band(pts[b - 1, 0], pts[b - 1, 1], pts[a, 0], pts[a, 1], e, tanb, everything)
+                inside[b - 1] = _in_band(pts[b - 1, 0], pts[b - 1, 1], pts[a, 0], pts[a, 1], e0, e1, e2, tanb,
+                                         everything)
                 hit = hit or inside[b - 1]
             cut_loop[k] = hit
             intact[k] = not hit
+        any_hit = any_hit or hit
+        # (an open stroke of fewer than 2 vertices is dropped; metadata is rewritten as 0 or 1)
+        verbatim = verbatim and (meta[k, CLOSED] != 0 or b - a >= 2) and 0 <= meta[k, CLOSED] <= 1 \
+            and 0 <= meta[k, CLIP] <= 1
+    if verbatim and not any_hit:  # nothing to drop: what the cut below would give, verbatim
+        return pts, start, meta, False
     upts, ustart, umeta = _unroll(pts, start, meta, cut_loop)
     arc, uL = _arcs(upts, ustart)
-    n_max = len(upts) + S
-    ps = np.empty(n_max, np.int64)
-    pa = np.empty(n_max)
-    pb = np.empty(n_max)
-    pf = np.zeros(n_max, np.int64)
-    pc = np.zeros(n_max, np.int64)
-    pw = np.zeros(n_max, np.bool_)
+    ps, pa, pb, pf, pc, pcut, pw = _pieces(len(upts) + S)
     q = 0
     for k in range(S):
         a, b = ustart[k], ustart[k + 1]
@@ -95,18 +99,20 @@ def _drop_band(pts, start, meta, e, band):
                     pw[q], pf[q] = True, umeta[k, FRAG]
                 q += 1
                 run = -1
-    return _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, np.zeros(q, np.int64), pw, q)
+    out, ostart, ometa = _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, pcut, pw, q)
+    return out, ostart, ometa, True
 
 
 @njit(cache=True)
 def stage(pts, start, meta, corners, cfid, key, params, e, right, st):
     band, fraction, disparity = params[0], params[1], params[2]
-    st[0] += _total_length(pts, start)
+    before = _total_length(pts, start)
+    st[0] += before
     if band > 0 and len(start) > 1:
-        pts, start, meta = _drop_band(pts, start, meta, e, band)
-        st[1] += _total_length(pts, start)
+        pts, start, meta, cut = _drop_band(pts, start, meta, e, band)
+        st[1] += _total_length(pts, start) if cut else before
     else:
-        st[1] += _total_length(pts, start)
+        st[1] += before
     if not right or fraction == 0 or disparity == 0:
         return pts, start, meta, corners, cfid
     out = pts.copy()
@@ -121,7 +127,7 @@ def stage(pts, start, meta, corners, cfid, key, params, e, right, st):
             my += pts[i, 1]
         mx /= b - a
         my /= b - a
-        dx, dy = _epi_dir(mx, my, e)
+        dx, dy = _epi_dir(mx, my, e[0], e[1], e[2])
         for i in range(a, b):
             out[i, 0] = pts[i, 0] + shift * dx
             out[i, 1] = pts[i, 1] + shift * dy
