@@ -11,7 +11,7 @@ from numba import njit
 from wiredsl.engine.kernel import CLOSED, ELLIPSE, FRAG, KIND, _arcs, _keep, _pieces, _uniform, _unroll
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _crossing(arc, i, t):
     """lateral_shift._crossing: the arc length at fraction t of segment i, snapped to a vertex within 1e-9 px."""
     seg = arc[i + 1] - arc[i]

@@ -11,7 +11,7 @@ from numba import njit
 from wiredsl.engine.kernel import CLIP, CLOSED, FRAG, _arcs, _keep, _pieces, _total_length, _uniform, _unroll
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _epi_dir(x, y, e0, e1, e2):
     dx = x * e2 - e0
     dy = y * e2 - e1
@@ -21,7 +21,7 @@ def _epi_dir(x, y, e0, e1, e2):
     return 1.0, 0.0
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _in_band(ax, ay, bx, by, e0, e1, e2, tanb, everything):
     """stereo_mismatch.in_band for one segment (the epipole e0, e1, e2 as scalars: no array per call)."""
     if everything:

@@ -41,7 +41,7 @@ _TWO = np.uint64(2)
 
 # ----------------------------------------------------------------------------- keyed draws
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _bits(key, index):
     z = key + (np.uint64(index) + _ONE) * _GOLDEN
     z = (z ^ (z >> _S30)) * _M1
@@ -49,12 +49,12 @@ def _bits(key, index):
     return z ^ (z >> _S31)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _uniform(key, index):
     return np.float64(_bits(key, index) >> _S11) * 2.0**-53
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _normal_pair(key, pair):
     """Normals 2 pair and 2 pair + 1 of a key (base.keyed_normal)."""
     u1 = _uniform(key, _TWO * np.uint64(pair))
@@ -100,7 +100,7 @@ def _total_length(pts, start):
     return total
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _point_at(pts, arc, first, last, after, target, out, o):
     """The point at arc length target of the stroke [first, last] into out[o]; after is the first vertex of the
     stroke with arc > target (last + 1 if none), which the caller has at hand."""
@@ -212,7 +212,7 @@ def _unroll(pts, start, meta, which):
 
 # ----------------------------------------------------------------------------- cameras and the image
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _within(r2, x, y, limit):
     """hypot(x, y) < limit, with r2 = x * x + y * y: decided on the squares, and by hypot itself only within
     1e-12 of the limit (the squares' rounding is far below that), so the decision is hypot's exactly."""
@@ -293,7 +293,7 @@ def _keep_vertex_runs(pts, start, meta, ok):
     return _keep(pts, start, meta, arc, L, ps, pa, pb, pf, pc, pcut, pw, q)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _inside(pts, a, b, width, height):
     """Whether vertices a..b-1 are all inside the image."""
     for i in range(a, b):
@@ -302,7 +302,7 @@ def _inside(pts, a, b, width, height):
     return True
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _liang_barsky(ax, ay, bx, by, width, height):
     dx, dy = bx - ax, by - ay
     t0, t1, keep = 0.0, 1.0, True
@@ -364,14 +364,14 @@ def _clip_rect(pts, start, meta, width, height):
     return _keep(pts, start, meta, arc, L, ps, pa, pb, pf, pc, pcut, pw, q)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _dist(pts, i, j):
     dx = pts[j, 0] - pts[i, 0]
     dy = pts[j, 1] - pts[i, 1]
     return math.sqrt(dx * dx + dy * dy)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _clip_part(k, a, b, j, t0, e, t1, arc, pts, seg_e, meta, ps, pa, pb, pf, pc, pcut, pw, q):
     dxj = pts[j + 1, 0] - pts[j, 0]
     dyj = pts[j + 1, 1] - pts[j, 1]
