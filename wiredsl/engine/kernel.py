@@ -349,17 +349,18 @@ def _clip_rect(pts, start, meta, width, height):
             keep = keep and t1 > t0
             joins = open_run and keep and prev_keep and prev_t1 >= 1 and t0 <= 0 and i > a
             if open_run and not joins:  # close the run that ended at pair i - 1
-                seg = _dist(pts, i - 1, i)
-                _clip_part(k, a, b, ja, t0a, i - 1, prev_t1, arc, pts, seg, meta, ps, pa, pb, pf, pc, pcut, pw, q)
+                pa[q], pb[q], whole = _clip_part(pts, arc, a, b, ja, t0a, i - 1, prev_t1)
+                ps[q], pw[q] = k, whole
+                pf[q], pc[q], pcut[q] = _part_meta(meta[k, FRAG], meta[k, CLOSED], whole)
                 q += 1
                 open_run = False
             if keep and not open_run:
                 open_run, ja, t0a = True, i, t0
             prev_keep, prev_t1 = keep, t1
         if open_run:
-            i = b - 1
-            seg = _dist(pts, i - 1, i)
-            _clip_part(k, a, b, ja, t0a, i - 1, prev_t1, arc, pts, seg, meta, ps, pa, pb, pf, pc, pcut, pw, q)
+            pa[q], pb[q], whole = _clip_part(pts, arc, a, b, ja, t0a, b - 2, prev_t1)
+            ps[q], pw[q] = k, whole
+            pf[q], pc[q], pcut[q] = _part_meta(meta[k, FRAG], meta[k, CLOSED], whole)
             q += 1
     return _keep(pts, start, meta, arc, L, ps, pa, pb, pf, pc, pcut, pw, q)
 
@@ -372,18 +373,18 @@ def _dist(pts, i, j):
 
 
 @njit(cache=True)
-def _clip_part(k, a, b, j, t0, e, t1, arc, pts, seg_e, meta, ps, pa, pb, pf, pc, pcut, pw, q):
-    dxj = pts[j + 1, 0] - pts[j, 0]
-    dyj = pts[j + 1, 1] - pts[j, 1]
-    seg_j = math.sqrt(dxj * dxj + dyj * dyj)
+def _clip_part(pts, arc, a, b, j, t0, e, t1):
+    """The run of kept pairs j..e of stroke [a, b) (entering pair j at t0, leaving pair e at t1): its start and end
+    arc lengths, and whether it is the whole stroke. (Scalars out, not writes into the pieces: a call that is
+    handed arrays to write pays their reference counts, each time.)"""
     whole = j == a and t0 <= 0 and e == b - 2 and t1 >= 1
-    ps[q] = k
-    pa[q] = arc[j] + t0 * seg_j
-    pb[q] = arc[e] + t1 * seg_e
-    pw[q] = whole
-    pf[q] = meta[k, FRAG] if whole else max(meta[k, FRAG], 0)
-    pc[q] = meta[k, CLOSED] if whole else 0
-    pcut[q] = 0 if whole else 1
+    return arc[j] + t0 * _dist(pts, j, j + 1), arc[e] + t1 * _dist(pts, e, e + 1), whole
+
+
+@njit(cache=True)
+def _part_meta(frag, closed, whole):
+    """A clipped run's fragment, closed and cut columns."""
+    return (frag, closed, 0) if whole else (max(frag, 0), 0, 1)
 
 
 # ----------------------------------------------------------------------------- one view of a batch
