@@ -8,7 +8,7 @@ import math
 import numpy as np
 from numba import njit
 
-from wiredsl.engine.kernel import CLIP, CLOSED, FRAG, _arcs, _keep, _pieces, _total_length, _uniform, _unroll
+from wiredsl.engine.kernel import CLOSED, FRAG, _arcs, _keep, _pieces, _total_length, _uniform, _unroll
 
 
 @njit(cache=True)
@@ -23,7 +23,8 @@ def _epi_dir(x, y, e0, e1, e2):
 
 @njit(cache=True)
 def _in_band(ax, ay, bx, by, e0, e1, e2, tanb, everything):
-    """stereo_mismatch.in_band for one segment (the epipole e0, e1, e2 as scalars: no array per call)."""
+    """stereo_mismatch.in_band for one segment (the epipole as scalars: a call handed an array may pay its
+    reference count each time)."""
     if everything:
         return True
     lx = (ax + bx) / 2 * e2 - e0
@@ -36,9 +37,8 @@ def _in_band(ax, ay, bx, by, e0, e1, e2, tanb, everything):
 
 @njit(cache=True)
 def _drop_band(pts, start, meta, e, band):
-    """stereo_mismatch._drop_band, and whether it cut anything (if not, the strokes are returned as they are).
-    Each segment's angle is computed once: slot start[k] + i holds segment i of stroke k, the last slot of a
-    closed stroke its closing segment (an unrolled loop reuses them)."""
+    """stereo_mismatch._drop_band. Each segment's angle is computed once: slot start[k] + i holds segment
+    i of stroke k, the last slot of a closed stroke its closing segment (an unrolled loop reuses them)."""
     S = len(start) - 1
     everything = band >= math.pi / 2
     e0, e1, e2 = e[0], e[1], e[2]
@@ -46,7 +46,6 @@ def _drop_band(pts, start, meta, e, band):
     inside = np.zeros(len(pts), np.bool_)
     cut_loop = np.zeros(S, np.bool_)
     intact = np.zeros(S, np.bool_)
-    any_hit, verbatim = False, True
     for k in range(S):
         a, b = start[k], start[k + 1]
         hit = False
@@ -60,12 +59,6 @@ def _drop_band(pts, start, meta, e, band):
                 hit = hit or inside[b - 1]
             cut_loop[k] = hit
             intact[k] = not hit
-        any_hit = any_hit or hit
-        # (an open stroke of fewer than 2 vertices is dropped; metadata is rewritten as 0 or 1)
-        verbatim = verbatim and (meta[k, CLOSED] != 0 or b - a >= 2) and 0 <= meta[k, CLOSED] <= 1 \
-            and 0 <= meta[k, CLIP] <= 1
-    if verbatim and not any_hit:  # nothing to drop: what the cut below would give, verbatim
-        return pts, start, meta, False
     upts, ustart, umeta = _unroll(pts, start, meta, cut_loop)
     arc, uL = _arcs(upts, ustart)
     ps, pa, pb, pf, pc, pcut, pw = _pieces(len(upts) + S)
@@ -99,8 +92,7 @@ def _drop_band(pts, start, meta, e, band):
                     pw[q], pf[q] = True, umeta[k, FRAG]
                 q += 1
                 run = -1
-    out, ostart, ometa = _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, pcut, pw, q)
-    return out, ostart, ometa, True
+    return _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, pcut, pw, q)
 
 
 @njit(cache=True)
@@ -109,8 +101,8 @@ def stage(pts, start, meta, corners, cfid, key, params, e, right, st):
     before = _total_length(pts, start)
     st[0] += before
     if band > 0 and len(start) > 1:
-        pts, start, meta, cut = _drop_band(pts, start, meta, e, band)
-        st[1] += _total_length(pts, start) if cut else before
+        pts, start, meta = _drop_band(pts, start, meta, e, band)
+        st[1] += _total_length(pts, start)
     else:
         st[1] += before
     if not right or fraction == 0 or disparity == 0:
