@@ -113,3 +113,28 @@ def test_a_stage_without_a_kernel_runs_the_whole_pipeline_on_numpy():
     batches(run, "kernel", range(4))
     assert run.manifest()["engine"] == "numpy" and run.manifest()["engines"] == {"edge_loss": "numpy",
                                                                                  "lateral_shift": "numpy"}
+
+
+def test_the_fold_test_on_squares_decides_as_hypot_does_at_the_limit():
+    """The kernel's lens-limit test compares x^2 + y^2 with limit^2 and asks hypot only near the limit: its
+    decision is math.hypot(x, y) < limit's on points at and around the limit (within a few ulps of it, where
+    the squares' rounding could flip a naive comparison), far inside and outside it, and for inf and NaN."""
+    import math
+
+    from wiredsl.engine.kernel import _within
+
+    rng = np.random.default_rng(3)
+    cases = 0
+    for limit in (1e-3, 0.7, 1.0, math.sqrt(2.0), 3.7, 1e3, math.inf):
+        for theta in rng.uniform(0, 2 * math.pi, 40):
+            c, s = math.cos(theta), math.sin(theta)
+            for r in [limit, 0.5 * limit, 2 * limit] + [math.nextafter(limit, 0) * (1 + k * 2.0**-52)
+                                                        for k in range(-4, 5)]:
+                x, y = r * c, r * s
+                if not (math.isfinite(x) and math.isfinite(y)):
+                    continue
+                assert _within(x * x + y * y, x, y, limit) == (math.hypot(x, y) < limit), (limit, x, y)
+                cases += 1
+    for x, y in ((math.inf, 0.0), (math.nan, 1.0), (0.0, 0.0), (1e200, 1e200), (1e-200, 0.0)):
+        assert _within(x * x + y * y, x, y, 1.0) == (math.hypot(x, y) < 1.0)
+    assert cases > 2000

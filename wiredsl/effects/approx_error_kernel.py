@@ -13,11 +13,13 @@ from wiredsl.engine.kernel import _normal_pair
 def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
     sigma = params[0]
     out = np.empty_like(pts)
+    count, sq = st[0], st[1]  # (summed in the same order as into st: the statistics are unchanged)
     for v in range(len(pts)):
         gx, gy = _normal_pair(key, v)
         nx, ny = sigma * gx, sigma * gy
         out[v, 0] = pts[v, 0] + nx
         out[v, 1] = pts[v, 1] + ny
-        st[0] += 2
-        st[1] += nx * nx + ny * ny
+        count += 2
+        sq += nx * nx + ny * ny
+    st[0], st[1] = count, sq
     return out, start, meta, corners, cfid

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from wiredsl.engine.kernel import CLOSED, _arcs, _keep, _total_length, _uniform, _unroll
+from wiredsl.engine.kernel import CLOSED, _arcs, _keep, _pieces, _total_length, _uniform, _unroll
 
 
 @njit(cache=True)
@@ -19,11 +19,7 @@ def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
     n = 0
     for k in range(S):
         n += 1 if closed[k] else 2
-    ps = np.empty(n, np.int64)
-    pa = np.empty(n)
-    pb = np.empty(n)
-    pf = np.zeros(n, np.int64)
-    zeros = np.zeros(n, np.int64)
+    ps, pa, pb, pf, pc, pcut, pw = _pieces(n)
     q = 0
     for k in range(S):
         L = Lu[k] / 2 if closed[k] else Lu[k]
@@ -38,6 +34,6 @@ def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
             ps[q], pa[q], pb[q] = k, 0.0, g0
             ps[q + 1], pa[q + 1], pb[q + 1], pf[q + 1] = k, g0 + gap, L, 1
             q += 2
-    out = _keep(upts, ustart, umeta, arc, Lu, ps, pa, pb, pf, zeros, zeros, np.zeros(n, np.bool_), n)
+    out = _keep(upts, ustart, umeta, arc, Lu, ps, pa, pb, pf, pc, pcut, pw, n)
     st[1] += _total_length(out[0], out[1])
     return out[0], out[1], out[2], corners, cfid

@@ -8,7 +8,7 @@ import math
 import numpy as np
 from numba import njit
 
-from wiredsl.engine.kernel import CLOSED, ELLIPSE, FRAG, KIND, _arcs, _keep, _uniform, _unroll
+from wiredsl.engine.kernel import CLOSED, ELLIPSE, FRAG, KIND, _arcs, _keep, _pieces, _uniform, _unroll
 
 
 @njit(cache=True)
@@ -34,6 +34,7 @@ def _split_ellipses(pts, start, meta):
     arc, Lu = _arcs(upts, ustart)
     crossings = np.empty(len(upts))
     second = np.empty(len(upts))  # each crossing's point on a loop's second lap
+    seg = np.empty(len(upts))  # segment lengths (the moments' weights)
     ccount = np.zeros(S, np.int64)
     coff = np.zeros(S + 1, np.int64)
     for k in range(S):
@@ -47,6 +48,7 @@ def _split_ellipses(pts, start, meta):
             dx = upts[i + 1, 0] - upts[i, 0]
             dy = upts[i + 1, 1] - upts[i, 1]
             w = math.sqrt(dx * dx + dy * dy)
+            seg[i] = w
             tot += w
             cx += w * ((upts[i, 0] + upts[i + 1, 0]) / 2)
             cy += w * ((upts[i, 1] + upts[i + 1, 1]) / 2)
@@ -55,9 +57,7 @@ def _split_ellipses(pts, start, meta):
         cy /= tot
         sxx, sxy, syy = 0.0, 0.0, 0.0
         for i in range(a, b - 1):
-            dx = upts[i + 1, 0] - upts[i, 0]
-            dy = upts[i + 1, 1] - upts[i, 1]
-            w = math.sqrt(dx * dx + dy * dy)
+            w = seg[i]
             mx = (upts[i, 0] + upts[i + 1, 0]) / 2 - cx
             my = (upts[i, 1] + upts[i + 1, 1]) / 2 - cy
             sxx += w * (mx * mx)
@@ -80,12 +80,7 @@ def _split_ellipses(pts, start, meta):
     n = 0
     for k in range(S):
         n += 2 if halves[k] else (ccount[k] + 1 if (not closed[k] and ccount[k] > 0) else 1)
-    ps = np.empty(n, np.int64)
-    pa = np.zeros(n)
-    pb = np.zeros(n)
-    pf = np.zeros(n, np.int64)
-    pc = np.zeros(n, np.int64)
-    pw = np.zeros(n, np.bool_)
+    ps, pa, pb, pf, pc, pcut, pw = _pieces(n)
     q = 0
     for k in range(S):
         L = Lu[k] / 2 if closed[k] else Lu[k]
@@ -104,10 +99,10 @@ def _split_ellipses(pts, start, meta):
             ps[q], pf[q], pc[q], pw[q] = k, meta[k, FRAG], meta[k, CLOSED], True
             q += 1
     if (halves == closed).all():  # every loop is cut into halves: the unrolled strokes are the ones to cut
-        return _keep(upts, ustart, umeta, arc, Lu, ps, pa, pb, pf, pc, np.zeros(n, np.int64), pw, n)
+        return _keep(upts, ustart, umeta, arc, Lu, ps, pa, pb, pf, pc, pcut, pw, n)
     vpts, vstart, vmeta = _unroll(pts, start, meta, halves)
     varc, vL = _arcs(vpts, vstart)
-    return _keep(vpts, vstart, vmeta, varc, vL, ps, pa, pb, pf, pc, np.zeros(n, np.int64), pw, n)
+    return _keep(vpts, vstart, vmeta, varc, vL, ps, pa, pb, pf, pc, pcut, pw, n)
 
 
 @njit(cache=True)
@@ -123,20 +118,21 @@ def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
         st[1] += abs(d)
         st[2] = max(st[2], abs(d))
         a, b = start[k], start[k + 1]
+        # each step's unit vector is computed once: the step to vertex i + 1 is the step from vertex i of the next
+        bx, by, back = 0.0, 0.0, False
         for i in range(a, b):
             tx, ty = 0.0, 0.0
+            fx, fy, ahead = 0.0, 0.0, False
             if i + 1 < b:  # the step to the next vertex
                 dx = pts[i + 1, 0] - pts[i, 0]
                 dy = pts[i + 1, 1] - pts[i, 1]
                 ln = math.sqrt(dx * dx + dy * dy)
                 if ln > 0:
-                    tx, ty = 0.0 + dx / ln, 0.0 + dy / ln
-            if i > a:  # the step from the previous one
-                dx = pts[i, 0] - pts[i - 1, 0]
-                dy = pts[i, 1] - pts[i - 1, 1]
-                ln = math.sqrt(dx * dx + dy * dy)
-                if ln > 0:
-                    tx, ty = tx + dx / ln, ty + dy / ln
+                    fx, fy, ahead = dx / ln, dy / ln, True
+                    tx, ty = 0.0 + fx, 0.0 + fy
+            if back:  # the step from the previous one
+                tx, ty = tx + bx, ty + by
+            bx, by, back = fx, fy, ahead
             nrm = math.sqrt(tx * tx + ty * ty)
             if nrm > 0:
                 tx, ty = tx / nrm, ty / nrm

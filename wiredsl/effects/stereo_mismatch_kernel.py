@@ -8,13 +8,13 @@ import math
 import numpy as np
 from numba import njit
 
-from wiredsl.engine.kernel import CLOSED, FRAG, _arcs, _keep, _total_length, _uniform, _unroll
+from wiredsl.engine.kernel import CLOSED, FRAG, _arcs, _keep, _pieces, _total_length, _uniform, _unroll
 
 
 @njit(cache=True)
-def _epi_dir(x, y, e):
-    dx = x * e[2] - e[0]
-    dy = y * e[2] - e[1]
+def _epi_dir(x, y, e0, e1, e2):
+    dx = x * e2 - e0
+    dy = y * e2 - e1
     n = math.sqrt(dx * dx + dy * dy)
     if n > 0:
         return dx / n, dy / n
@@ -22,12 +22,13 @@ def _epi_dir(x, y, e):
 
 
 @njit(cache=True)
-def _in_band(ax, ay, bx, by, e, tanb, everything):
-    """stereo_mismatch.in_band for one segment."""
+def _in_band(ax, ay, bx, by, e0, e1, e2, tanb, everything):
+    """stereo_mismatch.in_band for one segment (the epipole as scalars: a call handed an array may pay its
+    reference count each time)."""
     if everything:
         return True
-    lx = (ax + bx) / 2 * e[2] - e[0]
-    ly = (ay + by) / 2 * e[2] - e[1]
+    lx = (ax + bx) / 2 * e2 - e0
+    ly = (ay + by) / 2 * e2 - e1
     if lx == 0 and ly == 0:
         lx, ly = 1.0, 0.0
     dx, dy = bx - ax, by - ay
@@ -40,6 +41,7 @@ def _drop_band(pts, start, meta, e, band):
     i of stroke k, the last slot of a closed stroke its closing segment (an unrolled loop reuses them)."""
     S = len(start) - 1
     everything = band >= math.pi / 2
+    e0, e1, e2 = e[0], e[1], e[2]
     tanb = math.tan(band) if not everything else 0.0
     inside = np.zeros(len(pts), np.bool_)
     cut_loop = np.zeros(S, np.bool_)
@@ -48,23 +50,18 @@ def _drop_band(pts, start, meta, e, band):
         a, b = start[k], start[k + 1]
         hit = False
         for i in range(a, b - 1):
-            inside[i] = _in_band(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1], e, tanb, everything)
+            inside[i] = _in_band(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1], e0, e1, e2, tanb, everything)
             hit = hit or inside[i]
         if meta[k, CLOSED] != 0:
             if b - a > 1:
-                inside[b - 1] = _in_band(pts[b - 1, 0], pts[b - 1, 1], pts[a, 0], pts[a, 1], e, tanb, everything)
+                inside[b - 1] = _in_band(pts[b - 1, 0], pts[b - 1, 1], pts[a, 0], pts[a, 1], e0, e1, e2, tanb,
+                                         everything)
                 hit = hit or inside[b - 1]
             cut_loop[k] = hit
             intact[k] = not hit
     upts, ustart, umeta = _unroll(pts, start, meta, cut_loop)
     arc, uL = _arcs(upts, ustart)
-    n_max = len(upts) + S
-    ps = np.empty(n_max, np.int64)
-    pa = np.empty(n_max)
-    pb = np.empty(n_max)
-    pf = np.zeros(n_max, np.int64)
-    pc = np.zeros(n_max, np.int64)
-    pw = np.zeros(n_max, np.bool_)
+    ps, pa, pb, pf, pc, pcut, pw = _pieces(len(upts) + S)
     q = 0
     for k in range(S):
         a, b = ustart[k], ustart[k + 1]
@@ -95,18 +92,19 @@ def _drop_band(pts, start, meta, e, band):
                     pw[q], pf[q] = True, umeta[k, FRAG]
                 q += 1
                 run = -1
-    return _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, np.zeros(q, np.int64), pw, q)
+    return _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, pcut, pw, q)
 
 
 @njit(cache=True)
 def stage(pts, start, meta, corners, cfid, key, params, e, right, st):
     band, fraction, disparity = params[0], params[1], params[2]
-    st[0] += _total_length(pts, start)
+    before = _total_length(pts, start)
+    st[0] += before
     if band > 0 and len(start) > 1:
         pts, start, meta = _drop_band(pts, start, meta, e, band)
         st[1] += _total_length(pts, start)
     else:
-        st[1] += _total_length(pts, start)
+        st[1] += before
     if not right or fraction == 0 or disparity == 0:
         return pts, start, meta, corners, cfid
     out = pts.copy()
@@ -121,7 +119,7 @@ def stage(pts, start, meta, corners, cfid, key, params, e, right, st):
             my += pts[i, 1]
         mx /= b - a
         my /= b - a
-        dx, dy = _epi_dir(mx, my, e)
+        dx, dy = _epi_dir(mx, my, e[0], e[1], e[2])
         for i in range(a, b):
             out[i, 0] = pts[i, 0] + shift * dx
             out[i, 1] = pts[i, 1] + shift * dy

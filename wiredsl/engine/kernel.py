@@ -101,32 +101,10 @@ def _total_length(pts, start):
 
 
 @njit(cache=True)
-def _after(arc, lo, hi, x):
-    """First index in [lo, hi) with arc > x (hi if none)."""
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if arc[mid] <= x:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
-@njit(cache=True)
-def _at_or_after(arc, lo, hi, x):
-    """First index in [lo, hi) with arc >= x (hi if none)."""
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if arc[mid] < x:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
-@njit(cache=True)
-def _point_at(pts, arc, first, last, target, out, o):
-    j = _after(arc, first, last + 1, target) - 1
+def _point_at(pts, arc, first, last, after, target, out, o):
+    """The point at arc length target of the stroke [first, last] into out[o]; after is the first vertex of the
+    stroke with arc > target (last + 1 if none), which the caller has at hand."""
+    j = after - 1
     top = max(last - 1, first)
     j = min(max(j, first), top)
     j1 = min(j + 1, last)
@@ -140,11 +118,8 @@ def _point_at(pts, arc, first, last, target, out, o):
 def _keep(pts, start, meta, arc, L, ps, pa, pb, pfrag, pclosed, pcut, pwhole, n):
     """imageset.keep_intervals: parts [a, b] of strokes ps (n parts), whole parts verbatim; arc and L are
     the strokes' arc lengths (_arcs)."""
-    okp = np.zeros(n, np.bool_)
-    lo = np.zeros(n, np.int64)
-    cnt = np.zeros(n, np.int64)
-    aa = np.empty(n)
-    bb = np.empty(n)
+    span = np.empty((n, 3), np.int64)  # a part's first inner vertex, its vertex count (-1: empty), first past b
+    ends = np.empty((n, 2))
     total = 0
     S = 0
     for q in range(n):
@@ -152,21 +127,30 @@ def _keep(pts, start, meta, arc, L, ps, pa, pb, pfrag, pclosed, pcut, pwhole, n)
         first, last = start[k], start[k + 1] - 1
         if pwhole[q]:
             a, b = 0.0, L[k]
-            okp[q] = True
-            lo[q] = first
-            cnt[q] = last + 1 - first
+            span[q, 0] = first
+            span[q, 1] = last + 1 - first
         else:
             a = min(max(pa[q], 0.0), L[k])
             b = min(max(pb[q], 0.0), L[k])
             if not b - a > 1e-9:
+                span[q, 1] = -1
                 continue
-            okp[q] = True
-            lq = _after(arc, first, last + 1, a)
-            hq = _at_or_after(arc, first, last + 1, b)
-            lo[q] = lq
-            cnt[q] = max(hq - lq, 0) + 2
-        aa[q], bb[q] = a, b
-        total += cnt[q]
+            # the first vertices with arc > a, arc >= b and arc > b: scans along the stroke (arc does not
+            # decrease), cheaper than bisection on strokes of a few vertices
+            lq = first
+            while lq <= last and arc[lq] <= a:
+                lq += 1
+            hq = lq
+            while hq <= last and arc[hq] < b:
+                hq += 1
+            hb = hq
+            while hb <= last and arc[hb] <= b:
+                hb += 1
+            span[q, 0] = lq
+            span[q, 1] = hq - lq + 2
+            span[q, 2] = hb
+        ends[q, 0], ends[q, 1] = a, b
+        total += span[q, 1]
         S += 1
     out = np.empty((total, 2))
     ostart = np.zeros(S + 1, np.int64)
@@ -174,22 +158,23 @@ def _keep(pts, start, meta, arc, L, ps, pa, pb, pfrag, pclosed, pcut, pwhole, n)
     o = 0
     s = 0
     for q in range(n):
-        if not okp[q]:
+        cnt = span[q, 1]
+        if cnt < 0:
             continue
         k = ps[q]
         first, last = start[k], start[k + 1] - 1
+        lo = span[q, 0]
         if pwhole[q]:
-            for i in range(cnt[q]):
-                out[o + i, 0] = pts[lo[q] + i, 0]
-                out[o + i, 1] = pts[lo[q] + i, 1]
+            for i in range(cnt):
+                out[o + i, 0] = pts[lo + i, 0]
+                out[o + i, 1] = pts[lo + i, 1]
         else:
-            _point_at(pts, arc, first, last, aa[q], out, o)
-            inner = cnt[q] - 2
-            for i in range(inner):
-                out[o + 1 + i, 0] = pts[lo[q] + i, 0]
-                out[o + 1 + i, 1] = pts[lo[q] + i, 1]
-            _point_at(pts, arc, first, last, bb[q], out, o + cnt[q] - 1)
-        o += cnt[q]
+            _point_at(pts, arc, first, last, lo, ends[q, 0], out, o)
+            for i in range(cnt - 2):
+                out[o + 1 + i, 0] = pts[lo + i, 0]
+                out[o + 1 + i, 1] = pts[lo + i, 1]
+            _point_at(pts, arc, first, last, span[q, 2], ends[q, 1], out, o + cnt - 1)
+        o += cnt
         ostart[s + 1] = o
         for c in range(NMETA):
             ometa[s, c] = meta[k, c]
@@ -211,17 +196,33 @@ def _unroll(pts, start, meta, which):
     out = np.empty((ostart[S], 2))
     ometa = meta.copy()
     for k in range(S):
-        c = start[k + 1] - start[k]
-        for i in range(ostart[k + 1] - ostart[k]):
-            src = start[k] + (i % max(c, 1))
-            out[ostart[k] + i, 0] = pts[src, 0]
-            out[ostart[k] + i, 1] = pts[src, 1]
-        if which[k] and meta[k, CLOSED] != 0:
+        a, c, o = start[k], start[k + 1] - start[k], ostart[k]
+        for i in range(c):
+            out[o + i, 0] = pts[a + i, 0]
+            out[o + i, 1] = pts[a + i, 1]
+        if ostart[k + 1] - o > c:  # the second lap and vertex 0 again
+            for i in range(c):
+                out[o + c + i, 0] = pts[a + i, 0]
+                out[o + c + i, 1] = pts[a + i, 1]
+            out[o + 2 * c, 0] = pts[a, 0]
+            out[o + 2 * c, 1] = pts[a, 1]
             ometa[k, CLOSED] = 0
     return out, ostart, ometa
 
 
 # ----------------------------------------------------------------------------- cameras and the image
+
+@njit(cache=True)
+def _within(r2, x, y, limit):
+    """hypot(x, y) < limit, with r2 = x * x + y * y: decided on the squares, and by hypot itself only within
+    1e-12 of the limit (the squares' rounding is far below that), so the decision is hypot's exactly."""
+    l2 = limit * limit
+    if r2 < l2 * (1.0 - 1e-12):
+        return True
+    if r2 > l2 * (1.0 + 1e-12):
+        return False
+    return math.hypot(x, y) < limit
+
 
 @njit(cache=True)
 def _project(X, R, t, cam, limit, out, ok):
@@ -245,8 +246,8 @@ def _project(X, R, t, cam, limit, out, ok):
             good = Pz > 1e-3
             z = Pz if good else 1.0
             x, y = Px / z, Py / z
-            good = good and math.hypot(x, y) < limit
             r2 = x * x + y * y
+            good = good and _within(r2, x, y, limit)
             radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
             xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
             yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
@@ -257,9 +258,11 @@ def _project(X, R, t, cam, limit, out, ok):
 
 @njit(cache=True)
 def _pieces(n):
-    """Room for n kept pieces: stroke, start and end arc length, fragment, closed, cut count, whole."""
-    return (np.empty(n, np.int64), np.empty(n), np.empty(n), np.zeros(n, np.int64), np.zeros(n, np.int64),
-            np.zeros(n, np.int64), np.zeros(n, np.bool_))
+    """Room for n kept pieces (_keep's arguments): stroke, start and end arc length, fragment, closed, cut, whole
+    (0 or 1); the last four zero. Rows of two arrays: two allocations, not seven."""
+    whole = np.zeros((5, n), np.int64)
+    ends = np.empty((2, n))
+    return whole[0], ends[0], ends[1], whole[1], whole[2], whole[3], whole[4]
 
 
 @njit(cache=True)
@@ -291,8 +294,9 @@ def _keep_vertex_runs(pts, start, meta, ok):
 
 
 @njit(cache=True)
-def _inside(pts, width, height):
-    for i in range(len(pts)):
+def _inside(pts, a, b, width, height):
+    """Whether vertices a..b-1 are all inside the image."""
+    for i in range(a, b):
         if not (pts[i, 0] >= 0 and pts[i, 1] >= 0 and pts[i, 0] <= width and pts[i, 1] <= height):
             return False
     return True
@@ -333,7 +337,7 @@ def _clip_rect(pts, start, meta, width, height):
     q = 0
     for k in range(S):
         a, b = start[k], start[k + 1]
-        if b - a >= 2 and _inside(pts[a:b], width, height):  # the loop below would keep it whole: say so
+        if b - a >= 2 and _inside(pts, a, b, width, height):  # the loop below would keep it whole: say so
             ps[q], pa[q], pb[q], pw[q], pf[q], pc[q], pcut[q] = k, 0.0, L[k], True, meta[k, FRAG], meta[k, CLOSED], 0
             q += 1
             continue
@@ -345,17 +349,18 @@ def _clip_rect(pts, start, meta, width, height):
             keep = keep and t1 > t0
             joins = open_run and keep and prev_keep and prev_t1 >= 1 and t0 <= 0 and i > a
             if open_run and not joins:  # close the run that ended at pair i - 1
-                seg = _dist(pts, i - 1, i)
-                _clip_part(k, a, b, ja, t0a, i - 1, prev_t1, arc, pts, seg, meta, ps, pa, pb, pf, pc, pcut, pw, q)
+                pa[q], pb[q], whole = _clip_part(pts, arc, a, b, ja, t0a, i - 1, prev_t1)
+                ps[q], pw[q] = k, whole
+                pf[q], pc[q], pcut[q] = _part_meta(meta[k, FRAG], meta[k, CLOSED], whole)
                 q += 1
                 open_run = False
             if keep and not open_run:
                 open_run, ja, t0a = True, i, t0
             prev_keep, prev_t1 = keep, t1
         if open_run:
-            i = b - 1
-            seg = _dist(pts, i - 1, i)
-            _clip_part(k, a, b, ja, t0a, i - 1, prev_t1, arc, pts, seg, meta, ps, pa, pb, pf, pc, pcut, pw, q)
+            pa[q], pb[q], whole = _clip_part(pts, arc, a, b, ja, t0a, b - 2, prev_t1)
+            ps[q], pw[q] = k, whole
+            pf[q], pc[q], pcut[q] = _part_meta(meta[k, FRAG], meta[k, CLOSED], whole)
             q += 1
     return _keep(pts, start, meta, arc, L, ps, pa, pb, pf, pc, pcut, pw, q)
 
@@ -368,18 +373,18 @@ def _dist(pts, i, j):
 
 
 @njit(cache=True)
-def _clip_part(k, a, b, j, t0, e, t1, arc, pts, seg_e, meta, ps, pa, pb, pf, pc, pcut, pw, q):
-    dxj = pts[j + 1, 0] - pts[j, 0]
-    dyj = pts[j + 1, 1] - pts[j, 1]
-    seg_j = math.sqrt(dxj * dxj + dyj * dyj)
+def _clip_part(pts, arc, a, b, j, t0, e, t1):
+    """The run of kept pairs j..e of stroke [a, b) (entering pair j at t0, leaving pair e at t1): its start and end
+    arc lengths, and whether it is the whole stroke. (Scalars out, not writes into the pieces: a call that is
+    handed arrays to write pays their reference counts, each time.)"""
     whole = j == a and t0 <= 0 and e == b - 2 and t1 >= 1
-    ps[q] = k
-    pa[q] = arc[j] + t0 * seg_j
-    pb[q] = arc[e] + t1 * seg_e
-    pw[q] = whole
-    pf[q] = meta[k, FRAG] if whole else max(meta[k, FRAG], 0)
-    pc[q] = meta[k, CLOSED] if whole else 0
-    pcut[q] = 0 if whole else 1
+    return arc[j] + t0 * _dist(pts, j, j + 1), arc[e] + t1 * _dist(pts, e, e + 1), whole
+
+
+@njit(cache=True)
+def _part_meta(frag, closed, whole):
+    """A clipped run's fragment, closed and cut columns."""
+    return (frag, closed, 0) if whole else (max(frag, 0), 0, 1)
 
 
 # ----------------------------------------------------------------------------- one view of a batch
@@ -395,7 +400,7 @@ def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds,
         start, meta = tstart, tmeta
         if not ok.all():  # (when all are valid, the cut keeps every stroke verbatim: skip it)
             pts, start, meta = _keep_vertex_runs(pts, tstart, tmeta, ok)
-        if not _inside(pts, width, height):
+        if not _inside(pts, 0, len(pts), width, height):
             pts, start, meta = _clip_rect(pts, start, meta, width, height)
         cp = np.empty((len(CW), 2))
         cok = np.empty(len(CW), np.bool_)
