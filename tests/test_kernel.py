@@ -138,3 +138,25 @@ def test_the_fold_test_on_squares_decides_as_hypot_does_at_the_limit():
     for x, y in ((math.inf, 0.0), (math.nan, 1.0), (0.0, 0.0), (1e200, 1e200), (1e-200, 0.0)):
         assert _within(x * x + y * y, x, y, 1.0) == (math.hypot(x, y) < 1.0)
     assert cases > 2000
+
+
+def test_the_cache_keeps_the_most_recently_used_generated_loops(tmp_path, monkeypatch):
+    """Generated loop modules are pruned to KEPT_LOOPS by last use (access time), each with numba's cache files
+    of it; other files in the folder are left alone."""
+    import os
+
+    from wiredsl.engine import kernel as kn
+
+    cache = tmp_path / "__pycache__"
+    cache.mkdir()
+    for i in range(5):
+        (tmp_path / f"wiredsl_stages_{i}.py").write_text("# loop\n")
+        for ext in ("nbi", "nbc"):
+            (cache / f"wiredsl_stages_{i}.view_batch-9.py311.{ext}").write_bytes(b"x")
+        os.utime(tmp_path / f"wiredsl_stages_{i}.py", ns=(10**18 + [3, 0, 4, 1, 2][i] * 10**9, 10**18))
+    (tmp_path / "notes.txt").write_text("mine")
+    monkeypatch.setattr(kn, "KEPT_LOOPS", 2)
+    kn._prune(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_file()) == [
+        "notes.txt", "wiredsl_stages_0.py", "wiredsl_stages_2.py"]  # used last: 2 (at 4), then 0 (at 3)
+    assert sorted(p.name.split(".")[0] for p in cache.iterdir()) == ["wiredsl_stages_0"] * 2 + ["wiredsl_stages_2"] * 2
