@@ -273,10 +273,9 @@ def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: boo
     the b{n}_ prefix and at full precision; `fragment` numbered as the JSON dump numbers it; `contour` is
     `contours(world)`.
 
-    Whole arrays a view: trials' cameras and poses come from the batch's arrays (montecarlo.TrialViews), not
-    from a camera model a trial."""
-    pts, starts, rows, corners, crows, views, vcams, vposes, conics_, krows = ([] for _ in range(10))
-    offset = 0
+    Whole arrays a batch: trials' cameras and poses come from the batch's arrays (montecarlo.TrialViews), not
+    from a camera model a trial, and the views' strokes are put together before their rows are made."""
+    sets, pose_cam, views, vcams, vposes, conics_, krows = ([] for _ in range(7))
     trials_of = np.asarray(batch, dtype=np.int64)
     T = len(trials_of)
     for result, disturbed, per_trial in batch_out:
@@ -304,20 +303,32 @@ def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: boo
                             centre, axes, angle, arc = f.conic
                             conics_.append([*centre, *axes, angle, *(arc if arc is not None else (0.0, 0.0))])
                             krows.append([t, result.index, cam, f.fid, f.clipped, arc is not None])
-            pts.append(s.pts)
-            starts.append(s.start[:-1] + offset)
-            offset += len(s.pts)
-            frag = _json_fragments(s) if renumber else s.fragment
-            rows.append(_int32_rows(trials_of[s.trial], result.index, cam, s.fid, s.segment, s.kind, s.clipped,
-                                    s.closed, frag, s.occluded, contour[s.fid]))
-            corners.append(s.corners)
-            crows.append(_int32_rows(trials_of[s.corner_trial], result.index, cam, s.corner_fid))
+            sets.append(s)
+            pose_cam.append((result.index, cam))
+    pc = np.array(pose_cam, dtype=np.int64).reshape(-1, 2)
+
+    def cat(name: str, width: int = 0) -> np.ndarray:
+        """The views' `name` arrays end to end."""
+        if not sets:
+            return np.zeros((0, width) if width else 0, dtype=float if width else int)
+        return np.concatenate([np.asarray(getattr(s, name)) for s in sets])
+
+    n_pts = np.array([len(s.pts) for s in sets], dtype=np.int64)
+    n_strokes = np.array([s.n_strokes for s in sets], dtype=np.int64)
+    n_corners = np.array([len(s.corners) for s in sets], dtype=np.int64)
+    view = np.repeat(np.arange(len(sets)), n_strokes)  # each stroke's view in the batch
+    offset = np.cumsum(n_pts) - n_pts
+    start = (np.concatenate([s.start[:-1] for s in sets]) + offset[view] if sets else np.zeros(0, dtype=np.int64))
+    trial, fid, segment = cat("trial"), cat("fid"), cat("segment")
+    frag = _json_fragments(view * max(T, 1) + trial, fid, segment, cat("fragment")) if renumber else cat("fragment")
+    cview = np.repeat(np.arange(len(sets)), n_corners)
     return {
-        "pts": np.concatenate(pts) if pts else np.zeros((0, 2)),
-        "start": np.concatenate([*starts, [offset]]).astype(np.int64),
-        "strokes": _rows(rows, len(layout.STROKE_COLUMNS), np.int32),
-        "corners": np.concatenate(corners).reshape(-1, 2) if corners else np.zeros((0, 2)),
-        "corner_rows": _rows(crows, len(layout.CORNER_COLUMNS), np.int32),
+        "pts": cat("pts", 2),
+        "start": np.concatenate([start, [n_pts.sum()]]).astype(np.int64),
+        "strokes": _int32_rows(trials_of[trial], pc[view, 0], pc[view, 1], fid, segment, cat("kind"), cat("clipped"),
+                               cat("closed"), frag, cat("occluded"), contour[fid]),
+        "corners": cat("corners", 2).reshape(-1, 2),
+        "corner_rows": _int32_rows(trials_of[cat("corner_trial")], pc[cview, 0], pc[cview, 1], cat("corner_fid")),
         "views": _rows(views, len(layout.VIEW_COLUMNS), np.int32),
         "view_cameras": _rows(vcams, len(layout.CAMERA_COLUMNS), np.float64),
         "view_poses": _rows(vposes, 12, np.float64),
@@ -354,25 +365,27 @@ def _rows(parts: list, width: int, dtype: type = np.int64) -> np.ndarray:
         np.zeros((0, width), dtype=dtype)
 
 
-def _json_fragments(s) -> np.ndarray:
-    """The fragment numbers the JSON dump gives (montecarlo.features_of): within a trial, the strokes of one
-    (feature, segment) are numbered 0, 1, ... in order when the feature was cut, else -1."""
-    n = s.n_strokes
+def _json_fragments(group: np.ndarray, fid: np.ndarray, segment: np.ndarray, fragment: np.ndarray) -> np.ndarray:
+    """The fragment numbers the JSON dump gives (montecarlo.features_of): within a trial's view (`group`, one
+    number each), the strokes of one (feature, segment) are numbered 0, 1, ... in order when the feature was
+    cut, else -1."""
+    n = len(fid)
     if n == 0:
         return np.zeros(0, dtype=int)
-    # one int64 key a stroke, (trial, feature, segment) in lexicographic order; a stable sort keeps each
+    # one int64 key a stroke, (group, feature, segment) in lexicographic order; a stable sort keeps each
     # group's strokes in their order, so a stroke's rank in its group is its fragment number
-    trial, fid, seg = (np.asarray(a, dtype=np.int64) for a in (s.trial, s.fid, s.segment))
+    group, fid, seg = (np.asarray(a, dtype=np.int64) for a in (group, fid, segment))
     nf, ns = int(fid.max()) + 1, int(seg.max()) + 2  # segment -1 (none) is shifted to 0
-    order = np.argsort((trial * nf + fid) * ns + seg + 1, kind="stable")
-    key = ((trial * nf + fid) * ns + seg + 1)[order]
+    key = (group * nf + fid) * ns + seg + 1
+    order = np.argsort(key, kind="stable")
+    key = key[order]
     first = np.empty(n, dtype=bool)
     first[0] = True
     np.not_equal(key[1:], key[:-1], out=first[1:])
     group_start = np.flatnonzero(first)
-    group = np.cumsum(first) - 1
-    count = np.diff(np.append(group_start, n))[group]
-    rank_sorted = np.arange(n) - group_start[group]
+    which = np.cumsum(first) - 1
+    count = np.diff(np.append(group_start, n))[which]
+    rank_sorted = np.arange(n) - group_start[which]
     rank, counts = np.empty(n, dtype=int), np.empty(n, dtype=int)
     rank[order], counts[order] = rank_sorted, count
-    return np.where((s.fragment >= 0) | (counts > 1), rank, -1)
+    return np.where((np.asarray(fragment) >= 0) | (counts > 1), rank, -1)
