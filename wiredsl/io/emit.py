@@ -225,9 +225,15 @@ class NpzStream:
     def member(self, name: str, a: np.ndarray, dtype: type | None = None) -> None:
         """One array member, checked (and cast to `dtype`) by require_finite before a byte is written."""
         a = require_finite(np.asarray(a), f"{self.path.name} member {name}", dtype)
+        # (ascontiguousarray would turn the 0-d manifest into shape (1,))
+        a = a if a.flags.c_contiguous else a.copy(order="C")
+        fmt = np.lib.format
         with self.zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
-            # (ascontiguousarray would turn the 0-d manifest into shape (1,))
-            np.lib.format.write_array(fh, a if a.flags.c_contiguous else a.copy(order="C"), allow_pickle=False)
+            if a.dtype.kind in "iuf" and a.ndim >= 1:  # a batch's arrays: what write_array writes, without a copy
+                fmt.write_array_header_1_0(fh, fmt.header_data_from_array_1_0(a))
+                fh.write(a.reshape(-1).view(np.uint8))
+            else:
+                fmt.write_array(fh, a, allow_pickle=False)
 
     def write_ideal(self, results: list[PoseResult], world: World) -> None:
         """The ideal projection (--no-effects) as trial 0, in the same layout as disturbed trials."""
@@ -274,8 +280,9 @@ def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: boo
     `contours(world)`.
 
     Whole arrays a batch: trials' cameras and poses come from the batch's arrays (montecarlo.TrialViews), not
-    from a camera model a trial, and the views' strokes are put together before their rows are made."""
-    sets, pose_cam, views, vcams, vposes, conics_, krows = ([] for _ in range(7))
+    from a camera model a trial; each view's strokes are written into the batch's arrays while they are in the
+    cache, without a copy a view."""
+    sets, views, vcams, vposes, conics_, krows = ([] for _ in range(6))
     trials_of = np.asarray(batch, dtype=np.int64)
     T = len(trials_of)
     for result, disturbed, per_trial in batch_out:
@@ -303,32 +310,31 @@ def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: boo
                             centre, axes, angle, arc = f.conic
                             conics_.append([*centre, *axes, angle, *(arc if arc is not None else (0.0, 0.0))])
                             krows.append([t, result.index, cam, f.fid, f.clipped, arc is not None])
-            sets.append(s)
-            pose_cam.append((result.index, cam))
-    pc = np.array(pose_cam, dtype=np.int64).reshape(-1, 2)
-
-    def cat(name: str, width: int = 0) -> np.ndarray:
-        """The views' `name` arrays end to end."""
-        if not sets:
-            return np.zeros((0, width) if width else 0, dtype=float if width else int)
-        return np.concatenate([np.asarray(getattr(s, name)) for s in sets])
-
-    n_pts = np.array([len(s.pts) for s in sets], dtype=np.int64)
-    n_strokes = np.array([s.n_strokes for s in sets], dtype=np.int64)
-    n_corners = np.array([len(s.corners) for s in sets], dtype=np.int64)
-    view = np.repeat(np.arange(len(sets)), n_strokes)  # each stroke's view in the batch
-    offset = np.cumsum(n_pts) - n_pts
-    start = (np.concatenate([s.start[:-1] for s in sets]) + offset[view] if sets else np.zeros(0, dtype=np.int64))
-    trial, fid, segment = cat("trial"), cat("fid"), cat("segment")
-    frag = _json_fragments(view * max(T, 1) + trial, fid, segment, cat("fragment")) if renumber else cat("fragment")
-    cview = np.repeat(np.arange(len(sets)), n_corners)
+            sets.append((s, result.index, cam))
+    n_pts, n_strokes, n_corners = (sum(f(s) for s, _, _ in sets) for f in (lambda s: len(s.pts),
+                                                                         lambda s: s.n_strokes,
+                                                                         lambda s: len(s.corners)))
+    pts, start, corners = np.empty((n_pts, 2)), np.empty(n_strokes + 1, dtype=np.int64), np.empty((n_corners, 2))
+    strokes = np.empty((n_strokes, len(layout.STROKE_COLUMNS)), dtype=np.int32)
+    corner_rows = np.empty((n_corners, len(layout.CORNER_COLUMNS)), dtype=np.int32)
+    p = k = c = 0
+    for s, pose, cam in sets:
+        n, m, nc = len(s.pts), s.n_strokes, len(s.corners)
+        pts[p:p + n] = s.pts
+        start[k:k + m] = s.start[:-1] + p
+        frag = _json_fragments(s) if renumber else s.fragment
+        _int32_rows(trials_of[s.trial], pose, cam, s.fid, s.segment, s.kind, s.clipped, s.closed, frag, s.occluded,
+                    contour[s.fid], out=strokes[k:k + m])
+        corners[c:c + nc] = s.corners
+        _int32_rows(trials_of[s.corner_trial], pose, cam, s.corner_fid, out=corner_rows[c:c + nc])
+        p, k, c = p + n, k + m, c + nc
+    start[k] = p
     return {
-        "pts": cat("pts", 2),
-        "start": np.concatenate([start, [n_pts.sum()]]).astype(np.int64),
-        "strokes": _int32_rows(trials_of[trial], pc[view, 0], pc[view, 1], fid, segment, cat("kind"), cat("clipped"),
-                               cat("closed"), frag, cat("occluded"), contour[fid]),
-        "corners": cat("corners", 2).reshape(-1, 2),
-        "corner_rows": _int32_rows(trials_of[cat("corner_trial")], pc[cview, 0], pc[cview, 1], cat("corner_fid")),
+        "pts": pts,
+        "start": start,
+        "strokes": strokes,
+        "corners": corners,
+        "corner_rows": corner_rows,
         "views": _rows(views, len(layout.VIEW_COLUMNS), np.int32),
         "view_cameras": _rows(vcams, len(layout.CAMERA_COLUMNS), np.float64),
         "view_poses": _rows(vposes, 12, np.float64),
@@ -349,10 +355,10 @@ def _discard(tmp: str, *closers) -> None:
             close()
 
 
-def _int32_rows(first: np.ndarray, *columns) -> np.ndarray:
-    """Rows (len(first), 1 + len(columns)) of int32, one column each (a scalar fills its column). Every value
-    fits: trials are below 2**31 (cli.MAX_TRIAL), poses, cameras, features and codes far below."""
-    out = np.empty((len(first), 1 + len(columns)), dtype=np.int32)
+def _int32_rows(first: np.ndarray, *columns, out: np.ndarray | None = None) -> np.ndarray:
+    """Rows (len(first), 1 + len(columns)) of int32, one column each (a scalar fills its column), into `out` if
+    given. Every value fits: trials are below 2**31 (cli.MAX_TRIAL), poses, cameras, features and codes far below."""
+    out = np.empty((len(first), 1 + len(columns)), dtype=np.int32) if out is None else out
     out[:, 0] = first
     for j, c in enumerate(columns, 1):
         out[:, j] = c
@@ -365,27 +371,26 @@ def _rows(parts: list, width: int, dtype: type = np.int64) -> np.ndarray:
         np.zeros((0, width), dtype=dtype)
 
 
-def _json_fragments(group: np.ndarray, fid: np.ndarray, segment: np.ndarray, fragment: np.ndarray) -> np.ndarray:
-    """The fragment numbers the JSON dump gives (montecarlo.features_of): within a trial's view (`group`, one
-    number each), the strokes of one (feature, segment) are numbered 0, 1, ... in order when the feature was
-    cut, else -1."""
-    n = len(fid)
+def _json_fragments(s) -> np.ndarray:
+    """The fragment numbers the JSON dump gives (montecarlo.features_of): within a trial, the strokes of one
+    (feature, segment) are numbered 0, 1, ... in order when the feature was cut, else -1."""
+    n = s.n_strokes
     if n == 0:
         return np.zeros(0, dtype=int)
-    # one int64 key a stroke, (group, feature, segment) in lexicographic order; a stable sort keeps each
+    # one int64 key a stroke, (trial, feature, segment) in lexicographic order; a stable sort keeps each
     # group's strokes in their order, so a stroke's rank in its group is its fragment number
-    group, fid, seg = (np.asarray(a, dtype=np.int64) for a in (group, fid, segment))
+    trial, fid, seg = (np.asarray(a, dtype=np.int64) for a in (s.trial, s.fid, s.segment))
     nf, ns = int(fid.max()) + 1, int(seg.max()) + 2  # segment -1 (none) is shifted to 0
-    key = (group * nf + fid) * ns + seg + 1
+    key = (trial * nf + fid) * ns + seg + 1
     order = np.argsort(key, kind="stable")
     key = key[order]
     first = np.empty(n, dtype=bool)
     first[0] = True
     np.not_equal(key[1:], key[:-1], out=first[1:])
     group_start = np.flatnonzero(first)
-    which = np.cumsum(first) - 1
-    count = np.diff(np.append(group_start, n))[which]
-    rank_sorted = np.arange(n) - group_start[which]
+    group = np.cumsum(first) - 1
+    count = np.diff(np.append(group_start, n))[group]
+    rank_sorted = np.arange(n) - group_start[group]
     rank, counts = np.empty(n, dtype=int), np.empty(n, dtype=int)
     rank[order], counts[order] = rank_sorted, count
-    return np.where((np.asarray(fragment) >= 0) | (counts > 1), rank, -1)
+    return np.where((s.fragment >= 0) | (counts > 1), rank, -1)
