@@ -103,7 +103,7 @@ def summary(g: dict, bare: float, small: int, trials: int) -> dict[str, str]:
     out[f"a trial in-process, {trials} trials (us CPU):"] = ""
     for label, v in (("compiled kernel", kernel), ("Python around it (keys, cameras, packing)", around),
                      ("npz writer", writer), ("sum", kernel + around + writer)):
-        out[f"  {label}"] = f"{v:.0f}"
+        out[f"  a trial's {label}"] = f"{v:.0f}"
     return out
 
 

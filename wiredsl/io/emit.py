@@ -246,7 +246,7 @@ class NpzStream:
     def write_batch(self, batch: list[int], batch_out, world: World, renumber: bool = True) -> None:
         """One batch's members (`batch_arrays`), as b{n}_<name>, each in its file type."""
         b = f"b{self.n:05d}"
-        for name, a in batch_arrays(batch, batch_out, contours(world), renumber).items():
+        for name, a in batch_arrays(batch, batch_out, contours(world), renumber, NPZ_TYPES["pts"]).items():
             self.member(f"{b}_{name}", a, NPZ_TYPES.get(name))
         self.n += 1
 
@@ -274,10 +274,12 @@ def contours(world: World) -> np.ndarray:
     return np.array([k == "contour" for k in world.feature_kind], dtype=bool)
 
 
-def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: bool = True) -> dict[str, np.ndarray]:
+def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: bool = True,
+                 points: type = np.float64) -> dict[str, np.ndarray]:
     """One batch's strokes, corners, views (and conics) as the npz members of a batch (layout.py), without
     the b{n}_ prefix and at full precision; `fragment` numbered as the JSON dump numbers it; `contour` is
-    `contours(world)`.
+    `contours(world)`. `points`: the type of pts and corners (the npz writer's float32: each view's cast and
+    checked by require_finite).
 
     Whole arrays a batch: trials' cameras and poses come from the batch's arrays (montecarlo.TrialViews), not
     from a camera model a trial; each view's strokes are written into the batch's arrays while they are in the
@@ -314,18 +316,20 @@ def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: boo
     n_pts, n_strokes, n_corners = (sum(f(s) for s, _, _ in sets) for f in (lambda s: len(s.pts),
                                                                          lambda s: s.n_strokes,
                                                                          lambda s: len(s.corners)))
-    pts, start, corners = np.empty((n_pts, 2)), np.empty(n_strokes + 1, dtype=np.int64), np.empty((n_corners, 2))
+    pts, corners = np.empty((n_pts, 2), dtype=points), np.empty((n_corners, 2), dtype=points)
+    start = np.empty(n_strokes + 1, dtype=np.int64)
+    cast = (lambda a, what: a) if points == np.float64 else lambda a, what: require_finite(a, what, points)  # noqa: E731
     strokes = np.empty((n_strokes, len(layout.STROKE_COLUMNS)), dtype=np.int32)
     corner_rows = np.empty((n_corners, len(layout.CORNER_COLUMNS)), dtype=np.int32)
     p = k = c = 0
     for s, pose, cam in sets:
         n, m, nc = len(s.pts), s.n_strokes, len(s.corners)
-        pts[p:p + n] = s.pts
+        pts[p:p + n] = cast(s.pts, f"pose {pose}'s {layout.CAMERAS[cam]} vertex")
         start[k:k + m] = s.start[:-1] + p
         frag = _json_fragments(s) if renumber else s.fragment
         _int32_rows(trials_of[s.trial], pose, cam, s.fid, s.segment, s.kind, s.clipped, s.closed, frag, s.occluded,
                     contour[s.fid], out=strokes[k:k + m])
-        corners[c:c + nc] = s.corners
+        corners[c:c + nc] = cast(s.corners, f"pose {pose}'s {layout.CAMERAS[cam]} corner")
         _int32_rows(trials_of[s.corner_trial], pose, cam, s.corner_fid, out=corner_rows[c:c + nc])
         p, k, c = p + n, k + m, c + nc
     start[k] = p
