@@ -117,7 +117,7 @@ def test_a_stage_without_a_kernel_runs_the_whole_pipeline_on_numpy():
 
 def test_auto_loads_the_kernel_only_for_runs_large_enough_to_pay_for_it(tmp_path):
     """`build --engine auto` runs a few trials on numpy (numba's load would cost more than it saves) and records
-    it; a run of the lab's size crosses KERNEL_PAYS at some 200 trials; --trial K replays in the kernel."""
+    it; a run of the lab's size crosses KERNEL_PAYS at some 220 trials; --trial K replays in the kernel."""
     import json
 
     from click.testing import CliRunner

@@ -482,7 +482,7 @@ def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None
 @click.option("--engine", type=click.Choice(["auto", "kernel", "numpy"]), default="auto", show_default=True,
               help="Monte-Carlo engine: the compiled kernel (needs wiredsl[fast]) or the numpy reference; auto: the "
                    "kernel, when numba is installed, for --trial and for runs large enough to pay for loading it "
-                   "(some 200 trials of scenes/lab.wd). Both draw the same numbers.")
+                   "(some 220 trials of scenes/lab.wd). Both draw the same numbers.")
 @click.option("--exact-calibration", is_flag=True,
               help="Project each trial's perturbed rig from scratch (slow) instead of re-projecting the ideal "
                    "strokes with every trial's cameras at once.")

@@ -43,9 +43,9 @@ BATCH_BYTES = 32 * 2**20  # what one batch may hold (kernel output and the write
 # lab and of benchmarks/big_scene.py's 10x lab at several batch sizes): the writer's rows weigh on the strokes
 VERTEX_BYTES, STROKE_BYTES = 16, 512
 # vertex-trials (trials times a trial's vertices, `Run.trial_size`) from which the compiled kernel pays for loading
-# numba (about 0.45 s of CPU) against the numpy path: measured where the two cross, about 600,000 in the lab (some
-# 230 trials) and in benchmarks/big_scene.py's 5x lab (some 70 trials)
-KERNEL_PAYS = 500_000
+# numba and the cached kernel (about 0.5 s of CPU) against the numpy path: where `build --format npz` of the two
+# cross, about 680,000 both in the lab (some 255 trials) and in benchmarks/big_scene.py's 5x lab (some 80 trials)
+KERNEL_PAYS = 600_000
 CULL = 0.25  # raw strokes wholly beyond the image grown by this fraction of its size are not re-projected
 
 
