@@ -8,10 +8,9 @@ covers compiling the scene, loading the kernel, the trials, packing and writing 
 `--engine kernel`, what `auto` chooses for N (and not for fewer than about 220 trials of the lab, where numpy
 costs less: the N/8 build too runs the kernel, so that the marginal rate and the fixed cost are the kernel's).
 The marginal rate (the CPU of N trials less that of N/8, over the extra trials) leaves out the fixed cost of a
-run. The bare
-numpy kernel is benchmarks/throughput.py's: projection of each feature's two end points plus three
-perturbations on (trials, features) arrays, the least any implementation has to do; measured before and
-after the builds, in this process (one thread).
+run. The bare numpy kernel is benchmarks/throughput.py's: projection of each feature's two end points plus three
+perturbations on (trials, features) arrays, the least any implementation has to do; measured before and after
+the builds, in this process (one thread).
 
 Two splits follow. The fixed cost: one build of N/8 trials in a child process whose functions are timed
 (CPU, each phase without the phases nested in it): interpreter start, imports, numba's import, compiling the
