@@ -24,11 +24,12 @@ class Child:
     rss: float  # peak resident set size, MiB
 
 
-def run(args: list[str], quiet: bool = True) -> Child:
-    """Run `python args...` in a new process (one thread for BLAS and numba) and measure it."""
+def run(args: list[str], quiet: bool = True, env: dict | None = None) -> Child:
+    """Run `python args...` in a new process (one thread for BLAS and numba; `env` added to the environment)
+    and measure it."""
     t0 = time.perf_counter()
     out = subprocess.DEVNULL if quiet else None
-    proc = subprocess.Popen([sys.executable, *args], env=ENV, stdout=out, stderr=subprocess.PIPE)
+    proc = subprocess.Popen([sys.executable, *args], env={**ENV, **(env or {})}, stdout=out, stderr=subprocess.PIPE)
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     err = proc.stderr.read().decode()
@@ -43,10 +44,10 @@ def wiredsl(*args: str) -> Child:
     return run(["-m", "wiredsl", *args])
 
 
-def best(args: list[str], repeat: int) -> Child:
+def best(args: list[str], repeat: int, env: dict | None = None) -> Child:
     """The fastest of `repeat` runs by CPU time (the machine is shared: the least disturbed run), with the
     largest peak RSS seen."""
-    runs = [run(args) for _ in range(repeat)]
+    runs = [run(args, env=env) for _ in range(repeat)]
     fastest = min(runs, key=lambda c: c.cpu)
     return Child(min(c.wall for c in runs), fastest.cpu, max(c.rss for c in runs))
 

@@ -160,3 +160,30 @@ def test_the_cache_keeps_the_most_recently_used_generated_loops(tmp_path, monkey
     assert sorted(p.name for p in tmp_path.iterdir() if p.is_file()) == [
         "notes.txt", "wiredsl_stages_0.py", "wiredsl_stages_2.py"]  # used last: 2 (at 4), then 0 (at 3)
     assert sorted(p.name.split(".")[0] for p in cache.iterdir()) == ["wiredsl_stages_0"] * 2 + ["wiredsl_stages_2"] * 2
+
+
+def test_auto_loads_the_kernel_only_for_runs_large_enough_to_pay_for_it(tmp_path):
+    """`build --engine auto` runs a few trials on numpy (numba's load would cost more than it saves) and records
+    it; a run of the lab's size crosses KERNEL_PAYS at some 220 trials; --trial K replays in the kernel."""
+    import json
+
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+    from wiredsl.engine.montecarlo import KERNEL_PAYS
+
+    pytest.importorskip("numba")
+    scene, _, _ = compile_file("scenes/lab.wd")
+    run = Run.create(scene, build_world(scene), scene.pipeline("paper"), 1, Options())
+    vertices, _ = run.trial_size()
+    assert not run.kernel_pays(KERNEL_PAYS // vertices) and run.kernel_pays(KERNEL_PAYS // vertices + 1)
+    assert 100 < KERNEL_PAYS / vertices < 400
+    run.engine = "numpy"
+    assert not run.kernel_pays(10**6)  # an engine chosen by hand stays
+    for args, engine in ((["--trials", "3"], "numpy"), (["--trial", "2"], "kernel"), (["--trials", "3", "--engine",
+                                                                                       "kernel"], "kernel")):
+        out = tmp_path / "-".join(args)
+        r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "--pose", "1", "--format", "jsonl", "--no-svg",
+                                      "--seed", "4", "-o", str(out), *args])
+        assert r.exit_code == 0, r.output
+        assert json.loads((out / "manifest.json").read_text())["engine"] == engine

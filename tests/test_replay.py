@@ -5,6 +5,7 @@ uniforms and normals, and replay of any trial alone bit for bit equal to the sam
 from __future__ import annotations
 
 import math
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -85,6 +86,30 @@ def test_every_key_component_changes_the_draws():
     for k, v in (("stage", "lateral_shift"), ("trial", 4), ("pose", 3), ("camera", 1), ("seed", 12)):
         assert stream_key(**{**base, k: v}) != ref
     assert stream_key(**base, point=0) != ref and stream_key(**base, point=0) != stream_key(**base, point=1)
+
+
+def _key_python(stage: str, trial: int, pose: int, camera: int, seed: int, point: int | None = None) -> int:
+    """stream_key's documented formula in Python integers: h(x) = SplitMix64's mix of x + golden, sums mod 2**64."""
+    mask = (1 << 64) - 1
+
+    def h(x):
+        return _splitmix_python(x & mask, 1)[0]
+
+    k = h(h(h(h(h(seed) + zlib.crc32(stage.encode())) + trial) + pose + 1) + camera + 1)
+    return k if point is None else h(k + point + 1)
+
+
+def test_keys_of_many_views_at_once_are_each_views_own():
+    """stream_key broadcast over trials, poses and cameras (one call a stage and batch, as the kernel's batches
+    use it) gives each (trial, pose, camera) the key of the formula, the rig's pose and camera -1 included."""
+    trials, poses, cameras = np.array([0, 5, 2**31 - 1]), np.array([-1, 0, 7]), np.array([-1, 0, 1])
+    for point in (None, 3):
+        got = stream_key("edge_loss", trials[None, None, :], poses[:, None, None], cameras[None, :, None], 2**63 + 9,
+                         point)
+        assert got.shape == (3, 3, 3) and got.dtype == np.uint64
+        for (i, j, t), key in np.ndenumerate(got):
+            assert int(key) == _key_python("edge_loss", int(trials[t]), int(poses[i]), int(cameras[j]), 2**63 + 9,
+                                           point)
 
 
 def pipelines(scene):

@@ -495,7 +495,8 @@ def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None
               help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion.")
 @click.option("--engine", type=click.Choice(["auto", "kernel", "numpy"]), default="auto", show_default=True,
               help="Monte-Carlo engine: the compiled kernel (needs wiredsl[fast]) or the numpy reference; auto: the "
-                   "kernel for --trials above 1 and --trial when numba is installed. Both draw the same numbers.")
+                   "kernel, when numba is installed, for --trial and for runs large enough to pay for loading it "
+                   "(some 220 trials of scenes/lab.wd). Both draw the same numbers.")
 @click.option("--exact-calibration", is_flag=True,
               help="Project each trial's perturbed rig from scratch (slow) instead of re-projecting the ideal "
                    "strokes with every trial's cameras at once.")
@@ -546,8 +547,6 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         raise click.BadParameter("npz cannot go to stdout", param_hint="-o")
     world = build_world(scene)
     opts = Options(tolerance=tolerance, visibility=visibility, poses=chosen_poses, right=cameras == "both")
-    if engine == "auto" and only_trial is None and trials == 1:
-        engine = "numpy"  # one plain build: not worth loading the compiled kernel
     with _setup_errors():
         if study_name is not None or point is not None:
             run, pipeline, trial_list = _study_point(scene, world, study_name, point, only_trial, seed,
@@ -557,6 +556,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         else:
             run = runs.start(scene, pipeline, seed=seed, options=opts, world=world, engine=engine,
                              exact_calibration=exact_calibration)
+    if engine == "auto" and only_trial is None and not run.kernel_pays(len(trial_list)):
+        run.engine = "numpy"  # a small run: loading the compiled kernel would cost more than it saves
     shown = only_trial if only_trial is not None else trial_list[0]  # the trial the SVGs show
     if run.uses_kernel():
         _numba_without_blas()

@@ -33,18 +33,20 @@ def mix64(z: np.ndarray) -> np.ndarray:
 
 
 def stream_key(stage: str, trial, pose: int, camera: int, seed: int, point: int | None = None) -> np.ndarray:
-    """The 64-bit key of the draws of one stage for trials `trial` (array), a pose and a camera (-1: the rig).
+    """The 64-bit key of the draws of one stage for trials `trial`, a pose and a camera (-1: the rig); `trial`,
+    `pose` and `camera` may be arrays, broadcast together (the keys of many views in one call).
 
     key = h(h(h(h(h(seed) + crc32(stage)) + trial) + pose + 1) + camera + 1), then h(key + point + 1) when a
     design point is given, with h = SplitMix64's mix of (x + golden); sums wrap modulo 2**64.
     """
     h = lambda x: mix64(np.asarray(x, dtype=np.uint64) + _GOLDEN)  # noqa: E731
+    u = lambda x: (np.asarray(x, dtype=np.int64) + 1).astype(np.uint64)  # noqa: E731 - x + 1, -1 (none) to 0
     with np.errstate(over="ignore"):
         k = h(np.uint64(seed))
         k = h(k + np.uint64(zlib.crc32(stage.encode())))
         k = h(k + np.asarray(trial, dtype=np.int64).astype(np.uint64))
-        k = h(k + np.uint64(pose + 1))
-        k = h(k + np.uint64(camera + 1))
+        k = h(k + u(pose))
+        k = h(k + u(camera))
         if point is not None:
             k = h(k + np.uint64(point + 1))
     return k

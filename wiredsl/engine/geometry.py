@@ -226,7 +226,7 @@ def fisheye_max_angle(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0
 def fold_radius(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0.0, k5: float = 0.0,
                 k6: float = 0.0) -> float:
     """Smallest unit-plane radius where r radial(r) stops increasing or the rational denominator
-    vanishes (inf if never).
+    vanishes (inf if never). k1 and k2 may be arrays when the others are 0 (elementwise).
 
     Beyond it the radial mapping folds back and is no longer one-to-one, so nothing
     there is projected (tangential terms, small in practice, are not considered).
@@ -264,24 +264,22 @@ def _first_positive_root(coef) -> float:
     return s if s > 0 else math.inf
 
 
-def _fold_radius_quadratic(k1: float, k2: float = 0.0) -> float:
-    """fold_radius for k1, k2 only."""
+def _fold_radius_quadratic(k1, k2=0.0):
+    """fold_radius for k1, k2 only: floats, or arrays (elementwise, the same doubles as one by one)."""
     # d/dr = 1 + 3 k1 r^2 + 5 k2 r^4 = 0: a s^2 + b s + 1 = 0 in s = r^2, solved in the stable form
     # (q = -(b + sign(b) sqrt(disc)) / 2, roots c / q and q / a) so that a tiny a cannot overflow; the whole
     # equation is first divided by its largest coefficient, so that a huge k1 or k2 cannot overflow b^2 either
-    m = max(abs(float(k1)), abs(float(k2)), 1.0)
+    k1, k2 = np.asarray(k1, dtype=float), np.asarray(k2, dtype=float)
+    m = np.maximum(np.maximum(np.abs(k1), np.abs(k2)), 1.0)
     a, b, c = 5.0 * (k2 / m), 3.0 * (k1 / m), 1.0 / m
-    if a == 0:  # linear (no k2): b s + c = 0 directly, as b * b could underflow below
-        return math.sqrt(-c / b) if b < 0 else math.inf
-    disc = b * b - 4.0 * a * c
-    if disc < 0:
-        return math.inf
-    q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
-    roots = [c / q if q != 0 else math.inf]
-    if a != 0:
-        roots.append(q / a)
-    positive = [s for s in roots if math.isfinite(s) and s > 0]
-    return math.sqrt(min(positive)) if positive else math.inf
+    with np.errstate(all="ignore"):  # what divides by zero or roots a negative is masked out below
+        linear = np.where(b < 0, np.sqrt(-c / b), np.inf)  # no k2: b s + c = 0 directly, as b * b could underflow
+        disc = b * b - 4.0 * a * c
+        q = -0.5 * (b + np.copysign(np.sqrt(disc), b))
+        roots = np.stack([np.where(q != 0, c / q, np.inf), q / a])
+    s = np.where(np.isfinite(roots) & (roots > 0), roots, np.inf).min(axis=0)
+    out = np.where(a == 0, linear, np.where(disc < 0, np.inf, np.sqrt(s)))
+    return float(out) if out.ndim == 0 else out
 
 
 def clip_segments_lens(A: np.ndarray, B: np.ndarray, model: np.ndarray, limit: np.ndarray):

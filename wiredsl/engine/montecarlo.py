@@ -22,7 +22,7 @@ import numpy as np
 from wiredsl.diagnostics import Diagnostic, WiredslError
 from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.effects import calibration_error as calib
-from wiredsl.effects.base import Context, Stats
+from wiredsl.effects.base import CAMERA_INDEX, Context, Stats, stream_key
 from wiredsl.engine import geometry
 from wiredsl.engine import imageset as im
 from wiredsl.engine.simulate import (
@@ -42,6 +42,10 @@ BATCH_BYTES = 32 * 2**20  # what one batch may hold (kernel output and the write
 # bytes a trial holds per vertex and per stroke of its views, measured (peak RSS of 1,000 `paper` trials of the
 # lab and of benchmarks/big_scene.py's 10x lab at several batch sizes): the writer's rows weigh on the strokes
 VERTEX_BYTES, STROKE_BYTES = 16, 512
+# vertex-trials (trials times a trial's vertices, `Run.trial_size`) from which the compiled kernel pays for loading
+# numba and the cached kernel (about 0.5 s of CPU) against the numpy path: where `build --format npz` of the two
+# cross, about 680,000 both in the lab (some 255 trials) and in benchmarks/big_scene.py's 5x lab (some 80 trials)
+KERNEL_PAYS = 600_000
 CULL = 0.25  # raw strokes wholly beyond the image grown by this fraction of its size are not re-projected
 
 
@@ -59,6 +63,7 @@ class Run:
     _ideal: list[PoseResult] | None = None
     _epipoles: dict = field(default_factory=dict)
     _templates: dict = field(default_factory=dict)  # per (pose, side, raw?): the view's packed strokes, once a run
+    _kernel_rows: dict = field(default_factory=dict)  # the kernel's constant inputs: stage rows, templates' meta
     _visible: tuple | None = None
     exact_calibration: bool = False  # project each trial's perturbed rig from scratch (slow reference)
     point: int | None = None  # a study's design point: one more component of every draw's key
@@ -151,6 +156,12 @@ class Run:
     def batch_size(self) -> int:
         """Trials a batch: the largest power of two up to BATCH whose trials' strokes fit in BATCH_BYTES, so
         that memory stays bounded in a scene with many features in view (one trial at least)."""
+        vertices, strokes = self.trial_size()
+        fits = BATCH_BYTES // max(VERTEX_BYTES * vertices + STROKE_BYTES * strokes, 1)
+        return int(min(BATCH, 2 ** int(np.log2(fits)) if fits >= 1 else 1))
+
+    def trial_size(self) -> tuple[int, int]:
+        """The vertices and strokes of a trial's views before the stages (the templates the stages start from)."""
         raw = self.sampler() is not None and not self.exact_calibration
         vertices = strokes = 0
         for result in self.ideal():
@@ -158,8 +169,12 @@ class Run:
                 if getattr(result, side) is not None:
                     template = self.template(result, side, raw=raw)[0]
                     vertices, strokes = vertices + len(template.pts), strokes + template.n_strokes
-        fits = BATCH_BYTES // max(VERTEX_BYTES * vertices + STROKE_BYTES * strokes, 1)
-        return int(min(BATCH, 2 ** int(np.log2(fits)) if fits >= 1 else 1))
+        return vertices, strokes
+
+    def kernel_pays(self, trials: int) -> bool:
+        """Whether the compiled kernel would run `trials` trials, and pays for loading numba: KERNEL_PAYS
+        vertex-trials at least (an `auto` engine's choice for a run of known size)."""
+        return self.uses_kernel() and trials * self.trial_size()[0] >= KERNEL_PAYS
 
     def calibration_draws(self, batch: Sequence[int]) -> np.ndarray:
         """The batch's calibration perturbations (T, m), each checked: a draw that leaves a camera without a
@@ -219,6 +234,7 @@ class Run:
         per_trial = rigs = None
         base = self.ideal() if results is None else results
         kernel = self.uses_kernel()
+        keys = self._view_keys(batch, base) if kernel else None
         if sampler is not None:
             order = self.scene.rig.calibration.order
             phis = self.calibration_draws(batch)
@@ -238,7 +254,8 @@ class Run:
                 if kernel:
                     for effect, _ in self.image_stages:
                         self.trace[effect.name] += 1
-                    sets, views[side] = self._kernel_view(result, side, batch, rigs[side] if rigs else None, keep)
+                    sets, views[side] = self._kernel_view(result, side, keys[j, CAMERA_INDEX[side]],
+                                                          rigs[side] if rigs else None, keep)
                     disturbed[side] = sets
                     continue
                 if per_trial is not None:
@@ -276,34 +293,48 @@ class Run:
             self._templates[key] = made
         return made
 
-    def _kernel_view(self, result: PoseResult, side: str, batch: Sequence[int], rig: dict | None,
-                     keep: bool = True):
-        """One view of a batch in the compiled kernel: the same stages and draws as the numpy path."""
-        from wiredsl.effects.base import CAMERA_INDEX, stream_key
+    def _view_keys(self, batch: Sequence[int], results: list[PoseResult]) -> np.ndarray:
+        """The image stages' keys for every view of `results` (pose j, camera c) and trial of the batch:
+        (poses, 2, stages, trials), one stream_key call a stage (the same keys as one call a view)."""
+        poses = np.array([r.index for r in results], dtype=np.int64)[:, None, None]
+        cameras = np.array([CAMERA_INDEX["left"], CAMERA_INDEX["right"]])[None, :, None]
+        trials = np.asarray(batch, dtype=np.int64)[None, None, :]
+        keys = np.empty((len(results), 2, len(self.image_stages), len(batch)), dtype=np.uint64)
+        for g, (effect, _) in enumerate(self.image_stages):
+            keys[:, :, g] = stream_key(effect.name, trials, poses, cameras, self.seed, self.point)
+        return keys
+
+    def _kernel_view(self, result: PoseResult, side: str, keys: np.ndarray, rig: dict | None, keep: bool = True):
+        """One view of a batch in the compiled kernel, its keys (stages, trials) from `_view_keys`: the same
+        stages and draws as the numpy path."""
         from wiredsl.engine import kernel as kn
 
         view = getattr(result, side)
-        trials = np.asarray(batch, dtype=np.int64)
-        T = len(trials)
-        if rig is not None:
-            template, W, CW = self.template(result, side, raw=True, keep=keep)
+        T = keys.shape[1]
+        raw = rig is not None
+        template, W, CW = self.template(result, side, raw=raw, keep=keep)
+        if raw:
             R_cw, t_cw, cams, folds = trial_cameras(rig, result.pose)
             cam, view_of = rig["camera"], view_maker(rig, R_cw, t_cw, side)
         else:
-            template, W, CW = self.template(result, side, raw=False, keep=keep)
             cams = np.zeros((T, len(geometry.CAMERA_ROW)))
             R_cw, t_cw, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros(T)
             cam, view_of = view.camera, None
-        meta = np.column_stack([template.fid, template.segment, template.fragment, template.kind,
-                                template.clipped, template.closed, template.occluded]).astype(np.int64).reshape(-1, 7)
+        if "stages" not in self._kernel_rows:  # constant a run
+            self._kernel_rows["stages"] = stage_rows(self.image_stages)
+        functions, params, zero = self._kernel_rows["stages"]
+        stats = zero.copy()
+        meta = self._kernel_rows.get((result.index, side, raw)) if keep else None
+        if meta is None:
+            meta = np.column_stack([template.fid, template.segment, template.fragment, template.kind, template.clipped,
+                                    template.closed, template.occluded]).astype(np.int64).reshape(-1, 7)
+            if keep:
+                self._kernel_rows[(result.index, side, raw)] = meta
         stages = self.image_stages
-        functions, params, stats = stage_rows(stages)
-        keys = np.array([stream_key(e.name, trials, result.index, CAMERA_INDEX[side], self.seed, self.point)
-                         for e, _ in stages], dtype=np.uint64).reshape(len(stages), T)
         epipole = self.epipole(result.pose, side) if any(e.kernel.epipole for e, _ in stages) else np.zeros(3)
         pts, start, m, trial, corners, cfid, ctrial = kn.run_view(
             template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams, folds,
-            cam.width, cam.height, rig is not None, functions, params, keys, epipole, side == "right", stats)
+            cam.width, cam.height, raw, functions, params, keys, epipole, side == "right", stats)
         for (effect, _), row in zip(stages, stats, strict=True):
             kn.record(effect.name, effect.kernel.stats, row, self.stats)
         s = im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2], kind=m[:, 3],
@@ -340,7 +371,6 @@ def stage_rows(stages) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
 def kernel_apply(effect, params, s: im.ImageSet, ctx: Context) -> im.ImageSet:
     """One stage on any ImageSet in the compiled kernel, trial by trial: what `effect.apply` gives on the numpy
     path, with the same keyed draws (so tests run hand-made inputs through both engines)."""
-    from wiredsl.effects.base import CAMERA_INDEX, stream_key
     from wiredsl.engine import kernel as kn
 
     if effect.is_identity(params):
@@ -508,14 +538,18 @@ def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.nd
     t_wc = (rig["position"][:, None, :] * R_wr[None, :, :]).sum(axis=2) + t_wr
     R_cw = np.ascontiguousarray(np.transpose(R_wc, (0, 2, 1)))
     t_cw = -(R_cw * t_wc[:, None, :]).sum(axis=2)
-    cam = rig["camera"]
-    model = geometry.MODELS.index(cam.distortion)
-    cams = np.column_stack([*(p[k] for k in geometry.CAMERA_KEYS), np.full(len(p["f"]), model)]).astype(float)
-    if "folds" not in rig:  # the same at every pose: once a batch
-        lens = ("k1", "k2", "k3", "k4", "k5", "k6")
-        rig["folds"] = np.array([geometry.lens_limit(cam, **{k: float(p[k][i]) for k in lens})
-                                 for i in range(len(cams))])
-    return R_cw, t_cw, cams, rig["folds"]
+    if "cams" not in rig:  # the same at every pose: once a batch
+        cam = rig["camera"]
+        model = geometry.MODELS.index(cam.distortion)
+        cams = rig["cams"] = np.column_stack([*(p[k] for k in geometry.CAMERA_KEYS),
+                                              np.full(len(p["f"]), model)]).astype(float)
+        if cam.distortion == "radtan" and not any(np.any(p[k]) for k in ("k3", "k4", "k5", "k6")):
+            rig["folds"] = np.broadcast_to(geometry.fold_radius(p["k1"], p["k2"]), len(cams)).astype(float)
+        else:
+            lens = ("k1", "k2", "k3", "k4", "k5", "k6")
+            rig["folds"] = np.array([geometry.lens_limit(cam, **{k: float(p[k][i]) for k in lens})
+                                     for i in range(len(cams))])
+    return R_cw, t_cw, rig["cams"], rig["folds"]
 
 
 def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.ndarray, folds: np.ndarray):
@@ -571,7 +605,8 @@ class TrialViews:
     of them as arrays (`cameras`, `poses`) for the npz writer, which needs no model a trial."""
 
     def __init__(self, rig: dict, R_cw: np.ndarray, t_cw: np.ndarray, side: str):
-        self.params, self.camera, self.R_cw, self.t_cw, self.side = rig["params"], rig["camera"], R_cw, t_cw, side
+        self.rig, self.R_cw, self.t_cw, self.side = rig, R_cw, t_cw, side
+        self.params, self.camera = rig["params"], rig["camera"]
 
     def __call__(self, k: int) -> View:
         cam = self.camera
@@ -580,10 +615,14 @@ class TrialViews:
 
     def cameras(self, columns: Sequence[str], value: Callable) -> np.ndarray:
         """(T, len(columns)) float64: each trial's camera parameter of each column; an unperturbed one is
-        `value(camera, column)` repeated."""
-        T = len(self.R_cw)
-        return np.column_stack([np.broadcast_to(np.asarray(self.params[c], dtype=np.float64), (T,))
-                                if c in self.params else np.full(T, float(value(self.camera, c))) for c in columns])
+        `value(camera, column)` repeated. The same at every pose: made once a batch and side."""
+        key = ("cameras", tuple(columns), value)
+        if key not in self.rig:
+            T = len(self.R_cw)
+            self.rig[key] = np.column_stack([np.broadcast_to(np.asarray(self.params[c], dtype=np.float64), (T,))
+                                             if c in self.params else np.full(T, float(value(self.camera, c)))
+                                             for c in columns])
+        return self.rig[key]
 
     def poses(self) -> np.ndarray:
         """(T, 12) float64: each trial's R_cw (row-major) and t_cw."""

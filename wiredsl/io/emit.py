@@ -225,9 +225,15 @@ class NpzStream:
     def member(self, name: str, a: np.ndarray, dtype: type | None = None) -> None:
         """One array member, checked (and cast to `dtype`) by require_finite before a byte is written."""
         a = require_finite(np.asarray(a), f"{self.path.name} member {name}", dtype)
+        # (ascontiguousarray would turn the 0-d manifest into shape (1,))
+        a = a if a.flags.c_contiguous else a.copy(order="C")
+        fmt = np.lib.format
         with self.zf.open(f"{name}.npy", "w", force_zip64=True) as fh:
-            # (ascontiguousarray would turn the 0-d manifest into shape (1,))
-            np.lib.format.write_array(fh, a if a.flags.c_contiguous else a.copy(order="C"), allow_pickle=False)
+            if a.dtype.kind in "iuf" and a.ndim >= 1:  # a batch's arrays: what write_array writes, without a copy
+                fmt.write_array_header_1_0(fh, fmt.header_data_from_array_1_0(a))
+                fh.write(a.reshape(-1).view(np.uint8))
+            else:
+                fmt.write_array(fh, a, allow_pickle=False)
 
     def write_ideal(self, results: list[PoseResult], world: World) -> None:
         """The ideal projection (--no-effects) as trial 0, in the same layout as disturbed trials."""
@@ -240,7 +246,7 @@ class NpzStream:
     def write_batch(self, batch: list[int], batch_out, world: World, renumber: bool = True) -> None:
         """One batch's members (`batch_arrays`), as b{n}_<name>, each in its file type."""
         b = f"b{self.n:05d}"
-        for name, a in batch_arrays(batch, batch_out, contours(world), renumber).items():
+        for name, a in batch_arrays(batch, batch_out, contours(world), renumber, NPZ_TYPES["pts"]).items():
             self.member(f"{b}_{name}", a, NPZ_TYPES.get(name))
         self.n += 1
 
@@ -268,15 +274,17 @@ def contours(world: World) -> np.ndarray:
     return np.array([k == "contour" for k in world.feature_kind], dtype=bool)
 
 
-def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: bool = True) -> dict[str, np.ndarray]:
+def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: bool = True,
+                 points: type = np.float64) -> dict[str, np.ndarray]:
     """One batch's strokes, corners, views (and conics) as the npz members of a batch (layout.py), without
     the b{n}_ prefix and at full precision; `fragment` numbered as the JSON dump numbers it; `contour` is
-    `contours(world)`.
+    `contours(world)`. `points`: the type of pts and corners (the npz writer's float32: each view's cast and
+    checked by require_finite).
 
-    Whole arrays a view: trials' cameras and poses come from the batch's arrays (montecarlo.TrialViews), not
-    from a camera model a trial."""
-    pts, starts, rows, corners, crows, views, vcams, vposes, conics_, krows = ([] for _ in range(10))
-    offset = 0
+    Whole arrays a batch: trials' cameras and poses come from the batch's arrays (montecarlo.TrialViews), not
+    from a camera model a trial; each view's strokes are written into the batch's arrays while they are in the
+    cache, without a copy a view."""
+    sets, views, vcams, vposes, conics_, krows = ([] for _ in range(6))
     trials_of = np.asarray(batch, dtype=np.int64)
     T = len(trials_of)
     for result, disturbed, per_trial in batch_out:
@@ -304,20 +312,33 @@ def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: boo
                             centre, axes, angle, arc = f.conic
                             conics_.append([*centre, *axes, angle, *(arc if arc is not None else (0.0, 0.0))])
                             krows.append([t, result.index, cam, f.fid, f.clipped, arc is not None])
-            pts.append(s.pts)
-            starts.append(s.start[:-1] + offset)
-            offset += len(s.pts)
-            frag = _json_fragments(s) if renumber else s.fragment
-            rows.append(_int32_rows(trials_of[s.trial], result.index, cam, s.fid, s.segment, s.kind, s.clipped,
-                                    s.closed, frag, s.occluded, contour[s.fid]))
-            corners.append(s.corners)
-            crows.append(_int32_rows(trials_of[s.corner_trial], result.index, cam, s.corner_fid))
+            sets.append((s, result.index, cam))
+    n_pts, n_strokes, n_corners = (sum(f(s) for s, _, _ in sets) for f in (lambda s: len(s.pts),
+                                                                         lambda s: s.n_strokes,
+                                                                         lambda s: len(s.corners)))
+    pts, corners = np.empty((n_pts, 2), dtype=points), np.empty((n_corners, 2), dtype=points)
+    start = np.empty(n_strokes + 1, dtype=np.int64)
+    cast = (lambda a, what: a) if points == np.float64 else lambda a, what: require_finite(a, what, points)  # noqa: E731
+    strokes = np.empty((n_strokes, len(layout.STROKE_COLUMNS)), dtype=np.int32)
+    corner_rows = np.empty((n_corners, len(layout.CORNER_COLUMNS)), dtype=np.int32)
+    p = k = c = 0
+    for s, pose, cam in sets:
+        n, m, nc = len(s.pts), s.n_strokes, len(s.corners)
+        pts[p:p + n] = cast(s.pts, f"pose {pose}'s {layout.CAMERAS[cam]} vertex")
+        start[k:k + m] = s.start[:-1] + p
+        frag = _json_fragments(s) if renumber else s.fragment
+        _int32_rows(trials_of[s.trial], pose, cam, s.fid, s.segment, s.kind, s.clipped, s.closed, frag, s.occluded,
+                    contour[s.fid], out=strokes[k:k + m])
+        corners[c:c + nc] = cast(s.corners, f"pose {pose}'s {layout.CAMERAS[cam]} corner")
+        _int32_rows(trials_of[s.corner_trial], pose, cam, s.corner_fid, out=corner_rows[c:c + nc])
+        p, k, c = p + n, k + m, c + nc
+    start[k] = p
     return {
-        "pts": np.concatenate(pts) if pts else np.zeros((0, 2)),
-        "start": np.concatenate([*starts, [offset]]).astype(np.int64),
-        "strokes": _rows(rows, len(layout.STROKE_COLUMNS), np.int32),
-        "corners": np.concatenate(corners).reshape(-1, 2) if corners else np.zeros((0, 2)),
-        "corner_rows": _rows(crows, len(layout.CORNER_COLUMNS), np.int32),
+        "pts": pts,
+        "start": start,
+        "strokes": strokes,
+        "corners": corners,
+        "corner_rows": corner_rows,
         "views": _rows(views, len(layout.VIEW_COLUMNS), np.int32),
         "view_cameras": _rows(vcams, len(layout.CAMERA_COLUMNS), np.float64),
         "view_poses": _rows(vposes, 12, np.float64),
@@ -338,10 +359,10 @@ def _discard(tmp: str, *closers) -> None:
             close()
 
 
-def _int32_rows(first: np.ndarray, *columns) -> np.ndarray:
-    """Rows (len(first), 1 + len(columns)) of int32, one column each (a scalar fills its column). Every value
-    fits: trials are below 2**31 (cli.MAX_TRIAL), poses, cameras, features and codes far below."""
-    out = np.empty((len(first), 1 + len(columns)), dtype=np.int32)
+def _int32_rows(first: np.ndarray, *columns, out: np.ndarray | None = None) -> np.ndarray:
+    """Rows (len(first), 1 + len(columns)) of int32, one column each (a scalar fills its column), into `out` if
+    given. Every value fits: trials are below 2**31 (cli.MAX_TRIAL), poses, cameras, features and codes far below."""
+    out = np.empty((len(first), 1 + len(columns)), dtype=np.int32) if out is None else out
     out[:, 0] = first
     for j, c in enumerate(columns, 1):
         out[:, j] = c
@@ -364,8 +385,9 @@ def _json_fragments(s) -> np.ndarray:
     # group's strokes in their order, so a stroke's rank in its group is its fragment number
     trial, fid, seg = (np.asarray(a, dtype=np.int64) for a in (s.trial, s.fid, s.segment))
     nf, ns = int(fid.max()) + 1, int(seg.max()) + 2  # segment -1 (none) is shifted to 0
-    order = np.argsort((trial * nf + fid) * ns + seg + 1, kind="stable")
-    key = ((trial * nf + fid) * ns + seg + 1)[order]
+    key = (trial * nf + fid) * ns + seg + 1
+    order = np.argsort(key, kind="stable")
+    key = key[order]
     first = np.empty(n, dtype=bool)
     first[0] = True
     np.not_equal(key[1:], key[:-1], out=first[1:])
