@@ -187,3 +187,11 @@ def test_auto_loads_the_kernel_only_for_runs_large_enough_to_pay_for_it(tmp_path
                                       "--seed", "4", "-o", str(out), *args])
         assert r.exit_code == 0, r.output
         assert json.loads((out / "manifest.json").read_text())["engine"] == engine
+    # trial 2 of the 3-trial (numpy) run, replayed with the run's --trials: its engine, the same bytes
+    out = tmp_path / "replay"
+    r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "--pose", "1", "--no-svg", "--seed", "4", "-o", str(out),
+                                  "--trials", "3", "--trial", "2"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((out / "manifest.json").read_text())["engine"] == "numpy"
+    line = (tmp_path / "--trials-3" / "features.jsonl").read_text().splitlines()[2]
+    assert json.loads((out / "features.json").read_text()) == json.loads(line)

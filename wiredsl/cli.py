@@ -477,7 +477,8 @@ def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None
               help="Seed of every random stream (default: drawn at random and recorded).")
 @click.option("--trials", type=click.IntRange(1, 10**8), default=1, show_default=True, help="Monte-Carlo trials.")
 @click.option("--trial", "only_trial", type=click.IntRange(0, MAX_TRIAL), default=None,
-              help="Replay trial K of a run alone (same seed): exactly that trial's output.")
+              help="Replay trial K of a run alone (same seed): exactly that trial's output. With the run's "
+                   "--trials N, on the engine that run chose.")
 @click.option("--pose", "poses", type=int, multiple=True, help="Build only this pose (repeatable).")
 @click.option("--format", "out_format", type=click.Choice(["json", "jsonl", "npz"]), default="json",
               show_default=True, help="json: one dump (one trial); jsonl: a line a trial and pose; npz: bulk arrays.")
@@ -556,8 +557,10 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         else:
             run = runs.start(scene, pipeline, seed=seed, options=opts, world=world, engine=engine,
                              exact_calibration=exact_calibration)
-    if engine == "auto" and only_trial is None and not run.kernel_pays(len(trial_list)):
-        run.engine = "numpy"  # a small run: loading the compiled kernel would cost more than it saves
+    replaying_alone = only_trial is not None and trials == 1  # --trial K alone: the kernel, as before
+    if engine == "auto" and not replaying_alone and not run.kernel_pays(trials if only_trial is not None
+                                                                        else len(trial_list)):
+        run.engine = "numpy"  # a small run (or --trial K of one, given its --trials N): the kernel would not pay
     shown = only_trial if only_trial is not None else trial_list[0]  # the trial the SVGs show
     if run.uses_kernel():
         _numba_without_blas()
