@@ -586,9 +586,10 @@ def reproject(view: View, world: World, rig: dict, pose: tuple, side: str, templ
     uv, ok = project_trials(W, R_cw, t_cw, cams, folds)
     # a vertex the perturbation takes behind the near plane or past the fold (a stroke cut there in the
     # ideal view) is cut away with its neighbours' span, as the ideal path cuts in 3D
-    rep = im.keep_vertex_runs(im.replace(rep, pts=uv), ok)
     cam = rig["camera"]
-    rep = im.clip_rect(rep, cam.width, cam.height)
+    with np.errstate(over="ignore", invalid="ignore"):  # as the kernel: a huge distortion's far vertices measure
+        rep = im.keep_vertex_runs(im.replace(rep, pts=uv), ok)  # inf and are cut away, never reach the image
+        rep = im.clip_rect(rep, cam.width, cam.height)
     cuv, cok = project_trials(CW, R_cw, t_cw, cams, folds)
     cok &= (cuv[:, 0] >= 0) & (cuv[:, 0] <= cam.width) & (cuv[:, 1] >= 0) & (cuv[:, 1] <= cam.height)
     rep = im.replace(rep, corners=cuv).take_corners(cok)

@@ -267,9 +267,11 @@ class CameraCompiler:
                 return
             reach, angle = float(geometry.fisheye_theta_d(stop, *k)), stop
         else:
-            def radius(r: float) -> float:  # the distorted radius of unit-plane radius r (radial terms)
-                return float(geometry.distort(np.array([r, 0.0]), cam.k1, cam.k2, 0.0, 0.0, *k[2:], cam.k5,
-                                              cam.k6)[0])
+            def radius(r: float) -> float:  # the distorted radius of unit-plane radius r (radial terms; inf on
+                with np.errstate(over="ignore", invalid="ignore"):  # overflow, past any image's corner)
+                    x = float(geometry.distort(np.array([r, 0.0]), cam.k1, cam.k2, 0.0, 0.0, *k[2:], cam.k5,
+                                               cam.k6)[0])
+                return x if math.isfinite(x) else math.inf
 
             angle = math.atan(geometry.lens_limit(cam))
             reach = radius(math.tan(angle)) if angle < math.pi / 2 else math.inf
