@@ -406,3 +406,22 @@ def test_a_study_without_matplotlib_is_refused_before_it_runs(tmp_path, monkeypa
     r = run("study", "scenes/studies/lab_study.wd", "shift_calibration", "-o", str(tmp_path / "s"))
     assert r.exit_code == 2 and "wiredsl[plot]" in r.output and "--no-plots" in r.output
     assert not (tmp_path / "s").exists()  # nothing ran
+
+
+def test_the_console_entry_exits_without_teardown_yet_writes_and_codes_as_main(tmp_path):
+    """`python -m wiredsl` (cli.entry) skips the interpreter's teardown: its exit codes (0, 1 invalid input, 2
+    usage), its stdout through a pipe (the whole dump) and its files are those of `main`."""
+    import wiredsl
+
+    py = [sys.executable, "-m", "wiredsl"]
+    full = subprocess.run([*py, "build", "scenes/lab.wd", "--no-svg", "-o", "-"], cwd=ROOT, capture_output=True)
+    assert full.returncode == 0 and json.loads(full.stdout)["document"] == "features"
+    bad = subprocess.run([*py, "check", "tests/invalid/zero_line.wd"], cwd=ROOT, capture_output=True, text=True)
+    assert bad.returncode == 1 and "error[" in bad.stderr
+    assert subprocess.run([*py, "build", "--bogus"], cwd=ROOT, capture_output=True).returncode == 2
+    out = tmp_path / "out"
+    r = subprocess.run([*py, "build", "scenes/lab.wd", "--trials", "300", "--format", "npz", "--seed", "1", "--no-svg",
+                        "-o", str(out)], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert [k for k in wiredsl.load(out / "features.npz", arrays=True)] and json.loads(
+        (out / "manifest.json").read_text())["trials"] == 300

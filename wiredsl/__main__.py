@@ -1,3 +1,3 @@
-from wiredsl.cli import main
+from wiredsl.cli import entry
 
-main()
+entry()

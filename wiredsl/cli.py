@@ -158,6 +158,32 @@ def main() -> None:
     _tune_gc()
 
 
+def entry() -> None:
+    """The console script and `python -m wiredsl`: the command, then an exit without the interpreter's
+    teardown. By then every output is written and closed (atomic writes; `guarded` flushes stdout where a
+    closed pipe is caught, and the study's pools and clients are closed by their `with`); what teardown adds
+    is freeing every object and module one by one, numba's above all: measured 0.36 s of CPU after a
+    300-trial kernel build of the lab and 0.06 s after its plain build. `main` itself (click's CliRunner, a
+    program calling it) exits as usual."""
+    try:
+        main()
+        code = 0
+    except SystemExit as exc:
+        code = exc.code
+    if code is None:
+        code = 0
+    elif not isinstance(code, int):  # sys.exit("message"), as Python would print it
+        print(code, file=sys.stderr)
+        code = 1
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            if not stream.closed:
+                stream.flush()
+        except (OSError, ValueError):  # the reader went away: nothing left to say to it
+            pass
+    os._exit(code)
+
+
 GC_YOUNG = 200_000  # allocations between collections of the young generation (CPython's default: 700)
 
 
