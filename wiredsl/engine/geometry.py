@@ -474,17 +474,18 @@ def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float
         live_b.append(ts[:, 1:].ravel())
     cid = np.concatenate(live_c).astype(int) if live_c else np.zeros(0, dtype=int)
     ta, tb = (np.concatenate(x) if x else np.zeros(0) for x in (live_a, live_b))
-    # each live interval keeps its five points (ends, quarters, middle): a halving reuses three of them
+    # each live interval keeps its five points (ends, quarters, middle), their u and v apart: a halving
+    # reuses three of them
     tm = 0.5 * (ta + tb)
     T = np.stack([ta, 0.5 * (ta + tm), tm, 0.5 * (tm + tb), tb], axis=1)
-    Pts = _evaluate(point_fn, np.repeat(cid, 5), T.ravel()).reshape(-1, 5, 2)
+    U, V = _evaluate_uv(point_fn, np.repeat(cid, 5), T.ravel(), 5)
     counts = starts + 1
     total = int(counts.sum())
     for _ in range(max_depth):
         if len(cid) == 0:
             break
-        split = _deviation(Pts, cid, image) > tol
-        cid, T, Pts = cid[split], T[split], Pts[split]
+        split = _deviation_uv(U, V, cid, image) > tol
+        cid, T, U, V = cid[split], T[split], U[split], V[split]
         done_c.append(cid)
         done_t.append(T[:, 2])
         counts += np.bincount(cid, minlength=n)
@@ -494,13 +495,10 @@ def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float
         if len(cid) and counts.max() > max_vertices:
             raise TooManyVertices(int(counts.argmax()), max_vertices)
         new_t = 0.5 * (T[:, :-1] + T[:, 1:])  # the eighths: the children's new quarter points
-        new_p = _evaluate(point_fn, np.repeat(cid, 4), new_t.ravel()).reshape(-1, 4, 2)
-        left_t = np.stack([T[:, 0], new_t[:, 0], T[:, 1], new_t[:, 1], T[:, 2]], axis=1)
-        right_t = np.stack([T[:, 2], new_t[:, 2], T[:, 3], new_t[:, 3], T[:, 4]], axis=1)
-        left_p = np.stack([Pts[:, 0], new_p[:, 0], Pts[:, 1], new_p[:, 1], Pts[:, 2]], axis=1)
-        right_p = np.stack([Pts[:, 2], new_p[:, 2], Pts[:, 3], new_p[:, 3], Pts[:, 4]], axis=1)
+        new_u, new_v = _evaluate_uv(point_fn, np.repeat(cid, 4), new_t.ravel(), 4)
+        # the nine points of the interval, then its halves: points 0-4 and 4-8
         cid = np.concatenate([cid, cid])
-        T, Pts = np.concatenate([left_t, right_t]), np.concatenate([left_p, right_p])
+        T, U, V = (_halves(old, new) for old, new in ((T, new_t), (U, new_u), (V, new_v)))
     all_c = np.concatenate(done_c).astype(int) if done_c else np.zeros(0, dtype=int)
     all_t = np.concatenate(done_t) if done_t else np.zeros(0)
     order = np.lexsort((all_t, all_c))
@@ -516,43 +514,63 @@ def _evaluate(point_fn, c: np.ndarray, t: np.ndarray) -> np.ndarray:
                            for lo in range(0, len(t), EVAL_CHUNK)])
 
 
-def _deviation(p: np.ndarray, cid: np.ndarray, image=None) -> np.ndarray:
-    """Estimated largest distance of curve pieces from their chords, from their five points p (m, 5, 2)."""
-    dist = _distance_to_segment(p[:, 1:4], p[:, :1], p[:, 4:]).max(axis=1)
-    with np.errstate(invalid="ignore", over="ignore"):  # non-finite points give NaN: never split
-        second = p[:, :-2] - 2 * p[:, 1:-1] + p[:, 2:]  # (m, 3, 2)
-        across = _across(second, p[:, 2:] - p[:, :-2]).max(axis=1)
-        out = dist + 0.25 * across
+def _evaluate_uv(point_fn, c: np.ndarray, t: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """`_evaluate`'s points as their u and v, each (len(t) / k, k)."""
+    p = _evaluate(point_fn, c, t)
+    return p[:, 0].reshape(-1, k), p[:, 1].reshape(-1, k)
+
+
+def _halves(old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """Five values a piece (m, 5) and the four between them (m, 4) -> the two halves' five values (2m, 5)."""
+    nine = np.empty((len(old), 9))
+    nine[:, 0::2], nine[:, 1::2] = old, new
+    return np.concatenate([nine[:, :5], nine[:, 4:]])
+
+
+def _deviation_uv(u: np.ndarray, v: np.ndarray, cid: np.ndarray, image=None) -> np.ndarray:
+    """Estimated largest distance of curve pieces from their chords, from their five points' u and v (m, 5)
+    each: the largest distance of the quarter points from the chord segment, plus a quarter of the largest
+    second difference across the curve. Written a coordinate at a time: numpy's reductions over an axis of
+    two cost more than the arithmetic."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # non-finite points give NaN: never split
+        u0, v0, u4, v4 = u[:, 0], v[:, 0], u[:, 4], v[:, 4]
+        du, dv = u4 - u0, v4 - v0  # the chord
+        dd = du * du + dv * dv
+        out = None
+        for j in (1, 2, 3):  # the quarter points' distances from the chord segment
+            s = np.clip(((u[:, j] - u0) * du + (v[:, j] - v0) * dv) / dd, 0.0, 1.0)
+            s = np.where(dd > 0, s, 0.0)
+            d = np.hypot(u[:, j] - (u0 + s * du), v[:, j] - (v0 + s * dv))
+            out = d if out is None else np.maximum(out, d)  # NaN wins, as in max()
+        across = None
+        for j in (0, 1, 2):  # second differences, their part across the curve
+            a = _across_uv(u[:, j] - 2 * u[:, j + 1] + u[:, j + 2], v[:, j] - 2 * v[:, j + 1] + v[:, j + 2],
+                           u[:, j + 2] - u[:, j], v[:, j + 2] - v[:, j])
+            across = a if across is None else np.maximum(across, a)
+        out = out + 0.25 * across
     if image is not None:
         w, h = image[0][cid], image[1][cid]
-        m = 0.25 * np.maximum(w, h)[:, None]
-        u, v = p[..., 0], p[..., 1]
+        m = 0.25 * np.maximum(w, h)
+        lo_u, hi_u, lo_v, hi_v = -m, w + m, -m, h + m
         with np.errstate(invalid="ignore"):
-            far = (u < -m).all(1) | (u > (w[:, None] + m)).all(1) | (v < -m).all(1) | (v > (h[:, None] + m)).all(1)
-        out = np.where(far, 0.0, out)
+            below_u, above_u, below_v, above_v = u[:, 0] < lo_u, u[:, 0] > hi_u, v[:, 0] < lo_v, v[:, 0] > hi_v
+            for j in (1, 2, 3, 4):
+                below_u &= u[:, j] < lo_u
+                above_u &= u[:, j] > hi_u
+                below_v &= v[:, j] < lo_v
+                above_v &= v[:, j] > hi_v
+        out = np.where(below_u | above_u | below_v | above_v, 0.0, out)
     return out
 
 
-def _across(v: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """The part of vectors v (..., 2) across directions d (..., 2) (all of v where d is zero).
+def _across_uv(vu, vv, du, dv):
+    """The part of vectors (vu, vv) across directions (du, dv) (all of it where a direction is zero).
 
     A second difference along the curve only speeds up or slows down the parameter; across it,
     it bends the curve away from its chords.
     """
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        length = np.hypot(d[..., 0], d[..., 1])
-        across = np.abs(v[..., 0] * d[..., 1] - v[..., 1] * d[..., 0]) / length
-        return np.where(length > 0, across, np.hypot(v[..., 0], v[..., 1]))
-
-
-def _distance_to_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance of points p from segments a-b, (..., 2) each (broadcast)."""
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        d = b - a
-        dd = (d * d).sum(axis=-1)
-        s = np.clip(((p - a) * d).sum(axis=-1) / dd, 0.0, 1.0)
-        q = a + np.where(dd > 0, s, 0.0)[..., None] * d
-    return np.hypot(p[..., 0] - q[..., 0], p[..., 1] - q[..., 1])
+    length = np.hypot(du, dv)
+    return np.where(length > 0, np.abs(vu * dv - vv * du) / length, np.hypot(vu, vv))
 
 
 def clip_polyline_rect(points: np.ndarray, width: float, height: float) -> list[tuple[np.ndarray, bool]]:

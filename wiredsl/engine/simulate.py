@@ -269,9 +269,11 @@ class _Emitted:
     def to_world(self, P_cam: np.ndarray, vid: np.ndarray) -> np.ndarray:
         """Camera-frame points (m, 3) of views vid (m,) back in the world frame, one transform a view."""
         out = np.empty_like(P_cam)
-        for k in np.unique(vid):
-            m = vid == k
-            out[m] = (P_cam[m] - self.views[k].t_cw) @ self.views[k].R_cw
+        # vid comes in a few sorted runs (segments, then ellipses): one transform a block of equal views
+        cuts = np.flatnonzero(vid[1:] != vid[:-1]) + 1
+        starts, ends = np.concatenate([[0], cuts]).tolist(), np.concatenate([cuts, [len(vid)]]).tolist()
+        for a, b, k in zip(starts, ends, vid[starts].tolist(), strict=True) if len(vid) else ():
+            out[a:b] = (P_cam[a:b] - self.views[k].t_cw) @ self.views[k].R_cw
         return out
 
     def deliver(self) -> None:
@@ -284,12 +286,22 @@ class _Emitted:
 def _camera_table(cams: list[Camera]) -> dict[str, np.ndarray]:
     """Per-view camera parameters as arrays (V,), with the lens model and limit (`geometry.lens_limit`), and
     whether lines are curves in the image."""
-    rows = [geometry.camera_table(c) for c in cams]
+    distinct = {id(c): c for c in cams}  # the views of a path share a few Camera objects
+    row = {k: geometry.camera_table(c) for k, c in distinct.items()}
+    rows = [row[id(c)] for c in cams]
     table = {k: np.array([r[k] for r in rows]) for k in rows[0]}
     table["width"] = np.array([float(c.width) for c in cams])
     table["height"] = np.array([float(c.height) for c in cams])
     table["distorted"] = np.array([geometry.is_distorted(c) for c in cams], dtype=bool)
+    # each distinct set of camera numbers once, as scalars: points are projected a camera at a time
+    numbers = np.column_stack([table[k] for k in _CAMERA]).astype(float)
+    unique, table["camera"] = np.unique(numbers, axis=0, return_inverse=True)
+    table["camera"] = table["camera"].reshape(-1)
+    table["cameras"] = [dict(zip(_CAMERA, r.tolist(), strict=True)) for r in unique]
     return table
+
+
+_CAMERA = (*geometry.CAMERA_KEYS, "model")  # the numbers geometry.project needs
 
 
 def _pixels(P: np.ndarray, cam: dict, v: np.ndarray) -> np.ndarray:
@@ -297,8 +309,18 @@ def _pixels(P: np.ndarray, cam: dict, v: np.ndarray) -> np.ndarray:
 
     A pixel beyond float range (a focal length of 1e300 px) is inf: such points count as outside the image;
     a radtan point that rounding at huge distances left at z <= 0 is NaN (outside every image).
+    Each distinct camera projects its points with its numbers as scalars, which gives the same doubles as
+    one projection with a column of numbers a point, in less time.
     """
-    return geometry.project(P, {k: cam[k][v] for k in _Curves.CAMERA})
+    cameras = cam["cameras"]
+    if len(cameras) == 1:
+        return geometry.project(P, cameras[0])
+    which = cam["camera"][v]
+    out = np.empty((len(P), 2))
+    for k in np.flatnonzero(np.bincount(which, minlength=len(cameras))).tolist():
+        rows = np.flatnonzero(which == k)
+        out[rows] = geometry.project(P[rows], cameras[k])
+    return out
 
 
 def _ellipses_cam(world: World, views: list[View]):
@@ -449,24 +471,31 @@ def _emit_curved_segments(s: _Segments, curved: np.ndarray, runs: np.ndarray, pi
 class _Curves:
     """Curves P(t) = base + X cos t + Y sin t (ellipses) or base + t X (lines, Y = 0), camera frame."""
 
-    CAMERA = (*geometry.CAMERA_KEYS, "model")
-
     def __init__(self, cam: dict, view: np.ndarray, base: np.ndarray, X: np.ndarray, Y: np.ndarray,
                  line: np.ndarray):
         self.cam, self.view, self.line = cam, view, line
-        # one row a curve: its geometry and its camera, so that evaluating points is a single gather
-        self.table = np.column_stack([base, X, Y, line, *(cam[k][view] for k in self.CAMERA)])
+        self.base, self.X, self.Y = base, X, Y
 
-    def points(self, c: np.ndarray, t: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        g = self.table[c] if rows is None else rows
-        line = g[:, 9] != 0
-        x = np.where(line, t, np.cos(t))
-        y = np.where(line, 0.0, np.sin(t))
-        return g[:, 0:3] + x[:, None] * g[:, 3:6] + y[:, None] * g[:, 6:9]
+    def points(self, c: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Points (m, 3) of curves c (m,) at parameters t (m,); lines and ellipses apart (no cosines for lines)."""
+        line = self.line[c]
+        if line.all():
+            return self._line_points(c, t)
+        if not line.any():
+            return self._arc_points(c, t)
+        out = np.empty((len(c), 3))
+        a, e = np.flatnonzero(line), np.flatnonzero(~line)
+        out[a], out[e] = self._line_points(c[a], t[a]), self._arc_points(c[e], t[e])
+        return out
+
+    def _line_points(self, c, t):
+        return self.base[c] + t[:, None] * self.X[c] + 0.0  # + 0 * Y with Y = 0: a -0.0 becomes 0.0, as it did
+
+    def _arc_points(self, c, t):
+        return self.base[c] + np.cos(t)[:, None] * self.X[c] + np.sin(t)[:, None] * self.Y[c]
 
     def pixels(self, c: np.ndarray, t: np.ndarray) -> np.ndarray:
-        g = self.table[c]
-        return geometry.project(self.points(c, t, g), dict(zip(self.CAMERA, g[:, 10:].T, strict=True)))
+        return _pixels(self.points(c, t), self.cam, self.view[c])
 
     def sample(self, t0: np.ndarray, t1: np.ndarray, tol: float, start):
         image = (self.cam["width"][self.view], self.cam["height"][self.view])
