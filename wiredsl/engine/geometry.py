@@ -421,7 +421,7 @@ def clip_segments_rect(a: np.ndarray, b: np.ndarray, width: float, height: float
 
 MAX_CURVE_VERTICES = 100_000  # the most vertices one curve's polyline may get
 MAX_VERTICES = 2_000_000  # the most vertices one packed sampling may create (memory: ~130 bytes each)
-EVAL_CHUNK = 1 << 16  # points evaluated at once while sampling: bounds the temporaries
+EVAL_CHUNK = 1 << 14  # points evaluated at once while sampling: bounds the temporaries (and keeps them in cache)
 
 
 class TooManyVertices(ValueError):
