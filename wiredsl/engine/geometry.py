@@ -443,7 +443,7 @@ def adaptive_samples(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float, start
 
 
 def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float, start=8, max_depth: int = 20,
-                            max_vertices: int = MAX_CURVE_VERTICES, image=None):
+                            max_vertices: int = MAX_CURVE_VERTICES, image=None, points: bool = False):
     """Sample parameters of many curves at once so that each polyline stays within `tol` of its curve.
 
     Curves are sampled on `start` (scalar or one count a curve) equal intervals; an interval is halved
@@ -457,18 +457,25 @@ def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float
     border of the image by more than a quarter of its size are not refined: nothing there is seen,
     even after perturbations of a hundred pixels, and curves through the near plane would otherwise
     get vertices by the million.
-    Returns (cid, t, bounds): the parameters sorted by curve then t, curve i's are t[bounds[i]:bounds[i+1]].
+    Returns (cid, t, bounds): the parameters sorted by curve then t, curve i's are t[bounds[i]:bounds[i+1]];
+    with `points`, also point_fn's points there (m, 2), as evaluated while sampling.
     Raises TooManyVertices past max_vertices for one curve or MAX_VERTICES in all.
     """
     n = len(t0)
     starts = np.broadcast_to(np.asarray(start, dtype=int), (n,))
-    done_c, done_t, live_c, live_a, live_b = [], [], [], [], []
-    for k in np.unique(starts):
+    done_c, done_t, done_i, live_c, live_a, live_b = [], [], [], [], [], []
+    first = 0  # the first interval of this start count's curves
+    for k in np.unique(starts).tolist():
         rows = np.flatnonzero(starts == k)
         grid = np.linspace(0.0, 1.0, k + 1)
         ts = t0[rows, None] + (t1 - t0)[rows, None] * grid[None, :]
         done_c.append(np.repeat(rows, k + 1))
         done_t.append(ts.ravel())
+        # where each grid point was evaluated: an interval's start, the last one's end (5 points an interval)
+        j = np.minimum(np.arange(k + 1), k - 1)
+        done_i.append((5 * (first + k * np.arange(len(rows))[:, None] + j) + np.where(j < np.arange(k + 1), 4, 0))
+                      .ravel())
+        first += k * len(rows)
         live_c.append(np.repeat(rows, k))
         live_a.append(ts[:, :-1].ravel())
         live_b.append(ts[:, 1:].ravel())
@@ -479,6 +486,8 @@ def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float
     tm = 0.5 * (ta + tb)
     T = np.stack([ta, 0.5 * (ta + tm), tm, 0.5 * (tm + tb), tb], axis=1)
     U, V = _evaluate_uv(point_fn, np.repeat(cid, 5), T.ravel(), 5)
+    at = np.concatenate(done_i) if done_i else np.zeros(0, dtype=int)
+    done_u, done_v = [U.ravel()[at]], [V.ravel()[at]]
     counts = starts + 1
     total = int(counts.sum())
     for _ in range(max_depth):
@@ -488,6 +497,8 @@ def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float
         cid, T, U, V = cid[split], T[split], U[split], V[split]
         done_c.append(cid)
         done_t.append(T[:, 2])
+        done_u.append(U[:, 2])
+        done_v.append(V[:, 2])
         counts += np.bincount(cid, minlength=n)
         total += len(cid)
         if total > MAX_VERTICES:
@@ -503,7 +514,10 @@ def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float
     all_t = np.concatenate(done_t) if done_t else np.zeros(0)
     order = np.lexsort((all_t, all_c))
     all_c, all_t = all_c[order], all_t[order]
-    return all_c, all_t, np.searchsorted(all_c, np.arange(n + 1))
+    bounds = np.searchsorted(all_c, np.arange(n + 1))
+    if not points:
+        return all_c, all_t, bounds
+    return all_c, all_t, bounds, np.stack([np.concatenate(done_u)[order], np.concatenate(done_v)[order]], axis=1)
 
 
 def _evaluate(point_fn, c: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -9,6 +9,8 @@ rectangle [0, width] x [0, height] after it.
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import math
 from dataclasses import dataclass, field
 
@@ -210,6 +212,26 @@ def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mask
 
     With occluders (--visibility exact), each view keeps only the unoccluded parts (occlusion.py).
     """
+    with gc_paused():
+        return _project_views(world, cams, R_cw, t_cw, masks, tol, occluders)
+
+
+@contextlib.contextmanager
+def gc_paused():
+    """Python's cyclic garbage collector paused while the engine makes its many small objects (features,
+    strokes, dump records; none in a reference cycle). Left running, it walks every object of the process
+    each time enough of them have been made: about a third of a long path's projection in a fresh process."""
+    paused = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if paused:
+            gc.enable()
+
+
+def _project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, masks: list, tol: float,
+                   occluders: occlusion.Occluders | None) -> list[View]:
     views = [View(c, np.asarray(R, float), np.asarray(t, float)) for c, R, t in zip(cams, R_cw, t_cw, strict=True)]
     if not views:
         return views
@@ -228,9 +250,9 @@ def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mask
                      np.concatenate([np.zeros((len(curved), 3)), ell.V[ell.owner]]),
                      np.arange(len(curved) + len(ell.owner)) < len(curved))
     try:
-        cid, ts, bounds = curves.sample(np.concatenate([seg.t0[curved], ell.lo]),
-                                        np.concatenate([seg.t1[curved], ell.hi]), tol,
-                                        np.where(curves.line, 2, 16))
+        cid, ts, bounds, uv = curves.sample(np.concatenate([seg.t0[curved], ell.lo]),
+                                            np.concatenate([seg.t1[curved], ell.hi]), tol,
+                                            np.where(curves.line, 2, 16))
     except geometry.TooManyVertices as exc:
         raise _too_many(exc, tol) from None
     P = curves.points(cid, ts)
@@ -240,7 +262,7 @@ def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mask
     seg_runs = np.stack([bounds[:n_seg], bounds[1:n_seg + 1]], axis=1)
     ell_runs, ell_run_meta = _fold_runs(ell, cam, cid, ts, P, bounds, n_seg)
     runs = np.concatenate([seg_runs, ell_runs])
-    pieces = curves.clip(cid, ts, P, runs)
+    pieces = curves.clip(cid, ts, uv, runs)
     _emit_curved_segments(seg, curved, seg_runs, pieces, world_pts, out)
     _emit_ellipses(ell, cam, ell_runs, ell_run_meta, pieces, n_seg, world_pts, out)
     _emit_corners(world, views, cam, masks, out, eyes)
@@ -498,19 +520,20 @@ class _Curves:
         return _pixels(self.points(c, t), self.cam, self.view[c])
 
     def sample(self, t0: np.ndarray, t1: np.ndarray, tol: float, start):
+        """(cid, t, bounds, pixels) of `geometry.adaptive_samples_packed`."""
         image = (self.cam["width"][self.view], self.cam["height"][self.view])
-        return geometry.adaptive_samples_packed(self.pixels, t0, t1, tol, start, image=image)
+        return geometry.adaptive_samples_packed(self.pixels, t0, t1, tol, start, image=image, points=True)
 
-    def clip(self, cid: np.ndarray, ts: np.ndarray, P: np.ndarray, runs: np.ndarray) -> list:
-        """Cut the polylines of sample runs (R, 2) [first, end) to the image; ends cut at the border lie on
-        the curve. Returns [(run, pixels (k, 2), cut)] in run order."""
+    def clip(self, cid: np.ndarray, ts: np.ndarray, uv: np.ndarray, runs: np.ndarray) -> list:
+        """Cut the polylines of sample runs (R, 2) [first, end) to the image (the samples' pixels uv (m, 2));
+        ends cut at the border lie on the curve. Returns [(run, pixels (k, 2), cut)] in run order."""
         cam = self.cam
         keep = runs[:, 1] > runs[:, 0]
         runs = runs[keep]
         sizes = runs[:, 1] - runs[:, 0]
         take = geometry._ranges(runs[:, 0], sizes)
         c, t = cid[take], ts[take]
-        uv = _pixels(P[take], cam, self.view[c])
+        uv = uv[take]
         start = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
         run_of = np.flatnonzero(keep)
         v = self.view[c[start[:-1]]]

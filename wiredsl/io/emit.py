@@ -10,7 +10,7 @@ import numpy as np
 
 from wiredsl import __version__
 from wiredsl.engine import geometry
-from wiredsl.engine.simulate import PoseResult
+from wiredsl.engine.simulate import PoseResult, gc_paused
 from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
 from wiredsl.io import layout
@@ -109,7 +109,8 @@ def features_doc(scene: Scene, world: World, results: list[PoseResult], *, pipel
     """The features dump as plain data, what `Features(...).model_dump(mode="json")` gives, built from the
     engine's arrays without a model a feature (numpy arrays in place of lists of numbers: see `to_json`)."""
     cameras: dict = {}
-    poses = [_pose_doc(r, world, cameras) for r in results]
+    with gc_paused():
+        poses = [_pose_doc(r, world, cameras) for r in results]
     return {"document": "features", "schema_version": SCHEMA_VERSION, "tool_version": __version__,
             "scene": scene_ref(scene).model_dump(mode="json"), "pipeline": pipeline,
             "stages": [s.model_dump(mode="json") for s in stages], "seed": seed, "trial": trial, "poses": poses}
