@@ -100,12 +100,16 @@ CAMERA_ROW = (*CAMERA_KEYS, "model")
 
 def distort(xy: np.ndarray, k1, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0, k5=0.0, k6=0.0) -> np.ndarray:
     """Distorted unit-plane coordinates under OpenCV's rational model (k1..k6, p1, p2), shape (..., 2)."""
-    x, y = xy[..., 0], xy[..., 1]
+    return np.stack(distort_xy(xy[..., 0], xy[..., 1], k1, k2, p1, p2, k3, k4, k5, k6), axis=-1)
+
+
+def distort_xy(x: np.ndarray, y: np.ndarray, k1, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0, k5=0.0, k6=0.0):
+    """`distort` of the coordinates apart: (x_d, y_d)."""
     r2 = x * x + y * y
     radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    return np.stack([xd, yd], axis=-1)
+    return xd, yd
 
 
 def fisheye_plane(P_cam: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0) -> np.ndarray:
@@ -114,12 +118,16 @@ def fisheye_plane(P_cam: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0) -> np.ndarray:
     theta is the angle from the optical axis, so points beside and behind the camera's plane have an
     image too; a point on the backward axis (theta = 180 deg) or at the centre has none (NaN).
     """
-    X, Y, Z = P_cam[..., 0], P_cam[..., 1], P_cam[..., 2]
+    return np.stack(fisheye_xy(P_cam[..., 0], P_cam[..., 1], P_cam[..., 2], k1, k2, k3, k4), axis=-1)
+
+
+def fisheye_xy(X: np.ndarray, Y: np.ndarray, Z: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0):
+    """`fisheye_plane` of the coordinates apart: (x_d, y_d)."""
     rho = np.hypot(X, Y)
     td = fisheye_theta_d(np.arctan2(rho, Z), k1, k2, k3, k4)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         scale = np.where(rho > 0, td / np.where(rho > 0, rho, 1.0), np.where(Z > 0, 0.0, np.nan))
-    return np.stack([scale * X, scale * Y], axis=-1)
+    return scale * X, scale * Y
 
 
 def fisheye_theta_d(theta, k1, k2=0.0, k3=0.0, k4=0.0):
@@ -159,17 +167,27 @@ def project(P_cam: np.ndarray, g: dict) -> np.ndarray:
     A radtan camera gives NaN for points with Z <= 0 (nothing there is imaged; callers clip first), as
     does a fisheye for the backward axis. A pixel beyond float range is inf.
     """
-    model = np.broadcast_to(np.asarray(g["model"]), P_cam.shape[:-1])
-    fish = model == 1
+    return np.stack(project_xyz(P_cam[..., 0], P_cam[..., 1], P_cam[..., 2], g), axis=-1)
+
+
+def project_xyz(X: np.ndarray, Y: np.ndarray, Z: np.ndarray, g: dict) -> tuple[np.ndarray, np.ndarray]:
+    """`project` of the coordinates apart: camera points X, Y, Z (m,) each -> pixels (u, v), (m,) each.
+
+    Contiguous coordinates cost less than the columns of an (m, 3) array; a camera's numbers given as
+    scalars cost less than a column a number, and give the same doubles."""
+    fish = np.asarray(g["model"]) == 1
+    if fish.ndim:
+        fish = np.broadcast_to(fish, np.shape(X))
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-        out = None
+        xd = yd = None
         if not fish.all() or fish.size == 0:
-            xy = np.where(P_cam[..., 2:3] > 0, P_cam[..., :2] / P_cam[..., 2:3], np.nan)
-            out = distort(xy, g["k1"], g["k2"], g["p1"], g["p2"], g["k3"], g["k4"], g["k5"], g["k6"])
+            front = Z > 0
+            xd, yd = distort_xy(np.where(front, X / Z, np.nan), np.where(front, Y / Z, np.nan), g["k1"], g["k2"],
+                                g["p1"], g["p2"], g["k3"], g["k4"], g["k5"], g["k6"])
         if fish.any():
-            xy_f = fisheye_plane(P_cam, g["k1"], g["k2"], g["k3"], g["k4"])
-            out = xy_f if out is None else np.where(fish[..., None], xy_f, out)
-        return plane_to_pixels(out, g["f"], g["ax"], g["ay"], g["cx"], g["cy"])
+            fx, fy = fisheye_xy(X, Y, Z, g["k1"], g["k2"], g["k3"], g["k4"])
+            xd, yd = (fx, fy) if xd is None else (np.where(fish, fx, xd), np.where(fish, fy, yd))
+        return g["f"] * g["ax"] * xd + g["cx"], g["f"] * g["ay"] * yd + g["cy"]
 
 
 def cam_to_pixels(P_cam: np.ndarray, cam) -> np.ndarray:
