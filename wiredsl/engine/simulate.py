@@ -240,8 +240,9 @@ def _project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mas
     masks = np.asarray(masks, dtype=bool).reshape(len(views), -1)
     out = _Emitted(views)
     eyes = None if occluders is None else [occluders.seen_from(v.R_cw, v.t_cw) for v in views]
-    seg = _straight_segments(world, views, cam, masks, eyes)
-    ell = _ellipse_intervals(world, views, cam, masks, eyes)
+    ellipses = _ellipses_cam(world, views)
+    seg = _straight_segments(world, views, cam, masks, eyes, ellipses)
+    ell = _ellipse_intervals(world, views, cam, masks, eyes, ellipses)
     _emit_lines(seg, views, cam, out)
     # every curve of every view sampled together: segments under distortion, then ellipse arcs
     curved = np.flatnonzero(seg.keep & cam["distorted"][seg.vid])
@@ -360,8 +361,9 @@ def silhouettes_cam(world: World, mask: np.ndarray, R_cw: np.ndarray, t_cw: np.n
     return A, B, fid, side
 
 
-def silhouettes_cams(world: World, views: list[View], masks: np.ndarray):
-    """Camera-frame contour generators of the visible silhouettes of every view.
+def silhouettes_cams(world: World, views: list[View], masks: np.ndarray, ellipses: tuple | None = None):
+    """Camera-frame contour generators of the visible silhouettes of every view (`ellipses`: their
+    `_ellipses_cam`, when the caller has them).
 
     Returns (view, A, B, fid, side): the two sides of a silhouette are numbered by where they
     appear, left to right in the image, for stable indices.
@@ -370,7 +372,7 @@ def silhouettes_cams(world: World, views: list[View], masks: np.ndarray):
     z3 = np.zeros((0, 3))
     if len(vv) == 0:
         return np.zeros(0, int), z3, z3, np.zeros(0, int), np.zeros(0, int)
-    c, U, V = _ellipses_cam(world, views)
+    c, U, V = _ellipses_cam(world, views) if ellipses is None else ellipses
     a, b = world.sil_pair[ss, 0], world.sil_pair[ss, 1]
     full = world.ell_full
     o, A, B = conics.silhouette_segments_batch(c[vv, a], U[vv, a], V[vv, a], c[vv, b], U[vv, b], V[vv, b],
@@ -400,9 +402,10 @@ class _Segments:
     hid: np.ndarray  # occlusion cut it
 
 
-def _straight_segments(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes=None) -> _Segments:
+def _straight_segments(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes, ellipses: tuple
+                       ) -> _Segments:
     """Lines, polyline segments and silhouette sides of every view, in that order within a view."""
-    sv, sA, sB, sfid, sside = silhouettes_cams(world, views, masks)
+    sv, sA, sB, sfid, sside = silhouettes_cams(world, views, masks, ellipses)
     sv, sA, sB, sfid, sside = _with_contours(world, views, masks, (sv, sA, sB, sfid, sside))
     lv, ll = np.nonzero(masks[:, world.line_fid]) if len(world.line_fid) else (np.zeros(0, int),) * 2
     R = np.stack([v.R_cw for v in views])
@@ -481,12 +484,13 @@ def _emit_lines(s: _Segments, views: list[View], cam: dict, out: _Emitted) -> No
 def _emit_curved_segments(s: _Segments, curved: np.ndarray, runs: np.ndarray, pieces, world_pts, out: _Emitted):
     """Segments of distorted views: adaptive polylines (curve k of the sampling is segment curved[k])."""
     vl, fid, seg, cut3d, piece, hid = (x[curved].tolist() for x in (s.vid, s.fid, s.seg, s.cut3d, s.piece, s.hid))
+    cl = curved.tolist()
     for k, (b0, b1) in enumerate(runs.tolist()):
-        out.raw.append(((vl[k], 0, int(curved[k])), Raw(fid[k], seg[k], "polyline", False, cut3d[k],
-                                                         world_pts[b0:b1], piece[k], hid[k])))
+        out.raw.append(((vl[k], 0, cl[k]), Raw(fid[k], seg[k], "polyline", False, cut3d[k], world_pts[b0:b1],
+                                               piece[k], hid[k])))
     for n, (k, pts, cut) in enumerate(pieces):
-        if k < len(curved):
-            out.features.append(((vl[k], 0, int(curved[k]), n),
+        if k < len(cl):
+            out.features.append(((vl[k], 0, cl[k], n),
                                  ImageFeature(fid[k], "polyline", pts, seg[k], bool(cut or cut3d[k]),
                                               fragment=piece[k], occluded=hid[k])))
 
@@ -689,9 +693,11 @@ class _Ellipses:
     hid: np.ndarray  # (E,) occlusion cut it (--visibility exact)
 
 
-def _ellipse_intervals(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes=None) -> _Ellipses:
+def _ellipse_intervals(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes, ellipses: tuple
+                       ) -> _Ellipses:
+    """The visible ellipses of every view (`ellipses`: `_ellipses_cam`) and their arcs in front."""
     vv, ee = np.nonzero(masks[:, world.ell_fid]) if len(world.ell_fid) else (np.zeros(0, int),) * 2
-    c, U, V = (x[vv, ee] for x in _ellipses_cam(world, views))
+    c, U, V = (x[vv, ee] for x in ellipses)
     arc = world.ell_arc[ee]
     fish = cam["model"][vv] == 1
     rad = np.flatnonzero(~fish)
