@@ -125,6 +125,40 @@ def test_distorted_line_polyline_stays_within_tolerance(tol):
     assert len(ts) < 4 / math.sqrt(tol) + 10  # and not absurdly dense
 
 
+def test_sampler_hands_back_the_points_it_evaluated():
+    """The pixels the packed sampler returns (clipping uses them instead of projecting again) are the curves'
+    own points at the returned parameters, for several start counts at once and a curve that stays coarse."""
+    cam = Camera(name="c", f=600, cx=320, cy=240, k1=-0.25, k2=0.05, width=640, height=480)
+    A = np.array([[-1.5, -1.0, 2.0], [0.2, -0.3, 1.5], [-0.4, 0.1, 3.0], [1.0, 0.5, 2.0]])
+    B = np.array([[1.5, 0.9, 2.5], [0.3, 0.4, 1.2], [0.5, -0.2, 4.0], [1.0, 0.5, 2.0]])  # the last: one point
+
+    def point(c, t):
+        return geometry.cam_to_pixels(A[c] + t[:, None] * (B[c] - A[c]), cam)
+
+    cid, ts, bounds, pts = geometry.adaptive_samples_packed(point, np.zeros(4), np.ones(4), 0.05,
+                                                            np.array([2, 5, 2, 3]), points=True)
+    assert np.array_equal(pts, point(cid, ts))
+    assert np.array_equal(geometry.adaptive_samples_packed(point, np.zeros(4), np.ones(4), 0.05,
+                                                           np.array([2, 5, 2, 3]))[1], ts)
+    assert np.diff(bounds).tolist()[3] == 4 and np.diff(bounds).min() >= 3
+
+
+def test_gc_paused_restores_the_collector():
+    """The projection pauses the cyclic collector and gives it back as it found it, also on an error."""
+    import gc
+
+    from wiredsl.engine.simulate import gc_paused
+
+    assert gc.isenabled()
+    with pytest.raises(RuntimeError), gc_paused():
+        assert not gc.isenabled()
+        with gc_paused():
+            pass
+        assert not gc.isenabled()  # an inner pause does not restart it early
+        raise RuntimeError
+    assert gc.isenabled()
+
+
 # --------------------------------------------------------------------------- packed projection of whole views
 
 def _opencv_pixels(P_cam: np.ndarray, cam: Camera) -> np.ndarray:
