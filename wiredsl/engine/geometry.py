@@ -489,42 +489,43 @@ def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float
         ts = t0[rows, None] + (t1 - t0)[rows, None] * grid[None, :]
         done_c.append(np.repeat(rows, k + 1))
         done_t.append(ts.ravel())
-        # where each grid point was evaluated: an interval's start, the last one's end (5 points an interval)
+        # where each grid point was evaluated: an interval's start, the last one's end; (point, interval)
         j = np.minimum(np.arange(k + 1), k - 1)
-        done_i.append((5 * (first + k * np.arange(len(rows))[:, None] + j) + np.where(j < np.arange(k + 1), 4, 0))
-                      .ravel())
+        done_i.append(np.stack(np.broadcast_arrays(np.where(j < np.arange(k + 1), 4, 0),
+                                                   first + k * np.arange(len(rows))[:, None] + j)).reshape(2, -1))
         first += k * len(rows)
         live_c.append(np.repeat(rows, k))
         live_a.append(ts[:, :-1].ravel())
         live_b.append(ts[:, 1:].ravel())
     cid = np.concatenate(live_c).astype(int) if live_c else np.zeros(0, dtype=int)
     ta, tb = (np.concatenate(x) if x else np.zeros(0) for x in (live_a, live_b))
-    # each live interval keeps its five points (ends, quarters, middle), their u and v apart: a halving
-    # reuses three of them
+    # each live interval keeps its five points (ends, quarters, middle), their u and v apart, a row each
+    # (5, intervals): a halving reuses three of them
     tm = 0.5 * (ta + tb)
-    T = np.stack([ta, 0.5 * (ta + tm), tm, 0.5 * (tm + tb), tb], axis=1)
-    U, V = _evaluate_uv(point_fn, np.repeat(cid, 5), T.ravel(), 5)
-    at = np.concatenate(done_i) if done_i else np.zeros(0, dtype=int)
-    done_u, done_v = [U.ravel()[at]], [V.ravel()[at]]
+    T = np.stack([ta, 0.5 * (ta + tm), tm, 0.5 * (tm + tb), tb])
+    U, V = _evaluate_uv(point_fn, cid, T)
+    at = tuple(np.concatenate(done_i, axis=1)) if done_i else (np.zeros(0, dtype=int),) * 2
+    done_u, done_v = [U[at]], [V[at]]
     counts = starts + 1
     total = int(counts.sum())
     for _ in range(max_depth):
         if len(cid) == 0:
             break
         split = _deviation_uv(U, V, cid, image) > tol
-        cid, T, U, V = cid[split], T[split], U[split], V[split]
+        cid = cid[split]
+        T, U, V = (x.compress(split, axis=1) for x in (T, U, V))
         done_c.append(cid)
-        done_t.append(T[:, 2])
-        done_u.append(U[:, 2])
-        done_v.append(V[:, 2])
+        done_t.append(T[2])
+        done_u.append(U[2])
+        done_v.append(V[2])
         counts += np.bincount(cid, minlength=n)
         total += len(cid)
         if total > MAX_VERTICES:
             raise TooManyVertices(-1, MAX_VERTICES)
         if len(cid) and counts.max() > max_vertices:
             raise TooManyVertices(int(counts.argmax()), max_vertices)
-        new_t = 0.5 * (T[:, :-1] + T[:, 1:])  # the eighths: the children's new quarter points
-        new_u, new_v = _evaluate_uv(point_fn, np.repeat(cid, 4), new_t.ravel(), 4)
+        new_t = 0.5 * (T[:-1] + T[1:])  # the eighths: the children's new quarter points
+        new_u, new_v = _evaluate_uv(point_fn, cid, new_t)
         # the nine points of the interval, then its halves: points 0-4 and 4-8
         cid = np.concatenate([cid, cid])
         T, U, V = (_halves(old, new) for old, new in ((T, new_t), (U, new_u), (V, new_v)))
@@ -546,38 +547,39 @@ def _evaluate(point_fn, c: np.ndarray, t: np.ndarray) -> np.ndarray:
                            for lo in range(0, len(t), EVAL_CHUNK)])
 
 
-def _evaluate_uv(point_fn, c: np.ndarray, t: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """`_evaluate`'s points as their u and v, each (len(t) / k, k)."""
-    p = _evaluate(point_fn, c, t)
-    return p[:, 0].reshape(-1, k), p[:, 1].reshape(-1, k)
+def _evaluate_uv(point_fn, c: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points of curves c (m,) at parameters t (k, m) (row i: every curve's i-th point) as their u and v,
+    each (k, m)."""
+    p = _evaluate(point_fn, np.tile(c, len(t)), t.ravel())
+    return p[:, 0].reshape(t.shape), p[:, 1].reshape(t.shape)
 
 
 def _halves(old: np.ndarray, new: np.ndarray) -> np.ndarray:
-    """Five values a piece (m, 5) and the four between them (m, 4) -> the two halves' five values (2m, 5)."""
-    nine = np.empty((len(old), 9))
-    nine[:, 0::2], nine[:, 1::2] = old, new
-    return np.concatenate([nine[:, :5], nine[:, 4:]])
+    """Five values a piece (5, m) and the four between them (4, m) -> the two halves' five values (5, 2m)."""
+    nine = np.empty((9, old.shape[1]))
+    nine[0::2], nine[1::2] = old, new
+    return np.concatenate([nine[:5], nine[4:]], axis=1)
 
 
 def _deviation_uv(u: np.ndarray, v: np.ndarray, cid: np.ndarray, image=None) -> np.ndarray:
-    """Estimated largest distance of curve pieces from their chords, from their five points' u and v (m, 5)
+    """Estimated largest distance of curve pieces from their chords, from their five points' u and v (5, m)
     each: the largest distance of the quarter points from the chord segment, plus a quarter of the largest
     second difference across the curve. Written a coordinate at a time: numpy's reductions over an axis of
     two cost more than the arithmetic."""
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # non-finite points give NaN: never split
-        u0, v0, u4, v4 = u[:, 0], v[:, 0], u[:, 4], v[:, 4]
+        u0, v0, u4, v4 = u[0], v[0], u[4], v[4]
         du, dv = u4 - u0, v4 - v0  # the chord
         dd = du * du + dv * dv
         out = None
         for j in (1, 2, 3):  # the quarter points' distances from the chord segment
-            s = np.clip(((u[:, j] - u0) * du + (v[:, j] - v0) * dv) / dd, 0.0, 1.0)
+            s = np.clip(((u[j] - u0) * du + (v[j] - v0) * dv) / dd, 0.0, 1.0)
             s = np.where(dd > 0, s, 0.0)
-            d = np.hypot(u[:, j] - (u0 + s * du), v[:, j] - (v0 + s * dv))
+            d = np.hypot(u[j] - (u0 + s * du), v[j] - (v0 + s * dv))
             out = d if out is None else np.maximum(out, d)  # NaN wins, as in max()
         across = None
         for j in (0, 1, 2):  # second differences, their part across the curve
-            a = _across_uv(u[:, j] - 2 * u[:, j + 1] + u[:, j + 2], v[:, j] - 2 * v[:, j + 1] + v[:, j + 2],
-                           u[:, j + 2] - u[:, j], v[:, j + 2] - v[:, j])
+            a = _across_uv(u[j] - 2 * u[j + 1] + u[j + 2], v[j] - 2 * v[j + 1] + v[j + 2],
+                           u[j + 2] - u[j], v[j + 2] - v[j])
             across = a if across is None else np.maximum(across, a)
         out = out + 0.25 * across
     if image is not None:
@@ -585,12 +587,12 @@ def _deviation_uv(u: np.ndarray, v: np.ndarray, cid: np.ndarray, image=None) -> 
         m = 0.25 * np.maximum(w, h)
         lo_u, hi_u, lo_v, hi_v = -m, w + m, -m, h + m
         with np.errstate(invalid="ignore"):
-            below_u, above_u, below_v, above_v = u[:, 0] < lo_u, u[:, 0] > hi_u, v[:, 0] < lo_v, v[:, 0] > hi_v
+            below_u, above_u, below_v, above_v = u[0] < lo_u, u[0] > hi_u, v[0] < lo_v, v[0] > hi_v
             for j in (1, 2, 3, 4):
-                below_u &= u[:, j] < lo_u
-                above_u &= u[:, j] > hi_u
-                below_v &= v[:, j] < lo_v
-                above_v &= v[:, j] > hi_v
+                below_u &= u[j] < lo_u
+                above_u &= u[j] > hi_u
+                below_v &= v[j] < lo_v
+                above_v &= v[j] > hi_v
         out = np.where(below_u | above_u | below_v | above_v, 0.0, out)
     return out
 
@@ -659,7 +661,7 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     H = np.broadcast_to(np.asarray(height, dtype=float), (n,))
     owner = np.repeat(np.arange(n), counts)
     x, y = pts[:, 0], pts[:, 1]
-    finite = np.isfinite(pts).all(axis=1)
+    finite = np.isfinite(x) & np.isfinite(y)
     with np.errstate(invalid="ignore"):
         outside = ~finite | (x < 0) | (y < 0) | (x > W[owner]) | (y > H[owner])
     any_out = np.bincount(owner, weights=outside, minlength=n) > 0
@@ -667,7 +669,7 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     seg = np.flatnonzero(np.repeat(counts >= 2, counts) & (np.arange(len(pts)) + 1 < start[owner + 1]))
     poly = owner[seg]
     sw = seg[any_out[poly]]  # only polylines that leave the image are cut
-    a, b = pts[sw], pts[sw + 1]
+    a, b = pts.take(sw, axis=0), pts.take(sw + 1, axis=0)  # np.take: faster than pts[sw] on (n, 2)
     both = finite[sw] & finite[sw + 1]  # a vertex beyond float range cuts the polyline there
     a, b = np.where(both[:, None], a, 0.0), np.where(both[:, None], b, 0.0)
     d = b - a
@@ -686,7 +688,7 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     is_first[offs[begins]] = True
     j = np.repeat(np.arange(len(sw)), nv)
     at = np.where(is_first, t0[j], t1[j])
-    cpts = a[j] + at[:, None] * d[j]
+    cpts = a.take(j, axis=0) + at[:, None] * d.take(j, axis=0)
     end = np.where(is_first, np.where(t0[j] > 0, 1, 0), np.where(leaves[j], 2, 0))
     side = np.where(is_first, s0[j], s1[j])
     piece_of_v = np.cumsum(is_first) - 1
@@ -699,14 +701,14 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     n_cut = np.bincount(piece_of_v, minlength=int(begins.sum())) if len(piece_of_v) else np.zeros(0, int)
     sizes = np.concatenate([n_in, n_cut])
     cut = np.concatenate([np.zeros(len(inside), bool), np.ones(len(n_cut), bool)])
-    vpts = np.concatenate([pts[in_v], cpts])
+    vpts = np.concatenate([pts.take(in_v, axis=0), cpts])
     vmeta = [np.concatenate([in_v, vseg]), np.concatenate([np.zeros(len(in_v), int), end]),
              np.concatenate([np.full(len(in_v), -1), side]), np.concatenate([np.zeros(len(in_v)), at])]
     order = np.argsort(src, kind="stable")
     vstart = np.concatenate([[0], np.cumsum(sizes)])
     sizes, src, cut = sizes[order], src[order], cut[order]
     vidx = _ranges(vstart[:-1][order], sizes)
-    vpts = vpts[vidx]
+    vpts = vpts.take(vidx, axis=0)
     vmeta = [m[vidx] for m in vmeta]
     # a piece must have extent
     pstart = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
@@ -719,7 +721,7 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     vkeep = np.repeat(ok, sizes)
     sizes = sizes[ok]
     return {"src": src[ok], "start": np.concatenate([[0], np.cumsum(sizes)]).astype(int), "cut": cut[ok],
-            "pts": vpts[vkeep], "seg": vmeta[0][vkeep], "end": vmeta[1][vkeep], "side": vmeta[2][vkeep],
+            "pts": vpts.compress(vkeep, axis=0), "seg": vmeta[0][vkeep], "end": vmeta[1][vkeep], "side": vmeta[2][vkeep],
             "at": vmeta[3][vkeep]}
 
 
