@@ -311,17 +311,16 @@ def _camera_table(cams: list[Camera]) -> dict[str, np.ndarray]:
     """Per-view camera parameters as arrays (V,), with the lens model and limit (`geometry.lens_limit`), and
     whether lines are curves in the image."""
     distinct = {id(c): c for c in cams}  # the views of a path share a few Camera objects
-    row = {k: geometry.camera_table(c) for k, c in distinct.items()}
+    row = {k: {**geometry.camera_table(c), "width": float(c.width), "height": float(c.height),
+               "distorted": geometry.is_distorted(c)} for k, c in distinct.items()}
     rows = [row[id(c)] for c in cams]
     table = {k: np.array([r[k] for r in rows]) for k in rows[0]}
-    table["width"] = np.array([float(c.width) for c in cams])
-    table["height"] = np.array([float(c.height) for c in cams])
-    table["distorted"] = np.array([geometry.is_distorted(c) for c in cams], dtype=bool)
     # each distinct set of camera numbers once, as scalars: points are projected a camera at a time
     numbers = np.column_stack([table[k] for k in _CAMERA]).astype(float)
-    unique, table["camera"] = np.unique(numbers, axis=0, return_inverse=True)
-    table["camera"] = table["camera"].reshape(-1)
-    table["cameras"] = [dict(zip(_CAMERA, r.tolist(), strict=True)) for r in unique]
+    # the same bits, not just equal values (0.0 and -0.0 apart): the same doubles as a column a point
+    _, first, which = np.unique(numbers.view(np.int64), axis=0, return_index=True, return_inverse=True)
+    table["camera"] = which.reshape(-1)
+    table["cameras"] = [dict(zip(_CAMERA, numbers[i].tolist(), strict=True)) for i in first.tolist()]
     return table
 
 
