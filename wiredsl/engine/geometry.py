@@ -721,8 +721,8 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     vkeep = np.repeat(ok, sizes)
     sizes = sizes[ok]
     return {"src": src[ok], "start": np.concatenate([[0], np.cumsum(sizes)]).astype(int), "cut": cut[ok],
-            "pts": vpts.compress(vkeep, axis=0), "seg": vmeta[0][vkeep], "end": vmeta[1][vkeep], "side": vmeta[2][vkeep],
-            "at": vmeta[3][vkeep]}
+            "pts": vpts.compress(vkeep, axis=0), "seg": vmeta[0][vkeep], "end": vmeta[1][vkeep],
+            "side": vmeta[2][vkeep], "at": vmeta[3][vkeep]}
 
 
 def _liang_barsky(a: np.ndarray, b: np.ndarray, width, height):
