@@ -95,7 +95,7 @@ def parameters_on(H: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 
 GRID = np.linspace(-math.pi, math.pi, 361)  # where parameters_on starts: every degree
-GRID_ROWS = 128  # rows of parameters_on's grid evaluated at once: the temporaries stay in cache
+GRID_ROWS = 32  # rows of parameters_on's grid evaluated at once: temporaries below malloc's 128 KiB mapping threshold
 
 
 def _grid_minimum(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> np.ndarray:

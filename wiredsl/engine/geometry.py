@@ -439,7 +439,8 @@ def clip_segments_rect(a: np.ndarray, b: np.ndarray, width: float, height: float
 
 MAX_CURVE_VERTICES = 100_000  # the most vertices one curve's polyline may get
 MAX_VERTICES = 2_000_000  # the most vertices one packed sampling may create (memory: ~130 bytes each)
-EVAL_CHUNK = 1 << 14  # points evaluated at once while sampling: bounds the temporaries (and keeps them in cache)
+EVAL_CHUNK = 15_000  # points evaluated at once while sampling: each temporary (m,) stays below the 128 KiB at
+# which malloc maps fresh pages (a new process pays a page fault a 4 KiB page each time), and in cache
 
 
 class TooManyVertices(ValueError):

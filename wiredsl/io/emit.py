@@ -150,10 +150,11 @@ def features(scene: Scene, world: World, results: list[PoseResult], *, pipeline:
     return Features.model_validate_json(_dumps(doc, None))
 
 
-def _dumps(doc, indent: int | None) -> bytes:
+def _dumps(doc, indent: int | None, newline: bool = False) -> bytes:
     import orjson
 
-    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY | (orjson.OPT_INDENT_2 if indent else 0))
+    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY | (orjson.OPT_INDENT_2 if indent else 0)
+                        | (orjson.OPT_APPEND_NEWLINE if newline else 0))
 
 
 def to_json(doc, indent: int | None = 1) -> str:
@@ -164,7 +165,7 @@ def to_json(doc, indent: int | None = 1) -> str:
     (1e-6 where repr writes 1e-06)."""
     if not isinstance(doc, dict):
         doc = doc.model_dump(mode="json")  # a model refuses non-finite numbers when it is made
-    return _dumps(doc, indent).decode() + "\n"
+    return _dumps(doc, indent, newline=True).decode()  # no copy of a long text to add its newline
 
 
 # --------------------------------------------------------------------------- disturbed output
