@@ -540,19 +540,23 @@ def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float
     return all_c, all_t, bounds, np.stack([np.concatenate(done_u)[order], np.concatenate(done_v)[order]], axis=1)
 
 
-def _evaluate(point_fn, c: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """point_fn over many points, a chunk at a time so that its temporaries stay bounded."""
-    if len(t) <= EVAL_CHUNK:
-        return point_fn(c, t)
-    return np.concatenate([point_fn(c[lo:lo + EVAL_CHUNK], t[lo:lo + EVAL_CHUNK])
-                           for lo in range(0, len(t), EVAL_CHUNK)])
-
-
 def _evaluate_uv(point_fn, c: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points of curves c (m,) at parameters t (k, m) (row i: every curve's i-th point) as their u and v,
-    each (k, m)."""
-    p = _evaluate(point_fn, np.tile(c, len(t)), t.ravel())
-    return p[:, 0].reshape(t.shape), p[:, 1].reshape(t.shape)
+    each (k, m): about EVAL_CHUNK points a call, written in place (no (k m, 2) array in between)."""
+    k, m = t.shape
+    u, v = np.empty((k, m)), np.empty((k, m))
+    if m <= EVAL_CHUNK:
+        rows = max(EVAL_CHUNK // max(m, 1), 1)
+        for i in range(0, k, rows):
+            block = t[i:i + rows]
+            p = point_fn(np.tile(c, len(block)), block.ravel())
+            u[i:i + rows], v[i:i + rows] = p[:, 0].reshape(block.shape), p[:, 1].reshape(block.shape)
+        return u, v
+    for i in range(k):
+        for lo in range(0, m, EVAL_CHUNK):
+            p = point_fn(c[lo:lo + EVAL_CHUNK], t[i, lo:lo + EVAL_CHUNK])
+            u[i, lo:lo + EVAL_CHUNK], v[i, lo:lo + EVAL_CHUNK] = p[:, 0], p[:, 1]
+    return u, v
 
 
 def _halves(old: np.ndarray, new: np.ndarray) -> np.ndarray:
