@@ -143,6 +143,29 @@ def test_sampler_hands_back_the_points_it_evaluated():
     assert np.diff(bounds).tolist()[3] == 4 and np.diff(bounds).min() >= 3
 
 
+def test_raw_strokes_are_made_when_read():
+    """A projection's raw strokes (what the Monte-Carlo engines re-project) are made the first time any view's
+    are read, for all its views; they image the same pixels as the view's features, and pickle as a list."""
+    import pickle
+
+    from wiredsl.engine.simulate import project_views
+
+    cam = Camera(name="c", f=600, cx=320, cy=240, k1=-0.2, width=640, height=480)
+    w = World(feature_ids=["p.l0", "p.l1"], feature_kind=["line", "line"])
+    w.lines = np.array([[[-0.5, -0.2, 2.0], [0.6, 0.3, 2.5]], [[-0.2, 0.4, 3.0], [0.2, -0.4, 3.0]]])
+    w.line_fid, w.line_segment = np.arange(2), -np.ones(2, int)
+    R, t = np.eye(3), np.zeros(3)
+    views = project_views(w, [cam, cam], [R, R], [t, t + [0.1, 0, 0]], [np.ones(2, bool)] * 2)
+    assert views[0].raw._strokes.lists is None  # nothing made by the projection itself
+    assert [r.fid for r in views[1].raw] == [0, 1] and views[0].raw._strokes.lists is not None
+    for v in views:
+        for r, f in zip(v.raw, v.features, strict=True):  # both lines wholly in the image: a feature each
+            assert np.allclose(geometry.cam_to_pixels(r.world @ v.R_cw.T + v.t_cw, cam), f.points, rtol=0, atol=1e-9)
+    again = pickle.loads(pickle.dumps(views[0].raw))
+    assert type(again) is list and [r.fid for r in again] == [0, 1]
+    assert all(np.array_equal(a.world, b.world) for a, b in zip(again, views[0].raw, strict=True))
+
+
 def test_gc_paused_restores_the_collector():
     """The projection pauses the cyclic collector and gives it back as it found it, also on an error."""
     import gc

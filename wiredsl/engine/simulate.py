@@ -13,6 +13,7 @@ import contextlib
 import functools
 import gc
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,7 +68,8 @@ class View:
     R_cw: np.ndarray
     t_cw: np.ndarray
     features: list[ImageFeature] = field(default_factory=list)
-    raw: list[Raw] = field(default_factory=list)  # the strokes before image clipping
+    # the strokes before image clipping: a projection gives a sequence that makes them when first read
+    raw: Sequence[Raw] = field(default_factory=list)
     corner_world: np.ndarray | None = None  # (C, 3) the corners in front of the camera, before image clipping
     corner_fid: np.ndarray | None = None
 
@@ -258,7 +260,7 @@ def _project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mas
     except geometry.TooManyVertices as exc:
         raise _too_many(exc, tol) from None
     P = curves.points(cid, ts)
-    world_pts = out.to_world(P, curves.view[cid])
+    world_pts = functools.cache(lambda: out.to_world(P, curves.view[cid]))  # for the raw strokes, when read
     n_seg = len(curved)
     # a segment's curve is one run; an ellipse arc splits into runs inside the fold radius
     seg_runs = np.stack([bounds[:n_seg], bounds[1:n_seg + 1]], axis=1)
@@ -288,7 +290,7 @@ class _Emitted:
     def __init__(self, views: list[View]):
         self.views = views
         self.features: list[tuple[tuple, ImageFeature]] = []
-        self.raw: list[tuple[tuple, Raw]] = []
+        self.raw: list = []  # functions giving [(key, Raw)]: called the first time a view's strokes are read
 
     def to_world(self, P_cam: np.ndarray, vid: np.ndarray) -> np.ndarray:
         """Camera-frame points (m, 3) of views vid (m,) back in the world frame, one transform a view."""
@@ -303,8 +305,51 @@ class _Emitted:
     def deliver(self) -> None:
         for key, f in sorted(self.features, key=lambda kf: kf[0]):
             self.views[key[0]].features.append(f)
-        for key, r in sorted(self.raw, key=lambda kr: kr[0]):
-            self.views[key[0]].raw.append(r)
+        strokes = _RawStrokes(self.raw, len(self.views))
+        for k, v in enumerate(self.views):
+            v.raw = _Strokes(strokes, k)
+
+
+class _RawStrokes:
+    """The raw strokes of views projected together, made for all of them the first time any view's are read
+    (the Monte-Carlo engines read them; a plain build, which writes the clipped features, never does)."""
+
+    def __init__(self, makers: list, n_views: int):
+        self.makers, self.n_views, self.lists = makers, n_views, None
+
+    def of(self, k: int) -> list[Raw]:
+        if self.lists is None:
+            lists = [[] for _ in range(self.n_views)]
+            with gc_paused():
+                for key, r in sorted((kr for make in self.makers for kr in make()), key=lambda kr: kr[0]):
+                    lists[key[0]].append(r)
+            self.lists, self.makers = lists, None
+        return self.lists[k]
+
+
+class _Strokes(Sequence):
+    """One view's raw strokes, a sequence of Raw made when first read (`_RawStrokes`)."""
+
+    def __init__(self, strokes: _RawStrokes, k: int):
+        self._strokes, self._k = strokes, k
+
+    def __getitem__(self, i):
+        return self._strokes.of(self._k)[i]
+
+    def __len__(self) -> int:
+        return len(self._strokes.of(self._k))
+
+    def __iter__(self):
+        return iter(self._strokes.of(self._k))
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Sequence) and list(self) == list(other)
+
+    def __repr__(self) -> str:
+        return repr(self._strokes.of(self._k))
+
+    def __reduce__(self):  # pickled (a study's worker) as the plain list
+        return list, (list(self),)
 
 
 def _camera_table(cams: list[Camera]) -> dict[str, np.ndarray]:
@@ -461,12 +506,15 @@ def _emit_lines(s: _Segments, views: list[View], cam: dict, out: _Emitted) -> No
         return
     vid = s.vid[idx]
     Pa, Pb = s.A[idx] + s.t0[idx, None] * s.D[idx], s.A[idx] + s.t1[idx, None] * s.D[idx]
-    Wa, Wb = out.to_world(Pa, vid), out.to_world(Pb, vid)
     fid, seg, cut3d, vl = s.fid[idx].tolist(), s.seg[idx].tolist(), s.cut3d[idx].tolist(), vid.tolist()
     piece, hid = s.piece[idx].tolist(), s.hid[idx].tolist()
-    for j, i in enumerate(idx.tolist()):
-        out.raw.append(((vl[j], 0, i), Raw(fid[j], seg[j], "line", False, cut3d[j], np.stack([Wa[j], Wb[j]]),
-                                           piece[j], hid[j])))
+
+    def strokes():
+        Wa, Wb = out.to_world(Pa, vid), out.to_world(Pb, vid)
+        return [((vl[j], 0, i), Raw(fid[j], seg[j], "line", False, cut3d[j], np.stack([Wa[j], Wb[j]]), piece[j],
+                                    hid[j])) for j, i in enumerate(idx.tolist())]
+
+    out.raw.append(strokes)
     a, b = _pixels(Pa, cam, vid), _pixels(Pb, cam, vid)
     finite = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
     a, b = np.where(finite[:, None], a, 0.0), np.where(finite[:, None], b, 0.0)
@@ -484,9 +532,13 @@ def _emit_curved_segments(s: _Segments, curved: np.ndarray, runs: np.ndarray, pi
     """Segments of distorted views: adaptive polylines (curve k of the sampling is segment curved[k])."""
     vl, fid, seg, cut3d, piece, hid = (x[curved].tolist() for x in (s.vid, s.fid, s.seg, s.cut3d, s.piece, s.hid))
     cl = curved.tolist()
-    for k, (b0, b1) in enumerate(runs.tolist()):
-        out.raw.append(((vl[k], 0, cl[k]), Raw(fid[k], seg[k], "polyline", False, cut3d[k], world_pts[b0:b1],
-                                               piece[k], hid[k])))
+
+    def strokes():
+        W = world_pts()
+        return [((vl[k], 0, cl[k]), Raw(fid[k], seg[k], "polyline", False, cut3d[k], W[b0:b1], piece[k], hid[k]))
+                for k, (b0, b1) in enumerate(runs.tolist())]
+
+    out.raw.append(strokes)
     for n, (k, pts, cut) in enumerate(pieces):
         if k < len(cl):
             out.features.append(((vl[k], 0, cl[k], n),
@@ -765,9 +817,14 @@ def _emit_ellipses(ell: _Ellipses, cam: dict, runs, meta, pieces, n_seg: int, wo
     run_e = ell.owner[run_int]
     vl, fl, el = ell.vid[run_e].tolist(), ell.fid[run_e].tolist(), run_e.tolist()
     raw_part = np.where(ell.hid[run_e], occlusion._rank(run_e), -1).tolist()  # runs of an ellipse are adjacent
-    for k, (b0, b1) in enumerate(runs.tolist()):
-        out.raw.append(((vl[k], 1, el[k], k), Raw(fl[k], -1, "polyline", bool(closed[k]), bool(clipped[k]),
-                                                  world_pts[b0:b1], raw_part[k], bool(ell.hid[el[k]]))))
+
+    def strokes():
+        W = world_pts()
+        return [((vl[k], 1, el[k], k), Raw(fl[k], -1, "polyline", bool(closed[k]), bool(clipped[k]), W[b0:b1],
+                                           raw_part[k], bool(ell.hid[el[k]])))
+                for k, (b0, b1) in enumerate(runs.tolist())]
+
+    out.raw.append(strokes)
     mine = [(r - n_seg, pts, cut) for r, pts, cut in pieces if r >= n_seg]
     piece_e = np.array([run_e[r] for r, _, _ in mine], dtype=int)
     n_pieces = np.bincount(piece_e, minlength=len(ell.vid))
