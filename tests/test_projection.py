@@ -125,6 +125,63 @@ def test_distorted_line_polyline_stays_within_tolerance(tol):
     assert len(ts) < 4 / math.sqrt(tol) + 10  # and not absurdly dense
 
 
+def test_sampler_hands_back_the_points_it_evaluated():
+    """The pixels the packed sampler returns (clipping uses them instead of projecting again) are the curves'
+    own points at the returned parameters, for several start counts at once and a curve that stays coarse."""
+    cam = Camera(name="c", f=600, cx=320, cy=240, k1=-0.25, k2=0.05, width=640, height=480)
+    A = np.array([[-1.5, -1.0, 2.0], [0.2, -0.3, 1.5], [-0.4, 0.1, 3.0], [1.0, 0.5, 2.0]])
+    B = np.array([[1.5, 0.9, 2.5], [0.3, 0.4, 1.2], [0.5, -0.2, 4.0], [1.0, 0.5, 2.0]])  # the last: one point
+
+    def point(c, t):
+        return geometry.cam_to_pixels(A[c] + t[:, None] * (B[c] - A[c]), cam)
+
+    cid, ts, bounds, pts = geometry.adaptive_samples_packed(point, np.zeros(4), np.ones(4), 0.05,
+                                                            np.array([2, 5, 2, 3]), points=True)
+    assert np.array_equal(pts, point(cid, ts))
+    assert np.array_equal(geometry.adaptive_samples_packed(point, np.zeros(4), np.ones(4), 0.05,
+                                                           np.array([2, 5, 2, 3]))[1], ts)
+    assert np.diff(bounds).tolist()[3] == 4 and np.diff(bounds).min() >= 3
+
+
+def test_raw_strokes_are_made_when_read():
+    """A projection's raw strokes (what the Monte-Carlo engines re-project) are made the first time any view's
+    are read, for all its views; they image the same pixels as the view's features, and pickle as a list."""
+    import pickle
+
+    from wiredsl.engine.simulate import project_views
+
+    cam = Camera(name="c", f=600, cx=320, cy=240, k1=-0.2, width=640, height=480)
+    w = World(feature_ids=["p.l0", "p.l1"], feature_kind=["line", "line"])
+    w.lines = np.array([[[-0.5, -0.2, 2.0], [0.6, 0.3, 2.5]], [[-0.2, 0.4, 3.0], [0.2, -0.4, 3.0]]])
+    w.line_fid, w.line_segment = np.arange(2), -np.ones(2, int)
+    R, t = np.eye(3), np.zeros(3)
+    views = project_views(w, [cam, cam], [R, R], [t, t + [0.1, 0, 0]], [np.ones(2, bool)] * 2)
+    assert views[0].raw._strokes.lists is None  # nothing made by the projection itself
+    assert [r.fid for r in views[1].raw] == [0, 1] and views[0].raw._strokes.lists is not None
+    for v in views:
+        for r, f in zip(v.raw, v.features, strict=True):  # both lines wholly in the image: a feature each
+            assert np.allclose(geometry.cam_to_pixels(r.world @ v.R_cw.T + v.t_cw, cam), f.points, rtol=0, atol=1e-9)
+    again = pickle.loads(pickle.dumps(views[0].raw))
+    assert type(again) is list and [r.fid for r in again] == [0, 1]
+    assert all(np.array_equal(a.world, b.world) for a, b in zip(again, views[0].raw, strict=True))
+
+
+def test_gc_paused_restores_the_collector():
+    """The projection pauses the cyclic collector and gives it back as it found it, also on an error."""
+    import gc
+
+    from wiredsl.engine.simulate import gc_paused
+
+    assert gc.isenabled()
+    with pytest.raises(RuntimeError), gc_paused():
+        assert not gc.isenabled()
+        with gc_paused():
+            pass
+        assert not gc.isenabled()  # an inner pause does not restart it early
+        raise RuntimeError
+    assert gc.isenabled()
+
+
 # --------------------------------------------------------------------------- packed projection of whole views
 
 def _opencv_pixels(P_cam: np.ndarray, cam: Camera) -> np.ndarray:

@@ -79,9 +79,7 @@ def parameters_on(H: np.ndarray, P: np.ndarray) -> np.ndarray:
     big = np.abs(M).max(axis=(1, 2), initial=0.0)
     M = M / np.where(big > 0, big, 1.0)[:, None, None]
     a, b, m = M[:, :, 0], M[:, :, 1], M[:, :, 2]
-    grid = np.linspace(-math.pi, math.pi, 361)
-    r = a[:, :, None] * np.cos(grid) + b[:, :, None] * np.sin(grid) + m[:, :, None]
-    t = grid[np.argmin((r * r).sum(axis=1), axis=1)] if k else np.zeros(0)
+    t = _grid_minimum(a, b, m)
     active = np.ones(k, dtype=bool)
     for _ in range(8):  # Newton on g'(t) = 2 r.r', from within one grid step of the minimum
         c, s = np.cos(t)[:, None], np.sin(t)[:, None]
@@ -94,6 +92,25 @@ def parameters_on(H: np.ndarray, P: np.ndarray) -> np.ndarray:
         if not active.any():
             break
     return t
+
+
+GRID = np.linspace(-math.pi, math.pi, 361)  # where parameters_on starts: every degree
+GRID_ROWS = 32  # rows of parameters_on's grid evaluated at once: temporaries below malloc's 128 KiB mapping threshold
+
+
+def _grid_minimum(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """The point of GRID where |a cos t + b sin t + m|^2 is least, for rows (k, 3) of a, b and m; the sum
+    of the three squares taken in their order, a block of rows at a time."""
+    cos, sin = np.cos(GRID), np.sin(GRID)
+    best = np.zeros(len(a), dtype=int)
+    for lo in range(0, len(a), GRID_ROWS):
+        rows = slice(lo, lo + GRID_ROWS)
+        total = None
+        for i in range(3):
+            r = a[rows, i, None] * cos + b[rows, i, None] * sin + m[rows, i, None]
+            total = r * r if total is None else total + r * r
+        best[rows] = np.argmin(total, axis=1)
+    return GRID[best]
 
 
 def _conditioning(H: np.ndarray) -> np.ndarray:

@@ -100,12 +100,16 @@ CAMERA_ROW = (*CAMERA_KEYS, "model")
 
 def distort(xy: np.ndarray, k1, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0, k5=0.0, k6=0.0) -> np.ndarray:
     """Distorted unit-plane coordinates under OpenCV's rational model (k1..k6, p1, p2), shape (..., 2)."""
-    x, y = xy[..., 0], xy[..., 1]
+    return np.stack(distort_xy(xy[..., 0], xy[..., 1], k1, k2, p1, p2, k3, k4, k5, k6), axis=-1)
+
+
+def distort_xy(x: np.ndarray, y: np.ndarray, k1, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0, k5=0.0, k6=0.0):
+    """`distort` of the coordinates apart: (x_d, y_d)."""
     r2 = x * x + y * y
     radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    return np.stack([xd, yd], axis=-1)
+    return xd, yd
 
 
 def fisheye_plane(P_cam: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0) -> np.ndarray:
@@ -114,12 +118,16 @@ def fisheye_plane(P_cam: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0) -> np.ndarray:
     theta is the angle from the optical axis, so points beside and behind the camera's plane have an
     image too; a point on the backward axis (theta = 180 deg) or at the centre has none (NaN).
     """
-    X, Y, Z = P_cam[..., 0], P_cam[..., 1], P_cam[..., 2]
+    return np.stack(fisheye_xy(P_cam[..., 0], P_cam[..., 1], P_cam[..., 2], k1, k2, k3, k4), axis=-1)
+
+
+def fisheye_xy(X: np.ndarray, Y: np.ndarray, Z: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0):
+    """`fisheye_plane` of the coordinates apart: (x_d, y_d)."""
     rho = np.hypot(X, Y)
     td = fisheye_theta_d(np.arctan2(rho, Z), k1, k2, k3, k4)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         scale = np.where(rho > 0, td / np.where(rho > 0, rho, 1.0), np.where(Z > 0, 0.0, np.nan))
-    return np.stack([scale * X, scale * Y], axis=-1)
+    return scale * X, scale * Y
 
 
 def fisheye_theta_d(theta, k1, k2=0.0, k3=0.0, k4=0.0):
@@ -159,17 +167,27 @@ def project(P_cam: np.ndarray, g: dict) -> np.ndarray:
     A radtan camera gives NaN for points with Z <= 0 (nothing there is imaged; callers clip first), as
     does a fisheye for the backward axis. A pixel beyond float range is inf.
     """
-    model = np.broadcast_to(np.asarray(g["model"]), P_cam.shape[:-1])
-    fish = model == 1
+    return np.stack(project_xyz(P_cam[..., 0], P_cam[..., 1], P_cam[..., 2], g), axis=-1)
+
+
+def project_xyz(X: np.ndarray, Y: np.ndarray, Z: np.ndarray, g: dict) -> tuple[np.ndarray, np.ndarray]:
+    """`project` of the coordinates apart: camera points X, Y, Z (m,) each -> pixels (u, v), (m,) each.
+
+    Contiguous coordinates cost less than the columns of an (m, 3) array; a camera's numbers given as
+    scalars cost less than a column a number, and give the same doubles."""
+    fish = np.asarray(g["model"]) == 1
+    if fish.ndim:
+        fish = np.broadcast_to(fish, np.shape(X))
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-        out = None
+        xd = yd = None
         if not fish.all() or fish.size == 0:
-            xy = np.where(P_cam[..., 2:3] > 0, P_cam[..., :2] / P_cam[..., 2:3], np.nan)
-            out = distort(xy, g["k1"], g["k2"], g["p1"], g["p2"], g["k3"], g["k4"], g["k5"], g["k6"])
+            front = Z > 0
+            xd, yd = distort_xy(np.where(front, X / Z, np.nan), np.where(front, Y / Z, np.nan), g["k1"], g["k2"],
+                                g["p1"], g["p2"], g["k3"], g["k4"], g["k5"], g["k6"])
         if fish.any():
-            xy_f = fisheye_plane(P_cam, g["k1"], g["k2"], g["k3"], g["k4"])
-            out = xy_f if out is None else np.where(fish[..., None], xy_f, out)
-        return plane_to_pixels(out, g["f"], g["ax"], g["ay"], g["cx"], g["cy"])
+            fx, fy = fisheye_xy(X, Y, Z, g["k1"], g["k2"], g["k3"], g["k4"])
+            xd, yd = (fx, fy) if xd is None else (np.where(fish, fx, xd), np.where(fish, fy, yd))
+        return g["f"] * g["ax"] * xd + g["cx"], g["f"] * g["ay"] * yd + g["cy"]
 
 
 def cam_to_pixels(P_cam: np.ndarray, cam) -> np.ndarray:
@@ -419,7 +437,8 @@ def clip_segments_rect(a: np.ndarray, b: np.ndarray, width: float, height: float
 
 MAX_CURVE_VERTICES = 100_000  # the most vertices one curve's polyline may get
 MAX_VERTICES = 2_000_000  # the most vertices one packed sampling may create (memory: ~130 bytes each)
-EVAL_CHUNK = 1 << 16  # points evaluated at once while sampling: bounds the temporaries
+EVAL_CHUNK = 15_000  # points evaluated at once while sampling: each temporary (m,) stays below the 128 KiB at
+# which malloc maps fresh pages (a new process pays a page fault a 4 KiB page each time), and in cache
 
 
 class TooManyVertices(ValueError):
@@ -441,7 +460,7 @@ def adaptive_samples(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float, start
 
 
 def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float, start=8, max_depth: int = 20,
-                            max_vertices: int = MAX_CURVE_VERTICES, image=None):
+                            max_vertices: int = MAX_CURVE_VERTICES, image=None, points: bool = False):
     """Sample parameters of many curves at once so that each polyline stays within `tol` of its curve.
 
     Curves are sampled on `start` (scalar or one count a curve) equal intervals; an interval is halved
@@ -455,102 +474,140 @@ def adaptive_samples_packed(point_fn, t0: np.ndarray, t1: np.ndarray, tol: float
     border of the image by more than a quarter of its size are not refined: nothing there is seen,
     even after perturbations of a hundred pixels, and curves through the near plane would otherwise
     get vertices by the million.
-    Returns (cid, t, bounds): the parameters sorted by curve then t, curve i's are t[bounds[i]:bounds[i+1]].
+    Returns (cid, t, bounds): the parameters sorted by curve then t, curve i's are t[bounds[i]:bounds[i+1]];
+    with `points`, also point_fn's points there (m, 2), as evaluated while sampling.
     Raises TooManyVertices past max_vertices for one curve or MAX_VERTICES in all.
     """
     n = len(t0)
     starts = np.broadcast_to(np.asarray(start, dtype=int), (n,))
-    done_c, done_t, live_c, live_a, live_b = [], [], [], [], []
-    for k in np.unique(starts):
+    done_c, done_t, done_i, live_c, live_a, live_b = [], [], [], [], [], []
+    first = 0  # the first interval of this start count's curves
+    for k in np.unique(starts).tolist():
         rows = np.flatnonzero(starts == k)
         grid = np.linspace(0.0, 1.0, k + 1)
         ts = t0[rows, None] + (t1 - t0)[rows, None] * grid[None, :]
         done_c.append(np.repeat(rows, k + 1))
         done_t.append(ts.ravel())
+        # where each grid point was evaluated: an interval's start, the last one's end; (point, interval)
+        j = np.minimum(np.arange(k + 1), k - 1)
+        done_i.append(np.stack(np.broadcast_arrays(np.where(j < np.arange(k + 1), 4, 0),
+                                                   first + k * np.arange(len(rows))[:, None] + j)).reshape(2, -1))
+        first += k * len(rows)
         live_c.append(np.repeat(rows, k))
         live_a.append(ts[:, :-1].ravel())
         live_b.append(ts[:, 1:].ravel())
     cid = np.concatenate(live_c).astype(int) if live_c else np.zeros(0, dtype=int)
     ta, tb = (np.concatenate(x) if x else np.zeros(0) for x in (live_a, live_b))
-    # each live interval keeps its five points (ends, quarters, middle): a halving reuses three of them
+    # each live interval keeps its five points (ends, quarters, middle), their u and v apart, a row each
+    # (5, intervals): a halving reuses three of them
     tm = 0.5 * (ta + tb)
-    T = np.stack([ta, 0.5 * (ta + tm), tm, 0.5 * (tm + tb), tb], axis=1)
-    Pts = _evaluate(point_fn, np.repeat(cid, 5), T.ravel()).reshape(-1, 5, 2)
+    T = np.stack([ta, 0.5 * (ta + tm), tm, 0.5 * (tm + tb), tb])
+    U, V = _evaluate_uv(point_fn, cid, T)
+    at = tuple(np.concatenate(done_i, axis=1)) if done_i else (np.zeros(0, dtype=int),) * 2
+    done_u, done_v = [U[at]], [V[at]]
     counts = starts + 1
     total = int(counts.sum())
     for _ in range(max_depth):
         if len(cid) == 0:
             break
-        split = _deviation(Pts, cid, image) > tol
-        cid, T, Pts = cid[split], T[split], Pts[split]
+        split = _deviation_uv(U, V, cid, image) > tol
+        cid = cid[split]
+        T, U, V = (x.compress(split, axis=1) for x in (T, U, V))
         done_c.append(cid)
-        done_t.append(T[:, 2])
+        done_t.append(T[2])
+        done_u.append(U[2])
+        done_v.append(V[2])
         counts += np.bincount(cid, minlength=n)
         total += len(cid)
         if total > MAX_VERTICES:
             raise TooManyVertices(-1, MAX_VERTICES)
         if len(cid) and counts.max() > max_vertices:
             raise TooManyVertices(int(counts.argmax()), max_vertices)
-        new_t = 0.5 * (T[:, :-1] + T[:, 1:])  # the eighths: the children's new quarter points
-        new_p = _evaluate(point_fn, np.repeat(cid, 4), new_t.ravel()).reshape(-1, 4, 2)
-        left_t = np.stack([T[:, 0], new_t[:, 0], T[:, 1], new_t[:, 1], T[:, 2]], axis=1)
-        right_t = np.stack([T[:, 2], new_t[:, 2], T[:, 3], new_t[:, 3], T[:, 4]], axis=1)
-        left_p = np.stack([Pts[:, 0], new_p[:, 0], Pts[:, 1], new_p[:, 1], Pts[:, 2]], axis=1)
-        right_p = np.stack([Pts[:, 2], new_p[:, 2], Pts[:, 3], new_p[:, 3], Pts[:, 4]], axis=1)
+        new_t = 0.5 * (T[:-1] + T[1:])  # the eighths: the children's new quarter points
+        new_u, new_v = _evaluate_uv(point_fn, cid, new_t)
+        # the nine points of the interval, then its halves: points 0-4 and 4-8
         cid = np.concatenate([cid, cid])
-        T, Pts = np.concatenate([left_t, right_t]), np.concatenate([left_p, right_p])
+        T, U, V = (_halves(old, new) for old, new in ((T, new_t), (U, new_u), (V, new_v)))
     all_c = np.concatenate(done_c).astype(int) if done_c else np.zeros(0, dtype=int)
     all_t = np.concatenate(done_t) if done_t else np.zeros(0)
     order = np.lexsort((all_t, all_c))
     all_c, all_t = all_c[order], all_t[order]
-    return all_c, all_t, np.searchsorted(all_c, np.arange(n + 1))
+    bounds = np.searchsorted(all_c, np.arange(n + 1))
+    if not points:
+        return all_c, all_t, bounds
+    return all_c, all_t, bounds, np.stack([np.concatenate(done_u)[order], np.concatenate(done_v)[order]], axis=1)
 
 
-def _evaluate(point_fn, c: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """point_fn over many points, a chunk at a time so that its temporaries stay bounded."""
-    if len(t) <= EVAL_CHUNK:
-        return point_fn(c, t)
-    return np.concatenate([point_fn(c[lo:lo + EVAL_CHUNK], t[lo:lo + EVAL_CHUNK])
-                           for lo in range(0, len(t), EVAL_CHUNK)])
+def _evaluate_uv(point_fn, c: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points of curves c (m,) at parameters t (k, m) (row i: every curve's i-th point) as their u and v,
+    each (k, m): about EVAL_CHUNK points a call, written in place (no (k m, 2) array in between)."""
+    k, m = t.shape
+    u, v = np.empty((k, m)), np.empty((k, m))
+    if m <= EVAL_CHUNK:
+        rows = max(EVAL_CHUNK // max(m, 1), 1)
+        for i in range(0, k, rows):
+            block = t[i:i + rows]
+            p = point_fn(np.tile(c, len(block)), block.ravel())
+            u[i:i + rows], v[i:i + rows] = p[:, 0].reshape(block.shape), p[:, 1].reshape(block.shape)
+        return u, v
+    for i in range(k):
+        for lo in range(0, m, EVAL_CHUNK):
+            p = point_fn(c[lo:lo + EVAL_CHUNK], t[i, lo:lo + EVAL_CHUNK])
+            u[i, lo:lo + EVAL_CHUNK], v[i, lo:lo + EVAL_CHUNK] = p[:, 0], p[:, 1]
+    return u, v
 
 
-def _deviation(p: np.ndarray, cid: np.ndarray, image=None) -> np.ndarray:
-    """Estimated largest distance of curve pieces from their chords, from their five points p (m, 5, 2)."""
-    dist = _distance_to_segment(p[:, 1:4], p[:, :1], p[:, 4:]).max(axis=1)
-    with np.errstate(invalid="ignore", over="ignore"):  # non-finite points give NaN: never split
-        second = p[:, :-2] - 2 * p[:, 1:-1] + p[:, 2:]  # (m, 3, 2)
-        across = _across(second, p[:, 2:] - p[:, :-2]).max(axis=1)
-        out = dist + 0.25 * across
+def _halves(old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """Five values a piece (5, m) and the four between them (4, m) -> the two halves' five values (5, 2m)."""
+    nine = np.empty((9, old.shape[1]))
+    nine[0::2], nine[1::2] = old, new
+    return np.concatenate([nine[:5], nine[4:]], axis=1)
+
+
+def _deviation_uv(u: np.ndarray, v: np.ndarray, cid: np.ndarray, image=None) -> np.ndarray:
+    """Estimated largest distance of curve pieces from their chords, from their five points' u and v (5, m)
+    each: the largest distance of the quarter points from the chord segment, plus a quarter of the largest
+    second difference across the curve. Written a coordinate at a time: numpy's reductions over an axis of
+    two cost more than the arithmetic."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # non-finite points give NaN: never split
+        u0, v0, u4, v4 = u[0], v[0], u[4], v[4]
+        du, dv = u4 - u0, v4 - v0  # the chord
+        dd = du * du + dv * dv
+        out = None
+        for j in (1, 2, 3):  # the quarter points' distances from the chord segment
+            s = np.clip(((u[j] - u0) * du + (v[j] - v0) * dv) / dd, 0.0, 1.0)
+            s = np.where(dd > 0, s, 0.0)
+            d = np.hypot(u[j] - (u0 + s * du), v[j] - (v0 + s * dv))
+            out = d if out is None else np.maximum(out, d)  # NaN wins, as in max()
+        across = None
+        for j in (0, 1, 2):  # second differences, their part across the curve
+            a = _across_uv(u[j] - 2 * u[j + 1] + u[j + 2], v[j] - 2 * v[j + 1] + v[j + 2],
+                           u[j + 2] - u[j], v[j + 2] - v[j])
+            across = a if across is None else np.maximum(across, a)
+        out = out + 0.25 * across
     if image is not None:
         w, h = image[0][cid], image[1][cid]
-        m = 0.25 * np.maximum(w, h)[:, None]
-        u, v = p[..., 0], p[..., 1]
+        m = 0.25 * np.maximum(w, h)
+        lo_u, hi_u, lo_v, hi_v = -m, w + m, -m, h + m
         with np.errstate(invalid="ignore"):
-            far = (u < -m).all(1) | (u > (w[:, None] + m)).all(1) | (v < -m).all(1) | (v > (h[:, None] + m)).all(1)
-        out = np.where(far, 0.0, out)
+            below_u, above_u, below_v, above_v = u[0] < lo_u, u[0] > hi_u, v[0] < lo_v, v[0] > hi_v
+            for j in (1, 2, 3, 4):
+                below_u &= u[j] < lo_u
+                above_u &= u[j] > hi_u
+                below_v &= v[j] < lo_v
+                above_v &= v[j] > hi_v
+        out = np.where(below_u | above_u | below_v | above_v, 0.0, out)
     return out
 
 
-def _across(v: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """The part of vectors v (..., 2) across directions d (..., 2) (all of v where d is zero).
+def _across_uv(vu, vv, du, dv):
+    """The part of vectors (vu, vv) across directions (du, dv) (all of it where a direction is zero).
 
     A second difference along the curve only speeds up or slows down the parameter; across it,
     it bends the curve away from its chords.
     """
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        length = np.hypot(d[..., 0], d[..., 1])
-        across = np.abs(v[..., 0] * d[..., 1] - v[..., 1] * d[..., 0]) / length
-        return np.where(length > 0, across, np.hypot(v[..., 0], v[..., 1]))
-
-
-def _distance_to_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance of points p from segments a-b, (..., 2) each (broadcast)."""
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        d = b - a
-        dd = (d * d).sum(axis=-1)
-        s = np.clip(((p - a) * d).sum(axis=-1) / dd, 0.0, 1.0)
-        q = a + np.where(dd > 0, s, 0.0)[..., None] * d
-    return np.hypot(p[..., 0] - q[..., 0], p[..., 1] - q[..., 1])
+    length = np.hypot(du, dv)
+    return np.where(length > 0, np.abs(vu * dv - vv * du) / length, np.hypot(vu, vv))
 
 
 def clip_polyline_rect(points: np.ndarray, width: float, height: float) -> list[tuple[np.ndarray, bool]]:
@@ -607,7 +664,7 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     H = np.broadcast_to(np.asarray(height, dtype=float), (n,))
     owner = np.repeat(np.arange(n), counts)
     x, y = pts[:, 0], pts[:, 1]
-    finite = np.isfinite(pts).all(axis=1)
+    finite = np.isfinite(x) & np.isfinite(y)
     with np.errstate(invalid="ignore"):
         outside = ~finite | (x < 0) | (y < 0) | (x > W[owner]) | (y > H[owner])
     any_out = np.bincount(owner, weights=outside, minlength=n) > 0
@@ -615,7 +672,7 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     seg = np.flatnonzero(np.repeat(counts >= 2, counts) & (np.arange(len(pts)) + 1 < start[owner + 1]))
     poly = owner[seg]
     sw = seg[any_out[poly]]  # only polylines that leave the image are cut
-    a, b = pts[sw], pts[sw + 1]
+    a, b = pts.take(sw, axis=0), pts.take(sw + 1, axis=0)  # np.take: faster than pts[sw] on (n, 2)
     both = finite[sw] & finite[sw + 1]  # a vertex beyond float range cuts the polyline there
     a, b = np.where(both[:, None], a, 0.0), np.where(both[:, None], b, 0.0)
     d = b - a
@@ -634,7 +691,7 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     is_first[offs[begins]] = True
     j = np.repeat(np.arange(len(sw)), nv)
     at = np.where(is_first, t0[j], t1[j])
-    cpts = a[j] + at[:, None] * d[j]
+    cpts = a.take(j, axis=0) + at[:, None] * d.take(j, axis=0)
     end = np.where(is_first, np.where(t0[j] > 0, 1, 0), np.where(leaves[j], 2, 0))
     side = np.where(is_first, s0[j], s1[j])
     piece_of_v = np.cumsum(is_first) - 1
@@ -647,14 +704,14 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     n_cut = np.bincount(piece_of_v, minlength=int(begins.sum())) if len(piece_of_v) else np.zeros(0, int)
     sizes = np.concatenate([n_in, n_cut])
     cut = np.concatenate([np.zeros(len(inside), bool), np.ones(len(n_cut), bool)])
-    vpts = np.concatenate([pts[in_v], cpts])
+    vpts = np.concatenate([pts.take(in_v, axis=0), cpts])
     vmeta = [np.concatenate([in_v, vseg]), np.concatenate([np.zeros(len(in_v), int), end]),
              np.concatenate([np.full(len(in_v), -1), side]), np.concatenate([np.zeros(len(in_v)), at])]
     order = np.argsort(src, kind="stable")
     vstart = np.concatenate([[0], np.cumsum(sizes)])
     sizes, src, cut = sizes[order], src[order], cut[order]
     vidx = _ranges(vstart[:-1][order], sizes)
-    vpts = vpts[vidx]
+    vpts = vpts.take(vidx, axis=0)
     vmeta = [m[vidx] for m in vmeta]
     # a piece must have extent
     pstart = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
@@ -667,8 +724,8 @@ def clip_polylines_rect(pts: np.ndarray, start: np.ndarray, width, height):
     vkeep = np.repeat(ok, sizes)
     sizes = sizes[ok]
     return {"src": src[ok], "start": np.concatenate([[0], np.cumsum(sizes)]).astype(int), "cut": cut[ok],
-            "pts": vpts[vkeep], "seg": vmeta[0][vkeep], "end": vmeta[1][vkeep], "side": vmeta[2][vkeep],
-            "at": vmeta[3][vkeep]}
+            "pts": vpts.compress(vkeep, axis=0), "seg": vmeta[0][vkeep], "end": vmeta[1][vkeep],
+            "side": vmeta[2][vkeep], "at": vmeta[3][vkeep]}
 
 
 def _liang_barsky(a: np.ndarray, b: np.ndarray, width, height):

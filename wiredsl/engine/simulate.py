@@ -9,7 +9,11 @@ rectangle [0, width] x [0, height] after it.
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import gc
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,7 +68,8 @@ class View:
     R_cw: np.ndarray
     t_cw: np.ndarray
     features: list[ImageFeature] = field(default_factory=list)
-    raw: list[Raw] = field(default_factory=list)  # the strokes before image clipping
+    # the strokes before image clipping: a projection gives a sequence that makes them when first read
+    raw: Sequence[Raw] = field(default_factory=list)
     corner_world: np.ndarray | None = None  # (C, 3) the corners in front of the camera, before image clipping
     corner_fid: np.ndarray | None = None
 
@@ -210,6 +215,26 @@ def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mask
 
     With occluders (--visibility exact), each view keeps only the unoccluded parts (occlusion.py).
     """
+    with gc_paused():
+        return _project_views(world, cams, R_cw, t_cw, masks, tol, occluders)
+
+
+@contextlib.contextmanager
+def gc_paused():
+    """Python's cyclic garbage collector paused while the engine makes its many small objects (features,
+    strokes, dump records; none in a reference cycle). Left running, it walks every object of the process
+    each time enough of them have been made: about a third of a long path's projection in a fresh process."""
+    paused = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if paused:
+            gc.enable()
+
+
+def _project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, masks: list, tol: float,
+                   occluders: occlusion.Occluders | None) -> list[View]:
     views = [View(c, np.asarray(R, float), np.asarray(t, float)) for c, R, t in zip(cams, R_cw, t_cw, strict=True)]
     if not views:
         return views
@@ -217,8 +242,9 @@ def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mask
     masks = np.asarray(masks, dtype=bool).reshape(len(views), -1)
     out = _Emitted(views)
     eyes = None if occluders is None else [occluders.seen_from(v.R_cw, v.t_cw) for v in views]
-    seg = _straight_segments(world, views, cam, masks, eyes)
-    ell = _ellipse_intervals(world, views, cam, masks, eyes)
+    ellipses = _ellipses_cam(world, views)
+    seg = _straight_segments(world, views, cam, masks, eyes, ellipses)
+    ell = _ellipse_intervals(world, views, cam, masks, eyes, ellipses)
     _emit_lines(seg, views, cam, out)
     # every curve of every view sampled together: segments under distortion, then ellipse arcs
     curved = np.flatnonzero(seg.keep & cam["distorted"][seg.vid])
@@ -228,19 +254,19 @@ def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mask
                      np.concatenate([np.zeros((len(curved), 3)), ell.V[ell.owner]]),
                      np.arange(len(curved) + len(ell.owner)) < len(curved))
     try:
-        cid, ts, bounds = curves.sample(np.concatenate([seg.t0[curved], ell.lo]),
-                                        np.concatenate([seg.t1[curved], ell.hi]), tol,
-                                        np.where(curves.line, 2, 16))
+        cid, ts, bounds, uv = curves.sample(np.concatenate([seg.t0[curved], ell.lo]),
+                                            np.concatenate([seg.t1[curved], ell.hi]), tol,
+                                            np.where(curves.line, 2, 16))
     except geometry.TooManyVertices as exc:
         raise _too_many(exc, tol) from None
     P = curves.points(cid, ts)
-    world_pts = out.to_world(P, curves.view[cid])
+    world_pts = functools.cache(lambda: out.to_world(P, curves.view[cid]))  # for the raw strokes, when read
     n_seg = len(curved)
     # a segment's curve is one run; an ellipse arc splits into runs inside the fold radius
     seg_runs = np.stack([bounds[:n_seg], bounds[1:n_seg + 1]], axis=1)
     ell_runs, ell_run_meta = _fold_runs(ell, cam, cid, ts, P, bounds, n_seg)
     runs = np.concatenate([seg_runs, ell_runs])
-    pieces = curves.clip(cid, ts, P, runs)
+    pieces = curves.clip(cid, ts, uv, runs)
     _emit_curved_segments(seg, curved, seg_runs, pieces, world_pts, out)
     _emit_ellipses(ell, cam, ell_runs, ell_run_meta, pieces, n_seg, world_pts, out)
     _emit_corners(world, views, cam, masks, out, eyes)
@@ -264,32 +290,86 @@ class _Emitted:
     def __init__(self, views: list[View]):
         self.views = views
         self.features: list[tuple[tuple, ImageFeature]] = []
-        self.raw: list[tuple[tuple, Raw]] = []
+        self.raw: list = []  # functions giving [(key, Raw)]: called the first time a view's strokes are read
 
     def to_world(self, P_cam: np.ndarray, vid: np.ndarray) -> np.ndarray:
         """Camera-frame points (m, 3) of views vid (m,) back in the world frame, one transform a view."""
         out = np.empty_like(P_cam)
-        for k in np.unique(vid):
-            m = vid == k
-            out[m] = (P_cam[m] - self.views[k].t_cw) @ self.views[k].R_cw
+        # vid comes in a few sorted runs (segments, then ellipses): one transform a block of equal views
+        cuts = np.flatnonzero(vid[1:] != vid[:-1]) + 1
+        starts, ends = np.concatenate([[0], cuts]).tolist(), np.concatenate([cuts, [len(vid)]]).tolist()
+        for a, b, k in zip(starts, ends, vid[starts].tolist(), strict=True) if len(vid) else ():
+            out[a:b] = (P_cam[a:b] - self.views[k].t_cw) @ self.views[k].R_cw
         return out
 
     def deliver(self) -> None:
         for key, f in sorted(self.features, key=lambda kf: kf[0]):
             self.views[key[0]].features.append(f)
-        for key, r in sorted(self.raw, key=lambda kr: kr[0]):
-            self.views[key[0]].raw.append(r)
+        strokes = _RawStrokes(self.raw, len(self.views))
+        for k, v in enumerate(self.views):
+            v.raw = _Strokes(strokes, k)
+
+
+class _RawStrokes:
+    """The raw strokes of views projected together, made for all of them the first time any view's are read
+    (the Monte-Carlo engines read them; a plain build, which writes the clipped features, never does)."""
+
+    def __init__(self, makers: list, n_views: int):
+        self.makers, self.n_views, self.lists = makers, n_views, None
+
+    def of(self, k: int) -> list[Raw]:
+        if self.lists is None:
+            lists = [[] for _ in range(self.n_views)]
+            with gc_paused():
+                for key, r in sorted((kr for make in self.makers for kr in make()), key=lambda kr: kr[0]):
+                    lists[key[0]].append(r)
+            self.lists, self.makers = lists, None
+        return self.lists[k]
+
+
+class _Strokes(Sequence):
+    """One view's raw strokes, a sequence of Raw made when first read (`_RawStrokes`)."""
+
+    def __init__(self, strokes: _RawStrokes, k: int):
+        self._strokes, self._k = strokes, k
+
+    def __getitem__(self, i):
+        return self._strokes.of(self._k)[i]
+
+    def __len__(self) -> int:
+        return len(self._strokes.of(self._k))
+
+    def __iter__(self):
+        return iter(self._strokes.of(self._k))
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Sequence) and list(self) == list(other)
+
+    def __repr__(self) -> str:
+        return repr(self._strokes.of(self._k))
+
+    def __reduce__(self):  # pickled (a study's worker) as the plain list
+        return list, (list(self),)
 
 
 def _camera_table(cams: list[Camera]) -> dict[str, np.ndarray]:
     """Per-view camera parameters as arrays (V,), with the lens model and limit (`geometry.lens_limit`), and
     whether lines are curves in the image."""
-    rows = [geometry.camera_table(c) for c in cams]
+    distinct = {id(c): c for c in cams}  # the views of a path share a few Camera objects
+    row = {k: {**geometry.camera_table(c), "width": float(c.width), "height": float(c.height),
+               "distorted": geometry.is_distorted(c)} for k, c in distinct.items()}
+    rows = [row[id(c)] for c in cams]
     table = {k: np.array([r[k] for r in rows]) for k in rows[0]}
-    table["width"] = np.array([float(c.width) for c in cams])
-    table["height"] = np.array([float(c.height) for c in cams])
-    table["distorted"] = np.array([geometry.is_distorted(c) for c in cams], dtype=bool)
+    # each distinct set of camera numbers once, as scalars: points are projected a camera at a time
+    numbers = np.column_stack([table[k] for k in _CAMERA]).astype(float)
+    # the same bits, not just equal values (0.0 and -0.0 apart): the same doubles as a column a point
+    _, first, which = np.unique(numbers.view(np.int64), axis=0, return_index=True, return_inverse=True)
+    table["camera"] = which.reshape(-1)
+    table["cameras"] = [dict(zip(_CAMERA, numbers[i].tolist(), strict=True)) for i in first.tolist()]
     return table
+
+
+_CAMERA = (*geometry.CAMERA_KEYS, "model")  # the numbers geometry.project needs
 
 
 def _pixels(P: np.ndarray, cam: dict, v: np.ndarray) -> np.ndarray:
@@ -297,8 +377,18 @@ def _pixels(P: np.ndarray, cam: dict, v: np.ndarray) -> np.ndarray:
 
     A pixel beyond float range (a focal length of 1e300 px) is inf: such points count as outside the image;
     a radtan point that rounding at huge distances left at z <= 0 is NaN (outside every image).
+    Each distinct camera projects its points with its numbers as scalars, which gives the same doubles as
+    one projection with a column of numbers a point, in less time.
     """
-    return geometry.project(P, {k: cam[k][v] for k in _Curves.CAMERA})
+    cameras = cam["cameras"]
+    if len(cameras) == 1:
+        return geometry.project(P, cameras[0])
+    which = cam["camera"][v]
+    out = np.empty((len(P), 2))
+    for k in np.flatnonzero(np.bincount(which, minlength=len(cameras))).tolist():
+        rows = np.flatnonzero(which == k)
+        out[rows] = geometry.project(P[rows], cameras[k])
+    return out
 
 
 def _ellipses_cam(world: World, views: list[View]):
@@ -315,8 +405,9 @@ def silhouettes_cam(world: World, mask: np.ndarray, R_cw: np.ndarray, t_cw: np.n
     return A, B, fid, side
 
 
-def silhouettes_cams(world: World, views: list[View], masks: np.ndarray):
-    """Camera-frame contour generators of the visible silhouettes of every view.
+def silhouettes_cams(world: World, views: list[View], masks: np.ndarray, ellipses: tuple | None = None):
+    """Camera-frame contour generators of the visible silhouettes of every view (`ellipses`: their
+    `_ellipses_cam`, when the caller has them).
 
     Returns (view, A, B, fid, side): the two sides of a silhouette are numbered by where they
     appear, left to right in the image, for stable indices.
@@ -325,7 +416,7 @@ def silhouettes_cams(world: World, views: list[View], masks: np.ndarray):
     z3 = np.zeros((0, 3))
     if len(vv) == 0:
         return np.zeros(0, int), z3, z3, np.zeros(0, int), np.zeros(0, int)
-    c, U, V = _ellipses_cam(world, views)
+    c, U, V = _ellipses_cam(world, views) if ellipses is None else ellipses
     a, b = world.sil_pair[ss, 0], world.sil_pair[ss, 1]
     full = world.ell_full
     o, A, B = conics.silhouette_segments_batch(c[vv, a], U[vv, a], V[vv, a], c[vv, b], U[vv, b], V[vv, b],
@@ -355,9 +446,10 @@ class _Segments:
     hid: np.ndarray  # occlusion cut it
 
 
-def _straight_segments(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes=None) -> _Segments:
+def _straight_segments(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes, ellipses: tuple
+                       ) -> _Segments:
     """Lines, polyline segments and silhouette sides of every view, in that order within a view."""
-    sv, sA, sB, sfid, sside = silhouettes_cams(world, views, masks)
+    sv, sA, sB, sfid, sside = silhouettes_cams(world, views, masks, ellipses)
     sv, sA, sB, sfid, sside = _with_contours(world, views, masks, (sv, sA, sB, sfid, sside))
     lv, ll = np.nonzero(masks[:, world.line_fid]) if len(world.line_fid) else (np.zeros(0, int),) * 2
     R = np.stack([v.R_cw for v in views])
@@ -414,12 +506,15 @@ def _emit_lines(s: _Segments, views: list[View], cam: dict, out: _Emitted) -> No
         return
     vid = s.vid[idx]
     Pa, Pb = s.A[idx] + s.t0[idx, None] * s.D[idx], s.A[idx] + s.t1[idx, None] * s.D[idx]
-    Wa, Wb = out.to_world(Pa, vid), out.to_world(Pb, vid)
     fid, seg, cut3d, vl = s.fid[idx].tolist(), s.seg[idx].tolist(), s.cut3d[idx].tolist(), vid.tolist()
     piece, hid = s.piece[idx].tolist(), s.hid[idx].tolist()
-    for j, i in enumerate(idx.tolist()):
-        out.raw.append(((vl[j], 0, i), Raw(fid[j], seg[j], "line", False, cut3d[j], np.stack([Wa[j], Wb[j]]),
-                                           piece[j], hid[j])))
+
+    def strokes():
+        Wa, Wb = out.to_world(Pa, vid), out.to_world(Pb, vid)
+        return [((vl[j], 0, i), Raw(fid[j], seg[j], "line", False, cut3d[j], np.stack([Wa[j], Wb[j]]), piece[j],
+                                    hid[j])) for j, i in enumerate(idx.tolist())]
+
+    out.raw.append(strokes)
     a, b = _pixels(Pa, cam, vid), _pixels(Pb, cam, vid)
     finite = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
     a, b = np.where(finite[:, None], a, 0.0), np.where(finite[:, None], b, 0.0)
@@ -436,12 +531,17 @@ def _emit_lines(s: _Segments, views: list[View], cam: dict, out: _Emitted) -> No
 def _emit_curved_segments(s: _Segments, curved: np.ndarray, runs: np.ndarray, pieces, world_pts, out: _Emitted):
     """Segments of distorted views: adaptive polylines (curve k of the sampling is segment curved[k])."""
     vl, fid, seg, cut3d, piece, hid = (x[curved].tolist() for x in (s.vid, s.fid, s.seg, s.cut3d, s.piece, s.hid))
-    for k, (b0, b1) in enumerate(runs.tolist()):
-        out.raw.append(((vl[k], 0, int(curved[k])), Raw(fid[k], seg[k], "polyline", False, cut3d[k],
-                                                         world_pts[b0:b1], piece[k], hid[k])))
+    cl = curved.tolist()
+
+    def strokes():
+        W = world_pts()
+        return [((vl[k], 0, cl[k]), Raw(fid[k], seg[k], "polyline", False, cut3d[k], W[b0:b1], piece[k], hid[k]))
+                for k, (b0, b1) in enumerate(runs.tolist())]
+
+    out.raw.append(strokes)
     for n, (k, pts, cut) in enumerate(pieces):
-        if k < len(curved):
-            out.features.append(((vl[k], 0, int(curved[k]), n),
+        if k < len(cl):
+            out.features.append(((vl[k], 0, cl[k], n),
                                  ImageFeature(fid[k], "polyline", pts, seg[k], bool(cut or cut3d[k]),
                                               fragment=piece[k], occluded=hid[k])))
 
@@ -449,39 +549,66 @@ def _emit_curved_segments(s: _Segments, curved: np.ndarray, runs: np.ndarray, pi
 class _Curves:
     """Curves P(t) = base + X cos t + Y sin t (ellipses) or base + t X (lines, Y = 0), camera frame."""
 
-    CAMERA = (*geometry.CAMERA_KEYS, "model")
-
     def __init__(self, cam: dict, view: np.ndarray, base: np.ndarray, X: np.ndarray, Y: np.ndarray,
                  line: np.ndarray):
         self.cam, self.view, self.line = cam, view, line
-        # one row a curve: its geometry and its camera, so that evaluating points is a single gather
-        self.table = np.column_stack([base, X, Y, line, *(cam[k][view] for k in self.CAMERA)])
+        # the coordinates apart (3, n): gathering and combining contiguous rows costs less than (n, 3) rows
+        self.base, self.X, self.Y = (np.ascontiguousarray(np.asarray(a, float).T) for a in (base, X, Y))
+        # points are evaluated a group at a time: one camera (its numbers as scalars) and one kind (lines
+        # without cosines)
+        self.group = 2 * cam["camera"][view] + line
+        self.n_groups = 2 * len(cam["cameras"])
 
-    def points(self, c: np.ndarray, t: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
-        g = self.table[c] if rows is None else rows
-        line = g[:, 9] != 0
-        x = np.where(line, t, np.cos(t))
-        y = np.where(line, 0.0, np.sin(t))
-        return g[:, 0:3] + x[:, None] * g[:, 3:6] + y[:, None] * g[:, 6:9]
+    def _groups(self, c: np.ndarray) -> list:
+        """[(group, rows of c in it, or None for all of c)] for the groups of curves c."""
+        g = self.group.take(c)
+        present = np.flatnonzero(np.bincount(g, minlength=self.n_groups)).tolist()
+        if len(present) == 1:
+            return [(present[0], None)]
+        return [(k, np.flatnonzero(g == k)) for k in present]
+
+    def _xyz(self, c: np.ndarray, t: np.ndarray, line: bool) -> np.ndarray:
+        """Points (3, m) of curves c (m,), all lines or all ellipses, at parameters t (m,)."""
+        take = functools.partial(np.take, indices=c, axis=1)  # np.take: several times faster than [:, c]
+        if line:  # (base + t X) + 0 Y, Y = 0: adding 0.0 turns a -0.0 into 0.0, as the sum with 0 Y does
+            return take(self.base) + t * take(self.X) + 0.0
+        return take(self.base) + np.cos(t) * take(self.X) + np.sin(t) * take(self.Y)
+
+    def points(self, c: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Points (m, 3) of curves c (m,) at parameters t (m,)."""
+        out = np.empty((3, len(c)))
+        for k, rows in self._groups(c):
+            if rows is None:
+                out = self._xyz(c, t, bool(k & 1))
+            else:
+                out[:, rows] = self._xyz(c.take(rows), t.take(rows), bool(k & 1))
+        return np.ascontiguousarray(out.T)
 
     def pixels(self, c: np.ndarray, t: np.ndarray) -> np.ndarray:
-        g = self.table[c]
-        return geometry.project(self.points(c, t, g), dict(zip(self.CAMERA, g[:, 10:].T, strict=True)))
+        """Pixels (m, 2) of curves c (m,) at parameters t (m,)."""
+        out = np.empty((len(c), 2))
+        for k, rows in self._groups(c):
+            cc, tt = (c, t) if rows is None else (c.take(rows), t.take(rows))
+            X, Y, Z = self._xyz(cc, tt, bool(k & 1))
+            at = slice(None) if rows is None else rows
+            out[at, 0], out[at, 1] = geometry.project_xyz(X, Y, Z, self.cam["cameras"][k >> 1])
+        return out
 
     def sample(self, t0: np.ndarray, t1: np.ndarray, tol: float, start):
+        """(cid, t, bounds, pixels) of `geometry.adaptive_samples_packed`."""
         image = (self.cam["width"][self.view], self.cam["height"][self.view])
-        return geometry.adaptive_samples_packed(self.pixels, t0, t1, tol, start, image=image)
+        return geometry.adaptive_samples_packed(self.pixels, t0, t1, tol, start, image=image, points=True)
 
-    def clip(self, cid: np.ndarray, ts: np.ndarray, P: np.ndarray, runs: np.ndarray) -> list:
-        """Cut the polylines of sample runs (R, 2) [first, end) to the image; ends cut at the border lie on
-        the curve. Returns [(run, pixels (k, 2), cut)] in run order."""
+    def clip(self, cid: np.ndarray, ts: np.ndarray, uv: np.ndarray, runs: np.ndarray) -> list:
+        """Cut the polylines of sample runs (R, 2) [first, end) to the image (the samples' pixels uv (m, 2));
+        ends cut at the border lie on the curve. Returns [(run, pixels (k, 2), cut)] in run order."""
         cam = self.cam
         keep = runs[:, 1] > runs[:, 0]
         runs = runs[keep]
         sizes = runs[:, 1] - runs[:, 0]
         take = geometry._ranges(runs[:, 0], sizes)
         c, t = cid[take], ts[take]
-        uv = _pixels(P[take], cam, self.view[c])
+        uv = uv[take]
         start = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
         run_of = np.flatnonzero(keep)
         v = self.view[c[start[:-1]]]
@@ -617,9 +744,11 @@ class _Ellipses:
     hid: np.ndarray  # (E,) occlusion cut it (--visibility exact)
 
 
-def _ellipse_intervals(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes=None) -> _Ellipses:
+def _ellipse_intervals(world: World, views: list[View], cam: dict, masks: np.ndarray, eyes, ellipses: tuple
+                       ) -> _Ellipses:
+    """The visible ellipses of every view (`ellipses`: `_ellipses_cam`) and their arcs in front."""
     vv, ee = np.nonzero(masks[:, world.ell_fid]) if len(world.ell_fid) else (np.zeros(0, int),) * 2
-    c, U, V = (x[vv, ee] for x in _ellipses_cam(world, views))
+    c, U, V = (x[vv, ee] for x in ellipses)
     arc = world.ell_arc[ee]
     fish = cam["model"][vv] == 1
     rad = np.flatnonzero(~fish)
@@ -688,9 +817,14 @@ def _emit_ellipses(ell: _Ellipses, cam: dict, runs, meta, pieces, n_seg: int, wo
     run_e = ell.owner[run_int]
     vl, fl, el = ell.vid[run_e].tolist(), ell.fid[run_e].tolist(), run_e.tolist()
     raw_part = np.where(ell.hid[run_e], occlusion._rank(run_e), -1).tolist()  # runs of an ellipse are adjacent
-    for k, (b0, b1) in enumerate(runs.tolist()):
-        out.raw.append(((vl[k], 1, el[k], k), Raw(fl[k], -1, "polyline", bool(closed[k]), bool(clipped[k]),
-                                                  world_pts[b0:b1], raw_part[k], bool(ell.hid[el[k]]))))
+
+    def strokes():
+        W = world_pts()
+        return [((vl[k], 1, el[k], k), Raw(fl[k], -1, "polyline", bool(closed[k]), bool(clipped[k]), W[b0:b1],
+                                           raw_part[k], bool(ell.hid[el[k]])))
+                for k, (b0, b1) in enumerate(runs.tolist())]
+
+    out.raw.append(strokes)
     mine = [(r - n_seg, pts, cut) for r, pts, cut in pieces if r >= n_seg]
     piece_e = np.array([run_e[r] for r, _, _ in mine], dtype=int)
     n_pieces = np.bincount(piece_e, minlength=len(ell.vid))

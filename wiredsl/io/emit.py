@@ -10,7 +10,7 @@ import numpy as np
 
 from wiredsl import __version__
 from wiredsl.engine import geometry
-from wiredsl.engine.simulate import PoseResult
+from wiredsl.engine.simulate import PoseResult, gc_paused
 from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
 from wiredsl.io import layout
@@ -60,15 +60,22 @@ def _full(a) -> np.ndarray:
 _CORNER, _STROKE = ("corner",), ("line", "polyline")
 
 
-def _view(v: SimView, world: World, cameras: dict) -> dict:
-    """One view as the dump's `View` document (plain data: numpy arrays where the dump has lists of numbers).
-
-    Every stroke's and corner's pixels are rounded at once; the fields come in the models' order."""
-    feats = v.features
-    pointed = [f for f in feats if f.kind in _STROKE or f.kind in _CORNER]
+def _rounded_points(views: list[SimView]) -> tuple[np.ndarray, dict]:
+    """Every stroke's and corner's pixels of all the views, rounded at once, and where each feature's are:
+    {id(feature): (first, end)}."""
+    pointed = [f for v in views for f in v.features if f.kind in _STROKE or f.kind in _CORNER]
     ends = np.cumsum([0] + [len(f.points) for f in pointed])
     pts = rounded(np.concatenate([f.points for f in pointed]) if pointed else np.zeros((0, 2)), "a pixel")
-    at = dict(zip(map(id, pointed), zip(ends[:-1].tolist(), ends[1:].tolist(), strict=True), strict=True))
+    return pts, dict(zip(map(id, pointed), zip(ends[:-1].tolist(), ends[1:].tolist(), strict=True), strict=True))
+
+
+def _view(v: SimView, world: World, cameras: dict, rounded_points: tuple) -> dict:
+    """One view as the dump's `View` document (plain data: numpy arrays where the dump has lists of numbers).
+
+    Every stroke's and corner's pixels are rounded at once (`rounded_points`: `_rounded_points` of the
+    views being dumped); the fields come in the models' order."""
+    feats = v.features
+    pts, at = rounded_points
     lines, polylines, conics_, corners = [], [], [], []
     for f in feats:
         d = {"source": world.feature_ids[f.fid], "segment": None if f.segment < 0 else f.segment,
@@ -109,20 +116,22 @@ def features_doc(scene: Scene, world: World, results: list[PoseResult], *, pipel
     """The features dump as plain data, what `Features(...).model_dump(mode="json")` gives, built from the
     engine's arrays without a model a feature (numpy arrays in place of lists of numbers: see `to_json`)."""
     cameras: dict = {}
-    poses = [_pose_doc(r, world, cameras) for r in results]
+    with gc_paused():
+        pts = _rounded_points([v for r in results for v in (r.left, r.right) if v is not None])
+        poses = [_pose_doc(r, world, cameras, pts) for r in results]
     return {"document": "features", "schema_version": SCHEMA_VERSION, "tool_version": __version__,
             "scene": scene_ref(scene).model_dump(mode="json"), "pipeline": pipeline,
             "stages": [s.model_dump(mode="json") for s in stages], "seed": seed, "trial": trial, "poses": poses}
 
 
-def _pose_doc(r: PoseResult, world: World, cameras: dict) -> dict:
+def _pose_doc(r: PoseResult, world: World, cameras: dict, pts: tuple) -> dict:
     """One pose's `PoseViews` document (its `transform` only for a 6-DoF pose, as the model dumps it)."""
     d = {"index": r.index, "pose": [_r(x) for x in geometry.floor_pose(r.pose)]}
     transform = _transform(r.pose)
     if transform is not None:
         d["transform"] = transform
-    d.update(viewpoint=r.viewpoint, left=_view(r.left, world, cameras),
-             right=None if r.right is None else _view(r.right, world, cameras))
+    d.update(viewpoint=r.viewpoint, left=_view(r.left, world, cameras, pts),
+             right=None if r.right is None else _view(r.right, world, cameras, pts))
     return d
 
 
@@ -141,10 +150,11 @@ def features(scene: Scene, world: World, results: list[PoseResult], *, pipeline:
     return Features.model_validate_json(_dumps(doc, None))
 
 
-def _dumps(doc, indent: int | None) -> bytes:
+def _dumps(doc, indent: int | None, newline: bool = False) -> bytes:
     import orjson
 
-    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY | (orjson.OPT_INDENT_2 if indent else 0))
+    return orjson.dumps(doc, option=orjson.OPT_SERIALIZE_NUMPY | (orjson.OPT_INDENT_2 if indent else 0)
+                        | (orjson.OPT_APPEND_NEWLINE if newline else 0))
 
 
 def to_json(doc, indent: int | None = 1) -> str:
@@ -155,7 +165,7 @@ def to_json(doc, indent: int | None = 1) -> str:
     (1e-6 where repr writes 1e-06)."""
     if not isinstance(doc, dict):
         doc = doc.model_dump(mode="json")  # a model refuses non-finite numbers when it is made
-    return _dumps(doc, indent).decode() + "\n"
+    return _dumps(doc, indent, newline=True).decode()  # no copy of a long text to add its newline
 
 
 # --------------------------------------------------------------------------- disturbed output
