@@ -220,7 +220,7 @@ print(json.dumps(sorted(sys.modules)))
 # Never on the lab's check or one-trial build: the optional extras, the readers of files the lab does not have,
 # and the parts of wiredsl other commands use (each costs the cold start its import; see benchmarks/cold_start.py).
 NOT_FOR_THE_LAB = {
-    "numba", "llvmlite", "scipy", "matplotlib", "trimesh", "yaml", "dask", "pygls", "jsonschema", "cv2",
+    "numba", "llvmlite", "scipy", "matplotlib", "trimesh", "yaml", "dask", "pygls", "jsonschema", "cv2", "numpy.ma",
     "wiredsl.api", "wiredsl.bench", "wiredsl.lsp", "wiredsl.study", "wiredsl.measures", "wiredsl.engine.kernel",
     "wiredsl.engine.mesh", "wiredsl.io.calibration", "wiredsl.io.trajectory", "wiredsl.io.mesh", "wiredsl.io.load",
     "wiredsl.io.schema", "wiredsl.language.compile_study", "wiredsl.language.fmt",

@@ -13,6 +13,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from wiredsl.engine import geometry
+
 STRAIGHT, CURVE, ELLIPSE = 0, 1, 2  # stroke kinds: a segment; a curved image of a line; an ellipse (arc)
 
 
@@ -95,7 +97,7 @@ def segmented_cumsum(values: np.ndarray, start: np.ndarray) -> np.ndarray:
     if len(values) == 0:
         return out
     width = 1 << np.ceil(np.log2(np.maximum(counts, 1))).astype(int)
-    for w in np.unique(width[counts > 0]):
+    for w in geometry.distinct(width[counts > 0]):
         rows = np.flatnonzero((width == w) & (counts > 0))
         c = counts[rows]
         col = np.arange(w)

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wiredsl.engine import geometry
 from wiredsl.engine.world import World, ellipse_points
 
 RAY_END = 1e-7  # fraction of the eye-to-point distance treated as touching the point: rounding, not geometry
@@ -309,7 +310,7 @@ class _Grid:
             chunk = self.chunk[at]
             near = ((self.box_lo[chunk] <= qhi[row]) & (self.box_hi[chunk] >= qlo[row])).all(axis=1)
             width = int(self.live.max()) + 1
-            key = np.unique(front[row[near]] * width + chunk[near])
+            key = geometry.distinct(front[row[near]] * width + chunk[near])
             rows.append(key // width)
             chunks.append(key % width)
         row, chunk = np.concatenate(rows).astype(int), np.concatenate(chunks).astype(int)

@@ -769,7 +769,7 @@ def _ellipse_intervals(world: World, views: list[View], cam: dict, masks: np.nda
     hid = np.zeros(len(vv), dtype=bool)
     if eyes is not None:  # --visibility exact: the unoccluded arcs, ellipse by ellipse (occlusion.py)
         parts = []
-        for e in np.unique(owner).tolist():
+        for e in geometry.distinct(owner).tolist():
             mine = owner == e
             arcs, hid[e] = occlusion.split_arcs(eyes[vv[e]], c[e], U[e], V[e],
                                                 list(zip(lo[mine].tolist(), hi[mine].tolist(), strict=True)),
