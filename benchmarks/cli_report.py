@@ -5,8 +5,9 @@ for another commit run alternately beside it, so that both see the same machine.
     python benchmarks/cli_report.py [--against main] [--quick]
 
 The scripts: cold_start.py, cli_ideal_view.py, cli_trials.py, big_scene.py --memory-only and memory_npz.py
-(100,000 trials; --quick runs 10,000) through the command line, then throughput.py and vs_opencv.py in-process. --against REF checks REF out into a temporary git worktree and runs
-the same scripts there (its own benchmarks, its own wiredsl on PYTHONPATH, the same Python).
+(100,000 trials; --quick runs 10,000) through the command line, then throughput.py and vs_opencv.py
+in-process. --against REF checks REF out into a temporary git worktree and runs the same scripts there (its
+own benchmarks, its own wiredsl on PYTHONPATH, the same Python).
 """
 
 from __future__ import annotations
