@@ -312,3 +312,26 @@ def test_a_mesh_scene_built_again_does_not_import_trimesh(tmp_path):
         seen.append(proc.stdout.strip().splitlines()[-1])
     assert seen == ["True", "False"]
     assert (tmp_path / "a" / "features.json").read_bytes() == (tmp_path / "b" / "features.json").read_bytes()
+
+
+def test_a_cache_folder_others_may_write_into_is_not_used(tmp_path, monkeypatch):
+    """What the caches hold is loaded as code (kernels) or trusted as data (meshes): a cache folder with group or
+    other write permission (another user could have made it first in a shared temporary directory) is passed
+    over for this user's own, made private; with none usable there is no cache."""
+    import os
+    import tempfile
+
+    from wiredsl.io.files import cache_folder
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "home"))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    shared = tmp_path / "home" / "wiredsl" / "meshes"
+    shared.mkdir(parents=True)
+    shared.chmod(0o777)
+    got = cache_folder("meshes")
+    assert got == tmp_path / "tmp" / f"wiredsl-meshes-{os.getuid()}" and got.stat().st_mode & 0o077 == 0
+    got.chmod(0o773)
+    assert cache_folder("meshes") is None
+    shared.chmod(0o755)
+    assert cache_folder("meshes") == shared

@@ -551,13 +551,9 @@ KEPT_LOOPS = 64  # generated loop modules kept in the cache, the least recently 
 def _prune(folder) -> None:
     """Remove the generated loops beyond the KEPT_LOOPS most recently used (by access time, which `_load` sets
     on each use; the modification time is numba's cache key and is left alone), with numba's cache of each."""
-    import contextlib
+    from wiredsl.io.files import prune_cache
 
-    with contextlib.suppress(OSError):
-        loops = sorted(folder.glob("wiredsl_stages_*.py"), key=lambda p: p.stat().st_atime_ns, reverse=True)
-        for old in loops[KEPT_LOOPS:]:
-            for f in [old, *(folder / "__pycache__").glob(f"{old.stem}.*")]:
-                f.unlink(missing_ok=True)
+    prune_cache(folder, "wiredsl_stages_*.py", KEPT_LOOPS, lambda p: (folder / "__pycache__").glob(f"{p.stem}.*"))
 
 
 _announced = False

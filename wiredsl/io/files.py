@@ -328,14 +328,31 @@ def printable_path(text: str) -> str:
 def cache_folder(kind: str) -> Path | None:
     """wiredsl's on-disk cache of `kind` (kernels, meshes): $XDG_CACHE_HOME/wiredsl/kind (default ~/.cache), else
     a folder of this user's under the temporary directory when the home is read-only; None if neither can be
-    made. A cache only saves time: callers go on without one."""
+    made. A cache only saves time: callers go on without one. A folder is used only if this user owns it and
+    nobody else may write into it, since what it holds is loaded as code (kernels) or trusted as data (meshes):
+    a shared temporary directory lets another user make the folder first."""
+    uid = getattr(os, "getuid", lambda: None)()
     home = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "wiredsl" / kind
-    spare = Path(tempfile.gettempdir()) / f"wiredsl-{kind}-{getattr(os, 'getuid', int)()}"
+    spare = Path(tempfile.gettempdir()) / f"wiredsl-{kind}-{uid}"
     for folder in (home, spare):
         try:
-            folder.mkdir(parents=True, exist_ok=True)
+            folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+            st = folder.lstat()
         except OSError:
+            continue
+        if not stat.S_ISDIR(st.st_mode) or (uid is not None and st.st_uid != uid) or st.st_mode & 0o022:
             continue
         if os.access(folder, os.W_OK | os.X_OK):
             return folder
     return None
+
+
+def prune_cache(folder: Path, pattern: str, keep: int, companions=lambda path: ()) -> None:
+    """Remove the files of `folder` matching `pattern` beyond the `keep` most recently used (by access time,
+    which the caches set on each use), each with its `companions(path)`; a file another process removed first
+    is no error."""
+    with contextlib.suppress(OSError):
+        files = sorted(folder.glob(pattern), key=lambda p: p.stat().st_atime_ns, reverse=True)
+        for old in files[keep:]:
+            for f in (old, *companions(old)):
+                f.unlink(missing_ok=True)

@@ -113,7 +113,9 @@ def _cache_key(data: bytes, kind: str) -> str | None:
         version = metadata.version("trimesh")
     except metadata.PackageNotFoundError:
         return None
-    return hashlib.sha256(data + f"\0{kind}\0{version}\0{READER}".encode()).hexdigest()[:40]
+    h = hashlib.sha256(data)  # (data + suffix would copy a file of up to 256 MiB)
+    h.update(f"\0{kind}\0{version}\0{READER}".encode())
+    return h.hexdigest()[:40]
 
 
 def _from_cache(key: str) -> tuple[np.ndarray, np.ndarray] | None:
@@ -139,7 +141,7 @@ def _from_cache(key: str) -> tuple[np.ndarray, np.ndarray] | None:
 def _to_cache(key: str, raw: RawMesh) -> None:
     """Keep a mesh's arrays (written atomically; a cache that cannot be written is no error), and remove the
     least recently used beyond CACHE_FILES."""
-    from wiredsl.io.files import cache_folder, write_atomic
+    from wiredsl.io.files import cache_folder, prune_cache, write_atomic
 
     folder = cache_folder("meshes")
     if folder is None:
@@ -148,11 +150,9 @@ def _to_cache(key: str, raw: RawMesh) -> None:
     np.savez(buf, vertices=raw.vertices, triangles=raw.triangles)
     try:
         write_atomic(folder / f"{key}.npz", buf.getvalue(), tidy=False)
-        kept = sorted(folder.glob("*.npz"), key=lambda p: p.stat().st_mtime_ns, reverse=True)
-        for old in kept[CACHE_FILES:]:
-            old.unlink(missing_ok=True)
     except OSError:
-        pass
+        return
+    prune_cache(folder, "*.npz", CACHE_FILES)
 
 
 class _NoFiles:
