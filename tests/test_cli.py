@@ -425,3 +425,11 @@ def test_the_console_entry_exits_without_teardown_yet_writes_and_codes_as_main(t
     assert r.returncode == 0, r.stderr
     assert [k for k in wiredsl.load(out / "features.npz", arrays=True)] and json.loads(
         (out / "manifest.json").read_text())["trials"] == 300
+    # a plug-in's (or coverage's) atexit function still runs; under cProfile the exit is the usual one
+    script = ("import atexit, sys\natexit.register(lambda: print('atexit ran'))\nfrom wiredsl.cli import entry\n"
+              "sys.argv = ['wiredsl', 'check', 'scenes/lab.wd']\nentry()\n")
+    r = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout == "atexit ran\n" and r.stderr == "1 file ok\n", (r.stdout, r.stderr)
+    r = subprocess.run([sys.executable, "-m", "cProfile", "-m", "wiredsl", "check", "scenes/lab.wd"], cwd=ROOT,
+                       capture_output=True, text=True)
+    assert r.returncode == 0 and "function calls" in r.stdout
