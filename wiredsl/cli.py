@@ -531,7 +531,7 @@ def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None
 @click.option("--engine", type=click.Choice(["auto", "kernel", "numpy"]), default="auto", show_default=True,
               help="Monte-Carlo engine: the compiled kernel (needs wiredsl[fast]) or the numpy reference; auto: the "
                    "kernel, when numba is installed, for --trial and for runs large enough to pay for loading it "
-                   "(some 220 trials of scenes/lab.wd). Both draw the same numbers.")
+                   "(some 75 trials of scenes/lab.wd). Both draw the same numbers.")
 @click.option("--exact-calibration", is_flag=True,
               help="Project each trial's perturbed rig from scratch (slow) instead of re-projecting the ideal "
                    "strokes with every trial's cameras at once.")
@@ -559,6 +559,12 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
 
     if only_trial is not None and seed is None and study_name is None and not no_effects:
         raise click.UsageError("--trial K replays trial K of a run: give that run's --seed (see its manifest.json)")
+    ctx = click.get_current_context(silent=True)
+    trials_given = ctx is not None and ctx.get_parameter_source("trials") not in (
+        None, click.core.ParameterSource.DEFAULT)  # --trials N beside --trial K: the run K is replayed from
+    if only_trial is not None and trials_given and only_trial >= trials:
+        raise click.BadParameter(f"trial {only_trial} is not in 0..{trials - 1} (a run of --trials {trials})",
+                                 param_hint="--trial")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
     with _setup_errors():
@@ -591,7 +597,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         else:
             run = runs.start(scene, pipeline, seed=seed, options=opts, world=world, engine=engine,
                              exact_calibration=exact_calibration)
-    replaying_alone = only_trial is not None and trials == 1  # --trial K alone: the kernel, as before
+    replaying_alone = only_trial is not None and not trials_given  # --trial K alone: the kernel, as before
     if engine == "auto" and not replaying_alone and not run.kernel_pays(trials if only_trial is not None
                                                                         else len(trial_list)):
         run.engine = "numpy"  # a small run (or --trial K of one, given its --trials N): the kernel would not pay

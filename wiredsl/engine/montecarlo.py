@@ -43,9 +43,10 @@ BATCH_BYTES = 32 * 2**20  # what one batch may hold (kernel output and the write
 # lab and of benchmarks/big_scene.py's 10x lab at several batch sizes): the writer's rows weigh on the strokes
 VERTEX_BYTES, STROKE_BYTES = 16, 512
 # vertex-trials (trials times a trial's vertices, `Run.trial_size`) from which the compiled kernel pays for loading
-# numba and the cached kernel (about 0.5 s of CPU) against the numpy path: where `build --format npz` of the two
-# cross, about 680,000 both in the lab (some 255 trials) and in benchmarks/big_scene.py's 5x lab (some 80 trials)
-KERNEL_PAYS = 600_000
+# numba and the cached kernel (some 0.15 s of CPU more than the numpy path's start, with the console entry's exit
+# without teardown) against the numpy path: where `build --format npz` of the two cross in the lab, between 50 and
+# 75 trials of its 2,675 vertices (best of 3 each, 2026-11-23)
+KERNEL_PAYS = 200_000
 CULL = 0.25  # raw strokes wholly beyond the image grown by this fraction of its size are not re-projected
 
 

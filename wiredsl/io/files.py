@@ -121,7 +121,8 @@ _NON_FINITE = re.compile(r"-?Infinity|NaN")
 
 def json_loads(text: str):
     """json.loads that refuses NaN, Infinity and -Infinity (Python's extensions; not JSON, RFC 8259) with a
-    JSONDecodeError at the token, as for any other text that is not JSON."""
+    JSONDecodeError at the token, as for any other text that is not JSON. Read by orjson, and by the standard
+    library's reader for the message when orjson refuses the text."""
     def refuse(token: str):
         at = next((m.start() for m in _NON_FINITE.finditer(text) if m.group() == token
                    and _outside_strings(text, m.start())), 0)
@@ -133,6 +134,12 @@ def json_loads(text: str):
             raise json.JSONDecodeError(f"{token} is beyond the range of a double", text, text.find(token))
         return x
 
+    import orjson
+
+    try:
+        return orjson.loads(text)  # several times faster; it refuses NaN and infinity too
+    except orjson.JSONDecodeError:
+        pass  # the reader below says where and why, or reads what orjson does not (integers past 64 bits)
     try:
         return json.loads(text, parse_constant=refuse, parse_float=number)
     except RecursionError:
