@@ -258,9 +258,12 @@ class CameraCompiler:
         from wiredsl.engine import geometry
 
         k = (cam.k1, cam.k2, cam.k3, cam.k4)
-        corners = np.array([[0.0, 0.0], [cam.width, 0.0], [0.0, cam.height], [cam.width, cam.height]])
-        corner = float(np.hypot((corners[:, 0] - cam.cx) / (cam.f * cam.ax),
-                                (corners[:, 1] - cam.cy) / (cam.f * cam.ay)).max())
+
+        def radius_of(u, v):  # a pixel's distance from the principal point on the distorted unit plane
+            return np.hypot((u - cam.cx) / (cam.f * cam.ax), (v - cam.cy) / (cam.f * cam.ay))
+
+        corner = float(radius_of(np.array([0.0, cam.width, 0.0, cam.width]),
+                                 np.array([0.0, 0.0, cam.height, cam.height])).max())
         if cam.distortion == "equidistant":
             stop = geometry.fisheye_max_angle(*k)
             if stop >= math.pi or (cam.fov is not None and cam.fov / 2 <= stop):
@@ -289,7 +292,7 @@ class CameraCompiler:
                                      "check the coefficients (their signs, a file's units)")
                 return
         u, v = np.meshgrid(np.linspace(0.5, cam.width - 0.5, 64), np.linspace(0.5, cam.height - 0.5, 48))
-        lost = float(np.mean(np.hypot((u - cam.cx) / (cam.f * cam.ax), (v - cam.cy) / (cam.f * cam.ay)) > reach))
+        lost = float(np.mean(radius_of(u, v) > reach))
         if lost >= 0.01:
             self.out.warning("W147", f"camera '{cam.name}': its distortion folds back {math.degrees(angle):.3g} deg "
                                      f"from the optical axis, so {lost:.0%} of its image (farther than "
