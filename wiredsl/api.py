@@ -24,9 +24,11 @@ import numpy as np
 from wiredsl.diagnostics import Diagnostic, WiredslError
 from wiredsl.effects.base import Effect
 from wiredsl.measures.base import Measure
+from wiredsl.plugins import PluginError
 from wiredsl.scene import Pipeline, Scene
 
-__all__ = ["Batch", "CompileError", "CompileWarning", "Effect", "Measure", "Simulator", "compile", "simulate"]
+__all__ = ["Batch", "CompileError", "CompileWarning", "Effect", "Measure", "PluginError", "Simulator", "compile",
+           "simulate"]
 
 
 class CompileError(WiredslError):

@@ -90,6 +90,8 @@ def guarded(fn: Callable) -> Callable:
                 raise  # another pipe (a worker's): not the reader of our output going away
             _quiet_exit()
         except WiredslError as err:
+            if os.environ.get("WIREDSL_DEBUG") and getattr(err, "detail", None):  # a plug-in's own traceback
+                click.echo(err.detail.rstrip("\n"), err=True)
             report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diagnostics", "text"))
             sys.exit(EXIT_INVALID)
         except (Stopped, KeyboardInterrupt) as exc:
@@ -598,6 +600,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
             run = runs.start(scene, pipeline, seed=seed, options=opts, world=world, engine=engine,
                              exact_calibration=exact_calibration)
     replaying_alone = only_trial is not None and not trials_given  # --trial K alone: the kernel, as before
+    if engine == "auto" and (forced := runs.numpy_forced(run, len(trial_list))):
+        click.echo(forced, err=True)
     if engine == "auto" and not replaying_alone and not run.kernel_pays(trials if only_trial is not None
                                                                         else len(trial_list)):
         run.engine = "numpy"  # a small run (or --trial K of one, given its --trials N): the kernel would not pay
@@ -931,10 +935,11 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
               help="The plots' format: png (raster), or svg / pdf (vector, for publication).")
 @click.option("--dpi", type=click.IntRange(20, 1200), default=110, show_default=True,
               help="The plots' resolution in dots per inch (png; embedded rasters in svg / pdf).")
+@click.option("--fresh", is_flag=True, help="Recompute every shard, whatever the output folder holds.")
 @diagnostics_option
 @guarded
 def study(file: str, name: str | None, output: str | None, executor: str, workers: int | None,
-          scheduler: str | None, plots: bool, plot_format: str, dpi: int, diagnostics: str) -> None:
+          scheduler: str | None, plots: bool, plot_format: str, dpi: int, fresh: bool, diagnostics: str) -> None:
     """Run a study of FILE (NAME, or its only one): shards, then table.csv/json, manifest.json and plots."""
     from pathlib import Path
 
@@ -963,7 +968,7 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
                                    "--no-plots") from None
     out = Path(output) if output else Path("build") / f"{scene.name}-{found.name}"
     table = run_study(scene, found, out, executor=executor, workers=workers, scheduler=scheduler,
-                      echo=lambda m: click.echo(m, err=True))
+                      echo=lambda m: click.echo(m, err=True), fresh=fresh)
     written = ["table.csv", "table.json", "manifest.json"] + (["sobol.csv"] if table.sobol else [])
     if plots:
         from wiredsl.study import plots as plots_mod

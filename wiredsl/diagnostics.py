@@ -51,7 +51,8 @@ class WiredslError(Exception):
 
     def __init__(self, diagnostics: Sequence[Diagnostic]):
         self.diagnostics = list(diagnostics)
-        super().__init__("\n".join(f"{d.span}: {d.severity}[{d.code}]: {d.message}" for d in self.diagnostics))
+        super().__init__("\n".join(f"{d.span}: {d.severity}[{d.code}]: {d.message}" if d.span is not None
+                                   else f"{d.severity}[{d.code}]: {d.message}" for d in self.diagnostics))
 
     def __reduce__(self):  # whole across processes (a study's workers)
         return (self.__class__, (self.diagnostics,))

@@ -12,7 +12,12 @@ a file writes is ever imported unless an installed package registered it under t
 
 A registry is a read-only mapping: the built-ins first, then the installed plug-ins, loaded on first use and
 checked (a subclass of the right base, its name, its parameter model). A plug-in that cannot be used raises
-PluginError, whose message names its package.
+PluginError (E180), whose message names its package.
+
+Every call into a plug-in's code at run time (`is_identity`, `disturb`, its kernel's import, `report`, a measure's
+`prepare`, `measure` and declarations) goes through `call`, the one guard: whatever it raises, `SystemExit` and a
+`KeyboardInterrupt` that is not the user's included, becomes PluginError E181 naming the package and where in the
+run it happened, chained to the plug-in's exception (whose traceback `wiredsl` prints under WIREDSL_DEBUG=1).
 """
 
 from __future__ import annotations
@@ -21,11 +26,27 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from wiredsl.diagnostics import Diagnostic, WiredslError
+
 GROUPS = {"effect": "wiredsl.effects", "measure": "wiredsl.measures"}
 
 
-class PluginError(Exception):
-    """A plug-in that cannot be used: its message names the package it comes from."""
+class PluginError(WiredslError):
+    """A plug-in that cannot be used (E180) or that failed in a run (E181): its message names the package it comes
+    from and, in a run, the stage or measure, pose, camera and trials. `detail` is the plug-in's own traceback
+    (text, kept across a study's worker processes; in this process it is also the error's `__cause__`)."""
+
+    def __init__(self, message: str | list[Diagnostic], code: str = "E180", detail: str | None = None):
+        diags = [Diagnostic("error", code, message, None)] if isinstance(message, str) else list(message)
+        super().__init__(diags)
+        self.detail = detail
+
+    @property
+    def message(self) -> str:
+        return self.diagnostics[0].message
+
+    def __reduce__(self):
+        return (self.__class__, (self.diagnostics, "E180", self.detail))
 
 
 @dataclass(frozen=True)
@@ -73,9 +94,11 @@ def _load(plugin: Plugin, base: type, check) -> type:
     ep = EntryPoint(plugin.name, plugin.value, GROUPS[plugin.kind])
     try:
         obj = ep.load()
-    except Exception as exc:  # noqa: BLE001 - whatever a plug-in raises on import is its package's fault
+    except BaseException as exc:  # noqa: BLE001 - whatever a plug-in raises on import is its package's fault
+        if not _plugins_fault(exc):
+            raise
         raise PluginError(f"{plugin.kind} '{plugin.name}' from {plugin.origin} failed to import: "
-                          f"{type(exc).__name__}: {exc}") from None
+                          f"{_said(exc)}", detail=_traceback(exc)) from exc
     problem = _problem(obj, plugin, base) or check(obj)
     if problem:
         raise PluginError(f"{plugin.kind} '{plugin.name}' from {plugin.origin} {problem}")
@@ -94,7 +117,9 @@ def _problem(obj: Any, plugin: Plugin, base: type) -> str | None:
         return "has no Params model (a pydantic model of its parameters)"
     try:
         params()
-    except Exception as exc:  # noqa: BLE001
+    except BaseException as exc:  # noqa: BLE001
+        if not _plugins_fault(exc):
+            raise
         return f"has parameters without defaults ({type(exc).__name__}): every parameter needs one"
     if not isinstance(getattr(obj, "doc", None), str):
         return "has no doc string (`doc`, shown by the reference and the editor)"
@@ -163,13 +188,63 @@ class Registry(Mapping):
 _REGISTRIES: list[Registry] = []
 
 
-def failure(kind: str, name: str, registry: Mapping, what: str):
-    """The error of a plug-in that misbehaved at run time (E181), naming its package."""
-    from wiredsl.diagnostics import Diagnostic, WiredslError
-
+def failure(kind: str, name: str, registry: Mapping, what: str, where: str | None = None,
+            cause: BaseException | None = None) -> PluginError:
+    """The error of a plug-in that misbehaved at run time (E181), naming its package and where in the run
+    (`where`: "stage 2 of 3, pose 0, camera left, trials 0..255", say); `cause` the plug-in's exception."""
     origin = registry.origin(name) if isinstance(registry, Registry) else None
-    where = f" from {origin.origin}" if origin is not None else ""
-    return WiredslError([Diagnostic("error", "E181", f"{kind} '{name}'{where} {what}", None)])
+    source = f" from {origin.origin}" if origin is not None else ""
+    at = f" (at {where})" if where else ""
+    return PluginError(f"{kind} '{name}'{source}{at} {what}", "E181", _traceback(cause) if cause is not None else None)
+
+
+def call(kind: str, name: str, registry: Mapping, doing: str, fn, *args, where=None, **kwargs):
+    """fn(*args, **kwargs), a call into a plug-in's code: whatever it raises becomes E181 naming its package and
+    `where` (a string, or a function giving one, called only on failure). Only the user's Ctrl-C (or wiredsl's
+    SIGINT / SIGTERM unwinding) passes through: a plug-in's `SystemExit` or its own `KeyboardInterrupt` does not
+    end the program."""
+    try:
+        return fn(*args, **kwargs)
+    except BaseException as exc:  # noqa: BLE001 - a plug-in's failure is reported as its own, not as wiredsl's
+        if not _plugins_fault(exc):
+            raise
+        if isinstance(exc, PluginError) and exc.diagnostics[0].code == "E181":
+            raise  # already blamed (a nested call)
+        at = where() if callable(where) else where
+        raise failure(kind, name, registry, f"failed in {doing}: {_said(exc)}", at, exc) from exc
+
+
+def _plugins_fault(exc: BaseException) -> bool:
+    """Whether an exception out of a plug-in's code is the plug-in's: anything but a signal's unwinding (wiredsl's
+    SIGINT / SIGTERM handler raises a BaseException of its own) and, where Python's own SIGINT handler is installed,
+    a KeyboardInterrupt (which may be the user's Ctrl-C). Under the command line SIGINT is wiredsl's, so a
+    KeyboardInterrupt raised there is the plug-in's."""
+    import signal
+
+    if getattr(exc, "signal_unwinding", False):  # a study's SIGTERM handler (study/executors.py)
+        return False
+    if isinstance(exc, (Exception, SystemExit)):
+        return True
+    if isinstance(exc, KeyboardInterrupt):
+        try:
+            return signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+        except ValueError:  # (not the main interpreter)
+            return False
+    return False
+
+
+def _said(exc: BaseException) -> str:
+    """An exception as one short line: its type and the start of its message."""
+    text = str(exc).replace("\n", " ")
+    if len(text) > 300:
+        text = text[:300] + " ..."
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _traceback(exc: BaseException) -> str:
+    import traceback
+
+    return "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
 
 
 def lookup(registry: Mapping, name: str) -> tuple[type | None, str | None]:
@@ -178,4 +253,60 @@ def lookup(registry: Mapping, name: str) -> tuple[type | None, str | None]:
     try:
         return registry.get(name), None
     except PluginError as err:
-        return None, str(err)
+        return None, err.message
+
+
+def fingerprint(kind: str, name: str, registry: Mapping) -> dict:
+    """What identifies an installed plug-in's code: its distribution's name and version and a sha256 of its files
+    (the distribution's installed files and the source files of the packages its entry point and its kernel live
+    in, so an editable install's edited source counts, and so does a code change without a new version).
+
+    A study keys its shards on these (wiredsl.study.digest): a plug-in changed in any way recomputes them."""
+    plugin = registry.plugin(name) if isinstance(registry, Registry) else None
+    if plugin is None:
+        return {"kind": kind, "name": name, "package": "?", "version": "?", "sha256": "?"}
+    modules = [plugin.value.split(":")[0]]
+    kernel = getattr(registry.get(name), "kernel", None) if kind == "effect" else None
+    if kernel is not None and isinstance(getattr(kernel, "function", None), str):
+        modules.append(kernel.function.split(":")[0])
+    return {"kind": kind, "name": name, "package": plugin.package, "version": plugin.version,
+            "sha256": _files_hash(plugin, modules)}
+
+
+def _files_hash(plugin: Plugin, modules: list[str]) -> str:
+    import hashlib
+    import importlib.util
+    from importlib.metadata import distribution
+    from pathlib import Path
+
+    files: dict[str, Path] = {}  # by a name relative to where it is installed: the same code hashes the same anywhere
+    for module in modules:
+        try:
+            spec = importlib.util.find_spec(module.split(".")[0])  # a top-level name: found, not imported
+        except (ImportError, ValueError):
+            spec = None
+        if spec is None:
+            continue
+        if spec.submodule_search_locations:  # a package: every file under its folders
+            for folder in map(Path, spec.submodule_search_locations):
+                files.update((p.relative_to(folder.parent).as_posix(), p) for p in folder.rglob("*")
+                             if p.is_file() and "__pycache__" not in p.parts)
+        elif spec.origin and Path(spec.origin).is_file():
+            files[Path(spec.origin).name] = Path(spec.origin)
+    try:
+        record = distribution(plugin.package).files or []
+    except Exception:  # noqa: BLE001 - no metadata: the package's files above still count
+        record = []
+    for f in record:
+        p = Path(f.locate())
+        metadata = any(part.endswith(".dist-info") for part in f.parts) and f.name != "entry_points.txt"
+        if p.suffix != ".pyc" and not metadata and p.is_file():  # (metadata holds paths and install times)
+            files.setdefault(f.as_posix(), p)
+    h = hashlib.sha256()
+    for name in sorted(files):
+        h.update(name.encode("utf-8", "surrogateescape") + b"\0")
+        try:
+            h.update(hashlib.sha256(files[name].read_bytes()).digest())
+        except OSError:
+            h.update(b"unreadable")
+    return h.hexdigest()

@@ -105,3 +105,39 @@ def start(scene: Scene, pipeline: Pipeline | str | None = None, *, seed: int | N
     if base is not None:
         run.share_projection(base)
     return run
+
+
+# CPU time of the numpy path over the compiled kernel's for the lab's `paper` pipeline and one cheap numpy-only
+# stage (benchmarks/numpy_forced.py, 512 trials, 2026-11-26: 1.21 s against 0.18 s)
+NUMPY_COST = 6.9
+
+
+def numpy_forced_line(effects: list, engine: str) -> str | None:
+    """The one line said on stderr when, under `--engine auto` with numba installed, stages without a compiled
+    kernel (an installed plug-in's) make the whole pipeline run on numpy; None otherwise."""
+    import importlib.util
+
+    from wiredsl.plugins import Registry
+
+    lacking = [e for e in effects if e.kernel is None and e.name != "calibration_error"]
+    if engine != "auto" or not lacking or importlib.util.find_spec("numba") is None:
+        return None
+    from wiredsl.effects import REGISTRY
+
+    names = []
+    for e in dict.fromkeys(lacking):
+        origin = REGISTRY.origin(e.name) if isinstance(REGISTRY, Registry) else None
+        names.append(f"'{e.name}'" + (f" ({origin.package} {origin.version})" if origin else ""))
+    return (f"wiredsl: {', '.join(names)} {'has' if len(names) == 1 else 'have'} no compiled kernel, so the whole "
+            f"pipeline runs on numpy: about {NUMPY_COST:g}x the CPU time of the kernel (measured on the lab); "
+            "give the effect a KernelStage, or --engine numpy to choose numpy")
+
+
+def numpy_forced(run: Run, trials: int) -> str | None:
+    """numpy_forced_line for a run of `trials` trials, said only where the kernel would have run (a run as large
+    as `--engine auto` gives the kernel)."""
+    from wiredsl.engine.montecarlo import KERNEL_PAYS
+
+    if run.exact_calibration or not run.stages or trials * run.trial_size()[0] < KERNEL_PAYS:
+        return None
+    return numpy_forced_line([e for e, _ in run.stages], run.engine)

@@ -75,10 +75,21 @@ class Run:
                point: int | None = None, need_path: bool = True) -> Run:
         require_buildable(scene, need_path)
         stages = []
-        for st in (pipeline.stages if pipeline is not None else []):
+        listed = pipeline.stages if pipeline is not None else []
+        for g, st in enumerate(listed):
             effect = REGISTRY[st.effect]
             params = effect.Params(**st.params)
-            if not effect.is_identity(params):
+            if effect.name in BUILTIN:
+                identity = effect.is_identity(params)
+            else:  # an installed plug-in's answer: guarded, and it must be a plain truth value
+                identity = plugin_call(effect, "is_identity()", effect.is_identity, params,
+                                       where=f"stage {g + 1} of {len(listed)}")
+                if not isinstance(identity, (bool, np.bool_)):
+                    from wiredsl.plugins import failure
+
+                    raise failure("effect", effect.name, REGISTRY, f"is_identity() returned a {type(identity).__name__}"
+                                  ", not True or False", f"stage {g + 1} of {len(listed)}")
+            if not identity:
                 stages.append((effect, params))
         return cls(scene, world, stages, seed, options, point=point)
 
@@ -209,15 +220,7 @@ class Run:
     def uses_kernel(self) -> bool:
         """Whether batches run in the compiled kernel: never for the from-scratch calibration reference, nor when
         a stage has no compiled kernel (an installed plug-in's, say): then the whole pipeline runs on numpy."""
-        if self.engine == "numpy" or self.exact_calibration or not self.stages:
-            return False
-        if any(e.kernel is None for e, _ in self.image_stages):
-            return False
-        if self.engine == "kernel":
-            return True
-        import importlib.util
-
-        return importlib.util.find_spec("numba") is not None
+        return not self.exact_calibration and kernel_runs([e for e, _ in self.stages], self.engine)
 
     def observe(self, result: PoseResult, trials: Sequence[int]) -> tuple[PoseResult, dict, dict]:
         """One ideal view (a path pose, or any pose projected with `Run.project_pose`) through the stages,
@@ -270,15 +273,21 @@ class Run:
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
                               point=self.point, camera=getattr(result, side).camera)
-                for effect, params in self.image_stages:
+                for g, (effect, params) in enumerate(self.image_stages):
                     self.trace[effect.name] += 1
                     if effect.name in BUILTIN:
                         sets = effect.apply(params, sets, ctx)
                     else:  # an installed plug-in: what it raises or returns is checked, and blamed on its package
-                        sets = plugin_apply(effect, params, sets, ctx)
+                        sets = plugin_apply(effect, params, sets, ctx, len(self.world.feature_ids),
+                                            self._stage_of(effect))
                 disturbed[side] = sets
             out.append((result, disturbed, views))
         return out
+
+    def _stage_of(self, effect) -> str:
+        """'stage G of N' for an effect of the pipeline (as the scene lists its stages that run)."""
+        g = next(i for i, (e, _) in enumerate(self.stages) if e is effect)
+        return f"stage {g + 1} of {len(self.stages)}"
 
     def template(self, result: PoseResult, side: str, raw: bool, keep: bool = True
                  ) -> tuple[im.ImageSet, np.ndarray, np.ndarray]:
@@ -323,6 +332,7 @@ class Run:
             cam, view_of = view.camera, None
         if "stages" not in self._kernel_rows:  # constant a run
             self._kernel_rows["stages"] = stage_rows(self.image_stages)
+            self._kernel_rows["plugins"] = load_plugin_kernels(self.image_stages, self._stage_of)
         functions, params, zero = self._kernel_rows["stages"]
         stats = zero.copy()
         meta = self._kernel_rows.get((result.index, side, raw)) if keep else None
@@ -333,9 +343,17 @@ class Run:
                 self._kernel_rows[(result.index, side, raw)] = meta
         stages = self.image_stages
         epipole = self.epipole(result.pose, side) if any(e.kernel.epipole for e, _ in stages) else np.zeros(3)
-        pts, start, m, trial, corners, cfid, ctrial = kn.run_view(
-            template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams, folds,
-            cam.width, cam.height, raw, functions, params, keys, epipole, side == "right", stats)
+        args = (template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams,
+                folds, cam.width, cam.height, raw, functions, params, keys, epipole, side == "right", stats)
+        plugins = self._kernel_rows["plugins"]
+        if not plugins:
+            pts, start, m, trial, corners, cfid, ctrial = kn.run_view(*args)
+        else:  # numba's typing of a plug-in's function happens here, at the first call: its failure is the plug-in's
+            trials = f"pose {result.index}, camera {side}, the batch of {T} trials"
+            effect, stage = plugins[0]
+            pts, start, m, trial, corners, cfid, ctrial = plugin_call(
+                effect, "its compiled kernel (" + ", ".join(e.kernel.function for e, _ in plugins) + ")", kn.run_view,
+                *args, where=f"{stage}, {trials}")
         for (effect, _), row in zip(stages, stats, strict=True):
             kn.record(effect.name, effect.kernel.stats, row, self.stats)
         s = im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2], kind=m[:, 3],
@@ -350,13 +368,101 @@ class Run:
 
     def manifest(self) -> dict:
         return {
-            "stages": [{"effect": e.name, "params": p.model_dump(), "measured": e.report(p, self.stats)}
+            "stages": [{"effect": e.name, "params": p.model_dump(), "measured": self._report(e, p)}
                        for e, p in self.stages],
             "ran": dict(sorted(self.trace.items())),
             "engine": "kernel" if self.uses_kernel() else "numpy",
             "engines": self.engines(),
             "warnings": self.warnings,
         }
+
+
+    def _report(self, effect, params) -> dict:
+        """A stage's `report` for the manifest; an installed plug-in's guarded and checked (a dict of JSON values,
+        numbers finite)."""
+        if effect.name in BUILTIN:
+            return effect.report(params, self.stats)
+        got = plugin_call(effect, "report()", effect.report, params, self.stats, where=self._stage_of(effect))
+        problem = json_problem(got, top=True)
+        if problem is not None:
+            from wiredsl.plugins import failure
+
+            raise failure("effect", effect.name, REGISTRY, f"report() returned {problem}", self._stage_of(effect))
+        return got
+
+
+MAX_JSON_DEPTH = 8
+
+
+def json_problem(value, top: bool = False, depth: int = 0) -> str | None:
+    """What keeps a plug-in's value out of a JSON manifest (not a dict at the top; a key not a string; a number
+    not finite; a type JSON has not), or None."""
+    import math
+
+    if top and not isinstance(value, dict):
+        return f"a {type(value).__name__}, not a dict"
+    if depth > MAX_JSON_DEPTH:
+        return f"values nested deeper than {MAX_JSON_DEPTH}"
+    if isinstance(value, dict):
+        if any(not isinstance(k, str) for k in value):
+            return "a dict whose keys are not all strings"
+        return next((p for v in value.values() if (p := json_problem(v, depth=depth + 1)) is not None), None)
+    if isinstance(value, (list, tuple)):
+        return next((p for v in value if (p := json_problem(v, depth=depth + 1)) is not None), None)
+    if isinstance(value, (bool, np.bool_, str, int, np.integer)) or value is None:
+        return None
+    if isinstance(value, (float, np.floating)):
+        return None if math.isfinite(value) else f"the non-finite number {value}"
+    return f"a {type(value).__name__} (not a JSON value)"
+
+
+def plugin_call(effect, doing: str, fn, *args, where=None):
+    """A call into an installed effect's code, through the one guard (`wiredsl.plugins.call`)."""
+    from wiredsl.plugins import call
+
+    return call("effect", effect.name, REGISTRY, doing, fn, *args, where=where)
+
+
+def load_plugin_kernels(stages, stage_of) -> list:
+    """Import the compiled functions of the installed effects among `stages`, each through the guard (a kernel
+    module that does not import, or lacks its function, is its package's error, E181); returns [(effect, 'stage G
+    of N')] of those effects."""
+    import importlib
+
+    out = []
+    for effect, _ in stages:
+        if effect.name in BUILTIN:
+            continue
+        module, _, name = effect.kernel.function.partition(":")
+
+        def load(module=module, name=name):
+            fn = getattr(importlib.import_module(module), name)
+            if not callable(fn):
+                raise TypeError(f"{module}:{name} is a {type(fn).__name__}, not a function")
+            return fn
+
+        plugin_call(effect, f"loading its kernel {effect.kernel.function}", load, where=stage_of(effect))
+        out.append((effect, stage_of(effect)))
+    return out
+
+
+def kernel_runs(effects: list, engine: str) -> bool:
+    """Whether a pipeline of these effects runs in the compiled kernel under `engine`: not on "numpy", not without
+    stages, not when an image stage has no compiled kernel (an installed plug-in's, say: then the whole pipeline
+    runs on numpy), and under "auto" where numba is installed."""
+    if engine == "numpy" or not effects or any(e.kernel is None for e in effects if e.name != "calibration_error"):
+        return False
+    if engine == "kernel":
+        return True
+    import importlib.util
+
+    return importlib.util.find_spec("numba") is not None
+
+
+def stage_engines(effects: list, engine: str) -> dict[str, str]:
+    """The engine each of these effects runs on (calibration_error's draws are numpy's on both)."""
+    kernel = kernel_runs(effects, engine)
+    return {e.name: "kernel" if kernel and e.kernel is not None else "numpy" for e in effects}
 
 
 def stage_rows(stages) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
@@ -400,39 +506,103 @@ def kernel_apply(effect, params, s: im.ImageSet, ctx: Context) -> im.ImageSet:
     return concat_trials(parts) if parts else s
 
 
-def plugin_apply(effect, params, sets: im.ImageSet, ctx: Context) -> im.ImageSet:
-    """An installed effect's stage, its failures and its output's defects reported against its package (E181)."""
+MAX_PIXEL = 1e9  # a plug-in's coordinates beyond this many pixels are refused: no image is that large, and
+# squares of such numbers (lengths, errors) stay finite downstream, so no later stage is blamed for them
+INTEGER_FIELDS = ("start", "fid", "segment", "fragment", "kind", "trial", "corner_fid", "corner_trial")
+FLAG_FIELDS = ("clipped", "closed", "occluded")
+
+
+def plugin_apply(effect, params, sets: im.ImageSet, ctx: Context, n_features: int, stage: str) -> im.ImageSet:
+    """An installed effect's stage, its failures and its output's defects reported against its package (E181),
+    naming the stage, pose, camera and trials; what it returns is checked and made canonical (float64 points,
+    int64 numbers, bool flags) before anything else reads it."""
     from wiredsl.plugins import failure
 
-    try:
-        out = effect.apply(params, sets, ctx)
-    except Exception as exc:  # noqa: BLE001 - a plug-in's bug is reported as its own, not as wiredsl's
-        raise failure("effect", effect.name, REGISTRY, f"failed: {type(exc).__name__}: {exc}") from None
-    problem = imageset_problem(out, len(ctx.trials))
+    trials = np.asarray(ctx.trials)
+    span = f"trials {trials.min()}..{trials.max()}" if len(trials) > 1 else f"trial {trials[0]}" if len(trials) else ""
+    where = f"{stage}, pose {ctx.pose}, camera {ctx.side}, {span}" + (f", design point {ctx.point}"
+                                                                      if ctx.point is not None else "")
+    out = plugin_call(effect, "disturb()", effect.apply, params, sets, ctx, where=where)
+    checked, problem, trial = plugin_imageset(out, len(trials), n_features)
     if problem is not None:
-        raise failure("effect", effect.name, REGISTRY, f"returned {problem}")
-    return out
+        if trial is not None:
+            where = f"{stage}, pose {ctx.pose}, camera {ctx.side}, trial {int(trials[trial])}"
+        raise failure("effect", effect.name, REGISTRY, f"returned {problem}", where)
+    return checked
+
+
+def plugin_imageset(s, n_trials: int, n_features: int) -> tuple[im.ImageSet | None, str | None, int | None]:
+    """A plug-in's ImageSet checked: (the set in canonical dtypes, None, None), or (None, what is wrong, the batch
+    index of the first trial it is wrong in, if one)."""
+    problem = imageset_problem(s, n_trials)
+    if problem is not None:
+        return None, problem, None
+    a = {name: np.asarray(getattr(s, name)) for name in ("pts", "corners", *INTEGER_FIELDS, *FLAG_FIELDS)}
+    for name in ("pts", "corners"):
+        if a[name].dtype.kind not in "fiu":
+            return None, f"{name} of dtype {a[name].dtype}, not real numbers (float64)", None
+    for name in INTEGER_FIELDS:
+        if a[name].dtype.kind not in "iu":
+            return None, f"{name} of dtype {a[name].dtype}, not integers (int64)", None
+    for name in FLAG_FIELDS:
+        if a[name].dtype.kind not in "biu" or (len(a[name]) and not np.isin(a[name], (0, 1)).all()):
+            return None, f"{name} of dtype {a[name].dtype} or values other than True and False", None
+    counts = np.diff(a["start"])
+    pts_trial = np.repeat(a["trial"], counts)
+
+    def first(bad: np.ndarray, trial_of: np.ndarray) -> int | None:
+        return int(trial_of[np.argmax(bad)]) if bad.any() else None
+
+    checks = (
+        (counts < 2, a["trial"], "a stroke of fewer than two points (a stroke is a polyline: two points at least)"),
+        ((a["fid"] < 0) | (a["fid"] >= n_features), a["trial"], f"stroke feature ids (fid) outside 0..{n_features - 1}"),
+        ((a["corner_fid"] < 0) | (a["corner_fid"] >= n_features), a["corner_trial"],
+         f"corner feature ids (corner_fid) outside 0..{n_features - 1}"),
+        (~np.isin(a["kind"], (im.STRAIGHT, im.CURVE, im.ELLIPSE)), a["trial"],
+         "a stroke kind other than 0 (straight), 1 (curve) or 2 (ellipse)"),
+        ((a["segment"] < -1) | (a["fragment"] < -1), a["trial"], "a segment or fragment number below -1"),
+        (~np.isfinite(a["pts"]).all(axis=1), pts_trial, "non-finite coordinates"),
+        (~np.isfinite(a["corners"]).all(axis=1), a["corner_trial"], "non-finite corner coordinates"),
+        ((np.abs(a["pts"]) > MAX_PIXEL).any(axis=1), pts_trial, f"coordinates beyond {MAX_PIXEL:g} px"),
+        ((np.abs(a["corners"]) > MAX_PIXEL).any(axis=1), a["corner_trial"], f"corners beyond {MAX_PIXEL:g} px"),
+    )
+    for bad, trial_of, what in checks:
+        if bad.any():
+            return None, what, first(bad, trial_of)
+    as_int = {name: a[name].astype(np.int64) for name in INTEGER_FIELDS}
+    as_int.update({name: a[name].astype(bool) for name in FLAG_FIELDS})
+    return im.ImageSet(pts=a["pts"].astype(np.float64).reshape(-1, 2), corners=a["corners"].astype(np.float64)
+                       .reshape(-1, 2), **as_int), None, None
 
 
 def imageset_problem(s, n_trials: int) -> str | None:
     """What is wrong with an ImageSet a stage returned (shapes, offsets, trials, finiteness), or None."""
     if not isinstance(s, im.ImageSet):
         return f"a {type(s).__name__}, not an ImageSet"
-    pts, start, corners = np.asarray(s.pts), np.asarray(s.start), np.asarray(s.corners)
+    try:
+        pts, start, corners = np.asarray(s.pts), np.asarray(s.start), np.asarray(s.corners)
+    except (TypeError, ValueError) as exc:  # ragged lists, say
+        return f"arrays numpy cannot read ({exc})"
+    for name, a in (("points", pts), ("corners", corners)):
+        if a.dtype.kind not in "fiu":
+            return f"{name} of dtype {a.dtype}, not real numbers (float64)"
+    if start.ndim != 1 or start.dtype.kind not in "iu":
+        return f"stroke offsets (start) of dtype {start.dtype} and shape {start.shape}, not (strokes + 1,) integers"
     n = len(start) - 1
     if pts.ndim != 2 or pts.shape[1:] != (2,) or corners.ndim != 2 or corners.shape[1:] != (2,):
         return f"points of shape {pts.shape} and corners of shape {corners.shape}, not (n, 2)"
     if n < 0 or start[0] != 0 or start[-1] != len(pts) or np.any(np.diff(start) < 0):
         return "stroke offsets (start) that do not cover its points in order"
     per_stroke = ("fid", "segment", "fragment", "kind", "clipped", "closed", "trial", "occluded")
-    bad = [f for f in per_stroke if len(getattr(s, f)) != n]
-    bad += [f for f in ("corner_fid", "corner_trial") if len(getattr(s, f)) != len(corners)]
+    bad = [f for f in per_stroke if np.ndim(getattr(s, f)) != 1 or len(getattr(s, f)) != n]
+    bad += [f for f in ("corner_fid", "corner_trial") if np.ndim(getattr(s, f)) != 1
+            or len(getattr(s, f)) != len(corners)]
     if bad:
         return "arrays of the wrong length: " + ", ".join(bad)
-    if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(corners))):
-        return "non-finite coordinates"
     for name in ("trial", "corner_trial"):
         t = np.asarray(getattr(s, name))
+        if t.dtype.kind not in "iu":
+            return f"{name} of dtype {t.dtype}, not integers (int64)"
         if len(t) and (t.min() < 0 or t.max() >= n_trials):
             return f"{name} values outside 0..{n_trials - 1}"
     return None

@@ -23,18 +23,49 @@ from wiredsl.study.executors import EXECUTORS, execute
 __all__ = ["EXECUTORS", "digest", "jobs", "run_study"]
 
 
-def digest(scene: Scene, study: Study) -> str:
-    """Identity of a study's results: the scene (less its file name and studies), the study, the tool."""
+def digest(scene: Scene, study: Study, plugins: list[dict] | None = None) -> str:
+    """Identity of a study's results: the scene (less its file name and studies), the study, the tool, and each
+    installed plug-in it uses (`plugins_used`: package, version and a hash of its files)."""
     body = {"scene": scene.model_dump(mode="json", exclude={"source", "studies"}),
-            "study": study.model_dump(mode="json"), "wiredsl": __version__}
+            "study": study.model_dump(mode="json"), "wiredsl": __version__,
+            "plugins": plugins if plugins is not None else plugins_used(scene, study)}
+    if not body["plugins"]:
+        del body["plugins"]  # (a study without plug-ins keeps the digest it always had)
     return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
 
+def plugins_used(scene: Scene, study: Study) -> list[dict]:
+    """The installed plug-ins a study runs (its pipeline's and factors' effects, its measures), each as
+    `wiredsl.plugins.fingerprint` gives it (kind, name, package, version, sha256 of its files)."""
+    from wiredsl.effects import BUILTIN as EFFECTS
+    from wiredsl.effects import REGISTRY as effects
+    from wiredsl.language.compile_study import measure_registry
+    from wiredsl.measures import BUILTIN as MEASURES
+    from wiredsl.plugins import fingerprint
+
+    base = scene.pipeline(study.pipeline) if study.pipeline else None
+    names = [s.effect for s in (base.stages if base else [])] + [f.stage for f in study.factors
+                                                                 if not f.stage.startswith("camera.")]
+    used = [fingerprint("effect", n, effects) for n in dict.fromkeys(names) if n not in EFFECTS]
+    return used + [fingerprint("measure", m.name, measure_registry())
+                   for m in {m.name: m for m in study.measures}.values() if m.name not in MEASURES]
+
+
+def engines(scene: Scene, study: Study, X: np.ndarray) -> dict[str, str]:
+    """The engine each stage of the study's pipeline runs on (a study's runs use `--engine auto`)."""
+    from wiredsl.effects import REGISTRY as effects
+    from wiredsl.engine.montecarlo import stage_engines
+
+    stages = design.pipeline_at(scene, study, X[0]).stages if len(X) else []
+    return stage_engines([effects[s.effect] for s in stages], "auto")
+
+
 def jobs(scene: Scene, study: Study, folder: str | Path, registry: dict | None = None,
-         shard_trials: int = shards.SHARD_TRIALS) -> tuple[np.ndarray, list[shards.Job]]:
+         shard_trials: int = shards.SHARD_TRIALS, plugins: list[dict] | None = None
+         ) -> tuple[np.ndarray, list[shards.Job]]:
     """The design matrix and every shard's job, in (point, trials) order."""
     X = design.matrix(study)
-    key = digest(scene, study)
+    key = digest(scene, study, plugins)
     return X, [shards.Job(scene, study, key, tuple(float(v) for v in X[s.point]), s, str(folder), registry)
                for s in shards.shards(len(X), study.trials, shard_trials)]
 
@@ -70,9 +101,11 @@ class Progress:
 
 def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "processes", workers: int | None = None,
               scheduler: str | None = None, registry: dict | None = None, echo: Callable[[str], None] | None = None,
-              shard_trials: int = shards.SHARD_TRIALS, limit: int | None = None) -> report.StudyTable | None:
+              shard_trials: int = shards.SHARD_TRIALS, limit: int | None = None, fresh: bool = False
+              ) -> report.StudyTable | None:
     """Run what is not yet done of a study into `folder`, then write table.csv, table.json and
-    manifest.json there. `limit` stops after that many new shards (no table): an interrupted run."""
+    manifest.json there. `limit` stops after that many new shards (no table): an interrupted run. `fresh`
+    recomputes every shard, whatever is there."""
     from wiredsl.io import emit
     from wiredsl.language.compile_study import measure_registry
 
@@ -81,8 +114,15 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
         registry = {m.name: measure_registry()[m.name] for m in study.measures}
     for stale in (folder / "shards").glob(".*.tmp"):  # a shard being written when a run was killed
         stale.unlink(missing_ok=True)
-    X, all_jobs = jobs(scene, study, folder, registry, shard_trials)
-    todo = [j for j in all_jobs if shards.read(j) is None]
+    used = plugins_used(scene, study)
+    X, all_jobs = jobs(scene, study, folder, registry, shard_trials, used)
+    todo = list(all_jobs) if fresh else [j for j in all_jobs if shards.read(j) is None]
+    changed = plugins_changed(folder / "manifest.json", used)
+    if echo is not None and changed and len(todo) > 0:
+        echo(f"study {study.name}: plug-ins changed since the last run ({changed}): their shards are recomputed")
+    forced = numpy_forced(scene, study, X)
+    if echo is not None and forced and todo:
+        echo(forced)
     progress = Progress(all_jobs, echo)
     if limit is not None:
         todo = todo[:limit]
@@ -116,5 +156,37 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
     if table.sobol:
         write_atomic(folder / "sobol.csv", report.sobol_csv(table))
     write_atomic(folder / "manifest.json", report.to_json(report.manifest(ref, study, all_jobs[0].digest, X,
-                                                                          shard_trials)))
+                                                                          shard_trials, used,
+                                                                          engines(scene, study, X))))
     return table
+
+
+def plugins_changed(manifest: Path, used: list[dict]) -> str | None:
+    """How the plug-ins of a study differ from those its last manifest records ("wdplug 0.3 -> 0.4", "wdplug
+    0.3: its files changed"), or None (the same, or no readable manifest)."""
+    try:
+        before = {(p["kind"], p["name"]): p for p in json.loads(manifest.read_text(encoding="utf-8"))["plugins"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    now = {(p["kind"], p["name"]): p for p in used}
+    said = []
+    for key in sorted(set(before) | set(now)):
+        a, b = before.get(key), now.get(key)
+        if a == b:
+            continue
+        if a is None or b is None:
+            said.append(f"{key[0]} '{key[1]}' {'added' if a is None else 'no longer used'}")
+        elif (a.get("package"), a.get("version")) != (b["package"], b["version"]):
+            said.append(f"{b['name']}: {a.get('package')} {a.get('version')} -> {b['package']} {b['version']}")
+        else:
+            said.append(f"{b['name']}: {b['package']} {b['version']}, its files changed")
+    return "; ".join(said) or None
+
+
+def numpy_forced(scene: Scene, study: Study, X: np.ndarray) -> str | None:
+    """The line saying that a stage without a compiled kernel makes the study run on numpy, or None."""
+    from wiredsl.effects import REGISTRY as effects
+    from wiredsl.run import numpy_forced_line
+
+    stages = design.pipeline_at(scene, study, X[0]).stages if len(X) else []
+    return numpy_forced_line([effects[s.effect] for s in stages], "auto")

@@ -37,7 +37,9 @@ def _terminable():
         return
 
     def stop(signum, frame):
-        raise SystemExit(128 + signum)
+        exc = SystemExit(128 + signum)
+        exc.signal_unwinding = True  # not a plug-in's SystemExit (wiredsl.plugins.call lets it through)
+        raise exc
 
     previous = signal.signal(signal.SIGTERM, stop)
     try:

@@ -175,6 +175,17 @@ def to_json(doc: BaseModel) -> str:
     return json.dumps(doc.model_dump(mode="json"), indent=1, sort_keys=False, allow_nan=False) + "\n"
 
 
+class PluginUse(_Node):
+    """An installed plug-in a study used, as its shards are keyed on it."""
+
+    kind: Literal["effect", "measure"]
+    name: str
+    package: str = Field(description="its distribution's name")
+    version: str
+    sha256: str = Field(description="of its installed files and its packages' source files (an editable install's "
+                                    "too): a change in its code changes it, whatever the version says")
+
+
 class StudyManifest(_Node):
     """What a study's table was made from: the study, its seeds and design points, the scene, the versions."""
 
@@ -189,10 +200,14 @@ class StudyManifest(_Node):
     points: list[list[float]] = Field(description="each design point's factor values (SI units), by index")
     shard_trials: int = Field(ge=1)
     versions: dict[str, str]
+    plugins: list[PluginUse] = Field([], description="the installed plug-ins the study ran, each keying its shards")
+    engines: dict[str, str] = Field({}, description="the engine each stage ran on: kernel (compiled) or numpy")
 
 
-def manifest(scene_ref: SceneRef, study: Study, digest: str, X: np.ndarray, shard_trials: int) -> StudyManifest:
-    """What the table was made from: the study, the seeds, the design, the scene, the versions."""
+def manifest(scene_ref: SceneRef, study: Study, digest: str, X: np.ndarray, shard_trials: int,
+             plugins: list[dict] = (), engines: dict[str, str] | None = None) -> StudyManifest:
+    """What the table was made from: the study, the seeds, the design, the scene, the versions, the plug-ins
+    (package, version, hash of their files) and the engine of each stage."""
     import scipy
 
     return StudyManifest(
@@ -201,4 +216,5 @@ def manifest(scene_ref: SceneRef, study: Study, digest: str, X: np.ndarray, shar
         points=[[_f(v) for v in row] for row in X], shard_trials=shard_trials,
         versions={"wiredsl": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
                   "python": platform.python_version()},
+        plugins=[PluginUse(**p) for p in plugins], engines=engines or {},
     )

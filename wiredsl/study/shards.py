@@ -8,11 +8,11 @@ whose file has the expected key and checksum, and recomputes any other.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import io
 import json
 import zipfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,7 +23,7 @@ from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
 from wiredsl.io.files import write_atomic
 from wiredsl.measures import BUILTIN, REGISTRY
-from wiredsl.plugins import failure
+from wiredsl.plugins import call, failure
 from wiredsl.run import start
 from wiredsl.scene import Scene, Study
 from wiredsl.study import design
@@ -109,44 +109,96 @@ def _prepare(study: Study, registry: dict, run: Run) -> list:
     for m in study.measures:
         measure = registry[m.name]
         params = measure.Params(**m.params)
-        with _blamed(measure):
-            out.append((measure, params, measure.prepare(params, run)))
+        out.append((measure, params, _guarded(measure, "prepare()", measure.prepare, params, run,
+                                              where=f"design point {run.point}" if run.point is not None else None)))
     return out
 
 
-@contextlib.contextmanager
-def _blamed(measure):
-    """An installed measure's exception reported as its package's error (E181); a built-in's stays a bug."""
-    try:
-        yield
-    except Exception as exc:
-        if measure.name in BUILTIN:
-            raise
-        raise failure("measure", measure.name, REGISTRY, f"failed: {type(exc).__name__}: {exc}") from None
+def _guarded(measure, doing: str, fn, *args, where=None):
+    """A call into a measure's code: an installed measure's failure is its package's error (E181, naming where);
+    a built-in's stays a bug."""
+    if measure.name in BUILTIN:
+        return fn(*args)
+    return call("measure", measure.name, REGISTRY, doing, fn, *args, where=where)
+
+
+MAX_STATISTIC = 1e150  # a statistic's magnitude at most: its sums of squares over a study stay finite
 
 
 def measure_batches(run: Run, prepared, trials: list[int]) -> dict[str, np.ndarray]:
-    """Every measure on every pose of the given trials: {"measure.statistic": (n_poses, n_trials)}."""
+    """Every measure on every pose of the given trials: {"measure.statistic": (n_poses, n_trials)}.
+
+    Each measure gets read-only views of the pose and the disturbed sets (one cannot change what another
+    reads), and what an installed one returns is checked before anything reads it."""
     parts: dict[str, list[list[np.ndarray]]] = {}
     for batch, batch_out in run.batches(trials):
         for j, (result, disturbed, _views) in enumerate(batch_out):
+            pose, sets = read_only(result), {side: read_only(v) for side, v in disturbed.items()}
             for measure, params, prep in prepared:
-                with _blamed(measure):
-                    got = measure.measure(params, prep, result, disturbed, len(batch))
-                for stat in measure.statistics:
-                    with _blamed(measure):
-                        v = np.asarray(got[stat], dtype=float) if isinstance(got, dict) and stat in got else None
-                    if v is None or v.shape != (len(batch),) or not np.all(np.isfinite(v)):
-                        what = "nothing" if v is None else f"shape {v.shape}" if v.shape != (len(batch),) \
-                            else "non-finite values"
-                        raise failure("measure", measure.name, REGISTRY,
-                                      f"gave {what} for statistic '{stat}' ({len(batch)} trials: one finite "
-                                      "value a trial)")
+                where = f"pose {result.index}, trials {batch[0]}..{batch[-1]}" + (
+                    f", design point {run.point}" if run.point is not None else "")
+                got = _guarded(measure, "measure()", measure.measure, params, prep, pose, sets, len(batch),
+                               where=where)
+                values = statistics_of(measure, got, len(batch))
+                if isinstance(values, str):
+                    raise failure("measure", measure.name, REGISTRY, values, where)
+                for stat, v in values.items():
                     rows = parts.setdefault(f"{measure.name}.{stat}", [])
                     if len(rows) <= j:
                         rows.append([])
                     rows[j].append(v)
     return {k: np.stack([np.concatenate(r) for r in rows]) for k, rows in parts.items()}
+
+
+def statistics_of(measure, got, n: int) -> dict[str, np.ndarray] | str:
+    """A measure's answer checked: {statistic: (n,) float64}, or what is wrong with it (a dict of one finite real
+    value a trial for each statistic, magnitudes up to MAX_STATISTIC, weights never negative)."""
+    if not isinstance(got, Mapping):
+        return f"returned a {type(got).__name__}, not a dict of statistics"
+    out = {}
+    counts = set((getattr(measure, "weights", None) or {}).values())
+    for stat in measure.statistics:
+        raw = np.asarray(got[stat]) if stat in got else None
+        why = "nothing" if raw is None else f"dtype {raw.dtype}" if raw.dtype.kind not in "fiub" else \
+            f"shape {raw.shape}" if raw.shape != (n,) else None
+        v = raw.astype(np.float64) if why is None else None
+        if why is None and not np.all(np.isfinite(v)):
+            why = f"non-finite values (trial {int(np.argmax(~np.isfinite(v)))} of the batch)"
+        elif why is None and np.abs(v).max(initial=0) > MAX_STATISTIC:
+            why = f"values beyond {MAX_STATISTIC:g}"
+        elif why is None and stat in counts and v.min(initial=0) < 0:
+            why = "negative values for a statistic that weights another (a count)"
+        if why is not None:
+            return f"gave {why} for statistic '{stat}' ({n} trials: one finite real value a trial)"
+        out[stat] = v
+    return out
+
+
+def read_only(x):
+    """A view of an ImageSet or a PoseResult whose arrays cannot be written (numpy's writeable flag off)."""
+    import dataclasses
+
+    from wiredsl.engine import imageset as im
+    from wiredsl.engine.simulate import PoseResult
+
+    def frozen(a):
+        if not isinstance(a, np.ndarray):
+            return a
+        v = a.view()
+        v.flags.writeable = False
+        return v
+
+    if isinstance(x, im.ImageSet):
+        return dataclasses.replace(x, **{f.name: frozen(getattr(x, f.name)) for f in dataclasses.fields(x)})
+    if isinstance(x, PoseResult):
+        def view(v):
+            if v is None:
+                return None
+            feats = [dataclasses.replace(f, points=frozen(f.points)) for f in v.features]
+            return dataclasses.replace(v, R_cw=frozen(v.R_cw), t_cw=frozen(v.t_cw), features=feats)
+
+        return dataclasses.replace(x, left=view(x.left), right=view(x.right))
+    return x
 
 
 def span_of(trial: int, trials: int, size: int = SHARD_TRIALS) -> tuple[int, int]:
