@@ -283,9 +283,9 @@ def fmt(files: tuple[str, ...], check_only: bool, diagnostics: str) -> None:
 def schema(name: str) -> None:
     """Print the JSON Schema of a scene, a features dump, a view-dependency file, a build manifest or a study
     table."""
-    from wiredsl.io.schema import schema_dir
+    from wiredsl.io.schema import text
 
-    sys.stdout.write((schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8"))
+    sys.stdout.write(text(name))
 
 
 @main.command()

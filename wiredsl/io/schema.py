@@ -59,23 +59,69 @@ def schema_dir() -> Path:
     raise FileNotFoundError("schema/ not found next to the package")
 
 
-@functools.cache
+def _with_plugins(name: str) -> bool:
+    """Whether the schema of `name` here differs from the committed one: a scene's, where plug-in effects are
+    installed (their parameter models join the built-ins')."""
+    if name != "scene":
+        return False
+    from wiredsl.plugins import installed
+
+    return bool(installed("effect"))
+
+
+def text(name: str) -> str:
+    """The schema of a document kind as `wiredsl schema` prints it: the committed file, or, for a scene where
+    plug-in effects are installed, the schema generated with their parameters."""
+    if _with_plugins(name):
+        return render(name)
+    return (schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8")
+
+
 def validator(name: str):
+    installed = ()
+    if name == "scene":
+        from wiredsl.plugins import installed as scan
+
+        installed = tuple(scan("effect"))
+    return _validator(name, installed)
+
+
+@functools.cache
+def _validator(name: str, installed: tuple):  # (cached per set of installed plug-ins)
     import jsonschema
 
-    schema = json.loads((schema_dir() / f"{name}.schema.json").read_text(encoding="utf-8"))
-    return jsonschema.Draft202012Validator(schema)
+    return jsonschema.Draft202012Validator(json.loads(text(name)))
 
 
 def problems(doc: object) -> list[str]:
-    """Why a dump does not validate (empty when it does)."""
+    """Why a dump does not validate (empty when it does). A scene whose pipelines name an effect that is neither
+    built in nor installed says so, naming it, instead of listing its parameters as unexpected."""
     kind = doc.get("document") if isinstance(doc, dict) else None
     if kind not in NAMES:
         return [f"not a wiredsl document: 'document' must be one of {', '.join(NAMES)}"]
+    missing = _missing_effects(doc) if kind == "scene" else {}
     errors = sorted(validator(kind).iter_errors(doc), key=lambda e: list(map(str, e.absolute_path)))
-    errors = [x for e in errors for x in _explain(e)]
-    return _non_finite(doc) + [f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {_short(e.message)}"
-                               for e in errors]
+    errors = [x for e in errors for x in _explain(e)
+              if not any(tuple(e.absolute_path)[:len(at)] == at for at in missing)]
+    return _non_finite(doc) + list(missing.values()) + [
+        f"{'/'.join(map(str, e.absolute_path)) or '(root)'}: {_short(e.message)}" for e in errors]
+
+
+def _missing_effects(doc: dict) -> dict[tuple, str]:
+    """{path of a stage: why} for each pipeline stage whose effect is neither built in nor an installed plug-in."""
+    from wiredsl.effects import REGISTRY
+
+    out = {}
+    pipelines = doc.get("pipelines")
+    for i, p in enumerate(pipelines if isinstance(pipelines, list) else []):
+        stages = p.get("stages") if isinstance(p, dict) else None
+        for j, st in enumerate(stages if isinstance(stages, list) else []):
+            effect = st.get("effect") if isinstance(st, dict) else None
+            if isinstance(effect, str) and effect not in REGISTRY:
+                out[("pipelines", i, "stages", j)] = (
+                    f"pipelines/{i}/stages/{j}: effect '{effect}' is neither built in nor installed here: install "
+                    "the plug-in package that provides it ('wiredsl plugins' lists those installed)")
+    return out
 
 
 def _non_finite(doc: object) -> list[str]:

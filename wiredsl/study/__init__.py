@@ -39,15 +39,15 @@ def plugins_used(scene: Scene, study: Study) -> list[dict]:
     `wiredsl.plugins.fingerprint` gives it (kind, name, package, version, sha256 of its files)."""
     from wiredsl.effects import BUILTIN as EFFECTS
     from wiredsl.effects import REGISTRY as effects
-    from wiredsl.language.compile_study import measure_registry
     from wiredsl.measures import BUILTIN as MEASURES
+    from wiredsl.measures import REGISTRY as measures
     from wiredsl.plugins import fingerprint
 
     base = scene.pipeline(study.pipeline) if study.pipeline else None
     names = [s.effect for s in (base.stages if base else [])] + [f.stage for f in study.factors
                                                                  if not f.stage.startswith("camera.")]
     used = [fingerprint("effect", n, effects) for n in dict.fromkeys(names) if n not in EFFECTS]
-    return used + [fingerprint("measure", m.name, measure_registry())
+    return used + [fingerprint("measure", m.name, measures)
                    for m in {m.name: m for m in study.measures}.values() if m.name not in MEASURES]
 
 
