@@ -154,7 +154,8 @@ class KernelStage:
 
 
 class Effect:
-    """An uncertainty source: one pipeline stage, named in scene files by `name`. Subclass it for a plug-in.
+    """An uncertainty source: one pipeline stage, named in scene files by `name`. Subclass it for a plug-in
+    (entry point group `wiredsl.effects`; the tutorial docs/tutorials/plugin.md has a complete package).
 
     Declare, as class attributes:
 
@@ -162,18 +163,36 @@ class Effect:
     - `acts_on`: where it acts in a real system, one of FLOW after "cameras" (sets the data-flow check);
     - `Params`: a frozen pydantic model (subclass `wiredsl.effects.base.Params`) whose fields, each made with
       `param(default, kind, doc, ge=..., le=...)`, are the stage's clauses: the language converts units by
-      `kind` ("length", "angle", "image", "number", "fraction") and checks the bounds;
+      `kind` ("length" to metres, "angle" to radians, "image" to pixels, "number", "fraction") and checks the
+      bounds; every field needs a default;
     - `doc`: one paragraph for the reference and the editor;
-    - `kernel`: optionally, a KernelStage for the compiled engine (None: the numpy path).
+    - `kernel`: optionally, a KernelStage for the compiled engine (None: the numpy path, and then every stage of
+      a run in it runs on numpy too: `--engine auto` says so on stderr).
 
-    Define `is_identity(params)` (True when the parameters change nothing: the stage is then skipped) and
-    `disturb(params, features, ctx)`: it takes an ImageSet (`wiredsl.engine.imageset`) holding every trial of a
-    batch (strokes `pts`/`start`, per stroke `fid`, `segment`, `fragment`, `kind`, `clipped`, `closed`,
-    `occluded` and `trial`; `corners`, `corner_fid`, `corner_trial`) and returns a new one of the same layout,
-    with finite coordinates and trial numbers in range. Draw randomness only with `ctx.draws(name, ...)`: keyed by
-    (seed, stage, trial, pose, camera), so a trial's values do not depend on its batch or on other stages. A stage
-    that raises or returns a malformed set is reported as its package's error (E181). `report(params, stats)`
-    may add measured statistics to the run manifest.
+    Define, as class methods (`@classmethod`, no instance is ever made):
+
+    - `is_identity(params) -> bool`: True when the parameters change nothing (the stage is then skipped);
+    - `disturb(params, features, ctx) -> ImageSet`. `features` is a `wiredsl.engine.imageset.ImageSet` holding
+      every trial of a batch for one view (a pose and a camera): strokes packed in `pts` (float64 (N, 2) pixels)
+      and `start` (int64 (S + 1,) offsets: stroke k is pts[start[k]:start[k + 1]], two points at least), and per
+      stroke `fid` (feature id, an index of the world's features), `segment`, `fragment` (-1: whole), `kind`
+      (0 a straight segment of 2 points; 1 a curve: a straight edge that lens distortion bends arrives as a
+      polyline of kind 1; 2 an ellipse's arc), `clipped`, `closed`, `occluded` (bool) and `trial` (the batch
+      index 0..T-1 of its trial); corners in `corners` (float64 (C, 2)) with `corner_fid` and `corner_trial`.
+      Return a new set (never change the input's arrays in place: other stages hold them), made with
+      `wiredsl.engine.imageset.replace(features, corners=..., pts=...)` (dataclasses.replace) or the set's
+      `take(keep)` / `take_corners(keep)`. `ctx` is a Context: `pose` (index), `side` ("left" / "right"),
+      `trials` (the absolute trial numbers, by batch index), `camera` (the view's nominal wiredsl.scene.Camera:
+      `width`, `height`, `f`, `ax`, `ay`, `cx`, `cy`, distortion), `epipole()` (homogeneous, in this camera's
+      pixels), `stats` (a Stats to add measured sums to) and `draws(name, batch_index, per_item, normal)`.
+      Draw randomness only with `ctx.draws(cls.name, ...)`: keyed by (seed, stage, trial, pose, camera, design
+      point), so a trial's values do not depend on its batch or on other stages, and a seed reproduces them;
+    - `report(params, stats) -> dict` (optional): measured statistics for the run manifest (JSON values).
+
+    What a plug-in returns is checked before anything reads it (an ImageSet with these dtypes, feature ids in
+    range, finite coordinates within 1e9 px, two points a stroke, trials in range; `is_identity` a bool;
+    `report` a dict of finite JSON values), and whatever it raises (SystemExit included) is reported as its
+    package's error E181, naming the stage, pose, camera and trials, with its traceback under WIREDSL_DEBUG=1.
     """
 
     name: ClassVar[str]

@@ -30,15 +30,33 @@ class Params(_EffectParams):
 
 class Measure:
     """A downstream consumer of the features: per pose and trial, named finite statistics. Subclass it for a
-    plug-in (entry point group `wiredsl.measures`, named by `name`).
+    plug-in (entry point group `wiredsl.measures`, named by `name`; docs/tutorials/plugin.md has a complete one).
 
-    Declare `name` (a study's `measure NAME`), `Params` (a frozen pydantic model, subclass `Params`, its fields
-    made with `param(default, kind, doc, ...)`: the statement's parameters), `statistics` (a tuple of names),
-    optionally `weights`, and `doc`. Define `measure(params, prepared, pose, disturbed, n_trials)`, returning
-    {statistic: (n_trials,) finite floats}, and optionally `prepare(params, run)` (see below). A measure that
-    raises or returns another shape or a non-finite value is reported as its package's error (E181). Outside a
-    study, call it yourself on the batches of `wiredsl.simulate` or `wiredsl.Simulator.observe`
-    (`batch.disturbed` holds, per pose, the ideal PoseResult and {side: ImageSet}).
+    Declare, as class attributes: `name` (a study's `measure NAME`), `Params` (a frozen pydantic model, subclass
+    `Params`, its fields made with `param(default, kind, doc, ...)`: the statement's parameters, each with a
+    default), `statistics` (a tuple of names), optionally `weights` (a dict: statistic -> the count statistic that
+    weights it across trials, see the module's doc) and `units` (a dict: statistic -> its unit, for plots), and
+    `doc`.
+
+    Define, as class methods (`@classmethod`):
+
+    - `prepare(params, run) -> object` (optional): the ideal references the measure compares with, from a
+      `wiredsl.engine.montecarlo.Run` of the nominal scene (`run.ideal()`: a PoseResult a pose). Called once per
+      worker (and per design point when the study varies a camera); it must depend on the scene only.
+    - `measure(params, prepared, pose, disturbed, n_trials) -> {statistic: (n_trials,) values}`, called once per
+      pose and batch of trials. `pose` is that pose's ideal `wiredsl.engine.simulate.PoseResult`: `index`,
+      `pose` (the robot's (x, y, heading)), `left` and `right` Views (`camera`, `R_cw`, `t_cw` world-to-camera,
+      `features`: ImageFeatures with `fid`, `kind` ("line", "polyline", "conic", "corner"), `points` (k, 2)
+      pixels). `disturbed[side]` is the batch's disturbed ImageSet of that camera (see `Effect`: strokes `pts` /
+      `start` with `fid`, `kind` (1: a distorted straight edge arrives as a curve), ... and `trial` 0..n_trials-1,
+      corners with `corner_trial`). Both are read-only (numpy arrays with `flags.writeable` False): copy before
+      changing anything, so that no measure changes what another reads.
+
+    Each statistic must come back as one finite real value a trial (magnitude up to 1e150; a count that weights
+    another statistic never negative). A measure that raises (SystemExit included) or returns anything else is
+    reported as its package's error (E181), naming the pose, trials and design point. Outside a study, call it
+    yourself on the batches of `wiredsl.simulate` or `wiredsl.Simulator.observe` (`batch.disturbed` holds, per
+    pose, the ideal PoseResult and {side: ImageSet}).
     """
 
     name: ClassVar[str]
