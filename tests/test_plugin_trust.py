@@ -398,3 +398,74 @@ def test_plugin_outputs_reach_the_measures_in_canonical_dtypes(site, tmp_path):
         for v in sets.values():
             assert v.pts.dtype == np.float64 and v.fid.dtype == np.int64 and v.clipped.dtype == bool
     assert len(batch["corners"]) > 0
+
+
+# ----------------------------------------------------------------------------- a kernel sees the camera
+
+CAMERA_EFFECT = '''
+from wiredsl.effects.base import Effect, KernelStage, Params, param
+from wiredsl.engine import imageset as im
+
+
+class MirrorParams(Params):
+    on: float = param(1.0, "number", "1: mirror the corners left to right", ge=0, le=1)
+
+
+class Mirror(Effect):
+    name = "mirror"
+    acts_on = "corner detection"
+    Params = MirrorParams
+    doc = "corners mirrored about the image's vertical centre line, nudged by the intrinsics"
+    kernel = KernelStage("wdcam.kernel:stage", ("on",), (), camera=True)
+
+    @classmethod
+    def is_identity(cls, p):
+        return p.on == 0
+
+    @classmethod
+    def disturb(cls, p, s, ctx):
+        c = ctx.camera
+        x = c.width - s.corners[:, 0] + 1e-3 * c.f * c.ax
+        return im.replace(s, corners=s.corners * [0.0, 1.0] + [0.0, 1e-3 * c.cy] + x[:, None] * [1.0, 0.0])
+'''
+
+CAMERA_KERNEL = '''
+from numba import njit
+
+
+@njit(cache=True)
+def stage(pts, start, meta, corners, cfid, key, params, epipole, right, stats, camera):
+    out = corners.copy()
+    for c in range(len(corners)):
+        out[c, 0] = camera[0] - corners[c, 0] + 1e-3 * camera[2] * camera[3]
+        out[c, 1] = corners[c, 1] + 1e-3 * camera[6]
+    return pts, start, meta, out, cfid
+'''
+
+
+def test_a_plugin_kernel_receives_the_cameras_size_and_intrinsics(tmp_path, monkeypatch):
+    pytest.importorskip("numba")
+    src = make_dist(tmp_path / "site", CAMERA_EFFECT, "wdcam", entry="[wiredsl.effects]\nmirror = wdcam:Mirror\n")
+    (src / "wdcam" / "kernel.py").write_text(CAMERA_KERNEL)
+    monkeypatch.syspath_prepend(str(src))
+    plugins.rescan()
+    try:
+        f = tmp_path / "m.wd"
+        f.write_text(f'wiredsl 1\ninclude "{LAB}"\npipeline p {{\n  calibration_error sigma 0.01\n  mirror\n}}\n')
+        s = wiredsl.compile(f)
+        got = {e: list(wiredsl.simulate(s, trials=3, seed=2, pipeline="p", poses=(0, 2), engine=e))
+               for e in ("numpy", "kernel")}
+        n = 0
+        for a, b in zip(got["numpy"], got["kernel"], strict=True):
+            assert a["corners"].shape == b["corners"].shape
+            assert np.abs(a["corners"] - b["corners"]).max(initial=0) < 1e-9
+            n += len(a["corners"])
+        assert n > 0
+        cam = s.camera(s.rig.left.camera)
+        ideal = next(wiredsl.simulate(s, trials=1, seed=2, pipeline=s.pipeline("p").model_copy(
+            update={"stages": []}), poses=(0,)))
+        assert np.all(got["numpy"][0]["corners"][:, 0] > cam.width - ideal["corners"][:, 0].max() - 50)
+    finally:
+        plugins.rescan()
+        for m in [m for m in sys.modules if m.startswith("wdcam")]:
+            del sys.modules[m]

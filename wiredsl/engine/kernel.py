@@ -12,7 +12,9 @@ Each image stage's numba function lives with its effect (its KernelStage names i
 
     stage(pts, start, meta, corners, cfid, key, params, epipole, right, stats) -> (pts, start, meta, corners, cfid)
 
-and may call the shared parts here (keyed draws `_bits`/`_uniform`/`_normal_pair`, `_arcs`, `_total_length`,
+(a stage whose KernelStage says `camera=True` takes one more argument, `camera`: float64 (16,), the view's
+nominal image width and height, then its CAMERA_ROW: f, ax, ay, cx, cy, k1, k2, p1, p2, k3..k6, model code), and
+may call the shared parts here (keyed draws `_bits`/`_uniform`/`_normal_pair`, `_arcs`, `_total_length`,
 `_keep`, `_unroll`, the metadata columns FID..OCC). `compose` builds the loop over a stage list from those
 names, so this module names no effect. numba is imported only here and by those functions' modules, and
 they only when a run uses the kernel; compiled code is cached on disk, and a compile is announced on stderr.
@@ -450,7 +452,7 @@ def _pack(res, cres):
 
 
 def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated,
-               params, keys, epipole, right, stats):
+               params, keys, epipole, right, stats, camera):
     """Every trial of a batch for one view. Returns packed strokes (pts, start, meta, trial) and corners
     (corners, fid, trial), strokes and corners ordered by trial.
 
@@ -463,19 +465,21 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
         pts, start, meta, corners, cf = _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds,
                                                      width, height, calibrated, t)
         pts, start, meta, corners, cf = _stages(pts, start, meta, corners, cf, keys, t, params, epipole,  # noqa: F821
-                                                right, stats)
+                                                right, stats, camera)
         res.append((pts, start, meta))
         cres.append((corners, cf))
     return _pack(res, cres)
 
 
 def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds, width, height, calibrated,
-             functions, params, keys, epipole, right, stats):
+             functions, params, keys, epipole, right, stats, cameras=(), camera=None):
     """The compiled view_batch of the stage functions `functions` (KernelStage.function, in order), with every
-    argument in the one layout it is compiled for (no second compile)."""
+    argument in the one layout it is compiled for (no second compile). `cameras`: per function, whether it takes
+    the view's `camera` row (KernelStage.camera), float64 (16,): width, height, then the nominal CAMERA_ROW."""
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
-    batch = compose(tuple(functions))
+    batch = compose(tuple(functions), tuple(bool(c) for c in cameras) or (False,) * len(functions))
+    camera = np.zeros(16) if camera is None else np.ascontiguousarray(camera, dtype=np.float64).reshape(16)
     announce_compile(batch)
     return batch(f2(tpts, 2), i1(tstart), np.ascontiguousarray(meta, dtype=np.int64).reshape(-1, NMETA),
                       f2(tcorners, 2), i1(cfid), f2(W, 3), f2(CW, 3),
@@ -483,24 +487,25 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
                       np.ascontiguousarray(folds, dtype=np.float64).reshape(-1), float(width), float(height),
                       bool(calibrated), f2(params, params.shape[-1]),
                       np.ascontiguousarray(keys, dtype=np.uint64).reshape(len(functions), len(folds)),
-                      np.ascontiguousarray(epipole, dtype=np.float64).reshape(3), bool(right), stats)
+                      np.ascontiguousarray(epipole, dtype=np.float64).reshape(3), bool(right), stats, camera)
 
 
 _composed: dict[tuple[str, ...], object] = {}
 
 
-def compose(functions: tuple[str, ...]):
+def compose(functions: tuple[str, ...], cameras: tuple[bool, ...] = ()):
     """view_batch compiled for the stage functions `functions` ("module:attribute" each), in order: a module
     written once per stage list (and per version of the files involved, since numba's cache does not follow a
     change in a called function's file) into the user's cache folder, whose `_stages` calls each stage's
     function with its own row of keys, parameters and statistics. Compiled code is cached on disk by numba."""
-    batch = _composed.get(functions)
+    cameras = cameras or (False,) * len(functions)
+    batch = _composed.get((functions, cameras))
     if batch is None:
-        batch = _composed[functions] = _load(functions)
+        batch = _composed[(functions, cameras)] = _load(functions, cameras)
     return batch
 
 
-def _load(functions: tuple[str, ...]):
+def _load(functions: tuple[str, ...], cameras: tuple[bool, ...]):
     import hashlib
     import importlib.util
     import inspect
@@ -514,9 +519,11 @@ def _load(functions: tuple[str, ...]):
 
     parts = [f.split(":") for f in functions]
     calls = "".join(f"        pts, start, meta, corners, cf = _s{g}(pts, start, meta, corners, cf, keys[{g}, t], "
-                    f"params[{g}], epipole, right, stats[{g}])\n" for g in range(len(functions)))
+                    f"params[{g}], epipole, right, stats[{g}]{', camera' if cameras[g] else ''})\n"
+                    for g in range(len(functions)))
     template = inspect.getsource(view_batch)
-    stages = re.search(r"^ *pts, start, meta, corners, cf = _stages\(.*?stats\)\n", template, re.M | re.S).group()
+    stages = re.search(r"^ *pts, start, meta, corners, cf = _stages\(.*?stats, camera\)\n", template,
+                       re.M | re.S).group()
     source = ("from numba import njit\n\n"
               "from wiredsl.engine.kernel import _pack, _trial_input\n"
               + "".join(f"from {module} import {name} as _s{g}\n" for g, (module, name) in enumerate(parts))
@@ -576,14 +583,14 @@ def announce_compile(batch) -> None:
               file=sys.stderr, flush=True)
 
 
-def warm(functions: tuple[str, ...] = ()) -> None:
+def warm(functions: tuple[str, ...] = (), cameras: tuple[bool, ...] = ()) -> None:
     """Compile (or load from the cache) the kernel of a stage list on a tiny view, e.g. once before parallel test
     workers."""
     z2, zi, G = np.zeros((0, 2)), np.zeros(0, np.int64), len(functions)
     run_view(np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([0, 2]), np.zeros((1, NMETA), np.int64), z2, zi,
              np.zeros((2, 3)), np.zeros((0, 3)), np.eye(3)[None], np.zeros((1, 3)), np.ones((1, 14)), np.ones(1),
              10.0, 10.0, True, functions, np.zeros((G, 3)), np.ones((G, 1), np.uint64), np.ones(3), True,
-             np.zeros((G, NSTAT)))
+             np.zeros((G, NSTAT)), cameras)
 
 
 def record(name: str, columns, row: np.ndarray, stats) -> None:

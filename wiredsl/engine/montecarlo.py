@@ -344,7 +344,8 @@ class Run:
         stages = self.image_stages
         epipole = self.epipole(result.pose, side) if any(e.kernel.epipole for e, _ in stages) else np.zeros(3)
         args = (template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams,
-                folds, cam.width, cam.height, raw, functions, params, keys, epipole, side == "right", stats)
+                folds, cam.width, cam.height, raw, functions, params, keys, epipole, side == "right", stats,
+                tuple(e.kernel.camera for e, _ in stages), camera_row(view.camera))
         plugins = self._kernel_rows["plugins"]
         if not plugins:
             pts, start, m, trial, corners, cfid, ctrial = kn.run_view(*args)
@@ -446,6 +447,12 @@ def load_plugin_kernels(stages, stage_of) -> list:
     return out
 
 
+def camera_row(cam) -> np.ndarray:
+    """A camera as a compiled stage sees it (KernelStage.camera): width, height, then geometry.CAMERA_ROW."""
+    table = geometry.camera_table(cam)
+    return np.array([cam.width, cam.height, *(table[k] for k in geometry.CAMERA_ROW)], dtype=np.float64)
+
+
 def kernel_runs(effects: list, engine: str) -> bool:
     """Whether a pipeline of these effects runs in the compiled kernel under `engine`: not on "numpy", not without
     stages, not when an image stage has no compiled kernel (an installed plug-in's, say: then the whole pipeline
@@ -497,7 +504,8 @@ def kernel_apply(effect, params, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         pts, start, m, _, corners, cfid, _ = kn.run_view(
             one.pts, one.start, meta, one.corners, one.corner_fid, z3, z3, np.zeros((1, 3, 3)), np.zeros((1, 3)),
             np.zeros((1, len(geometry.CAMERA_ROW))), np.zeros(1), 0.0, 0.0, False, functions, row, keys.reshape(1, 1),
-            epipole, ctx.side == "right", stats)
+            epipole, ctx.side == "right", stats, (effect.kernel.camera,),
+            camera_row(ctx.camera) if ctx.camera is not None else None)
         kn.record(effect.name, effect.kernel.stats, stats[0], ctx.stats)
         parts.append(im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2],
                                  kind=m[:, 3], clipped=m[:, 4].astype(bool), closed=m[:, 5].astype(bool),
