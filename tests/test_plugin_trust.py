@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -94,6 +93,19 @@ MissingKernel = type("MissingKernel", (Good,), {"name": "missing_kernel",
 
 import sys  # noqa: E402
 
+from pydantic import model_validator  # noqa: E402
+
+
+class StrictP(P):
+    @model_validator(mode="after")
+    def _not_too_big(self):
+        if self.sigma > 5:
+            raise RuntimeError("sigma over 5 is not supported")  # (not a ValueError: pydantic lets it through)
+        return self
+
+
+BadParams = type("BadParams", (Good,), {"name": "bad_params", "Params": StrictP})
+
 
 class MP(MParams):
     scale: float = param(1.0, "number", "scale", gt=0)
@@ -147,6 +159,7 @@ interrupts = wdtrust:Interrupts
 report_raises = wdtrust:ReportRaises
 report_list = wdtrust:ReportList
 missing_kernel = wdtrust:MissingKernel
+bad_params = wdtrust:BadParams
 exits_on_import = wdexit:Thing
 
 [wiredsl.measures]
@@ -469,3 +482,17 @@ def test_a_plugin_kernel_receives_the_cameras_size_and_intrinsics(tmp_path, monk
         plugins.rescan()
         for m in [m for m in sys.modules if m.startswith("wdcam")]:
             del sys.modules[m]
+
+
+def test_a_plugin_params_model_that_raises_is_e181_not_an_internal_error(site, tmp_path):
+    r = CliRunner().invoke(main, ["check", str(scene(tmp_path, "bad_params sigma 9px"))])
+    assert r.exit_code == 1 and "E181" in r.stderr and "failed in its Params model: RuntimeError" in r.stderr, r.output
+    assert CliRunner().invoke(main, ["check", str(scene(tmp_path, "bad_params sigma 2px"))]).exit_code == 0
+
+
+def test_a_plugins_traceback_crosses_the_study_worker_processes(site, tmp_path):
+    f = scene(tmp_path, "raises", STUDY.replace("good.sigma", "raises.sigma") % "count")
+    r = CliRunner().invoke(main, ["study", str(f), "s", "-o", str(tmp_path / "st"), "--workers", "1", "--no-plots"],
+                           env={"WIREDSL_DEBUG": "1"})
+    assert r.exit_code == 1, r.output
+    assert "_deep_helper" in r.stderr and "E181" in r.stderr and "design point 1" in r.stderr, r.stderr

@@ -310,3 +310,20 @@ def _files_hash(plugin: Plugin, modules: list[str]) -> str:
         except OSError:
             h.update(b"unreadable")
     return h.hexdigest()
+
+
+def params_of(kind: str, cls: type, registry: Mapping, values: dict):
+    """`cls.Params(**values)`: a plug-in's model guarded (its validators are its code; a pydantic ValidationError
+    passes, as a built-in's does, for the caller's range message)."""
+    if not isinstance(registry, Registry) or cls.name in registry.builtins:
+        return cls.Params(**values)
+    from pydantic import ValidationError
+
+    try:
+        return cls.Params(**values)
+    except ValidationError:
+        raise
+    except BaseException as exc:  # noqa: BLE001
+        if not _plugins_fault(exc):
+            raise
+        raise failure(kind, cls.name, registry, f"failed in its Params model: {_said(exc)}", cause=exc) from exc

@@ -35,6 +35,7 @@ from wiredsl.engine.simulate import (
     visibility_masks,
 )
 from wiredsl.engine.world import World
+from wiredsl.plugins import params_of
 from wiredsl.scene import Scene
 
 BATCH = 256  # trials per batch at most: bounds memory whatever the number of trials
@@ -78,7 +79,7 @@ class Run:
         listed = pipeline.stages if pipeline is not None else []
         for g, st in enumerate(listed):
             effect = REGISTRY[st.effect]
-            params = effect.Params(**st.params)
+            params = params_of("effect", effect, REGISTRY, st.params)
             if effect.name in BUILTIN:
                 identity = effect.is_identity(params)
             else:  # an installed plug-in's answer: guarded, and it must be a plain truth value
@@ -273,7 +274,7 @@ class Run:
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
                               point=self.point, camera=getattr(result, side).camera)
-                for g, (effect, params) in enumerate(self.image_stages):
+                for effect, params in self.image_stages:
                     self.trace[effect.name] += 1
                     if effect.name in BUILTIN:
                         sets = effect.apply(params, sets, ctx)
@@ -563,7 +564,8 @@ def plugin_imageset(s, n_trials: int, n_features: int) -> tuple[im.ImageSet | No
 
     checks = (
         (counts < 2, a["trial"], "a stroke of fewer than two points (a stroke is a polyline: two points at least)"),
-        ((a["fid"] < 0) | (a["fid"] >= n_features), a["trial"], f"stroke feature ids (fid) outside 0..{n_features - 1}"),
+        ((a["fid"] < 0) | (a["fid"] >= n_features), a["trial"],
+         f"stroke feature ids (fid) outside 0..{n_features - 1}"),
         ((a["corner_fid"] < 0) | (a["corner_fid"] >= n_features), a["corner_trial"],
          f"corner feature ids (corner_fid) outside 0..{n_features - 1}"),
         (~np.isin(a["kind"], (im.STRAIGHT, im.CURVE, im.ELLIPSE)), a["trial"],

@@ -21,6 +21,7 @@ from wiredsl.language import ast
 from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
 from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE, Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
+from wiredsl.plugins import params_of
 from wiredsl.scene import (
     Camera,
     Corner,
@@ -782,7 +783,7 @@ class Compiler(CameraCompiler):
             last = (rank, name) if last is None or rank >= last[0] else last
             params = {k: sb.get(k) for k in sb.clauses}
             try:
-                stages.append(Stage(effect=name, params=effect.Params(**params).model_dump()))
+                stages.append(Stage(effect=name, params=params_of("effect", effect, REGISTRY, params).model_dump()))
             except pydantic.ValidationError as exc:
                 for err in exc.errors():
                     key = str(err["loc"][0]) if err["loc"] else ""

@@ -17,7 +17,7 @@ from wiredsl.diagnostics import Collector, Span, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
 from wiredsl.language.statements import Bound, Value, bind, quantity
-from wiredsl.plugins import lookup
+from wiredsl.plugins import lookup, params_of
 from wiredsl.scene import Factor, MeasureUse, Pipeline, Study
 
 MAX_POINTS = 100_000  # design points of one study
@@ -187,7 +187,7 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras
 
     def check(v: float) -> str | None:
         try:
-            effect.Params(**{param: v})
+            params_of("effect", effect, REGISTRY, {param: v})
         except pydantic.ValidationError as exc:
             err = exc.errors()[0]
             ctx = err.get("ctx", {})
@@ -335,7 +335,7 @@ def _measure(sb: Bound, units: dict[str, str], out: Collector) -> MeasureUse | N
         spans[key.name] = val.span
         i += 2
     try:
-        measure.Params(**params)
+        params_of("measure", measure, registry, params)
     except pydantic.ValidationError as exc:
         for err in exc.errors():
             key = str(err["loc"][0]) if err["loc"] else ""

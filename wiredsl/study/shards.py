@@ -23,7 +23,7 @@ from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
 from wiredsl.io.files import write_atomic
 from wiredsl.measures import BUILTIN, REGISTRY
-from wiredsl.plugins import call, failure
+from wiredsl.plugins import call, failure, params_of
 from wiredsl.run import start
 from wiredsl.scene import Scene, Study
 from wiredsl.study import design
@@ -108,7 +108,7 @@ def _prepare(study: Study, registry: dict, run: Run) -> list:
     out = []
     for m in study.measures:
         measure = registry[m.name]
-        params = measure.Params(**m.params)
+        params = params_of("measure", measure, REGISTRY, m.params)
         out.append((measure, params, _guarded(measure, "prepare()", measure.prepare, params, run,
                                               where=f"design point {run.point}" if run.point is not None else None)))
     return out
