@@ -95,7 +95,9 @@ def test_the_kernel_runs_every_effect_by_the_function_the_registry_declares():
             _close(sn["measured"], sk["measured"])
 
 
-def test_a_stage_without_a_kernel_runs_the_whole_pipeline_on_numpy():
+def test_a_stage_without_a_kernel_and_those_after_it_run_on_numpy():
+    """The stages before one without a kernel run compiled, it and those after it on numpy, on the kernel's output:
+    the same trials as the numpy engine's (to rounding)."""
     from wiredsl.effects import BUILTIN
     from wiredsl.scene import Pipeline, Stage
 
@@ -105,14 +107,23 @@ def test_a_stage_without_a_kernel_runs_the_whole_pipeline_on_numpy():
         kernel = None
 
     pipe = Pipeline(name="p", stages=[Stage(effect="edge_loss", params={"fraction": 0.3}),
-                                      Stage(effect="lateral_shift", params={"range": 2.0})])
-    run = Run.create(scene, build_world(scene), pipe, 1, Options(poses=(0,)))
-    run.engine = "kernel"
-    run.stages[1] = (Slow, run.stages[1][1])
-    assert not run.uses_kernel()
-    batches(run, "kernel", range(4))
-    assert run.manifest()["engine"] == "numpy" and run.manifest()["engines"] == {"edge_loss": "numpy",
-                                                                                 "lateral_shift": "numpy"}
+                                      Stage(effect="lateral_shift", params={"range": 2.0}),
+                                      Stage(effect="corner_loss", params={"keep": 0.5})])
+    runs = {}
+    for engine in ("kernel", "numpy"):
+        run = runs[engine] = Run.create(scene, build_world(scene), pipe, 1, Options(poses=(0,)))
+        run.stages[1] = (Slow, run.stages[1][1])
+    got = {e: batches(run, e, range(4)) for e, run in runs.items()}
+    assert runs["kernel"].uses_kernel() and [e.name for e, _ in runs["kernel"].compiled_stages()] == ["edge_loss"]
+    assert runs["kernel"].manifest()["engines"] == {"edge_loss": "kernel", "lateral_shift": "numpy",
+                                                    "corner_loss": "numpy"}
+    for bk, bn in zip(got["kernel"], got["numpy"], strict=True):
+        for (_, dk, _), (_, dn, _) in zip(bk, bn, strict=True):
+            for side in dn:
+                a, b = dk[side], dn[side]
+                assert np.array_equal(a.start, b.start) and np.array_equal(a.fid, b.fid)
+                assert np.array_equal(a.corner_fid, b.corner_fid) and len(a.fid) > 0
+                assert np.abs(a.pts - b.pts).max(initial=0) < 1e-9
 
 
 def test_the_fold_test_on_squares_decides_as_hypot_does_at_the_limit():

@@ -240,7 +240,7 @@ def test_a_changed_plugin_recomputes_its_shards_and_the_manifest_names_it(site, 
     assert set(used) == {("effect", "good"), ("measure", "count")}
     assert used[("measure", "count")]["package"] == "wdtrust" and used[("measure", "count")]["version"] == "0.3"
     assert len(used[("measure", "count")]["sha256"]) == 64
-    assert manifest["engines"]["good"] == "numpy" and manifest["engines"]["corner_loss"] == "numpy"
+    assert manifest["engines"] == {"corner_loss": "kernel", "good": "numpy"}
     again = study(f, tmp_path)
     assert "2 done before" in again.stderr and "plug-ins changed" not in again.stderr
     # the measure's code fixed, the version not bumped, in an editable install's source folder
@@ -496,3 +496,34 @@ def test_a_plugins_traceback_crosses_the_study_worker_processes(site, tmp_path):
                            env={"WIREDSL_DEBUG": "1"})
     assert r.exit_code == 1, r.output
     assert "_deep_helper" in r.stderr and "E181" in r.stderr and "design point 1" in r.stderr, r.stderr
+
+
+def test_a_mixed_pipeline_gives_what_the_numpy_engine_gives(site, tmp_path):
+    """Under --engine auto the stages before a numpy-only one run compiled, it and those after it on numpy: the
+    same keyed draws, so the same trials as the numpy engine's to rounding."""
+    pytest.importorskip("numba")
+    f = tmp_path / "mixed.wd"
+    f.write_text(f'wiredsl 1\ninclude "{LAB}"\npipeline p {{\n  calibration_error sigma 0.01\n  edge_loss\n'
+                 '  lateral_shift\n  approx_error\n  good sigma 1px\n  corner_mismatch fraction 20%\n'
+                 '  stereo_mismatch fraction 20%\n}\n')
+    s = wiredsl.compile(f)
+    from wiredsl import run as runs
+
+    run = runs.start(s, "p", seed=4)
+    assert [e.name for e, _ in run.compiled_stages()] == ["edge_loss", "lateral_shift", "approx_error"]
+    assert run.engines() == {"calibration_error": "numpy", "edge_loss": "kernel", "lateral_shift": "kernel",
+                             "approx_error": "kernel", "good": "numpy", "corner_mismatch": "numpy",
+                             "stereo_mismatch": "numpy"}
+    got = {e: list(wiredsl.simulate(s, trials=5, seed=4, pipeline="p", poses=(0, 3), engine=e))
+           for e in ("numpy", "auto")}
+    corners = 0
+    for a, b in zip(got["numpy"], got["auto"], strict=True):
+        assert set(a.keys()) == set(b.keys())
+        for name in a.keys():
+            x, y = np.asarray(a[name]), np.asarray(b[name])
+            if x.dtype.kind == "f":
+                assert x.shape == y.shape and np.abs(x - y).max(initial=0) < 1e-6, name
+            else:
+                assert np.array_equal(x, y), name
+        corners += len(a["corners"])
+    assert corners > 0

@@ -98,28 +98,33 @@ def start(scene: Scene, pipeline: Pipeline | str | None = None, *, seed: int | N
     if seed is None and run.stages:  # drawn only when something random runs, so ideal runs stay byte-identical
         run.seed = secrets.randbits(63)
     run.engine = check_engine(engine)
-    if engine == "kernel" and not run.uses_kernel() and run.stages and not exact_calibration:
+    if engine == "kernel" and run.stages and not exact_calibration and \
+            len(run.compiled_stages()) < len(run.image_stages):
         lacking = ", ".join(e.name for e, _ in run.image_stages if e.kernel is None)
-        run.warnings.append(f"the whole pipeline runs on numpy: no compiled kernel for {lacking}")
+        first = run.image_stages[len(run.compiled_stages())][0].name
+        run.warnings.append(f"the stages from {first} on run on numpy: no compiled kernel for {lacking}")
     run.exact_calibration = exact_calibration
     if base is not None:
         run.share_projection(base)
     return run
 
 
-# CPU time of the numpy path over the compiled kernel's for the lab's `paper` pipeline and one cheap numpy-only
-# stage (benchmarks/numpy_forced.py, 512 trials, 2026-11-26: 1.21 s against 0.18 s)
-NUMPY_COST = 6.9
+# CPU time of a pipeline whose stages from a numpy-only one on run on numpy, over the compiled kernel's, for the
+# lab's `paper` pipeline with one cheap numpy-only stage at "corner detection" (benchmarks/numpy_forced.py, 512
+# trials, 2026-11-26: 0.28 s against 0.20 s); the whole pipeline on numpy was 7.0x
+NUMPY_COST = 1.4
 
 
 def numpy_forced_line(effects: list, engine: str) -> str | None:
-    """The one line said on stderr when, under `--engine auto` with numba installed, stages without a compiled
-    kernel (an installed plug-in's) make the whole pipeline run on numpy; None otherwise."""
+    """The one line said on stderr when, under `--engine auto` with numba installed, a stage without a compiled
+    kernel (an installed plug-in's) makes it and the stages after it run on numpy; None otherwise."""
     import importlib.util
 
+    from wiredsl.engine.montecarlo import kernel_prefix
     from wiredsl.plugins import Registry
 
-    lacking = [e for e in effects if e.kernel is None and e.name != "calibration_error"]
+    image = [e for e in effects if e.name != "calibration_error"]
+    lacking = [e for e in image if e.kernel is None]
     if engine != "auto" or not lacking or importlib.util.find_spec("numba") is None:
         return None
     from wiredsl.effects import REGISTRY
@@ -128,9 +133,11 @@ def numpy_forced_line(effects: list, engine: str) -> str | None:
     for e in dict.fromkeys(lacking):
         origin = REGISTRY.origin(e.name) if isinstance(REGISTRY, Registry) else None
         names.append(f"'{e.name}'" + (f" ({origin.package} {origin.version})" if origin else ""))
-    return (f"wiredsl: {', '.join(names)} {'has' if len(names) == 1 else 'have'} no compiled kernel, so the whole "
-            f"pipeline runs on numpy: about {NUMPY_COST:g}x the CPU time of the kernel (measured on the lab); "
-            "give the effect a KernelStage, or --engine numpy to choose numpy")
+    k = kernel_prefix(image)
+    after = f"the stages from '{image[k].name}' on run on numpy" if k else "the whole pipeline runs on numpy"
+    return (f"wiredsl: {', '.join(names)} {'has' if len(names) == 1 else 'have'} no compiled kernel, so {after}: "
+            f"about {NUMPY_COST:g}x the CPU time of the kernel on the lab, up to 7x (the whole pipeline); give the "
+            "effect a KernelStage, or --engine numpy to choose numpy")
 
 
 def numpy_forced(run: Run, trials: int) -> str | None:

@@ -147,7 +147,7 @@ class KernelStage:
     after `stats`: the view's camera, float64 (16,): its nominal image width and height, then f, ax, ay, cx, cy,
     k1, k2, p1, p2, k3, k4, k5, k6 and the distortion model's code (`wiredsl.engine.geometry.CAMERA_ROW`): what
     `ctx.camera` gives the numpy code (a rolling shutter needs the image height, say). An effect without a kernel
-    (kernel None) runs on the numpy path, and so does every run it is in (`--engine auto` says so on stderr).
+    (kernel None) runs on the numpy path, and so do the stages after it (`--engine auto` says so on stderr).
     """
 
     function: str
@@ -170,8 +170,9 @@ class Effect:
       `kind` ("length" to metres, "angle" to radians, "image" to pixels, "number", "fraction") and checks the
       bounds; every field needs a default;
     - `doc`: one paragraph for the reference and the editor;
-    - `kernel`: optionally, a KernelStage for the compiled engine (None: the numpy path, and then every stage of
-      a run in it runs on numpy too: `--engine auto` says so on stderr).
+    - `kernel`: optionally, a KernelStage for the compiled engine (None: the numpy path; the stages before it
+      still run compiled, it and those after it on numpy, at some 1.4x the CPU time of a wholly compiled run of
+      the lab: `--engine auto` says so on stderr).
 
     Define, as class methods (`@classmethod`, no instance is ever made):
 

@@ -218,6 +218,12 @@ class Run:
         calib.CalibrationError.record(self.stats, phis, refused)
         return phis
 
+    def compiled_stages(self) -> list:
+        """The image stages the compiled kernel runs (when `uses_kernel`): the leading ones that have a kernel;
+        from the first that has none (an installed plug-in's, say) on, the stages run on numpy, on the kernel's
+        output (the same keyed draws: the engines agree to rounding)."""
+        return self.image_stages[:kernel_prefix([e for e, _ in self.image_stages])]
+
     def uses_kernel(self) -> bool:
         """Whether batches run in the compiled kernel: never for the from-scratch calibration reference, nor when
         a stage has no compiled kernel (an installed plug-in's, say): then the whole pipeline runs on numpy."""
@@ -239,7 +245,8 @@ class Run:
         per_trial = rigs = None
         base = self.ideal() if results is None else results
         kernel = self.uses_kernel()
-        keys = self._view_keys(batch, base) if kernel else None
+        compiled = self.compiled_stages() if kernel else []
+        keys = self._view_keys(batch, base, compiled) if kernel else None
         if sampler is not None:
             order = self.scene.rig.calibration.order
             phis = self.calibration_draws(batch)
@@ -256,14 +263,12 @@ class Run:
             for side in ("left", "right"):
                 if getattr(result, side) is None:
                     continue
-                if kernel:
-                    for effect, _ in self.image_stages:
+                if kernel:  # the leading stages that have a compiled kernel, in it; the rest below, on numpy
+                    for effect, _ in compiled:
                         self.trace[effect.name] += 1
                     sets, views[side] = self._kernel_view(result, side, keys[j, CAMERA_INDEX[side]],
                                                           rigs[side] if rigs else None, keep)
-                    disturbed[side] = sets
-                    continue
-                if per_trial is not None:
+                elif per_trial is not None:
                     sets = concat_trials([to_imageset(getattr(r[j], side), self.world) for r in per_trial])
                     views[side] = [getattr(r[j], side) for r in per_trial]
                 elif rigs is not None:
@@ -274,7 +279,7 @@ class Run:
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
                               point=self.point, camera=getattr(result, side).camera)
-                for effect, params in self.image_stages:
+                for effect, params in self.image_stages[len(compiled):]:
                     self.trace[effect.name] += 1
                     if effect.name in BUILTIN:
                         sets = effect.apply(params, sets, ctx)
@@ -304,14 +309,14 @@ class Run:
             self._templates[key] = made
         return made
 
-    def _view_keys(self, batch: Sequence[int], results: list[PoseResult]) -> np.ndarray:
+    def _view_keys(self, batch: Sequence[int], results: list[PoseResult], stages: list) -> np.ndarray:
         """The image stages' keys for every view of `results` (pose j, camera c) and trial of the batch:
         (poses, 2, stages, trials), one stream_key call a stage (the same keys as one call a view)."""
         poses = np.array([r.index for r in results], dtype=np.int64)[:, None, None]
         cameras = np.array([CAMERA_INDEX["left"], CAMERA_INDEX["right"]])[None, :, None]
         trials = np.asarray(batch, dtype=np.int64)[None, None, :]
-        keys = np.empty((len(results), 2, len(self.image_stages), len(batch)), dtype=np.uint64)
-        for g, (effect, _) in enumerate(self.image_stages):
+        keys = np.empty((len(results), 2, len(stages), len(batch)), dtype=np.uint64)
+        for g, (effect, _) in enumerate(stages):
             keys[:, :, g] = stream_key(effect.name, trials, poses, cameras, self.seed, self.point)
         return keys
 
@@ -332,8 +337,8 @@ class Run:
             R_cw, t_cw, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros(T)
             cam, view_of = view.camera, None
         if "stages" not in self._kernel_rows:  # constant a run
-            self._kernel_rows["stages"] = stage_rows(self.image_stages)
-            self._kernel_rows["plugins"] = load_plugin_kernels(self.image_stages, self._stage_of)
+            self._kernel_rows["stages"] = stage_rows(self.compiled_stages())
+            self._kernel_rows["plugins"] = load_plugin_kernels(self.compiled_stages(), self._stage_of)
         functions, params, zero = self._kernel_rows["stages"]
         stats = zero.copy()
         meta = self._kernel_rows.get((result.index, side, raw)) if keep else None
@@ -342,7 +347,7 @@ class Run:
                                     template.closed, template.occluded]).astype(np.int64).reshape(-1, 7)
             if keep:
                 self._kernel_rows[(result.index, side, raw)] = meta
-        stages = self.image_stages
+        stages = self.compiled_stages()
         epipole = self.epipole(result.pose, side) if any(e.kernel.epipole for e, _ in stages) else np.zeros(3)
         args = (template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams,
                 folds, cam.width, cam.height, raw, functions, params, keys, epipole, side == "right", stats,
@@ -365,8 +370,8 @@ class Run:
 
     def engines(self) -> dict[str, str]:
         """Which engine ran each stage (calibration_error's draws are numpy's on both: they set the cameras)."""
-        kernel = self.uses_kernel()
-        return {e.name: "kernel" if kernel and e.kernel is not None else "numpy" for e, _ in self.stages}
+        compiled = {e.name for e, _ in self.compiled_stages()} if self.uses_kernel() else set()
+        return {e.name: "kernel" if e.name in compiled else "numpy" for e, _ in self.stages}
 
     def manifest(self) -> dict:
         return {
@@ -454,11 +459,17 @@ def camera_row(cam) -> np.ndarray:
     return np.array([cam.width, cam.height, *(table[k] for k in geometry.CAMERA_ROW)], dtype=np.float64)
 
 
+def kernel_prefix(image_effects: list) -> int:
+    """How many leading image stages have a compiled kernel (those the kernel runs)."""
+    return next((g for g, e in enumerate(image_effects) if e.kernel is None), len(image_effects))
+
+
 def kernel_runs(effects: list, engine: str) -> bool:
-    """Whether a pipeline of these effects runs in the compiled kernel under `engine`: not on "numpy", not without
-    stages, not when an image stage has no compiled kernel (an installed plug-in's, say: then the whole pipeline
-    runs on numpy), and under "auto" where numba is installed."""
-    if engine == "numpy" or not effects or any(e.kernel is None for e in effects if e.name != "calibration_error"):
+    """Whether a pipeline of these effects runs (partly) in the compiled kernel under `engine`: not on "numpy",
+    not without stages, not when neither its first image stage has a kernel nor it re-projects calibration draws
+    (the kernel would do nothing), and under "auto" where numba is installed."""
+    image = [e for e in effects if e.name != "calibration_error"]
+    if engine == "numpy" or not effects or (image and not kernel_prefix(image) and len(image) == len(effects)):
         return False
     if engine == "kernel":
         return True
@@ -469,8 +480,9 @@ def kernel_runs(effects: list, engine: str) -> bool:
 
 def stage_engines(effects: list, engine: str) -> dict[str, str]:
     """The engine each of these effects runs on (calibration_error's draws are numpy's on both)."""
-    kernel = kernel_runs(effects, engine)
-    return {e.name: "kernel" if kernel and e.kernel is not None else "numpy" for e in effects}
+    image = [e for e in effects if e.name != "calibration_error"]
+    compiled = {e.name for e in image[:kernel_prefix(image)]} if kernel_runs(effects, engine) else set()
+    return {e.name: "kernel" if e.name in compiled else "numpy" for e in effects}
 
 
 def stage_rows(stages) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:

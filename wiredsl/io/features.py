@@ -154,6 +154,6 @@ class Manifest(Node):
     engine: Literal["kernel", "numpy"] = Field("numpy", description="the Monte-Carlo engine that ran the trials "
                                                 "(the same draws; a replay is byte-identical with the same one)")
     engines: dict[str, Literal["kernel", "numpy"]] = Field(
-        {}, description="the engine that ran each stage: a pipeline with a stage that has no compiled kernel (an "
-                        "installed plug-in's, say) runs wholly on numpy")
+        {}, description="the engine that ran each stage: a stage that has no compiled kernel (an installed "
+                        "plug-in's, say) and the stages after it run on numpy, those before it compiled")
     warnings: list[str] = []
