@@ -1,0 +1,120 @@
+"""The fuzz campaign's findings outside plug-ins (issue 23): each input that made wiredsl fail with an internal
+error (exit 3), take minutes or flood the terminal, kept as a reproducer that must now give a diagnostic."""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from wiredsl.cli import main
+from wiredsl.engine import geometry
+
+ROOT = Path(__file__).resolve().parent.parent
+CAMERA_WORLD = """wiredsl 1
+model m {
+  line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)
+}
+place m as p
+"""
+RIG = """rig r {
+  left c at (0, 0.06, 1) looking (1, 0, 0)
+  right c at (0, -0.06, 1) looking (1, 0, 0)
+}
+path run { pose (0, 0) }
+"""
+
+
+def run(*args: str):
+    return CliRunner().invoke(main, list(args))
+
+
+# --------------------------------------------------------------------------- lens coefficients at the extremes
+
+def _exact_first_positive_root(coef) -> float:
+    """The smallest positive s where the polynomial (coefficients lowest order first, exact Fractions, constant 1)
+    changes sign: bracketed on the powers of two from 2^-1400 to 2^1400, then bisected, in exact rational
+    arithmetic (no eigenvalues, no balancing, no rounding: independent of the code under test)."""
+    def p(s):
+        return sum(c * s**i for i, c in enumerate(coef))
+
+    prev = Fraction(2) ** -1400
+    for e in range(-1399, 1401):
+        s = Fraction(2) ** e
+        if p(s) <= 0:
+            lo, hi = prev, s
+            for _ in range(60):
+                mid = (lo + hi) / 2
+                lo, hi = (mid, hi) if p(mid) > 0 else (lo, mid)
+            return float(hi) if hi < Fraction(10) ** 308 else math.inf
+        prev = s
+    return math.inf
+
+
+def _exact_fold_radius(k1, k2, k3, k4, k5, k6) -> float:
+    k = [Fraction(x) for x in (k1, k2, k3, k4, k5, k6)]
+    N, D = [1, k[0], k[1], k[2]], [1, k[3], k[4], k[5]]
+    num = [Fraction(0)] * 7  # d/dr (r N / D) numerator in s = r^2: (N + 2 s N') D - 2 s N D'
+    for i in range(4):
+        for j in range(4):
+            num[i + j] += (N[i] + 2 * i * N[i]) * D[j] - 2 * N[i] * j * D[j]
+    s = min(_exact_first_positive_root(num), _exact_first_positive_root(D))
+    return math.sqrt(s) if s < 1e308 else math.inf
+
+
+EXTREMES = [1e308, -1e308, 5e-324, -5e-324, 1e-310, -2.2e-308, 1e-200, -1e150]
+
+
+@pytest.mark.parametrize("value", EXTREMES)
+@pytest.mark.parametrize("which", ["k3", "k6"])
+def test_fold_radius_of_extreme_rational_coefficients_agrees_with_exact_arithmetic(which, value):
+    k = dict(k1=-0.2, k2=0.05, k3=0.0, k4=0.0, k5=0.0, k6=0.0)
+    k[which] = value
+    ours = geometry.fold_radius(**k)  # was numpy.linalg.LinAlgError
+    ref = _exact_fold_radius(*k.values())
+    # the angle from the axis is what the radius is for: a fold past 1e16 (or none) is 90 deg in doubles
+    assert math.atan(ours) == pytest.approx(math.atan(ref), rel=1e-12), (ours, ref)
+    if ref < 1e8:
+        assert ours == pytest.approx(ref, rel=1e-9), (ours, ref)
+
+
+@pytest.mark.parametrize("value", EXTREMES)
+@pytest.mark.parametrize("which", [2, 3])
+def test_fisheye_limit_of_extreme_coefficients_agrees_with_exact_arithmetic(which, value):
+    k = [0.02, -0.01, 0.0, 0.0]
+    k[which] = value
+    ours = geometry.fisheye_max_angle(*k)  # was numpy.linalg.LinAlgError
+    s = _exact_first_positive_root([1] + [(2 * i + 3) * Fraction(x) for i, x in enumerate(k)])
+    ref = min(math.sqrt(s), math.pi) if math.isfinite(s) else math.pi
+    assert ours == pytest.approx(ref, rel=1e-9), (ours, ref)
+
+
+@pytest.mark.parametrize("lens", ["k3 1e308", "k3 -1e308", "k6 5e-324", "k6 -1e308", "k3 -5e-324",
+                                  "distortion equidistant\n  k1 0.01\n  k3 -1e308",
+                                  "distortion equidistant\n  k1 0.01\n  k4 5e-324"])
+def test_a_scene_with_extreme_lens_coefficients_checks_and_builds(tmp_path, lens):
+    (tmp_path / "s.wd").write_text(CAMERA_WORLD + f"camera c {{\n  focal 600px\n  size (640px, 480px)\n  {lens}\n}}\n"
+                                   + RIG)
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code == 0, r.output
+    if "-1e308" in lens:  # the lens folds back at its centre: it images nothing, and says so
+        assert "W147" in r.stderr and "100% of its image" in r.stderr
+    r = run("build", str(tmp_path / "s.wd"), "-o", str(tmp_path / "out"))
+    assert r.exit_code == 0, r.output
+
+
+@pytest.mark.parametrize("dist", ["[0.1, 0., 0., 0., 1e308]", "[0.1, 0., 0., 0., -1e308, 0., 0., 5e-324]",
+                                  "[0.1, 0., 0., 0., 0., 0., 0., -1e308]"])
+def test_a_calibration_file_with_extreme_coefficients_checks(tmp_path, dist):
+    (tmp_path / "cam.yaml").write_text(
+        "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n   rows: 3\n"
+        "   cols: 3\n   dt: d\n   data: [ 600., 0., 320., 0., 600., 240., 0., 0., 1. ]\n"
+        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n"
+        f"   cols: {dist.count(',') + 1}\n   dt: d\n   data: {dist}\n")
+    (tmp_path / "s.wd").write_text(CAMERA_WORLD + 'camera c {\n  read "cam.yaml"\n}\n' + RIG)
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code in (0, 1) and "internal" not in r.output, r.output
