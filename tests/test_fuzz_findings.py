@@ -3,7 +3,9 @@ error (exit 3), take minutes or flood the terminal, kept as a reproducer that mu
 
 from __future__ import annotations
 
+import json
 import math
+import os
 from fractions import Fraction
 from pathlib import Path
 
@@ -118,3 +120,17 @@ def test_a_calibration_file_with_extreme_coefficients_checks(tmp_path, dist):
     (tmp_path / "s.wd").write_text(CAMERA_WORLD + 'camera c {\n  read "cam.yaml"\n}\n' + RIG)
     r = run("check", str(tmp_path / "s.wd"))
     assert r.exit_code in (0, 1) and "internal" not in r.output, r.output
+
+
+# --------------------------------------------------------------------------- a file name that is not UTF-8
+
+def test_a_scene_named_by_a_file_name_that_is_not_utf8_builds_to_json(tmp_path):
+    text = (ROOT / "scenes" / "box.wd").read_text().replace("scene box\n", "")  # the name comes from the file
+    path = os.fsdecode(bytes(tmp_path) + b"/b\xffx.wd")
+    Path(path).write_text(text)
+    r = run("build", path, "-o", str(tmp_path / "out"))  # was orjson's TypeError on the surrogate (exit 3)
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "out" / "features.json").read_text(encoding="utf-8"))
+    assert doc["scene"]["name"] == "b\ufffdx"
+    r = run("compile", path)
+    assert r.exit_code == 0 and json.loads(r.stdout)["name"] == "b\ufffdx"
