@@ -134,3 +134,30 @@ def test_a_scene_named_by_a_file_name_that_is_not_utf8_builds_to_json(tmp_path):
     assert doc["scene"]["name"] == "b\ufffdx"
     r = run("compile", path)
     assert r.exit_code == 0 and json.loads(r.stdout)["name"] == "b\ufffdx"
+
+
+# --------------------------------------------------------------------------- meshes
+
+MESH_SCENE = CAMERA_WORLD.replace("model m {\n  line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)\n}",
+                                  'model m {\n  mesh read "m.obj"\n}') + \
+    "camera c {\n  focal 600px\n  size (640px, 480px)\n}\n" + RIG
+
+
+@pytest.mark.parametrize("obj, line, shown", [
+    ("v 0 0 0\nv 1 0\nf 1 2 1\n", 2, "'v 1 0' has 2"),  # was numpy's reshape ValueError (exit 3)
+    ("v 0 0 0\nv 1 0 0\nv 0 1\nf 1 2 3\n", 3, "'v 0 1' has 2"),  # was a wrong "refers to a vertex" error
+    ("# c\nv 0 0 0\r\nv 1 0 0\r\nv 0 1 0\r\nv\r\nf 1 2 3\r\n", 5, "'v' has 0"),
+])
+def test_an_obj_vertex_with_too_few_coordinates_is_a_located_diagnostic(tmp_path, obj, line, shown):
+    (tmp_path / "m.obj").write_text(obj)
+    (tmp_path / "s.wd").write_text(MESH_SCENE)
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code == 1, r.output
+    assert f"error[E125]: mesh file m.obj: line {line}: a vertex needs x, y and z; {shown} coordinate(s)" in r.stderr
+
+
+def test_obj_vertices_with_a_w_or_colours_are_still_read(tmp_path):
+    (tmp_path / "m.obj").write_text("v 0 0 0 1\nv 1 0 0 1 0.5 0.5 0.5\nv 0 1 0\nvn 0 0\nf 1 2 3\n")
+    (tmp_path / "s.wd").write_text(MESH_SCENE)
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code == 0, r.output
