@@ -161,3 +161,12 @@ def test_obj_vertices_with_a_w_or_colours_are_still_read(tmp_path):
     (tmp_path / "s.wd").write_text(MESH_SCENE)
     r = run("check", str(tmp_path / "s.wd"))
     assert r.exit_code == 0, r.output
+
+
+def test_a_contour_only_sphere_of_1e7_m_is_drawn_in_the_top_view(tmp_path):
+    (tmp_path / "ball.glb").write_bytes((ROOT / "scenes" / "meshes" / "ball.glb").read_bytes())
+    (tmp_path / "s.wd").write_text(MESH_SCENE.replace('mesh read "m.obj"', 'mesh read "ball.glb" scale 1e7 up y'))
+    r = run("build", str(tmp_path / "s.wd"), "-o", str(tmp_path / "out"))  # was np.concatenate([]) (exit 3)
+    assert r.exit_code == 0, r.output
+    svg = (tmp_path / "out" / "pose_000.svg").read_text()
+    assert svg.count("<title>p</title></polyline>") > 0  # its outline, seen from far above its own size
