@@ -170,3 +170,15 @@ def test_a_contour_only_sphere_of_1e7_m_is_drawn_in_the_top_view(tmp_path):
     assert r.exit_code == 0, r.output
     svg = (tmp_path / "out" / "pose_000.svg").read_text()
     assert svg.count("<title>p</title></polyline>") > 0  # its outline, seen from far above its own size
+
+
+# --------------------------------------------------------------------------- the Python API
+
+@pytest.mark.parametrize("make", [
+    lambda w: w.simulate(None, trials=1, seed=0), lambda w: w.Simulator("x", 0), lambda w: w.Simulator(3, 0),
+    lambda w: w.simulate("scenes/box.wd", trials=1, seed=0), lambda w: w.Simulator(Path("scenes/box.wd"), 0)])
+def test_simulate_without_a_scene_is_a_type_error_that_says_what_it_takes(make):
+    import wiredsl
+
+    with pytest.raises(TypeError, match="takes a compiled Scene, not .*(compile it first|wiredsl.compile)"):
+        make(wiredsl)  # was AttributeError: 'NoneType' object has no attribute 'pipeline' (from run.py)
