@@ -182,3 +182,42 @@ def test_simulate_without_a_scene_is_a_type_error_that_says_what_it_takes(make):
 
     with pytest.raises(TypeError, match="takes a compiled Scene, not .*(compile it first|wiredsl.compile)"):
         make(wiredsl)  # was AttributeError: 'NoneType' object has no attribute 'pipeline' (from run.py)
+
+
+# --------------------------------------------------------------------------- huge input, bounded output
+
+def test_a_five_million_digit_token_in_a_trajectory_is_quoted_as_an_excerpt(tmp_path):
+    good = "1305031098.6659 1.3563 0.6305 1.6380 0.6132 0.5962 -0.3311 -0.3986\n"
+    (tmp_path / "t.tum").write_text(good + "1305031098.7 1e" + "9" * 5_000_000 + " 0.6 1.6 0.6 0.5 -0.3 -0.3\n")
+    (tmp_path / "s.wd").write_text(CAMERA_WORLD + "camera c {\n  focal 600px\n  size (640px, 480px)\n}\n"
+                                   + RIG.replace("path run { pose (0, 0) }", 'path run {\n  read "t.tum" format tum\n}'))
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code == 1 and "E145" in r.stderr
+    assert len(r.stderr) < 2000, len(r.stderr)  # was 15 MB: the token in the message and its line twice
+    assert "1e99999" in r.stderr and "(4,999,922 more characters)" in r.stderr
+    r = run("check", "--diagnostics", "json", str(tmp_path / "s.wd"))
+    assert r.exit_code == 1 and len(r.stderr) < 2000
+
+
+def test_a_long_line_is_shown_as_a_window_around_the_caret():
+    from wiredsl.diagnostics import Diagnostic, Span, render
+
+    line = "a" * 5000 + " bad " + "b" * 5000
+    d = Diagnostic("error", "E001", "unexpected 'bad'", Span("f.wd", 1, 5002, 1, 5005), "here")
+    text = render([d], {"f.wd": line + "\n"})
+    src, caret = text.splitlines()[1:3]
+    assert len(src) < 200 and src.startswith(" 1 | ...") and src.endswith("...")
+    # the caret is still under the token
+    assert src[caret.index("^"):caret.index("^") + 3] == "bad" and caret.count("^") == 3
+
+
+def test_a_file_of_four_million_braces_fails_fast_with_one_diagnostic(tmp_path):
+    import time
+
+    (tmp_path / "s.wd").write_text("{" * 4_000_000)
+    t0 = time.process_time()
+    r = run("check", str(tmp_path / "s.wd"))
+    spent = time.process_time() - t0
+    assert r.exit_code == 1 and r.stderr.count("error[E001]") == 1 and len(r.stderr) < 1000, r.stderr[:2000]
+    assert "the rest of the file is not checked" in r.stderr
+    assert spent < 10, spent  # was 33 s: a recovery a brace; generous for a shared machine
