@@ -133,6 +133,16 @@ def _poses(poses) -> list[int] | None:
     return [_integer("poses must be path pose indices: each", p, 0, MAX_TRIAL) for p in poses]
 
 
+def _scene(scene, where: str) -> Scene:
+    """`scene` if it is a compiled Scene, else a TypeError saying how to get one (a path or text is not one)."""
+    if isinstance(scene, Scene):
+        return scene
+    how = (f"compile it first: wiredsl.compile({scene!r})" if isinstance(scene, (str, os.PathLike))
+           else "get one from wiredsl.compile(path or text) or wiredsl.load(path)")
+    shown = repr(scene) if len(repr(scene)) <= 60 else repr(scene)[:60] + "..."
+    raise TypeError(f"{where} takes a compiled Scene, not {type(scene).__name__} {shown}; {how}")
+
+
 def _pipeline(scene: Scene, pipeline: Pipeline | str | None) -> Pipeline | None:
     from wiredsl.run import choose_pipeline
 
@@ -150,12 +160,19 @@ def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str |
     """
     from wiredsl import run as runs
     from wiredsl.engine.simulate import Options
+
+    # the arguments are checked at the call, not at the first batch (simulate returns a generator)
+    scene = _scene(scene, "simulate")
+    trials, seed = _integer("trials", trials, 1, MAX_TRIAL + 1), _integer("seed", seed, 0, MAX_SEED)
+    opts = Options(poses=runs.check_poses(scene, _poses(poses)))
+    return _batches(scene, trials, seed, pipeline, opts, engine)
+
+
+def _batches(scene: Scene, trials: int, seed: int, pipeline, opts, engine: str) -> Iterator[Batch]:
+    from wiredsl import run as runs
     from wiredsl.io.emit import batch_arrays, contours
 
-    trials = _integer("trials", trials, 1, MAX_TRIAL + 1)
-    opts = Options(poses=runs.check_poses(scene, _poses(poses)))
-    run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED), options=opts,
-                     engine=engine)
+    run = runs.start(scene, _pipeline(scene, pipeline), seed=seed, options=opts, engine=engine)
     ids = run.world.feature_ids
     if not run.stages:
         out = [(r, {side: _ideal_set(run, r, side) for side in ("left", "right") if getattr(r, side) is not None},
@@ -184,7 +201,7 @@ class Simulator:
         from wiredsl import run as runs
         from wiredsl.engine.simulate import Options
 
-        self.scene = scene
+        self.scene = scene = _scene(scene, "Simulator")
         opts = Options(visibility=_choice("visibility", visibility, ("scene", "exact", "all")),
                        right=_choice("cameras", cameras, ("both", "left")) == "both")
         self.run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED),

@@ -7,6 +7,9 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 MAX_REPORTED = 20
+MAX_TOKEN = 200  # a longer run of non-blank characters in a message is quoted as its start and end
+MAX_TEXT = 2000  # a message, hint or note longer than this keeps its start and end
+MAX_LINE = 160  # a longer source line is shown as a window around the span
 
 
 @dataclass(frozen=True, slots=True)
@@ -33,6 +36,14 @@ class Diagnostic:
     span: Span | None
     hint: str | None = None
     notes: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        # messages quote the input: a 5,000,000-digit token must not become 15 MB of diagnostics
+        object.__setattr__(self, "message", bounded(self.message))
+        if self.hint is not None:
+            object.__setattr__(self, "hint", bounded(self.hint))
+        if self.notes:
+            object.__setattr__(self, "notes", tuple(bounded(n) for n in self.notes))
 
     def to_json(self) -> dict:
         out: dict = {"severity": self.severity, "code": self.code, "message": self.message}
@@ -97,6 +108,23 @@ class Collector:
             raise WiredslError(self.diagnostics)
 
 
+def bounded(text: str) -> str:
+    """`text` with each run of over MAX_TOKEN non-blank characters, and then the whole if over MAX_TEXT, cut to
+    its start and end around a '...' that says how much was left out (short text is returned as it is)."""
+    if len(text) <= MAX_TOKEN:
+        return text
+    import re
+
+    def cut(m: re.Match) -> str:
+        t = m.group()
+        return f"{t[:60]}...({len(t) - 80:,} more characters)...{t[-20:]}"
+
+    text = re.sub(rf"[^\s'\"]{{{MAX_TOKEN + 1},}}", cut, text)  # the quotes around a token kept whole
+    if len(text) > MAX_TEXT:
+        text = f"{text[:MAX_TEXT - 200]}...({len(text) - MAX_TEXT + 100:,} more characters)...{text[-100:]}"
+    return text
+
+
 def source_lines(text: str) -> list[str]:
     """The lines of a source as the lexer counts them: split at \\n only (str.splitlines also splits at
     \\u2028, \\x0c, \\x85 and others, which would put carets and comments on the wrong line)."""
@@ -157,8 +185,15 @@ def _render_one(d: Diagnostic, sources: dict[str, str], colour: bool) -> str:
             src = src_lines[d.span.line - 1].expandtabs(1)
             gutter = " " * len(str(d.span.line))
             end = d.span.end_col if d.span.end_line == d.span.line else len(src) + 1
-            width = max(1, end - d.span.col)
-            caret = " " * (d.span.col - 1) + _paint("^" * width, "1;32", colour)
+            col = d.span.col
+            if len(src) > MAX_LINE:  # a window of the line around the span's start, its cuts marked
+                first = max(0, col - 1 - 40)
+                last = min(len(src), first + MAX_LINE - 40)
+                src = ("..." if first else "") + src[first:last] + ("..." if last < len(src) else "")
+                shift = first - (3 if first else 0)
+                col, end = col - shift, min(end - shift, len(src) + 1)
+            width = max(1, end - col)
+            caret = " " * (col - 1) + _paint("^" * width, "1;32", colour)
             if d.hint:
                 caret += " " + d.hint
             lines += [f" {d.span.line} | {src}", f" {gutter} | {caret}"]

@@ -242,8 +242,10 @@ def fisheye_max_angle(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0
     """The largest angle from the optical axis an equidistant lens images: half its fov, the first angle where
     theta_d (theta) stops increasing, and 180 deg, whichever is smallest."""
     # d theta_d / d theta = 1 + 3 k1 s + 5 k2 s^2 + 7 k3 s^3 + 9 k4 s^4 in s = theta^2
-    s = _first_positive_root([1.0, 3.0 * k1, 5.0 * k2, 7.0 * k3, 9.0 * k4])
-    limit = min(math.sqrt(s), math.pi)
+    sigma, (a1, a2, a3, a4) = _balance((k1, k2, k3, k4), (1, 2, 3, 4))
+    t = _first_positive_root([1.0, 3.0 * a1, 5.0 * a2, 7.0 * a3, 9.0 * a4])
+    with np.errstate(over="ignore"):
+        limit = min(math.sqrt(sigma * t), math.pi)
     return min(limit, fov / 2) if fov is not None else limit
 
 
@@ -258,33 +260,56 @@ def fold_radius(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0.0, k5
     if k3 == k4 == k5 == k6 == 0.0:
         return _fold_radius_quadratic(k1, k2)
     npoly = np.polynomial.polynomial
-    N, D = np.array([1.0, k1, k2, k3]), np.array([1.0, k4, k5, k6])
-    s_ = np.array([0.0, 1.0])
-    # d/dr (r N(s) / D(s)) = ((N + 2 s N') D - 2 s N D') / D^2 with s = r^2
-    num = npoly.polysub(npoly.polymul(npoly.polyadd(N, 2 * npoly.polymul(s_, npoly.polyder(N))), D),
-                        2 * npoly.polymul(npoly.polymul(s_, N), npoly.polyder(D)))
-    return math.sqrt(min(_first_positive_root(num), _first_positive_root(D)))
+    # in t = s / sigma every coefficient is at most 1 in size, so nothing below overflows (a k3 of 1e308) or
+    # divides by a subnormal (a k6 of 5e-324); the roots are found in t and scaled back
+    sigma, (a1, a2, a3, a4, a5, a6) = _balance((k1, k2, k3, k4, k5, k6), (1, 2, 3, 1, 2, 3))
+    N, D = np.array([1.0, a1, a2, a3]), np.array([1.0, a4, a5, a6])
+    t_ = np.array([0.0, 1.0])
+    # d/dr (r N(s) / D(s)) = ((N + 2 s N') D - 2 s N D') / D^2 with s = r^2 (and s N'(s) = t N'(t))
+    num = npoly.polysub(npoly.polymul(npoly.polyadd(N, 2 * npoly.polymul(t_, npoly.polyder(N))), D),
+                        2 * npoly.polymul(npoly.polymul(t_, N), npoly.polyder(D)))
+    t = min(_first_positive_root(num), _first_positive_root(D))
+    with np.errstate(over="ignore"):
+        return math.sqrt(sigma * t)
+
+
+def _balance(k, powers) -> tuple[float, list[float]]:
+    """sigma and the coefficients k_i sigma^p_i of a polynomial 1 + sum k_i s^p_i rewritten in t = s / sigma,
+    sigma chosen so that the largest of them is 1 in size (and none overflows on the way: logarithms)."""
+    logs = [-math.log(abs(x)) / p for x, p in zip(k, powers) if x != 0.0]
+    if not logs:
+        return 1.0, [0.0] * len(k)
+    log_sigma = min(logs)
+    scaled = [0.0 if x == 0.0 else math.copysign(math.exp(math.log(abs(x)) + p * log_sigma), x)
+              for x, p in zip(k, powers)]
+    return math.exp(min(log_sigma, 709.0)), scaled
 
 
 def _first_positive_root(coef) -> float:
-    """The smallest positive real root of a polynomial (coefficients lowest order first, constant 1), or inf."""
+    """The smallest positive real root of a polynomial (coefficients lowest order first, constant 1, none far
+    above 1 in size: see `_balance`), or inf."""
     c = np.trim_zeros(np.asarray(coef, dtype=float), "b")
     if len(c) < 2:
         return math.inf
     if len(c) == 3:  # the stable quadratic formula: a tiny leading coefficient cannot overflow
         return _fold_radius_quadratic(c[1] / 3.0, c[2] / 5.0) ** 2
+    # the roots u = 1/s of the reversed polynomial: its leading coefficient is the constant 1, so the companion
+    # matrix never divides by a tiny (subnormal) leading coefficient; a huge root s is a u near 0
     with np.errstate(all="ignore"):
-        roots = np.polynomial.polynomial.polyroots(c)
-    real = roots.real[(np.abs(roots.imag) <= 1e-9 * np.maximum(np.abs(roots.real), 1.0)) & (roots.real > 0)]
-    if len(real) == 0:
-        return math.inf
-    s = float(real.min())
-    d = np.polynomial.polynomial.polyder(c)
-    for _ in range(3):  # Newton polish of the eigenvalue root
-        ds = np.polynomial.polynomial.polyval(s, d)
-        if ds == 0:
-            break
-        s = s - np.polynomial.polynomial.polyval(s, c) / ds
+        u = np.polynomial.polynomial.polyroots(c[::-1])
+        real = u.real[(np.abs(u.imag) <= 1e-9 * np.maximum(np.abs(u.real), 1e-300)) & (u.real > 0)]
+        if len(real) == 0:
+            return math.inf
+        s = float(1.0 / real.max())
+        if not math.isfinite(s):
+            return math.inf
+        d = np.polynomial.polynomial.polyder(c)
+        for _ in range(3):  # Newton polish of the eigenvalue root
+            ds = np.polynomial.polynomial.polyval(s, d)
+            step = np.polynomial.polynomial.polyval(s, c) / ds if ds != 0 else 0.0
+            if not math.isfinite(step) or step == 0:
+                break
+            s = s - step
     return s if s > 0 else math.inf
 
 

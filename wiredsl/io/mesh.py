@@ -72,6 +72,8 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
     cached = _from_cache(key) if key is not None else None
     if cached is not None:
         return _checked(*cached, kind)
+    if kind == "obj":
+        _check_obj_vertices(data)
     try:
         import trimesh
     except ImportError as exc:  # pragma: no cover - the extra is part of `test`
@@ -89,6 +91,22 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
     if key is not None:
         _to_cache(key, raw)
     return raw
+
+
+# a vertex line with fewer than three numbers: trimesh reads the file's numbers as one run, three a vertex, so
+# such a line shifts every later vertex (or the run cannot be cut into threes at all)
+_SHORT_VERTEX = re.compile(rb"^v(?:[ \t]+[^\s]+){0,2}[ \t]*\r?$", re.M)
+
+
+def _check_obj_vertices(data: bytes) -> None:
+    """MeshFileError naming the first OBJ vertex line (`v x y z [w]`) that has fewer than three coordinates."""
+    m = _SHORT_VERTEX.search(data)
+    if m is not None:
+        line = data.count(b"\n", 0, m.start()) + 1
+        text = m.group().strip().decode("utf-8", "replace")
+        shown = text if len(text) <= 40 else text[:40] + "..."
+        raise MeshFileError(f"line {line}: a vertex needs x, y and z; '{shown}' has {len(text.split()) - 1} "
+                            f"coordinate(s)")
 
 
 def _checked(vertices: np.ndarray, triangles: np.ndarray, kind: str) -> RawMesh:

@@ -214,9 +214,12 @@ def _footprints(world: World) -> dict[str, list[np.ndarray]]:
         t = np.linspace(world.ell_arc[e, 0], world.ell_arc[e, 1], 73) if not world.ell_full[e] else ring
         pts = world.ell_c[e, :2] + np.cos(t)[:, None] * world.ell_U[e, :2] + np.sin(t)[:, None] * world.ell_V[e, :2]
         out.setdefault(owner[fid], []).append(pts)
-    for fid, cont in world.contours:  # a smooth mesh surface: its outline seen from high above
-        above = cont.ends.reshape(-1, 3).mean(axis=0) + (0.0, 0.0, 1e6)
-        out.setdefault(owner[fid], []).extend(cont.ends[cont.seen_from(above)][:, :, :2])
+    for fid, cont in world.contours:  # a smooth mesh surface: its outline seen from high above (far above its
+        ends = cont.ends.reshape(-1, 3)  # own size too: from inside a sphere of 1e7 m nothing is an outline)
+        above = ends.mean(axis=0) + (0.0, 0.0, max(1e6, 1e3 * float(np.ptp(ends, axis=0).max())))
+        outline = cont.ends[cont.seen_from(above)][:, :, :2]
+        if len(outline):
+            out.setdefault(owner[fid], []).extend(outline)
     return out
 
 

@@ -18,6 +18,7 @@ import pydantic
 from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
+from wiredsl.io.files import printable_path
 from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
 from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE, Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
@@ -133,7 +134,8 @@ class Compiler(CameraCompiler):
                                        f"'{self.singles['rig'].name}' has none", span,
                                "add 'calibration ...' to the rig, or remove the stage")
         root = self.program.root
-        name = self.scene_name or FsPath(root.path).stem
+        # a name from a file's name that is not UTF-8 shows its undecodable bytes as U+FFFD, as paths do
+        name = self.scene_name or printable_path(FsPath(root.path).stem)
         if self.out.n_errors:
             # Sentinel; never returned to a user, compile_program raises first.
             return Scene.model_construct(name=name, source=root.path)

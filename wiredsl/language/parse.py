@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +28,7 @@ class _CommentSink:
 
 
 MAX_NESTING = 32  # brackets and blocks; real scenes nest 2 deep, and deeper input would exhaust recursion later
+MAX_ECHOES = 200  # errors in a row on one line (one reported) before the parse gives up on the file
 
 
 _CLOSER = {"LPAR": "RPAR", "LSQB": "RSQB", "LBRACE": "RBRACE"}
@@ -179,9 +181,15 @@ def run(p: lark.Lark, text: str, path: str, close_before: dict[int, int] | None 
     unclosed: dict[int, int] = {}  # line -> blocks to close before it, for a second parse
     lines = source_lines(text)  # once: recovery may be called for every token of a long broken line
 
+    echoes = [0]  # errors in a row on one line, not reported: past MAX_ECHOES the parse stops there (a line of
+    # 4,000,000 `{` was 4,000,000 recoveries, 33 s, for one diagnostic)
+
     def add(d: Diagnostic) -> None:
         if not errors or errors[-1].span.line != d.span.line or d.code == "E003":  # the rest of a line is echo
             errors.append(d)
+            echoes[0] = 0
+        else:
+            echoes[0] += 1
 
     def recover(exc: lark.exceptions.UnexpectedInput) -> bool:
         tok = getattr(exc, "token", None)
@@ -205,6 +213,10 @@ def run(p: lark.Lark, text: str, path: str, close_before: dict[int, int] | None 
         d = syntax_diagnostic(exc, text, path)
         add(d)
         broken.append((d.span.line, d.span.col))
+        if echoes[0] >= MAX_ECHOES:
+            errors[-1] = dataclasses.replace(errors[-1], notes=(*errors[-1].notes, f"over {MAX_ECHOES} more errors "
+                                                                 "on this line: the rest of the file is not checked"))
+            return False
         return d.code != "E003" and len(errors) <= MAX_REPORTED
 
     result = None

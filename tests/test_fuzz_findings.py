@@ -1,0 +1,223 @@
+"""The fuzz campaign's findings outside plug-ins (issue 23): each input that made wiredsl fail with an internal
+error (exit 3), take minutes or flood the terminal, kept as a reproducer that must now give a diagnostic."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from wiredsl.cli import main
+from wiredsl.engine import geometry
+
+ROOT = Path(__file__).resolve().parent.parent
+CAMERA_WORLD = """wiredsl 1
+model m {
+  line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)
+}
+place m as p
+"""
+RIG = """rig r {
+  left c at (0, 0.06, 1) looking (1, 0, 0)
+  right c at (0, -0.06, 1) looking (1, 0, 0)
+}
+path run { pose (0, 0) }
+"""
+
+
+def run(*args: str):
+    return CliRunner().invoke(main, list(args))
+
+
+# --------------------------------------------------------------------------- lens coefficients at the extremes
+
+def _exact_first_positive_root(coef) -> float:
+    """The smallest positive s where the polynomial (coefficients lowest order first, exact Fractions, constant 1)
+    changes sign: bracketed on the powers of two from 2^-1400 to 2^1400, then bisected, in exact rational
+    arithmetic (no eigenvalues, no balancing, no rounding: independent of the code under test)."""
+    def p(s):
+        return sum(c * s**i for i, c in enumerate(coef))
+
+    prev = Fraction(2) ** -1400
+    for e in range(-1399, 1401):
+        s = Fraction(2) ** e
+        if p(s) <= 0:
+            lo, hi = prev, s
+            for _ in range(60):
+                mid = (lo + hi) / 2
+                lo, hi = (mid, hi) if p(mid) > 0 else (lo, mid)
+            return float(hi) if hi < Fraction(10) ** 308 else math.inf
+        prev = s
+    return math.inf
+
+
+def _exact_fold_radius(k1, k2, k3, k4, k5, k6) -> float:
+    k = [Fraction(x) for x in (k1, k2, k3, k4, k5, k6)]
+    N, D = [1, k[0], k[1], k[2]], [1, k[3], k[4], k[5]]
+    num = [Fraction(0)] * 7  # d/dr (r N / D) numerator in s = r^2: (N + 2 s N') D - 2 s N D'
+    for i in range(4):
+        for j in range(4):
+            num[i + j] += (N[i] + 2 * i * N[i]) * D[j] - 2 * N[i] * j * D[j]
+    s = min(_exact_first_positive_root(num), _exact_first_positive_root(D))
+    return math.sqrt(s) if s < 1e308 else math.inf
+
+
+EXTREMES = [1e308, -1e308, 5e-324, -5e-324, 1e-310, -2.2e-308, 1e-200, -1e150]
+
+
+@pytest.mark.parametrize("value", EXTREMES)
+@pytest.mark.parametrize("which", ["k3", "k6"])
+def test_fold_radius_of_extreme_rational_coefficients_agrees_with_exact_arithmetic(which, value):
+    k = dict(k1=-0.2, k2=0.05, k3=0.0, k4=0.0, k5=0.0, k6=0.0)
+    k[which] = value
+    ours = geometry.fold_radius(**k)  # was numpy.linalg.LinAlgError
+    ref = _exact_fold_radius(*k.values())
+    # the angle from the axis is what the radius is for: a fold past 1e16 (or none) is 90 deg in doubles
+    assert math.atan(ours) == pytest.approx(math.atan(ref), rel=1e-12), (ours, ref)
+    if ref < 1e8:
+        assert ours == pytest.approx(ref, rel=1e-9), (ours, ref)
+
+
+@pytest.mark.parametrize("value", EXTREMES)
+@pytest.mark.parametrize("which", [2, 3])
+def test_fisheye_limit_of_extreme_coefficients_agrees_with_exact_arithmetic(which, value):
+    k = [0.02, -0.01, 0.0, 0.0]
+    k[which] = value
+    ours = geometry.fisheye_max_angle(*k)  # was numpy.linalg.LinAlgError
+    s = _exact_first_positive_root([1] + [(2 * i + 3) * Fraction(x) for i, x in enumerate(k)])
+    ref = min(math.sqrt(s), math.pi) if math.isfinite(s) else math.pi
+    assert ours == pytest.approx(ref, rel=1e-9), (ours, ref)
+
+
+@pytest.mark.parametrize("lens", ["k3 1e308", "k3 -1e308", "k6 5e-324", "k6 -1e308", "k3 -5e-324",
+                                  "distortion equidistant\n  k1 0.01\n  k3 -1e308",
+                                  "distortion equidistant\n  k1 0.01\n  k4 5e-324"])
+def test_a_scene_with_extreme_lens_coefficients_checks_and_builds(tmp_path, lens):
+    (tmp_path / "s.wd").write_text(CAMERA_WORLD + f"camera c {{\n  focal 600px\n  size (640px, 480px)\n  {lens}\n}}\n"
+                                   + RIG)
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code == 0, r.output
+    if "-1e308" in lens:  # the lens folds back at its centre: it images nothing, and says so
+        assert "W147" in r.stderr and "100% of its image" in r.stderr
+    r = run("build", str(tmp_path / "s.wd"), "-o", str(tmp_path / "out"))
+    assert r.exit_code == 0, r.output
+
+
+@pytest.mark.parametrize("dist", ["[0.1, 0., 0., 0., 1e308]", "[0.1, 0., 0., 0., -1e308, 0., 0., 5e-324]",
+                                  "[0.1, 0., 0., 0., 0., 0., 0., -1e308]"])
+def test_a_calibration_file_with_extreme_coefficients_checks(tmp_path, dist):
+    (tmp_path / "cam.yaml").write_text(
+        "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n   rows: 3\n"
+        "   cols: 3\n   dt: d\n   data: [ 600., 0., 320., 0., 600., 240., 0., 0., 1. ]\n"
+        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n"
+        f"   cols: {dist.count(',') + 1}\n   dt: d\n   data: {dist}\n")
+    (tmp_path / "s.wd").write_text(CAMERA_WORLD + 'camera c {\n  read "cam.yaml"\n}\n' + RIG)
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code in (0, 1) and "internal" not in r.output, r.output
+
+
+# --------------------------------------------------------------------------- a file name that is not UTF-8
+
+def test_a_scene_named_by_a_file_name_that_is_not_utf8_builds_to_json(tmp_path):
+    text = (ROOT / "scenes" / "box.wd").read_text().replace("scene box\n", "")  # the name comes from the file
+    path = os.fsdecode(bytes(tmp_path) + b"/b\xffx.wd")
+    Path(path).write_text(text)
+    r = run("build", path, "-o", str(tmp_path / "out"))  # was orjson's TypeError on the surrogate (exit 3)
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "out" / "features.json").read_text(encoding="utf-8"))
+    assert doc["scene"]["name"] == "b\ufffdx"
+    r = run("compile", path)
+    assert r.exit_code == 0 and json.loads(r.stdout)["name"] == "b\ufffdx"
+
+
+# --------------------------------------------------------------------------- meshes
+
+MESH_SCENE = CAMERA_WORLD.replace("model m {\n  line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)\n}",
+                                  'model m {\n  mesh read "m.obj"\n}') + \
+    "camera c {\n  focal 600px\n  size (640px, 480px)\n}\n" + RIG
+
+
+@pytest.mark.parametrize("obj, line, shown", [
+    ("v 0 0 0\nv 1 0\nf 1 2 1\n", 2, "'v 1 0' has 2"),  # was numpy's reshape ValueError (exit 3)
+    ("v 0 0 0\nv 1 0 0\nv 0 1\nf 1 2 3\n", 3, "'v 0 1' has 2"),  # was a wrong "refers to a vertex" error
+    ("# c\nv 0 0 0\r\nv 1 0 0\r\nv 0 1 0\r\nv\r\nf 1 2 3\r\n", 5, "'v' has 0"),
+])
+def test_an_obj_vertex_with_too_few_coordinates_is_a_located_diagnostic(tmp_path, obj, line, shown):
+    (tmp_path / "m.obj").write_text(obj)
+    (tmp_path / "s.wd").write_text(MESH_SCENE)
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code == 1, r.output
+    assert f"error[E125]: mesh file m.obj: line {line}: a vertex needs x, y and z; {shown} coordinate(s)" in r.stderr
+
+
+def test_obj_vertices_with_a_w_or_colours_are_still_read(tmp_path):
+    (tmp_path / "m.obj").write_text("v 0 0 0 1\nv 1 0 0 1 0.5 0.5 0.5\nv 0 1 0\nvn 0 0\nf 1 2 3\n")
+    (tmp_path / "s.wd").write_text(MESH_SCENE)
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code == 0, r.output
+
+
+def test_a_contour_only_sphere_of_1e7_m_is_drawn_in_the_top_view(tmp_path):
+    (tmp_path / "ball.glb").write_bytes((ROOT / "scenes" / "meshes" / "ball.glb").read_bytes())
+    (tmp_path / "s.wd").write_text(MESH_SCENE.replace('mesh read "m.obj"', 'mesh read "ball.glb" scale 1e7 up y'))
+    r = run("build", str(tmp_path / "s.wd"), "-o", str(tmp_path / "out"))  # was np.concatenate([]) (exit 3)
+    assert r.exit_code == 0, r.output
+    svg = (tmp_path / "out" / "pose_000.svg").read_text()
+    assert svg.count("<title>p</title></polyline>") > 0  # its outline, seen from far above its own size
+
+
+# --------------------------------------------------------------------------- the Python API
+
+@pytest.mark.parametrize("make", [
+    lambda w: w.simulate(None, trials=1, seed=0), lambda w: w.Simulator("x", 0), lambda w: w.Simulator(3, 0),
+    lambda w: w.simulate("scenes/box.wd", trials=1, seed=0), lambda w: w.Simulator(Path("scenes/box.wd"), 0)])
+def test_simulate_without_a_scene_is_a_type_error_that_says_what_it_takes(make):
+    import wiredsl
+
+    with pytest.raises(TypeError, match="takes a compiled Scene, not .*(compile it first|wiredsl.compile)"):
+        make(wiredsl)  # was AttributeError: 'NoneType' object has no attribute 'pipeline' (from run.py)
+
+
+# --------------------------------------------------------------------------- huge input, bounded output
+
+def test_a_five_million_digit_token_in_a_trajectory_is_quoted_as_an_excerpt(tmp_path):
+    good = "1305031098.6659 1.3563 0.6305 1.6380 0.6132 0.5962 -0.3311 -0.3986\n"
+    (tmp_path / "t.tum").write_text(good + "1305031098.7 1e" + "9" * 5_000_000 + " 0.6 1.6 0.6 0.5 -0.3 -0.3\n")
+    (tmp_path / "s.wd").write_text(CAMERA_WORLD + "camera c {\n  focal 600px\n  size (640px, 480px)\n}\n"
+                                   + RIG.replace("path run { pose (0, 0) }", 'path run {\n  read "t.tum" format tum\n}'))
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code == 1 and "E145" in r.stderr
+    assert len(r.stderr) < 2000, len(r.stderr)  # was 15 MB: the token in the message and its line twice
+    assert "1e99999" in r.stderr and "(4,999,922 more characters)" in r.stderr
+    r = run("check", "--diagnostics", "json", str(tmp_path / "s.wd"))
+    assert r.exit_code == 1 and len(r.stderr) < 2000
+
+
+def test_a_long_line_is_shown_as_a_window_around_the_caret():
+    from wiredsl.diagnostics import Diagnostic, Span, render
+
+    line = "a" * 5000 + " bad " + "b" * 5000
+    d = Diagnostic("error", "E001", "unexpected 'bad'", Span("f.wd", 1, 5002, 1, 5005), "here")
+    text = render([d], {"f.wd": line + "\n"})
+    src, caret = text.splitlines()[1:3]
+    assert len(src) < 200 and src.startswith(" 1 | ...") and src.endswith("...")
+    # the caret is still under the token
+    assert src[caret.index("^"):caret.index("^") + 3] == "bad" and caret.count("^") == 3
+
+
+def test_a_file_of_four_million_braces_fails_fast_with_one_diagnostic(tmp_path):
+    import time
+
+    (tmp_path / "s.wd").write_text("{" * 4_000_000)
+    t0 = time.process_time()
+    r = run("check", str(tmp_path / "s.wd"))
+    spent = time.process_time() - t0
+    assert r.exit_code == 1 and r.stderr.count("error[E001]") == 1 and len(r.stderr) < 1000, r.stderr[:2000]
+    assert "the rest of the file is not checked" in r.stderr
+    assert spent < 10, spent  # was 33 s: a recovery a brace; generous for a shared machine
