@@ -27,7 +27,8 @@ from wiredsl.effects.base import Effect
 from wiredsl.measures.base import Measure
 from wiredsl.scene import Pipeline, Scene
 
-__all__ = ["Batch", "CameraAt", "CompileError", "CompileWarning", "Effect", "Measure", "Simulator", "compile", "simulate"]
+__all__ = ["Batch", "CameraAt", "CompileError", "CompileWarning", "Effect", "Measure", "Simulator", "compile",
+           "simulate"]
 
 
 class CompileError(WiredslError):
@@ -216,8 +217,6 @@ class Simulator:
         radians on the floor, or a 4x4 world-from-robot transform (planar: a turn about the vertical).
         `step` keys the draws (and numbers the pose in the output); an arbitrary pose needs one.
         """
-        from wiredsl.io.emit import batch_arrays, contours
-
         step = None if step is None else _integer("step", step, 0, MAX_TRIAL)
         trial = _integer("trial", trial, 0, MAX_TRIAL)
         key = (_pose_key(pose), trial, step)
