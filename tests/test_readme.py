@@ -29,3 +29,13 @@ def test_layout_names_every_module_and_folder():
     folders = {line.split("/")[0] for line in tracked.splitlines() if "/" in line and not line.startswith(".")}
     listed = set(re.findall(r"^([\w.-]+)/", shown, re.M))
     assert folders <= listed, f"folders missing from docs/explanation/layout.md: {sorted(folders - listed)}"
+
+
+def test_the_readme_stays_short_and_points_at_the_site():
+    """What wiredsl is, a figure, the Quick start and links: the rest lives in docs/ (the site)."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 250
+    assert "## Quick start" in text and "![" in text
+    for link in re.findall(r"\]\(((?:docs/)[^)#]+)", text):
+        assert (ROOT / link).is_file(), link
+    assert "## Layout" not in text  # the layout is docs/explanation/layout.md

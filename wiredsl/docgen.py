@@ -16,7 +16,7 @@ MARKER = re.compile(r"^<!-- generated: ([\w-]+) -->$", re.M)
 
 # The unit a parameter of each kind is given in when a number is bare (the file's default units) and where it is
 # stored after conversion.
-UNITS = {"length": "m", "angle": "deg (stored in rad)", "image": "px", "fraction": "fraction (or %)",
+UNITS = {"length": "m", "angle": "deg (stored in rad)", "image": "px", "fraction": "0..1, or %",
          "number": "", "integer": "", "time": "s"}
 
 
@@ -71,8 +71,9 @@ def effects() -> str:
 
     out: list[str] = []
     for name, effect in sorted(BUILTIN.items(), key=lambda kv: kv[1].flow_rank()):
-        out += [f"### `{name}`", "", f"Acts on: {effect.acts_on}. Compiled kernel: "
-                f"{'yes' if effect.kernel is not None else 'no (numpy engine)'}.", "", _doc(effect), "",
+        engine = ("it perturbs the cameras before projection, on either engine" if effect.acts_on == "cameras"
+                  else "compiled kernel and numpy" if effect.kernel is not None else "numpy only")
+        out += [f"### `{name}`", "", f"Acts on: {effect.acts_on}. Engines: {engine}.", "", _doc(effect), "",
                 *_params(effect.Params), ""]
     return "\n".join(out).rstrip()
 
