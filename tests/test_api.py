@@ -253,21 +253,132 @@ def test_compile_takes_text_and_paths_alike(lab, monkeypatch):
 
 
 def readme_examples() -> list[str]:
-    text = (ROOT / "README.md").read_text()
-    section = text[text.index("## Python API"):]
-    section = section[:section.index("\n## ", 5)]
-    return re.findall(r"```python\n(.*?)```", section, re.S)
+    """The Python API page's examples (docs/reference/api.md)."""
+    return re.findall(r"```python\n(.*?)```", (ROOT / "docs/reference/api.md").read_text(), re.S)
 
 
-def test_readme_python_api_examples_run(tmp_path, monkeypatch, capsys):
+def test_the_api_page_examples_run(tmp_path, monkeypatch, capsys):
     """Every example runs, and a `print(...)  # text` line prints what its comment shows (up to a `...`)."""
     blocks = readme_examples()
     assert len(blocks) >= 3
     namespace: dict = {}
     for block in blocks:
-        exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102 - the README's own examples
+        exec(compile(block, "docs/reference/api.md", "exec"), namespace)  # noqa: S102 - the page's own examples
     printed = capsys.readouterr().out
     shown = re.findall(r"^\s*print\(.*\)\s+# (.+)$", "".join(blocks), re.M)
     assert shown
     for text in shown:
         assert text.split("...")[0].strip() in printed, (text, printed)
+
+
+# --- closed-loop helpers: the rig's cameras at a pose, features by name, same-pose observations cached --------
+
+
+def _corners_by_source(batch, side: str) -> dict[str, np.ndarray]:
+    return {r["source"]: np.array(r["at"]) for r in batch.select(kind="corner", camera=side)}
+
+
+def _world_corners(sim) -> dict[str, np.ndarray]:
+    world = sim.run.world
+    return {world.feature_ids[int(f)]: np.asarray(x, dtype=float)
+            for f, x in zip(world.corner_fid, world.corners, strict=True)}
+
+
+def _cv2_project(cam, X: np.ndarray) -> np.ndarray:
+    import cv2
+
+    rvec, _ = cv2.Rodrigues(cam.R)
+    if cam.model == "equidistant":
+        uv, _ = cv2.fisheye.projectPoints(X.reshape(-1, 1, 3), rvec, cam.t, cam.K, cam.dist)
+    else:
+        uv, _ = cv2.projectPoints(X, rvec, cam.t, cam.K, cam.dist)
+    return uv.reshape(-1, 2)
+
+
+@pytest.mark.parametrize("path", ["scenes/lab.wd", "scenes/fisheye.wd"])
+@pytest.mark.parametrize("pose", [3, (1.7, 2.2, 0.4)])
+def test_nominal_cameras_project_as_opencv_does(path, pose):
+    """The nominal K, distortion, R and t at a pose, given to cv2.projectPoints (cv2.fisheye for an equidistant
+    lens), put each corner where the engine's ideal projection does."""
+    scene = wiredsl.compile(path)
+    sim = wiredsl.Simulator(scene, seed=1, pipeline=Pipeline(name="none"))
+    seen = sim.observe(pose, step=None if isinstance(pose, int) else 9)
+    where = _world_corners(sim)
+    n = 0
+    for side in ("left", "right"):
+        cam = sim.camera(pose, side)
+        assert cam.model == scene.camera(getattr(scene.rig, side).camera).distortion
+        got = _corners_by_source(seen, side)
+        uv = _cv2_project(cam, np.array([where[s] for s in got]))
+        assert np.abs(uv - np.array(list(got.values()))).max() < 1e-6
+        n += len(got)
+    assert n >= 6
+
+
+def test_the_projection_matrix_is_the_undistorted_projection():
+    """P = K [R | t] gives what OpenCV's undistortPoints makes of the engine's distorted corners."""
+    import cv2
+
+    scene = wiredsl.compile("scenes/lab.wd")
+    sim = wiredsl.Simulator(scene, seed=1, pipeline=Pipeline(name="none"))
+    cam = sim.camera(2, "right")
+    assert cam.P.shape == (3, 4) and np.any(cam.dist)
+    got = _corners_by_source(sim.observe(2), "right")
+    where = _world_corners(sim)
+    X = np.column_stack([np.array([where[s] for s in got]), np.ones(len(got))])
+    h = X @ cam.P.T
+    ideal = h[:, :2] / h[:, 2:]
+    und = cv2.undistortPoints(np.array(list(got.values())).reshape(-1, 1, 2), cam.K, cam.dist, P=cam.K,
+                              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+    assert len(got) >= 3 and np.abs(und.reshape(-1, 2) - ideal).max() < 1e-4
+
+
+def test_a_trials_cameras_are_the_ones_its_corners_were_projected_with(monkeypatch):
+    """Under calibration_error alone, trial K's corners are where cv2.projectPoints puts them with the cameras
+    `camera(pose, side, trial=K)` gives, and those differ from the nominal ones."""
+    monkeypatch.chdir("scenes")
+    text = Path("lab.wd").read_text() + "\npipeline calib_only {\n  calibration_error sigma 1\n}\n"
+    scene = wiredsl.compile(text)
+    sim = wiredsl.Simulator(scene, seed=5, pipeline="calib_only")
+    where = _world_corners(sim)
+    for trial in (0, 3):
+        for pose in (1, (2.0, 2.4, -0.3)):
+            seen = sim.observe(pose, trial=trial, step=None if isinstance(pose, int) else 4)
+            for side in ("left", "right"):
+                cam, nominal = sim.camera(pose, side, trial=trial), sim.camera(pose, side)
+                assert np.abs(cam.K - nominal.K).max() > 1e-3
+                got = _corners_by_source(seen, side)
+                uv = _cv2_project(cam, np.array([where[s] for s in got]))
+                assert len(got) >= 2 and np.abs(uv - np.array(list(got.values()))).max() < 1e-6
+    with pytest.raises(ValueError, match="trial"):
+        sim.camera(1, "left", trial=-1)
+    with pytest.raises(ValueError, match="side"):
+        sim.camera(1, "middle")
+
+
+def test_features_are_selected_by_placement_name_and_declared_kind(lab):
+    sim = wiredsl.Simulator(lab, seed=7, pipeline=Pipeline(name="none"))
+    assert set(sim.select(placement="bin1")) == {s for s in sim.kinds if s.startswith("bin1.")}
+    lines = sim.select(kind="line")
+    assert lines and all(sim.kinds[s] == "line" for s in lines)
+    seen = sim.observe(3).select(kind="line")
+    assert seen and {r["source"] for r in seen} <= set(lines)
+    assert any(r["kind"] == "polyline" for r in seen)  # a line's image under distortion is a curve
+    assert sim.observe(3).select(placement="table1", feature="top_a")[0]["source"] == "table1.top_a"
+    for bad, match in ((dict(placement="bin"), "did you mean 'bin[12]'"), (dict(kind="lines"), "did you mean 'line'"),
+                       (dict(placement="bin1", feature="top_a"), "no feature of placement 'bin1'")):
+        with pytest.raises(ValueError, match=match):
+            sim.select(**bad)
+
+
+def test_the_same_observation_is_cached_and_equals_a_fresh_one(lab):
+    sim = wiredsl.Simulator(lab, seed=7, pipeline="paper")
+    a = sim.observe(2, trial=1)
+    assert sim.observe(2, trial=1) is a
+    assert sim.observe(2, trial=2) is not a and sim.observe((1.0, 2.0, 0.1), trial=1, step=2) is not a
+    fresh = wiredsl.Simulator(lab, seed=7, pipeline="paper").observe(2, trial=1)
+    for name in a.keys():
+        assert np.array_equal(a[name], fresh[name]), name
+    for k in range(70):  # bounded: the oldest is dropped
+        sim.observe(2, trial=10 + k)
+    assert len(sim._seen) == wiredsl.api.OBSERVED and sim.observe(2, trial=1) is not a

@@ -306,8 +306,8 @@ def test_positions_count_lines_as_the_lexer_does():
 
 
 def _readme_lua(marker: str) -> str:
-    """The README's Neovim snippet that contains `marker`."""
-    blocks = re.findall(r"```lua\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    """The editor page's Neovim snippet that contains `marker` (docs/how-to/editor.md)."""
+    blocks = re.findall(r"```lua\n(.*?)```", (ROOT / "docs/how-to/editor.md").read_text(), re.S)
     (block,) = [b for b in blocks if marker in b]
     return block
 

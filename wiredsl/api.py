@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 
 import numpy as np
@@ -27,8 +28,8 @@ from wiredsl.measures.base import Measure
 from wiredsl.plugins import PluginError
 from wiredsl.scene import Pipeline, Scene
 
-__all__ = ["Batch", "CompileError", "CompileWarning", "Effect", "Measure", "PluginError", "Simulator", "compile",
-           "simulate"]
+__all__ = ["Batch", "CameraAt", "CompileError", "CompileWarning", "Effect", "Measure", "PluginError", "Simulator",
+           "compile", "simulate"]
 
 
 class CompileError(WiredslError):
@@ -80,11 +81,12 @@ class Batch:
     (`batch["pts"]`, without the bNNNNN_ prefix; float64 where the file has float32), and `records()`."""
 
     def __init__(self, trials: Sequence[int], arrays: dict[str, np.ndarray], feature_ids: list[str],
-                 disturbed: list | None = None):
+                 disturbed: list | None = None, kinds: dict[str, str] | None = None):
         self.trials = np.asarray(trials, dtype=np.int64)
         self.arrays = arrays
         self.feature_ids = feature_ids
         self.disturbed = disturbed  # per pose: (ideal PoseResult, {side: ImageSet}, views), for measures
+        self.kinds = kinds  # "placement.feature" -> the kind its model declares (feature_kinds)
 
     @property
     def n_trials(self) -> int:
@@ -101,6 +103,16 @@ class Batch:
         from wiredsl.io.load import records
 
         return records({**self.arrays, "feature_ids": self.feature_ids})
+
+    def select(self, placement: str | None = None, feature: str | None = None, kind: str | None = None,
+               camera: str | None = None) -> list[dict]:
+        """The records of the features chosen by placement name, model feature name and the kind the model
+        declares them as (line, polyline, ellipse, silhouette, corner, surface: not their image kind, which
+        says whether a line's image is straight or curved under distortion), and camera ("left", "right").
+        A placement, feature or kind the scene does not have is a ValueError, never an empty list."""
+        chosen = set(select_features(self.kinds or {}, placement, feature, kind))
+        camera = None if camera is None else _choice("camera", camera, ("left", "right"))
+        return [r for r in self.records() if r["source"] in chosen and camera in (None, r["camera"])]
 
     def __repr__(self) -> str:
         return f"Batch(trials {self.trials[0]}..{self.trials[-1]}, {len(self.arrays['strokes'])} strokes)"
@@ -173,14 +185,14 @@ def _batches(scene: Scene, trials: int, seed: int, pipeline, opts, engine: str) 
     from wiredsl.io.emit import batch_arrays, contours
 
     run = runs.start(scene, _pipeline(scene, pipeline), seed=seed, options=opts, engine=engine)
-    ids = run.world.feature_ids
+    ids, kinds = run.world.feature_ids, feature_kinds(scene)
     if not run.stages:
         out = [(r, {side: _ideal_set(run, r, side) for side in ("left", "right") if getattr(r, side) is not None},
                 None) for r in run.ideal()]
-        yield Batch([0], batch_arrays([0], out, contours(run.world), renumber=False), ids, out)
+        yield Batch([0], batch_arrays([0], out, contours(run.world), renumber=False), ids, out, kinds)
         return
     for batch, batch_out in run.batches(range(trials)):
-        yield Batch(batch, batch_arrays(batch, batch_out, contours(run.world)), ids, batch_out)
+        yield Batch(batch, batch_arrays(batch, batch_out, contours(run.world)), ids, batch_out, kinds)
 
 
 def _ideal_set(run, result, side: str):
@@ -208,6 +220,9 @@ class Simulator:
                               options=opts, engine=engine, need_path=False)
         self._lists: dict = {}  # view-point masks met so far
         self._occluders = None
+        self._seen: OrderedDict = OrderedDict()  # (pose, trial, step) -> Batch: the last OBSERVED observations
+        self._rigs: OrderedDict = OrderedDict()  # trial -> its perturbed rig (calibration_error's draw)
+        self.kinds = feature_kinds(scene)
 
     @property
     def seed(self) -> int:
@@ -220,17 +235,82 @@ class Simulator:
         radians on the floor, or a 4x4 world-from-robot transform (planar: a turn about the vertical).
         `step` keys the draws (and numbers the pose in the output); an arbitrary pose needs one.
         """
+        step = None if step is None else _integer("step", step, 0, MAX_TRIAL)
+        trial = _integer("trial", trial, 0, MAX_TRIAL)
+        key = (_pose_key(pose), trial, step)
+        if key in self._seen:  # the same pose, trial and step again: the same draws, so the same batch
+            self._seen.move_to_end(key)
+            return self._seen[key]
+        batch = self._observe(pose, trial, step)
+        self._seen[key] = batch
+        if len(self._seen) > OBSERVED:
+            self._seen.popitem(last=False)
+        return batch
+
+    def _observe(self, pose, trial: int, step: int | None) -> Batch:
         from wiredsl.io.emit import batch_arrays, contours
 
-        result, step = self._ideal(pose, None if step is None else _integer("step", step, 0, MAX_TRIAL))
-        trials = [_integer("trial", trial, 0, MAX_TRIAL)]
+        result, step = self._ideal(pose, step)
+        trials = [trial]
         if self.run.stages:
             out = [self.run.observe(result, trials)]
         else:
             out = [(result, {side: _ideal_set(self.run, result, side) for side in ("left", "right")
                              if getattr(result, side) is not None}, None)]
         arrays = batch_arrays(trials, out, contours(self.run.world), renumber=bool(self.run.stages))
-        return Batch(trials, arrays, self.run.world.feature_ids, out)
+        return Batch(trials, arrays, self.run.world.feature_ids, out, self.kinds)
+
+    def camera(self, pose, side: str = "left", trial: int | None = None) -> CameraAt:
+        """The rig camera `side` with the robot at `pose`, as OpenCV takes it: K, distortion coefficients,
+        R and t (camera from world) and the 3x4 projection P = K [R | t].
+
+        trial None: the nominal camera, as the scene declares it. trial K: the camera trial K of this run
+        saw, with calibration_error's draw applied (the same at every pose of the trial; nominal when the
+        pipeline has no calibration_error). `pose` is a path pose index or any pose `observe` takes.
+        """
+        from wiredsl.engine import geometry
+
+        side = _choice("side", side, ("left", "right"))
+        engine_pose = self._engine_pose(pose)
+        if trial is None or self.run.sampler() is None:
+            if trial is not None:
+                _integer("trial", trial, 0, MAX_TRIAL)
+            mount = getattr(self.scene.rig, side)
+            cam = self.scene.camera(mount.camera)
+            values = {k: float(getattr(cam, k)) for k in geometry.CAMERA_KEYS}
+            R, t = geometry.camera_from_world(engine_pose, mount.rotation, mount.position)
+        else:
+            from wiredsl.engine.montecarlo import trial_cameras
+
+            rig = self._trial_rig(_integer("trial", trial, 0, MAX_TRIAL))[side]
+            cam = rig["camera"]
+            R_cw, t_cw, cams, _ = trial_cameras(rig, engine_pose)
+            values = dict(zip(geometry.CAMERA_KEYS, (float(v) for v in cams[0]), strict=False))
+            R, t = R_cw[0], t_cw[0]
+        return CameraAt.of(side, cam, values, R, t)
+
+    def _trial_rig(self, trial: int) -> dict:
+        from wiredsl.effects.calibration_error import perturbed_rigs
+
+        if trial not in self._rigs:
+            phis = self.run.calibration_draws([trial])
+            self._rigs[trial] = perturbed_rigs(self.scene, phis, self.scene.rig.calibration.order)
+            if len(self._rigs) > OBSERVED:
+                self._rigs.popitem(last=False)
+        return self._rigs[trial]
+
+    def _engine_pose(self, pose) -> tuple[float, ...]:
+        if isinstance(pose, (int, np.integer)) and not isinstance(pose, bool):
+            if self.scene.path is None or not 0 <= pose < len(self.scene.path.poses):
+                raise ValueError(f"pose {pose} is not a pose of the scene's path")
+            return tuple(self.scene.path.pose(int(pose)))
+        return robot_pose(pose)
+
+    def select(self, placement: str | None = None, feature: str | None = None,
+               kind: str | None = None) -> list[str]:
+        """The feature ids ("placement.feature") chosen by placement, model feature name and declared kind (see
+        `Batch.select`); a name or kind the scene does not have is a ValueError."""
+        return select_features(self.kinds, placement, feature, kind)
 
     def _ideal(self, pose, step: int | None):
         import dataclasses
@@ -258,6 +338,87 @@ class Simulator:
         result = project_pose(self.scene, self.run.world, xyh, int(step), self.run.options, self._lists,
                               self._occluders)
         return dataclasses.replace(result, index=int(step)), int(step)
+
+
+OBSERVED = 64  # observations (and trial rigs) a Simulator keeps for a controller that asks again
+
+
+def _pose_key(pose) -> tuple:
+    """A hashable key of a pose as given: a path index, or its numbers exactly."""
+    if isinstance(pose, (int, np.integer)) and not isinstance(pose, bool):
+        return ("index", int(pose))
+    a = np.asarray(pose, dtype=float)
+    return ("pose", a.shape, a.tobytes())
+
+
+MODEL_KINDS = {"lines": "line", "polylines": "polyline", "ellipses": "ellipse", "silhouettes": "silhouette",
+               "corners": "corner", "surfaces": "surface"}
+
+
+def feature_kinds(scene: Scene) -> dict[str, str]:
+    """Every emitted feature of the scene, "placement.feature", with the kind its model declares it as."""
+    models = {m.name: m for m in scene.models}
+    out = {}
+    for placement in scene.placements:
+        model = models[placement.model]
+        for attr, kind in MODEL_KINDS.items():
+            for f in getattr(model, attr):
+                out[f"{placement.name}.{f.name}"] = kind
+    return out
+
+
+def select_features(kinds: dict[str, str], placement: str | None = None, feature: str | None = None,
+                    kind: str | None = None) -> list[str]:
+    """The ids of `kinds` (feature_kinds) matching every criterion given; an unknown one is a ValueError that
+    names what there is."""
+    import difflib
+
+    def known(what: str, value: str, choices: set[str]) -> None:
+        if value not in choices:
+            near = difflib.get_close_matches(value, sorted(choices), n=1)
+            hint = f" (did you mean '{near[0]}'?)" if near else ""
+            raise ValueError(f"no {what} '{value}' in the scene{hint}: {', '.join(sorted(choices))}")
+
+    if placement is not None:
+        known("placement", placement, {k.split(".", 1)[0] for k in kinds})
+    if kind is not None:
+        known("feature kind", kind, set(MODEL_KINDS.values()))
+    chosen = [k for k, v in kinds.items() if (placement is None or k.split(".", 1)[0] == placement)
+              and (kind is None or v == kind)]
+    if feature is not None:
+        known("feature" + (f" of placement '{placement}'" if placement else ""), feature,
+              {k.split(".", 1)[1] for k in chosen} if chosen else {k.split(".", 1)[1] for k in kinds})
+        chosen = [k for k in chosen if k.split(".", 1)[1] == feature]
+    return chosen
+
+
+class CameraAt:
+    """A rig camera at a robot pose, in OpenCV's terms (numpy arrays, float64).
+
+    `K` (3, 3); `dist` the distortion coefficients as OpenCV takes them: radtan (k1, k2, p1, p2, k3, k4, k5, k6)
+    for cv2.projectPoints, equidistant (k1, k2, k3, k4) for cv2.fisheye.projectPoints (`model` says which);
+    `R` (3, 3) and `t` (3,) with P_cam = R P_world + t (cv2.Rodrigues(R) is projectPoints' rvec, t its tvec);
+    `P` (3, 4) = K [R | t], the projection of undistorted points; `size` (width, height) in pixels.
+    """
+
+    def __init__(self, side: str, model: str, K: np.ndarray, dist: np.ndarray, R: np.ndarray, t: np.ndarray,
+                 size: tuple[int, int]):
+        self.side, self.model, self.K, self.dist, self.R, self.t, self.size = side, model, K, dist, R, t, size
+
+    @classmethod
+    def of(cls, side: str, cam, v: dict[str, float], R: np.ndarray, t: np.ndarray) -> CameraAt:
+        K = np.array([[v["f"] * v["ax"], 0.0, v["cx"]], [0.0, v["f"] * v["ay"], v["cy"]], [0.0, 0.0, 1.0]])
+        keys = ("k1", "k2", "k3", "k4") if cam.distortion == "equidistant" else \
+            ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+        return cls(side, cam.distortion, K, np.array([v[k] for k in keys]), np.array(R, dtype=float),
+                   np.array(t, dtype=float), (int(cam.width), int(cam.height)))
+
+    @property
+    def P(self) -> np.ndarray:
+        return self.K @ np.column_stack([self.R, self.t])
+
+    def __repr__(self) -> str:
+        return f"CameraAt({self.side}, {self.model}, f=({self.K[0, 0]:.6g}, {self.K[1, 1]:.6g}) px)"
 
 
 PLANAR = 1e-9  # how far from a turn about the vertical a transform may be to be taken as a floor pose

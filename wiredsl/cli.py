@@ -358,15 +358,9 @@ def _documents(path: str, text: str) -> list[tuple[str, object]]:
 @guarded
 def reference() -> None:
     """Print the language reference (Markdown), generated from the statement table."""
-    from wiredsl.language.statements import CONTEXTS, takes
+    from wiredsl.docgen import statements
 
-    out = ["| where | statement | takes | meaning |", "|---|---|---|---|"]
-    for ctx, sigs in CONTEXTS.items():
-        for sig in sigs.values():
-            where = "top level" if ctx == "top" else f"`{ctx}` block"
-            text = takes(sig).replace("|", "\\|")
-            out.append(f"| {where} | `{sig.keyword}` | `{text}` | {sig.doc.splitlines()[0]} |")
-    click.echo("\n".join(out))
+    click.echo(statements())
 
 
 @main.command()
@@ -393,6 +387,25 @@ def plugins() -> None:
     if bad:
         sys.exit(EXIT_INVALID)
 
+
+
+@main.command()
+@click.argument("name")
+@click.option("--plugin", is_flag=True, help="A plug-in package (an effect with its kernel, a measure, their "
+              "tests, entry points) instead of a scene project.")
+@guarded
+def init(name: str, plugin: bool) -> None:
+    """Start a project in the folder NAME: a scene with a study and a CI script, or with --plugin a plug-in
+    package template that installs and passes its own tests (wiredsl/init.py)."""
+    from wiredsl.init import InitError, create
+
+    try:
+        path = create(name, plugin=plugin)
+    except InitError as exc:
+        click.echo(f"wiredsl: error: {exc}", err=True)
+        sys.exit(EXIT_INVALID)
+    click.echo(f"wrote {path}/: " + ("pip install -e './{0}[test]' && (cd {0} && pytest)" if plugin
+                                      else "cd {0} && bash ci.sh").format(name))
 
 TOLERANCE_PX = (1e-3, 100.0)  # finer than 1e-3 px costs vertices (memory, time) without bound, for nothing seen
 MAX_TRIAL = 2**31 - 1  # npz stores the trial in an int32 column

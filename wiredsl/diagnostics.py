@@ -201,3 +201,70 @@ def _render_one(d: Diagnostic, sources: dict[str, str], colour: bool) -> str:
         lines.append(f"  hint: {d.hint}")
     lines += [f"  note: {n}" for n in d.notes]
     return "\n".join(lines)
+
+# Every code the compiler and the commands give, with its meaning: the diagnostics reference is generated from
+# this table (docs/reference/diagnostics.md), and a test holds it to the codes the source gives.
+CODES: dict[str, str] = {
+    'E001': 'syntax error (unexpected token)',
+    'E002': 'unexpected character',
+    'E003': 'a bracket or block never closed (reported where it was opened), or an unexpected end of file',
+    'E010': ('file cannot be read (missing, not UTF-8, a directory, FIFO or device, over 16 MiB, a NUL byte in its '
+            'path), trajectory and times files included'),
+    'E011': 'include cycle, or includes nested deeper than 64 files',
+    'E012': 'missing or unsupported format version',
+    'E100': 'unknown statement in this context',
+    'E101': 'unknown word or extra argument in a statement (a block holds one statement a line)',
+    'E102': 'missing clause, argument or block',
+    'E103': 'clause given twice, or conflicting clauses',
+    'E104': 'unknown name (with "did you mean")',
+    'E105': 'duplicate name',
+    'E106': 'wrong kind of value',
+    'E107': 'unit of the wrong kind',
+    'E108': 'unknown unit',
+    'E109': 'number too large to represent (not finite, e.g. `1e999`)',
+    'E110': 'value out of range (including lengths and image distances over 1e9, focal lengths over 1e9 px)',
+    'W111': 'a bare number probably missing its unit (an angle below 1 degree, an implausible focal length)',
+    'E120': 'degenerate geometry (zero length, collinear face, zero-area triangle)',
+    'E121': 'zero normal or direction',
+    'E122': 'axis not perpendicular to normal; vertical viewing direction',
+    'E123': 'face not planar',
+    'E124': 'zero radius',
+    'E125': ('mesh file not usable: unknown format, not a mesh, empty, a vertex not finite, no triangle with an '
+            'area (`mesh read`)'),
+    'W125': 'mesh triangles of no area, dropped',
+    'W126': 'mesh edges shared by more than two triangles (non-manifold), kept as lines',
+    'E130': 'silhouette not between two ellipses of its own model',
+    'E140': 'matrix of the wrong shape, not symmetric, not positive semi-definite, or an entry over 1e100',
+    'E141': ('calibration file malformed or not usable: a matrix file, or an OpenCV, ROS, Kalibr or ORB-SLAM file '
+            "(a value of the wrong type, nesting over 64 deep, thin-prism or tilt terms, Kalibr's "
+            'omni/ds/eucm/fov, skew, no extrinsics, a garbage results-cam.txt, PyYAML missing)'),
+    'W143': ('a calibration file read with a doubt: a fisheye labelled plumb_bob, a `size` beside `read` that '
+            "rescales the file's camera matrix or does not hold its centre, a rotation written with few digits"),
+    'W144': ("a rig's extrinsics that are probably wrong: cameras over 5 m apart (a T in millimetres), the right "
+            'camera to the left of the left one'),
+    'W147': ('a lens that does not image its own image: its distortion folds back inside the image, so the part '
+            'beyond the fold is never reached (a fisheye bounded by its `fov` or imaging to 180 deg is not '
+            "warned), or a radtan lens scales the image corner's radius by over 4x or under 1/4x (a `k1` of 1e6 "
+            'from a file: the image spans a sliver of what the focal length gives)'),
+    'E142': 'view-dependency file does not fit its schema (at build time)',
+    'E145': ('trajectory file malformed or not usable (at its line: timestamps not increasing, a quaternion or '
+            'matrix far from a rotation, non-finite values, wrong column count, missing columns; at the '
+            'statement: no timestamps for `every`, an empty window, too many poses)'),
+    'W145': "a trajectory's quaternion or rotation matrix off unit by more than printed digits explain: normalised",
+    'W146': ("a path read from a trajectory file puts the robot's up axis more than 60 deg from the scene's up "
+            '(median pose), or climbs more than it runs: `body` or `world` probably missing'),
+    'E151': ('size over a limit (view-points, poses, matrix order, polyline vertices at a tolerance, brackets and '
+            'blocks nested over 32 deep, a mesh over 2,000,000 triangles)'),
+    'E160': 'a pipeline order that cannot be honoured',
+    'E170': 'a study design with no points (no values, no steps, no trials, no poses)',
+    'E171': ("a factor or option that does not fit the study's design (a list in a space-filling design, a range "
+            'without steps in a grid, base samples not a power of 2)'),
+    'W161': 'pipeline stage out of the data-flow order of a real system',
+    'E161': ('64 calibration draws in a row give a camera a pixel scale that is not positive or implausibly large '
+            '(at build time)'),
+    'E162': '`calibration_error` in a pipeline, or varied in a study, of a scene whose rig has no calibration',
+    'E180': ('an installed plug-in of that name cannot be used: it fails to import, is not an `Effect` / '
+            '`Measure`, lacks a parameter model, or two packages claim the name (the message names the package)'),
+    'E181': ('a plug-in failed at run time: it raised, or returned a malformed ImageSet, another shape or a '
+            'non-finite value (the message names the package)'),
+}

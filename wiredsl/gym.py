@@ -1,0 +1,235 @@
+"""A Gymnasium environment: the robot of a wiredsl scene moved by an agent that sees what the rig's detectors see.
+
+    import gymnasium, wiredsl.gym
+    env = wiredsl.gym.WiredslEnv("scenes/lab.wd", task=wiredsl.gym.Task("reach", "bin1"))
+    obs, info = env.reset(seed=1)
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+
+Observation (a dict of fixed-size arrays; C = `max_corners`, S = `max_segments`, camera 0 left, 1 right):
+
+- `corners` float32 (2, C, 2): each camera's disturbed corners (u / width, v / height), in [0, 1], in the
+  engine's order (by feature), the first C; `corner_mask` int8 (2, C): 1 where a slot holds a corner;
+- `segments` float32 (2, S, 4): each camera's disturbed strokes as straight pieces between consecutive vertices
+  (u0 / width, v0 / height, u1 / width, v1 / height), in stroke order, the first S; `segment_mask` int8 (2, S);
+- `pose` float32: the robot's pose, (x, y, heading) for `motion="planar"`, its world-from-robot [R | t] row-major
+  (12) for `motion="6dof"`.
+
+Action: planar, Box(-1, 1, (2,)): forward distance (times `step_length` m) then turn (times `turn` rad); 6dof,
+Box(-1, 1, (6,)): a move in the robot's frame (x, y, z times `step_length` m) then a turn about its own axes
+(roll, pitch, yaw times `turn` rad). The disturbances of step k of an episode are wiredsl's keyed draws of
+(seed, trial, step k): `reset(seed=...)` seeds the episode's `np_random` (Gymnasium's rule), which draws the
+start pose's jitter and the episode's trial number, so an episode replays bit for bit from its seed and actions.
+
+Tasks (`Task`): `reach` ends when the robot stands `distance` m from the target placement, facing it (within
+`tolerance` m and `heading_tolerance` rad): reward the progress towards that pose each step, +10 on arrival,
+-0.01 a step; `track` rewards each step in which both cameras see at least `min_features` of the target's
+features, and ends when they have not for `patience` steps. Both end (terminated, -10) when the robot leaves the
+view-points' area by more than `margin` m (or, 6dof, rises or sinks more than 1 m), and are truncated after
+`max_steps`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+import wiredsl
+from wiredsl.api import robot_pose
+from wiredsl.engine import geometry
+from wiredsl.io import layout
+
+TRIALS = 2**31 - 1  # an episode's trial number is drawn in 0..TRIALS-1 (Simulator's range)
+HEIGHT = 1.0  # 6dof: the robot's frame may rise or sink this far (m) before the episode ends
+
+
+@dataclass(frozen=True)
+class Task:
+    """What the agent is asked to do: `kind` "reach" or "track", about the placement `target`."""
+
+    kind: str
+    target: str
+    distance: float = 1.2  # reach: stand this far from the target's origin (m)
+    tolerance: float = 0.15  # reach: within this of that point (m)
+    heading_tolerance: float = 0.25  # reach: facing the target within this (rad)
+    min_features: int = 1  # track: features of the target each camera must see
+    patience: int = 3  # track: steps without them before the episode ends
+
+    def __post_init__(self):
+        if self.kind not in ("reach", "track"):
+            raise ValueError(f"a task is 'reach' or 'track', not {self.kind!r}")
+
+
+class WiredslEnv(gymnasium.Env):
+    """The scene's robot, its rig's disturbed features as observations; see the module's docstring."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, scene, task: Task, *, pipeline: str | None = None, motion: str = "planar",
+                 seed: int = 0, start=None, start_noise: float = 0.2, max_steps: int = 60,
+                 step_length: float = 0.25, turn: float = 0.3, max_corners: int = 32, max_segments: int = 128,
+                 margin: float = 1.0):
+        self.scene = wiredsl.compile(scene) if isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__") \
+            else scene
+        if motion not in ("planar", "6dof"):
+            raise ValueError(f"motion is 'planar' or '6dof', not {motion!r}")
+        self.task, self.motion = task, motion
+        self.sim = wiredsl.Simulator(self.scene, seed=seed, pipeline=pipeline)
+        self.target = self.sim.select(placement=task.target)  # refuses an unknown placement by name
+        placement = next(p for p in self.scene.placements if p.name == task.target)
+        self.target_xy = np.array(placement.position[:2], dtype=float)
+        if start is None:
+            if self.scene.path is None:
+                raise ValueError("the scene has no path: give start=(x, y, heading)")
+            start = geometry.floor_pose(self.scene.path.pose(0))
+        self.start = np.array(robot_pose(start)[:3] if len(np.ravel(start)) == 3 else geometry.floor_pose(start))
+        self.start_noise, self.max_steps, self.step_length, self.turn = start_noise, max_steps, step_length, turn
+        self.C, self.S = max_corners, max_segments
+        if self.scene.viewpoints is not None:
+            pts = np.array(self.scene.viewpoints.points, dtype=float)
+            self.bounds = (pts.min(axis=0) - margin, pts.max(axis=0) + margin)
+        else:
+            self.bounds = (np.full(2, -np.inf), np.full(2, np.inf))
+        away = self.start[:2] - self.target_xy
+        self.goal_xy = self.target_xy + task.distance * away / max(np.linalg.norm(away), 1e-9)
+        self.goal_heading = math.atan2(*(self.target_xy - self.goal_xy)[::-1])
+        self.cameras = [self.scene.camera(self.scene.rig.left.camera), self.scene.camera(self.scene.rig.right.camera)]
+        blo, bhi = self.bounds[0] - step_length, self.bounds[1] + step_length  # where a last move can take it
+        if motion == "planar":
+            low, high = [blo[0], blo[1], -math.pi], [bhi[0], bhi[1], math.pi]
+        else:
+            low = [-1, -1, -1, blo[0], -1, -1, -1, blo[1], -1, -1, -1, -HEIGHT - step_length]
+            high = [1, 1, 1, bhi[0], 1, 1, 1, bhi[1], 1, 1, 1, HEIGHT + step_length]
+        self.observation_space = spaces.Dict({
+            "corners": spaces.Box(0.0, 1.0, (2, self.C, 2), np.float32),
+            "corner_mask": spaces.MultiBinary((2, self.C)),
+            "segments": spaces.Box(0.0, 1.0, (2, self.S, 4), np.float32),
+            "segment_mask": spaces.MultiBinary((2, self.S)),
+            "pose": spaces.Box(np.array(low, np.float32), np.array(high, np.float32), dtype=np.float32),
+        })
+        self.action_space = spaces.Box(-1.0, 1.0, (2 if motion == "planar" else 6,), np.float32)
+        self._column = {name: i for i, (name, _) in enumerate(layout.STROKE_COLUMNS)}
+        self._pose = None
+
+    # --- the robot ----------------------------------------------------------------------------------------
+
+    def _floor(self) -> np.ndarray:
+        """(x, y, heading) of the current pose."""
+        if self.motion == "planar":
+            return self._pose.copy()
+        R, t = self._pose[:3, :3], self._pose[:3, 3]
+        return np.array([t[0], t[1], math.atan2(R[1, 0], R[0, 0])])
+
+    def _move(self, action: np.ndarray) -> None:
+        a = np.clip(np.asarray(action, dtype=float), -1.0, 1.0)
+        if self.motion == "planar":
+            x, y, h = self._pose
+            d = a[0] * self.step_length
+            x, y = x + d * math.cos(h), y + d * math.sin(h)
+            self._pose = np.array([x, y, math.atan2(math.sin(h + a[1] * self.turn), math.cos(h + a[1] * self.turn))])
+            return
+        from scipy.spatial.transform import Rotation
+
+        M = self._pose.copy()
+        M[:3, 3] = M[:3, 3] + M[:3, :3] @ (a[:3] * self.step_length)
+        M[:3, :3] = M[:3, :3] @ Rotation.from_euler("xyz", a[3:] * self.turn).as_matrix()
+        self._pose = M
+
+    def _engine_pose(self):
+        return tuple(self._pose) if self.motion == "planar" else self._pose
+
+    # --- observations -------------------------------------------------------------------------------------
+
+    def _observation(self, batch) -> dict:
+        out = {"corners": np.zeros((2, self.C, 2), np.float32), "corner_mask": np.zeros((2, self.C), np.int8),
+               "segments": np.zeros((2, self.S, 4), np.float32), "segment_mask": np.zeros((2, self.S), np.int8)}
+        size = [np.array([c.width, c.height], dtype=float) for c in self.cameras]
+        rows, corners = batch["corner_rows"], batch["corners"]
+        strokes, pts, start = batch["strokes"], batch["pts"], batch["start"]
+        cam_col = self._column["camera"]
+        for cam in (0, 1):
+            xy = corners[rows[:, 2] == cam][: self.C] / size[cam]
+            out["corners"][cam, : len(xy)] = np.clip(xy, 0.0, 1.0)
+            out["corner_mask"][cam, : len(xy)] = 1
+            pieces = [np.concatenate([pts[start[k]:start[k + 1] - 1], pts[start[k] + 1:start[k + 1]]], axis=1)
+                      for k in np.flatnonzero(strokes[:, cam_col] == cam)]
+            seg = np.concatenate(pieces)[: self.S] if pieces else np.zeros((0, 4))
+            out["segments"][cam, : len(seg)] = np.clip(seg / np.tile(size[cam], 2), 0.0, 1.0)
+            out["segment_mask"][cam, : len(seg)] = 1
+        out["pose"] = np.asarray(self._pose, dtype=np.float32).reshape(-1)[: 3 if self.motion == "planar" else 12]
+        return out
+
+    def _seen(self, batch) -> int:
+        """The fewest target features either camera sees."""
+        ids = np.array([f in set(self.target) for f in batch.feature_ids])
+        counts = []
+        for cam in (0, 1):
+            fids = np.concatenate([batch["strokes"][batch["strokes"][:, self._column["camera"]] == cam,
+                                                    self._column["feature"]],
+                                   batch["corner_rows"][batch["corner_rows"][:, 2] == cam, 3]])
+            counts.append(len(np.unique(fids[ids[fids]])) if len(fids) else 0)
+        return min(counts)
+
+    def _look(self):
+        batch = self.sim.observe(self._engine_pose(), trial=self._trial, step=self._step)
+        return batch, self._observation(batch)
+
+    # --- Gymnasium ----------------------------------------------------------------------------------------
+
+    def _distance(self) -> float:
+        return float(np.linalg.norm(self._floor()[:2] - self.goal_xy))
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        jitter = self.np_random.uniform(-1.0, 1.0, 3) * self.start_noise
+        self._trial = int(self.np_random.integers(0, TRIALS))
+        x, y, h = self.start + jitter
+        h = math.atan2(math.sin(h), math.cos(h))
+        if self.motion == "planar":
+            self._pose = np.array([x, y, h])
+        else:
+            self._pose = np.eye(4)
+            self._pose[:3, :3] = geometry.rot_z(h)
+            self._pose[:3, 3] = (x, y, 0.0)
+        self._step, self._lost = 0, 0
+        batch, obs = self._look()
+        self._last = self._distance()
+        return obs, self._info(batch)
+
+    def _info(self, batch) -> dict:
+        return {"trial": self._trial, "step": self._step, "distance": self._distance(), "seen": self._seen(batch),
+                "goal": (float(self.goal_xy[0]), float(self.goal_xy[1]), self.goal_heading)}
+
+    def step(self, action):
+        if self._pose is None:
+            raise RuntimeError("call reset() before step()")
+        self._move(action)
+        self._step += 1
+        batch, obs = self._look()
+        info = self._info(batch)
+        x, y, h = self._floor()
+        lo, hi = self.bounds
+        terminated = False
+        if self.task.kind == "reach":
+            d = info["distance"]
+            reward = (self._last - d) - 0.01
+            self._last = d
+            off = abs(math.atan2(math.sin(h - self.goal_heading), math.cos(h - self.goal_heading)))
+            if d <= self.task.tolerance and off <= self.task.heading_tolerance:
+                reward, terminated = reward + 10.0, True
+        else:
+            ok = info["seen"] >= self.task.min_features
+            reward = 1.0 if ok else 0.0
+            self._lost = 0 if ok else self._lost + 1
+            terminated = self._lost >= self.task.patience
+        z = 0.0 if self.motion == "planar" else self._pose[2, 3]
+        if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and abs(z) <= HEIGHT):
+            reward, terminated = reward - 10.0, True
+        truncated = not terminated and self._step >= self.max_steps
+        return obs, float(reward), terminated, truncated, info
+
+
+gymnasium.register("wiredsl/Scene-v0", entry_point="wiredsl.gym:WiredslEnv")

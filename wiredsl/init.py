@@ -1,0 +1,504 @@
+"""`wiredsl init`: a starter project (a scene, a study, a CI script) or a plug-in package template.
+
+The templates are strings here, filled by `str.format`-free substitution of `{{name}}`, `{{package}}`,
+`{{effect}}`, `{{measure}}` and `{{version}}`, so braces in the files themselves need no escaping. The project
+is written into a temporary folder beside the target and renamed into place: a failure leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+from pathlib import Path
+
+NAME = re.compile(r"^[a-z][a-z0-9_]{0,39}$")  # a scene name, a Python package and part of an entry point name
+
+
+class InitError(ValueError):
+    """A project that cannot be written (a bad name, an existing folder): a message for the user, exit 1."""
+
+
+def package_name(name: str) -> str:
+    """The Python package (and scene) name of a project name: lower case, '-' as '_'; refused if not an
+    identifier of at most 40 characters."""
+    package = name.replace("-", "_")
+    if not NAME.match(package):
+        raise InitError(f"'{name}' is not a usable name: lower-case letters, digits, '_' or '-', starting with a "
+                        "letter, at most 40 characters (it names the scene and the Python package)")
+    return package
+
+
+SCENE = """\
+wiredsl 1
+scene {{package}}
+
+# One model: a crate, in its own frame (metres).
+model crate {
+  polyline top closed through (0, 0, 0.5) (0.6, 0, 0.5) (0.6, 0.4, 0.5) (0, 0.4, 0.5)
+  line edge_a from (0, 0, 0) to (0, 0, 0.5)
+  line edge_b from (0.6, 0, 0) to (0.6, 0, 0.5)
+  corner top_a at (0, 0, 0.5) joins top edge_a
+  corner top_b at (0.6, 0, 0.5) joins top edge_b
+  face front through (0, 0, 0) (0.6, 0, 0) (0.6, 0, 0.5) (0, 0, 0.5)
+}
+place crate as crate1 at (2.8m, 0.3m, 0) rotate z -90deg
+
+# The camera (replace with `read "calib/your_file.yaml"`) and the rig on the robot.
+camera eye {
+  focal 6mm
+  pixel 0.01mm
+  size (640px, 480px)
+  k 0.02
+}
+
+rig head {
+  left eye at (0.1m, 0.06m, 0.8m) looking (1, 0, -0.1)
+  right eye at (0.1m, -0.06m, 0.8m) looking (1, 0, -0.1)
+}
+
+viewpoints floor {
+  grid from (0, -1m) to (2m, 1m) spacing 1m
+  visibility auto
+}
+
+# The robot's path (or `read "trajectory.txt"` with a `body`).
+path approach {
+  straight from (0.2m, 0) to (1.8m, 0) step 0.4m
+}
+
+# What your detector does to the ideal image, in data-flow order.
+pipeline detector default {
+  edge_loss fraction 29%
+  lateral_shift range 3px
+  corner_loss keep 90%
+}
+
+# How much of the view survives as edges shift further?
+study shift {
+  pipeline detector
+  vary lateral_shift.range values [0, 2px, 4px]
+  trials 8
+  seed 1
+  measure survival
+}
+"""
+
+GITIGNORE = """\
+# wiredsl's outputs (build, study), virtual environments, caches
+build/
+.venv/
+__pycache__/
+*.pyc
+*.egg-info/
+"""
+
+CI_SCRIPT = """\
+#!/usr/bin/env bash
+# Checks every scene, compiles each and validates it against wiredsl's schema, then runs the scene and its study
+# and validates what they wrote. Run it locally (`bash ci.sh`) or from CI (.github/workflows/wiredsl.yml).
+set -euo pipefail
+cd "$(dirname "$0")"
+wiredsl check scenes/*.wd
+wiredsl fmt --check scenes/*.wd
+mkdir -p build/ci
+for f in scenes/*.wd; do
+  wiredsl compile "$f" -o "build/ci/$(basename "$f" .wd).json"
+done
+wiredsl validate build/ci/*.json
+wiredsl build scenes/{{package}}.wd -o build/ci/run --seed 1 --trials 4 --format jsonl --no-svg
+wiredsl validate build/ci/run/features.jsonl build/ci/run/manifest.json
+wiredsl study scenes/{{package}}.wd shift -o build/ci/study --executor inprocess --no-plots
+wiredsl validate build/ci/study/table.json build/ci/study/manifest.json
+echo "ci.sh: all checks passed"
+"""
+
+WORKFLOW = """\
+# GitHub Actions: the project's checks (ci.sh) on every push. WIREDSL names what pip installs: a version, a
+# path or a git URL of wiredsl (set it as a repository variable).
+name: wiredsl
+on: [push, pull_request]
+jobs:
+  check:
+    runs-on: ubuntu-latest
+    steps:
+      - uses: actions/checkout@v4
+      - uses: actions/setup-python@v5
+        with:
+          python-version: "3.11"
+      - run: pip install "${{ vars.WIREDSL || 'wiredsl=={{version}}' }}"
+      - run: bash ci.sh
+"""
+
+PROJECT_README = """\
+# {{name}}
+
+A wiredsl project: `scenes/{{package}}.wd` is a scene with one model, a stereo rig, a path, a detector's
+pipeline and a study.
+
+```sh
+wiredsl check scenes/{{package}}.wd        # every problem, with file, line and column
+wiredsl build scenes/{{package}}.wd        # build/{{package}}/: features.json, manifest.json, an SVG a pose
+wiredsl study scenes/{{package}}.wd shift  # build/{{package}}_shift/: the study's table and plots
+bash ci.sh                                 # what CI runs (.github/workflows/wiredsl.yml)
+```
+"""
+
+# --- the plug-in package ---------------------------------------------------------------------------------------
+
+PLUGIN_PYPROJECT = """\
+[build-system]
+requires = ["hatchling>=1.21"]
+build-backend = "hatchling.build"
+
+[project]
+name = "{{name}}"
+version = "0.1.0"
+description = "wiredsl plug-in: {{effect}} (an uncertainty source) and {{measure}} (a measure)"
+requires-python = ">=3.11"
+dependencies = ["wiredsl>={{version}}", "numpy>=1.26"]
+
+[project.optional-dependencies]
+# fast: the effect's compiled kernel (numba), used by wiredsl's kernel engine; without it the numpy code runs.
+fast = ["numba>=0.59"]
+test = ["pytest>=8"]
+
+# wiredsl finds plug-ins by these groups; the name on the left is the name scenes use, and must equal the
+# class's `name`.
+[project.entry-points."wiredsl.effects"]
+{{effect}} = "{{package}}.effect:CornerNoise"
+
+[project.entry-points."wiredsl.measures"]
+{{measure}} = "{{package}}.measure:CornerError"
+
+[tool.hatch.build.targets.wheel]
+packages = ["src/{{package}}"]
+
+[tool.pytest.ini_options]
+testpaths = ["tests"]
+"""
+
+PLUGIN_INIT = '''\
+"""{{name}}: a wiredsl plug-in. The effect `{{effect}}` (effect.py, its numba kernel in kernel.py) and the
+measure `{{measure}}` (measure.py), found by wiredsl through the entry points in pyproject.toml."""
+'''
+
+PLUGIN_EFFECT = '''\
+"""Corner localisation noise: each detected corner moves by an isotropic Gaussian of standard deviation `sigma`
+pixels on each axis. Your detector's own noise model goes here.
+
+This is the numpy reference, which wiredsl's numpy engine runs. kernel.py is the same stage compiled with numba
+(optional): the kernel engine runs it when numba is installed, and the tests hold it to this code.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from wiredsl.effects.base import Effect, KernelStage, Params, param
+from wiredsl.engine import imageset as im
+
+
+class CornerNoiseParams(Params):
+    # param(default, unit kind, doc, bounds): the kind ("length", "angle", "image", "number", "fraction") makes
+    # the language convert units (`sigma 0.5px`) and check the bounds (E110).
+    sigma: float = param(0.5, "image", "standard deviation of each corner coordinate", ge=0, le=1000)
+
+
+class CornerNoise(Effect):
+    name = "{{effect}}"  # the entry point's name
+    acts_on = "corner detection"  # where it runs in a real system (sets the data-flow order check, W161)
+    Params = CornerNoiseParams
+    doc = __doc__
+    # the compiled stage: "module:function", its Params fields in order, its statistics row's columns
+    kernel = KernelStage("{{package}}.kernel:stage", ("sigma",), (("count", "add"), ("sum_sq", "add")))
+
+    # Methods are class methods: wiredsl never makes an instance.
+    @classmethod
+    def is_identity(cls, p: CornerNoiseParams) -> bool:
+        return p.sigma == 0  # the stage is skipped
+
+    @classmethod
+    def disturb(cls, p: CornerNoiseParams, s: im.ImageSet, ctx) -> im.ImageSet:
+        # s holds every trial of a batch: strokes (pts, start, fid, kind, ...) and corners (corners, corner_fid,
+        # corner_trial). Draw only with ctx.draws: keyed by (seed, stage, trial, pose, camera), so a trial's
+        # values depend on nothing else. per_item=2, normal=True: normals 2c and 2c + 1 of corner c's trial key.
+        move = p.sigma * ctx.draws(cls.name, s.corner_trial, per_item=2, normal=True)
+        ctx.stats.add(cls.name, count=len(move), sum_sq=float((move * move).sum()))
+        return im.replace(s, corners=s.corners + move)  # a new ImageSet of the same layout
+
+    @classmethod
+    def report(cls, p: CornerNoiseParams, stats) -> dict:
+        """What the run manifest records for the stage: the measured RMS against the declared sigma."""
+        s = stats.sums[cls.name]
+        rms = float(np.sqrt(s["sum_sq"] / (2 * s["count"]))) if s["count"] else None
+        return {"rms_per_axis_px": {"declared": p.sigma, "measured": rms}}
+'''
+
+PLUGIN_KERNEL = '''\
+"""The compiled stage of `{{effect}}` (numba), named by its KernelStage; imported only when a run uses wiredsl's
+kernel engine, so importing the effect does not import numba. One trial's view in, the same arrays out."""
+
+from numba import njit
+
+from wiredsl.engine.kernel import _normal_pair
+
+
+@njit(cache=True)
+def stage(pts, start, meta, corners, cfid, key, params, epipole, right, stats):
+    sigma = params[0]
+    out = corners.copy()
+    for c in range(len(corners)):
+        gx, gy = _normal_pair(key, c)  # normals 2c and 2c + 1 of the trial's key: what ctx.draws gives corner c
+        out[c, 0] = corners[c, 0] + sigma * gx
+        out[c, 1] = corners[c, 1] + sigma * gy
+        stats[0] += 1
+        stats[1] += (sigma * gx) ** 2 + (sigma * gy) ** 2
+    return pts, start, meta, out, cfid
+'''
+
+PLUGIN_MEASURE = '''\
+"""Corner error: per trial, the RMS distance in pixels between each disturbed corner and the ideal image of the
+same corner (both cameras), over the corners that were kept; and how many were kept. Your recognition or SLAM
+front end goes here, fed the disturbed features.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from wiredsl.measures.base import Measure, Params
+
+
+class CornerErrorParams(Params):
+    """No parameters (declare them with wiredsl.measures.base.param, as an effect does)."""
+
+
+class CornerError(Measure):
+    name = "{{measure}}"
+    Params = CornerErrorParams
+    statistics = ("rms_error", "kept")
+    weights = {"rms_error": "kept"}  # a study averages rms_error over trials weighted by kept
+    units = {"rms_error": "px", "kept": "count"}
+    doc = __doc__
+
+    @classmethod
+    def measure(cls, p, prepared, pose, disturbed: dict, n_trials: int) -> dict:
+        # pose: the ideal PoseResult (pose.left / pose.right: View with .features, each with .fid, .kind and
+        # .points); disturbed[side]: the batch's disturbed ImageSet, trials numbered 0..n_trials-1.
+        sum_sq, kept = np.zeros(n_trials), np.zeros(n_trials)
+        for side, s in disturbed.items():
+            view = getattr(pose, side)
+            ideal = {f.fid: f.points[0] for f in view.features if f.kind == "corner"}
+            if not ideal or not len(s.corners):
+                continue
+            known = np.isin(s.corner_fid, list(ideal))
+            where = np.array([ideal.get(int(f), (np.nan, np.nan)) for f in s.corner_fid]).reshape(-1, 2)
+            d2 = ((s.corners - where) ** 2).sum(axis=1)
+            sum_sq += np.bincount(s.corner_trial[known], weights=d2[known], minlength=n_trials)
+            kept += np.bincount(s.corner_trial[known], minlength=n_trials)
+        rms = np.sqrt(np.divide(sum_sq, kept, out=np.zeros(n_trials), where=kept > 0))
+        return {"rms_error": rms, "kept": kept}
+'''
+
+PLUGIN_SCENE = SCENE.replace("""# What your detector does to the ideal image, in data-flow order.
+pipeline detector default {
+  edge_loss fraction 29%
+  lateral_shift range 3px
+  corner_loss keep 90%
+}
+
+# How much of the view survives as edges shift further?
+study shift {
+  pipeline detector
+  vary lateral_shift.range values [0, 2px, 4px]
+  trials 8
+  seed 1
+  measure survival
+}
+""", """# The plug-in's effect in a pipeline, and its measure in a study.
+pipeline detector default {
+  {{effect}} sigma 0.5px
+}
+
+study noise {
+  pipeline detector
+  vary {{effect}}.sigma values [0, 1px, 2px]
+  trials 8
+  seed 1
+  measure {{measure}}
+}
+""")
+
+PLUGIN_TESTS = '''\
+"""The plug-in's own tests: wiredsl finds it, a scene uses it, the effect draws what it declares, the kernel
+gives what the numpy code gives, and the measure measures what the effect did."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import wiredsl
+
+SCENE = Path(__file__).resolve().parent.parent / "scenes" / "demo.wd"
+
+
+def wiredsl_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "wiredsl", *args], capture_output=True, text=True)
+
+
+def test_wiredsl_finds_both_entry_points():
+    out = wiredsl_cli("plugins")
+    assert out.returncode == 0, out.stderr
+    lines = {tuple(line.split("\\t")[:2]): line for line in out.stdout.splitlines()}
+    assert lines[("effect", "{{effect}}")].endswith("ok"), out.stdout
+    assert lines[("measure", "{{measure}}")].endswith("ok"), out.stdout
+
+
+def test_the_scene_checks_and_a_bad_parameter_is_a_diagnostic(tmp_path):
+    assert wiredsl_cli("check", str(SCENE)).returncode == 0
+    bad = tmp_path / "bad.wd"
+    bad.write_text(SCENE.read_text().replace("{{effect}} sigma 0.5px", "{{effect}} sigma -1px"))
+    out = wiredsl_cli("check", str(bad))
+    assert out.returncode == 1 and "E110" in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def corner_moves(engine: str = "numpy", trials: int = 400) -> np.ndarray:
+    """Disturbed minus ideal corner positions (matched by camera and feature) over many trials of the demo's
+    pipeline (sigma 0.5 px)."""
+    scene = wiredsl.compile(SCENE)
+    moves = []
+    for batch in wiredsl.simulate(scene, trials=trials, seed=3, poses=[2, 3], engine=engine):
+        for pose, disturbed, _ in batch.disturbed:
+            for side, s in disturbed.items():
+                ideal = {f.fid: f.points[0] for f in getattr(pose, side).features if f.kind == "corner"}
+                moves += [c - ideal[int(f)] for c, f in zip(s.corners, s.corner_fid, strict=True)]
+    return np.array(moves)
+
+
+def test_the_effect_moves_corners_by_its_sigma():
+    """The standard deviation of the moves over 400 trials matches sigma to a few standard errors."""
+    moves = corner_moves()
+    assert len(moves) > 1000
+    sd = moves.std(axis=0)
+    assert np.all(np.abs(sd - 0.5) < 0.5 * 4 / np.sqrt(2 * len(moves))), sd
+    assert np.all(np.abs(moves.mean(axis=0)) < 0.5 * 4 / np.sqrt(len(moves)))
+
+
+def test_the_same_seed_gives_the_same_corners():
+    a, b = corner_moves(trials=20), corner_moves(trials=20)
+    assert np.array_equal(a, b)
+
+
+def test_the_kernel_gives_what_the_numpy_code_gives():
+    pytest.importorskip("numba")
+    numpy_moves, kernel_moves = corner_moves("numpy", 50), corner_moves("kernel", 50)
+    assert numpy_moves.shape == kernel_moves.shape
+    assert np.abs(numpy_moves - kernel_moves).max() < 1e-9
+
+
+def test_the_measure_reads_the_effects_sigma():
+    """With 2D Gaussian moves of sigma per axis, the RMS distance is sigma * sqrt(2)."""
+    from {{package}}.measure import CornerError
+
+    scene = wiredsl.compile(SCENE)
+    params = CornerError.Params()
+    rms, kept = [], []
+    for batch in wiredsl.simulate(scene, trials=300, seed=5, poses=[2, 3]):
+        for pose, disturbed, _ in batch.disturbed:
+            out = CornerError.measure(params, None, pose, disturbed, batch.n_trials)
+            assert set(out) == set(CornerError.statistics)
+            rms.append(out["rms_error"])
+            kept.append(out["kept"])
+    rms, kept = np.concatenate(rms), np.concatenate(kept)
+    assert kept.sum() > 1000
+    mean_sq = (rms**2 * kept).sum() / kept.sum()
+    assert abs(np.sqrt(mean_sq) - 0.5 * np.sqrt(2)) < 0.03, np.sqrt(mean_sq)
+
+
+def test_a_study_over_the_effect_reports_the_measure(tmp_path):
+    out = wiredsl_cli("study", str(SCENE), "noise", "-o", str(tmp_path / "study"), "--executor", "inprocess",
+                      "--no-plots")
+    assert out.returncode == 0, out.stderr
+    table = json.loads((tmp_path / "study" / "table.json").read_text())
+    text = json.dumps(table)
+    assert "rms_error" in text and "{{effect}}.sigma" in text
+'''
+
+PLUGIN_README = """\
+# {{name}}
+
+A wiredsl plug-in package: the uncertainty source `{{effect}}` (src/{{package}}/effect.py, with an optional
+numba kernel in kernel.py) and the measure `{{measure}}` (src/{{package}}/measure.py), declared as entry points
+in pyproject.toml. Once installed, scenes name them like built-ins: `wiredsl check` validates their parameters,
+`wiredsl reference` lists them, a study can `vary {{effect}}.sigma` and `measure {{measure}}`.
+
+```sh
+pip install -e '.[test]'        # add [fast] for the compiled kernel (numba)
+wiredsl plugins                 # both names, "ok"
+pytest                          # the plug-in's own tests
+wiredsl study scenes/demo.wd noise
+```
+"""
+
+STARTER = {"scenes/{{package}}.wd": SCENE, ".gitignore": GITIGNORE, "ci.sh": CI_SCRIPT,
+           ".github/workflows/wiredsl.yml": WORKFLOW, "README.md": PROJECT_README}
+PLUGIN = {"pyproject.toml": PLUGIN_PYPROJECT, "README.md": PLUGIN_README, ".gitignore": GITIGNORE,
+          "src/{{package}}/__init__.py": PLUGIN_INIT, "src/{{package}}/effect.py": PLUGIN_EFFECT,
+          "src/{{package}}/kernel.py": PLUGIN_KERNEL, "src/{{package}}/measure.py": PLUGIN_MEASURE,
+          "scenes/demo.wd": PLUGIN_SCENE, "tests/test_{{package}}.py": PLUGIN_TESTS}
+
+
+def fill(text: str, values: dict[str, str]) -> str:
+    for key, value in values.items():
+        text = text.replace("{{" + key + "}}", value)
+    return text
+
+
+def files(name: str, plugin: bool = False) -> dict[str, str]:
+    """The project's files, relative path -> text."""
+    from wiredsl import __version__
+
+    package = package_name(name)
+    values = {"name": name, "package": package, "effect": f"{package}_noise", "measure": f"{package}_error",
+              "version": __version__}
+    return {fill(path, values): fill(text, values) for path, text in (PLUGIN if plugin else STARTER).items()}
+
+
+def create(name: str, parent: Path = Path("."), plugin: bool = False) -> Path:
+    """Write the project into parent/name (which must not exist, or be an empty folder); the path written."""
+    content = files(name, plugin)
+    target = Path(parent) / name
+    if target.is_symlink() or (target.exists() and (not target.is_dir() or any(target.iterdir()))):
+        raise InitError(f"{target} already exists and is not an empty folder: choose another name or remove it")
+    if not target.parent.is_dir():
+        raise InitError(f"{target.parent} is not a folder")
+    tmp = Path(tempfile.mkdtemp(prefix=f".{name}.", dir=target.parent))
+    try:
+        for rel, text in content.items():
+            path = tmp / rel
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text, encoding="utf-8")
+            if rel.endswith(".sh"):
+                path.chmod(0o755)
+        tmp.chmod(0o777 & ~_umask())
+        if target.exists():
+            target.rmdir()
+        os.rename(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
