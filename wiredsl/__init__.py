@@ -7,8 +7,8 @@ Stages, one module each: parse (lark tree) -> ast (spans) -> compile (Scene)
 __version__ = "0.1.0"
 
 
-_API = ("compile", "simulate", "Simulator", "Batch", "CameraAt", "CompileError", "CompileWarning", "PluginError", "Measure",
-        "Effect")
+_API = ("compile", "simulate", "Simulator", "Batch", "CameraAt", "CompileError", "CompileWarning", "PluginError",
+        "Measure", "Effect")
 __all__ = ["load", *_API]
 
 
