@@ -140,6 +140,8 @@ Edits = _m("edits", _edit)
 NegativeWeight = _m("negative_weight", lambda cls, p, prep, pose, d, n: {"err": np.ones(n), "count": -np.ones(n)},
                     statistics=("err", "count"), weights={"err": "count"})
 ListWeights = _m("list_weights", Count.measure.__func__, weights=["corners"])
+ZeroWeight = _m("zero_weight", lambda cls, p, prep, pose, d, n: {"err": np.ones(n), "count": np.zeros(n)},
+                statistics=("err", "count"), weights={"err": "count"})
 '''
 
 ENTRY = '''
@@ -168,6 +170,7 @@ vast = wdtrust:Vast
 list_result = wdtrust:ListResult
 edits = wdtrust:Edits
 negative_weight = wdtrust:NegativeWeight
+zero_weight = wdtrust:ZeroWeight
 '''
 
 
@@ -527,3 +530,26 @@ def test_a_mixed_pipeline_gives_what_the_numpy_engine_gives(site, tmp_path):
                 assert np.array_equal(x, y), name
         corners += len(a["corners"])
     assert corners > 0
+
+
+def test_weights_that_are_zero_everywhere_give_no_row_not_a_crash(site, tmp_path):
+    r = study(scene(tmp_path, "good", STUDY % "zero_weight"), tmp_path)
+    assert r.exit_code == 0, r.output
+    rows = json.loads((tmp_path / "st" / "table.json").read_text())["rows"]
+    assert {row["statistic"] for row in rows} == {"count"}  # err has no view of weight > 0: no value, no row
+
+
+def test_an_interrupted_study_resumed_after_its_plugin_changed_says_so(site, tmp_path):
+    from wiredsl.language.compile import compile_file
+    from wiredsl.study import run_study
+
+    f = scene(tmp_path, "good sigma 1px", STUDY % "count")
+    sc = compile_file(str(f))[0]
+    assert run_study(sc, sc.study("s"), tmp_path / "st", executor="inprocess", limit=1) is None  # killed early
+    assert not (tmp_path / "st" / "manifest.json").exists()
+    (site / "wdtrust" / "__init__.py").write_text(BASE + "\n# fixed\n")
+    plugins.rescan()
+    said: list[str] = []
+    run_study(sc, sc.study("s"), tmp_path / "st", executor="inprocess", echo=said.append)
+    assert any("plug-ins changed since the last run" in m for m in said), said
+    assert any("0 done before" in m for m in said), said

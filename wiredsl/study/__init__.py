@@ -117,9 +117,12 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
     used = plugins_used(scene, study)
     X, all_jobs = jobs(scene, study, folder, registry, shard_trials, used)
     todo = list(all_jobs) if fresh else [j for j in all_jobs if shards.read(j) is None]
-    changed = plugins_changed(folder / "manifest.json", used)
+    record = folder / PLUGINS_RECORD  # written before any shard, so that an interrupted run's are known too
+    changed = plugins_changed(record if record.is_file() else folder / "manifest.json", used)
     if echo is not None and changed and len(todo) > 0:
         echo(f"study {study.name}: plug-ins changed since the last run ({changed}): their shards are recomputed")
+    if todo and (used or record.is_file()):
+        write_atomic(record, json.dumps({"plugins": used}, indent=1) + "\n")
     forced = numpy_forced(scene, study, X)
     if echo is not None and forced and todo:
         echo(forced)
@@ -161,9 +164,12 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
     return table
 
 
+PLUGINS_RECORD = ".plugins.json"  # the plug-ins of the last run that computed shards in a study's folder
+
+
 def plugins_changed(manifest: Path, used: list[dict]) -> str | None:
-    """How the plug-ins of a study differ from those its last manifest records ("wdplug 0.3 -> 0.4", "wdplug
-    0.3: its files changed"), or None (the same, or no readable manifest)."""
+    """How the plug-ins of a study differ from those a record of its last run lists (its `.plugins.json`, or its
+    manifest): "count: wdplug 0.3 -> 0.4", "count: wdplug 0.3, its files changed"; None when the same or unknown."""
     try:
         before = {(p["kind"], p["name"]): p for p in json.loads(manifest.read_text(encoding="utf-8"))["plugins"]}
     except (OSError, ValueError, KeyError, TypeError):
