@@ -290,22 +290,35 @@ def _convex_boundary(V: np.ndarray, F: np.ndarray, normal: np.ndarray) -> np.nda
 
 
 def _drop_collinear(P: np.ndarray, closed: bool) -> np.ndarray | None:
-    """P without the points that lie on the line through their neighbours (to COLLINEAR of the length)."""
+    """P without the points that lie on the line through their neighbours (to COLLINEAR of the length).
+
+    One pass with a stack (linear: the old restart after each drop was quadratic, 15 s for a 3,000-point
+    boundary): a kept point is dropped when it lies between the one before it and the next, which is then
+    checked again against the one before; a closed chain's ends are checked across the seam last."""
     length = float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum()) or 1.0
-    keep = list(range(len(P)))
-    changed = True
-    while changed and len(keep) > 2:
-        changed = False
-        for j in range(len(keep)):
-            if not closed and j in (0, len(keep) - 1):
-                continue
-            a, p, b = P[keep[j - 1]], P[keep[j]], P[keep[(j + 1) % len(keep)]]
-            ab = b - a
-            off = np.linalg.norm(np.cross(p - a, ab)) / max(np.linalg.norm(ab), 1e-300)
-            if off <= COLLINEAR * length and (p - a) @ ab >= 0 and (b - p) @ ab >= 0:
-                del keep[j]
-                changed = True
+    tol = COLLINEAR * length
+
+    def between(a: int, p: int, b: int) -> bool:
+        A, X, B = P[a], P[p], P[b]
+        ab = B - A
+        off = np.linalg.norm(np.cross(X - A, ab)) / max(np.linalg.norm(ab), 1e-300)
+        return bool(off <= tol and (X - A) @ ab >= 0 and (B - X) @ ab >= 0)
+
+    keep: list[int] = []
+    for i in range(len(P)):
+        while len(keep) >= 2 and between(keep[-2], keep[-1], i):
+            keep.pop()
+        keep.append(i)
+    if closed:  # across the seam: the last kept points, then the first ones, against their wrapped neighbours
+        start = 0
+        while len(keep) - start > 2:
+            if between(keep[-2], keep[-1], keep[start]):
+                keep.pop()
+            elif between(keep[-1], keep[start], keep[start + 1]):
+                start += 1
+            else:
                 break
+        keep = keep[start:]
     return P[keep]
 
 

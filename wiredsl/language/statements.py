@@ -386,6 +386,10 @@ class Bound:
         return self.positional[0].span
 
 
+# the hint for a stage or measure name that is no near-miss of a known one
+NOT_INSTALLED = "maybe a plug-in that provides it is not installed ('wiredsl plugins' lists the installed ones)"
+
+
 def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collector) -> Bound | None:
     """Match a statement's arguments to its signature in `context`; None if unknown."""
     sigs = CONTEXTS[context]
@@ -396,7 +400,8 @@ def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collecto
         return None
     if sig is None:
         where = "at the top level" if context == "top" else f"in a {context} block"
-        hint = did_you_mean(stmt.keyword, sigs) or _elsewhere(stmt.keyword, context)
+        hint = (did_you_mean(stmt.keyword, sigs) or _elsewhere(stmt.keyword, context)
+                or (NOT_INSTALLED if isinstance(sigs, _StageSigs) else None))
         out.error("E100", f"unknown statement '{stmt.keyword}' {where}", stmt.keyword_span, hint)
         return None
     b = Bound(stmt, sig, [], {}, {})

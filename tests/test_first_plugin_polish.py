@@ -1,0 +1,48 @@
+"""The rough edges a first plug-in author hits (issue 23, item 6): hints for missing plug-ins, did-you-mean in
+Python, dir(wiredsl), diagnostics in source order without knock-on errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from wiredsl.diagnostics import WiredslError
+from wiredsl.language import ast
+from wiredsl.language.compile import compile_program
+from wiredsl.language.statements import NOT_INSTALLED
+
+ROOT = Path(__file__).resolve().parent.parent
+LAB = (ROOT / "scenes" / "lab.wd").read_text()
+
+
+def compile_lab(text: str):
+    """Compile text as if it were a file in scenes/ (so that the lab's includes are found)."""
+    return compile_program(ast.load(str(ROOT / "scenes" / "edited.wd"), text))
+
+
+def diagnostics_of(text: str):
+    with pytest.raises(WiredslError) as err:
+        compile_lab(text)
+    return err.value.diagnostics
+
+
+def test_an_unknown_stage_that_is_no_near_miss_hints_at_a_missing_plugin():
+    (d,) = diagnostics_of(LAB.replace("pipeline edges {\n  edge_loss", "pipeline edges {\n  rolling_shutter speed 2"))
+    assert d.code == "E100" and d.message == "unknown statement 'rolling_shutter' in a pipeline block"
+    assert d.hint == NOT_INSTALLED and "wiredsl plugins" in d.hint
+
+
+def test_a_near_miss_still_gets_did_you_mean_not_the_plugin_hint():
+    (d,) = diagnostics_of(LAB.replace("pipeline edges {\n  edge_loss", "pipeline edges {\n  edge_los"))
+    assert d.hint == "did you mean 'edge_loss'?"
+
+
+STUDY = "study s {\n  pipeline edges\n  vary VARY values [0, 1]\n  trials 2\n  measure MEASURE\n}\n"
+
+
+def test_an_unknown_measure_or_varied_stage_hints_at_a_missing_plugin():
+    (d,) = diagnostics_of(LAB + STUDY.replace("VARY", "lateral_shift.range").replace("MEASURE", "essential"))
+    assert d.message == "unknown measure 'essential'" and d.hint.startswith(NOT_INSTALLED + "; measures: ")
+    (d,) = diagnostics_of(LAB + STUDY.replace("VARY", "rolling_shutter.speed").replace("MEASURE", "survival"))
+    assert d.message == "unknown stage 'rolling_shutter'" and d.hint.startswith(NOT_INSTALLED + "; stages: ")
