@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from wiredsl.diagnostics import WiredslError
+from wiredsl.diagnostics import NOT_INSTALLED, WiredslError
 from wiredsl.language import ast
 from wiredsl.language.compile import compile_program
-from wiredsl.language.statements import NOT_INSTALLED
+
 
 ROOT = Path(__file__).resolve().parent.parent
 LAB = (ROOT / "scenes" / "lab.wd").read_text()
@@ -46,3 +46,29 @@ def test_an_unknown_measure_or_varied_stage_hints_at_a_missing_plugin():
     assert d.message == "unknown measure 'essential'" and d.hint.startswith(NOT_INSTALLED + "; measures: ")
     (d,) = diagnostics_of(LAB + STUDY.replace("VARY", "rolling_shutter.speed").replace("MEASURE", "survival"))
     assert d.message == "unknown stage 'rolling_shutter'" and d.hint.startswith(NOT_INSTALLED + "; stages: ")
+
+
+# --------------------------------------------------------------------------- did-you-mean from Python
+
+def test_a_misspelt_effect_in_a_python_pipeline_says_what_it_may_have_meant():
+    import wiredsl
+    from wiredsl.scene import Pipeline
+
+    lab = compile_lab(LAB)[0]
+    bad = Pipeline(name="p", stages=[{"effect": "edge_los", "params": {}}])
+    with pytest.raises(KeyError) as err:  # still a KeyError (a lookup), but one that says what it is
+        next(wiredsl.simulate(lab, trials=1, seed=0, pipeline=bad))
+    assert str(err.value) == "unknown effect 'edge_los': did you mean 'edge_loss'?"
+    far = Pipeline(name="p", stages=[{"effect": "rolling_shutter", "params": {}}])
+    with pytest.raises(KeyError, match="unknown effect 'rolling_shutter': maybe a plug-in .*; effects: "
+                                       "calibration_error, edge_loss"):
+        wiredsl.Simulator(lab, 0, far)
+
+
+def test_a_misspelt_measure_name_from_python():
+    from wiredsl.measures import REGISTRY
+
+    with pytest.raises(KeyError) as err:
+        REGISTRY["survivl"]
+    assert str(err.value) == "unknown measure 'survivl': did you mean 'survival'?"
+    assert REGISTRY.get("survivl") is None and "survivl" not in REGISTRY  # a Mapping still

@@ -146,6 +146,24 @@ def read_sources(diags: Iterable[Diagnostic]) -> dict[str, str]:
     return out
 
 
+# the hint for a stage or measure name that is no near-miss of a known one
+NOT_INSTALLED = "maybe a plug-in that provides it is not installed ('wiredsl plugins' lists the installed ones)"
+
+
+class UnknownName(KeyError):
+    """A name a registry (effects, measures) does not know, from Python: a KeyError whose text says so, with the
+    close matches or the plug-in hint (a bare KeyError('edge_los') said neither)."""
+
+    def __init__(self, kind: str, name: str, known: Iterable[str]):
+        known = list(known)
+        hint = did_you_mean(name, known) or f"{NOT_INSTALLED}; {kind}s: {', '.join(known)}"
+        super().__init__(f"unknown {kind} {name!r}: {hint}")
+        self.name = name
+
+    def __str__(self) -> str:  # KeyError's own shows the repr of its text
+        return str(self.args[0])
+
+
 def did_you_mean(word: str, candidates: Iterable[str]) -> str | None:
     """A 'did you mean' hint for a misspelt name, or None."""
     import difflib

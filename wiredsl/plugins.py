@@ -21,6 +21,8 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from wiredsl.diagnostics import UnknownName
+
 GROUPS = {"effect": "wiredsl.effects", "measure": "wiredsl.measures"}
 
 
@@ -125,7 +127,7 @@ class Registry(Mapping):
         if name not in self._loaded:
             plugin = self.plugin(name)
             if plugin is None:
-                raise KeyError(name)
+                raise UnknownName(self.kind, name, self)
             self._loaded[name] = _load(plugin, self.base, self.check)
         return self._loaded[name]
 

@@ -13,10 +13,10 @@ from collections.abc import Mapping
 
 import pydantic
 
-from wiredsl.diagnostics import Collector, Span, did_you_mean
+from wiredsl.diagnostics import NOT_INSTALLED, Collector, Span, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
-from wiredsl.language.statements import NOT_INSTALLED, Bound, Value, bind, quantity
+from wiredsl.language.statements import Bound, Value, bind, quantity
 from wiredsl.plugins import lookup
 from wiredsl.scene import Factor, MeasureUse, Pipeline, Study
 

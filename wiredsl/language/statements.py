@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from wiredsl.diagnostics import Collector, Span, did_you_mean
+from wiredsl.diagnostics import NOT_INSTALLED, Collector, Span, did_you_mean
 from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.language import ast
 from wiredsl.language.units import KIND_NAMES, UNITS
@@ -384,10 +384,6 @@ class Bound:
     @property
     def name_span(self) -> Span:
         return self.positional[0].span
-
-
-# the hint for a stage or measure name that is no near-miss of a known one
-NOT_INSTALLED = "maybe a plug-in that provides it is not installed ('wiredsl plugins' lists the installed ones)"
 
 
 def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collector) -> Bound | None:
