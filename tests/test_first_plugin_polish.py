@@ -72,3 +72,16 @@ def test_a_misspelt_measure_name_from_python():
         REGISTRY["survivl"]
     assert str(err.value) == "unknown measure 'survivl': did you mean 'survival'?"
     assert REGISTRY.get("survivl") is None and "survivl" not in REGISTRY  # a Mapping still
+
+
+def test_dir_of_wiredsl_lists_the_public_api_without_importing_it():
+    import subprocess
+    import sys
+
+    code = "import sys, wiredsl; d = dir(wiredsl); print(sorted(set(wiredsl.__all__) - set(d)), 'numpy' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["[]", "False"]  # every public name, and nothing heavy imported to list them
+    import wiredsl
+
+    assert {"compile", "simulate", "Simulator", "load", "Measure", "Effect", "__version__"} <= set(dir(wiredsl))
+    assert all(hasattr(wiredsl, name) for name in wiredsl.__all__)
