@@ -85,3 +85,41 @@ def test_dir_of_wiredsl_lists_the_public_api_without_importing_it():
 
     assert {"compile", "simulate", "Simulator", "load", "Measure", "Effect", "__version__"} <= set(dir(wiredsl))
     assert all(hasattr(wiredsl, name) for name in wiredsl.__all__)
+
+
+# --------------------------------------------------------------------------- diagnostics in order, no knock-on
+
+WORLD = "wiredsl 1\nmodel m {\n  line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)\n}\nplace m as p\n"
+RIG_AB = ("rig r {\n  left a at (0, 0.06, 1) looking (1, 0, 0)\n  right b at (0, -0.06, 1) looking (1, 0, 0)\n}\n"
+          "path run { pose (0, 0) }\n")
+
+
+def test_a_typo_in_a_camera_gives_no_knock_on_error_to_a_camera_declared_like_it():
+    text = WORLD + "camera a {\n  focla 600px\n  size (640px, 480px)\n}\ncamera b like a {\n  k1 0.01\n}\n" + RIG_AB
+    (d,) = diagnostics_of(text)  # was also "camera 'b' needs 'focal' (focal length)"
+    assert (d.code, d.message, d.span.line) == ("E100", "unknown statement 'focla' in a camera block", 7)
+    assert d.hint == "did you mean 'focal'?"
+
+
+def test_a_camera_like_a_camera_that_truly_lacks_focal_still_needs_it():
+    text = WORLD + "camera a {\n  size (640px, 480px)\n}\ncamera b like a {\n  k1 0.01\n}\n" + RIG_AB
+    assert [d.message for d in diagnostics_of(text)] == ["camera 'a' needs 'focal' (focal length)",
+                                                         "camera 'b' needs 'focal' (focal length)"]
+
+
+def test_diagnostics_come_in_source_order(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+
+    text = (WORLD + "camera a {\n  focal 600px\n  size (640px, 480px)\n  k1 zz\n}\nplace q as p2\n"
+            + RIG_AB.replace("right b", "right a"))
+    lines = [d.span.line for d in diagnostics_of(text)]
+    assert lines == [9, 11]  # the camera's error was reported after the placement's (cameras resolve later)
+    (tmp_path / "s.wd").write_text(text)
+    r = CliRunner().invoke(main, ["check", str(tmp_path / "s.wd")])
+    assert r.stderr.index(":9:6: error[E106]") < r.stderr.index(":11:7: error[E104]")
+    r = CliRunner().invoke(main, ["check", "--diagnostics", "json", str(tmp_path / "s.wd")])
+    assert [d["line"] for d in json.loads(r.stderr)["diagnostics"]] == [9, 11]

@@ -61,7 +61,7 @@ class WiredslError(Exception):
     """Raised when input cannot be turned into a scene; carries every diagnostic found."""
 
     def __init__(self, diagnostics: Sequence[Diagnostic]):
-        self.diagnostics = list(diagnostics)
+        self.diagnostics = in_order(diagnostics)
         super().__init__("\n".join(f"{d.span}: {d.severity}[{d.code}]: {d.message}" for d in self.diagnostics))
 
     def __reduce__(self):  # whole across processes (a study's workers)
@@ -105,6 +105,19 @@ class Collector:
     def raise_if_errors(self) -> None:
         if self.n_errors:
             raise WiredslError(self.diagnostics)
+
+
+def in_order(diags: Iterable[Diagnostic]) -> list[Diagnostic]:
+    """Diagnostics by file (in the order the files first appear: as given on the command line, a file before
+    what it includes if it is reported first), then line and column; those without a place last. A stable
+    sort: two at one place keep the order they were found in."""
+    diags = list(diags)
+    files: dict[str, int] = {}
+    for d in diags:
+        if d.span is not None:
+            files.setdefault(d.span.file, len(files))
+    return sorted(diags, key=lambda d: (files[d.span.file], d.span.line, d.span.col) if d.span is not None
+                  else (len(files), 0, 0))
 
 
 def bounded(text: str) -> str:
@@ -173,9 +186,9 @@ def did_you_mean(word: str, candidates: Iterable[str]) -> str | None:
 
 
 def render(diags: Sequence[Diagnostic], sources: dict[str, str], colour: bool = False) -> str:
-    """Diagnostics in compiler form, at most MAX_REPORTED of them, errors first."""
+    """Diagnostics in compiler form in source order, at most MAX_REPORTED of them (errors chosen first)."""
     ordered = sorted(diags, key=lambda d: d.severity != "error")
-    shown = ordered[:MAX_REPORTED]
+    shown = in_order(ordered[:MAX_REPORTED])
     parts = [_render_one(d, sources, colour) for d in shown]
     if len(ordered) > len(shown):
         parts.append(f"... and {len(ordered) - len(shown)} more")
@@ -184,7 +197,7 @@ def render(diags: Sequence[Diagnostic], sources: dict[str, str], colour: bool = 
 
 def render_json(diags: Sequence[Diagnostic]) -> str:
     """Diagnostics as a JSON document for editors and CI."""
-    return json.dumps({"diagnostics": [d.to_json() for d in diags]}, indent=2) + "\n"
+    return json.dumps({"diagnostics": [d.to_json() for d in in_order(diags)]}, indent=2) + "\n"
 
 
 def _paint(text: str, code: str, colour: bool) -> str:
