@@ -289,3 +289,35 @@ def test_a_triangle_soup_gives_each_triangle_its_face_without_a_scan_a_region(mo
     assert all(tuple(map(tuple, T[i])) in faces for i in range(5, m) if not np.isclose(
         np.linalg.norm(np.cross(T[i, 1] - T[i, 0], T[i, 2] - T[i, 0])), 0))
     assert len(found.occluders) == 5  # the slivers are no faces: kept as surface triangles
+
+
+def test_a_damaged_stl_is_a_warning_not_a_traceback_on_stderr(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    (tmp_path / "m.stl").write_text("solid x\nfacet normal 0 zz 1\n outer loop\n vertex 0 0 0\n vertex 1 0 0\n"
+                                    " vertex 0 1 0\n endloop\nendfacet\nendsolid\n")
+    (tmp_path / "s.wd").write_text(MESH_SCENE.replace("m.obj", "m.stl"))
+    for _ in range(2):  # and again: a file the reader warned about is not cached without its warning
+        r = run("check", str(tmp_path / "s.wd"))
+        assert r.exit_code == 0 and "Traceback" not in r.stderr, r.stderr  # trimesh's log went to stderr
+        assert "warning[W127]: mesh file m.stl: the reader warns: failed to extract face_normals (ValueError:" \
+            in r.stderr
+
+
+def test_a_reader_error_logged_by_trimesh_is_e125(tmp_path, monkeypatch):
+    import logging
+
+    import trimesh
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    real = trimesh.load
+
+    def load(*a, **k):
+        logging.getLogger("trimesh.exchange").error("corrupt accessor")
+        return real(*a, **k)
+
+    monkeypatch.setattr(trimesh, "load", load)
+    (tmp_path / "m.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "s.wd").write_text(MESH_SCENE)
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code == 1 and "E125]: mesh file m.obj: not a readable OBJ mesh (the reader: corrupt accessor)" \
+        in r.stderr, r.stderr
