@@ -211,13 +211,113 @@ def test_a_long_line_is_shown_as_a_window_around_the_caret():
     assert src[caret.index("^"):caret.index("^") + 3] == "bad" and caret.count("^") == 3
 
 
-def test_a_file_of_four_million_braces_fails_fast_with_one_diagnostic(tmp_path):
-    import time
+def test_a_file_of_four_million_braces_stops_after_a_bounded_number_of_recoveries(tmp_path, monkeypatch):
+    from wiredsl.language import parse
 
+    calls = []
+    real = parse.syntax_diagnostic
+    monkeypatch.setattr(parse, "syntax_diagnostic", lambda *a: calls.append(1) or real(*a))
     (tmp_path / "s.wd").write_text("{" * 4_000_000)
-    t0 = time.process_time()
-    r = run("check", str(tmp_path / "s.wd"))
-    spent = time.process_time() - t0
+    r = run("check", str(tmp_path / "s.wd"))  # the time: benchmarks/hostile_inputs.py (33 s, now 0.3 s)
     assert r.exit_code == 1 and r.stderr.count("error[E001]") == 1 and len(r.stderr) < 1000, r.stderr[:2000]
-    assert "the rest of the file is not checked" in r.stderr
-    assert spent < 10, spent  # was 33 s: a recovery a brace; generous for a shared machine
+    assert "note: over 200 more errors on this line: the rest of the file is not checked" in r.stderr
+    assert len(calls) <= parse.MAX_ECHOES + 2  # was a recovery a brace: 4,000,000
+
+
+def test_errors_on_later_lines_are_still_all_reported(tmp_path):
+    (tmp_path / "s.wd").write_text("wiredsl 1\n" + "".join(f"scene @ {i}\n" for i in range(5)))
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.stderr.count("error[") == 5 and "not checked" not in r.stderr
+
+
+def _between(A, X, B, tol):
+    ab = B - A
+    off = np.linalg.norm(np.cross(X - A, ab)) / max(np.linalg.norm(ab), 1e-300)
+    return off <= tol and (X - A) @ ab >= 0 and (B - X) @ ab >= 0
+
+
+@pytest.mark.parametrize("closed", [False, True])
+@pytest.mark.parametrize("seed", range(6))
+def test_drop_collinear_keeps_ends_and_corners_and_leaves_no_droppable_point(closed, seed):
+    from wiredsl.engine import mesh
+
+    rng = np.random.default_rng(seed)
+    corners = rng.uniform(-1, 1, (rng.integers(3, 7), 3))
+    P = np.concatenate([a + np.linspace(0, 1, rng.integers(2, 40), endpoint=False)[:, None] * (b - a)
+                        for a, b in zip(corners[:-1], corners[1:], strict=True)] + [corners[-1:]])
+    Q = mesh._drop_collinear(P, closed)
+    tol = mesh.COLLINEAR * float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum())
+    kept = {tuple(p) for p in Q}
+    assert {tuple(c) for c in corners[1:-1]} <= kept  # a real turn is never dropped
+    if not closed:
+        assert np.array_equal(Q[0], P[0]) and np.array_equal(Q[-1], P[-1])
+    n = len(Q)
+    inner = range(n) if closed else range(1, n - 1)
+    assert not any(_between(Q[j - 1], Q[j], Q[(j + 1) % n], tol) for j in inner)  # nothing left to drop
+    assert n == len(corners) - (closed and _between(corners[-2], corners[-1], corners[0], tol))
+
+
+def test_drop_collinear_of_a_long_boundary_is_linear(monkeypatch):
+    from wiredsl.engine import mesh
+
+    calls = [0]
+    real = np.cross
+    monkeypatch.setattr(mesh.np, "cross", lambda *a, **k: calls.__setitem__(0, calls[0] + 1) or real(*a, **k))
+    n = 3000  # a half-disc's boundary: an arc and its diameter (the time: benchmarks/hostile_inputs.py)
+    th = np.linspace(np.pi, 0, n // 2)
+    P = np.concatenate([np.column_stack([np.linspace(-1, 1, n // 2), np.zeros(n // 2), np.zeros(n // 2)]),
+                        np.column_stack([np.cos(th), np.sin(th), np.zeros(n // 2)])[1:-1]])
+    Q = mesh._drop_collinear(P, closed=True)
+    assert calls[0] < 3 * n  # was quadratic: a restart from the start after each point dropped
+    assert 2 < len(Q) < n // 2
+
+
+def test_a_triangle_soup_gives_each_triangle_its_face_without_a_scan_a_region(monkeypatch):
+    from wiredsl.engine import mesh
+
+    rng = np.random.default_rng(3)
+    m = 2000
+    T = rng.uniform(-1, 1, (m, 1, 3)) + rng.normal(0, 0.01, (m, 3, 3))
+    T[:5, 2] = T[:5, 0] + 0.5 * (T[:5, 1] - T[:5, 0]) + 5e-9  # slivers: a corner on the opposite side
+    calls = [0]
+    real = mesh._chains
+    monkeypatch.setattr(mesh, "_chains", lambda *a: calls.__setitem__(0, calls[0] + 1) or real(*a))
+    found = mesh.features(T.reshape(-1, 3), np.arange(3 * m).reshape(m, 3), math.radians(30))
+    assert calls[0] == 1  # the sharp edges' chains once; no per-region boundary walk for lone triangles
+    faces = {tuple(map(tuple, f)) for f in found.faces}
+    assert len(found.faces) == m - 5 - found.degenerate
+    assert all(tuple(map(tuple, T[i])) in faces for i in range(5, m) if not np.isclose(
+        np.linalg.norm(np.cross(T[i, 1] - T[i, 0], T[i, 2] - T[i, 0])), 0))
+    assert len(found.occluders) == 5  # the slivers are no faces: kept as surface triangles
+
+
+def test_a_damaged_stl_is_a_warning_not_a_traceback_on_stderr(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    (tmp_path / "m.stl").write_text("solid x\nfacet normal 0 zz 1\n outer loop\n vertex 0 0 0\n vertex 1 0 0\n"
+                                    " vertex 0 1 0\n endloop\nendfacet\nendsolid\n")
+    (tmp_path / "s.wd").write_text(MESH_SCENE.replace("m.obj", "m.stl"))
+    for _ in range(2):  # and again: a file the reader warned about is not cached without its warning
+        r = run("check", str(tmp_path / "s.wd"))
+        assert r.exit_code == 0 and "Traceback" not in r.stderr, r.stderr  # trimesh's log went to stderr
+        assert "warning[W127]: mesh file m.stl: the reader warns: failed to extract face_normals (ValueError:" \
+            in r.stderr
+
+
+def test_a_reader_error_logged_by_trimesh_is_e125(tmp_path, monkeypatch):
+    import logging
+
+    import trimesh
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    real = trimesh.load
+
+    def load(*a, **k):
+        logging.getLogger("trimesh.exchange").error("corrupt accessor")
+        return real(*a, **k)
+
+    monkeypatch.setattr(trimesh, "load", load)
+    (tmp_path / "m.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "s.wd").write_text(MESH_SCENE)
+    r = run("check", str(tmp_path / "s.wd"))
+    assert r.exit_code == 1 and "E125]: mesh file m.obj: not a readable OBJ mesh (the reader: corrupt accessor)" \
+        in r.stderr, r.stderr

@@ -39,7 +39,7 @@ def test_a_syntax_error_does_not_hide_the_semantic_errors_of_what_parsed(tmp_pat
     text = ("wiredsl 1\nmodel box {\n  line a from (0, 0 0) to (1, 0, 0)\n  line b from (1, 0, 0) to (1, 0, 0)\n}\n"
             "scene s @\n" + CAMERA_WITHOUT_SIZE)
     # The broken line is set aside (no cascade from its two-value point); its neighbour is still checked.
-    assert _check(tmp_path, text) == [("E001", 3, 21), ("E002", 6, 9), ("E120", 4, 3), ("E102", 7, 8)]
+    assert _check(tmp_path, text) == [("E001", 3, 21), ("E120", 4, 3), ("E002", 6, 9), ("E102", 7, 8)]
 
 
 def test_a_name_the_broken_statement_declared_is_not_reported_unknown(tmp_path):
@@ -50,7 +50,7 @@ def test_a_name_the_broken_statement_declared_is_not_reported_unknown(tmp_path):
 def test_an_unclosed_brace_is_reported_where_it_was_opened_and_the_rest_still_compiles(tmp_path):
     text = ("wiredsl 1\nmodel box {\n  line a from (0, 0, 0) to (1, 0, 0)\n\nplace box as b1\n"
             + CAMERA_WITHOUT_SIZE + ZERO_LINE)
-    assert _check(tmp_path, text) == [("E003", 2, 11), ("E120", 10, 3), ("E102", 6, 8)]
+    assert _check(tmp_path, text) == [("E003", 2, 11), ("E102", 6, 8), ("E120", 10, 3)]
     (tmp_path / "s.wd").write_text(text)
     r = CliRunner().invoke(main, ["check", str(tmp_path / "s.wd")])
     assert "'{' opened here is never closed" in r.stderr and "perhaps a '}' is missing before line 5" in r.stderr

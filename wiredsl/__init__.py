@@ -23,3 +23,8 @@ def __getattr__(name: str):
 
         return getattr(api, name)
     raise AttributeError(f"module 'wiredsl' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    """The public API beside the module's own names, for tab completion (they are not imported until used)."""
+    return sorted({*globals(), *__all__})

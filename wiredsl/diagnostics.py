@@ -61,7 +61,7 @@ class WiredslError(Exception):
     """Raised when input cannot be turned into a scene; carries every diagnostic found."""
 
     def __init__(self, diagnostics: Sequence[Diagnostic]):
-        self.diagnostics = list(diagnostics)
+        self.diagnostics = in_order(diagnostics)
         super().__init__("\n".join(f"{d.span}: {d.severity}[{d.code}]: {d.message}" if d.span is not None
                                    else f"{d.severity}[{d.code}]: {d.message}" for d in self.diagnostics))
 
@@ -108,6 +108,19 @@ class Collector:
             raise WiredslError(self.diagnostics)
 
 
+def in_order(diags: Iterable[Diagnostic]) -> list[Diagnostic]:
+    """Diagnostics by file (in the order the files first appear: as given on the command line, a file before
+    what it includes if it is reported first), then line and column; those without a place last. A stable
+    sort: two at one place keep the order they were found in."""
+    diags = list(diags)
+    files: dict[str, int] = {}
+    for d in diags:
+        if d.span is not None:
+            files.setdefault(d.span.file, len(files))
+    return sorted(diags, key=lambda d: (files[d.span.file], d.span.line, d.span.col) if d.span is not None
+                  else (len(files), 0, 0))
+
+
 def bounded(text: str) -> str:
     """`text` with each run of over MAX_TOKEN non-blank characters, and then the whole if over MAX_TEXT, cut to
     its start and end around a '...' that says how much was left out (short text is returned as it is)."""
@@ -147,6 +160,24 @@ def read_sources(diags: Iterable[Diagnostic]) -> dict[str, str]:
     return out
 
 
+# the hint for a stage or measure name that is no near-miss of a known one
+NOT_INSTALLED = "maybe a plug-in that provides it is not installed ('wiredsl plugins' lists the installed ones)"
+
+
+class UnknownName(KeyError):
+    """A name a registry (effects, measures) does not know, from Python: a KeyError whose text says so, with the
+    close matches or the plug-in hint (a bare KeyError('edge_los') said neither)."""
+
+    def __init__(self, kind: str, name: str, known: Iterable[str]):
+        known = list(known)
+        hint = did_you_mean(name, known) or f"{NOT_INSTALLED}; {kind}s: {', '.join(known)}"
+        super().__init__(f"unknown {kind} {name!r}: {hint}")
+        self.name = name
+
+    def __str__(self) -> str:  # KeyError's own shows the repr of its text
+        return str(self.args[0])
+
+
 def did_you_mean(word: str, candidates: Iterable[str]) -> str | None:
     """A 'did you mean' hint for a misspelt name, or None."""
     import difflib
@@ -156,9 +187,9 @@ def did_you_mean(word: str, candidates: Iterable[str]) -> str | None:
 
 
 def render(diags: Sequence[Diagnostic], sources: dict[str, str], colour: bool = False) -> str:
-    """Diagnostics in compiler form, at most MAX_REPORTED of them, errors first."""
+    """Diagnostics in compiler form in source order, at most MAX_REPORTED of them (errors chosen first)."""
     ordered = sorted(diags, key=lambda d: d.severity != "error")
-    shown = ordered[:MAX_REPORTED]
+    shown = in_order(ordered[:MAX_REPORTED])
     parts = [_render_one(d, sources, colour) for d in shown]
     if len(ordered) > len(shown):
         parts.append(f"... and {len(ordered) - len(shown)} more")
@@ -167,7 +198,7 @@ def render(diags: Sequence[Diagnostic], sources: dict[str, str], colour: bool = 
 
 def render_json(diags: Sequence[Diagnostic]) -> str:
     """Diagnostics as a JSON document for editors and CI."""
-    return json.dumps({"diagnostics": [d.to_json() for d in diags]}, indent=2) + "\n"
+    return json.dumps({"diagnostics": [d.to_json() for d in in_order(diags)]}, indent=2) + "\n"
 
 
 def _paint(text: str, code: str, colour: bool) -> str:

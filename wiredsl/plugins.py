@@ -26,7 +26,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from wiredsl.diagnostics import Diagnostic, WiredslError
+from wiredsl.diagnostics import Diagnostic, UnknownName, WiredslError
 
 GROUPS = {"effect": "wiredsl.effects", "measure": "wiredsl.measures"}
 
@@ -150,7 +150,7 @@ class Registry(Mapping):
         if name not in self._loaded:
             plugin = self.plugin(name)
             if plugin is None:
-                raise KeyError(name)
+                raise UnknownName(self.kind, name, self)
             self._loaded[name] = _load(plugin, self.base, self.check)
         return self._loaded[name]
 

@@ -12,8 +12,10 @@ a second of CPU); the cache keeps the CACHE_FILES most recently used meshes.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
+import logging
 import os
 import re
 import struct
@@ -26,7 +28,7 @@ MAX_MESH_BYTES = 256 * 1024 * 1024  # a mesh file larger than this is refused
 MAX_TRIANGLES = 2_000_000  # triangles a mesh may declare or hold
 FORMATS = {".obj": "obj", ".ply": "ply", ".stl": "stl", ".gltf": "gltf", ".glb": "glb"}
 CACHE_FILES = 64  # meshes kept in the cache, the least recently used removed first
-READER = 1  # this reader's version in the cache key: a change of what is kept makes new keys
+READER = 2  # this reader's version in the cache key: a change of what is kept makes new keys
 
 
 class MeshFileError(ValueError):
@@ -43,6 +45,7 @@ class RawMesh:
 
     vertices: np.ndarray
     triangles: np.ndarray
+    warnings: tuple[str, ...] = ()  # what the reader (trimesh) logged about the file, for W127
 
 
 def declared_triangles(data: bytes, kind: str) -> int:
@@ -78,19 +81,54 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
         import trimesh
     except ImportError as exc:  # pragma: no cover - the extra is part of `test`
         raise MeshFileError("reading meshes needs trimesh: pip install 'wiredsl[mesh]'") from exc
+    log = _Log()
     try:
-        loaded = trimesh.load(io.BytesIO(data), file_type=kind, process=False, force="mesh",
-                              resolver=None if kind != "gltf" else _NoFiles())
+        with log.capturing():  # trimesh logs a damaged file's problems, tracebacks and all, on stderr
+            loaded = trimesh.load(io.BytesIO(data), file_type=kind, process=False, force="mesh",
+                                  resolver=None if kind != "gltf" else _NoFiles())
     except MeshFileError:
         raise
     except Exception as exc:  # trimesh raises anything from ValueError to IndexError on a broken file
         raise MeshFileError(f"not a readable {kind.upper()} mesh ({type(exc).__name__}: {exc})"[:300]) from None
+    if log.errors:
+        raise MeshFileError(f"not a readable {kind.upper()} mesh (the reader: {log.errors[0]})"[:300])
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
     triangles = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
     raw = _checked(vertices, triangles, kind)
+    if log.warnings:  # said each time the file is read: not cached
+        return RawMesh(raw.vertices, raw.triangles, tuple(dict.fromkeys(log.warnings)))
     if key is not None:
         _to_cache(key, raw)
     return raw
+
+
+class _Log(logging.Handler):
+    """What trimesh logs at WARNING and above while it reads, kept (one line each, an exception's type and
+    message instead of its traceback) rather than printed on stderr by logging's last-resort handler."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.warnings: list[str] = []
+        self.errors: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        text = record.getMessage()
+        exc = record.exc_info[1] if record.exc_info else None
+        if exc is not None:
+            text += f" ({type(exc).__name__}: {exc})"
+        (self.errors if record.levelno >= logging.ERROR else self.warnings).append(text[:300])
+
+    @contextlib.contextmanager
+    def capturing(self):
+        logger = logging.getLogger("trimesh")
+        propagate = logger.propagate
+        logger.addHandler(self)
+        logger.propagate = False
+        try:
+            yield self
+        finally:
+            logger.removeHandler(self)
+            logger.propagate = propagate
 
 
 # a vertex line with fewer than three numbers: trimesh reads the file's numbers as one run, three a vertex, so

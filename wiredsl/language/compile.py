@@ -266,6 +266,9 @@ class Compiler(CameraCompiler):
         except MeshFileError as exc:
             self.out.error("E125", f"mesh file {path}: {exc}", where)
             return
+        for text in raw.warnings:
+            self.out.warning("W127", f"mesh file {path}: the reader warns: {text}", where,
+                             "the file may be damaged: check what was read ('wiredsl compile' lists it)")
         scale = fb.get("scale", UNITS[self._units(fb.stmt)["length"]][1])
         if not (0 < scale <= MAX_MAGNITUDE):
             self.out.error("E110", f"mesh scale must be in (0, {MAX_MAGNITUDE:g}], got {scale:g}", fb.span("scale"))

@@ -63,6 +63,8 @@ class CameraCompiler:
                 if base is None:
                     settings[name] = None
                     return None
+                if parent in failed:  # what the parent would have set is unknown, so is what this one inherits:
+                    failed.add(name)  # no knock-on 'needs focal' for a typo in the parent
             own = dict(base)
             here: set[str] = set()
             for stmt in b.stmt.block or ():

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 
 import pydantic
 
-from wiredsl.diagnostics import Collector, Span, did_you_mean
+from wiredsl.diagnostics import NOT_INSTALLED, Collector, Span, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
 from wiredsl.language.statements import Bound, Value, bind, quantity
@@ -176,7 +176,7 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras
         return None
     if effect is None:
         out.error("E104", f"unknown stage '{stage}'", span, did_you_mean(stage, REGISTRY)
-                  or "stages: " + ", ".join(REGISTRY))
+                  or f"{NOT_INSTALLED}; stages: " + ", ".join(REGISTRY))
         return None
     fields = effect.Params.model_fields
     if param not in fields:
@@ -301,7 +301,7 @@ def _measure(sb: Bound, units: dict[str, str], out: Collector) -> MeasureUse | N
         return None
     if measure is None:
         out.error("E104", f"unknown measure '{name}'", span,
-                  did_you_mean(name, registry) or ("measures: " + ", ".join(registry) if registry
+                  did_you_mean(name, registry) or (f"{NOT_INSTALLED}; measures: " + ", ".join(registry) if registry
                                                    else "no measures are installed (wiredsl.measures)"))
         return None
     fields = measure.Params.model_fields

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from wiredsl.diagnostics import Collector, Span, did_you_mean
+from wiredsl.diagnostics import NOT_INSTALLED, Collector, Span, did_you_mean
 from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.language import ast
 from wiredsl.language.units import KIND_NAMES, UNITS
@@ -396,7 +396,8 @@ def bind(stmt: ast.Statement, context: str, units: dict[str, str], out: Collecto
         return None
     if sig is None:
         where = "at the top level" if context == "top" else f"in a {context} block"
-        hint = did_you_mean(stmt.keyword, sigs) or _elsewhere(stmt.keyword, context)
+        hint = (did_you_mean(stmt.keyword, sigs) or _elsewhere(stmt.keyword, context)
+                or (NOT_INSTALLED if isinstance(sigs, _StageSigs) else None))
         out.error("E100", f"unknown statement '{stmt.keyword}' {where}", stmt.keyword_span, hint)
         return None
     b = Bound(stmt, sig, [], {}, {})

@@ -1,0 +1,125 @@
+"""The rough edges a first plug-in author hits (issue 23, item 6): hints for missing plug-ins, did-you-mean in
+Python, dir(wiredsl), diagnostics in source order without knock-on errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from wiredsl.diagnostics import NOT_INSTALLED, WiredslError
+from wiredsl.language import ast
+from wiredsl.language.compile import compile_program
+
+
+ROOT = Path(__file__).resolve().parent.parent
+LAB = (ROOT / "scenes" / "lab.wd").read_text()
+
+
+def compile_lab(text: str):
+    """Compile text as if it were a file in scenes/ (so that the lab's includes are found)."""
+    return compile_program(ast.load(str(ROOT / "scenes" / "edited.wd"), text))
+
+
+def diagnostics_of(text: str):
+    with pytest.raises(WiredslError) as err:
+        compile_lab(text)
+    return err.value.diagnostics
+
+
+def test_an_unknown_stage_that_is_no_near_miss_hints_at_a_missing_plugin():
+    (d,) = diagnostics_of(LAB.replace("pipeline edges {\n  edge_loss", "pipeline edges {\n  rolling_shutter speed 2"))
+    assert d.code == "E100" and d.message == "unknown statement 'rolling_shutter' in a pipeline block"
+    assert d.hint == NOT_INSTALLED and "wiredsl plugins" in d.hint
+
+
+def test_a_near_miss_still_gets_did_you_mean_not_the_plugin_hint():
+    (d,) = diagnostics_of(LAB.replace("pipeline edges {\n  edge_loss", "pipeline edges {\n  edge_los"))
+    assert d.hint == "did you mean 'edge_loss'?"
+
+
+STUDY = "study s {\n  pipeline edges\n  vary VARY values [0, 1]\n  trials 2\n  measure MEASURE\n}\n"
+
+
+def test_an_unknown_measure_or_varied_stage_hints_at_a_missing_plugin():
+    (d,) = diagnostics_of(LAB + STUDY.replace("VARY", "lateral_shift.range").replace("MEASURE", "essential"))
+    assert d.message == "unknown measure 'essential'" and d.hint.startswith(NOT_INSTALLED + "; measures: ")
+    (d,) = diagnostics_of(LAB + STUDY.replace("VARY", "rolling_shutter.speed").replace("MEASURE", "survival"))
+    assert d.message == "unknown stage 'rolling_shutter'" and d.hint.startswith(NOT_INSTALLED + "; stages: ")
+
+
+# --------------------------------------------------------------------------- did-you-mean from Python
+
+def test_a_misspelt_effect_in_a_python_pipeline_says_what_it_may_have_meant():
+    import wiredsl
+    from wiredsl.scene import Pipeline
+
+    lab = compile_lab(LAB)[0]
+    bad = Pipeline(name="p", stages=[{"effect": "edge_los", "params": {}}])
+    with pytest.raises(KeyError) as err:  # still a KeyError (a lookup), but one that says what it is
+        next(wiredsl.simulate(lab, trials=1, seed=0, pipeline=bad))
+    assert str(err.value) == "unknown effect 'edge_los': did you mean 'edge_loss'?"
+    far = Pipeline(name="p", stages=[{"effect": "rolling_shutter", "params": {}}])
+    with pytest.raises(KeyError, match="unknown effect 'rolling_shutter': maybe a plug-in .*; effects: "
+                                       "calibration_error, edge_loss"):
+        wiredsl.Simulator(lab, 0, far)
+
+
+def test_a_misspelt_measure_name_from_python():
+    from wiredsl.measures import REGISTRY
+
+    with pytest.raises(KeyError) as err:
+        REGISTRY["survivl"]
+    assert str(err.value) == "unknown measure 'survivl': did you mean 'survival'?"
+    assert REGISTRY.get("survivl") is None and "survivl" not in REGISTRY  # a Mapping still
+
+
+def test_dir_of_wiredsl_lists_the_public_api_without_importing_it():
+    import subprocess
+    import sys
+
+    code = "import sys, wiredsl; d = dir(wiredsl); print(sorted(set(wiredsl.__all__) - set(d)), 'numpy' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["[]", "False"]  # every public name, and nothing heavy imported to list them
+    import wiredsl
+
+    assert {"compile", "simulate", "Simulator", "load", "Measure", "Effect", "__version__"} <= set(dir(wiredsl))
+    assert all(hasattr(wiredsl, name) for name in wiredsl.__all__)
+
+
+# --------------------------------------------------------------------------- diagnostics in order, no knock-on
+
+WORLD = "wiredsl 1\nmodel m {\n  line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)\n}\nplace m as p\n"
+RIG_AB = ("rig r {\n  left a at (0, 0.06, 1) looking (1, 0, 0)\n  right b at (0, -0.06, 1) looking (1, 0, 0)\n}\n"
+          "path run { pose (0, 0) }\n")
+
+
+def test_a_typo_in_a_camera_gives_no_knock_on_error_to_a_camera_declared_like_it():
+    text = WORLD + "camera a {\n  focla 600px\n  size (640px, 480px)\n}\ncamera b like a {\n  k1 0.01\n}\n" + RIG_AB
+    (d,) = diagnostics_of(text)  # was also "camera 'b' needs 'focal' (focal length)"
+    assert (d.code, d.message, d.span.line) == ("E100", "unknown statement 'focla' in a camera block", 7)
+    assert d.hint == "did you mean 'focal'?"
+
+
+def test_a_camera_like_a_camera_that_truly_lacks_focal_still_needs_it():
+    text = WORLD + "camera a {\n  size (640px, 480px)\n}\ncamera b like a {\n  k1 0.01\n}\n" + RIG_AB
+    assert [d.message for d in diagnostics_of(text)] == ["camera 'a' needs 'focal' (focal length)",
+                                                         "camera 'b' needs 'focal' (focal length)"]
+
+
+def test_diagnostics_come_in_source_order(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+
+    text = (WORLD + "camera a {\n  focal 600px\n  size (640px, 480px)\n  k1 zz\n}\nplace q as p2\n"
+            + RIG_AB.replace("right b", "right a"))
+    lines = [d.span.line for d in diagnostics_of(text)]
+    assert lines == [9, 11]  # the camera's error was reported after the placement's (cameras resolve later)
+    (tmp_path / "s.wd").write_text(text)
+    r = CliRunner().invoke(main, ["check", str(tmp_path / "s.wd")])
+    assert r.stderr.index(":9:6: error[E106]") < r.stderr.index(":11:7: error[E104]")
+    r = CliRunner().invoke(main, ["check", "--diagnostics", "json", str(tmp_path / "s.wd")])
+    assert [d["line"] for d in json.loads(r.stderr)["diagnostics"]] == [9, 11]
