@@ -182,3 +182,17 @@ def test_the_board_is_found_in_opencvs_stereo_images_with_a_small_reprojection_e
         e = np.array(errors[side])
         assert len(e) == 13 * 54
         assert np.sqrt(np.mean(e ** 2)) < 0.5 and np.median(e) < 0.35, (side, np.sqrt(np.mean(e ** 2)))
+
+
+def test_the_language_server_takes_a_board_for_a_model(tmp_path):
+    from wiredsl import lsp
+
+    text = (Path(__file__).resolve().parent.parent / "scenes" / "chessboard.wd").read_text()
+    index = lsp.analyse(str(tmp_path / "chessboard.wd"), text)
+    lines = text.splitlines()
+    row = next(i for i, line in enumerate(lines) if line.startswith("place target")) + 1
+    declared = next(i for i, line in enumerate(lines) if line.startswith("board target")) + 1
+    found = lsp.definition(index, index.path, row, lines[row - 1].index("target") + 2)
+    assert found is not None and found[1].line == declared
+    shown = lsp.hover(index, text, index.path, declared, 2)
+    assert shown is not None and "calibration board" in shown
