@@ -264,6 +264,7 @@ CODES: dict[str, str] = {
             'area (`mesh read`)'),
     'W125': 'mesh triangles of no area, dropped',
     'W126': 'mesh edges shared by more than two triangles (non-manifold), kept as lines',
+    'W127': "the mesh reader (trimesh) warned about the file (a damaged or partly read mesh); its words are quoted",
     'E130': 'silhouette not between two ellipses of its own model',
     'E140': 'matrix of the wrong shape, not symmetric, not positive semi-definite, or an entry over 1e100',
     'E141': ('calibration file malformed or not usable: a matrix file, or an OpenCV, ROS, Kalibr or ORB-SLAM file '
@@ -298,4 +299,8 @@ CODES: dict[str, str] = {
             '`Measure`, lacks a parameter model, or two packages claim the name (the message names the package)'),
     'E181': ('a plug-in failed at run time: it raised, or returned a malformed ImageSet, another shape or a '
             'non-finite value (the message names the package)'),
+    'W196': 'a calibration board is not found in one image (that image has no pose from the board)',
+    'E197': 'a calibration board is found in too few of the images to give their poses',
+    'E198': "images are named for a camera the scene does not have, or a scene without a board or rig for them",
+    'E199': 'an image cannot be used: unreadable, not 8-bit, or a size other than its camera\'s',
 }
