@@ -5,7 +5,8 @@ study_speed.py --against and study_scaling.py, run in a new process with the tre
     python benchmarks/_study.py OUT [--executor inprocess] [--workers N] [--points 64] [--limit K]
 
 Prints one JSON line: the study's wall time (run_study alone: the workers' start included, the interpreter's
-and the scene's compilation not), its points, and the tree's commit. --points N makes the design N (d + 2)
+and the scene's compilation not), this process's CPU time over the same span (all its threads, BLAS's too;
+not the workers'), and its points. --points N makes the design N (d + 2)
 points (64: the file's 576; 512: 4,608); --limit K runs K shards only (a warm-up: numba's caches filled).
 """
 
@@ -42,11 +43,11 @@ def main() -> None:
         path.write_text(text)
         scene = compile_file(path)[0]
         study = scene.study("sources")
-        t = time.perf_counter()
+        t, cpu = time.perf_counter(), time.process_time()
         run_study(scene, study, args.out, executor=args.executor, workers=args.workers, limit=args.limit)
-        wall = time.perf_counter() - t
+        wall, cpu = time.perf_counter() - t, time.process_time() - cpu
     points = (len(study.factors) + 2) * args.points
-    print(json.dumps({"wall": wall, "points": points, "trials": study.trials, "poses": len(study.poses or []),
+    print(json.dumps({"wall": wall, "cpu": cpu, "points": points, "trials": study.trials, "poses": len(study.poses or []),
                       "executor": args.executor, "workers": args.workers, "pid": os.getpid(),
                       "python": sys.executable}))
 

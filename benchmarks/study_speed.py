@@ -66,8 +66,9 @@ def machine_speedup(n: int = 4_000_000) -> float:
     return one / two
 
 
-def _timed_study(tree: Path, out: Path, env: dict | None = None, **kw) -> float:
-    """The wall time of one `sources` study run by `tree`'s wiredsl in a new process (benchmarks/_study.py)."""
+def _timed_study(tree: Path, out: Path, env: dict | None = None, cpu: bool = False, **kw):
+    """The wall time (with `cpu`: (wall, the study process's CPU time)) of one `sources` study run by `tree`'s
+    wiredsl in a new process (benchmarks/_study.py)."""
     import json
     import os
     import subprocess
@@ -80,7 +81,8 @@ def _timed_study(tree: Path, out: Path, env: dict | None = None, **kw) -> float:
                           text=True, cwd=tree)
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])["wall"]
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    return (got["wall"], got["cpu"]) if cpu else got["wall"]
 
 
 def side_by_side(ref: str, repeat: int, workers: int) -> None:
@@ -114,19 +116,24 @@ def side_by_side(ref: str, repeat: int, workers: int) -> None:
             for _ in range(repeat):  # interleaved, so that the machine's other load hits each alike
                 for run, kw in runs.items():
                     for name, (tree, env) in cases.items():
-                        out = tmp / f"out-{len(best)}"
-                        wall = _timed_study(tree, out, env, **kw)
+                        out = tmp / f"out-{len(best)}-{_}"
+                        wall, cpu = _timed_study(tree, out, env, cpu=True, **kw)
+                        print(f"  {run}, {name}: {wall:.1f} s wall, {cpu:.1f} s CPU ({load()})", flush=True)
                         best[(run, name)] = min(wall, best.get((run, name), float("inf")))
-                        if run == "inprocess":  # the tables, compared
+                        if run == "inprocess":  # one core: its CPU time is the study's whole cost
+                            best[("cpu", name)] = min(cpu, best.get(("cpu", name), float("inf")))
                             (tmp / f"table-{name}.csv").write_bytes((out / "table.csv").read_bytes())
             names = list(cases)
-            print(f"study: lab sources, {points} points x 2 trials x 3 poses, measures pgh + stereo3d; best of {repeat} "
-                  "interleaved runs (run_study's wall time, workers' start included)")
-            for run, kw in runs.items():
-                print(f"\n{run}:")
-                mine = points / best[(run, names[2])] / kw["workers"]
+            print(f"\nstudy: lab sources, {points} points x 2 trials x 3 poses, measures pgh + stereo3d; best of {repeat} "
+                  "interleaved runs (run_study's time, workers' start included)")
+            rows = [("in process, per CPU-second of the study's process (BLAS threads included)", "cpu", 1),
+                    ("in process, per wall second", "inprocess", 1),
+                    (f"processes x{workers}, per wall second / {workers}", f"processes x{workers}", workers)]
+            for title, run, n in rows:
+                print(f"\n{title}:")
+                mine = points / best[(run, names[2])] / n
                 for name in names:
-                    rate = points / best[(run, name)] / kw["workers"]
+                    rate = points / best[(run, name)] / n
                     print(f"  {name:48s} {best[(run, name)]:7.1f} s  {rate:6.1f} points/s per core"
                           + ("" if name == names[2] else f"   this checkout: {mine / rate:.2f}x"))
             table = {n: (tmp / f"table-{n}.csv").read_bytes() for n in names}

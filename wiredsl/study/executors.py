@@ -90,7 +90,10 @@ def _processes(jobs: Sequence[Job], done: Done, workers: int) -> None:
     method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
     ctx = multiprocessing.get_context(method)
     if method == "forkserver":
-        ctx.set_forkserver_preload(["wiredsl.study.shards", "wiredsl.measures", "threadpoolctl"])  # missing ones are skipped
+        # numba and the compiled measures too (skipped without the `fast` extra): imported once, not per worker
+        ctx.set_forkserver_preload(["wiredsl.study.shards", "wiredsl.measures", "threadpoolctl", "numba",
+                                    "wiredsl.engine.kernel", "wiredsl.measures.pgh_kernel",
+                                    "wiredsl.measures.stereo3d_kernel"])  # missing ones are skipped
     parts = chunks(jobs, workers)
     with ProcessPoolExecutor(max_workers=min(workers, len(parts)), mp_context=ctx) as pool:
         futures = {pool.submit(run_chunk, chunk): chunk for chunk in parts}
