@@ -5,6 +5,14 @@ shards, files, executors or progress).
     python benchmarks/study_speed.py [--trials 256] [--repeat 2]
 
 Uses the installed `survival` measure when there is one, else the tests' `kept` measure.
+
+    python benchmarks/study_speed.py --against 4959980 [--repeat 2] [--workers 2]
+
+The lab's Sobol' `sources` study (576 points x 2 trials x 3 poses, measures pgh and stereo3d) on commit REF
+(a temporary git worktree) and on this checkout, side by side in one run, alternately: points per second per
+core in process (one core) and with local processes (--workers), REF both as it runs by default and with
+OPENBLAS_NUM_THREADS=1 (its PGH products on one BLAS thread, as this checkout's workers run them), and
+whether the tables are equal byte for byte.
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
 STUDY = """wiredsl 1
 include "{lab}"
@@ -57,11 +66,95 @@ def machine_speedup(n: int = 4_000_000) -> float:
     return one / two
 
 
+def _timed_study(tree: Path, out: Path, env: dict | None = None, cpu: bool = False, **kw):
+    """The wall time (with `cpu`: (wall, the study process's CPU time)) of one `sources` study run by `tree`'s
+    wiredsl in a new process (benchmarks/_study.py)."""
+    import json
+    import os
+    import subprocess
+
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "_study.py"), str(out), "--scenes", str(tree / "scenes")]
+    for k, v in kw.items():
+        cmd += [f"--{k}", str(v)]
+    proc = subprocess.run(cmd, env={**os.environ, "PYTHONPATH": str(tree), **(env or {})}, capture_output=True,
+                          text=True, cwd=tree)
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    return (got["wall"], got["cpu"]) if cpu else got["wall"]
+
+
+def side_by_side(ref: str, repeat: int, workers: int) -> None:
+    """`sources` on commit `ref` and on this checkout, alternately; points/s per core and their ratio."""
+    import os
+    import subprocess
+
+    from _cli import load
+
+    points = 9 * 64
+    print(f"machine: {os.cpu_count()} cores; {load()} before")
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        other = tmp / "against"
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-q", str(other), ref], check=True)
+        try:
+            commits = {name: subprocess.run(["git", "-C", str(t), "rev-parse", "--short", "HEAD"], capture_output=True,
+                                            text=True, check=True).stdout.strip() for name, t in
+                       (("this", ROOT), ("ref", other))}
+            one = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+            cases = {  # name: (tree, environment)
+                f"{ref} ({commits['ref']}), default BLAS threads": (other, None),
+                f"{ref} ({commits['ref']}), OPENBLAS_NUM_THREADS=1": (other, one),
+                f"this checkout ({commits['this']})": (ROOT, None),
+            }
+            for tree in (other, ROOT):  # numba's caches filled for both trees before timing
+                _timed_study(tree, tmp / "warm", limit=4)
+            runs = {"inprocess": {"executor": "inprocess", "workers": 1},
+                    f"processes x{workers}": {"executor": "processes", "workers": workers}}
+            best: dict[tuple[str, str], float] = {}
+            for _ in range(repeat):  # interleaved, so that the machine's other load hits each alike
+                for run, kw in runs.items():
+                    for name, (tree, env) in cases.items():
+                        out = tmp / f"out-{len(best)}-{_}"
+                        wall, cpu = _timed_study(tree, out, env, cpu=True, **kw)
+                        print(f"  {run}, {name}: {wall:.1f} s wall, {cpu:.1f} s CPU ({load()})", flush=True)
+                        best[(run, name)] = min(wall, best.get((run, name), float("inf")))
+                        if run == "inprocess":  # one core: its CPU time is the study's whole cost
+                            best[("cpu", name)] = min(cpu, best.get(("cpu", name), float("inf")))
+                            (tmp / f"table-{name}.csv").write_bytes((out / "table.csv").read_bytes())
+            names = list(cases)
+            print(f"\nstudy: lab sources, {points} points x 2 trials x 3 poses, measures pgh + stereo3d; best of {repeat} "
+                  "interleaved runs (run_study's time, workers' start included)")
+            rows = [("in process, per CPU-second of the study's process (BLAS threads included)", "cpu", 1),
+                    ("in process, per wall second", "inprocess", 1),
+                    (f"processes x{workers}, per wall second / {workers}", f"processes x{workers}", workers)]
+            for title, run, n in rows:
+                print(f"\n{title}:")
+                mine = points / best[(run, names[2])] / n
+                for name in names:
+                    rate = points / best[(run, name)] / n
+                    print(f"  {name:48s} {best[(run, name)]:7.1f} s  {rate:6.1f} points/s per core"
+                          + ("" if name == names[2] else f"   this checkout: {mine / rate:.2f}x"))
+            table = {n: (tmp / f"table-{n}.csv").read_bytes() for n in names}
+            print(f"\ntable.csv equal to {names[1]}'s: {table[names[2]] == table[names[1]]}; "
+                  f"to {names[0]}'s: {table[names[2]] == table[names[0]]}; "
+                  f"{ref}'s two equal each other: {table[names[0]] == table[names[1]]}")
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)], check=False)
+    print(f"machine: {load()} after (target: this checkout >= 5x {ref}'s points/s per core)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--trials", type=int, default=4096)
     ap.add_argument("--repeat", type=int, default=2, help="interleaved repetitions; the best of each is reported")
+    ap.add_argument("--against", default=None, help="a commit: the lab's sources study there and here, side by side")
+    ap.add_argument("--workers", type=int, default=2, help="--against: workers of the processes runs")
     args = ap.parse_args()
+    if args.against:
+        side_by_side(args.against, args.repeat, args.workers)
+        return
     from wiredsl.engine.world import build_world
     from wiredsl.language import compile_study
     from wiredsl.language.compile import compile_file

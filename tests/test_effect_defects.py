@@ -164,6 +164,26 @@ def test_draws_giving_a_non_positive_focal_are_refused_redrawn_and_counted(tmp_p
     assert focals and min(focals) > 0
 
 
+def test_a_batchs_rigs_with_redrawn_trials_are_those_of_its_final_draws(tmp_path):
+    """The rigs that checked a batch's draws are the rigs it projects with: the redrawn trials' rows spliced in
+    equal, bit for bit, the rigs built from scratch from the accepted draws."""
+    from wiredsl.effects import calibration_error as calib
+    from wiredsl.language.compile import compile_file
+    from wiredsl.run import start
+
+    (tmp_path / "s.wd").write_text(ONE_PARAMETER.replace("SIGMA2", "250000"))
+    scene = compile_file(tmp_path / "s.wd")[0]
+    run = start(scene, "cal", seed=4)
+    phis, rigs = run.calibration_rigs(list(range(300)))
+    assert run.stats.sums["calibration_error"]["refused"] > 10  # the redraw path ran
+    fresh = calib.perturbed_rigs(scene, phis, scene.rig.calibration.order)
+    for side in ("left", "right"):
+        for key, value in fresh[side]["params"].items():
+            assert np.array_equal(np.broadcast_to(value, (300,)), rigs[side]["params"][key]), key
+        for key in ("rotation", "position"):
+            assert np.array_equal(fresh[side][key], rigs[side][key])
+
+
 def _views(doc):
     for pose in doc["poses"]:
         for side in ("left", "right"):

@@ -328,3 +328,69 @@ def test_a_non_finite_scene_value_is_never_written(tmp_path, monkeypatch, cmd):
     assert list(tmp_path.iterdir()) == []
     r = CliRunner().invoke(main, ["compile", str(ROOT / "scenes/cylinder.wd")])
     assert r.exit_code == 1 and r.stdout == ""
+
+
+STUDY = """wiredsl 1
+include "{lab}"
+study shift {{
+  pipeline edges
+  vary lateral_shift.range from 0 to 4px steps 3
+  vary calibration_error.sigma values [0, 0.03]
+  trials 24
+  poses [0, 4]
+  seed 5
+  measure kept
+}}
+"""
+STUDY_RUN = """import sys
+sys.path.insert(0, {tests!r})
+import study_measures
+from wiredsl.language import compile_study
+compile_study.measure_registry = lambda: study_measures.REGISTRY
+from wiredsl.language.compile import compile_file
+from wiredsl.study import run_study
+
+if __name__ == "__main__":
+    scene = compile_file(sys.argv[1])[0]
+    measures = {{"kept": study_measures.SlowKept if sys.argv[3] == "slow" else study_measures.Kept}}
+    run_study(scene, scene.study("shift"), sys.argv[2], executor="processes", workers=2, registry=measures,
+              shard_trials=2)
+"""
+
+
+def test_a_study_killed_by_sigkill_resumes_to_the_uninterrupted_table_nothing_lost_or_twice(tmp_path):
+    """kill -9 of the study's process mid-run (its workers orphaned, a journal record perhaps torn): the next run
+    computes exactly the shards the killed run's journal does not hold whole, and the table is the uninterrupted
+    run's, byte for byte."""
+    from wiredsl.study import journal
+
+    scene = tmp_path / "s.wd"
+    scene.write_text(STUDY.format(lab=Path(LAB).as_posix()))
+    script = tmp_path / "run.py"
+    script.write_text(STUDY_RUN.format(tests=str(ROOT / "tests")))
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, str(script), str(scene), str(out), "slow"], env=env,
+                            start_new_session=True, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while len(journal.replay(out)) < 10 and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert proc.poll() is None, proc.stderr.read()  # still running
+        os.kill(proc.pid, signal.SIGKILL)
+        assert proc.wait(60) == -signal.SIGKILL, proc.stderr.read()
+    finally:
+        with __import__("contextlib").suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)  # the orphaned workers and fork server of that run
+    proc.stderr.close()
+    (killed,) = journal.files(out)
+    done = [key for key, _ in journal.decode(killed.read_bytes())]
+    total = 3 * 2 * 12  # points (3 shifts x 2 sigmas) x shards of 2 trials
+    assert 10 <= len(done) < total and len(set(done)) == len(done) and not (out / "table.csv").exists()
+    subprocess.run([sys.executable, str(script), str(scene), str(out), "fast"], env=env, check=True)
+    (resumed,) = set(journal.files(out)) - {killed}
+    redone = [key for key, _ in journal.decode(resumed.read_bytes())]
+    assert len(set(redone)) == len(redone) and not set(redone) & set(done) and len(done) + len(redone) == total
+    subprocess.run([sys.executable, str(script), str(scene), str(tmp_path / "whole"), "fast"], env=env, check=True)
+    for name in ("table.csv", "table.json", "manifest.json"):
+        assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name

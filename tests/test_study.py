@@ -17,7 +17,7 @@ from wiredsl.engine.world import build_world
 from wiredsl.io import emit, schema
 from wiredsl.language.compile import compile_file
 from wiredsl.scene import Factor, Study
-from wiredsl.study import design, jobs, run_study, shards
+from wiredsl.study import design, jobs, journal, run_study, shards
 
 SCENE_TEXT = """wiredsl 1
 include "{lab}"
@@ -151,20 +151,26 @@ def test_interrupted_study_resumes_to_the_same_table(scene, tmp_path):
     _run(scene, "shift", tmp_path / "whole", executor="inprocess", shard_trials=4)
     part = tmp_path / "part"
     assert _run(scene, "shift", part, executor="inprocess", shard_trials=4, limit=5) is None
-    done = sorted((part / "shards").glob("*.npz"))
-    assert len(done) == 5 and not (part / "table.csv").exists()
-    stamp = {p: p.stat().st_mtime_ns for p in done}
-    # one finished shard is damaged on disk, one is from another study: both are recomputed
-    done[0].write_bytes(done[0].read_bytes()[:-20])
+    (first,) = journal.files(part)
+    assert len(journal.replay(part)) == 5 and not (part / "table.csv").exists()
+    # the journal's last record is torn (a crash while it was written): the four before it still count
+    first.write_bytes(first.read_bytes()[:-20])
+    kept = first.read_bytes()
     X, js = jobs(scene, scene.study("shift"), part, REGISTRY, shard_trials=4)
-    other = shards.Job(*[getattr(js[1], f) for f in ("scene", "study")], "0" * 64, *[getattr(js[1], f) for f in (
+    assert set(journal.replay(part)) == {shards.key(j) for j in js[:4]}
+    # a shard file an earlier version wrote is read; one from another study is not
+    shards.write(js[6], shards.compute(js[6]))
+    other = shards.Job(*[getattr(js[7], f) for f in ("scene", "study")], "0" * 64, *[getattr(js[7], f) for f in (
         "values", "shard", "folder", "registry")])
     shards.write(other, {"kept.strokes": np.zeros((2, 4))})
-    assert shards.read(js[1]) is None and shards.read(js[2]) is not None
+    assert shards.read(js[7]) is None and shards.read(js[6]) is not None
     messages = []
     _run(scene, "shift", part, executor="inprocess", shard_trials=4, echo=messages.append)
-    assert "3 done before" in messages[0]
-    assert all(p.stat().st_mtime_ns == stamp[p] for p in done[2:])  # finished shards were not redone
+    assert "5 done before" in messages[0]
+    assert first.read_bytes() == kept  # a run never appends to another run's journal
+    (second,) = set(journal.files(part)) - {first}
+    redone = [k for k, _ in journal.decode(second.read_bytes())]
+    assert sorted(redone) == sorted(shards.key(j) for j in js if j not in js[:4] + [js[6]])  # each once
     for name in ("table.csv", "table.json", "manifest.json"):
         assert (part / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
 
@@ -174,9 +180,10 @@ def test_replayed_trial_gives_its_shard_values_exactly(scene, tmp_path):
     _run(scene, "shift", tmp_path, executor="processes", workers=2)
     X, js = jobs(scene, study, tmp_path, REGISTRY)
     world = build_world(scene)
+    journalled = journal.replay(tmp_path)
     for point, trial in ((3, 6), (1, 9), (2, 0)):
         job = next(j for j in js if j.shard.point == point and j.shard.lo <= trial < j.shard.hi)
-        stored = shards.read(job)
+        stored = journalled[shards.key(job)]
         run = shards.point_run(scene, world, study, point, X[point])
         kept = REGISTRY["kept"]
         params = kept.Params(**study.measures[0].params)
@@ -274,11 +281,11 @@ def test_study_killed_by_sigterm_resumes_to_the_uninterrupted_table(scene, scene
     script.write_text(KILLABLE)
     proc = subprocess.Popen([sys.executable, str(script), str(scene_file), str(out), executor])
     deadline = time.monotonic() + 120
-    while len(list((out / "shards").glob("*.npz"))) < 3 and proc.poll() is None and time.monotonic() < deadline:
+    while len(journal.replay(out)) < 3 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(60) == 128 + signal.SIGTERM  # stopped mid-study, its workers shut down
-    finished = len(list((out / "shards").glob("*.npz")))
+    finished = len(journal.replay(out))
     assert 3 <= finished < 20 and not (out / "table.csv").exists()
     messages = []
     _run(scene, "shift", out, executor="inprocess", shard_trials=2, echo=messages.append)

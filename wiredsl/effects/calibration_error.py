@@ -125,11 +125,12 @@ ATTEMPTS = 64  # draws tried for one trial before the calibration is refused as 
 SCALE_LIMIT = 1000.0  # a drawn pixel scale beyond this multiple of the nominal one is refused (no real camera)
 
 
-def sensible(scene, phis: np.ndarray, order: list[str]) -> np.ndarray:
+def sensible(scene, phis: np.ndarray, order: list[str], rigs: dict | None = None) -> np.ndarray:
     """Which draws (T,) leave both cameras with positive pixel scales (f ax, f ay) no larger than
-    SCALE_LIMIT times the nominal ones, and every perturbed parameter finite."""
+    SCALE_LIMIT times the nominal ones, and every perturbed parameter finite. `rigs`: `checked_rigs` of the
+    draws, when the caller has them already."""
     ok = np.isfinite(phis).all(axis=1)
-    for side, rig in perturbed_rigs(scene, np.where(np.isfinite(phis), phis, 0.0), order).items():
+    for side, rig in (checked_rigs(scene, phis, order) if rigs is None else rigs).items():
         prm, cam = rig["params"], scene.camera(getattr(scene.rig, side).camera)
         with np.errstate(over="ignore", invalid="ignore"):
             for scale, nominal in ((prm["f"] * prm["ax"], cam.f * cam.ax), (prm["f"] * prm["ay"], cam.f * cam.ay)):
@@ -138,6 +139,22 @@ def sensible(scene, phis: np.ndarray, order: list[str]) -> np.ndarray:
                 ok &= np.isfinite(prm[key])
             ok &= np.isfinite(rig["position"]).all(axis=1) & np.isfinite(rig["rotation"]).all(axis=(1, 2))
     return ok
+
+
+def checked_rigs(scene, phis: np.ndarray, order: list[str]) -> dict:
+    """`perturbed_rigs` of the draws with their non-finite values as 0: what `sensible` checks, and (every
+    accepted draw being finite) the rigs a batch projects with."""
+    return perturbed_rigs(scene, np.where(np.isfinite(phis), phis, 0.0), order)
+
+
+def splice_rigs(rigs: dict, rows: np.ndarray, new: dict) -> None:
+    """Replace the given trials' rows of `rigs` by `new` (the rigs of those trials' redraws), in place."""
+    for side, rig in rigs.items():
+        for key, value in new[side]["params"].items():
+            rig["params"][key] = np.array(np.broadcast_to(rig["params"][key], rig["position"][:, 0].shape))
+            rig["params"][key][rows] = value
+        rig["rotation"][rows] = new[side]["rotation"]
+        rig["position"][rows] = new[side]["position"]
 
 
 def perturbed_rigs(scene, phis: np.ndarray, order: list[str]) -> dict:

@@ -95,12 +95,15 @@ class Run:
         return cls(scene, world, stages, seed, options, point=point)
 
     def share_projection(self, base: Run) -> None:
-        """Take `base`'s ideal projection, visibility and epipoles (a run of the same scene and options):
-        no stage changes them. An optimisation only: what `base` has not computed is computed when needed."""
+        """Take `base`'s ideal projection, visibility, epipoles and views' templates (a run of the same scene and
+        options): no stage changes them. An optimisation only: what `base` has not computed is computed when
+        needed (the templates into `base`'s table, for the next run that shares it)."""
         for name in ("_ideal", "_visible"):
             if getattr(base, name) is not None:
                 setattr(self, name, getattr(base, name))
         self._epipoles = base._epipoles
+        if self._ideal is base._ideal:  # templates are made from the ideal views
+            self._templates = base._templates
 
     @property
     def calibration(self):
@@ -193,18 +196,26 @@ class Run:
         """The batch's calibration perturbations (T, m), each checked: a draw that leaves a camera without a
         positive pixel scale (f ax, f ay), or one over calib.SCALE_LIMIT times the nominal, or anything not
         finite, is refused and redrawn (the next attempt of the same key), and counted."""
+        return self.calibration_rigs(batch)[0]
+
+    def calibration_rigs(self, batch: Sequence[int]) -> tuple[np.ndarray, dict]:
+        """`calibration_draws` and the batch's perturbed rigs (`calib.perturbed_rigs`), built once a batch: the
+        rigs that checked the draws are the rigs the batch projects with (a redrawn trial's rows replaced)."""
         sampler = self.sampler()
         order = self.scene.rig.calibration.order
         trials = np.asarray(batch, dtype=np.int64)
         phis = calib.draws(sampler, trials, self.seed, self.point)
-        bad = ~calib.sensible(self.scene, phis, order)
+        rigs = calib.checked_rigs(self.scene, phis, order)
+        bad = ~calib.sensible(self.scene, phis, order, rigs)
         refused = int(bad.sum())
         for attempt in range(1, calib.ATTEMPTS):
             if not bad.any():
                 break
             redo = np.flatnonzero(bad)
             phis[redo] = calib.draws(sampler, trials[redo], self.seed, self.point, attempt)
-            bad[redo] = ~calib.sensible(self.scene, phis[redo], order)
+            again = calib.checked_rigs(self.scene, phis[redo], order)
+            calib.splice_rigs(rigs, redo, again)
+            bad[redo] = ~calib.sensible(self.scene, phis[redo], order, again)
             refused += int(bad.sum())
         if bad.any():
             raise WiredslError([Diagnostic(
@@ -216,7 +227,7 @@ class Run:
             self.warnings.append("calibration draws refused and redrawn (a camera's pixel scale not positive or "
                                  "implausibly large): counted in the manifest as refused_draws")
         calib.CalibrationError.record(self.stats, phis, refused)
-        return phis
+        return phis, rigs
 
     def compiled_stages(self) -> list:
         """The image stages the compiled kernel runs (when `uses_kernel`): the leading ones that have a kernel;
@@ -249,13 +260,13 @@ class Run:
         keys = self._view_keys(batch, base, compiled) if kernel else None
         if sampler is not None:
             order = self.scene.rig.calibration.order
-            phis = self.calibration_draws(batch)
+            phis, checked = self.calibration_rigs(batch)
             if self.exact_calibration:  # each trial's rig projected from scratch: the reference
                 per_trial = [self.project(calib.perturb(self.scene, phi, order)) for phi in phis]
                 base = per_trial[0]
             else:
                 self.trace["reproject"] += 1
-                rigs = calib.perturbed_rigs(self.scene, phis, order)
+                rigs = checked
         out = []
         for j, result in enumerate(base):
             disturbed = {}

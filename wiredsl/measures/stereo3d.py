@@ -54,19 +54,49 @@ def pixels_to_distorted(uv: np.ndarray, cam) -> np.ndarray:
     return np.column_stack([(uv[:, 0] - cam.cx) / (cam.f * cam.ax), (uv[:, 1] - cam.cy) / (cam.f * cam.ay)])
 
 
-def undistort(uv: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
+def undistort(uv: np.ndarray, cam, engine: str = "auto", limit: float | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """Undistorted unit-plane coordinates (n, 2) of pixels (n, 2) under `cam`, and which converged (n,).
 
     Newton's method on `geometry.distort` from the distorted point; a point is kept when the
     residual is below 1e-12 and it lies inside the fold radius (where the projection is one-to-one).
+    `engine`: "numpy" (the reference), "numba" (the same operations compiled point by point, equal to the
+    last bit; `wiredsl[fast]`) or "auto" (numba when installed). `limit`: the camera's
+    `geometry.lens_limit`, when the caller has it already.
     """
     xd = pixels_to_distorted(np.asarray(uv, dtype=float).reshape(-1, 2), cam)
     if cam.distortion == "equidistant":
         return _undistort_fisheye(xd, cam)
     if not geometry.is_distorted(cam):
         return xd, np.ones(len(xd), dtype=bool)
-    k1, k2, p1, p2, k3, k4, k5, k6 = (getattr(cam, k) for k in ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"))
-    lens = (k1, k2, p1, p2, k3, k4, k5, k6)
+    lens = tuple(float(getattr(cam, k)) for k in ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"))
+    limit = geometry.lens_limit(cam) if limit is None else limit
+    compiled = kernel() if engine != "numpy" else None
+    if engine == "numba" and compiled is None:
+        raise ImportError("the numba engine needs numba: pip install 'wiredsl[fast]'")
+    if compiled is not None:
+        return compiled.undistort_radtan(np.ascontiguousarray(xd), *lens, NEWTON_STEPS, float(limit))
+    return _undistort_radtan(xd, lens, limit)
+
+
+def kernel():
+    """The numba undistortion, or None without numba (imported on first use: it is slow to import)."""
+    global _KERNEL
+    if _KERNEL is None:
+        try:
+            from wiredsl.measures import stereo3d_kernel
+        except ImportError:
+            stereo3d_kernel = False
+        _KERNEL = stereo3d_kernel
+    return _KERNEL or None
+
+
+_KERNEL = None
+
+
+def _undistort_radtan(xd: np.ndarray, lens: tuple, limit: float) -> tuple[np.ndarray, np.ndarray]:
+    """`undistort`'s numpy reference for a radtan camera: Newton's method on all points at once."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = lens
     xy = xd.copy()
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         for _ in range(NEWTON_STEPS):
@@ -85,7 +115,7 @@ def undistort(uv: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
             xy = xy - np.column_stack([j22 * res[:, 0] - j12 * res[:, 1],
                                        j11 * res[:, 1] - j12 * res[:, 0]]) / det[:, None]
         res = np.abs(geometry.distort(xy, *lens) - xd).max(axis=1)
-        ok = np.isfinite(xy).all(axis=1) & (res < 1e-12) & (np.hypot(xy[:, 0], xy[:, 1]) < geometry.lens_limit(cam))
+        ok = np.isfinite(xy).all(axis=1) & (res < 1e-12) & (np.hypot(xy[:, 0], xy[:, 1]) < limit)
     return np.where(ok[:, None], xy, 0.0), ok
 
 
@@ -137,6 +167,7 @@ class Camera:
     model: object
     P: np.ndarray
     centre: np.ndarray
+    limit: float  # geometry.lens_limit of the model (its fold radius or largest angle), computed once
 
 
 @dataclass
@@ -169,7 +200,9 @@ class Stereo3D(Measure):
         for result in run.ideal():
             for side, mount in (("left", scene.rig.left), ("right", scene.rig.right)):
                 R, t = geometry.camera_from_world(result.pose, mount.rotation, mount.position)
-                cameras[(result.index, side)] = Camera(scene.camera(mount.camera), np.column_stack([R, t]), -R.T @ t)
+                model = scene.camera(mount.camera)
+                cameras[(result.index, side)] = Camera(model, np.column_stack([R, t]), -R.T @ t,
+                                                       geometry.lens_limit(model))
         corner_of = np.full(w.n_features, -1)
         corner_of[w.corner_fid] = np.arange(len(w.corner_fid))
         keys = source_key(w.line_fid, w.line_segment)
@@ -195,8 +228,8 @@ def _corners(prep: Prepared, left: Camera, right: Camera, sl: im.ImageSet, sr: i
     kl = sl.corner_trial.astype(np.int64) * F + sl.corner_fid
     kr = sr.corner_trial.astype(np.int64) * F + sr.corner_fid
     _, il, ir = np.intersect1d(kl, kr, return_indices=True)
-    xl, okl = undistort(sl.corners[il], left.model)
-    xr, okr = undistort(sr.corners[ir], right.model)
+    xl, okl = undistort(sl.corners[il], left.model, limit=left.limit)
+    xr, okr = undistort(sr.corners[ir], right.model, limit=right.limit)
     X, ok = triangulate(left.P, right.P, xl, xr)
     ok &= okl & okr
     truth = prep.corners[prep.corner_of[sl.corner_fid[il]]]
@@ -217,9 +250,9 @@ def _lines(p: Stereo3DParams, prep: Prepared, left: Camera, right: Camera, sl: i
         return np.zeros(0), np.zeros(0)
     # every left end point against every right stroke of the same trial and source
     stroke = np.concatenate([kl, kl])
-    xl, okl = undistort(np.concatenate([a, b]), left.model)
-    pa, oka = undistort(ra, right.model)
-    pb, okb = undistort(rb, right.model)
+    xl, okl = undistort(np.concatenate([a, b]), left.model, limit=left.limit)
+    pa, oka = undistort(ra, right.model, limit=right.limit)
+    pb, okb = undistort(rb, right.model, limit=right.limit)
     good = oka & okb & (np.linalg.norm(pb - pa, axis=1) > 0)
     kr, pa, pb = kr[good], pa[good], pb[good]
     T = max(int(sl.trial.max(initial=0)), int(sr.trial.max(initial=0))) + 1

@@ -1,7 +1,8 @@
 """`wiredsl study`: a declared sensitivity study run shard by shard and reported as a tidy table.
 
 design.py (points, seeds, pipelines, Sobol' indices) -> shards.py (one (point, trials) unit of
-work, its file) -> executors.py (where shards run) -> report.py (table, manifest) -> plots.py.
+work) -> executors.py (where shards run) -> journal.py (where finished shards are kept) -> report.py
+(table, manifest) -> plots.py.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 from wiredsl import __version__
 from wiredsl.io.files import write_atomic
 from wiredsl.scene import Scene, Study
-from wiredsl.study import design, report, shards
+from wiredsl.study import design, journal, report, shards
 from wiredsl.study.executors import EXECUTORS, execute
 
 __all__ = ["EXECUTORS", "digest", "jobs", "run_study"]
@@ -99,6 +100,17 @@ class Progress:
                       f"{rate:,.0f} trials/s, ETA {eta:,.0f} s")
 
 
+def _stored(all_jobs: list[shards.Job], folder: Path) -> dict[str, dict[str, np.ndarray]]:
+    """The study's shards already done: those its journals hold whole, and the shard files an earlier
+    version wrote (one file a shard; read, never written any more)."""
+    stored = journal.replay(folder, {shards.key(j) for j in all_jobs})
+    if any((folder / "shards").glob("*.npz")):
+        for j in all_jobs:
+            if shards.key(j) not in stored and (arrays := shards.read(j)) is not None:
+                stored[shards.key(j)] = arrays
+    return stored
+
+
 def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "processes", workers: int | None = None,
               scheduler: str | None = None, registry: dict | None = None, echo: Callable[[str], None] | None = None,
               shard_trials: int = shards.SHARD_TRIALS, limit: int | None = None, fresh: bool = False
@@ -116,7 +128,11 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
         stale.unlink(missing_ok=True)
     used = plugins_used(scene, study)
     X, all_jobs = jobs(scene, study, folder, registry, shard_trials, used)
-    todo = list(all_jobs) if fresh else [j for j in all_jobs if shards.read(j) is None]
+    if fresh:  # what an earlier run stored is set aside whole: its journals and any shard files
+        for old in [*journal.files(folder), *(folder / "shards").glob("*.npz")]:
+            old.unlink(missing_ok=True)
+    stored = _stored(all_jobs, folder)
+    todo = [j for j in all_jobs if shards.key(j) not in stored]
     record = folder / PLUGINS_RECORD  # written before any shard, so that an interrupted run's are known too
     changed = plugins_changed(record if record.is_file() else folder / "manifest.json", used)
     if echo is not None and changed and len(todo) > 0:
@@ -134,14 +150,21 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
     if echo is not None:
         echo(f"study {study.name}: {len(X)} points x {study.trials} trials in {len(all_jobs)} shards, "
              f"{len(all_jobs) - len(todo)} done before; executor {executor}")
-    execute(todo, executor, progress, workers, scheduler)
+    if todo:
+        with journal.Writer(folder) as out:
+            def finished(job: shards.Job, arrays: dict[str, np.ndarray]) -> None:
+                out.append(shards.key(job), arrays)
+                stored[shards.key(job)] = arrays
+                progress(job.shard, job.shard.hi - job.shard.lo)
+
+            execute(todo, executor, finished, workers, scheduler)
     if limit is not None:
         return None
     per_point: list[dict[str, list[np.ndarray]]] = [{} for _ in range(len(X))]
     for j in all_jobs:
-        arrays = shards.read(j)
+        arrays = stored.get(shards.key(j))
         if arrays is None:
-            raise RuntimeError(f"shard {shards.path(j)} is missing or damaged after its run")
+            raise RuntimeError(f"shard {j.shard.name} is missing after its run")
         for name, V in arrays.items():
             per_point[j.shard.point].setdefault(name, []).append(V)
     measures = {m.name: registry[m.name] for m in study.measures}

@@ -1,7 +1,10 @@
 """Where shards run: in this process, in local processes on every core, or on a Dask cluster.
 
-Every executor calls the same spawn-safe function, `shards.run_job`, which writes its shard's
-file; the caller hears of each finished shard (in whatever order) and reads the files at the end.
+Every executor calls the same spawn-safe function, `shards.run_chunk`, on chunks of consecutive shards
+(a point's shards together, so a worker sets each point up once); it returns the shards' arrays, and the
+caller hears of each finished shard (in whatever order) with its arrays, and journals them. A worker
+process imports, loads the kernel and prepares the measures once per study (`shards.compute` keeps them),
+not once per shard or chunk.
 """
 
 from __future__ import annotations
@@ -10,15 +13,34 @@ import contextlib
 import os
 from collections.abc import Callable, Sequence
 
-from wiredsl.study.shards import Job, Shard, run_job
+import numpy as np
+
+from wiredsl.study.shards import Job, run_chunk
 
 EXECUTORS = ("processes", "inprocess", "dask")
-Done = Callable[[Shard, int], None]
+Done = Callable[[Job, dict[str, np.ndarray]], None]
+CHUNKS_PER_WORKER = 8  # chunks a worker gets, at least: the last chunks finish close together
+CHUNK_TRIALS = 1024  # trials a chunk holds, at most: results come back (and are journalled) as they go
+
+
+def chunks(jobs: Sequence[Job], workers: int) -> list[list[Job]]:
+    """Consecutive jobs grouped into chunks of about equal trials, CHUNKS_PER_WORKER a worker or more."""
+    total = sum(j.shard.hi - j.shard.lo for j in jobs)
+    target = max(1, min(CHUNK_TRIALS, -(-total // (max(workers, 1) * CHUNKS_PER_WORKER))))
+    out: list[list[Job]] = []
+    size = target
+    for job in jobs:
+        if size >= target:
+            out.append([])
+            size = 0
+        out[-1].append(job)
+        size += job.shard.hi - job.shard.lo
+    return out
 
 
 def execute(jobs: Sequence[Job], executor: str, done: Done, workers: int | None = None,
             scheduler: str | None = None) -> None:
-    """Run every job, calling done(shard, trials) as each finishes."""
+    """Run every job, calling done(job, arrays) as each finishes."""
     if not jobs:
         return
     with _terminable():
@@ -50,8 +72,9 @@ def _terminable():
 
 def _execute(jobs: Sequence[Job], executor: str, done: Done, workers: int | None, scheduler: str | None) -> None:
     if executor == "inprocess":
-        for job in jobs:
-            done(*run_job(job))
+        for chunk in chunks(jobs, 1):
+            for job, (_, arrays) in zip(chunk, run_chunk(chunk), strict=True):
+                done(job, arrays)
     elif executor == "processes":
         _processes(jobs, done, workers or os.cpu_count() or 1)
     elif executor == "dask":
@@ -69,12 +92,17 @@ def _processes(jobs: Sequence[Job], done: Done, workers: int) -> None:
     method = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
     ctx = multiprocessing.get_context(method)
     if method == "forkserver":
-        ctx.set_forkserver_preload(["wiredsl.study.shards", "wiredsl.measures"])  # missing ones are skipped
-    with ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=ctx) as pool:
-        futures = [pool.submit(run_job, job) for job in jobs]
+        # numba and the compiled measures too (skipped without the `fast` extra): imported once, not per worker
+        ctx.set_forkserver_preload(["wiredsl.study.shards", "wiredsl.measures", "threadpoolctl", "numba",
+                                    "wiredsl.engine.kernel", "wiredsl.measures.pgh_kernel",
+                                    "wiredsl.measures.stereo3d_kernel"])  # missing ones are skipped
+    parts = chunks(jobs, workers)
+    with ProcessPoolExecutor(max_workers=min(workers, len(parts)), mp_context=ctx) as pool:
+        futures = {pool.submit(run_chunk, chunk): chunk for chunk in parts}
         try:
             for f in as_completed(futures):
-                done(*f.result())
+                for job, (_, arrays) in zip(futures[f], f.result(), strict=True):
+                    done(job, arrays)
         except BaseException:  # the shards running finish and are written; the rest are not started
             pool.shutdown(wait=True, cancel_futures=True)
             raise
@@ -88,10 +116,14 @@ def _dask(jobs: Sequence[Job], done: Done, scheduler: str | None) -> None:
     if not scheduler:
         raise ValueError("the dask executor needs --scheduler ADDRESS (e.g. tcp://host:8786)")
     with Client(scheduler) as client:
-        futures = client.map(run_job, list(jobs), pure=False)
+        n = sum(w.get("nthreads", 1) for w in client.scheduler_info().get("workers", {}).values()) or 1
+        parts = chunks(jobs, n)
+        futures = client.map(run_chunk, parts, pure=False)
+        chunk_of = {f.key: chunk for f, chunk in zip(futures, parts, strict=True)}
         try:
             for f in as_completed(futures):
-                done(*f.result())
+                for job, (_, arrays) in zip(chunk_of[f.key], f.result(), strict=True):
+                    done(job, arrays)
         except BaseException:
             client.cancel(futures)
             raise

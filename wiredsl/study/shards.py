@@ -249,7 +249,27 @@ def read(job: Job) -> dict[str, np.ndarray] | None:
     return arrays
 
 
-def run_job(job: Job) -> tuple[Shard, int]:
-    """Compute and write one shard (the function every executor calls); returns it and its trials."""
-    write(job, compute(job))
-    return job.shard, job.shard.hi - job.shard.lo
+def run_job(job: Job) -> tuple[Shard, dict[str, np.ndarray]]:
+    """Compute one shard (the function every executor calls, through `run_chunk`); returns it and its arrays,
+    which the study's process appends to its journal."""
+    return job.shard, compute(job)
+
+
+def run_chunk(jobs: list[Job]) -> list[tuple[Shard, dict[str, np.ndarray]]]:
+    """Compute a chunk of shards in one worker call (one message each way, the scene and study pickled once),
+    with BLAS on one thread: a study's workers take one core each, and a matrix product's sums then do not
+    depend on how many threads the machine offered (a table is the same on every machine)."""
+    with one_blas_thread():
+        return [run_job(job) for job in jobs]
+
+
+@contextlib.contextmanager
+def one_blas_thread():
+    """BLAS limited to one thread inside (threadpoolctl, from `wiredsl[fast]`); as it is without threadpoolctl."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
