@@ -8,6 +8,7 @@ whose file has the expected key and checksum, and recomputes any other.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
