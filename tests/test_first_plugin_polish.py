@@ -123,3 +123,16 @@ def test_diagnostics_come_in_source_order(tmp_path):
     assert r.stderr.index(":9:6: error[E106]") < r.stderr.index(":11:7: error[E104]")
     r = CliRunner().invoke(main, ["check", "--diagnostics", "json", str(tmp_path / "s.wd")])
     assert [d["line"] for d in json.loads(r.stderr)["diagnostics"]] == [9, 11]
+
+
+# --------------------------------------------------------------------------- a plug-in's default is its own
+
+from test_plugins import installed  # noqa: E402,F401 - the wdplug distribution, as a fixture
+
+
+def test_a_plugin_parameters_default_on_hover_does_not_claim_to_be_the_papers(installed):  # noqa: F811
+    from wiredsl.language.statements import CONTEXTS
+    from wiredsl.lsp import _clause_detail
+
+    assert _clause_detail(CONTEXTS["pipeline"]["centre_noise"], "sigma") == "sigma (default 0.5 px)"
+    assert _clause_detail(CONTEXTS["pipeline"]["lateral_shift"], "range") == "range (default 3 px, the paper's)"
