@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from wiredsl.diagnostics import NOT_INSTALLED, WiredslError
 from wiredsl.language import ast
 from wiredsl.language.compile import compile_program
-
 
 ROOT = Path(__file__).resolve().parent.parent
 LAB = (ROOT / "scenes" / "lab.wd").read_text()
@@ -123,3 +123,76 @@ def test_diagnostics_come_in_source_order(tmp_path):
     assert r.stderr.index(":9:6: error[E106]") < r.stderr.index(":11:7: error[E104]")
     r = CliRunner().invoke(main, ["check", "--diagnostics", "json", str(tmp_path / "s.wd")])
     assert [d["line"] for d in json.loads(r.stderr)["diagnostics"]] == [9, 11]
+
+
+# --------------------------------------------------------------------------- a plug-in's default is its own
+
+from test_plugins import installed  # noqa: E402,F401 - the wdplug distribution, as a fixture
+
+
+def test_a_plugin_parameters_default_on_hover_does_not_claim_to_be_the_papers(installed):  # noqa: F811
+    from wiredsl.language.statements import CONTEXTS
+    from wiredsl.lsp import _clause_detail
+
+    assert _clause_detail(CONTEXTS["pipeline"]["centre_noise"], "sigma") == "sigma (default 0.5 px)"
+    assert _clause_detail(CONTEXTS["pipeline"]["lateral_shift"], "range") == "range (default 3 px, the paper's)"
+
+
+# --------------------------------------------------------------------------- study plots
+
+def _table(design="grid"):
+    from wiredsl.io.features import SceneRef
+    from wiredsl.study import report
+
+    rows = []
+    for i, x in enumerate([0.0, 0.002, 0.004]):
+        for stat, mean, sem in (("features", [0.98, 0.6, 0.03][i], 0.05), ("ideal_features", 40.0, 1.0)):
+            rows.append(report.Row(point=i, values={"lateral_shift.range": x}, measure="survival", statistic=stat,
+                                   n=8, n_values=8, mean=mean, sem=sem, q05=0, q25=0, q50=0, q75=0, q95=0))
+        rows.append(report.Row(point=i, values={"lateral_shift.range": x}, measure="stereo3d",
+                               statistic="error_mean", n=8, n_values=8, mean=[0.001, 0.01, 0.02][i], sem=0.004,
+                               q05=0, q25=0, q50=0, q75=0, q95=0))
+    return report.StudyTable(tool_version="0", scene=SceneRef(name="x", file="x.wd", sha256="0" * 64),
+                             study="shift", design=design, factors=["lateral_shift.range"], seed=0, trials=8,
+                             rows=rows)
+
+
+def test_study_plots_have_worded_titles_150_dpi_and_bands_inside_the_statistics_range(tmp_path, monkeypatch):
+    from wiredsl.scene import MeasureUse, Study
+    from wiredsl.study import plots
+
+    assert plots.DPI == 150
+    figures = {}
+    plt = plots._pyplot()
+    real = plt.close
+    monkeypatch.setattr(plt, "close", lambda fig: figures.setdefault(fig._suptitle.get_text(), fig))
+    study = Study(name="shift", pipeline="edges", factors=[{"stage": "lateral_shift", "param": "range",
+                                                            "values": [0, 0.002, 0.004]}],
+                  measures=[MeasureUse(name="survival"), MeasureUse(name="stereo3d")])
+    written = plots.write_all(_table(), study, tmp_path)
+    assert "plots/survival.features.png" in written
+    from PIL import Image
+
+    with Image.open(tmp_path / "survival.features.png") as im:  # 4.2 x 3.3 inches at 150 dpi
+        assert abs(im.size[0] - 4.2 * 150) < 40 and abs(im.size[1] - 3.3 * 150) < 40
+    titles = sorted(figures)
+    assert "Survival: features (fraction)\nmean and 95% band, study shift (survival.features)" in titles
+    assert "Stereo reconstruction error: error mean (m)\nmean and 95% band, study shift (stereo3d.error_mean)" \
+        in titles
+    for title, fig in figures.items():
+        ax = fig.axes[0]
+        assert ax.get_xlabel() == ("lateral shift: largest lateral shift either side (px)\n"
+                                   "lateral_shift.range")
+        ys = np.concatenate([p.get_paths()[0].vertices[:, 1] for p in ax.collections])
+        lo, hi = {"features": (0, 1), "ideal_features": (0, np.inf), "error_mean": (0, np.inf)}[
+            title.split("(")[-1].split(".")[-1].rstrip(")")]
+        assert ys.min() >= lo and ys.max() <= hi, (title, ys.min(), ys.max())  # was 0.03 - 1.96 * 0.05 < 0
+        real(fig)
+
+
+def test_a_signed_statistic_keeps_its_band_below_zero():
+    from wiredsl.study.plots import statistic_range
+
+    assert statistic_range("m", [0.1, -0.2]) == (-np.inf, np.inf)
+    assert statistic_range("m", [0.1, 0.2]) == (0, np.inf) and statistic_range("fraction", [2]) == (0, 1)
+    assert statistic_range(None, [1.0]) == (-np.inf, np.inf)

@@ -434,7 +434,8 @@ def test_study_plots_as_svg_and_pdf_with_units_on_every_y_axis(scene_file, tmp_p
 
     texts = {name: "".join(ET.parse(out / "plots" / name).getroot().itertext())
              for name in ("kept.strokes.svg", "kept.length.svg", "sobol.svg")}
-    assert "kept.strokes (fraction)" in texts["kept.strokes.svg"] and "kept.length (px)" in texts["kept.length.svg"]
+    assert "strokes (fraction)" in texts["kept.strokes.svg"] and "length (px)" in texts["kept.length.svg"]
+    assert "(kept.strokes)" in texts["kept.strokes.svg"]  # the code name beside the words
     assert "edge_loss.fraction" in texts["kept.length.svg"] and "Sobol' index (share of variance)" in texts["sobol.svg"]
     r = CliRunner().invoke(main, ["study", str(scene_file), "sources", "-o", str(out), "--plot-format", "pdf"])
     assert r.exit_code == 0, r.output

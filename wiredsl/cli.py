@@ -1022,7 +1022,7 @@ def render(file: str, output: str | None, pipeline_name: str | None, no_effects:
 @click.option("--plots/--no-plots", default=True, show_default=True, help="Write the plots (needs matplotlib).")
 @click.option("--plot-format", type=click.Choice(["png", "svg", "pdf"]), default="png", show_default=True,
               help="The plots' format: png (raster), or svg / pdf (vector, for publication).")
-@click.option("--dpi", type=click.IntRange(20, 1200), default=110, show_default=True,
+@click.option("--dpi", type=click.IntRange(20, 1200), default=150, show_default=True,
               help="The plots' resolution in dots per inch (png; embedded rasters in svg / pdf).")
 @click.option("--fresh", is_flag=True, help="Recompute every shard, whatever the output folder holds.")
 @diagnostics_option

@@ -280,9 +280,15 @@ def _clause_detail(sig: Sig, key: str) -> str:
     if sig.keyword in CONTEXTS["pipeline"]:
         from wiredsl.effects import REGISTRY
 
+        from wiredsl.effects import BUILTIN
+
         f = REGISTRY[sig.keyword].Params.model_fields[key]
-        unit = {"image": " px", "angle": " rad", "length": " m"}.get(f.json_schema_extra["kind"], "")
-        return f"{key} (default {f.default:g}{unit}, the paper's)"
+        extra = f.json_schema_extra if isinstance(f.json_schema_extra, dict) else {}
+        unit = {"image": " px", "angle": " rad", "length": " m"}.get(extra.get("kind"), "")
+        shown = f"{f.default:g}" if isinstance(f.default, (int, float)) and not isinstance(f.default, bool) \
+            else f"{f.default!r}"
+        whose = ", the paper's" if sig.keyword in BUILTIN else ""  # a plug-in's default is its author's
+        return f"{key} (default {shown}{unit}{whose})"
     return key + "".join(f" <{s.label}>" for s in sig.clauses[key].slots)
 
 

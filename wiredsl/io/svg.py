@@ -45,10 +45,11 @@ KIND_LABELS = {"#1f4e79": "line, polyline", "#2e7d32": "ellipse", "#b35900": "si
 IDEAL = "#b0b0b0"  # the ideal features beneath the disturbed ones
 HIDDEN = "#d81b60"  # features that view-dependency hides
 # top view: colour by object; the largest (the room) is drawn first in grey, so that what lies on its
-# lines (a door in a wall) is drawn over it in its own colour
+# lines (a door in a wall) is drawn over it in its own colour. A scheme of its own: none of these is near a
+# feature kind's colour in the camera panes, a field of view's or another mark's (tests/test_figures.py)
 ROOM = "#8d8d8d"
-PALETTE = ("#6a3d9a", "#00838f", "#795548", "#ad1457", "#827717", "#283593", "#e65100", "#00695c", "#4e342e",
-           "#5d4037")
+PALETTE = ("#0288d1", "#7cb342", "#f9a825", "#7e57c2", "#546e7a", "#827717", "#3949ab", "#ec407a")
+MAX_PLACEMENT_KEYS = len(PALETTE)  # placements the legend names; past them (colours come round again) "and N more"
 FOV = {"left": "#00897b", "right": "#7b1fa2"}
 MESH, MESH_POINT, NEAREST, PATH, ROBOT = "#90caf9", "#64b5f6", "#ef6c00", "#9e9e9e", "#000000"
 
@@ -87,10 +88,15 @@ class Keys:
     """The legend: every colour and marker drawn, in the order first drawn, grouped."""
 
     entries: dict[tuple[str, str], tuple[str, str]] = field(default_factory=dict)  # (group, colour) -> (label, mark)
+    more: dict[str, tuple[int, str]] = field(default_factory=dict)  # group -> (items not listed, what they are)
 
     def use(self, group: str, colour: str, label: str, mark: str = "line") -> str:
         self.entries.setdefault((group, colour), (label, mark))
         return colour
+
+    def one_more(self, group: str, what: str) -> None:
+        """An item drawn but not listed (its colour already means another): the legend says how many."""
+        self.more[group] = (self.more.get(group, (0, what))[0] + 1, what)
 
 
 @dataclass
@@ -333,7 +339,11 @@ def top_view(scene: Scene, world: World, x: float, y: float, w: float, h: float)
         else:  # above, below, right, left of the outline: the first that overlaps no earlier name
             tries = [(mid[0], qlo[1] - 6, "middle"), (mid[0], qhi[1] + 15, "middle"),
                      (qhi[0] + 5, mid[1] + 4, "start"), (qlo[0] - 5, mid[1] + 4, "end")]
-        labels.append(_place_label(n, colour, tries, placed, (X0, Y0, X0 + bw, Y0 + bh)))
+        label = _place_label(n, colour, tries, placed, (X0, Y0, X0 + bw, Y0 + bh))
+        if label is None and n == room:  # the room's name is kept, where it goes: it is placed first
+            label = (*tries[0], n, colour)
+        if label is not None:
+            labels.append(label)
     path = (f'<polyline class="map" points="{_pts(m(np.array(scene.path.poses, dtype=float)[:, :2]))}" '
             f'fill="none" stroke="{PATH}" stroke-width="1.6" stroke-dasharray="6 4"/>')
     texts = []
@@ -374,7 +384,10 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
         keys.use("top view", MESH_POINT, "view-point", "dot")
         out += tv.points
     for n, colour, outlines in tv.objects:
-        keys.use("top view", colour, n)
+        if ("top view", colour) in keys.entries:  # a colour come round again: named on the map, counted here
+            keys.one_more("top view", "placements (colours repeat)")
+        else:
+            keys.use("top view", colour, n)
         out += outlines
     keys.use("top view", PATH, f"path '{scene.path.name}'", "dash")
     out.append(tv.path)
@@ -395,8 +408,9 @@ def _map(scene: Scene, world: World, result: PoseResult, x: float, y: float, w: 
     return out
 
 
-def _place_label(name: str, colour: str, tries, placed: list, box) -> tuple[float, float, str, str, str]:
-    """The first candidate position whose text lies in the box and clear of the names placed so far."""
+def _place_label(name: str, colour: str, tries, placed: list, box) -> tuple[float, float, str, str, str] | None:
+    """The first candidate position whose text lies in the box and clear of the names placed so far; None (the
+    name left off, its outline's tooltip still has it) when every one would overlap another name."""
     w = 0.66 * SMALL * len(name)  # bold sans: about 0.66 em a character
 
     def rect(x, y, anchor):
@@ -407,7 +421,10 @@ def _place_label(name: str, colour: str, tries, placed: list, box) -> tuple[floa
         inside = r[0] >= box[0] and r[1] >= box[1] and r[2] <= box[2] and r[3] <= box[3]
         return inside and all(r[2] < q[0] or q[2] < r[0] or r[3] < q[1] or q[3] < r[1] for q in placed)
 
-    x, y, anchor = next((t for t in tries if free(rect(*t))), tries[0])
+    found = next((t for t in tries if free(rect(*t))), None)
+    if found is None:
+        return None
+    x, y, anchor = found
     placed.append(rect(x, y, anchor))
     return x, y, anchor, name, colour
 
@@ -440,6 +457,10 @@ def _legend(keys: Keys, x: float, y: float, w: float) -> tuple[list[str], float]
             out.append(_swatch(cx, cy, colour, mark, label))
             out.append(_text(cx + 32, cy + 4, label, SMALL))
         yy += rows * row_h + 8
+        if group in keys.more:
+            count, what = keys.more[group]
+            out.append(_text(x, yy + 4, f"and {count} more {what}", SMALL))
+            yy += row_h
     out.append("</g>")
     return out, yy - y
 

@@ -4,6 +4,7 @@ with 95% confidence bands, and for space-filling designs the Sobol' indices as b
 from __future__ import annotations
 
 import itertools
+import math
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,7 @@ def _pyplot():
 
 
 FORMATS = ("png", "svg", "pdf")
-DPI = 110  # the default raster resolution; SVG and PDF are vector (dpi sizes only embedded rasters)
+DPI = 150  # the default raster resolution; SVG and PDF are vector (dpi sizes only embedded rasters)
 SOBOL_LIMITS = (-0.5, 1.5)  # indices are shares of variance: a heavy-tailed statistic's wild estimate is cut here
 
 
@@ -69,15 +70,17 @@ def write_all(table: StudyTable, study: Study, folder: Path, fmt: str = "png", d
         cols = min(d, 4)
         fig, axes = plt.subplots(-(-d // cols), cols, figsize=(4.2 * cols, 3.3 * -(-d // cols)), squeeze=False)
         unit = units.get(f"{measure}.{stat}")
+        span = statistic_range(unit, [r.mean for r in rows])
         for ax, f in itertools.zip_longest(axes.ravel(), table.factors):
             if f is None:
                 ax.axis("off")
                 continue
-            (_grid if study.design == "grid" else _scatter)(ax, rows, f, table.factors)
-            ax.set_xlabel(_label(f))
-            ax.set_ylabel(f"{measure}.{stat}" + (f" ({unit})" if unit else ""))
+            (_grid if study.design == "grid" else _scatter)(ax, rows, f, table.factors, span)
+            ax.set_xlabel(_label(f), fontsize=8)
+            ax.set_ylabel(_words(stat) + (f" ({unit})" if unit else ""))
             ax.grid(alpha=0.3)
-        fig.suptitle(f"{table.study}: {measure}.{stat} (mean, 95% band)", fontsize=10)
+        fig.suptitle(f"{_measure_words(measure)}: {_words(stat)}" + (f" ({unit})" if unit else "")
+                     + f"\nmean and 95% band, study {table.study} ({measure}.{stat})", fontsize=10)
         fig.tight_layout()
         name = f"{measure}.{stat}.{fmt}"
         _save(fig, folder / name, fmt, dpi)
@@ -102,13 +105,57 @@ def _unit(factor: str) -> str:
     return {"image": "px", "angle": "rad", "length": "m"}.get(kind, "")
 
 
+def _words(name: str) -> str:
+    """A code name in words: error_mean -> error mean."""
+    return name.replace("_", " ")
+
+
+def _measure_words(measure: str) -> str:
+    """A measure in words: the lead of its doc's first line (up to a colon or comma), else its name."""
+    from wiredsl.language.compile_study import measure_registry
+
+    cls = measure_registry().get(measure)
+    first = ((getattr(cls, "doc", None) or "").strip().splitlines() or [""])[0]
+    lead = first.split(":")[0].split(",")[0].strip().rstrip(".")
+    return lead if 0 < len(lead) <= 60 else _words(measure)
+
+
+def _description(factor: str) -> str | None:
+    """A factor's parameter as its declaration describes it (an effect's Params field, a camera factor)."""
+    from wiredsl.effects import REGISTRY
+
+    stage, param = factor.rsplit(".", 1)
+    if stage.startswith("camera."):
+        from wiredsl.language.compile_study import CAMERA_FACTORS
+
+        return CAMERA_FACTORS[param][2] if param in CAMERA_FACTORS else None
+    field = REGISTRY[stage].Params.model_fields.get(param)
+    return field.description if field is not None else None
+
+
 def _label(factor: str) -> str:
-    """The factor with its unit, for an axis."""
+    """The factor in words (its stage, its parameter's description) with its unit, and its code name below, for
+    an axis."""
     unit = _unit(factor)
-    return f"{factor} ({unit})" if unit else factor
+    stage = factor.rsplit(".", 1)[0]
+    what = _description(factor)
+    if not what:
+        return f"{factor} ({unit})" if unit else factor
+    return f"{_words(stage.replace('camera.', 'camera '))}: {what}" + (f" ({unit})" if unit else "") + f"\n{factor}"
 
 
-def _grid(ax, rows, f: str, factors: list[str]) -> None:
+def statistic_range(unit: str | None, means) -> tuple[float, float]:
+    """Where a statistic's values can lie, for clipping its bands: a fraction in [0, 1], a count at or above 0,
+    and a length, pixel or angle statistic at or above 0 when every mean of it is (an error's size, never a
+    signed bias that happens to be positive: a negative mean shows it is signed)."""
+    if unit == "fraction":
+        return 0.0, 1.0
+    if unit == "count" or (unit in ("m", "px", "rad") and all(m >= 0 for m in means)):
+        return 0.0, math.inf
+    return -math.inf, math.inf
+
+
+def _grid(ax, rows, f: str, factors: list[str], span=(-math.inf, math.inf)) -> None:
     """One line per combination of the other factors (averaged over them when there are too many)."""
     others = [g for g in factors if g != f]
     combos = sorted({tuple(r.values[g] for g in others) for r in rows})
@@ -122,12 +169,13 @@ def _grid(ax, rows, f: str, factors: list[str]) -> None:
         label = ", ".join(f"{g}={v:g}{(' ' + _unit(g)) if _unit(g) else ''}"
                           for g, v in zip(others, combo, strict=True)) or None
         line, = ax.plot(xs, mean, marker="o", ms=3, label=label)
-        ax.fill_between(xs, mean - Z95 * sem, mean + Z95 * sem, color=line.get_color(), alpha=0.2, lw=0)
+        ax.fill_between(xs, np.clip(mean - Z95 * sem, *span), np.clip(mean + Z95 * sem, *span),
+                        color=line.get_color(), alpha=0.2, lw=0)
     if others:
         ax.legend(fontsize=7)
 
 
-def _scatter(ax, rows, f: str, factors: list[str]) -> None:
+def _scatter(ax, rows, f: str, factors: list[str], span=(-math.inf, math.inf)) -> None:
     """Each point's mean against this factor, and the mean over 8 bins of it with its 95% band."""
     x = np.array([r.values[f] for r in rows])
     y = np.array([r.mean for r in rows])
@@ -143,7 +191,8 @@ def _scatter(ax, rows, f: str, factors: list[str]) -> None:
             half.append(Z95 * yb.std(ddof=1) / np.sqrt(len(yb)))
     mids, means, half = map(np.array, (mids, means, half))
     line, = ax.plot(mids, means, marker="o", ms=3, color="C0")
-    ax.fill_between(mids, means - half, means + half, color=line.get_color(), alpha=0.25, lw=0)
+    ax.fill_between(mids, np.clip(means - half, *span), np.clip(means + half, *span), color=line.get_color(),
+                    alpha=0.25, lw=0)
 
 
 def _sobol(plt, table: StudyTable, stats, folder: Path, fmt: str, dpi: int) -> str:
