@@ -7,7 +7,9 @@
   triangle (a boundary) or more than two (non-manifold). Sharp edges are features, nothing else: the
   diagonals of a triangulated planar face are never sharp.
 - A closed loop of sharp edges with at least RIM_MIN vertices, planar and on an ellipse to RIM_TOL of its
-  size, is a rim: an `ellipse`. A smooth region (triangles joined by edges that are not sharp) whose
+  size, whose edges' middles are also on it to RIM_EDGE of its radius and RIM_EDGE_ABS metres (so that a
+  polygon with filleted corners, whose vertices may all be near one circle, keeps its straight sides), is
+  a rim: an `ellipse`. The vertices are in metres (the caller scales them). A smooth region (triangles joined by edges that are not sharp) whose
   vertices all lie on two rims, or on one rim and one apex vertex, is the side of a cylinder or cone: a
   `silhouette` between them (an apex is an ellipse of radius APEX_RADIUS).
 - Other sharp edges form chains between nodes (vertices where other than two meet, or where the chain
@@ -32,6 +34,9 @@ MERGE = 1e-6  # of the bounding box's diagonal: vertices this close are one (20 
 AREA = 1e-12  # of the diagonal squared: a triangle with less area is degenerate
 RIM_MIN = 12  # vertices a closed loop needs to be read as a rim (a square or an octagon is not a circle)
 RIM_TOL = 0.01  # of the rim's mean radius: how far its vertices may be off the fitted ellipse or plane
+RIM_EDGE = 0.04  # of the rim's mean radius: how far the middle of an edge may be off the fitted ellipse (the
+#   sagitta of a regular 12-gon, the coarsest rim, is 3.4%; a filleted hexagon's straight sides are 10% off)
+RIM_EDGE_ABS = 0.002  # metres: and in absolute length (a 1 m wide rounded rectangle is not a 1 m circle)
 COLLINEAR = 1e-6  # of a chain's length: points this far off its line are still on it
 CORNER_TURN = math.radians(30)  # a chain turning more than this at a vertex has a corner there
 FLAT = math.radians(0.01)  # normals of one planar region differ by at most this
@@ -96,40 +101,53 @@ def features(V: np.ndarray, F: np.ndarray, crease: float) -> MeshFeatures:
     for loop, closed in chains:
         fit = _rim(V[loop[:-1]], size) if closed and len(loop) - 1 >= RIM_MIN else None
         if fit is not None:
-            fit["verts"] = set(loop[:-1].tolist())
+            fit["verts"] = loop[:-1]
             rims.append(fit)
         else:
             rest.append((loop, closed))
     out.ellipses = [{k: r[k] for k in ("centre", "normal", "axis", "a", "b")} for r in rims]
     # sides of cylinders and cones: smooth regions all of whose vertices are on two rims (or a rim and an apex)
     n_region = int(region.max()) + 1
+    by_region = np.argsort(region, kind="stable")
+    bounds = np.searchsorted(region[by_region], np.arange(n_region + 1))
+    first = by_region[bounds[:-1]]  # each region's first triangle
+    flat = np.bincount(region, weights=np.abs((N * N[first[region]]).sum(1)) < math.cos(FLAT),
+                       minlength=n_region) == 0
+    gv = np.unique(region[np.repeat(np.arange(len(F)), 3)] * len(V) + F.ravel())  # (region, vertex) pairs
+    g, v = gv // len(V), gv % len(V)
+    rim_v = np.concatenate([r["verts"] for r in rims]) if rims else np.zeros(0, int)
+    rim_k = np.repeat(np.arange(len(rims)), [len(r["verts"]) for r in rims])
+    o = np.argsort(rim_v, kind="stable")
+    rim_v, rim_k = rim_v[o], rim_k[o]
+    lo, hi = np.searchsorted(rim_v, v, "left"), np.searchsorted(rim_v, v, "right")
+    n_on = hi - lo
+    at = np.repeat(lo - np.cumsum(n_on) + n_on, n_on) + np.arange(n_on.sum())
+    gk = np.unique(np.repeat(g, n_on) * max(len(rims), 1) + rim_k[at])  # (region, rim) pairs, sorted
+    rims_of = np.bincount(gk // max(len(rims), 1), minlength=n_region)
+    bare = n_on == 0
+    left = np.bincount(g[bare], minlength=n_region)  # vertices of the region on no rim
+    apex = np.zeros(n_region, int)
+    apex[g[bare]] = v[bare]
     ruled = np.zeros(n_region, bool)
-    flat = np.zeros(n_region, bool)
-    for g in range(n_region):
-        tris = np.flatnonzero(region == g)
-        verts = set(np.unique(F[tris]).tolist())
-        if (np.abs(N[tris] @ N[tris[0]]) >= math.cos(FLAT)).all() and len(tris) > 0:
-            flat[g] = True
-            continue
-        on = [k for k, r in enumerate(rims) if verts & r["verts"]]
-        left = verts.difference(*(rims[k]["verts"] for k in on)) if on else verts
-        if len(on) == 2 and not left:
+    pair_at = np.searchsorted(gk // max(len(rims), 1), np.arange(n_region))
+    for g_ in np.flatnonzero(~flat & (((rims_of == 2) & (left == 0)) | ((rims_of == 1) & (left == 1)))).tolist():
+        on = (gk[pair_at[g_]:pair_at[g_] + rims_of[g_]] % max(len(rims), 1)).tolist()
+        if len(on) == 2:
             out.silhouettes.append((on[0], on[1]))
-            ruled[g] = True
-        elif len(on) == 1 and len(left) == 1:
-            apex = V[next(iter(left))]
+        else:
             r = rims[on[0]]
-            out.ellipses.append({"centre": apex, "normal": r["normal"], "axis": r["axis"],
+            out.ellipses.append({"centre": V[apex[g_]], "normal": r["normal"], "axis": r["axis"],
                                  "a": APEX_RADIUS, "b": APEX_RADIUS})
             out.silhouettes.append((on[0], len(out.ellipses) - 1))
-            ruled[g] = True
+        ruled[g_] = True
     # faces: planar regions bounded by one convex loop
-    keep = ~ruled[region]
-    for g in np.flatnonzero(flat):
-        poly = _convex_boundary(V, F[region == g], N[np.flatnonzero(region == g)[0]])
+    is_face = np.zeros(n_region, bool)
+    for g_ in np.flatnonzero(flat).tolist():
+        poly = _convex_boundary(V, F[np.sort(by_region[bounds[g_]:bounds[g_ + 1]])], N[first[g_]])
         if poly is not None:
             out.faces.append(poly)
-            keep &= region != g
+            is_face[g_] = True
+    keep = ~ruled[region] & ~is_face[region]
     out.occluders = F[keep]
     out.contour = ~flat[region[keep]]
     _lines_and_corners(V, rest, out)
@@ -256,6 +274,13 @@ def _rim(P: np.ndarray, size: float) -> dict | None:
     rho = np.sqrt(np.einsum("ki,ij,kj->k", rel, Q, rel) / k)  # 1 on the ellipse
     if np.abs(rho - 1).max() > RIM_TOL:
         return None
+    # the edges between the vertices too: their middles (where a chord is farthest from its arc), measured
+    # along the ray from the centre, within RIM_EDGE of the radius and RIM_EDGE_ABS
+    mid = (rel + np.roll(rel, -1, axis=0)) / 2
+    rho_mid = np.sqrt(np.maximum(np.einsum("ki,ij,kj->k", mid, Q, mid) / k, 1e-300))
+    off = np.linalg.norm(mid, axis=1) * np.abs(1 - 1 / rho_mid) * scale  # length units of P
+    if off.max() > min(RIM_EDGE * float(radii.mean()) * scale, RIM_EDGE_ABS):
+        return None
     # the loop must go once round the centre, not fold back
     ang = np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))
     turn = abs(ang[-1] - ang[0] + (np.angle(np.exp(1j * (ang[0] - ang[-1])))))
@@ -289,23 +314,35 @@ def _convex_boundary(V: np.ndarray, F: np.ndarray, normal: np.ndarray) -> np.nda
     return P
 
 
-def _drop_collinear(P: np.ndarray, closed: bool) -> np.ndarray | None:
-    """P without the points that lie on the line through their neighbours (to COLLINEAR of the length)."""
+def _drop_collinear(P: np.ndarray, closed: bool) -> np.ndarray:
+    """P without the points that lie on the line through their neighbours (to COLLINEAR of the length).
+
+    Rounds of removal, vectorised: each round drops every other point of each run of points that lie within
+    COLLINEAR of the chord through their present neighbours (never two neighbours at once), until none does.
+    """
     length = float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum()) or 1.0
-    keep = list(range(len(P)))
-    changed = True
-    while changed and len(keep) > 2:
-        changed = False
-        for j in range(len(keep)):
-            if not closed and j in (0, len(keep) - 1):
-                continue
-            a, p, b = P[keep[j - 1]], P[keep[j]], P[keep[(j + 1) % len(keep)]]
-            ab = b - a
-            off = np.linalg.norm(np.cross(p - a, ab)) / max(np.linalg.norm(ab), 1e-300)
-            if off <= COLLINEAR * length and (p - a) @ ab >= 0 and (b - p) @ ab >= 0:
-                del keep[j]
-                changed = True
-                break
+    keep = np.arange(len(P))
+    while len(keep) > 2:
+        Q = P[keep]
+        a, b = np.roll(Q, 1, axis=0), np.roll(Q, -1, axis=0)
+        ab = b - a
+        off = np.linalg.norm(np.cross(Q - a, ab), axis=1) / np.maximum(np.linalg.norm(ab, axis=1), 1e-300)
+        on = (off <= COLLINEAR * length) & (((Q - a) * ab).sum(1) >= 0) & (((b - Q) * ab).sum(1) >= 0)
+        if not closed:
+            on[[0, -1]] = False
+        if not on.any():
+            break
+        # in each run of candidates keep its 1st, 3rd, ... for removal (a closed loop's run may wrap round)
+        start = on & ~(np.roll(on, 1) if closed else np.concatenate([[False], on[:-1]]))
+        if not start.any():  # a closed loop all of whose points are candidates
+            start[0] = True
+        idx = np.arange(len(on))
+        first = np.maximum.accumulate(np.where(start, idx, -1))
+        first = np.where(first < 0, np.flatnonzero(start)[-1] - len(on), first)  # the run through the seam
+        drop = on & ((idx - first) % 2 == 0)
+        if closed and drop[0] and drop[-1]:
+            drop[-1] = False
+        keep = keep[~drop]
     return P[keep]
 
 
@@ -315,14 +352,11 @@ def _lines_and_corners(V: np.ndarray, chains: list[tuple[np.ndarray, bool]], out
     sharp_turns: set[int] = set()
     for path, closed in chains:
         P = V[path]
-        cut = [0]
-        for j in range(1, len(path) - 1):
-            u, w = P[j] - P[j - 1], P[j + 1] - P[j]
-            cosang = u @ w / max(np.linalg.norm(u) * np.linalg.norm(w), 1e-300)
-            if cosang < math.cos(CORNER_TURN):
-                cut.append(j)
-                sharp_turns.add(int(path[j]))
-        cut.append(len(path) - 1)
+        u, w = P[1:-1] - P[:-2], P[2:] - P[1:-1]
+        cosang = (u * w).sum(1) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), 1e-300)
+        turns = (np.flatnonzero(cosang < math.cos(CORNER_TURN)) + 1).tolist()
+        sharp_turns.update(path[turns].tolist())
+        cut = [0, *turns, len(path) - 1]
         if closed and len(cut) == 2:  # a loop with no corner: one closed polyline, cut where it starts
             cut = [0, (len(path) - 1) // 2, len(path) - 1]
         for s, e in zip(cut[:-1], cut[1:], strict=True):
