@@ -165,3 +165,80 @@ class _NoFiles:
 
     def namespaced(self, namespace: str):
         return self
+
+
+# --------------------------------------------------------------------------- the features' cache
+
+def features_key(data: bytes, kind: str, options: tuple) -> str:
+    """The cache name of a mesh's features: its bytes, format, the options that shape them (scale, up, crease,
+    placement, budgets...), wiredsl's version and the source of the code that finds them (engine/mesh.py)."""
+    import wiredsl
+    from wiredsl.engine import mesh as engine_mesh
+
+    h = hashlib.sha256(data)
+    h.update(f"\0{kind}\0{options!r}\0{wiredsl.__version__}\0{READER}\0".encode())
+    h.update(Path(engine_mesh.__file__).read_bytes())
+    return "f" + h.hexdigest()[:39]
+
+
+_ARRAYS = ("lines", "poly_points", "poly_len", "ell", "sil", "corner_at", "corner_len", "corner_kind",
+           "corner_ref", "face_points", "face_len", "vertices", "occluders", "contour", "counts")
+
+
+def load_features(key: str):
+    """The cached MeshFeatures of `key`, or None (not cached, or a file that is not one)."""
+    from wiredsl.engine.mesh import MeshFeatures
+    from wiredsl.io.files import cache_folder
+
+    folder = cache_folder("meshes")
+    path = folder / f"{key}.npz" if folder is not None else None
+    if path is None or not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            a = {k: z[k] for k in _ARRAYS}
+        split = lambda x, n: np.split(x, np.cumsum(n)[:-1]) if len(n) else []  # noqa: E731
+        f = MeshFeatures(lines=[(p[0], p[1]) for p in a["lines"]], polylines=split(a["poly_points"], a["poly_len"]),
+                         ellipses=[{"centre": e[0:3], "normal": e[3:6], "axis": e[6:9], "a": float(e[9]),
+                                    "b": float(e[10])} for e in a["ell"]],
+                         silhouettes=[(int(x), int(y)) for x, y in a["sil"]],
+                         faces=split(a["face_points"], a["face_len"]), vertices=a["vertices"],
+                         occluders=a["occluders"], contour=a["contour"],
+                         degenerate=int(a["counts"][0]), nonmanifold=int(a["counts"][1]))
+        kinds = ("line", "polyline")
+        refs = split(np.column_stack([a["corner_kind"], a["corner_ref"]]), a["corner_len"])
+        f.corners = [(p, [(kinds[int(k)], int(j)) for k, j in r]) for p, r in zip(a["corner_at"], refs, strict=True)]
+        os.utime(path)  # recently used
+        return f
+    except Exception:  # a damaged or foreign file in the cache only costs a fresh extraction
+        return None
+
+
+def save_features(key: str, f) -> None:
+    """Keep a mesh's features (atomically; a cache that cannot be written is no error)."""
+    from wiredsl.io.files import cache_folder, prune_cache, write_atomic
+
+    folder = cache_folder("meshes")
+    if folder is None:
+        return
+    cat = lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape)  # noqa: E731
+    refs = [r for _, rs in f.corners for r in rs]
+    arrays = {
+        "lines": np.array([np.stack(x) for x in f.lines]).reshape(-1, 2, 3),
+        "poly_points": cat(f.polylines, (0, 3)), "poly_len": np.array([len(p) for p in f.polylines], np.int64),
+        "ell": np.array([[*e["centre"], *e["normal"], *e["axis"], e["a"], e["b"]] for e in f.ellipses]).reshape(-1, 11),
+        "sil": np.array(f.silhouettes, np.int64).reshape(-1, 2),
+        "corner_at": np.array([p for p, _ in f.corners]).reshape(-1, 3),
+        "corner_len": np.array([len(r) for _, r in f.corners], np.int64),
+        "corner_kind": np.array([k == "polyline" for k, _ in refs], np.int64),
+        "corner_ref": np.array([j for _, j in refs], np.int64),
+        "face_points": cat(f.faces, (0, 3)), "face_len": np.array([len(p) for p in f.faces], np.int64),
+        "vertices": f.vertices, "occluders": np.asarray(f.occluders, np.int64).reshape(-1, 3),
+        "contour": np.asarray(f.contour, bool), "counts": np.array([f.degenerate, f.nonmanifold], np.int64)}
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    try:
+        write_atomic(folder / f"{key}.npz", buf.getvalue(), tidy=False)
+    except OSError:
+        return
+    prune_cache(folder, "*.npz", CACHE_FILES)
