@@ -157,3 +157,86 @@ def test_collinear_points_are_dropped_in_few_rounds_and_never_off_the_line():
     wiggle = np.column_stack([t, np.sin(20 * t), np.zeros_like(t)])  # a curve: every point kept is on it
     kept = M._drop_collinear(wiggle, closed=False)
     assert 10 < len(kept) < len(t)
+
+
+# --------------------------------------------------------------------------- units, placement, cache
+
+
+def _compile(tmp_path, line: str, extra: str = ""):
+    from wiredsl.language.compile import compile_file
+
+    path = tmp_path / "s.wd"
+    path.write_text(f"wiredsl 1\nmodel m {{\n  {line}\n}}\n{extra}")
+    return compile_file(path)
+
+
+def _ends(scene) -> np.ndarray:
+    return np.array([p for ln in scene.model("m").lines for p in (ln.start, ln.end)])
+
+
+@pytest.mark.parametrize("clause, metres", [("scale 1in", 0.0254), ("units in", 0.0254), ("scale 1mm", 1e-3),
+                                            ("units ft", 0.3048), ("scale 0.001", 1e-3), ("scale 2cm", 0.02)])
+def test_scale_takes_a_unit(tmp_path, monkeypatch, clause, metres):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    trimesh.creation.box(extents=(1.0, 2.0, 3.0)).export(tmp_path / "b.stl")
+    scene = _compile(tmp_path, f'mesh read "b.stl" {clause}')[0]
+    assert np.allclose(np.ptp(_ends(scene), axis=0), np.array([1.0, 2.0, 3.0]) * metres)
+
+
+def test_scale_and_units_together_are_an_error(tmp_path):
+    from wiredsl.diagnostics import WiredslError
+
+    trimesh.creation.box(extents=(1.0, 2.0, 3.0)).export(tmp_path / "b.stl")
+    with pytest.raises(WiredslError) as err:
+        _compile(tmp_path, 'mesh read "b.stl" scale 1in units mm')
+    assert err.value.diagnostics[0].code == "E103" and "once" in err.value.diagnostics[0].message
+
+
+@pytest.mark.parametrize("origin, centre", [("centre", (0, 0, 0)), ("base", (0, 0, 0.15)), ("file", (0.5, 0.6, 0.95))])
+def test_origin_places_the_part_by_its_centre_or_base(tmp_path, monkeypatch, origin, centre):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    box = trimesh.creation.box(extents=(100.0, 200.0, 300.0))
+    box.apply_translation((500, 600, 950))  # mm: the file's origin is 0.8 m below the part
+    box.export(tmp_path / "b.stl")
+    scene, warnings, program = _compile(tmp_path, f'mesh read "b.stl" units mm origin {origin}')
+    ends = _ends(scene)
+    assert np.allclose((ends.min(0) + ends.max(0)) / 2, centre)
+    codes = [w.code for w in warnings]
+    assert codes == (["W127"] if origin == "file" else [])
+    if origin == "file":
+        assert "its origin is 1.05 m outside the part" in warnings[0].message  # |(0.45, 0.5, 0.8)| to the box
+    (span, text), = program.mesh_reports
+    assert "100 mm x 200 mm x 300 mm" in text and span.line == 3
+
+
+def test_check_reports_each_mesh_size_and_bounds(tmp_path, monkeypatch):
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    trimesh.creation.box(extents=(1.0, 2.0, 3.0)).export(tmp_path / "b.stl")
+    _compile(tmp_path, 'mesh read "b.stl" units in origin base')
+    res = CliRunner().invoke(main, ["check", str(tmp_path / "s.wd")])
+    assert res.exit_code == 0
+    assert "note: mesh b.stl: 25.4 mm x 50.8 mm x 76.2 mm, from (-0.0127, -0.0254, 0) to (0.0127, 0.0254, 0.0762)" \
+        in res.output
+
+
+def test_a_second_build_reads_the_features_from_the_cache(tmp_path, monkeypatch):
+    from wiredsl.engine import mesh as engine_mesh
+    from wiredsl.io import mesh as io_mesh
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    (tmp_path / "c.stl").write_bytes(gzip.open("tests/meshes/adis16480.stl.gz").read())
+    first = _compile(tmp_path, 'mesh read "c.stl" origin centre')[0]
+
+    def no_mesh_work(*args, **kwargs):
+        raise AssertionError("mesh work on a cached mesh")
+
+    monkeypatch.setattr(engine_mesh, "features", no_mesh_work)
+    monkeypatch.setattr(io_mesh, "read_mesh", no_mesh_work)
+    again = _compile(tmp_path, 'mesh read "c.stl" origin centre')[0]
+    assert again.model("m").model_dump() == first.model("m").model_dump()
+    with pytest.raises(AssertionError, match="mesh work"):  # other options: other features, read afresh
+        _compile(tmp_path, 'mesh read "c.stl" origin base')

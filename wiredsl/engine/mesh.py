@@ -58,6 +58,7 @@ class MeshFeatures:
     contour: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # per occluder: a smooth surface's
     degenerate: int = 0  # triangles dropped for having no area
     nonmanifold: int = 0  # edges with more than two triangles
+    triangles: int = 0  # triangles the mesh had
 
 
 def merge_vertices(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -76,7 +77,7 @@ def features(V: np.ndarray, F: np.ndarray, crease: float) -> MeshFeatures:
     N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     area2 = np.linalg.norm(N, axis=1)
     ok = (area2 > 2 * AREA * size * size) & (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2])
-    out = MeshFeatures(degenerate=int((~ok).sum()))
+    out = MeshFeatures(degenerate=int((~ok).sum()), triangles=len(F))
     F, N = F[ok], N[ok] / area2[ok, None]
     out.vertices = V
     if len(F) == 0:

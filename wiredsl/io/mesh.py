@@ -175,7 +175,7 @@ def features_key(data: bytes, kind: str, options: tuple) -> str:
     import wiredsl
     from wiredsl.engine import mesh as engine_mesh
 
-    h = hashlib.sha256(data)
+    h = hashlib.sha256((_cache_key(data, kind) or hashlib.sha256(data).hexdigest()).encode())  # trimesh's version too
     h.update(f"\0{kind}\0{options!r}\0{wiredsl.__version__}\0{READER}\0".encode())
     h.update(Path(engine_mesh.__file__).read_bytes())
     return "f" + h.hexdigest()[:39]
@@ -204,7 +204,8 @@ def load_features(key: str):
                          silhouettes=[(int(x), int(y)) for x, y in a["sil"]],
                          faces=split(a["face_points"], a["face_len"]), vertices=a["vertices"],
                          occluders=a["occluders"], contour=a["contour"],
-                         degenerate=int(a["counts"][0]), nonmanifold=int(a["counts"][1]))
+                         degenerate=int(a["counts"][0]), nonmanifold=int(a["counts"][1]),
+                         triangles=int(a["counts"][2]))
         kinds = ("line", "polyline")
         refs = split(np.column_stack([a["corner_kind"], a["corner_ref"]]), a["corner_len"])
         f.corners = [(p, [(kinds[int(k)], int(j)) for k, j in r]) for p, r in zip(a["corner_at"], refs, strict=True)]
@@ -234,7 +235,7 @@ def save_features(key: str, f) -> None:
         "corner_ref": np.array([j for _, j in refs], np.int64),
         "face_points": cat(f.faces, (0, 3)), "face_len": np.array([len(p) for p in f.faces], np.int64),
         "vertices": f.vertices, "occluders": np.asarray(f.occluders, np.int64).reshape(-1, 3),
-        "contour": np.asarray(f.contour, bool), "counts": np.array([f.degenerate, f.nonmanifold], np.int64)}
+        "contour": np.asarray(f.contour, bool), "counts": np.array([f.degenerate, f.nonmanifold, f.triangles], np.int64)}
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     try:
