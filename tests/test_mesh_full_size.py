@@ -240,3 +240,15 @@ def test_a_second_build_reads_the_features_from_the_cache(tmp_path, monkeypatch)
     assert again.model("m").model_dump() == first.model("m").model_dump()
     with pytest.raises(AssertionError, match="mesh work"):  # other options: other features, read afresh
         _compile(tmp_path, 'mesh read "c.stl" origin base')
+
+
+def test_a_ply_of_triangle_strips_says_what_it_holds(tmp_path):
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+
+    (tmp_path / "strips.ply").write_bytes(open("tests/meshes/bad_strips.ply", "rb").read())
+    (tmp_path / "s.wd").write_text('wiredsl 1\nmodel m {\n  mesh read "strips.ply"\n}\n')
+    res = CliRunner().invoke(main, ["check", str(tmp_path / "s.wd")])
+    assert res.exit_code == 1
+    assert "error[E125]" in res.output and "1 tristrips (triangle strips: convert them to faces" in res.output

@@ -85,10 +85,24 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
         raise MeshFileError(f"not a readable {kind.upper()} mesh ({type(exc).__name__}: {exc})"[:300]) from None
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
     triangles = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+    if len(triangles) == 0 and kind == "ply":
+        _ply_without_faces(data, len(vertices))
     raw = _checked(vertices, triangles, kind)
     if key is not None:
         _to_cache(key, raw)
     return raw
+
+
+def _ply_without_faces(data: bytes, n_vertices: int) -> None:
+    """Say what a PLY without triangles holds instead (its header's elements), e.g. triangle strips."""
+    head = data[:65536].split(b"end_header", 1)[0].decode("latin-1", "replace")
+    elements = re.findall(r"element\s+(\S+)\s+(\d+)", head)
+    if not elements:
+        return
+    held = ", ".join(f"{int(n):,} {name}" for name, n in elements)
+    hint = (" (triangle strips: convert them to faces first, e.g. in MeshLab or with trimesh)"
+            if any("strip" in name for name, _ in elements) else "")
+    raise MeshFileError(f"holds no triangles: its header declares {held}{hint}; {n_vertices:,} vertices were read")
 
 
 def _checked(vertices: np.ndarray, triangles: np.ndarray, kind: str) -> RawMesh:
