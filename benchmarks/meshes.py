@@ -1,4 +1,5 @@
-"""What `mesh read` costs: importing a mesh (read, features, scene nodes) and exact hidden lines per view on
+"""What `mesh read` costs: real CAD parts (compile cold and from the features' cache, a view with exact
+visibility, peak memory against occlusion.BUDGET), then importing a mesh (read, features, scene nodes) and exact hidden lines per view on
 a scene with it, at several sizes of mesh, each size in its own process (so its peak RSS is its own).
 Times are CPU times of the one process (OMP_NUM_THREADS=1): a shared machine slows wall time, not these.
 
@@ -79,10 +80,63 @@ def one(k: int) -> dict:
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
+PARTS = (("counter.stl", "units mm origin centre", "(2.0m, 0, 0.1m)"),  # 83,750 triangles
+         ("cycloidal.ply", "scale 0.2 origin centre", "(2.0m, 0, 0.3m)"))  # 43,368, 244 non-manifold edges
+
+
+def part(name: str, clauses: str, at: str) -> dict:
+    """A real CAD part of tests/meshes/ (unpacked): compile cold and from the features' cache, then one view
+    (the left camera at the first pose) with exact visibility; peak RSS against the occlusion budget."""
+    import gzip
+
+    from wiredsl.engine import occlusion
+    from wiredsl.engine.simulate import Options, simulate, visibility_masks
+    from wiredsl.engine.world import build_world
+    from wiredsl.language.compile import compile_file
+
+    root = Path(__file__).resolve().parent.parent
+    with tempfile.TemporaryDirectory() as tmp:
+        (Path(tmp) / name).write_bytes(gzip.open(root / "tests" / "meshes" / f"{name}.gz").read())
+        text = SCENE.replace('mesh read "ball.stl"', f'mesh read "{name}" {clauses}').replace(
+            "at (2.5m, 0, 0.6m)", f"at {at}").format(root=root.as_posix())
+        text = text.replace('model crate {\n  mesh read "' + root.as_posix() + '/scenes/meshes/crate.obj" scale 0.001 up y\n}\n',
+                            "").replace("place crate as crate1 at (3.6m, 0, 0)\n", "")
+        path = Path(tmp) / "s.wd"
+        path.write_text(text)
+        os.environ["XDG_CACHE_HOME"] = tmp
+        t0 = time.process_time()
+        scene, _, _ = compile_file(path)
+        cold = time.process_time() - t0
+        t0 = time.process_time()
+        scene, _, _ = compile_file(path)
+        cached = time.process_time() - t0
+    scene = scene.model_copy(update={"path": scene.path.model_copy(update={"poses": scene.path.poses[:1]})})
+    world = build_world(scene)
+    o = Options(visibility="exact", right=False)
+    masks = visibility_masks(scene, world, o)
+    t0 = time.process_time()
+    results = simulate(scene, o, world, masks)
+    view = time.process_time() - t0
+    return {"name": name, "triangles": len(world.triangles), "cold_s": cold, "cached_s": cached, "view_s": view,
+            "features": len(results[0].left.features), "budget_mb": occlusion.BUDGET / 2**20,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
 def main() -> None:
     if len(sys.argv) == 3 and sys.argv[1] == "--one":
         print(json.dumps(one(int(sys.argv[2]))))
         return
+    if len(sys.argv) == 3 and sys.argv[1] == "--part":
+        print(json.dumps(part(*PARTS[int(sys.argv[2])])))
+        return
+    print("real CAD parts (tests/meshes/), one view with --visibility exact, one core, each in its own process:")
+    print(f"{'part':>14} {'occluding tris':>14} {'compile cold (s)':>16} {'cached (s)':>10} {'view CPU (s)':>12}"
+          f" {'features':>8} {'peak RSS (MB)':>13} {'budget (MB)':>11}")
+    for k in range(len(PARTS)):
+        out = subprocess.run([sys.executable, __file__, "--part", str(k)], capture_output=True, text=True, check=True)
+        r = json.loads(out.stdout.splitlines()[-1])
+        print(f"{r['name']:>14} {r['triangles']:>14,} {r['cold_s']:>16.2f} {r['cached_s']:>10.2f} {r['view_s']:>12.1f}"
+              f" {r['features']:>8} {r['peak_rss_mb']:>13.0f} {r['budget_mb']:>11.0f}")
     print("sphere mesh + crate, exact hidden lines, one core (each size in its own process):")
     print(f"{'triangles':>10} {'import (s)':>11} {'per view (ms)':>14} {'contour edges':>14} {'peak RSS (MB)':>14}")
     for k in SIZES:

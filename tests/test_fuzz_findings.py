@@ -299,7 +299,7 @@ def test_a_damaged_stl_is_a_warning_not_a_traceback_on_stderr(tmp_path, monkeypa
     for _ in range(2):  # and again: a file the reader warned about is not cached without its warning
         r = run("check", str(tmp_path / "s.wd"))
         assert r.exit_code == 0 and "Traceback" not in r.stderr, r.stderr  # trimesh's log went to stderr
-        assert "warning[W127]: mesh file m.stl: the reader warns: failed to extract face_normals (ValueError:" \
+        assert "warning[W128]: mesh file m.stl: the reader warns: failed to extract face_normals (ValueError:" \
             in r.stderr
 
 

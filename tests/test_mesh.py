@@ -91,8 +91,8 @@ def test_sphere_contours_against_the_analytic_outline():
 def test_a_real_cad_part_gives_holes_as_rims_and_its_edges_as_lines():
     path = Path("tests/meshes/lbracket.stl")  # an L bracket with counterbored holes (tests/meshes/README.md)
     raw = read_mesh(path, path.read_bytes())
-    f = features(raw.vertices, raw.triangles, CREASE)
-    radii = sorted({round(e["a"], 3) for e in f.ellipses})
+    f = features(raw.vertices * 1e-3, raw.triangles, CREASE)  # millimetres: features() takes metres
+    radii = sorted({round(e["a"] * 1e3, 3) for e in f.ellipses})
     assert radii == [1.5, 3.0, 3.303, 5.0]
     assert all(abs(e["a"] - e["b"]) <= RIM_TOL * e["a"] for e in f.ellipses)
     assert len(f.silhouettes) == 8 and len(f.lines) == 36 and len(f.corners) == 24

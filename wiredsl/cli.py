@@ -219,8 +219,11 @@ def check(files: tuple[str, ...], diagnostics: str) -> None:
     all_diags = []
     for f in files:
         try:
-            _, warnings, _ = compile_file(f)
+            _, warnings, program = compile_file(f)
             all_diags += warnings
+            if diagnostics == "text":  # each mesh's size and bounds, as scaled and placed
+                for span, text in program.mesh_reports:
+                    click.echo(f"{span}: note: {text}", err=True)
         except WiredslError as err:
             all_diags += err.diagnostics
             failed = True

@@ -264,7 +264,8 @@ CODES: dict[str, str] = {
             'area (`mesh read`)'),
     'W125': 'mesh triangles of no area, dropped',
     'W126': 'mesh edges shared by more than two triangles (non-manifold), kept as lines',
-    'W127': "the mesh reader (trimesh) warned about the file (a damaged or partly read mesh); its words are quoted",
+    'W127': "a mesh's file origin lies far outside the part (place it by its centre or base: `origin centre|base`)",
+    'W128': "the mesh reader (trimesh) warned about the file (a damaged or partly read mesh); its words are quoted",
     'E130': 'silhouette not between two ellipses of its own model',
     'E140': 'matrix of the wrong shape, not symmetric, not positive semi-definite, or an entry over 1e100',
     'E141': ('calibration file malformed or not usable: a matrix file, or an OpenCV, ROS, Kalibr or ORB-SLAM file '

@@ -321,28 +321,23 @@ def hover(index: Index | None, text: str, path: str, line: int, col: int) -> str
 
 
 def mesh_summary(path: str, src: str) -> str:
-    """What a `mesh read` line finds in its mesh: the file and the count of each kind of feature."""
-    import math
-
-    from wiredsl.engine import mesh as mesh_features
-    from wiredsl.io.mesh import MAX_MESH_BYTES, MeshFileError, read_mesh
+    """What a `mesh read` line finds in its mesh: its size and bounds as scaled and placed, and the count of each
+    kind of feature (compiled as `check` compiles it, from the same cache)."""
+    from wiredsl.language.compile import mesh_size, read_mesh_features
 
     try:
         stmt = ast.parse_text(src.strip() + "\n", path).statements[0]
-        b = bind(stmt, "model", DEFAULT_UNITS, Collector())
+        out = Collector()
+        b = bind(stmt, "model", DEFAULT_UNITS, out)
         if b is None or not b.ok:
             return ""
-        target = Path(path).parent / b.get("read")
-        raw = read_mesh(target, ast.read_bytes(target, "mesh file", limit=MAX_MESH_BYTES))
-        found = mesh_features.features(raw.vertices, raw.triangles, b.get("crease", math.radians(30)))
-    except (WiredslError, MeshFileError, IndexError) as exc:
-        why = exc.diagnostics[0].message if isinstance(exc, WiredslError) else str(exc)
-        return f"\n\n**cannot read the mesh**: {why}"
-    counts = {"lines": len(found.lines), "polylines": len(found.polylines), "ellipses": len(found.ellipses),
-              "silhouettes": len(found.silhouettes), "corners": len(found.corners), "faces": len(found.faces),
-              "occluding triangles": len(found.occluders), "of them smooth (contours)": int(found.contour.sum())}
-    return (f"\n\n`{b.get('read')}`: {len(raw.triangles):,} triangles, {len(raw.vertices):,} vertices; found "
-            + ", ".join(f"{n} {k}" for k, n in counts.items()))
+        found = read_mesh_features(b, DEFAULT_UNITS, out)
+    except (WiredslError, IndexError) as exc:
+        return f"\n\n**cannot read the mesh**: {exc.diagnostics[0].message if isinstance(exc, WiredslError) else exc}"
+    if found is None:
+        errors = [d.message for d in out.diagnostics if d.severity == "error"]
+        return f"\n\n**cannot read the mesh**: {errors[0] if errors else 'see the diagnostics'}"
+    return (f"\n\n`{b.get('read')}`: {found.triangles:,} triangles, {mesh_size(found)}, of them {int(found.contour.sum())} smooth (contours)")
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,9 @@
   triangle (a boundary) or more than two (non-manifold). Sharp edges are features, nothing else: the
   diagonals of a triangulated planar face are never sharp.
 - A closed loop of sharp edges with at least RIM_MIN vertices, planar and on an ellipse to RIM_TOL of its
-  size, is a rim: an `ellipse`. A smooth region (triangles joined by edges that are not sharp) whose
+  size, whose edges' middles are also on it to RIM_EDGE of its radius and RIM_EDGE_ABS metres (so that a
+  polygon with filleted corners, whose vertices may all be near one circle, keeps its straight sides), is
+  a rim: an `ellipse`. The vertices are in metres (the caller scales them). A smooth region (triangles joined by edges that are not sharp) whose
   vertices all lie on two rims, or on one rim and one apex vertex, is the side of a cylinder or cone: a
   `silhouette` between them (an apex is an ellipse of radius APEX_RADIUS).
 - Other sharp edges form chains between nodes (vertices where other than two meet, or where the chain
@@ -32,6 +34,9 @@ MERGE = 1e-6  # of the bounding box's diagonal: vertices this close are one (20 
 AREA = 1e-12  # of the diagonal squared: a triangle with less area is degenerate
 RIM_MIN = 12  # vertices a closed loop needs to be read as a rim (a square or an octagon is not a circle)
 RIM_TOL = 0.01  # of the rim's mean radius: how far its vertices may be off the fitted ellipse or plane
+RIM_EDGE = 0.04  # of the rim's mean radius: how far the middle of an edge may be off the fitted ellipse (the
+#   sagitta of a regular 12-gon, the coarsest rim, is 3.4%; a filleted hexagon's straight sides are 10% off)
+RIM_EDGE_ABS = 0.002  # metres: and in absolute length (a 1 m wide rounded rectangle is not a 1 m circle)
 COLLINEAR = 1e-6  # of a chain's length: points this far off its line are still on it
 CORNER_TURN = math.radians(30)  # a chain turning more than this at a vertex has a corner there
 FLAT = math.radians(0.01)  # normals of one planar region differ by at most this
@@ -53,6 +58,7 @@ class MeshFeatures:
     contour: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # per occluder: a smooth surface's
     degenerate: int = 0  # triangles dropped for having no area
     nonmanifold: int = 0  # edges with more than two triangles
+    triangles: int = 0  # triangles the mesh had
 
 
 def merge_vertices(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,7 +77,7 @@ def features(V: np.ndarray, F: np.ndarray, crease: float) -> MeshFeatures:
     N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
     area2 = np.linalg.norm(N, axis=1)
     ok = (area2 > 2 * AREA * size * size) & (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2])
-    out = MeshFeatures(degenerate=int((~ok).sum()))
+    out = MeshFeatures(degenerate=int((~ok).sum()), triangles=len(F))
     F, N = F[ok], N[ok] / area2[ok, None]
     out.vertices = V
     if len(F) == 0:
@@ -96,49 +102,53 @@ def features(V: np.ndarray, F: np.ndarray, crease: float) -> MeshFeatures:
     for loop, closed in chains:
         fit = _rim(V[loop[:-1]], size) if closed and len(loop) - 1 >= RIM_MIN else None
         if fit is not None:
-            fit["verts"] = set(loop[:-1].tolist())
+            fit["verts"] = loop[:-1]
             rims.append(fit)
         else:
             rest.append((loop, closed))
     out.ellipses = [{k: r[k] for k in ("centre", "normal", "axis", "a", "b")} for r in rims]
     # sides of cylinders and cones: smooth regions all of whose vertices are on two rims (or a rim and an apex)
     n_region = int(region.max()) + 1
-    ruled = np.zeros(n_region, bool)
-    # each region's triangles, ascending, as slices of one sort (a scan of all triangles a region was quadratic:
-    # a soup of 200,000 triangles is 200,000 regions); flat: every normal within FLAT of its first triangle's
     by_region = np.argsort(region, kind="stable")
-    first = np.concatenate([[0], np.cumsum(np.bincount(region, minlength=n_region))])
-    tilted = np.abs((N * N[by_region[first[:-1]]][region]).sum(1)) < math.cos(FLAT)
-    flat = np.bincount(region, weights=tilted, minlength=n_region) == 0
-    for g in np.flatnonzero(~flat):
-        tris = by_region[first[g]:first[g + 1]]
-        verts = set(np.unique(F[tris]).tolist())
-        on = [k for k, r in enumerate(rims) if verts & r["verts"]]
-        left = verts.difference(*(rims[k]["verts"] for k in on)) if on else verts
-        if len(on) == 2 and not left:
+    bounds = np.searchsorted(region[by_region], np.arange(n_region + 1))
+    first = by_region[bounds[:-1]]  # each region's first triangle
+    flat = np.bincount(region, weights=np.abs((N * N[first[region]]).sum(1)) < math.cos(FLAT),
+                       minlength=n_region) == 0
+    gv = np.unique(region[np.repeat(np.arange(len(F)), 3)] * len(V) + F.ravel())  # (region, vertex) pairs
+    g, v = gv // len(V), gv % len(V)
+    rim_v = np.concatenate([r["verts"] for r in rims]) if rims else np.zeros(0, int)
+    rim_k = np.repeat(np.arange(len(rims)), [len(r["verts"]) for r in rims])
+    o = np.argsort(rim_v, kind="stable")
+    rim_v, rim_k = rim_v[o], rim_k[o]
+    lo, hi = np.searchsorted(rim_v, v, "left"), np.searchsorted(rim_v, v, "right")
+    n_on = hi - lo
+    at = np.repeat(lo - np.cumsum(n_on) + n_on, n_on) + np.arange(n_on.sum())
+    gk = np.unique(np.repeat(g, n_on) * max(len(rims), 1) + rim_k[at])  # (region, rim) pairs, sorted
+    rims_of = np.bincount(gk // max(len(rims), 1), minlength=n_region)
+    bare = n_on == 0
+    left = np.bincount(g[bare], minlength=n_region)  # vertices of the region on no rim
+    apex = np.zeros(n_region, int)
+    apex[g[bare]] = v[bare]
+    ruled = np.zeros(n_region, bool)
+    pair_at = np.searchsorted(gk // max(len(rims), 1), np.arange(n_region))
+    for g_ in np.flatnonzero(~flat & (((rims_of == 2) & (left == 0)) | ((rims_of == 1) & (left == 1)))).tolist():
+        on = (gk[pair_at[g_]:pair_at[g_] + rims_of[g_]] % max(len(rims), 1)).tolist()
+        if len(on) == 2:
             out.silhouettes.append((on[0], on[1]))
-            ruled[g] = True
-        elif len(on) == 1 and len(left) == 1:
-            apex = V[next(iter(left))]
+        else:
             r = rims[on[0]]
-            out.ellipses.append({"centre": apex, "normal": r["normal"], "axis": r["axis"],
+            out.ellipses.append({"centre": V[apex[g_]], "normal": r["normal"], "axis": r["axis"],
                                  "a": APEX_RADIUS, "b": APEX_RADIUS})
             out.silhouettes.append((on[0], len(out.ellipses) - 1))
-            ruled[g] = True
-    # faces: planar regions bounded by one convex loop (a region of one triangle: the triangle, unless a sliver)
-    face = np.zeros(n_region, bool)
-    single = flat & (np.diff(first) == 1)
-    lone = _triangle_faces(V, F[by_region[first[:-1][single]]])
-    for g, tri in zip(np.flatnonzero(single), lone, strict=True):
-        face[g] = tri is not None
-    lone_of = dict(zip(np.flatnonzero(single).tolist(), lone, strict=True))
-    for g in np.flatnonzero(flat).tolist():
-        tris = by_region[first[g]:first[g + 1]]
-        poly = lone_of[g] if g in lone_of else _convex_boundary(V, F[tris], N[tris[0]])
+        ruled[g_] = True
+    # faces: planar regions bounded by one convex loop
+    is_face = np.zeros(n_region, bool)
+    for g_ in np.flatnonzero(flat).tolist():
+        poly = _convex_boundary(V, F[np.sort(by_region[bounds[g_]:bounds[g_ + 1]])], N[first[g_]])
         if poly is not None:
             out.faces.append(poly)
-            face[g] = True
-    keep = ~ruled[region] & ~face[region]
+            is_face[g_] = True
+    keep = ~ruled[region] & ~is_face[region]
     out.occluders = F[keep]
     out.contour = ~flat[region[keep]]
     _lines_and_corners(V, rest, out)
@@ -200,10 +210,7 @@ def _chains(E: np.ndarray, n: int) -> list[tuple[np.ndarray, bool]]:
     """Maximal chains of the edges E (k, 2) through vertices of degree 2: (vertex path, closed)."""
     if len(E) == 0:
         return []
-    # vertices numbered within E (a count over all n vertices for each small region's loop was quadratic)
-    verts, E = np.unique(E, return_inverse=True)
-    E = E.reshape(-1, 2)
-    deg = np.bincount(E.ravel())
+    deg = np.bincount(E.ravel(), minlength=n)
     adj: dict[int, list[int]] = {}
     for k, (a, b) in enumerate(E.tolist()):
         adj.setdefault(a, []).append(k)
@@ -233,7 +240,7 @@ def _chains(E: np.ndarray, n: int) -> list[tuple[np.ndarray, bool]]:
         if not used[k]:
             path = walk(int(E[k, 0]), k)
             out.append((np.array(path), path[0] == path[-1]))
-    return [(verts[path], closed) for path, closed in out]
+    return out
 
 
 def _plane(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -268,6 +275,13 @@ def _rim(P: np.ndarray, size: float) -> dict | None:
     rho = np.sqrt(np.einsum("ki,ij,kj->k", rel, Q, rel) / k)  # 1 on the ellipse
     if np.abs(rho - 1).max() > RIM_TOL:
         return None
+    # the edges between the vertices too: their middles (where a chord is farthest from its arc), measured
+    # along the ray from the centre, within RIM_EDGE of the radius and RIM_EDGE_ABS
+    mid = (rel + np.roll(rel, -1, axis=0)) / 2
+    rho_mid = np.sqrt(np.maximum(np.einsum("ki,ij,kj->k", mid, Q, mid) / k, 1e-300))
+    off = np.linalg.norm(mid, axis=1) * np.abs(1 - 1 / rho_mid) * scale  # length units of P
+    if off.max() > min(RIM_EDGE * float(radii.mean()) * scale, RIM_EDGE_ABS):
+        return None
     # the loop must go once round the centre, not fold back
     ang = np.unwrap(np.arctan2(rel[:, 1], rel[:, 0]))
     turn = abs(ang[-1] - ang[0] + (np.angle(np.exp(1j * (ang[0] - ang[-1])))))
@@ -280,21 +294,6 @@ def _rim(P: np.ndarray, size: float) -> dict | None:
         a = b = float((a + b) / 2)
     axis = axis - (axis @ n) * n
     return {"centre": centre, "normal": n, "axis": axis / np.linalg.norm(axis), "a": float(a), "b": float(b)}
-
-
-def _triangle_faces(V: np.ndarray, F: np.ndarray) -> list[np.ndarray | None]:
-    """`_convex_boundary` of each triangle F (k, 3) alone, at once: its corners (3, 3), or None for a sliver
-    (a corner within COLLINEAR of the length from its neighbours' line, which `_drop_collinear` drops)."""
-    P = V[F]  # (k, 3, 3): a, b, c
-    length = np.linalg.norm(P[:, 1] - P[:, 0], axis=1) + np.linalg.norm(P[:, 2] - P[:, 1], axis=1)
-    tol = COLLINEAR * np.where(length > 0, length, 1.0)
-    sliver = np.zeros(len(F), bool)
-    for j in range(3):  # corner j against the line through the other two
-        A, X, B = P[:, (j - 1) % 3], P[:, j], P[:, (j + 1) % 3]
-        ab = B - A
-        off = np.linalg.norm(np.cross(X - A, ab), axis=1) / np.maximum(np.linalg.norm(ab, axis=1), 1e-300)
-        sliver |= (off <= tol) & (((X - A) * ab).sum(1) >= 0) & (((B - X) * ab).sum(1) >= 0)
-    return [None if bad else tri for tri, bad in zip(P, sliver, strict=True)]
 
 
 def _convex_boundary(V: np.ndarray, F: np.ndarray, normal: np.ndarray) -> np.ndarray | None:
@@ -316,38 +315,35 @@ def _convex_boundary(V: np.ndarray, F: np.ndarray, normal: np.ndarray) -> np.nda
     return P
 
 
-def _drop_collinear(P: np.ndarray, closed: bool) -> np.ndarray | None:
+def _drop_collinear(P: np.ndarray, closed: bool) -> np.ndarray:
     """P without the points that lie on the line through their neighbours (to COLLINEAR of the length).
 
-    One pass with a stack (linear: the old restart after each drop was quadratic, 15 s for a 3,000-point
-    boundary): a kept point is dropped when it lies between the one before it and the next, which is then
-    checked again against the one before; a closed chain's ends are checked across the seam last."""
-    if len(P) < 3:  # nothing between two ends
-        return P
+    Rounds of removal, vectorised: each round drops every other point of each run of points that lie within
+    COLLINEAR of the chord through their present neighbours (never two neighbours at once), until none does.
+    """
     length = float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum()) or 1.0
-    tol = COLLINEAR * length
-
-    def between(a: int, p: int, b: int) -> bool:
-        A, X, B = P[a], P[p], P[b]
-        ab = B - A
-        off = np.linalg.norm(np.cross(X - A, ab)) / max(np.linalg.norm(ab), 1e-300)
-        return bool(off <= tol and (X - A) @ ab >= 0 and (B - X) @ ab >= 0)
-
-    keep: list[int] = []
-    for i in range(len(P)):
-        while len(keep) >= 2 and between(keep[-2], keep[-1], i):
-            keep.pop()
-        keep.append(i)
-    if closed:  # across the seam: the last kept points, then the first ones, against their wrapped neighbours
-        start = 0
-        while len(keep) - start > 2:
-            if between(keep[-2], keep[-1], keep[start]):
-                keep.pop()
-            elif between(keep[-1], keep[start], keep[start + 1]):
-                start += 1
-            else:
-                break
-        keep = keep[start:]
+    keep = np.arange(len(P))
+    while len(keep) > 2:
+        Q = P[keep]
+        a, b = np.roll(Q, 1, axis=0), np.roll(Q, -1, axis=0)
+        ab = b - a
+        off = np.linalg.norm(np.cross(Q - a, ab), axis=1) / np.maximum(np.linalg.norm(ab, axis=1), 1e-300)
+        on = (off <= COLLINEAR * length) & (((Q - a) * ab).sum(1) >= 0) & (((b - Q) * ab).sum(1) >= 0)
+        if not closed:
+            on[[0, -1]] = False
+        if not on.any():
+            break
+        # in each run of candidates keep its 1st, 3rd, ... for removal (a closed loop's run may wrap round)
+        start = on & ~(np.roll(on, 1) if closed else np.concatenate([[False], on[:-1]]))
+        if not start.any():  # a closed loop all of whose points are candidates
+            start[0] = True
+        idx = np.arange(len(on))
+        first = np.maximum.accumulate(np.where(start, idx, -1))
+        first = np.where(first < 0, np.flatnonzero(start)[-1] - len(on), first)  # the run through the seam
+        drop = on & ((idx - first) % 2 == 0)
+        if closed and drop[0] and drop[-1]:
+            drop[-1] = False
+        keep = keep[~drop]
     return P[keep]
 
 
@@ -357,9 +353,8 @@ def _lines_and_corners(V: np.ndarray, chains: list[tuple[np.ndarray, bool]], out
     sharp_turns: set[int] = set()
     for path, closed in chains:
         P = V[path]
-        u = np.diff(P, axis=0)  # the turn at every inner vertex at once (a soup has 200,000 chains)
-        norm = np.sqrt((u * u).sum(1))
-        cosang = (u[:-1] * u[1:]).sum(1) / np.maximum(norm[:-1] * norm[1:], 1e-300)
+        u, w = P[1:-1] - P[:-2], P[2:] - P[1:-1]
+        cosang = (u * w).sum(1) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), 1e-300)
         turns = (np.flatnonzero(cosang < math.cos(CORNER_TURN)) + 1).tolist()
         sharp_turns.update(path[turns].tolist())
         cut = [0, *turns, len(path) - 1]

@@ -20,6 +20,18 @@ eye to it meets an occluder at a ray parameter in (RAY_END, 1 - RAY_END).
   points a feature) with that exact point test, and every change of visibility
   between two samples is refined by bisection to BISECT halvings of the sample
   step (about 1e-14 of the feature's parameter range).
+
+Memory is bounded: every all-pairs array (queries x triangles, points x surfaces, samples of features) is
+made in blocks of consecutive queries whose pairs, counted first from the grids' cells, fit in BUDGET bytes
+at FACE_PAIR_BYTES / SURFACE_PAIR_BYTES a pair, and the pairs of a block are tested in slices of that many.
+The peak of a view is then about
+
+    BUDGET + 16 bytes x (the largest single query's candidate pairs, at most the triangles T)
+           + what the scene holds anyway (the triangles, 72 bytes each, and their grid, ~100 bytes a chunk)
+
+whatever the number of triangles, surfaces and features. A block is computed exactly as the whole was, so
+the output does not depend on BUDGET (tests/test_occlusion_memory.py compares a tiny budget with the default
+and runs a 43k-triangle gear under a 2 GB address-space limit).
 """
 
 from __future__ import annotations
@@ -39,6 +51,10 @@ GRID_NEAR = 1e-2  # metres from the eye's plane within which a triangle is teste
 GRID_REACH = 10.0  # the grid spans image-plane coordinates (x/z, y/z) within this; beyond, its border cells
 GRID_MAX = 512  # cells a side of the grid of chunks
 CHUNK = 8  # triangles a chunk: the grid bins chunks, so that a view's set-up costs T / CHUNK
+BUDGET = 64 * 2**20  # bytes of working arrays the tests of one call hold at once (the memory bound, below)
+FACE_PAIR_BYTES = 1024  # working bytes a (query, triangle) pair costs, temporaries included (measured: ~700)
+SURFACE_PAIR_BYTES = 4096  # working bytes a (point, surface) pair costs in the root finder (measured: ~2,600)
+SAMPLE_BYTES = 256  # working bytes a sample point of a feature costs (its point, parameter, row, flags)
 
 
 @dataclass(frozen=True)
@@ -106,7 +122,7 @@ class Eye:
         occ = Occluders(world.tris[:0], world.ca @ R.T + t, world.Ua @ R.T, world.Va @ R.T,
                         world.cb @ R.T + t, world.Ub @ R.T, world.Vb @ R.T, np.zeros((0, 3)), np.zeros(0))
         self.occ = occ
-        self.grid = _Grid(world.chunk_c @ R.T + t, world.chunk_r, len(world.tris))
+        self.grid = _Grid(world.chunk_c @ R.T + t, world.chunk_r, len(world.tris), CHUNK)
         centre = (occ.ca + occ.cb) / 2
         reach = lambda c, U, V: (np.linalg.norm(c - centre, axis=1)  # noqa: E731
                                  + np.maximum(np.linalg.norm(U, axis=1), np.linalg.norm(V, axis=1)))
@@ -114,6 +130,8 @@ class Eye:
         al, be = (occ.ca, occ.Ua, occ.Va), (occ.cb, occ.Ub, occ.Vb)
         self.X = np.stack([np.cross(al[i], be[j]) for i in range(3) for j in range(3)], axis=1)  # (S, 9, 3)
         self.sphere_r = np.maximum(reach(occ.ca, occ.Ua, occ.Va), reach(occ.cb, occ.Ub, occ.Vb)) * (1 + 1e-9)
+        self.sgrid = _Grid(self.sphere_c, self.sphere_r, len(self.sphere_c), 1)  # surfaces by their spheres
+        self.hull_n, self.hull_c, self.hull_z = _surface_hulls(occ)
 
     # ----------------------------------------------------------------------- points
 
@@ -125,47 +143,66 @@ class Eye:
         out = np.zeros(len(P), dtype=bool)
         if len(self.tris_w) == 0 or len(P) == 0:
             return out
-        r, G, h = self._pairs(P, P)
-        lo, hi = _pair_intervals(G, h, P[r], np.zeros((len(r), 3)))
-        out[r[hi > lo]] = True
+        for rows in _blocks(self.grid.load(P, P), FACE_PAIR_BYTES):
+            for r, G, h in self._pairs(P[rows], P[rows]):
+                r = r + rows.start
+                lo, hi = _pair_intervals(G, h, P[r], np.zeros((len(r), 3)))
+                out[r[hi > lo]] = True
         return out
 
     def _pairs(self, A: np.ndarray, B: np.ndarray):
-        """(row, G, h): the conditions of every triangle whose image-plane box meets that of segment A B (rows,
-        camera frame), from the chunks the grid gives (the rest cannot hide any of it)."""
-        r, t = self.grid.pairs(A, B)
-        u, inv = np.unique(t, return_inverse=True)
-        inv = inv.reshape(-1)
-        W = self.tris_w[u] @ self.R.T + self.t
-        z = W[:, :, 2]
-        boxed = z.min(axis=1) > GRID_NEAR
-        with np.errstate(divide="ignore", invalid="ignore"):
-            q = W[:, :, :2] / np.where(boxed[:, None], z, 1.0)[:, :, None]
-        tlo = np.where(boxed[:, None], q.min(axis=1), -np.inf)
-        thi = np.where(boxed[:, None], q.max(axis=1), np.inf)
+        """(row, G, h) in slices of at most BUDGET / FACE_PAIR_BYTES pairs: the conditions of every triangle whose
+        image-plane box meets that of segment A B (rows, camera frame), from the chunks the grid gives (the
+        rest cannot hide any of it)."""
+        r_all, t_all = self.grid.pairs(A, B)
+        step = max(1, BUDGET // FACE_PAIR_BYTES)
         ahead = (A[:, 2] > 0) & (B[:, 2] > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             qa = A[:, :2] / np.where(ahead, A[:, 2], 1.0)[:, None]
             qb = B[:, :2] / np.where(ahead, B[:, 2], 1.0)[:, None]
         qlo = np.where(ahead[:, None], np.minimum(qa, qb), -np.inf)
         qhi = np.where(ahead[:, None], np.maximum(qa, qb), np.inf)
-        keep = ((tlo[inv] <= qhi[r]) & (thi[inv] >= qlo[r])).all(axis=1) & (z.max(axis=1) > 0)[inv]
-        G, h = _triangle_conditions(W)
-        return r[keep], G[inv[keep]], h[inv[keep]]
+        for at in range(0, max(len(r_all), 1), step):
+            r, t = r_all[at:at + step], t_all[at:at + step]
+            u, inv = np.unique(t, return_inverse=True)
+            inv = inv.reshape(-1)
+            W = self.tris_w[u] @ self.R.T + self.t
+            z = W[:, :, 2]
+            boxed = z.min(axis=1) > GRID_NEAR
+            with np.errstate(divide="ignore", invalid="ignore"):
+                q = W[:, :, :2] / np.where(boxed[:, None], z, 1.0)[:, :, None]
+            tlo = np.where(boxed[:, None], q.min(axis=1), -np.inf)
+            thi = np.where(boxed[:, None], q.max(axis=1), np.inf)
+            keep = ((tlo[inv] <= qhi[r]) & (thi[inv] >= qlo[r])).all(axis=1) & (z.max(axis=1) > 0)[inv]
+            G, h = _triangle_conditions(W)
+            yield r[keep], G[inv[keep]], h[inv[keep]]
 
     def hidden_by_surfaces(self, P: np.ndarray) -> np.ndarray:
         out = np.zeros(len(P), dtype=bool)
         if len(self.sphere_c) == 0 or len(P) == 0:
             return out
-        # only rays that pass through a surface's bounding sphere are solved for
-        dd = np.maximum((P * P).sum(1), 1e-300)
-        u = np.clip(P @ self.sphere_c.T / dd[:, None], 0.0, 1.0)  # (n, S)
-        gap = np.linalg.norm(self.sphere_c[None] - u[..., None] * P[:, None], axis=2)
-        i, k = np.nonzero(gap < self.sphere_r[None])
-        if len(i):
-            o = self.occ
-            hit = _ray_hits_ruled(P[i], self.X[k], o.ca[k], o.Ua[k], o.Va[k], o.cb[k], o.Ub[k], o.Vb[k])
-            np.logical_or.at(out, i[hit], True)
+        step = max(1, BUDGET // SURFACE_PAIR_BYTES)
+        for rows in _blocks(self.sgrid.load(P, P), SURFACE_PAIR_BYTES):
+            i_all, k_all = self.sgrid.pairs(P[rows], P[rows])
+            for at in range(0, len(i_all), step):
+                i, k = i_all[at:at + step] + rows.start, k_all[at:at + step]
+                # only rays that pass through a surface's bounding sphere are solved for
+                c = self.sphere_c[k]
+                dd = np.maximum((P[i] * P[i]).sum(1), 1e-300)
+                u = np.clip((P[i] * c).sum(1) / dd, 0.0, 1.0)
+                near = np.linalg.norm(c - u[:, None] * P[i], axis=1) < self.sphere_r[k]
+                i, k = i[near], k[near]
+                # and whose image is inside the image of the surface's hull, beyond its nearest depth
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    q = P[i, :2] / P[i, 2:]
+                side = np.einsum("mhj,mj->mh", self.hull_n[k], np.where(P[i, 2:] > 0, q, 0.0)) - self.hull_c[k]
+                inside = (P[i, 2] > self.hull_z[k]) & (side <= 0).all(axis=1)
+                inside |= ~np.isfinite(self.hull_z[k]) | (P[i, 2] <= 0)  # near the eye's plane: not culled
+                i, k = i[inside], k[inside]
+                if len(i):
+                    o = self.occ
+                    hit = _ray_hits_ruled(P[i], self.X[k], o.ca[k], o.Ua[k], o.Va[k], o.cb[k], o.Ub[k], o.Vb[k])
+                    out[i[hit]] = True
         return out
 
     # ----------------------------------------------------------------------- features
@@ -176,11 +213,14 @@ class Eye:
         hid_r, hid_a, hid_b = [], [], []
         if len(self.tris_w) and n:
             D = B - A
-            r, G, h = self._pairs(A + t0[:, None] * D, A + t1[:, None] * D)
-            lo, hi = _pair_intervals(G, h, A[r], D[r])
-            hid_r.append(r[hi > lo])
-            hid_a.append(lo[hi > lo])
-            hid_b.append(hi[hi > lo])
+            A0, A1 = A + t0[:, None] * D, A + t1[:, None] * D
+            for rows in _blocks(self.grid.load(A0, A1), FACE_PAIR_BYTES):
+                for r, G, h in self._pairs(A0[rows], A1[rows]):
+                    r = r + rows.start
+                    lo, hi = _pair_intervals(G, h, A[r], D[r])
+                    hid_r.append(r[hi > lo])
+                    hid_a.append(lo[hi > lo])
+                    hid_b.append(hi[hi > lo])
         if len(self.sphere_c) and n:
             D = B - A
             r, a, b = _hidden_runs(lambda rows, u: A[rows] + u[:, None] * D[rows], self.hidden_by_surfaces,
@@ -202,6 +242,31 @@ class Eye:
 
         r, a, b = _hidden_runs(point, self.hidden, lo, hi, count)
         return _complement(n, lo, hi, [r], [a], [b])
+
+
+def _surface_hulls(o: Occluders) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Half-planes (S, 28, 2) n and offsets (S, 28) c bounding the image (x/z, y/z) of each ruled surface, which
+    lies in the convex hull of the 8 corners c +- U +- V of its two ellipses' parallelograms: an image point q
+    off n q <= c (with a margin of 1e-9 of the hull's reach) cannot see the surface; and the least depth z of
+    the corners (no point of the surface is nearer). A surface reaching within GRID_NEAR of the eye's plane
+    gets no half-planes and depth -inf (nothing culled)."""
+    S = len(o.ca)
+    corners = np.stack([c + a * U + b * V for c, U, V in ((o.ca, o.Ua, o.Va), (o.cb, o.Ub, o.Vb))
+                        for a in (-1, 1) for b in (-1, 1)], axis=1)  # (S, 8, 3)
+    z = corners[:, :, 2]
+    ok = z.min(axis=1) > GRID_NEAR
+    q = corners[:, :, :2] / np.where(ok[:, None], z, 1.0)[:, :, None]
+    i, j = np.triu_indices(8, 1)
+    d = q[:, j] - q[:, i]  # (S, 28, 2)
+    n = np.stack([-d[..., 1], d[..., 0]], axis=-1)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
+    side = np.einsum("spj,skj->spk", n, q) - np.einsum("spj,spj->sp", n, q[:, i])[..., None]  # (S, 28, 8)
+    reach = np.abs(q).max(axis=(1, 2))[:, None]
+    eps = 1e-9 * (1 + reach)
+    outward = np.where((side <= eps[..., None]).all(-1), 1.0, np.where((side >= -eps[..., None]).all(-1), -1.0, 0.0))
+    n = n * (outward * ok[:, None])[..., None]
+    c = np.einsum("spj,spj->sp", n, q[:, i]) + eps * (outward != 0)
+    return n, np.where(ok[:, None], c, 0.0), np.where(ok, z.min(axis=1) if S else np.zeros(0), -np.inf)
 
 
 def _triangle_conditions(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -246,9 +311,9 @@ def _pair_intervals(G: np.ndarray, h: np.ndarray, A: np.ndarray, D: np.ndarray):
 
 
 class _Grid:
-    """Chunks of triangles binned by the image-plane box (x/z, y/z) of their bounding spheres, so that a query
-    meets only the triangles of the chunks over its own box: a uniform grid of about one cell a chunk (at
-    most GRID_MAX a side).
+    """Chunks of triangles (or single surfaces, per = 1) binned by the image-plane box (x/z, y/z) of their
+    bounding spheres, so that a query meets only the triangles of the chunks over its own box: a uniform grid
+    of about one cell a chunk (at most GRID_MAX a side).
 
     A point can be hidden only by a triangle that its ray crosses, at a point with the same projection and
     z > 0: so chunks wholly behind the eye's plane are dropped, and those reaching within GRID_NEAR of it
@@ -256,10 +321,12 @@ class _Grid:
     Boxes beyond the grid's range are clamped to its border cells, which keeps every true pair.
     """
 
-    def __init__(self, c: np.ndarray, r: np.ndarray, n_tris: int):
-        self.n_tris = n_tris
+    def __init__(self, c: np.ndarray, r: np.ndarray, n_tris: int, per: int):
+        self.n_tris, self.per = n_tris, per  # items, and items a chunk (the last may be short)
         live = c[:, 2] + r > 0
         self.live = np.flatnonzero(live)
+        # a query reaching behind the eye's plane meets every live chunk; single surfaces (per = 1), every one
+        self.behind = self.live if per > 1 else np.arange(len(c))
         self.always = np.flatnonzero(live & (c[:, 2] - r <= GRID_NEAR))
         binned = np.flatnonzero(live & (c[:, 2] - r > GRID_NEAR))
         self.n = len(binned)
@@ -290,13 +357,32 @@ class _Grid:
         k = np.arange(len(owner)) - np.repeat(np.cumsum(nx * ny) - nx * ny, nx * ny)
         return owner, (i0[owner, 0] + k % nx[owner]) * self.side + i0[owner, 1] + k // nx[owner]
 
+    def load(self, A: np.ndarray, B: np.ndarray) -> np.ndarray:
+        """An upper bound (n,) of the pairs `pairs` gives each segment A B (rows (n, 3)), counted cell by cell in
+        blocks, so that counting holds at most BUDGET bytes whatever the segments span."""
+        n = len(A)
+        ahead = (A[:, 2] > 0) & (B[:, 2] > 0)
+        out = np.where(ahead, len(self.always), len(self.behind)).astype(np.int64)
+        front = np.flatnonzero(ahead)
+        if self.n and len(front):
+            qa, qb = A[front, :2] / A[front, 2:], B[front, :2] / B[front, 2:]
+            qlo, qhi = np.minimum(qa, qb), np.maximum(qa, qb)
+            i0 = np.clip(np.floor((qlo - self.origin) / self.cell), 0, self.side - 1).astype(np.int64)
+            i1 = np.clip(np.floor((qhi - self.origin) / self.cell), 0, self.side - 1).astype(np.int64)
+            cells = (i1[:, 0] - i0[:, 0] + 1) * (i1[:, 1] - i0[:, 1] + 1)
+            for rows in _blocks(cells, 64):
+                owner, cell = self._cells(qlo[rows], qhi[rows])
+                count = self.start[cell + 1] - self.start[cell]
+                out[front[rows]] += np.bincount(owner, weights=count, minlength=rows.stop - rows.start).astype(np.int64)
+        return out * self.per if n else out
+
     def pairs(self, A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(row, triangle) of every triangle that may hide part of the segment A B (rows (n, 3)), each once."""
         rows, chunks = [], []
         ahead = (A[:, 2] > 0) & (B[:, 2] > 0)
         behind = np.flatnonzero(~ahead)  # reaches the eye's plane: every chunk in front of it
-        rows.append(np.repeat(behind, len(self.live)))
-        chunks.append(np.tile(self.live, len(behind)))
+        rows.append(np.repeat(behind, len(self.behind)))
+        chunks.append(np.tile(self.behind, len(behind)))
         front = np.flatnonzero(ahead)
         rows.append(np.repeat(front, len(self.always)))
         chunks.append(np.tile(self.always, len(front)))
@@ -315,9 +401,28 @@ class _Grid:
             chunks.append(key % width)
         row, chunk = np.concatenate(rows).astype(int), np.concatenate(chunks).astype(int)
         # each chunk's triangles; the last chunk may be short
-        row, tri = np.repeat(row, CHUNK), (chunk[:, None] * CHUNK + np.arange(CHUNK)).ravel()
+        row, tri = np.repeat(row, self.per), (chunk[:, None] * self.per + np.arange(self.per)).ravel()
         keep = tri < self.n_tris
         return row[keep], tri[keep]
+
+
+def _blocks(load: np.ndarray, unit_bytes: int) -> list[slice]:
+    """Consecutive slices of rows whose summed `load` (items of unit_bytes each) fits in BUDGET; a row over it
+    alone is a slice of its own."""
+    cap = max(1, BUDGET // unit_bytes)
+    n = len(load)
+    if n == 0:
+        return []
+    total = np.cumsum(load)
+    if total[-1] <= cap:
+        return [slice(0, n)]
+    out, i = [], 0
+    while i < n:
+        base = total[i - 1] if i else 0
+        j = max(int(np.searchsorted(total, base + cap, side="right")), i + 1)
+        out.append(slice(i, j))
+        i = j
+    return out
 
 
 def _ray_hits_ruled(P, X, ca, Ua, Va, cb, Ub, Vb) -> np.ndarray:
@@ -376,7 +481,22 @@ def _ray_hits_ruled(P, X, ca, Ua, Va, cb, Ub, Vb) -> np.ndarray:
 
 
 def _hidden_runs(point, hidden, lo: np.ndarray, hi: np.ndarray, count: np.ndarray):
-    """Hidden sub-intervals (row, a, b) of [lo, hi] per row: `count` samples, changes bisected."""
+    """Hidden sub-intervals (row, a, b) of [lo, hi] per row: `count` samples, changes bisected; rows in blocks
+    of at most BUDGET / SAMPLE_BYTES samples."""
+    parts = []
+    for rows in _blocks(count, SAMPLE_BYTES):
+        r, a, b = _hidden_runs_block(lambda rr, u, s=rows.start: point(rr + s, u), hidden, lo[rows], hi[rows],
+                                     count[rows])
+        parts.append((r + rows.start, a, b))
+    if len(parts) == 1:
+        return parts[0]
+    if not parts:
+        return np.zeros(0, int), np.zeros(0), np.zeros(0)
+    return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
+
+
+def _hidden_runs_block(point, hidden, lo: np.ndarray, hi: np.ndarray, count: np.ndarray):
+    """_hidden_runs of one block of rows."""
     n = len(lo)
     if n == 0:
         return np.zeros(0, int), np.zeros(0), np.zeros(0)

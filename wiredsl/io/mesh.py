@@ -45,7 +45,7 @@ class RawMesh:
 
     vertices: np.ndarray
     triangles: np.ndarray
-    warnings: tuple[str, ...] = ()  # what the reader (trimesh) logged about the file, for W127
+    warnings: tuple[str, ...] = ()  # what the reader (trimesh) logged about the file, for W128
 
 
 def declared_triangles(data: bytes, kind: str) -> int:
@@ -94,6 +94,8 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
         raise MeshFileError(f"not a readable {kind.upper()} mesh (the reader: {log.errors[0]})"[:300])
     vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=float).reshape(-1, 3)
     triangles = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+    if len(triangles) == 0 and kind == "ply":
+        _ply_without_faces(data, len(vertices))
     raw = _checked(vertices, triangles, kind)
     if log.warnings:  # said each time the file is read: not cached
         return RawMesh(raw.vertices, raw.triangles, tuple(dict.fromkeys(log.warnings)))
@@ -145,6 +147,18 @@ def _check_obj_vertices(data: bytes) -> None:
         shown = text if len(text) <= 40 else text[:40] + "..."
         raise MeshFileError(f"line {line}: a vertex needs x, y and z; '{shown}' has {len(text.split()) - 1} "
                             f"coordinate(s)")
+
+
+def _ply_without_faces(data: bytes, n_vertices: int) -> None:
+    """Say what a PLY without triangles holds instead (its header's elements), e.g. triangle strips."""
+    head = data[:65536].split(b"end_header", 1)[0].decode("latin-1", "replace")
+    elements = re.findall(r"element\s+(\S+)\s+(\d+)", head)
+    if not elements:
+        return
+    held = ", ".join(f"{int(n):,} {name}" for name, n in elements)
+    hint = (" (triangle strips: convert them to faces first, e.g. in MeshLab or with trimesh)"
+            if any("strip" in name for name, _ in elements) else "")
+    raise MeshFileError(f"holds no triangles: its header declares {held}{hint}; {n_vertices:,} vertices were read")
 
 
 def _checked(vertices: np.ndarray, triangles: np.ndarray, kind: str) -> RawMesh:
@@ -221,3 +235,81 @@ class _NoFiles:
 
     def namespaced(self, namespace: str):
         return self
+
+
+# --------------------------------------------------------------------------- the features' cache
+
+def features_key(data: bytes, kind: str, options: tuple) -> str:
+    """The cache name of a mesh's features: its bytes, format, the options that shape them (scale, up, crease,
+    placement, budgets...), wiredsl's version and the source of the code that finds them (engine/mesh.py)."""
+    import wiredsl
+    from wiredsl.engine import mesh as engine_mesh
+
+    h = hashlib.sha256((_cache_key(data, kind) or hashlib.sha256(data).hexdigest()).encode())  # trimesh's version too
+    h.update(f"\0{kind}\0{options!r}\0{wiredsl.__version__}\0{READER}\0".encode())
+    h.update(Path(engine_mesh.__file__).read_bytes())
+    return "f" + h.hexdigest()[:39]
+
+
+_ARRAYS = ("lines", "poly_points", "poly_len", "ell", "sil", "corner_at", "corner_len", "corner_kind",
+           "corner_ref", "face_points", "face_len", "vertices", "occluders", "contour", "counts")
+
+
+def load_features(key: str):
+    """The cached MeshFeatures of `key`, or None (not cached, or a file that is not one)."""
+    from wiredsl.engine.mesh import MeshFeatures
+    from wiredsl.io.files import cache_folder
+
+    folder = cache_folder("meshes")
+    path = folder / f"{key}.npz" if folder is not None else None
+    if path is None or not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            a = {k: z[k] for k in _ARRAYS}
+        split = lambda x, n: np.split(x, np.cumsum(n)[:-1]) if len(n) else []  # noqa: E731
+        f = MeshFeatures(lines=[(p[0], p[1]) for p in a["lines"]], polylines=split(a["poly_points"], a["poly_len"]),
+                         ellipses=[{"centre": e[0:3], "normal": e[3:6], "axis": e[6:9], "a": float(e[9]),
+                                    "b": float(e[10])} for e in a["ell"]],
+                         silhouettes=[(int(x), int(y)) for x, y in a["sil"]],
+                         faces=split(a["face_points"], a["face_len"]), vertices=a["vertices"],
+                         occluders=a["occluders"], contour=a["contour"],
+                         degenerate=int(a["counts"][0]), nonmanifold=int(a["counts"][1]),
+                         triangles=int(a["counts"][2]))
+        kinds = ("line", "polyline")
+        refs = split(np.column_stack([a["corner_kind"], a["corner_ref"]]), a["corner_len"])
+        f.corners = [(p, [(kinds[int(k)], int(j)) for k, j in r]) for p, r in zip(a["corner_at"], refs, strict=True)]
+        os.utime(path)  # recently used
+        return f
+    except Exception:  # a damaged or foreign file in the cache only costs a fresh extraction
+        return None
+
+
+def save_features(key: str, f) -> None:
+    """Keep a mesh's features (atomically; a cache that cannot be written is no error)."""
+    from wiredsl.io.files import cache_folder, prune_cache, write_atomic
+
+    folder = cache_folder("meshes")
+    if folder is None:
+        return
+    cat = lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape)  # noqa: E731
+    refs = [r for _, rs in f.corners for r in rs]
+    arrays = {
+        "lines": np.array([np.stack(x) for x in f.lines]).reshape(-1, 2, 3),
+        "poly_points": cat(f.polylines, (0, 3)), "poly_len": np.array([len(p) for p in f.polylines], np.int64),
+        "ell": np.array([[*e["centre"], *e["normal"], *e["axis"], e["a"], e["b"]] for e in f.ellipses]).reshape(-1, 11),
+        "sil": np.array(f.silhouettes, np.int64).reshape(-1, 2),
+        "corner_at": np.array([p for p, _ in f.corners]).reshape(-1, 3),
+        "corner_len": np.array([len(r) for _, r in f.corners], np.int64),
+        "corner_kind": np.array([k == "polyline" for k, _ in refs], np.int64),
+        "corner_ref": np.array([j for _, j in refs], np.int64),
+        "face_points": cat(f.faces, (0, 3)), "face_len": np.array([len(p) for p in f.faces], np.int64),
+        "vertices": f.vertices, "occluders": np.asarray(f.occluders, np.int64).reshape(-1, 3),
+        "contour": np.asarray(f.contour, bool), "counts": np.array([f.degenerate, f.nonmanifold, f.triangles], np.int64)}
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    try:
+        write_atomic(folder / f"{key}.npz", buf.getvalue(), tidy=False)
+    except OSError:
+        return
+    prune_cache(folder, "*.npz", CACHE_FILES)

@@ -102,6 +102,7 @@ class Program:
     # no reference to an unknown name: that name may be declared in what did not load.
     errors: list[Diagnostic] = field(default_factory=list)
     partial: set[str] = field(default_factory=set)  # files with statements set aside
+    mesh_reports: list = field(default_factory=list)  # (span, text): each `mesh read`'s size and bounds, compiled
 
     @property
     def sources(self) -> dict[str, str]:

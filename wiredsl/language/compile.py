@@ -66,7 +66,9 @@ def compile_program(program: ast.Program) -> tuple[Scene, list[Diagnostic]]:
     """
     out = Collector(hold_unknown=bool(program.errors))
     out.extend(program.errors)
-    scene = Compiler(program, out).run()
+    compiler = Compiler(program, out)
+    scene = compiler.run()
+    program.mesh_reports = compiler.mesh_reports
     if out.unknown_held:  # noted at the first include that failed, else at the first syntax error
         i = next((i for i, d in enumerate(program.errors) if d.code in ("E010", "E011")), 0)
         n = out.unknown_held
@@ -98,6 +100,7 @@ class Compiler(CameraCompiler):
         self.program = program
         self.out = out
         self.units: dict[str, dict[str, str]] = {}
+        self.mesh_reports: list[tuple] = []  # (span, size and bounds) of each mesh read, for `check`
         self.models: dict[str, _Decl] = {}
         self.features: dict[str, dict[str, str]] = {}  # model -> feature -> kind
         self.placements: dict[str, _Decl] = {}
@@ -245,57 +248,19 @@ class Compiler(CameraCompiler):
             self.features[b.name] = kinds
 
     def _mesh(self, fb: Bound, feats: dict[str, list], names: dict[str, _Decl]) -> None:
-        """`mesh read`: the mesh's features added to the model's (engine/mesh.py says what becomes what)."""
+        """`mesh read`: the mesh's features added to the model's (engine/mesh.py says what becomes what), from
+        the features' cache when this file was read with these options before (io/mesh.py)."""
         from wiredsl.engine import mesh as mesh_features
-        from wiredsl.io.mesh import MAX_MESH_BYTES, MeshFileError, MeshTooLarge, read_mesh
 
-        path, where = fb.get("read"), fb.span("read")
+        path = fb.get("read")
         if any(d.value == "mesh" for d in names.values()):
             self.out.error("E103", "a model reads one mesh", fb.stmt.keyword_span, "put each mesh in its own model")
             return
         names[f"mesh {path}"] = _Decl("mesh", fb.stmt.span)  # a key no feature name can be
-        try:
-            target = FsPath(fb.stmt.span.file).parent / path
-            data = ast.read_bytes(target, "mesh file", where, limit=MAX_MESH_BYTES)
-            raw = read_mesh(target, data)
-        except WiredslError as err:
-            self.out.extend(err.diagnostics)
+        found = read_mesh_features(fb, self._units(fb.stmt), self.out)
+        if found is None:
             return
-        except MeshTooLarge as exc:
-            self.out.error("E151", f"mesh file {path} {exc}", where, "simplify the mesh (decimate it) first")
-            return
-        except MeshFileError as exc:
-            self.out.error("E125", f"mesh file {path}: {exc}", where)
-            return
-        for text in raw.warnings:
-            self.out.warning("W127", f"mesh file {path}: the reader warns: {text}", where,
-                             "the file may be damaged: check what was read ('wiredsl compile' lists it)")
-        scale = fb.get("scale", UNITS[self._units(fb.stmt)["length"]][1])
-        if not (0 < scale <= MAX_MAGNITUDE):
-            self.out.error("E110", f"mesh scale must be in (0, {MAX_MAGNITUDE:g}], got {scale:g}", fb.span("scale"))
-            return
-        crease = fb.get("crease", math.radians(30))
-        if not 0 <= crease <= math.pi:  # below 0 every edge would be a feature, above 180 deg none
-            self.out.error("E110", f"crease angle must be in 0..180 deg, got {math.degrees(crease):g} deg",
-                           fb.span("crease"))
-            return
-        V = raw.vertices * scale
-        if np.abs(V).max() > MAX_MAGNITUDE:
-            self.out.error("E110", f"mesh file {path} has a vertex beyond {MAX_MAGNITUDE:g} m", where)
-            return
-        up = fb.get("up", "z")
-        if up != "z":  # the file's up axis becomes z: y-up turns about x, x-up about y
-            V = V @ (rotation("x", math.pi / 2) if up == "y" else rotation("y", -math.pi / 2)).T
-        found = mesh_features.features(V, raw.triangles, crease)
-        if not (len(found.lines) + len(found.polylines) + len(found.ellipses) + len(found.faces)
-                + len(found.occluders)):
-            self.out.error("E125", f"mesh file {path}: no triangle has an area", where)
-            return
-        if found.degenerate:
-            self.out.warning("W125", f"mesh file {path}: {found.degenerate} triangle(s) of no area dropped", where)
-        if found.nonmanifold:
-            self.out.warning("W126", f"mesh file {path}: {found.nonmanifold} edge(s) shared by more than two "
-                                     "triangles (non-manifold), kept as lines", where)
+        self.mesh_reports.append((fb.stmt.span, f"mesh {path}: {mesh_size(found)}"))
         built = mesh_features.as_nodes(found, path)
         for kind, items in built.items():
             for item in items:
@@ -932,3 +897,104 @@ def _range_message(err: dict, value: object) -> str:
         if key in ctx:
             return f"must be {word} {ctx[key]:g}, got {value:g}"
     return err["msg"]
+
+
+def read_mesh_features(fb: Bound, units: dict[str, str], out: Collector):
+    """The features of a `mesh read` statement's mesh, scaled, turned and placed (MeshFeatures), from the
+    features' cache when this file was read with these options before (io/mesh.py); None when reported."""
+    from wiredsl.engine import mesh as mesh_features
+    from wiredsl.io import mesh as mesh_io
+
+    path, where = fb.get("read"), fb.span("read")
+    scale = mesh_scale(fb, units, out)
+    crease = fb.get("crease", math.radians(30))
+    if not 0 <= crease <= math.pi:  # below 0 every edge would be a feature, above 180 deg none
+        out.error("E110", f"crease angle must be in 0..180 deg, got {math.degrees(crease):g} deg",
+                       fb.span("crease"))
+        return None
+    if scale is None:
+        return None
+    up, origin = fb.get("up", "z"), fb.get("origin", "file")
+    try:
+        target = FsPath(fb.stmt.span.file).parent / path
+        data = ast.read_bytes(target, "mesh file", where, limit=mesh_io.MAX_MESH_BYTES)
+        kind = mesh_io.FORMATS.get(target.suffix.lower(), "")
+        key = mesh_io.features_key(data, kind, (scale, up, crease, origin))
+        found = mesh_io.load_features(key)
+        if found is None:
+            raw = mesh_io.read_mesh(target, data)
+    except WiredslError as err:
+        out.extend(err.diagnostics)
+        return None
+    except mesh_io.MeshTooLarge as exc:
+        out.error("E151", f"mesh file {path} {exc}", where, "simplify the mesh (decimate it) first")
+        return None
+    except mesh_io.MeshFileError as exc:
+        out.error("E125", f"mesh file {path}: {exc}", where)
+        return None
+    if found is None:
+        V = raw.vertices * scale
+        if np.abs(V).max() > MAX_MAGNITUDE:
+            out.error("E110", f"mesh file {path} has a vertex beyond {MAX_MAGNITUDE:g} m", where)
+            return None
+        if up != "z":  # the file's up axis becomes z: y-up turns about x, x-up about y
+            V = V @ (rotation("x", math.pi / 2) if up == "y" else rotation("y", -math.pi / 2)).T
+        lo, hi = V.min(axis=0), V.max(axis=0)
+        if origin != "file":  # the part's centre, or the centre of its base, at the model's origin
+            V = V - np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2] if origin == "base" else
+                              (lo[2] + hi[2]) / 2])
+        found = mesh_features.features(V, raw.triangles, crease)
+        if not (len(found.lines) + len(found.polylines) + len(found.ellipses) + len(found.faces)
+                + len(found.occluders)):
+            out.error("E125", f"mesh file {path}: no triangle has an area", where)
+            return None
+        for text in raw.warnings:  # a file the reader warns about is read (and warned about) every time
+            out.warning("W128", f"mesh file {path}: the reader warns: {text}", where,
+                        "the file may be damaged: check what was read ('wiredsl compile' lists it)")
+        if not raw.warnings:
+            mesh_io.save_features(key, found)
+    if found.degenerate:
+        out.warning("W125", f"mesh file {path}: {found.degenerate} triangle(s) of no area dropped", where)
+    if found.nonmanifold:
+        out.warning("W126", f"mesh file {path}: {found.nonmanifold} edge(s) shared by more than two "
+                            "triangles (non-manifold), kept as lines", where)
+    lo, hi = found.vertices.min(axis=0), found.vertices.max(axis=0)
+    away = float(np.linalg.norm(np.maximum(np.maximum(lo, -hi), 0.0)))  # from the origin to the part's box
+    if origin == "file" and away > 0.5 * float((hi - lo).max()):
+        size = mesh_size(found).split(", from")[0]
+        out.warning("W127", f"mesh file {path}: its origin is {_length(away)} outside the part (which spans {size}), "
+                            "so `place` puts the part that far from where it says",
+                    where, "place it by its centre or its base: origin centre, origin base")
+    return found
+
+
+def mesh_scale(fb: Bound, units: dict[str, str], out: Collector) -> float | None:
+    """Metres per unit of a `mesh read`'s file: `scale 1in` (a length), `scale 0.0254` (bare: metres), `units in`,
+    or the scene file's length unit; None (reported) when out of range or given twice."""
+    if "scale" in fb.clauses and "units" in fb.clauses:
+        out.error("E103", "give the file's unit once: scale or units", fb.span("units"))
+        return None
+    if "units" in fb.clauses:
+        return UNITS[fb.get("units")][1]
+    scale = fb.get("scale", UNITS[units["length"]][1])
+    if isinstance(scale, tuple):  # (value, kind, unit) of `number|length`
+        scale = scale[0]
+    if not (0 < scale <= MAX_MAGNITUDE):
+        out.error("E110", f"mesh scale must be in (0, {MAX_MAGNITUDE:g}], got {scale:g}", fb.span("scale"))
+        return None
+    return scale
+
+
+def _length(x: float) -> str:
+    return f"{x * 1e3:.3g} mm" if x < 1 else f"{x:.3g} m"
+
+
+def mesh_size(found) -> str:
+    """A mesh's size and bounds, in metres after scaling and placing, and its features, for `check` and hover."""
+    lo, hi = found.vertices.min(axis=0), found.vertices.max(axis=0)
+    size = " x ".join(_length(float(x)) for x in hi - lo)
+    box = lambda p: "(" + ", ".join(f"{float(x):.4g}" for x in p) + ")"  # noqa: E731
+    counts = (f"{len(found.lines)} lines, {len(found.polylines)} polylines, {len(found.ellipses)} ellipses, "
+              f"{len(found.silhouettes)} silhouettes, {len(found.corners)} corners, {len(found.faces)} faces, "
+              f"{len(found.occluders)} occluding triangles")
+    return f"{size}, from {box(lo)} to {box(hi)} m; {counts}"

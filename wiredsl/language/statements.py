@@ -19,7 +19,7 @@ from wiredsl.language import ast
 from wiredsl.language.units import KIND_NAMES, UNITS
 from wiredsl.plugins import lookup
 
-SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "integer", "time")
+SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "number|length", "integer", "time")
 MAX_MAGNITUDE = 1e9  # metres or pixels: squares and products of a few stay far from float overflow
 BOARD_KINDS = ("chessboard", "charuco")
 # OpenCV's predefined ArUco dictionaries (cv2.aruco.DICT_<NAME upper>)
@@ -81,7 +81,7 @@ _TOP = [
     Sig("scene", "the scene's name (default: the file name; ignored in an included file)", (NAME,),
         example="scene lab"),
     Sig("units", "units of bare numbers in this file (default m, deg, px)",
-        clauses={"length": C("length unit", S("word", "unit", "mm", "cm", "m")),
+        clauses={"length": C("length unit", S("word", "unit", "mm", "cm", "m", "in", "ft")),
                  "angle": C("angle unit", S("word", "unit", "deg", "rad"))},
         example="units length mm angle deg"),
     Sig("include", "read another file's statements (path relative to this file)", (S("str", "path"),),
@@ -154,10 +154,16 @@ _MODEL = [
                            required=True),
                  "crease": C("edges whose triangles' normals differ by more than this are features (default 30deg)",
                              S("angle", "angle")),
-                 "scale": C("metres per unit of the file (default: this file's length unit)", S("number", "scale")),
+                 "scale": C("the length of one unit of the file: 1in, 1mm, or a bare number of metres (default: "
+                            "this file's length unit)", S("number|length", "scale")),
+                 "units": C("the file's unit (mm, cm, m, in, ft): the same as scale 1<unit>",
+                            S("word", "unit", "mm", "cm", "m", "in", "ft")),
                  "up": C("the file's up axis, turned to z (default z; OBJ and glTF are often y-up)",
-                         S("word", "axis", "x", "y", "z"))},
-        example='mesh read "crate.obj" crease 30deg scale 0.001 up y'),
+                         S("word", "axis", "x", "y", "z")),
+                 "origin": C("where the part's origin is: file (as the file has it, the default), centre (of its "
+                             "bounding box) or base (the centre of the bottom of its bounding box)",
+                             S("word", "origin", "file", "centre", "base"))},
+        example='mesh read "crate.obj" crease 30deg units mm up y origin base'),
 ]
 
 _CAMERA = [
@@ -603,7 +609,7 @@ def quantity(num: ast.Number, kind: str, units: dict[str, str], out: Collector) 
             out.error("E106", f"expected a whole number, got '{num.text}'", num.span)
         return num.value
     if num.unit is None:
-        if kind in ("number", "fraction"):
+        if kind.split("|")[0] in ("number", "fraction"):
             return num.value
         unit = units[kind.split("|")[0]]
         if kind == "angle" and unit == "deg" and 0 < abs(num.value) < 1:

@@ -9,6 +9,8 @@ UNITS: dict[str, tuple[str, float]] = {
     "mm": ("length", 1e-3),
     "cm": ("length", 1e-2),
     "m": ("length", 1.0),
+    "in": ("length", 0.0254),
+    "ft": ("length", 0.3048),
     "deg": ("angle", math.pi / 180.0),
     "rad": ("angle", 1.0),
     "px": ("image", 1.0),
