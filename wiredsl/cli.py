@@ -973,3 +973,8 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
             click.echo(f"study {found.name} varies nothing: one point, no plots against factors and no Sobol' "
                        "indices (table.csv holds its statistics)", err=True)
     click.echo(f"wrote {out}: " + ", ".join(written), err=True)
+
+
+from wiredsl.verify.cli import verify  # noqa: E402  (its own module; registered here, imports nothing heavy)
+
+main.add_command(verify)

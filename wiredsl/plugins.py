@@ -21,7 +21,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-GROUPS = {"effect": "wiredsl.effects", "measure": "wiredsl.measures"}
+GROUPS = {"effect": "wiredsl.effects", "measure": "wiredsl.measures", "detector": "wiredsl.detectors"}
 
 
 class PluginError(Exception):
