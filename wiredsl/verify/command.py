@@ -95,7 +95,8 @@ def sums_of(results: list[ver.ImageResult], cfg: ver.Settings, edge_det: str | N
             s.ends, s.gap_ends = float(st.ends.sum()), float(st.gap_ends.sum())
             ok = st.run_n >= fitting.MIN_STROKE_SAMPLES
             d = st.run_mean[ok]
-            s.strokes, s.d2, s.offsets = int(ok.sum()), float((d * d).sum()), d.tolist()
+            s.strokes, s.d1, s.d2, s.offsets = int(ok.sum()), float(d.sum()), float((d * d).sum()), d.tolist()
+            s.noise = float(np.nansum(st.run_noise[ok]))
             tested = st.tested > 0
             s.runs, s.run_strokes = float(st.runs[tested].sum()), int(tested.sum())
             e = st.run_end_diff[np.isfinite(st.run_end_diff)]

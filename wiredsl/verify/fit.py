@@ -8,8 +8,10 @@ keyed by the seed and the statistic's name (the same seed gives the same interva
 
 - edge_loss.fraction = 1 - verified samples / tested samples (edge detector); the fragments (verified runs
   per stroke) are reported beside it: the effect removes one gap a stroke, so it leaves 2 runs.
-- lateral_shift.range: the per-stroke mean offsets d are taken as the effect's shifts, uniform on
-  [-range, range]: range = sqrt(3 mean(d^2)). Which law fits d better, uniform or normal (sigma^2 =
+- lateral_shift.range: the mean offsets d of the fragments the detector found (runs of verified samples;
+  the effect shifts each fragment edge_loss leaves on its own) are taken as the effect's shifts, uniform on
+  [-range, range]: range = sqrt(3 (var(d) - noise)), with noise the mean measurement variance of a fragment's
+  mean (its samples' scatter about a line fitted to them, over their number); their mean is reported apart. Which law fits d better, uniform or normal (sigma^2 =
   mean(d^2)), is decided by the Kolmogorov-Smirnov statistic (smaller D; both laws' parameters estimated from
   the same d, so the p-values are optimistic), with the log-likelihoods beside it.
 - approx_error.sigma: a line fitted to each stroke's verified offsets along it gives the offsets e0, e1 of
@@ -49,7 +51,9 @@ class ImageSums:
     ends: float = 0.0  # stroke ends tested
     gap_ends: float = 0.0  # ends of the gaps in the middles
     strokes: int = 0  # runs (fragments) with enough verified samples for a mean offset
+    d1: float = 0.0  # sum of their mean offsets
     d2: float = 0.0  # sum of their squared mean offsets
+    noise: float = 0.0  # sum of their means' measurement variances
     offsets: list = field(default_factory=list)  # their mean offsets
     runs: float = 0.0
     run_strokes: int = 0
@@ -87,10 +91,16 @@ def _weights(n: int, seed: int, name: str) -> np.ndarray:
     return rng.multinomial(n, np.full(n, 1.0 / n), size=B).astype(float)
 
 
-def _interval(reps: np.ndarray) -> tuple[float | None, float | None]:
+def _interval(reps: np.ndarray, value: float | None = None, n: int | None = None
+              ) -> tuple[float | None, float | None]:
+    """The 2.5% and 97.5% quantiles of the replicates; with the estimate and the number of images n, the
+    replicates' spread about the estimate is first widened by sqrt(n / (n - 1)) (the bootstrap's variance of a
+    mean is (n - 1) / n of the usual estimate: with few images, the plain percentiles cover too little)."""
     reps = reps[np.isfinite(reps)]
     if len(reps) < B // 2:
         return None, None
+    if value is not None and n is not None and n > 1 and math.isfinite(value):
+        reps = value + (reps - value) * math.sqrt(n / (n - 1))
     lo, hi = np.quantile(reps, [0.025, 0.975])
     return float(lo), float(hi)
 
@@ -104,7 +114,7 @@ def _ratio(num: np.ndarray, den: np.ndarray, seed: int, name: str, fn=lambda r: 
     W = _weights(len(num), seed, name)
     with np.errstate(invalid="ignore", divide="ignore"):
         reps = fn((W @ num) / (W @ den))
-    lo, hi = _interval(np.asarray(reps, float))
+    lo, hi = _interval(np.asarray(reps, float), value, int((den > 0).sum()))
     return value, lo, hi
 
 
@@ -121,8 +131,25 @@ def _edge_loss(col, seed: int):
     f, end = value(*(col[k].sum() for k in keys))
     W = _weights(len(col["length"]), seed, "edge_loss.fraction")
     reps, _ = value(*(W @ col[k] for k in keys))
-    lo, hi = _interval(np.asarray(reps, float))
+    lo, hi = _interval(np.asarray(reps, float), float(f), int((col["length"] > 0).sum()))
     return float(f), lo, hi, float(end)
+
+
+def _shift_range(col, seed: int):
+    """(range, lo, hi): sqrt(3 v) with v the fragments' mean offsets' variance about their mean, less their
+    measurement variance (from each fragment's scatter about its fitted line)."""
+
+    def value(n, d1, d2, noise):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            m = d1 / n
+            return np.sqrt(3 * np.maximum(d2 / n - m * m - noise / n, 0.0))
+
+    keys = ("strokes", "d1", "d2", "noise")
+    f = value(*(col[k].sum() for k in keys))
+    W = _weights(len(col["strokes"]), seed, "lateral_shift.range")
+    lo, hi = _interval(np.asarray(value(*(W @ col[k] for k in keys)), float), float(f),
+                       int((col["strokes"] > 0).sum()))
+    return float(f), lo, hi
 
 
 def disc_radius(mean_r: np.ndarray, t: float) -> np.ndarray:
@@ -182,7 +209,7 @@ class Fit:
 def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 10.0) -> Fit:
     n = len(sums)
     col = {k: np.array([getattr(s, k) for s in sums], float) for k in
-           ("tested", "verified", "length", "lost_middle", "lost_ends", "ends", "gap_ends", "strokes", "d2", "runs",
+           ("tested", "verified", "length", "lost_middle", "lost_ends", "ends", "gap_ends", "strokes", "d1", "d2", "noise", "runs",
             "run_strokes", "fitted", "fitted2", "corners", "found",
             "displaced", "displaced_r", "matched", "wrong")}
     out = []
@@ -199,9 +226,11 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     offsets = np.concatenate([np.asarray(s.offsets, float) for s in sums]) if n else np.zeros(0)
     law = None
     if col["strokes"].sum() >= MIN["strokes"]:
-        v, lo, hi = _ratio(col["d2"], col["strokes"], seed, "lateral_shift.range", lambda r: np.sqrt(3 * r))
+        v, lo, hi = _shift_range(col, seed)
         law = law_test(offsets)
-        note = f"sqrt(3 mean d^2) of {len(offsets)} strokes' mean offsets (mean {law['mean']:+.3g} px)"
+        note = (f"sqrt(3 (var d - noise)) of the mean offsets d of {len(offsets)} fragments (mean {law['mean']:+.3g} "
+                f"px, not part of the effect; their measurement noise "
+                f"{math.sqrt(max(col['noise'].sum() / col['strokes'].sum(), 0)):.3g} px rms)")
         if law["better"] == "normal":
             note += f"; a normal law fits better (KS D {law['ks_normal']['D']:.3g} against uniform's " \
                     f"{law['ks_uniform']['D']:.3g}): this is the uniform range of the same spread"
@@ -250,10 +279,11 @@ def _mismatch(col, seed: int, t: float, radius: float) -> list[Estimate]:
         Rb = disc_radius((W @ disp_r) / (W @ disp), t)
         fb = (W @ disp) / (W @ found) / (1 - (t / Rb) ** 2)
     f = float(disp.sum() / found.sum() / (1 - (t / R) ** 2))
-    return [Estimate("corner_mismatch.fraction", min(f, 1.0), *_interval(np.minimum(fb, 1.0)),
+    k = int((found > 0).sum())
+    return [Estimate("corner_mismatch.fraction", min(f, 1.0), *_interval(np.minimum(fb, 1.0), min(f, 1.0), k),
                      f"{int(disp.sum())} of {int(found.sum())} found corners displaced beyond {t:g} px, corrected "
                      f"for the moves shorter than that"),
-            Estimate("corner_mismatch.radius", R, *_interval(Rb),
+            Estimate("corner_mismatch.radius", R, *_interval(Rb, R, k),
                      f"from their mean distance {mean_r:.3g} px (uniform over the disc)")]
 
 

@@ -109,8 +109,11 @@ def figure7(fr: ObjectFractions, path: Path, caption: str, fmt: str = "png", dpi
     summary = fr.summary()
     dets = sorted({s["detector"] for s in summary})
     objs = sorted({s["object"] for s in summary})
-    fig, ax = plt.subplots(figsize=(max(5.0, 0.9 * len(objs) * max(1, len(dets)) + 2), 4.0))
-    width = 0.8 / max(1, len(dets))
+    import textwrap
+
+    fig_w = max(6.4, 0.9 * len(objs) * max(1, len(dets)) + 2)
+    fig, ax = plt.subplots(figsize=(fig_w, 4.4))
+    width = min(0.8 / max(1, len(dets)), 0.45)
     for j, det in enumerate(dets):
         xs, ys, lo, hi = [], [], [], []
         for i, obj in enumerate(objs):
@@ -136,9 +139,11 @@ def figure7(fr: ObjectFractions, path: Path, caption: str, fmt: str = "png", dpi
     ax.set_ylim(0, 105)
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
-    ax.set_title("Verified image edges versus edges re-projected from the model\n(bars: pooled over images; "
-                 "whiskers: +-1 sd over images; dots: images)", fontsize=9)
-    fig.text(0.01, 0.01, caption, fontsize=7, color="0.3", va="bottom")
-    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    ax.set_title("Verified image edges versus edges re-projected from the model\n"
+                 "bars: samples pooled over images; whiskers: +-1 sd over images; dots: single images", fontsize=9)
+    ax.set_xlim(-0.75, len(objs) - 0.25)
+    wrapped = textwrap.fill(caption, width=int(fig_w * 17))
+    fig.text(0.01, 0.01, wrapped, fontsize=7, color="0.3", va="bottom")
+    fig.tight_layout(rect=(0, 0.04 + 0.03 * wrapped.count("\n"), 1, 1))
     _save(fig, path, fmt, dpi)
     plt.close(fig)

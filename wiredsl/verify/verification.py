@@ -28,6 +28,7 @@ BAND = 6.0  # px searched either side of a sample along its normal
 ANGLE = math.radians(20.0)  # largest angle between the detected gradient and the model's normal
 RADIUS = 10.0  # px: the paper's corner match search radius
 BORDER = 2.0  # px: samples nearer the image's border are not tested (detectors see nothing there)
+GOLDEN = 0.6180339887498949  # the sample grids' phases: (i + 1) * GOLDEN mod 1 for stroke i
 PATCH = 5  # half size of the correlation patches of the stereo corner matcher (11 x 11)
 
 
@@ -84,7 +85,8 @@ class Samples:
 
 
 def sample_strokes(st: Strokes, step: float) -> Samples:
-    """Samples every ~`step` px along each stroke, at the centres of equal intervals (at least one a stroke)."""
+    """Samples every ~`step` px along each stroke: floor(L / step) of them (at least one), L / n apart, the first
+    at a phase in (0, 1) of that spacing from the stroke's start."""
     S = st.n
     if S == 0 or len(st.pts) < 2:
         z = np.zeros((0, 2))
@@ -100,7 +102,10 @@ def sample_strokes(st: Strokes, step: float) -> Samples:
     n = np.where(L > 0, np.maximum(1, np.floor(L / step)), 0).astype(int)
     stroke = np.repeat(np.arange(S), n)
     k = np.arange(len(stroke)) - np.repeat(np.cumsum(n) - n, n)
-    s = (k + 0.5) * (L / np.maximum(n, 1))[stroke]
+    # each stroke's grid starts at its own phase (a Weyl sequence over the strokes), so that where an edge's
+    # end falls between two samples is uniform over strokes, at the strokes' ends as at the gaps inside them
+    phase = np.modf((np.arange(S) + 1) * GOLDEN)[0]
+    s = (k + phase[stroke]) * (L / np.maximum(n, 1))[stroke]
     g = base[stroke] + s
     seg = np.clip(np.searchsorted(cum[1:], g, side="left"), 0, len(seg_len) - 1)
     t = d[seg] / np.maximum(seg_len[seg], 1e-300)[:, None]
@@ -202,6 +207,7 @@ class StrokeStats:
     run_n: np.ndarray
     run_mean: np.ndarray
     run_end_diff: np.ndarray
+    run_noise: np.ndarray  # variance of the run's mean offset from its samples' scatter about its fitted line
 
 
 def _bins(idx, w, n):
@@ -221,13 +227,25 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(nv > 0, _bins(st, o, S) / np.maximum(nv, 1), np.nan)
         var = np.where(nv > 1, (_bins(st, o * o, S) - nv * mean * mean) / np.maximum(nv - 1, 1), np.nan)
-    spacing = sm.L / np.maximum(np.bincount(st, minlength=S), 1)
-    near = (sm.s < margin) | (sm.s > sm.L[st] - margin)
+    per = np.bincount(st, minlength=S)
+    spacing = sm.L / np.maximum(per, 1)
+    head, tail = sm.s < margin, (sm.s > sm.L[st] - margin) & (sm.s >= margin)
+    near = head | tail
     lost = t & ~v
-    lost_ends = _bins(st, lost & near, S) * spacing
-    lost_mid = _bins(st, lost & ~near, S) * spacing
-    first_end = _bins(st, t & (sm.s < margin), S) > 0
-    last_end = _bins(st, t & (sm.s > sm.L[st] - margin) & (sm.s >= margin), S) > 0
+    # an end's own loss counts only where the sample just past its margin was verified; where it was lost too,
+    # a gap reaches the end, and the margin's loss belongs to that gap
+    first = np.cumsum(per) - per
+    n_head, n_tail = np.bincount(st, weights=head, minlength=S).astype(int), np.bincount(
+        st, weights=tail, minlength=S).astype(int)
+    g0 = first + n_head  # the first sample past the head margin
+    g1 = first + per - 1 - n_tail  # the last before the tail margin
+    okh = (n_head > 0) & (g0 <= g1) & v[np.minimum(g0, len(v) - 1)] if len(v) else np.zeros(S, bool)
+    okt = (n_tail > 0) & (g1 >= g0) & v[np.clip(g1, 0, max(len(v) - 1, 0))] if len(v) else np.zeros(S, bool)
+    end_ok = np.where(head, okh[st], okt[st]) & near
+    lost_ends = _bins(st, lost & end_ok, S) * spacing
+    lost_mid = _bins(st, lost & ~end_ok, S) * spacing
+    first_end = (_bins(st, t & head, S) > 0) & okh
+    last_end = (_bins(st, t & tail, S) > 0) & okt
     mid = t & ~near
     # changes of state between consecutive middle samples of a stroke (each interior gap has two)
     change = np.concatenate([[False], (v[1:] != v[:-1]) & mid[1:] & mid[:-1] & same[1:]]) if len(v) else v
@@ -235,7 +253,9 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0)
     # runs: the fragments the detector found
     run_id = np.cumsum(start) - 1
     R = int(start.sum())
-    rv = np.flatnonzero(v)
+    # a run's first and last samples are left out of its offsets: there the edge bends round its end
+    nxt = np.concatenate([v[1:] & same[1:], [False]]) if len(v) else v
+    rv = np.flatnonzero(v & prev & nxt)
     rid, ro, rs = run_id[rv], m.offset[rv], sm.s[rv]
     rn = np.bincount(rid, minlength=R).astype(float)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -244,6 +264,17 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0)
         vs = _bins(rid, rs * rs, R) / np.maximum(rn, 1) - ms * ms
         cov = _bins(rid, rs * ro, R) / np.maximum(rn, 1) - ms * rmean
         slope = np.where((rn >= 4) & (vs > 1e-9), cov / np.where(vs > 1e-9, vs, 1.0), np.nan)
+        vo = _bins(rid, ro * ro, R) / np.maximum(rn, 1) - rmean * rmean
+        rss = rn * np.maximum(vo - np.where(np.isfinite(slope), slope * cov, 0.0), 0.0)
+        noise = np.where(rn >= 4, rss / np.maximum(rn - 2, 1) / np.maximum(rn, 1), np.nan)
+        # neighbouring samples' noise is correlated (blur, the detector's own smoothing): the variance of a mean
+        # grows by (1 + rho) / (1 - rho), rho the lag-one correlation of the residuals, pooled over the view's runs
+        res = ro - rmean[rid] - np.where(np.isfinite(slope), slope, 0.0)[rid] * (rs - ms[rid])
+        pair = (rid[1:] == rid[:-1]) & (rn[rid[1:]] >= 4) if len(rid) > 1 else np.zeros(0, bool)
+        den = float((res[:-1][pair] ** 2).sum()) if len(rid) > 1 else 0.0
+        rho = float((res[:-1][pair] * res[1:][pair]).sum()) / den if den > 0 else 0.0
+        rho = min(max(rho, 0.0), 0.9)
+        noise = noise * (1 + rho) / (1 - rho)
         smin = np.full(R, np.inf)
         smax = np.full(R, -np.inf)
         np.minimum.at(smin, rid, rs)
@@ -251,7 +282,7 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0)
     run_stroke = st[np.flatnonzero(start)]
     return StrokeStats(sm.L, cnt.astype(int), nv.astype(int), runs.astype(int), mean, np.sqrt(np.maximum(var, 0)),
                        cnt * spacing, lost_mid, lost_ends, first_end.astype(int) + last_end.astype(int),
-                       gap_ends.astype(int), run_stroke, rn.astype(int), rmean, slope * (smax - smin))
+                       gap_ends.astype(int), run_stroke, rn.astype(int), rmean, slope * (smax - smin), noise)
 
 
 @dataclass
