@@ -41,7 +41,8 @@ def _polygon(cover: np.ndarray, quad: np.ndarray) -> None:
 
 
 def _ccw(quad: np.ndarray) -> np.ndarray:
-    area = np.cross(quad[1] - quad[0], quad[2] - quad[0])
+    (ax, ay), (bx, by) = quad[1] - quad[0], quad[2] - quad[0]
+    area = ax * by - ay * bx
     return quad if area > 0 else quad[::-1]
 
 
