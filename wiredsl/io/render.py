@@ -1,0 +1,422 @@
+"""Emit stage: what the cameras see of a scene, drawn as 8-bit greyscale images (`wiredsl render`).
+
+A test and teaching device, not a renderer: flat-shaded faces, anti-aliased features, blur and sensor
+noise, all in numpy, deterministic for a seed. What it draws:
+
+- **Pixels.** OpenCV's convention: pixel (column c, row r) is centred on image point (c, r), so a feature
+  projected to u = 12.0 lies on the centre of column 12 (as `cv2.projectPoints` and every detector say).
+- **Faces** (the models' `face`s, mesh triangles, and the ruled sides between silhouette ellipses) by ray
+  casting: every pixel's ray (`SUPERSAMPLE` x `SUPERSAMPLE` rays a pixel, averaged) meets the nearest
+  triangle, whose grey is Lambert's |n . l| for a fixed light `LIGHT` (camera frame). Any lens the engine
+  knows, since rays come from undistorting the pixels. A calibration board's face carries its pattern
+  (`board_albedo`).
+- **Features** (after the pipeline's disturbances when one is given, hidden lines removed by the faces with
+  the default `visibility exact`) as strokes whose pixel coverage is the exact box-filter integral across
+  the stroke: `step` (the default) paints a band of `width` px on the left of the stroke's direction
+  (image axes: the side of (dy, -dx)), so the feature itself is a single step edge at sub-pixel
+  accuracy, as an object's boundary is in a photograph; `line` paints a line of `width` px centred on it.
+- **Corners** (`corners mark`): a small 2 x 2 checker (a saddle, what Harris and `cornerSubPix` find
+  exactly) centred on each corner the pipeline kept, where it moved it.
+- **Blur** (Gaussian, sigma in px, scipy) then **noise** (Gaussian, in grey levels, drawn with the effects'
+  keyed generator: stream `render_noise` of (seed, pose, camera)), then rounding to 0..255.
+
+PNG files are written by a small zlib writer (no image library), atomically.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+import warnings
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from wiredsl.engine import geometry
+from wiredsl.scene import Camera
+
+SUPERSAMPLE = 3  # rays a pixel side for the faces (their boundaries are anti-aliased by averaging)
+LIGHT = (-0.4, -0.6, -1.0)  # towards the light, camera frame: above, left of and behind the camera
+EDGES = ("step", "line")
+FACES = ("shaded", "none")
+CORNERS = ("none", "mark")
+TOLERANCE = 0.02  # px: largest deviation of a drawn polyline from the true image curve
+NOISE_STREAM = "render_noise"
+
+
+@dataclass(frozen=True)
+class Look:
+    """How images are drawn: greys are 0..255."""
+
+    blur: float = 0.0  # Gaussian sigma, px (0: none)
+    noise: float = 0.0  # Gaussian sigma, grey levels (0: none)
+    edges: str = "step"  # step | line
+    width: float = 4.0  # px: the band beside a step edge, or a line's width
+    ink: float = 30.0  # the grey of the features
+    background: float = 128.0
+    faces: str = "shaded"  # shaded | none
+    corners: str = "none"  # none | mark
+    mark: float = 4.0  # px: half the side of a corner mark
+    boards: dict = field(default_factory=dict, compare=False)  # face source name -> board (see board_albedo)
+
+
+@dataclass
+class Image:
+    """One rendered view: the path pose's index, the rig side, its camera and pose, and the pixels."""
+
+    pose: int
+    side: str
+    camera: Camera
+    R_cw: np.ndarray
+    t_cw: np.ndarray
+    pixels: np.ndarray  # (height, width) uint8
+
+    @property
+    def name(self) -> str:
+        return f"{self.side}_{self.pose:03d}.png"
+
+
+# ----------------------------------------------------------------------------- the scene's views
+
+def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=None, cameras: str = "both",
+           visibility: str = "exact", world=None) -> Iterator[Image]:
+    """Every chosen view of the scene's path, drawn: trial 0 of `pipeline` (a Pipeline, None: the ideal
+    projection) with `seed`, which also keys the noise. Images come pose by pose, left then right."""
+    from wiredsl import run as runs
+    from wiredsl.engine.simulate import Options
+    from wiredsl.engine.world import build_world, surface_triangles
+    from wiredsl.io import emit
+
+    world = world if world is not None else build_world(scene)
+    opts = Options(tolerance=TOLERANCE, visibility=visibility, poses=poses, right=cameras == "both")
+    run = runs.start(scene, pipeline, seed=seed, options=opts, world=world, engine="numpy")  # one trial
+    if run.stages:
+        (_, batch_out), = list(run.batches([0]))
+        results = emit.disturbed_results(batch_out, 0)
+    else:
+        results = run.ideal()
+    tris, face_of = world.triangles, world.triangle_face
+    sil, _ = surface_triangles(world)
+    tris = np.concatenate([tris, sil]) if len(sil) else tris
+    face_of = np.concatenate([face_of, np.full(len(sil), -1)])
+    names = list(world.face_src)
+    boards = {names.index(k): b for k, b in look.boards.items() if k in names}
+    rays: dict = {}
+    for r in results:
+        for side in ("left", "right"):
+            view = getattr(r, side)
+            if view is None:
+                continue
+            key = id(view.camera)
+            if key not in rays:
+                rays[key] = pixel_rays(view.camera, SUPERSAMPLE)
+            img = render_view(view.camera, view.R_cw, view.t_cw, view.features, tris, face_of, look,
+                              rays=rays[key], boards=boards, noise_key=(seed, r.index, side))
+            yield Image(r.index, side, view.camera, np.asarray(view.R_cw), np.asarray(view.t_cw), img)
+
+
+def render_view(cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, features, tris: np.ndarray, face_of: np.ndarray,
+                look: Look, *, rays=None, boards: dict | None = None, noise_key=None) -> np.ndarray:
+    """One camera's image (height, width) uint8: faces `tris` (T, 3, 3, world frame; `face_of` their face
+    index, -1 none), then `features` (ImageFeature: strokes of pixels, corners), blur, noise."""
+    R_cw, t_cw = np.asarray(R_cw, float), np.asarray(t_cw, float)
+    img = np.full((cam.height, cam.width), float(look.background))
+    if look.faces == "shaded" and len(tris):
+        rays = rays if rays is not None else pixel_rays(cam, SUPERSAMPLE)
+        img = shade_faces(cam, tris @ R_cw.T + t_cw, face_of, rays, look.background, boards or {}, tris)
+    strokes = [f.points for f in features if f.kind in ("line", "polyline") and len(f.points) >= 2]
+    closed = [f.closed for f in features if f.kind in ("line", "polyline") and len(f.points) >= 2]
+    cover = stroke_coverage(cam.width, cam.height, strokes, closed, look.edges, look.width)
+    img = img * (1 - cover) + look.ink * cover
+    if look.corners == "mark":
+        pts = np.array([f.points[0] for f in features if f.kind == "corner"]).reshape(-1, 2)
+        img = draw_marks(img, pts, look.mark, look.ink, 255.0 - look.ink)
+    if look.blur > 0:
+        from scipy.ndimage import gaussian_filter
+
+        img = gaussian_filter(img, look.blur, mode="nearest", truncate=4.0)
+    if look.noise > 0:
+        img = img + look.noise * sensor_noise(img.shape, *(noise_key or (0, 0, "left")))
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def sensor_noise(shape: tuple[int, int], seed: int, pose: int, side: str) -> np.ndarray:
+    """Standard normal noise of one image, keyed (seed, pose, camera) as the effects' draws are."""
+    from wiredsl.effects.base import CAMERA_INDEX, keyed_normal, stream_key
+
+    key = stream_key(NOISE_STREAM, 0, pose, CAMERA_INDEX[side], seed)
+    return keyed_normal(key, np.arange(shape[0] * shape[1], dtype=np.uint64)).reshape(shape)
+
+
+# ----------------------------------------------------------------------------- faces
+
+def pixel_rays(cam: Camera, ss: int, step: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame ray directions (H ss, W ss, 3) through the sub-pixel sample points, and which exist.
+
+    Sample (i, j) of pixel (r, c) is at (c + (j + 0.5) / ss - 0.5, r + (i + 0.5) / ss - 0.5). Under distortion
+    the rays are solved on a grid of every `step` px and interpolated by bicubic splines (the lens is smooth:
+    within 1e-6 of the unit plane of each ray, far below a pixel, in the tests' lenses)."""
+    from scipy.interpolate import RectBivariateSpline
+
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    u = (np.arange(cam.width)[:, None] + off[None, :]).ravel()
+    v = (np.arange(cam.height)[:, None] + off[None, :]).ravel()
+    if not geometry.is_distorted(cam):
+        X = (u - cam.cx) / (cam.f * cam.ax)
+        Y = (v - cam.cy) / (cam.f * cam.ay)
+        D = np.stack(np.broadcast_arrays(X[None, :], Y[:, None], 1.0), axis=-1).astype(float)
+        return D, np.ones((len(v), len(u)), dtype=bool)
+    gu = np.unique(np.concatenate([np.arange(-1.0, cam.width + 1, step), [float(cam.width)]]))
+    gv = np.unique(np.concatenate([np.arange(-1.0, cam.height + 1, step), [float(cam.height)]]))
+    G, ok = _rays_at(cam, np.stack(np.meshgrid(gu, gv), axis=-1).reshape(-1, 2))
+    G, ok = G.reshape(len(gv), len(gu), 3), ok.reshape(len(gv), len(gu))
+    D = np.stack([RectBivariateSpline(gv, gu, G[..., k], kx=3, ky=3)(v, u) for k in range(3)], axis=-1)
+    near = RectBivariateSpline(gv, gu, ok.astype(float), kx=1, ky=1)(v, u) > 0.999  # rays all of whose grid
+    return np.where(near[..., None], D, 0.0), near  # neighbours exist
+
+
+def _rays_at(cam: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ray directions (n, 3) of pixels (n, 2): (x, y, 1) on the unit plane, or unit vectors for a fisheye."""
+    from wiredsl.measures.stereo3d import pixels_to_distorted, undistort
+
+    if cam.distortion == "equidistant":  # rays at any angle: the unit sphere
+        xd = pixels_to_distorted(uv, cam)
+        rd = np.hypot(xd[:, 0], xd[:, 1])
+        theta, res = geometry.fisheye_theta(rd, cam.k1, cam.k2, cam.k3, cam.k4)
+        ok = np.isfinite(theta) & (res < 1e-9) & (theta >= 0) & (theta < geometry.lens_limit(cam))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s = np.where(rd > 0, np.sin(theta) / np.where(rd > 0, rd, 1), 1.0)
+        D = np.column_stack([xd * s[:, None], np.cos(theta)])
+    else:
+        xy, ok = undistort(uv, cam)
+        D = np.column_stack([xy, np.ones(len(xy))])
+    return np.where(ok[:, None], D, 0.0), ok
+
+
+def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays, background: float, boards: dict,
+                T_world: np.ndarray) -> np.ndarray:
+    """The faces' image (H, W) float: nearest triangle of T (camera frame) along every ray, Lambert-shaded."""
+    D, ok = rays
+    Hs, Ws = ok.shape
+    ss = Hs // cam.height
+    depth = np.full((Hs, Ws), np.inf)
+    grey = np.full((Hs, Ws), float(background))
+    light = np.asarray(LIGHT, float) / np.linalg.norm(LIGHT)
+    boxes = _pixel_boxes(cam, T, ss)
+    for k in np.flatnonzero(boxes[:, 0] < boxes[:, 1]).tolist():
+        c0, c1, r0, r1 = boxes[k].tolist()
+        d = D[r0:r1, c0:c1].reshape(-1, 3)
+        V0, e1, e2 = T[k, 0], T[k, 1] - T[k, 0], T[k, 2] - T[k, 0]
+        p = np.cross(d, e2)
+        det = p @ e1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / det
+            s = -V0
+            a = (p @ s) * inv
+            q = np.cross(s, e1)
+            b = (d @ q) * inv
+            t = (e2 @ q) * inv
+        nz = np.linalg.norm(d, axis=1)
+        hit = (np.abs(det) > 1e-300) & (a >= 0) & (b >= 0) & (a + b <= 1) & (t * nz > geometry.NEAR)
+        hit &= ok[r0:r1, c0:c1].ravel()
+        zone = depth[r0:r1, c0:c1].reshape(-1)
+        hit &= t < zone
+        if not hit.any():
+            continue
+        n = np.cross(e1, e2)
+        n = n / max(np.linalg.norm(n), 1e-300)
+        lit = 60.0 + 170.0 * abs(float(n @ light))
+        value = np.full(len(d), lit)
+        f = int(face_of[k])
+        if f in boards:  # the pattern, at the hit's point on the board (world frame)
+            W0, W1, W2 = T_world[k]
+            X = W0 + a[:, None] * (W1 - W0) + b[:, None] * (W2 - W0)
+            value = lit * board_albedo(boards[f], X)
+        zone[hit] = t[hit]
+        depth[r0:r1, c0:c1] = zone.reshape(r1 - r0, c1 - c0)
+        g = grey[r0:r1, c0:c1].reshape(-1)
+        g[hit] = value[hit]
+        grey[r0:r1, c0:c1] = g.reshape(r1 - r0, c1 - c0)
+    return grey.reshape(cam.height, ss, cam.width, ss).mean(axis=(1, 3))
+
+
+def _pixel_boxes(cam: Camera, T: np.ndarray, ss: int, samples: int = 8) -> np.ndarray:
+    """Per triangle (T, 4): the sample-grid columns [c0, c1) and rows [r0, r1) its image may cover.
+
+    Its edges are sampled (distortion bends them) and projected; a triangle reaching behind the camera or out
+    of the lens's reach gets the whole image, one wholly behind the near plane none."""
+    n = len(T)
+    s = np.linspace(0, 1, samples, endpoint=False)
+    P = np.concatenate([T[:, i, None] + s[None, :, None] * (T[:, (i + 1) % 3, None] - T[:, i, None])
+                        for i in range(3)], axis=1)  # (n, 3 samples, 3)
+    g = geometry.camera_table(cam)
+    inside = geometry.visible(P.reshape(-1, 3), g["model"], g["limit"]).reshape(n, -1)
+    uv = geometry.project(P.reshape(-1, 3), g).reshape(n, -1, 2)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a triangle with no sample in view: its box is whole
+        lo = np.nanmin(np.where(inside[..., None], uv, np.nan), axis=1) if n else np.zeros((0, 2))
+        hi = np.nanmax(np.where(inside[..., None], uv, np.nan), axis=1) if n else np.zeros((0, 2))
+    whole = ~inside.all(axis=1)
+    behind = (P[..., 2] <= geometry.NEAR).all(axis=1) & (cam.distortion != "equidistant")
+    W, H = cam.width * ss, cam.height * ss
+    margin = 2.0  # px: the chords of a bent edge, and the supersampling's half-pixel
+    with np.errstate(invalid="ignore"):
+        c0 = np.floor((lo[:, 0] - margin + 0.5) * ss)
+        c1 = np.ceil((hi[:, 0] + margin + 0.5) * ss)
+        r0 = np.floor((lo[:, 1] - margin + 0.5) * ss)
+        r1 = np.ceil((hi[:, 1] + margin + 0.5) * ss)
+    box = np.column_stack([c0, c1, r0, r1])
+    box = np.where(whole[:, None], [0, W, 0, H], box)
+    box = np.where(behind[:, None], [0, 0, 0, 0], box)
+    box = np.nan_to_num(box, nan=0.0, posinf=0.0, neginf=0.0)
+    box[:, :2] = np.clip(box[:, :2], 0, W)
+    box[:, 2:] = np.clip(box[:, 2:], 0, H)
+    return box.astype(int)
+
+
+def board_albedo(board, X: np.ndarray) -> np.ndarray:
+    """Reflectance (n,) in [0.1, 1] of board points X (n, 3, world frame): `board` is (origin (3,), x axis
+    (3,), y axis (3,), square side, columns, rows) of its squares, the square at (0, 0) dark; outside the
+    squares (the margin) white."""
+    origin, ex, ey, side, cols, rows = board
+    rel = X - np.asarray(origin)
+    i = np.floor(rel @ np.asarray(ex) / side)
+    j = np.floor(rel @ np.asarray(ey) / side)
+    inside = (i >= 0) & (i < cols) & (j >= 0) & (j < rows)
+    dark = inside & ((i + j) % 2 == 0)
+    return np.where(dark, 0.1, 1.0)
+
+
+# ----------------------------------------------------------------------------- strokes and marks
+
+def stroke_coverage(width: int, height: int, strokes: list, closed: list, style: str = "step",
+                    w: float = 4.0) -> np.ndarray:
+    """Ink coverage (height, width) in [0, 1] of polylines (k, 2) in pixels: the largest over their segments
+    of the box-filtered band across each segment (`step`: [0, w] on the side of (dy, -dx); `line`: [-w/2, w/2])
+    times its extent along it (butt ends for `step`, square caps for `line`)."""
+    cover = np.zeros((height, width))
+    a_n, b_n = (0.0, w) if style == "step" else (-w / 2, w / 2)
+    cap = 0.0 if style == "step" else w / 2
+    segs = []
+    for pts, c in zip(strokes, closed, strict=True):
+        P = np.asarray(pts, float)
+        if c and len(P) > 2:
+            P = np.vstack([P, P[:1]])
+        segs.append(np.concatenate([P[:-1], P[1:]], axis=1))
+    if not segs:
+        return cover
+    S = np.concatenate(segs)
+    S = S[np.isfinite(S).all(axis=1)]
+    d = S[:, 2:] - S[:, :2]
+    L = np.hypot(d[:, 0], d[:, 1])
+    S, d, L = S[L > 1e-12], d[L > 1e-12], L[L > 1e-12]
+    tang = d / L[:, None]
+    norm = np.column_stack([tang[:, 1], -tang[:, 0]])  # (dy, -dx): the band's side
+    reach = max(abs(a_n), abs(b_n)) + cap + 1.0
+    lo = np.floor(np.minimum(S[:, :2], S[:, 2:]) - reach).astype(int)
+    hi = np.ceil(np.maximum(S[:, :2], S[:, 2:]) + reach).astype(int)
+    lo = np.clip(lo, 0, [width, height])
+    hi = np.clip(hi + 1, 0, [width, height])
+    for k in np.flatnonzero((hi[:, 0] > lo[:, 0]) & (hi[:, 1] > lo[:, 1])).tolist():
+        x0, y0 = lo[k]
+        x1, y1 = hi[k]
+        X, Y = np.meshgrid(np.arange(x0, x1, dtype=float) - S[k, 0], np.arange(y0, y1, dtype=float) - S[k, 1])
+        t = X * tang[k, 0] + Y * tang[k, 1]
+        s = X * norm[k, 0] + Y * norm[k, 1]
+        c = _box(s, a_n, b_n) * _box(t, -cap, L[k] + cap)
+        np.maximum(cover[y0:y1, x0:x1], c, out=cover[y0:y1, x0:x1])
+    return cover
+
+
+def _box(s: np.ndarray, a: float, b: float) -> np.ndarray:
+    """The length of [s - 1/2, s + 1/2] inside [a, b]: a unit pixel's share of a band, across it."""
+    return np.clip(np.minimum(s + 0.5, b) - np.maximum(s - 0.5, a), 0.0, 1.0)
+
+
+def draw_marks(img: np.ndarray, pts: np.ndarray, half: float, dark: float, light: float) -> np.ndarray:
+    """A 2 x 2 checker of side 2 half at each point (n, 2): dark where (x - u)(y - v) > 0, box-filtered."""
+    H, W = img.shape
+    for u, v in pts[np.isfinite(pts).all(axis=1)].tolist():
+        x0, x1 = max(int(math.floor(u - half - 1)), 0), min(int(math.ceil(u + half + 1)) + 1, W)
+        y0, y1 = max(int(math.floor(v - half - 1)), 0), min(int(math.ceil(v + half + 1)) + 1, H)
+        if x1 <= x0 or y1 <= y0:
+            continue
+        X, Y = np.meshgrid(np.arange(x0, x1) - u, np.arange(y0, y1) - v)
+        gx, hx = _box(X, 0, half), _box(X, -half, 0)
+        gy, hy = _box(Y, 0, half), _box(Y, -half, 0)
+        pos, neg = gx * gy + hx * hy, gx * hy + hx * gy
+        img[y0:y1, x0:x1] = img[y0:y1, x0:x1] * (1 - pos - neg) + dark * pos + light * neg
+    return img
+
+
+# ----------------------------------------------------------------------------- files
+
+def png_bytes(img: np.ndarray) -> bytes:
+    """An 8-bit greyscale PNG of img (H, W) uint8: filter 0 on every row, zlib level 6 (deterministic)."""
+    img = np.ascontiguousarray(img, dtype=np.uint8)
+    h, w = img.shape
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), img], axis=1).tobytes()
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+
+
+def manifest(scene, images: list[Image], *, seed: int, pipeline: str | None, look: Look, visibility: str) -> dict:
+    """render.json: what was drawn and how, with every image's camera and pose (camera from world)."""
+    from wiredsl import __version__
+    from wiredsl.io import emit
+
+    cams = {}
+    for im_ in images:
+        c = im_.camera
+        cams.setdefault(im_.side, {"camera": c.name, "width": c.width, "height": c.height,
+                                   "K": [[c.f * c.ax, 0.0, c.cx], [0.0, c.f * c.ay, c.cy], [0.0, 0.0, 1.0]],
+                                   "distortion": c.distortion,
+                                   "coefficients": {k: getattr(c, k) for k in geometry.CAMERA_KEYS[5:]}})
+    poses: dict[int, dict] = {}
+    for im_ in images:
+        entry = poses.setdefault(im_.pose, {"index": im_.pose, "pose": list(scene.path.pose(im_.pose)), "images": {}})
+        entry["images"][im_.side] = {"file": im_.name, "R_cw": im_.R_cw.tolist(), "t_cw": im_.t_cw.tolist()}
+    return {"document": "render", "tool_version": __version__, "scene": emit.scene_ref(scene).model_dump(mode="json"), "seed": seed,
+            "pipeline": pipeline, "blur": look.blur, "noise": look.noise, "edges": look.edges,
+            "width": look.width, "ink": look.ink, "background": look.background, "faces": look.faces,
+            "corners": look.corners, "visibility": visibility, "pixel_centres": "integer (OpenCV)",
+            "cameras": cams, "poses": [poses[k] for k in sorted(poses)]}
+
+
+def write(folder, scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=None, cameras: str = "both",
+          visibility: str = "exact", force: bool = False, progress=None) -> list[Image]:
+    """Render into `folder` (replaced as a whole: staged, then swapped in): one PNG a view, and render.json."""
+    from wiredsl.io.files import json_text, output_folder, write_atomic
+
+    written = []
+    with output_folder(folder, force) as stage:
+        for image in render(scene, pipeline=pipeline, seed=seed, look=look, poses=poses, cameras=cameras,
+                            visibility=visibility):
+            write_atomic(stage / image.name, png_bytes(image.pixels), tidy=False)
+            image.pixels = None  # bounded memory: only the manifest's numbers are kept
+            written.append(image)
+            if progress is not None:
+                progress(image)
+        doc = manifest(scene, written, seed=seed, pipeline=pipeline.name if pipeline is not None else None,
+                       look=look, visibility=visibility)
+        write_atomic(stage / "render.json", json_text(doc, sort_keys=True, where="render.json"), tidy=False)
+    return written
+
+
+def scene_boards(scene) -> dict:
+    """Face source name ("placement.face") -> board tuple (see board_albedo) of every placed calibration board."""
+    out = {}
+    for p in scene.placements:
+        b = getattr(scene.model(p.model), "board", None)
+        if b is None:
+            continue
+        R, t = np.array(p.rotation), np.array(p.position)
+        origin = R @ np.array(b.origin) + t
+        out[f"{p.name}.{b.face}"] = (origin, R[:, 0], R[:, 1], b.square, b.columns, b.rows)
+    return out
