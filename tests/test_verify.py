@@ -395,3 +395,33 @@ def test_verifying_one_image_costs_little(rendered):
                                                                              world.feature_ids))
     assert r.samples == r.stats.tested.sum() > 500
     assert math.isfinite(float(np.nanmean(r.stats.offset_mean)))
+
+
+def test_refine_moves_wrong_poses_onto_the_edges_and_says_how_far(rendered, tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    from wiredsl.engine.geometry import camera_from_world
+
+    scene = wiredsl.compile(FENCE)
+    rng = np.random.default_rng(0)
+    rows = []
+    for k in range(3):
+        R_cw, t_cw = camera_from_world(scene.path.pose(k), scene.rig.left.rotation, scene.rig.left.position)
+        R_wc = R_cw.T @ Rotation.from_rotvec(rng.normal(0, 0.002, 3)).as_matrix()
+        p = -R_cw.T @ t_cw + rng.normal(0, 0.01, 3)
+        rows.append(f"{k} " + " ".join(f"{v:.12f}" for v in (*p, *Rotation.from_matrix(R_wc).as_quat())))
+    (tmp_path / "off.tum").write_text("\n".join(rows) + "\n")
+    args = ["--images", rendered / "ideal" / "left_00[012].png", "--poses", tmp_path / "off.tum", "--match", "order",
+            "--detector", "canny", "--fit"]
+    plain = _verify(*args, "-o", tmp_path / "plain")
+    refined = _verify(*args, "--refine", "-o", tmp_path / "refined")
+    assert plain.exit_code == 0 and refined.exit_code == 0, refined.output
+    moved = json.loads((tmp_path / "refined" / "verification.json").read_text())["refined"]
+    assert len(moved) == 3
+    for m in moved:
+        assert m["rms_offset_after_px"] < 0.1 < m["rms_offset_before_px"]
+        assert 0.005 < m["rotation_deg"] < 1 and m["translation"] < 0.05
+    shift = {p: json.loads((tmp_path / p / "fit.json").read_text())["lateral_shift_law"]["rms"]
+             for p in ("plain", "refined")}
+    assert shift["refined"] < 0.1 < shift["plain"]
+    assert "refined 3 poses" in refined.stderr

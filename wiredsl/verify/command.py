@@ -44,6 +44,7 @@ class Outcome:
     warnings: list[Diagnostic]
     summary: list[dict]
     notes: list[str]
+    refined: list[dict] = field(default_factory=list)
 
 
 def _detectors(names: list[str], params: list[str]):
@@ -113,7 +114,7 @@ def sums_of(results: list[ver.ImageResult], cfg: ver.Settings, edge_det: str | N
 
 def run(req: Request, out: Path, progress=None) -> Outcome:
     from wiredsl.engine import occlusion
-    from wiredsl.engine.simulate import Options, project_pose, require_buildable
+    from wiredsl.engine.simulate import Options, project_pose, project_view, require_buildable
     from wiredsl.engine.world import build_world
     from wiredsl.language.compile import compile_file
 
@@ -160,7 +161,10 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
             if req.refine and edge_det is not None:
                 from wiredsl.verify import refine
 
-                view, moved = refine.refine_view(world, view, found[edge_det], grey.shape, cfg)
+                def project(R, t, cam=cam):
+                    return project_view(world, cam, R, t, world.mask(None), opts.tolerance, occluders)
+
+                view, moved = refine.refine_view(project, view, found[edge_det], grey.shape, cfg)
                 refined.append({"image": path, **moved})
             results = [ver.verify_image(view, found[name], grey.shape, cfg,
                                         ver.ImageResult(path, side, frame.label, name, world.feature_ids))
@@ -212,7 +216,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         write_atomic(out / "fit.json", json_text({**result.to_json(), "seed": req.seed, "bootstrap": fitting.B},
                                                  indent=1))
         written += [f"{req.pipeline_name}.wd", "fit.json"]
-    return Outcome(written, result, len(frames), n_images, warnings, summary, sorted(notes))
+    return Outcome(written, result, len(frames), n_images, warnings, summary, sorted(notes), refined)
 
 
 def _detect(cls, name: str, grey: np.ndarray, params) -> Detection:

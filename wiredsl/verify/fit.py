@@ -94,13 +94,17 @@ def _weights(n: int, seed: int, name: str) -> np.ndarray:
 def _interval(reps: np.ndarray, value: float | None = None, n: int | None = None
               ) -> tuple[float | None, float | None]:
     """The 2.5% and 97.5% quantiles of the replicates; with the estimate and the number of images n, the
-    replicates' spread about the estimate is first widened by sqrt(n / (n - 1)) (the bootstrap's variance of a
-    mean is (n - 1) / n of the usual estimate: with few images, the plain percentiles cover too little)."""
+    replicates' spread about the estimate is first widened by sqrt(n / (n - 1)) t(n - 1) / z: the bootstrap's
+    variance of a mean is (n - 1) / n of the usual estimate, and with an estimated spread Student's t, not the
+    normal z, gives 95% (with few images the plain percentiles cover about 90%)."""
     reps = reps[np.isfinite(reps)]
     if len(reps) < B // 2:
         return None, None
     if value is not None and n is not None and n > 1 and math.isfinite(value):
-        reps = value + (reps - value) * math.sqrt(n / (n - 1))
+        from scipy import stats
+
+        widen = math.sqrt(n / (n - 1)) * float(stats.t.ppf(0.975, n - 1)) / float(stats.norm.ppf(0.975))
+        reps = value + (reps - value) * widen
     lo, hi = np.quantile(reps, [0.025, 0.975])
     return float(lo), float(hi)
 
