@@ -940,8 +940,8 @@ def _grey_range(lo: float, hi: float):
               help="Gaussian blur, sigma in px.")
 @click.option("--noise", type=float, default=0.0, show_default=True, callback=_grey_range(0, 128),
               help="Gaussian sensor noise, sigma in grey levels.")
-@click.option("--edges", type=click.Choice(["step", "line"]), default="step", show_default=True,
-              help="A feature as a step edge (a band beside it) or as a line centred on it.")
+@click.option("--edges", type=click.Choice(["step", "line", "none"]), default="step", show_default=True,
+              help="A feature as a step edge (a band beside it), as a line centred on it, or not drawn.")
 @click.option("--width", "stroke_width", type=float, default=4.0, show_default=True, callback=_grey_range(0.1, 50),
               help="Width of the band beside a step edge, or of a line, in px.")
 @click.option("--faces", type=click.Choice(["shaded", "none"]), default="shaded", show_default=True,
@@ -952,6 +952,8 @@ def _grey_range(lo: float, hi: float):
               help="Background grey.")
 @click.option("--ink", type=float, default=30.0, show_default=True, callback=_grey_range(0, 255),
               help="Grey of the features.")
+@click.option("--supersample", type=click.IntRange(1, 8), default=3, show_default=True,
+              help="Rays a pixel side for the faces (their outlines and a board's squares are anti-aliased so).")
 @click.option("--pose", "poses", type=int, multiple=True, help="Render only this pose (repeatable).")
 @click.option("--cameras", type=click.Choice(["both", "left"]), default="both", show_default=True)
 @click.option("--visibility", type=click.Choice(["exact", "scene", "all"]), default="exact", show_default=True,
@@ -961,7 +963,8 @@ def _grey_range(lo: float, hi: float):
 @guarded
 def render(file: str, output: str | None, pipeline_name: str | None, no_effects: bool, seed: int | None,
            blur: float, noise: float, edges: str, stroke_width: float, faces: str, corners: str, background: float,
-           ink: float, poses: tuple[int, ...], cameras: str, visibility: str, force: bool, diagnostics: str) -> None:
+           ink: float, supersample: int, poses: tuple[int, ...], cameras: str, visibility: str, force: bool,
+           diagnostics: str) -> None:
     """Draw what the cameras see as 8-bit PNGs, <camera>_<pose>.png, and render.json (a test and teaching device)."""
     import secrets
     from pathlib import Path
@@ -981,7 +984,7 @@ def render(file: str, output: str | None, pipeline_name: str | None, no_effects:
         click.echo(f"note: {choice.note}", err=True)
     seed = seed if seed is not None else secrets.randbits(63)
     look = rd.Look(blur=blur, noise=noise, edges=edges, width=stroke_width, ink=ink, background=background,
-                   faces=faces, corners=corners, boards=rd.scene_boards(scene))
+                   faces=faces, corners=corners, supersample=supersample, boards=rd.scene_boards(scene))
     out = Path(output) if output is not None else Path("build") / scene.name / "render"
     with _setup_errors():
         images = rd.write(out, scene, pipeline=choice.pipeline, seed=seed, look=look, poses=chosen, cameras=cameras,

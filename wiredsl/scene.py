@@ -107,6 +107,31 @@ class Surface(Node):
     contour: list[int] = Field([], description="indices of the triangles of smooth surfaces")
 
 
+class Board(Node):
+    """The pattern of a calibration board (`board` statement), in its model's frame: squares of side `square`,
+    `columns` x `rows` of them, the outer corner of the first (dark) square at (-square, -square, 0), the
+    inner corners at (i square, j square, 0); a ChArUco board's markers sit in its light squares."""
+
+    kind: Literal["chessboard", "charuco"]
+    columns: int = Field(ge=3, description="squares across")
+    rows: int = Field(ge=3, description="squares down")
+    square: float = Field(gt=0)
+    margin: float = Field(ge=0, description="white border around the squares")
+    marker: float | None = Field(None, gt=0, description="charuco: side of a marker")
+    dictionary: str | None = Field(None, description="charuco: OpenCV's ArUco dictionary, e.g. DICT_4X4_50")
+    face: str = Field("plane", description="the model's face that carries the pattern")
+    _dump = omitted_when_none("marker", "dictionary")
+
+    @property
+    def origin(self) -> Vec3:
+        return (-self.square, -self.square, 0.0)
+
+    @property
+    def inner(self) -> tuple[int, int]:
+        """Inner corners across and down (OpenCV's patternSize)."""
+        return self.columns - 1, self.rows - 1
+
+
 class Model(Node):
     name: str
     lines: list[Line] = []
@@ -116,6 +141,8 @@ class Model(Node):
     corners: list[Corner] = []
     faces: list[Face] = []
     surfaces: list[Surface] = []
+    board: Board | None = Field(None, description="a calibration board's pattern (`board` statement)")
+    _dump = omitted_when_none("board")
 
 
 class Placement(Node):

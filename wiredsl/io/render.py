@@ -14,7 +14,8 @@ noise, all in numpy, deterministic for a seed. What it draws:
   the default `visibility exact`) as strokes whose pixel coverage is the exact box-filter integral across
   the stroke: `step` (the default) paints a band of `width` px on the left of the stroke's direction
   (image axes: the side of (dy, -dx)), so the feature itself is a single step edge at sub-pixel
-  accuracy, as an object's boundary is in a photograph; `line` paints a line of `width` px centred on it.
+  accuracy, as an object's boundary is in a photograph; `line` paints a line of `width` px centred on it;
+  `none` draws no features (the faces alone: a calibration board's squares, say).
 - **Corners** (`corners mark`): a small 2 x 2 checker (a saddle, what Harris and `cornerSubPix` find
   exactly) centred on each corner the pipeline kept, where it moved it.
 - **Blur** (Gaussian, sigma in px, scipy) then **noise** (Gaussian, in grey levels, drawn with the effects'
@@ -25,6 +26,7 @@ PNG files are written by a small zlib writer (no image library), atomically.
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 import warnings
@@ -39,11 +41,12 @@ from wiredsl.scene import Camera
 
 SUPERSAMPLE = 3  # rays a pixel side for the faces (their boundaries are anti-aliased by averaging)
 LIGHT = (-0.4, -0.6, -1.0)  # towards the light, camera frame: above, left of and behind the camera
-EDGES = ("step", "line")
+EDGES = ("step", "line", "none")
 FACES = ("shaded", "none")
 CORNERS = ("none", "mark")
 TOLERANCE = 0.02  # px: largest deviation of a drawn polyline from the true image curve
 NOISE_STREAM = "render_noise"
+BACK = 0.8  # reflectance of a board's back (its pattern is printed on the side its z axis points away from)
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,7 @@ class Look:
     faces: str = "shaded"  # shaded | none
     corners: str = "none"  # none | mark
     mark: float = 4.0  # px: half the side of a corner mark
+    supersample: int = SUPERSAMPLE  # rays a pixel side for the faces
     boards: dict = field(default_factory=dict, compare=False)  # face source name -> board (see board_albedo)
 
 
@@ -111,7 +115,7 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
                 continue
             key = id(view.camera)
             if key not in rays:
-                rays[key] = pixel_rays(view.camera, SUPERSAMPLE)
+                rays[key] = pixel_rays(view.camera, look.supersample)
             img = render_view(view.camera, view.R_cw, view.t_cw, view.features, tris, face_of, look,
                               rays=rays[key], boards=boards, noise_key=(seed, r.index, side))
             yield Image(r.index, side, view.camera, np.asarray(view.R_cw), np.asarray(view.t_cw), img)
@@ -124,12 +128,13 @@ def render_view(cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, features, tris:
     R_cw, t_cw = np.asarray(R_cw, float), np.asarray(t_cw, float)
     img = np.full((cam.height, cam.width), float(look.background))
     if look.faces == "shaded" and len(tris):
-        rays = rays if rays is not None else pixel_rays(cam, SUPERSAMPLE)
+        rays = rays if rays is not None else pixel_rays(cam, look.supersample)
         img = shade_faces(cam, tris @ R_cw.T + t_cw, face_of, rays, look.background, boards or {}, tris)
-    strokes = [f.points for f in features if f.kind in ("line", "polyline") and len(f.points) >= 2]
-    closed = [f.closed for f in features if f.kind in ("line", "polyline") and len(f.points) >= 2]
-    cover = stroke_coverage(cam.width, cam.height, strokes, closed, look.edges, look.width)
-    img = img * (1 - cover) + look.ink * cover
+    if look.edges != "none":
+        drawn = [f for f in features if f.kind in ("line", "polyline") and len(f.points) >= 2]
+        cover = stroke_coverage(cam.width, cam.height, [f.points for f in drawn], [f.closed for f in drawn],
+                                look.edges, look.width)
+        img = img * (1 - cover) + look.ink * cover
     if look.corners == "mark":
         pts = np.array([f.points[0] for f in features if f.kind == "corner"]).reshape(-1, 2)
         img = draw_marks(img, pts, look.mark, look.ink, 255.0 - look.ink)
@@ -230,10 +235,14 @@ def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays, backgroun
         lit = 60.0 + 170.0 * abs(float(n @ light))
         value = np.full(len(d), lit)
         f = int(face_of[k])
-        if f in boards:  # the pattern, at the hit's point on the board (world frame)
+        if f in boards:  # the pattern, at the hit's point on the board (world frame), on its printed side
             W0, W1, W2 = T_world[k]
-            X = W0 + a[:, None] * (W1 - W0) + b[:, None] * (W2 - W0)
-            value = lit * board_albedo(boards[f], X)
+            ez_cam = n * np.sign(np.cross(W1 - W0, W2 - W0) @ boards[f][3])  # the board's z, camera frame
+            if V0 @ ez_cam > 0:  # the printed side faces -z: the camera is on that side
+                X = W0 + a[:, None] * (W1 - W0) + b[:, None] * (W2 - W0)
+                value = lit * board_albedo(boards[f], X)
+            else:
+                value = lit * np.full(len(d), BACK)
         zone[hit] = t[hit]
         depth[r0:r1, c0:c1] = zone.reshape(r1 - r0, c1 - c0)
         g = grey[r0:r1, c0:c1].reshape(-1)
@@ -277,16 +286,30 @@ def _pixel_boxes(cam: Camera, T: np.ndarray, ss: int, samples: int = 8) -> np.nd
 
 
 def board_albedo(board, X: np.ndarray) -> np.ndarray:
-    """Reflectance (n,) in [0.1, 1] of board points X (n, 3, world frame): `board` is (origin (3,), x axis
-    (3,), y axis (3,), square side, columns, rows) of its squares, the square at (0, 0) dark; outside the
-    squares (the margin) white."""
-    origin, ex, ey, side, cols, rows = board
+    """Reflectance (n,) in [0.1, 1] of board points X (n, 3, world frame). `board` is (origin (3,), its x, y and
+    z axes (3,) each, scene.Board): the outer corner of square (0, 0), which is dark, and the pattern; the
+    margin is white. A ChArUco board's pattern is OpenCV's own drawing of it (cv2.aruco, 64 px a square)."""
+    origin, ex, ey, _, b = board
     rel = X - np.asarray(origin)
-    i = np.floor(rel @ np.asarray(ex) / side)
-    j = np.floor(rel @ np.asarray(ey) / side)
-    inside = (i >= 0) & (i < cols) & (j >= 0) & (j < rows)
-    dark = inside & ((i + j) % 2 == 0)
+    x, y = rel @ np.asarray(ex) / b.square, rel @ np.asarray(ey) / b.square  # in squares
+    inside = (x >= 0) & (x < b.columns) & (y >= 0) & (y < b.rows)
+    if b.kind == "charuco":
+        img = _charuco_image(b.columns, b.rows, b.square, b.marker, b.dictionary)
+        px = img.shape[0] // b.rows
+        c = np.clip((x * px).astype(int), 0, img.shape[1] - 1)
+        r = np.clip((y * px).astype(int), 0, img.shape[0] - 1)
+        return np.where(inside, 0.1 + 0.9 * img[r, c] / 255.0, 1.0)
+    dark = inside & ((np.floor(x) + np.floor(y)) % 2 == 0)
     return np.where(dark, 0.1, 1.0)
+
+
+@functools.lru_cache(maxsize=4)
+def _charuco_image(columns: int, rows: int, square: float, marker: float, dictionary: str) -> np.ndarray:
+    import cv2
+
+    aruco = cv2.aruco
+    board = aruco.CharucoBoard((columns, rows), square, marker, aruco.getPredefinedDictionary(getattr(aruco, dictionary)))
+    return board.generateImage((64 * columns, 64 * rows), marginSize=0, borderBits=1)
 
 
 # ----------------------------------------------------------------------------- strokes and marks
@@ -385,7 +408,7 @@ def manifest(scene, images: list[Image], *, seed: int, pipeline: str | None, loo
     return {"document": "render", "tool_version": __version__, "scene": emit.scene_ref(scene).model_dump(mode="json"), "seed": seed,
             "pipeline": pipeline, "blur": look.blur, "noise": look.noise, "edges": look.edges,
             "width": look.width, "ink": look.ink, "background": look.background, "faces": look.faces,
-            "corners": look.corners, "visibility": visibility, "pixel_centres": "integer (OpenCV)",
+            "corners": look.corners, "supersample": look.supersample, "visibility": visibility, "pixel_centres": "integer (OpenCV)",
             "cameras": cams, "poses": [poses[k] for k in sorted(poses)]}
 
 
@@ -418,5 +441,5 @@ def scene_boards(scene) -> dict:
             continue
         R, t = np.array(p.rotation), np.array(p.position)
         origin = R @ np.array(b.origin) + t
-        out[f"{p.name}.{b.face}"] = (origin, R[:, 0], R[:, 1], b.square, b.columns, b.rows)
+        out[f"{p.name}.{b.face}"] = (origin, R[:, 0], R[:, 1], R[:, 2], b)
     return out

@@ -22,6 +22,7 @@ from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotatio
 from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE, Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
 from wiredsl.scene import (
+    Board,
     Camera,
     Corner,
     Ellipse,
@@ -111,7 +112,7 @@ class Compiler(CameraCompiler):
     def run(self) -> Scene:
         self._header()
         handlers: dict[str, Callable[[Bound], None]] = {
-            "model": self._model, "place": self._place, "camera": self._camera_decl,
+            "model": self._model, "board": self._board, "place": self._place, "camera": self._camera_decl,
             "rig": self._single, "viewpoints": self._single, "path": self._single,
             "pipeline": self._pipeline, "scene": self._scene, "wiredsl": _ignore, "units": _ignore,
             "include": self._include, "study": self.study_stmts.append,
@@ -385,6 +386,58 @@ class Compiler(CameraCompiler):
                            fb.span("through"))
             return None
         return Face(name=fb.name, vertices=pts)
+
+    def _board(self, b: Bound) -> None:
+        """`board`: a model whose corners, lines and face are a calibration board's (scene.Board's frame)."""
+        kind = b.pos(1)
+        label = "chessboard" if kind == "chessboard" else "charuco board"
+        own, other = ("inner", "squares") if kind == "chessboard" else ("squares", "inner")
+        if b.has(other):
+            self.out.error("E103", f"a {label} takes '{own}', not '{other}'", b.clause_spans[other][0],
+                           f"write {own} (columns, rows)")
+            return
+        if not b.has(own):
+            self.out.error("E102", f"a {label} needs '{own} (columns, rows)'", b.stmt.keyword_span)
+            return
+        for key in ("marker", "dictionary"):
+            if kind == "chessboard" and b.has(key):
+                self.out.error("E103", f"'{key}' is a charuco board's, not a chessboard's", b.span(key))
+                return
+        across, down = (int(v) for v in b.get(own))
+        if not (3 <= across <= MAX_BOARD and 3 <= down <= MAX_BOARD):  # OpenCV's detectors need 3 at least
+            what = "inner corners" if own == "inner" else "squares"
+            self.out.error("E110", f"a board's {what} must be 3..{MAX_BOARD} each way, got ({across}, {down})",
+                           b.span(own))
+            return
+        columns, rows = (across + 1, down + 1) if own == "inner" else (across, down)
+        side = b.get("square")
+        margin = b.get("margin", side)
+        if not 0 < side:
+            self.out.error("E110", f"a square's side must be positive, got {side:g} m", b.span("square"))
+            return
+        if not 0 <= margin:
+            self.out.error("E110", f"the margin must not be negative, got {margin:g} m", b.span("margin"))
+            return
+        marker = dictionary = None
+        if kind == "charuco":
+            marker = b.get("marker", 0.75 * side)
+            if not 0 < marker < side:
+                self.out.error("E110", f"a marker must be smaller than a square ({side:g} m), got {marker:g} m",
+                               b.span("marker"))
+                return
+            dictionary = b.get("dictionary", "DICT_4X4_50")
+            size = int(dictionary.rsplit("_", 1)[1]) if dictionary.rsplit("_", 1)[1].isdigit() else None
+            wanted = (columns * rows) // 2
+            if size is not None and wanted > size:
+                self.out.error("E110", f"a {columns} x {rows} charuco board needs {wanted} markers; dictionary "
+                                       f"{dictionary} has {size}", b.span("dictionary"))
+                return
+        board = Board(kind=kind, columns=columns, rows=rows, square=side, margin=margin, marker=marker,
+                      dictionary=dictionary)
+        model = board_model(b.name, board)
+        if self._declare(self.models, "model", b.name, b.name_span, model):
+            kinds = {f.name: "line" for f in model.lines} | {c.name: "corner" for c in model.corners}
+            self.features[b.name] = kinds | {board.face: "face"}
 
     # ------------------------------------------------------------------ placements
     def _place(self, b: Bound) -> None:
@@ -814,6 +867,36 @@ class Compiler(CameraCompiler):
         for d in marked[1:]:
             self.out.error("E105", f"pipeline '{d.value.name}' is a second default", d.span,
                            f"'{marked[0].value.name}' is already the default")
+
+
+MAX_BOARD = 200  # squares or inner corners a board has each way at most
+
+
+def board_model(name: str, board: Board) -> Model:
+    """The model of a calibration board: inner corners `c<row>_<column>` (OpenCV's order: row by row) joining
+    the grid lines `v<column>` (x = column squares) and `h<row>` (y = row squares), which span the squares;
+    the outer edges of the dark border squares (`top<k>`, `bottom<k>`, `left<k>`, `right<k>`: a dark square
+    against the white margin); the face `plane` over squares and margin."""
+    s, m = board.square, board.margin
+    nx, ny = board.inner
+    x0, x1, y0, y1 = -s, nx * s, -s, ny * s
+    lines = [Line(name=f"v{i}", start=(i * s, y0, 0.0), end=(i * s, y1, 0.0)) for i in range(nx)]
+    lines += [Line(name=f"h{j}", start=(x0, j * s, 0.0), end=(x1, j * s, 0.0)) for j in range(ny)]
+    for a in range(nx + 1):  # square columns: square (a, b) spans x in [(a - 1) s, a s]
+        if a % 2 == 0:
+            lines.append(Line(name=f"top{a}", start=((a - 1) * s, y0, 0.0), end=(a * s, y0, 0.0)))
+        if (a + ny) % 2 == 0:
+            lines.append(Line(name=f"bottom{a}", start=((a - 1) * s, y1, 0.0), end=(a * s, y1, 0.0)))
+    for c in range(ny + 1):
+        if c % 2 == 0:
+            lines.append(Line(name=f"left{c}", start=(x0, (c - 1) * s, 0.0), end=(x0, c * s, 0.0)))
+        if (nx + c) % 2 == 0:
+            lines.append(Line(name=f"right{c}", start=(x1, (c - 1) * s, 0.0), end=(x1, c * s, 0.0)))
+    corners = [Corner(name=f"c{j}_{i}", at=(i * s, j * s, 0.0), joins=[f"v{i}", f"h{j}"])
+               for j in range(ny) for i in range(nx)]
+    face = Face(name=board.face, vertices=[(x0 - m, y0 - m, 0.0), (x1 + m, y0 - m, 0.0), (x1 + m, y1 + m, 0.0),
+                                           (x0 - m, y1 + m, 0.0)])
+    return Model(name=name, lines=lines, corners=corners, faces=[face], board=board)
 
 
 def _line_span(path: FsPath, text: str, line: int) -> Span:

@@ -2,6 +2,7 @@
 and the pipeline fitted to it. One stage a module:
 
   images.py        image files in (headers checked before decoding), grouped into frames, each with a pose
+  board.py         each image's pose from the scene's calibration board (`--poses board`, solvePnP)
   detectors.py     OpenCV's Canny, LSD, Harris and Shi-Tomasi, and plug-ins (entry-point group wiredsl.detectors)
   verification.py  the scene projected for each image (hidden lines removed), model features sampled and
                    searched for along their normals; corners within the match radius; stereo corner matching

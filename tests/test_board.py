@@ -1,0 +1,139 @@
+"""The `board` statement (a calibration board as a model) and `board_poses` (each image's pose from it)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import wiredsl
+from wiredsl.cli import main
+from wiredsl.diagnostics import WiredslError
+from wiredsl.engine import geometry
+from wiredsl.verify.board import board_poses
+
+BOARD = """wiredsl 1
+scene boards
+{board}
+place target as b1 at (1.1m, -0.26m, 1.15m) rotate y 90deg rotate x 90deg rotate z 12deg
+camera eye {{
+  focal 640px
+  size (640px, 480px)
+  centre (318.2px, 243.9px)
+  k1 -0.05
+}}
+rig pair {{
+  left eye at (0, 0.05m, 1.2m) looking (1, 0, 0)
+  right eye at (0, -0.05m, 1.2m) looking (1, 0, 0)
+}}
+path here {{
+  pose (0, 0) heading 0deg
+  pose (0.08m, 0.05m) heading 6deg
+  pose (-0.1m, -0.04m) heading -5deg
+}}
+"""
+CHESS = "board target chessboard inner (9, 6) square 30mm"
+CHARUCO = "board target charuco squares (7, 5) square 40mm marker 30mm dictionary DICT_5X5_100"
+
+
+def _scene(tmp_path: Path, board: str) -> Path:
+    path = tmp_path / "boards.wd"
+    path.write_text(BOARD.format(board=board))
+    return path
+
+
+def test_a_chessboard_is_a_model_of_corners_lines_and_a_face():
+    scene = wiredsl.compile(BOARD.format(board="board target chessboard inner (4, 3) square 25mm margin 1cm"))
+    m = scene.model("target")
+    assert m.board.kind == "chessboard" and (m.board.columns, m.board.rows) == (5, 4) and m.board.inner == (4, 3)
+    # the inner corners in OpenCV's order (row by row), the first at the origin
+    want = [(i * 0.025, j * 0.025, 0.0) for j in range(3) for i in range(4)]
+    assert np.allclose([c.at for c in m.corners], want)
+    assert [c.name for c in m.corners][:5] == ["c0_0", "c0_1", "c0_2", "c0_3", "c1_0"]
+    assert m.corners[5].joins == ["v1", "h1"]
+    names = {ln.name for ln in m.lines}
+    assert {"v0", "v3", "h0", "h2"} <= names and "v4" not in names
+    # every border segment lies along a dark outer square: square (a, b) is dark when a + b is even
+    for ln in m.lines:
+        if ln.name[0] in "tblr" and not ln.name.startswith("h"):
+            mid = (np.array(ln.start) + np.array(ln.end))[:2] / 2 / 0.025 + 1  # in squares from the outer corner
+            inward = {"t": (0, 0.5), "b": (0, -0.5), "l": (0.5, 0), "r": (-0.5, 0)}[ln.name[0]]
+            a, b = np.floor(mid + inward).astype(int)
+            assert (a + b) % 2 == 0, ln.name
+    (face,) = m.faces
+    assert np.allclose(face.vertices, [(-0.035, -0.035, 0), (0.11, -0.035, 0), (0.11, 0.085, 0), (-0.035, 0.085, 0)])
+    # an ordinary model's dump has no board key
+    assert "board" not in scene.model_dump(mode="json")["models"][0] or scene.models[0].board is not None
+
+
+@pytest.mark.parametrize("board", [CHESS, CHARUCO], ids=["chessboard", "charuco"])
+def test_rendered_boards_give_back_the_poses_they_were_rendered_from(tmp_path, board):
+    path = _scene(tmp_path, board)
+    r = CliRunner().invoke(main, ["render", str(path), "-o", str(tmp_path / "r"), "--edges", "none", "--blur", "0.7",
+                                  "--noise", "1.5", "--seed", "3"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "r" / "render.json").read_text())
+    scene = wiredsl.compile(path)
+    model = scene.model("target")
+    place = scene.placements[0]
+    X = np.array([c.at for c in model.corners]) @ np.array(place.rotation).T + np.array(place.position)
+    for side in ("left", "right"):
+        files = [tmp_path / "r" / f"{side}_{k:03d}.png" for k in range(3)]
+        found = board_poses(scene, files, side)
+        assert found.diagnostics == [] and len(found.found) == 3
+        for k, p in enumerate(found.poses):
+            view = doc["poses"][k]["images"][side]
+            R, t = np.array(view["R_cw"]), np.array(view["t_cw"])
+            # the detected corners against OpenCV's projection of the board under the rendered pose
+            cam = doc["cameras"][side]
+            uv, _ = cv2.projectPoints(X[p.ids], cv2.Rodrigues(R)[0], t, np.array(cam["K"]),
+                                      np.array([cam["coefficients"][c] for c in ("k1", "k2", "p1", "p2", "k3")]))
+            err = np.linalg.norm(uv.reshape(-1, 2) - p.corners, axis=1)
+            assert np.sqrt(np.mean(err ** 2)) < 0.25 and p.rms < 0.25, (err.max(), p.rms)
+            assert len(p.ids) >= (54 if "chessboard" in board else 12)
+            # a board 30 cm wide at 1.1 m, its corners found to 0.15 px: its tilt is known to a few tenths of a degree
+            angle = np.degrees(np.arccos(np.clip((np.trace(p.R_cw @ R.T) - 1) / 2, -1, 1)))
+            assert angle < 0.8 and np.linalg.norm(p.t_cw - t) < 0.015, (angle, p.t_cw - t)
+            # the robot pose the engine takes, through the mount, is the path's pose
+            Rw, tw = geometry.world_from_robot(p.robot_pose)
+            Rp, tp = geometry.world_from_robot(scene.path.pose(k))
+            assert np.linalg.norm(tw - tp) < 0.03 and np.abs(Rw - Rp).max() < 0.015
+
+
+def test_a_board_missing_from_images_is_located_and_too_few_is_an_error(tmp_path):
+    path = _scene(tmp_path, CHESS)
+    r = CliRunner().invoke(main, ["render", str(path), "-o", str(tmp_path / "r"), "--edges", "none", "--seed", "1",
+                                  "--cameras", "left"])
+    assert r.exit_code == 0, r.output
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.full((480, 640), 128, np.uint8))
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.full((240, 320), 128, np.uint8))
+    junk = tmp_path / "junk.jpg"
+    junk.write_bytes(b"\xff\xd8\xff not a jpeg")
+    scene = wiredsl.compile(path)
+    good = [tmp_path / "r" / f"left_{k:03d}.png" for k in range(3)]
+    found = board_poses(scene, [*good, blank], "left")
+    assert len(found.found) == 3 and not found.poses[3].found
+    (d,) = found.diagnostics
+    assert d.code == "W196" and d.span.file == str(blank) and "9 x 6 inner corners" in d.message
+    with pytest.raises(WiredslError) as err:
+        board_poses(scene, [good[0], blank, small, junk], "left")
+    codes = [x.code for x in err.value.diagnostics]
+    assert codes == ["W196", "E199", "E199", "E197"]
+    assert "found in 1 of 4 images (at least 2 needed)" in err.value.diagnostics[-1].message
+    assert "320 x 240 px" in err.value.diagnostics[1].message
+    with pytest.raises(WiredslError) as err:
+        board_poses(scene, good, "nosuchcamera")
+    assert err.value.diagnostics[0].code == "E198"
+
+
+def test_a_scene_without_a_board_is_an_error():
+    scene = wiredsl.compile(BOARD.format(board="model target {\n  corner c at (0, 0, 0)\n}"))
+    with pytest.raises(WiredslError) as err:
+        board_poses(scene, [], "left")
+    assert err.value.diagnostics[0].code == "E198" and "no placed board" in err.value.diagnostics[0].message
