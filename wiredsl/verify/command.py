@@ -126,7 +126,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         im.assign_path(frames, scene)
         pose_note = "the scene's path, in name order"
     elif req.poses == "board":
-        pose_note = _board_poses(frames, scene)
+        pose_note, frames = _board_poses(frames, scene, warnings)
     else:
         side = _pose_side(frames)
         match = im.assign_file(frames, scene, req.poses, req.pose_format, req.match, side)
@@ -209,7 +209,8 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         provenance = [f"Fitted by `wiredsl verify` from {n_images} images of {len(frames)} frames "
                       f"({', '.join(g for g, _ in req.images)}) against {Path(req.scene).name}.",
                       f"Detectors: {det_text}.", f"Poses: {pose_note}.",
-                      f"Intervals: 95% percentile bootstrap over images, {fitting.B} resamples, seed {req.seed}.",
+                      f"Intervals: 95% bootstrap over images ({fitting.B} resamples, seed {req.seed}; percentiles widened "
+                      "by sqrt(n / (n - 1)) t / z for n images).",
                       "Include this file in the scene and build with --pipeline " + req.pipeline_name + "."]
         text = fitting.pipeline_text(result, req.pipeline_name, provenance)
         write_atomic(out / f"{req.pipeline_name}.wd", text)
@@ -238,13 +239,41 @@ def _pose_side(frames: list[im.Frame]) -> str:
     return "right" if all(set(f.images) == {"right"} for f in frames) else "left"
 
 
-def _board_poses(frames, scene) -> str:
-    try:
-        from wiredsl.verify import board
-    except ImportError:
-        raise WiredslError([Diagnostic("error", "E192", "--poses board needs a calibration board in the scene "
-                                       "(the `board` statement), not available in this version", None)]) from None
-    return board.assign(frames, scene)
+def _board_poses(frames: list[im.Frame], scene, warnings: list[Diagnostic]) -> tuple[str, list[im.Frame]]:
+    """`--poses board`: each frame's pose from the board in its left image (its right one in a right-only
+    frame), found by board.py (solvePnP with the scene's camera). Frames without the board are left out with a
+    warning (W196); a board found in fewer than half of the frames is E197. One image is read at a time."""
+    from wiredsl.verify import board
+
+    kept, missed = [], []
+    for frame in frames:
+        side = "left" if "left" in frame.images else "right"
+        path = frame.images[side]
+        cam = scene.camera(getattr(scene.rig, side).camera)
+        grey = im.read_grey(path, cam.width, cam.height, warnings)
+        try:
+            found = board.board_poses(scene, [(path, grey)], side, least=0.0)
+        except WiredslError as err:  # not found in this one image: its warning, and the frame is left out
+            if any(d.severity == "error" and d.code != "E197" for d in err.diagnostics):
+                raise
+            warnings.extend(d for d in err.diagnostics if d.severity == "warning")
+            missed.append(path)
+            continue
+        pose = found.poses[0]
+        if pose.found and pose.robot_pose is not None:
+            frame.pose = pose.robot_pose
+            frame.pose_from = f"board in {path} (reprojection {pose.rms:.3g} px rms)"
+            kept.append(frame)
+        else:
+            warnings.extend(found.diagnostics)
+            missed.append(path)
+    if not kept or len(kept) < board.LEAST_FRACTION * len(frames):
+        shown = ", ".join(Path(m).name for m in missed[:5]) + (", ..." if len(missed) > 5 else "")
+        raise WiredslError([*warnings, Diagnostic(
+            "error", "E197", f"the board is found in {len(kept)} of {len(frames)} frames (at least half needed); "
+            f"not in: {shown}", None, "check the board's size in the scene (inner corners across and down), the "
+            "lighting, and that the whole board is in view")])
+    return f"the scene's board, by solvePnP ({len(kept)} of {len(frames)} frames)", kept
 
 
 def progress_printer(stream=None):

@@ -106,10 +106,10 @@ def _interval(reps: np.ndarray, value: float | None = None, n: int | None = None
         widen = math.sqrt(n / (n - 1)) * float(stats.t.ppf(0.975, n - 1)) / float(stats.norm.ppf(0.975))
         reps = value + (reps - value) * widen
     lo, hi = np.quantile(reps, [0.025, 0.975])
-    return float(lo), float(hi)
+    return max(float(lo), 0.0), float(hi)  # every parameter is >= 0 (fractions are clipped to 1 by callers)
 
 
-def _ratio(num: np.ndarray, den: np.ndarray, seed: int, name: str, fn=lambda r: r):
+def _ratio(num: np.ndarray, den: np.ndarray, seed: int, name: str, fn=lambda r: r, fraction: bool = True):
     """(value, lo, hi) of fn(sum num / sum den) over images, and its bootstrap."""
     total = den.sum()
     if total <= 0:
@@ -119,6 +119,8 @@ def _ratio(num: np.ndarray, den: np.ndarray, seed: int, name: str, fn=lambda r: 
     with np.errstate(invalid="ignore", divide="ignore"):
         reps = fn((W @ num) / (W @ den))
     lo, hi = _interval(np.asarray(reps, float), value, int((den > 0).sum()))
+    if hi is not None and fraction:
+        hi = min(hi, 1.0)
     return value, lo, hi
 
 
@@ -136,7 +138,7 @@ def _edge_loss(col, seed: int):
     W = _weights(len(col["length"]), seed, "edge_loss.fraction")
     reps, _ = value(*(W @ col[k] for k in keys))
     lo, hi = _interval(np.asarray(reps, float), float(f), int((col["length"] > 0).sum()))
-    return float(f), lo, hi, float(end)
+    return float(f), lo, None if hi is None else min(hi, 1.0), float(end)
 
 
 def _shift_range(col, seed: int):
@@ -242,7 +244,7 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     else:
         out.append(Estimate("lateral_shift.range", None, note="too few strokes with verified samples"))
     if col["fitted"].sum() >= MIN["strokes"]:
-        v, lo, hi = _ratio(col["fitted2"], 2 * col["fitted"], seed, "approx_error.sigma", np.sqrt)
+        v, lo, hi = _ratio(col["fitted2"], 2 * col["fitted"], seed, "approx_error.sigma", np.sqrt, False)
         out.append(Estimate("approx_error.sigma", v, lo, hi, f"from the fitted ends of {int(col['fitted'].sum())} "
                                                                "fragments (e1 - e0 ~ N(0, 2 sigma^2))"))
     else:
@@ -284,7 +286,8 @@ def _mismatch(col, seed: int, t: float, radius: float) -> list[Estimate]:
         fb = (W @ disp) / (W @ found) / (1 - (t / Rb) ** 2)
     f = float(disp.sum() / found.sum() / (1 - (t / R) ** 2))
     k = int((found > 0).sum())
-    return [Estimate("corner_mismatch.fraction", min(f, 1.0), *_interval(np.minimum(fb, 1.0), min(f, 1.0), k),
+    flo, fhi = _interval(np.minimum(fb, 1.0), min(f, 1.0), k)
+    return [Estimate("corner_mismatch.fraction", min(f, 1.0), flo, None if fhi is None else min(fhi, 1.0),
                      f"{int(disp.sum())} of {int(found.sum())} found corners displaced beyond {t:g} px, corrected "
                      f"for the moves shorter than that"),
             Estimate("corner_mismatch.radius", R, *_interval(Rb, R, k),

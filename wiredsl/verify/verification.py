@@ -135,11 +135,16 @@ def search_edges(sm: Samples, det: Detection, shape: tuple[int, int], cfg: Setti
         edges, gx, gy, label = det.edges, det.gx, det.gy, None
     else:
         edges, gx, gy, label = segment_gradients(det.segments, shape)
-    ks = np.arange(-cfg.band, cfg.band + 1e-9, 0.5)
-    order = np.argsort(np.abs(ks), kind="stable")  # nearest first
-    ks = ks[order]
-    X = np.rint(P[:, None, 0] + ks[None, :] * N[:, None, 0]).astype(np.int64)
-    Y = np.rint(P[:, None, 1] + ks[None, :] * N[:, None, 1]).astype(np.int64)
+    # positions every half pixel along the normal, each also half a pixel either way along the stroke: a ray
+    # alone can slip through the diagonal step of an 8-connected edge; nearest first, the ray's own first
+    kn = np.arange(-cfg.band, cfg.band + 1e-9, 0.5)
+    ks = np.repeat(kn, 3)
+    ts = np.tile([0.0, -0.5, 0.5], len(kn))
+    order = np.lexsort((np.abs(ts), np.abs(ks)))
+    ks, ts = ks[order], ts[order]
+    T = np.column_stack([N[:, 1], -N[:, 0]])
+    X = np.rint(P[:, None, 0] + ks[None, :] * N[:, None, 0] + ts[None, :] * T[:, None, 0]).astype(np.int64)
+    Y = np.rint(P[:, None, 1] + ks[None, :] * N[:, None, 1] + ts[None, :] * T[:, None, 1]).astype(np.int64)
     inside = (X >= 0) & (X < w) & (Y >= 0) & (Y < h) & tested[:, None]
     Xc, Yc = np.where(inside, X, 0), np.where(inside, Y, 0)
     hit = inside & edges[Yc, Xc]
