@@ -377,6 +377,8 @@ def test_a_plugin_detector_is_loaded_by_name_and_verified_like_canny(tmp_path, m
         r = _verify("--images", rendered / "ideal" / "left_000.png", "--detector", "broken_edges", "-o",
                     tmp_path / "bad")
         assert r.exit_code == 1 and "error[E181]" in r.stderr and "wdetect" in r.stderr, r.output
+        listed = CliRunner().invoke(main, ["plugins"])
+        assert "detector\tgradient_edges\twdetect 0.3\twdetect:Gradient\tok" in listed.output, listed.output
     finally:
         plugins.rescan()
 
