@@ -14,6 +14,7 @@ import wiredsl
 from wiredsl.cli import main
 from wiredsl.diagnostics import WiredslError
 from wiredsl.engine import geometry
+from wiredsl.scene import Pipeline
 from wiredsl.verify.board import board_poses
 
 BOARD = """wiredsl 1
@@ -137,3 +138,61 @@ def test_a_scene_without_a_board_is_an_error():
     with pytest.raises(WiredslError) as err:
         board_poses(scene, [], "left")
     assert err.value.diagnostics[0].code == "E198" and "no placed board" in err.value.diagnostics[0].message
+
+
+# ----------------------------------------------------------------------------- OpenCV's stereo sample images
+
+STEREO = Path(__file__).resolve().parent / "data" / "opencv_stereo"
+CHESSBOARD = Path(__file__).resolve().parent.parent / "scenes" / "chessboard.wd"
+
+
+def _numbers() -> list[int]:
+    return sorted(int(p.stem[4:]) for p in STEREO.glob("left[0-9][0-9].jpg"))
+
+
+def test_the_board_is_found_in_opencvs_stereo_images_with_a_small_reprojection_error():
+    scene = wiredsl.compile(CHESSBOARD)
+    numbers = _numbers()
+    assert len(numbers) == 13 and 10 not in numbers
+    left = board_poses(scene, [STEREO / f"left{n:02d}.jpg" for n in numbers], "left")
+    right = board_poses(scene, [STEREO / f"right{n:02d}.jpg" for n in numbers], "right")
+    assert len(left.found) == 13 and len(right.found) == 13 and not left.diagnostics
+    assert max(p.rms for p in left.poses + right.poses) < 0.4  # px, each image's own pose
+    # the scene's ideal projection (its path: the left poses that docs/scripts/calibrate_opencv_stereo.py found
+    # with OpenCV alone; its rig: that script's stereoCalibrate) against the corners detected in both images
+    (batch,) = wiredsl.simulate(scene, trials=1, seed=0, pipeline=Pipeline(name="ideal"))
+    projected = {(r["pose"], r["camera"], r["source"]): np.array(r["at"])
+                 for r in batch.records() if r["kind"] == "corner"}
+    names = [c.name for c in scene.model("target").corners]
+    errors = {"left": [], "right": []}
+    for k, (a, b) in enumerate(zip(left.poses, right.poses, strict=True)):
+        for side, found in (("left", a), ("right", b)):
+            for i, uv in zip(found.ids, found.corners, strict=True):
+                key = (k, side, f"board.{names[i]}")
+                if key in projected:
+                    errors[side].append(np.linalg.norm(projected[key] - uv))
+        # the right image's own pose, carried to the robot through the right mount, is the left one's
+        Rl, tl = geometry.world_from_robot(a.robot_pose)
+        Rr, tr = geometry.world_from_robot(b.robot_pose)
+        assert np.linalg.norm(tl - tr) < 0.01 and np.abs(Rl - Rr).max() < 0.02, (k, tl - tr)
+        # and the left one is the path's pose (the script's solvePnP, read back through the trajectory file)
+        Rp, tp = geometry.world_from_robot(scene.path.pose(k))
+        assert np.linalg.norm(tl - tp) < 1e-3 and np.abs(Rl - Rp).max() < 1e-3
+    for side in ("left", "right"):
+        e = np.array(errors[side])
+        assert len(e) == 13 * 54
+        assert np.sqrt(np.mean(e ** 2)) < 0.5 and np.median(e) < 0.35, (side, np.sqrt(np.mean(e ** 2)))
+
+
+def test_the_language_server_takes_a_board_for_a_model(tmp_path):
+    from wiredsl import lsp
+
+    text = (Path(__file__).resolve().parent.parent / "scenes" / "chessboard.wd").read_text()
+    index = lsp.analyse(str(tmp_path / "chessboard.wd"), text)
+    lines = text.splitlines()
+    row = next(i for i, line in enumerate(lines) if line.startswith("place target")) + 1
+    declared = next(i for i, line in enumerate(lines) if line.startswith("board target")) + 1
+    found = lsp.definition(index, index.path, row, lines[row - 1].index("target") + 2)
+    assert found is not None and found[1].line == declared
+    shown = lsp.hover(index, text, index.path, declared, 2)
+    assert shown is not None and "calibration board" in shown

@@ -102,8 +102,9 @@ def _walk(index: Index, stmts, context: str, file: ast.File, owner: str | None) 
         sig = b.sig
         name = b.positional[0].value if sig.positional and sig.positional[0].kind == "name" and b.positional else None
         name_span = b.positional[0].span if name else None
-        if context == "top" and name is not None:
-            index.symbols.append(Symbol(sig.keyword, name, name_span, stmt, sig.keyword))
+        if context == "top" and name is not None:  # a board declares a model
+            kind = "model" if sig.keyword == "board" else sig.keyword
+            index.symbols.append(Symbol(kind, name, name_span, stmt, sig.keyword))
         elif context == "model" and name is not None:
             index.symbols.append(Symbol("feature", f"{owner}.{name}", name_span, stmt, sig.keyword))
         elif context == "viewpoints" and name is not None:

@@ -210,43 +210,45 @@ def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays, backgroun
     grey = np.full((Hs, Ws), float(background))
     light = np.asarray(LIGHT, float) / np.linalg.norm(LIGHT)
     boxes = _pixel_boxes(cam, T, ss)
-    for k in np.flatnonzero(boxes[:, 0] < boxes[:, 1]).tolist():
+    for k in np.flatnonzero((boxes[:, 0] < boxes[:, 1]) & (boxes[:, 2] < boxes[:, 3])).tolist():
         c0, c1, r0, r1 = boxes[k].tolist()
         d = D[r0:r1, c0:c1].reshape(-1, 3)
         V0, e1, e2 = T[k, 0], T[k, 1] - T[k, 0], T[k, 2] - T[k, 0]
-        p = np.cross(d, e2)
-        det = p @ e1
+        # Moller-Trumbore with the ray's direction d factored out: det = d . (e2 x e1), u = d . (e2 x s) / det,
+        # v = d . (s x e1) / det, t = e2 . (s x e1) / det, with s = -V0: one product of d with three vectors
+        s_ = -V0
+        q = np.cross(s_, e1)
+        M = np.stack([np.cross(e2, e1), np.cross(e2, s_), q], axis=1)
+        det, un, vn = (d @ M).T
+        tn = float(e2 @ q)
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / det
-            s = -V0
-            a = (p @ s) * inv
-            q = np.cross(s, e1)
-            b = (d @ q) * inv
-            t = (e2 @ q) * inv
-        nz = np.linalg.norm(d, axis=1)
-        hit = (np.abs(det) > 1e-300) & (a >= 0) & (b >= 0) & (a + b <= 1) & (t * nz > geometry.NEAR)
+            a, b, t = un * inv, vn * inv, tn * inv
+        hit = (np.abs(det) > 1e-300) & (a >= 0) & (b >= 0) & (a + b <= 1) & (t > 0)
         hit &= ok[r0:r1, c0:c1].ravel()
         zone = depth[r0:r1, c0:c1].reshape(-1)
         hit &= t < zone
+        if hit.any():  # beyond the near plane: the ray's length to the hit
+            hit[hit] = t[hit] * np.sqrt(np.einsum("ij,ij->i", d[hit], d[hit])) > geometry.NEAR
         if not hit.any():
             continue
         n = np.cross(e1, e2)
         n = n / max(np.linalg.norm(n), 1e-300)
         lit = 60.0 + 170.0 * abs(float(n @ light))
-        value = np.full(len(d), lit)
+        value = np.full(int(hit.sum()), lit)
         f = int(face_of[k])
         if f in boards:  # the pattern, at the hit's point on the board (world frame), on its printed side
             W0, W1, W2 = T_world[k]
             ez_cam = n * np.sign(np.cross(W1 - W0, W2 - W0) @ boards[f][3])  # the board's z, camera frame
             if V0 @ ez_cam > 0:  # the printed side faces -z: the camera is on that side
-                X = W0 + a[:, None] * (W1 - W0) + b[:, None] * (W2 - W0)
+                X = W0 + a[hit, None] * (W1 - W0) + b[hit, None] * (W2 - W0)
                 value = lit * board_albedo(boards[f], X)
             else:
-                value = lit * np.full(len(d), BACK)
+                value = value * BACK
         zone[hit] = t[hit]
         depth[r0:r1, c0:c1] = zone.reshape(r1 - r0, c1 - c0)
         g = grey[r0:r1, c0:c1].reshape(-1)
-        g[hit] = value[hit]
+        g[hit] = value
         grey[r0:r1, c0:c1] = g.reshape(r1 - r0, c1 - c0)
     return grey.reshape(cam.height, ss, cam.width, ss).mean(axis=(1, 3))
 
@@ -268,7 +270,9 @@ def _pixel_boxes(cam: Camera, T: np.ndarray, ss: int, samples: int = 8) -> np.nd
         lo = np.nanmin(np.where(inside[..., None], uv, np.nan), axis=1) if n else np.zeros((0, 2))
         hi = np.nanmax(np.where(inside[..., None], uv, np.nan), axis=1) if n else np.zeros((0, 2))
     whole = ~inside.all(axis=1)
-    behind = (P[..., 2] <= geometry.NEAR).all(axis=1) & (cam.distortion != "equidistant")
+    # no edge sample imaged: the triangle either misses the lens's cone (nothing to draw) or spans it, and
+    # then the optical axis, inside the cone, passes through it
+    behind = ~inside.any(axis=1) & ~_axis_hits(T)
     W, H = cam.width * ss, cam.height * ss
     margin = 2.0  # px: the chords of a bent edge, and the supersampling's half-pixel
     with np.errstate(invalid="ignore"):
@@ -283,6 +287,22 @@ def _pixel_boxes(cam: Camera, T: np.ndarray, ss: int, samples: int = 8) -> np.nd
     box[:, :2] = np.clip(box[:, :2], 0, W)
     box[:, 2:] = np.clip(box[:, 2:], 0, H)
     return box.astype(int)
+
+
+def _axis_hits(T: np.ndarray) -> np.ndarray:
+    """Whether the optical axis (the camera frame's +z ray) passes through each triangle (n, 3, 3)."""
+    A, B, C = T[:, 0, :2], T[:, 1, :2], T[:, 2, :2]  # where the axis meets the triangle's plane is (0, 0, z)
+
+    def side(P, Q):
+        return P[:, 0] * Q[:, 1] - P[:, 1] * Q[:, 0]  # the sign of the origin against edge P -> Q
+
+    s1, s2, s3 = side(A, B), side(B, C), side(C, A)
+    inside = ((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0))
+    # the point on the axis: z from the plane through the vertices, in front of the camera
+    n = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.einsum("ij,ij->i", n, T[:, 0]) / n[:, 2]
+    return inside & (z > geometry.NEAR)
 
 
 def board_albedo(board, X: np.ndarray) -> np.ndarray:

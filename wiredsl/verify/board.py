@@ -170,17 +170,24 @@ def _chessboard(cv2, img: np.ndarray, board: Board):
 
 
 def _first_square_dark(img: np.ndarray, pts: np.ndarray, nx: int) -> bool:
-    """Whether the outer square diagonally beyond the first corner is darker than the one beyond the last."""
-    def grey(p0, p_row, p_col):
-        at = p0 - 0.5 * (p_row - p0) - 0.5 * (p_col - p0)
-        x, y = int(round(at[0])), int(round(at[1]))
-        if not (0 <= x < img.shape[1] and 0 <= y < img.shape[0]):
-            return np.nan
-        return float(img[max(y - 1, 0):y + 2, max(x - 1, 0):x + 2].mean())
+    """Whether the outer square diagonally beyond the first corner is dark and the one beyond the last light,
+    rather than the other way round: each compared with the squares beside it (the other colour: the two that
+    share a side with it and touch the corner), over a 5 x 5 grid of points in each square's middle half
+    (glare and blur move single pixels)."""
+    from scipy.ndimage import map_coordinates
 
-    first = grey(pts[0], pts[1], pts[nx])
-    last = grey(pts[-1], pts[-2], pts[-1 - nx])
-    return not (first > last)  # unknown (off the image): keep OpenCV's order
+    grid = (np.stack(np.meshgrid(np.linspace(-0.25, 0.25, 5), np.linspace(-0.25, 0.25, 5)), -1)).reshape(-1, 2)
+
+    def grey(p0, p_row, p_col, outward):  # mean grey of the square centred p0 + outward (in corner steps)
+        du, dv = p_row - p0, p_col - p0
+        at = p0 + (outward[0] + grid[:, :1]) * du + (outward[1] + grid[:, 1:]) * dv
+        return float(np.mean(map_coordinates(img.astype(float), [at[:, 1], at[:, 0]], order=1, mode="nearest")))
+
+    ends = []
+    for p0, p_row, p_col in ((pts[0], pts[1], pts[nx]), (pts[-1], pts[-2], pts[-1 - nx])):
+        beside = (grey(p0, p_row, p_col, (0.5, -0.5)) + grey(p0, p_row, p_col, (-0.5, 0.5))) / 2
+        ends.append(beside - grey(p0, p_row, p_col, (-0.5, -0.5)))  # the other colour's grey less the corner's
+    return ends[0] >= ends[1]
 
 
 def _charuco(cv2, img: np.ndarray, board: Board):
