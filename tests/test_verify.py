@@ -162,6 +162,9 @@ def test_a_statistic_without_data_keeps_the_papers_value_and_says_so():
     assert "corner_loss keep 85%" in text and "not estimated" in text
     assert "stereo matcher: no stereo pairs" in text
     assert f.get("edge_loss.fraction").value == pytest.approx(0.2)
+    raw = F.fit([F.ImageSums(tested=100, verified=70, length=200, lost_middle=40)] * 5, seed=0, edge_loss="raw")
+    assert raw.get("edge_loss.fraction").value == pytest.approx(0.3) and "the gaps alone: 20%" in \
+        raw.get("edge_loss.fraction").note
 
 
 # --------------------------------------------------------------------------- the command

@@ -39,6 +39,9 @@ from wiredsl.cli import diagnostics_option, guarded, report
               help="px: a found corner farther than this from the model's is displaced (a corner mismatch).")
 @click.option("--refine", is_flag=True, help="Refine each pose to align the model with the detected edges first.")
 @click.option("--fit", "do_fit", is_flag=True, help="Fit each effect's parameters and write the pipeline (.wd).")
+@click.option("--edge-loss", "edge_loss", type=click.Choice(["gaps", "raw"]), default="gaps", show_default=True,
+              help="Fit edge_loss to the gaps (the detector's own loss at each gap's ends taken off), or to all "
+                   "that was lost (1 - the verified fraction).")
 @click.option("--pipeline-name", default="measured", show_default=True, help="The fitted pipeline's name.")
 @click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True,
               help="Seed of the bootstrap resamples.")
@@ -47,7 +50,7 @@ from wiredsl.cli import diagnostics_option, guarded, report
 @diagnostics_option
 @guarded
 def verify(file, globs, cameras, poses, pose_format, match, detectors, params, step, band, angle, radius, inlier,
-           refine, do_fit, pipeline_name, seed, plot_format, output, diagnostics) -> None:
+           refine, do_fit, edge_loss, pipeline_name, seed, plot_format, output, diagnostics) -> None:
     """Verify the scene's projected model against detected features in images (the paper's Figure 7), and with
     --fit estimate each effect's parameters as a pipeline."""
     from pathlib import Path
@@ -73,7 +76,7 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
     pairs = [(g, cameras[k] if k < len(cameras) else None) for k, g in enumerate(globs)]
     req = command.Request(file, pairs, list(detectors), list(params), poses, pose_format, match,
                           Settings(step, band, math.radians(angle), radius, inlier), do_fit, seed, pipeline_name,
-                          refine, plot_format)
+                          refine, plot_format, edge_loss)
     try:
         outcome = command.run(req, out, command.progress_printer())
     except ValueError as exc:

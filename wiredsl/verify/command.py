@@ -33,6 +33,7 @@ class Request:
     pipeline_name: str = "measured"
     refine: bool = False
     plot_format: str = "png"
+    edge_loss: str = "gaps"  # gaps | raw: see fit.fit
 
 
 @dataclass
@@ -204,7 +205,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
     if req.fit:
         from wiredsl.io.files import json_text, write_atomic
 
-        result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius)
+        result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss)
         det_text = "; ".join(f"{n} ({', '.join(f'{k} {v}' for k, v in p.model_dump().items())})" for n, _, p in dets)
         provenance = [f"Fitted by `wiredsl verify` from {n_images} images of {len(frames)} frames "
                       f"({', '.join(g for g, _ in req.images)}) against {Path(req.scene).name}.",

@@ -221,20 +221,32 @@ class Fit:
                 "lateral_shift_law": self.shift_law, "fragments": self.fragments, "stereo_matcher": self.stereo}
 
 
-def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 10.0) -> Fit:
+def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 10.0, edge_loss: str = "gaps"
+        ) -> Fit:
+    """Every estimate. `edge_loss`: "gaps" (the default) fits the gaps, the detector's own loss at each gap's
+    ends taken off (what a simulation's edge_loss stage injected, as the round trip checks); "raw" everything
+    the detector lost (1 - the verified fraction: a simulation with it loses as much as the detector did)."""
     n = len(sums)
     col = {k: np.array([getattr(s, k) for s in sums], float) for k in
            ("tested", "verified", "length", "lost_middle", "lost_ends", "ends", "gap_ends", "strokes", "d1", "d2", "noise", "runs",
             "run_strokes", "fitted", "fitted2", "corners", "found",
             "displaced", "displaced_r", "matched", "wrong")}
     out = []
-    # edge loss
+    # edge loss: the gaps themselves (the detector's end loss at each gap end taken off), or everything lost
     if col["tested"].sum() >= MIN["edges"]:
+        raw, rlo, rhi = _ratio(col["tested"] - col["verified"], col["tested"], seed, "edge_loss.raw")
+        raw_note = (f"1 - verified fraction of {int(col['tested'].sum()):,} samples over "
+                    f"{int((col['tested'] > 0).sum())} images")
         v, lo, hi, end = _edge_loss(col, seed)
-        out.append(Estimate("edge_loss.fraction", v, lo, hi,
-                            f"lost length over {col['length'].sum():,.0f} px of {int((col['tested'] > 0).sum())} images"
-                            f", less the detector's own loss at an edge's end ({end:.3g} px, measured at the model "
-                            f"strokes' ends) at each of {int(col['gap_ends'].sum())} gap ends"))
+        gaps_note = (f"lost length over {col['length'].sum():,.0f} px of {int((col['tested'] > 0).sum())} images, "
+                     f"less the detector's own loss at an edge's end ({end:.3g} px, measured at the model strokes' "
+                     f"ends) at each of {int(col['gap_ends'].sum())} gap ends")
+        if edge_loss == "raw":
+            out.append(Estimate("edge_loss.fraction", raw, rlo, rhi, raw_note + f" (the gaps alone: {100 * v:.3g}%)"))
+        else:
+            span = f", [{100 * rlo:.3g}%, {100 * rhi:.3g}%]" if rlo is not None and rhi is not None else ""
+            out.append(Estimate("edge_loss.fraction", v, lo, hi, gaps_note + f" (everything lost: {100 * raw:.3g}%"
+                                                                             f"{span})"))
     else:
         out.append(Estimate("edge_loss.fraction", None, note="no edge detector, or too few edge samples"))
     # lateral shift and its law
