@@ -455,3 +455,19 @@ def test_board_poses_verify_a_rendered_chessboard_and_a_missing_board_is_an_erro
     e = CliRunner().invoke(main, ["verify", str(scene), "--images", str(blank / "*.png"), "--poses", "board",
                                   "--detector", "canny", "-o", str(tmp_path / "e")])
     assert e.exit_code == 1 and "error[E197]" in e.stderr and "found in 0 of 2 frames" in e.stderr, e.output
+
+
+def test_opencvs_stereo_chessboard_images_verify_with_canny_lsd_and_harris(tmp_path):
+    """Real images (tests/data/opencv_stereo/, 13 pairs) with poses from the board: most edges and corners found."""
+    r = CliRunner().invoke(main, ["verify", "scenes/chessboard.wd", "--images", "tests/data/opencv_stereo/*.jpg",
+                                  "--poses", "board", "--detector", "canny", "--detector", "lsd", "--detector",
+                                  "harris", "--fit", "-o", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    objects = {o["detector"]: o for o in json.loads((tmp_path / "verification.json").read_text())["objects"]}
+    assert objects["canny"]["images"] == 26 and 0.8 < objects["canny"]["verified_fraction"] < 0.95
+    assert 0.85 < objects["lsd"]["verified_fraction"] < 0.97
+    fit = json.loads((tmp_path / "fit.json").read_text())
+    est = {e["parameter"]: e for e in fit["estimates"]}
+    assert est["corner_loss.keep"]["value"] > 0.98
+    assert 0 < est["lateral_shift.range"]["value"] < 2 and fit["stereo_matcher"]["matched"] > 500
+    assert CliRunner().invoke(main, ["check", str(tmp_path / "measured.wd")]).exit_code == 0
