@@ -471,3 +471,16 @@ def test_opencvs_stereo_chessboard_images_verify_with_canny_lsd_and_harris(tmp_p
     assert est["corner_loss.keep"]["value"] > 0.98
     assert 0 < est["lateral_shift.range"]["value"] < 2 and fit["stereo_matcher"]["matched"] > 500
     assert CliRunner().invoke(main, ["check", str(tmp_path / "measured.wd")]).exit_code == 0
+
+
+def test_frames_pair_the_cameras_images_by_the_number_in_their_names(tmp_path):
+    rig = wiredsl.compile(FENCE).rig
+    for name in ("left_003.png", "right_003.png", "left_010.png", "right01.png"):
+        (tmp_path / name).write_bytes(b"")
+    frames = I.frames_of([(str(tmp_path / "*.png"), None)], rig)
+    assert [(str(f.key), sorted(f.images)) for f in frames] == [("1", ["right"]), ("3", ["left", "right"]),
+                                                                ("10", ["left"])]
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / "1305031102.175304.png").write_bytes(b"")
+    (frame,) = I.frames_of([(str(tmp_path / "t" / "*.png"), "right")], rig)
+    assert str(frame.key) == "1305031102.175304" and list(frame.images) == ["right"]

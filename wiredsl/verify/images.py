@@ -30,7 +30,7 @@ from wiredsl.diagnostics import Diagnostic, Span, WiredslError
 MAX_BYTES = 256 << 20  # an image file larger than this is refused unread
 MAX_PIXELS = 100_000_000  # width x height from the header: more is refused before decoding
 SIDES = ("left", "right")
-_NAME = re.compile(r"^(?P<word>[A-Za-z][A-Za-z]*?)?[_\-.]?(?P<num>\d+(?:\.\d+)?)$")
+_NAME = re.compile(r"^(?P<word>[A-Za-z][A-Za-z0-9_\-]*?)?[_\-.]?(?P<num>\d+(?:\.\d+)?)$")
 
 
 def at(path: str | os.PathLike, line: int = 1) -> Span:
