@@ -368,7 +368,8 @@ def reference() -> None:
 
 @main.command()
 def plugins() -> None:
-    """List the effects and measures that installed packages add (entry points wiredsl.effects, wiredsl.measures).
+    """List the effects, measures and detectors that installed packages add (entry points wiredsl.effects,
+    wiredsl.measures, wiredsl.detectors).
 
     One line a plug-in on stdout: kind, name, package and version, module:attribute, and ok or why it cannot be
     used; exit 1 when one cannot."""
@@ -376,8 +377,10 @@ def plugins() -> None:
     from wiredsl.measures import REGISTRY as measures
     from wiredsl.plugins import installed, lookup
 
+    from wiredsl.verify.detectors import registry as detectors
+
     rows, bad = [], 0
-    for kind, registry in (("effect", effects), ("measure", measures)):
+    for kind, registry in (("effect", effects), ("measure", measures), ("detector", detectors())):
         clashes = registry.clashes()
         for p in installed(kind):
             why = next((c for c in clashes if f"'{p.name}' from {p.origin}" in c), None)
@@ -386,7 +389,7 @@ def plugins() -> None:
             bad += why is not None
             rows.append(f"{kind}\t{p.name}\t{p.package} {p.version}\t{p.value}\t{'ok' if why is None else why}")
     click.echo("\n".join(rows) if rows else "no plug-ins installed (entry points wiredsl.effects, "
-                                             "wiredsl.measures)")
+                                             "wiredsl.measures, wiredsl.detectors)")
     if bad:
         sys.exit(EXIT_INVALID)
 
@@ -1070,3 +1073,8 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
             click.echo(f"study {found.name} varies nothing: one point, no plots against factors and no Sobol' "
                        "indices (table.csv holds its statistics)", err=True)
     click.echo(f"wrote {out}: " + ", ".join(written), err=True)
+
+
+from wiredsl.verify.cli import verify  # noqa: E402  (its own module; registered here, imports nothing heavy)
+
+main.add_command(verify)

@@ -28,7 +28,7 @@ from typing import Any
 
 from wiredsl.diagnostics import Diagnostic, UnknownName, WiredslError
 
-GROUPS = {"effect": "wiredsl.effects", "measure": "wiredsl.measures"}
+GROUPS = {"effect": "wiredsl.effects", "measure": "wiredsl.measures", "detector": "wiredsl.detectors"}
 
 
 class PluginError(WiredslError):

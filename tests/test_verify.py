@@ -1,0 +1,486 @@
+"""`wiredsl verify`: detectors and verification against drawn edges at known offsets, bad input, a plug-in
+detector, the fit on samples of known laws, and the command's outputs (table, Figure 7, a pipeline that
+compiles and builds)."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from test_plugins import make_dist
+from verify_drawing import draw, render_records
+
+import wiredsl
+from wiredsl import plugins
+from wiredsl.cli import main
+from wiredsl.scene import Pipeline
+from wiredsl.verify import detectors as D
+from wiredsl.verify import fit as F
+from wiredsl.verify import images as I
+from wiredsl.verify import verification as V
+
+FENCE = Path("tests/data/verify/fence.wd")
+H, W = 480, 640
+
+
+class _View:
+    """The part of an engine View the verification reads: its features."""
+
+    def __init__(self, features):
+        self.features = features
+
+
+class _Feat:
+    def __init__(self, fid, points, kind="line"):
+        self.fid, self.kind, self.points, self.segment, self.fragment = fid, kind, np.asarray(points, float), -1, -1
+
+
+def _square(offset: float, blur: float = 1.0, noise: float = 1.0):
+    """A dark square drawn with its four sides moved outwards by `offset` px, and the model's unmoved sides."""
+    x0, y0, x1, y1 = 150.0, 120.0, 450.0, 360.0
+    model = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    img = draw([], [], blur=blur, noise=noise)
+    from verify_drawing import _ccw, _polygon
+
+    cover = np.zeros((H, W))
+    _polygon(cover, _ccw(np.array([(x0 - offset, y0 - offset), (x1 + offset, y0 - offset),
+                                   (x1 + offset, y1 + offset), (x0 - offset, y1 + offset)])))
+    img = np.clip(np.rint(cv2.GaussianBlur((190 - 120 * cover).astype(np.float32), (0, 0), blur)
+                          + np.random.default_rng(3).normal(0, noise, (H, W))), 0, 255).astype(np.uint8)
+    feats = [_Feat(i, [model[i], model[(i + 1) % 4]]) for i in range(4)]
+    return img, _View(feats)
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.25, 0.5, 0.8, 1.7])
+@pytest.mark.parametrize("name,tol", [("canny", 0.06), ("lsd", 0.25)])
+def test_edges_drawn_at_a_known_offset_are_verified_with_that_offset(offset, name, tol):
+    img, view = _square(offset)
+    det = D.BUILTIN[name]
+    found = D.checked(det.detect(img, det.Params()), img.shape, name)
+    r = V.verify_image(view, found, img.shape, V.Settings(), V.ImageResult("x", "left", "0", name, ["a", "b", "c", "d"]))
+    s = r.stats
+    assert (s.verified / s.tested > 0.95).all()
+    # the sides run clockwise in the image (y down), so the outward normal is -n: the offset is -offset
+    assert np.allclose(s.offset_mean, -offset, atol=tol), s.offset_mean
+    assert (s.runs == 1).all()
+
+
+def test_a_missing_edge_and_a_wrong_direction_are_not_verified():
+    img, view = _square(0.0)
+    found = D.Canny.detect(img, D.CannyParams())
+    cross = _View([_Feat(0, [(300, 100), (300, 140)])])  # crosses the top side at right angles
+    r = V.verify_image(cross, found, img.shape, V.Settings(), V.ImageResult("x", "left", "0", "canny", ["a"]))
+    assert r.stats.verified[0] <= 2  # only where it meets the side's own bend, at most
+    far = _View([_Feat(0, [(200, 240), (400, 240)])])  # nothing drawn there
+    r = V.verify_image(far, found, img.shape, V.Settings(), V.ImageResult("x", "left", "0", "canny", ["a"]))
+    assert r.stats.verified[0] == 0 and r.stats.tested[0] > 90
+
+
+def test_corners_are_found_within_the_radius_with_their_error():
+    img = draw([], [np.array([100.0, 100.0]), np.array([300.2, 200.7])], blur=1.0, noise=1.0)
+    found = D.Harris.detect(img, D.CornerParams())
+    fid = np.array([0, 1, 2])
+    uv = np.array([[100.0, 100.0], [303.2, 200.7], [500.0, 400.0]])
+    m = V.match_corners(fid, uv, found.corners, 10.0)
+    assert m.found.tolist() == [True, True, False]
+    assert m.error[0] < 0.3 and abs(m.error[1] - 3.0) < 0.3
+
+
+def test_sampling_covers_each_stroke_evenly():
+    st = V.Strokes(np.array([[0, 0], [10, 0], [10, 10], [5, 5], [5, 5.5]], float), np.array([0, 3, 5]),
+                   np.array([0, 1]), np.array([-1, -1]), np.array([-1, -1]))
+    sm = V.sample_strokes(st, 2.0)
+    assert np.bincount(sm.stroke).tolist() == [10, 1]
+    assert np.allclose(sm.L, [20.0, 0.5])
+    assert ((sm.s >= 0) & (sm.s <= sm.L[sm.stroke])).all()
+    first = sm.stroke == 0
+    assert np.allclose(np.diff(sm.s[first]), 2.0)
+    assert np.allclose(sm.N[first][:5], [0, 1]) and np.allclose(sm.N[first][5:], [-1, 0])
+
+
+# --------------------------------------------------------------------------- the fit on known laws
+
+def _sums_with_shifts(d: np.ndarray, per_image: int = 20) -> list[F.ImageSums]:
+    out = []
+    for k in range(0, len(d), per_image):
+        x = d[k:k + per_image]
+        out.append(F.ImageSums(strokes=len(x), d1=float(x.sum()), d2=float((x * x).sum()), offsets=x.tolist()))
+    return out
+
+
+def test_the_fit_recovers_a_uniform_range_and_tells_uniform_from_normal():
+    rng = np.random.default_rng(5)
+    hits = 0
+    for k in range(40):
+        R = rng.uniform(0.5, 4)
+        f = F.fit(_sums_with_shifts(rng.uniform(-R, R, 400)), seed=k)
+        e = f.get("lateral_shift.range")
+        hits += e.lo <= R <= e.hi
+        assert f.shift_law["better"] == "uniform" or k % 10  # most often: checked on a count below
+    assert hits >= 34  # 95% intervals: 38 expected of 40
+    laws = [F.law_test(rng.normal(0, 1.5, 800))["better"] for _ in range(20)]
+    assert laws.count("normal") >= 18
+    laws = [F.law_test(rng.uniform(-2, 2, 800))["better"] for _ in range(20)]
+    assert laws.count("uniform") >= 18
+
+
+def test_the_fit_recovers_corner_keep_and_mismatch_from_known_draws():
+    rng = np.random.default_rng(9)
+    keep, frac, R, t = 0.8, 0.2, 8.0, 2.0
+    sums = []
+    for _ in range(40):
+        n = 30
+        found = rng.random(n) < keep
+        moved = found & (rng.random(n) < frac)
+        r = R * np.sqrt(rng.random(n))
+        far = moved & (r > t)
+        sums.append(F.ImageSums(corners=n, found=float(found.sum()), displaced=float(far.sum()),
+                                displaced_r=float(r[far].sum())))
+    f = F.fit(sums, seed=1, inlier=t)
+    for key, true in (("corner_loss.keep", keep), ("corner_mismatch.fraction", frac), ("corner_mismatch.radius", R)):
+        e = f.get(key)
+        assert e.lo <= true <= e.hi, (key, e)
+
+
+def test_disc_radius_inverts_the_mean_distance_beyond_the_inlier_radius():
+    rng = np.random.default_rng(2)
+    for R, t in ((10.0, 2.0), (5.0, 1.0), (20.0, 3.0)):
+        r = R * np.sqrt(rng.random(400_000))
+        assert abs(F.disc_radius(np.array([r[r > t].mean()]), t)[0] - R) < 0.02 * R
+
+
+def test_a_statistic_without_data_keeps_the_papers_value_and_says_so():
+    f = F.fit([F.ImageSums(tested=100, verified=80, length=200, lost_middle=40)] * 5, seed=0)
+    text = F.pipeline_text(f, "measured", ["test"])
+    assert "corner_loss keep 85%" in text and "not estimated" in text
+    assert "stereo matcher: no stereo pairs" in text
+    assert f.get("edge_loss.fraction").value == pytest.approx(0.2)
+    raw = F.fit([F.ImageSums(tested=100, verified=70, length=200, lost_middle=40)] * 5, seed=0, edge_loss="raw")
+    assert raw.get("edge_loss.fraction").value == pytest.approx(0.3) and "the gaps alone: 20%" in \
+        raw.get("edge_loss.fraction").note
+
+
+# --------------------------------------------------------------------------- the command
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """The fence scene drawn undisturbed and through its `injected` pipeline (one trial, seed 3)."""
+    scene = wiredsl.compile(FENCE)
+    base = tmp_path_factory.mktemp("verify")
+    for name, pipe in (("ideal", Pipeline(name="none")), ("injected", "injected")):
+        batch = next(wiredsl.simulate(scene, trials=1, seed=3, pipeline=pipe, engine="numpy"))
+        render_records(batch.records(), base / name, blur=1.0, noise=2.0, seed=3)
+    return base
+
+
+def _verify(*args) -> object:
+    return CliRunner().invoke(main, ["verify", str(FENCE), *map(str, args)])
+
+
+def test_verify_writes_the_table_figure7_and_a_pipeline_that_builds(rendered, tmp_path):
+    out = tmp_path / "out"
+    r = _verify("--images", rendered / "injected" / "*.png", "--detector", "canny", "--detector", "harris",
+                "--fit", "-o", out)
+    assert r.exit_code == 0, r.output
+    assert {"verification.csv", "verification.json", "figure7.png", "measured.wd", "fit.json"} <= \
+        {p.name for p in out.iterdir()}
+    doc = json.loads((out / "verification.json").read_text())
+    assert doc["images"] == 10 and doc["rows"]
+    edge = [row for row in doc["rows"] if row["kind"] == "edge"]
+    assert {row["image"].rsplit("/", 1)[1][:5] for row in edge} == {"left_", "right"}
+    assert 0.6 < doc["objects"][0]["verified_fraction"] < 0.85  # 25% injected
+    csv_lines = (out / "verification.csv").read_text().splitlines()
+    assert len(csv_lines) == len(doc["rows"]) + 1 and "nan" not in (out / "verification.csv").read_text().lower()
+    assert CliRunner().invoke(main, ["check", str(out / "measured.wd")]).exit_code == 0
+    assert CliRunner().invoke(main, ["fmt", "--check", str(out / "measured.wd")]).exit_code == 0
+    fit = json.loads((out / "fit.json").read_text())
+    est = {e["parameter"]: e for e in fit["estimates"]}
+    assert est["edge_loss.fraction"]["low95"] <= 0.25 <= est["edge_loss.fraction"]["high95"]
+    scene = tmp_path / "with_measured.wd"
+    scene.write_text(f'wiredsl 1\ninclude "{FENCE.resolve()}"\ninclude "{(out / "measured.wd").resolve()}"\n')
+    b = CliRunner().invoke(main, ["build", str(scene), "--pipeline", "measured", "--seed", "1", "--no-svg", "-o",
+                                  str(tmp_path / "build")])
+    assert b.exit_code == 0, b.output
+    # the same seed gives the same table and fit
+    again = tmp_path / "again"
+    _verify("--images", rendered / "injected" / "*.png", "--detector", "canny", "--detector", "harris", "--fit",
+            "-o", again)
+    assert (again / "measured.wd").read_bytes() == (out / "measured.wd").read_bytes()
+    assert (again / "verification.csv").read_bytes() == (out / "verification.csv").read_bytes()
+
+
+def test_undisturbed_images_verify_almost_whole_and_unshifted(rendered, tmp_path):
+    r = _verify("--images", rendered / "ideal" / "left_*.png", "--detector", "canny", "--detector", "lsd", "--fit",
+                "-o", tmp_path)
+    assert r.exit_code == 0, r.output
+    fit = json.loads((tmp_path / "fit.json").read_text())
+    est = {e["parameter"]: e for e in fit["estimates"]}
+    assert est["edge_loss.fraction"]["value"] < 0.01
+    assert est["lateral_shift.range"]["value"] < 0.1
+    assert abs(fit["lateral_shift_law"]["mean"]) < 0.05  # the verification is unbiased to 0.05 px
+    objects = json.loads((tmp_path / "verification.json").read_text())["objects"]
+    assert {o["detector"] for o in objects} == {"canny", "lsd"}
+    assert all(o["verified_fraction"] > 0.95 for o in objects)
+
+
+def test_poses_from_a_trajectory_file_by_order_and_by_time(rendered, tmp_path):
+    scene = wiredsl.compile(FENCE)
+    mount = scene.rig.left
+    rows_t, rows_o = [], []
+    for k in range(5):
+        from wiredsl.engine.geometry import camera_from_world
+
+        R_cw, t_cw = camera_from_world(scene.path.pose(k), mount.rotation, mount.position)
+        R_wc, p = R_cw.T, -R_cw.T @ t_cw
+        from scipy.spatial.transform import Rotation
+
+        q = Rotation.from_matrix(R_wc).as_quat()
+        rows_t.append(f"{1000 + k * 0.5:.6f} " + " ".join(f"{v:.12f}" for v in (*p, *q)))
+    (tmp_path / "poses.tum").write_text("\n".join(rows_t) + "\n")
+    imgs = tmp_path / "imgs"
+    imgs.mkdir()
+    for k in range(5):
+        (imgs / f"{1000 + k * 0.5:.6f}.png").write_bytes((rendered / "ideal" / f"left_{k:03d}.png").read_bytes())
+    by_time = _verify("--images", imgs / "*.png", "--poses", tmp_path / "poses.tum", "--detector", "canny", "-o",
+                      tmp_path / "t")
+    assert by_time.exit_code == 0, by_time.output
+    doc = json.loads((tmp_path / "t" / "verification.json").read_text())
+    assert "matched by time" in doc["poses"] and doc["objects"][0]["verified_fraction"] > 0.95
+    by_order = _verify("--images", rendered / "ideal" / "left_*.png", "--poses", tmp_path / "poses.tum",
+                       "--match", "order", "--detector", "canny", "-o", tmp_path / "o")
+    assert by_order.exit_code == 0, by_order.output
+    assert json.loads((tmp_path / "o" / "verification.json").read_text())["objects"][0]["verified_fraction"] > 0.95
+    short = tmp_path / "short.tum"
+    short.write_text("\n".join(rows_t[:3]) + "\n")
+    r = _verify("--images", rendered / "ideal" / "left_*.png", "--poses", short, "--match", "order", "--detector",
+                "canny", "-o", tmp_path / "s")
+    assert r.exit_code == 1 and f"{short}:3:1: error[E192]" in r.stderr and "3 poses for 5 frames" in r.stderr
+
+
+# --------------------------------------------------------------------------- bad input
+
+def _png(width: int, height: int) -> bytes:
+    """A PNG header (signature and IHDR) of any size, with no image data."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+
+
+@pytest.mark.parametrize("case,code,words", [
+    ("empty", "E190", "empty"),
+    ("text", "E190", "not a PNG"),
+    ("huge_header", "E190", "30000 x 30000"),
+    ("truncated_jpeg", "E190", "truncated"),
+    ("corrupt_png", "E190", "cannot be decoded"),
+    ("wrong_size", "E191", "320 x 240 but its camera's image is 640 x 480"),
+])
+def test_hostile_images_give_a_located_diagnostic_never_exit_3(rendered, tmp_path, case, code, words):
+    good = (rendered / "ideal" / "left_000.png").read_bytes()
+    ok, jpeg = cv2.imencode(".jpg", cv2.imread(str(rendered / "ideal" / "left_000.png")))
+    data = {"empty": b"", "text": b"hello, not an image\n", "huge_header": _png(30000, 30000),
+            "truncated_jpeg": jpeg.tobytes()[: len(jpeg) // 2], "corrupt_png": good[:40] + b"\x00" * 200,
+            "wrong_size": cv2.imencode(".png", np.zeros((240, 320), np.uint8))[1].tobytes()}[case]
+    path = tmp_path / ("left_000.jpg" if "jpeg" in case else "left_000.png")
+    path.write_bytes(data)
+    r = _verify("--images", path, "--detector", "canny", "-o", tmp_path / "out")
+    assert r.exit_code == 1, r.output
+    assert f"{path}:1:1: error[{code}]" in r.stderr and words in r.stderr, r.stderr
+    assert "Traceback" not in r.output and not (tmp_path / "out" / "verification.csv").exists()
+
+
+def test_a_16_bit_image_is_scaled_with_a_warning(rendered, tmp_path):
+    img = cv2.imread(str(rendered / "ideal" / "left_000.png"), cv2.IMREAD_UNCHANGED).astype(np.uint16) * 257
+    path = tmp_path / "left_000.png"
+    cv2.imwrite(str(path), img)
+    r = _verify("--images", path, "--detector", "canny", "-o", tmp_path / "out")
+    assert r.exit_code == 0, r.output
+    assert "warning[W190]" in r.stderr and "16-bit" in r.stderr
+
+
+def test_no_image_an_unknown_camera_and_an_unknown_detector_are_refused(tmp_path, rendered):
+    r = _verify("--images", tmp_path / "none*.png", "--detector", "canny", "-o", tmp_path / "out")
+    assert r.exit_code == 1 and "error[E193]" in r.stderr and "no image matches" in r.stderr
+    odd = tmp_path / "middle_001.png"
+    odd.write_bytes((rendered / "ideal" / "left_000.png").read_bytes())
+    r = _verify("--images", odd, "--detector", "canny", "-o", tmp_path / "out")
+    assert r.exit_code == 1 and "cannot tell which camera took middle_001.png" in r.stderr
+    r = _verify("--images", odd, "--camera", "left", "--detector", "sobel", "-o", tmp_path / "out")
+    assert r.exit_code == 2 and "unknown detector 'sobel'" in r.output
+    r = _verify("--images", odd, "--camera", "left", "--detector", "canny", "--param", "canny.lowest=3", "-o",
+                tmp_path / "out")
+    assert r.exit_code == 2 and "no parameter 'lowest'" in r.output
+
+
+def test_image_headers_give_format_and_size_without_decoding():
+    assert I.header(_png(30000, 20000)) == I.Header("png", 30000, 20000)
+    ok, jpeg = cv2.imencode(".jpg", np.zeros((48, 64), np.uint8))
+    assert I.header(jpeg.tobytes()) == I.Header("jpeg", 64, 48)
+    ok, bmp = cv2.imencode(".bmp", np.zeros((5, 7), np.uint8))
+    assert I.header(bmp.tobytes()) == I.Header("bmp", 7, 5)
+    assert I.header(b"P5\n# c\n12 9\n255\n" + bytes(108)) == I.Header("pnm", 12, 9)
+    assert I.header(b"GIF89a") is None
+
+
+# --------------------------------------------------------------------------- a plug-in detector
+
+PLUGIN = '''
+import numpy as np
+from wiredsl.verify.detectors import Detection, Detector, DetectorParams
+
+
+class Params(DetectorParams):
+    threshold: float = 20.0
+
+
+class Gradient(Detector):
+    name = "gradient_edges"
+    doc = "edges where a central-difference gradient is strong (a test plug-in)"
+    Params = Params
+
+    @classmethod
+    def detect(cls, image, p):
+        img = image.astype(np.float32)
+        gx = np.zeros_like(img); gy = np.zeros_like(img)
+        gx[:, 1:-1] = (img[:, 2:] - img[:, :-2]) / 2
+        gy[1:-1, :] = (img[2:, :] - img[:-2, :]) / 2
+        m = np.hypot(gx, gy)
+        # thin: a pixel whose magnitude is a maximum along x or y
+        peak = np.zeros_like(m, bool)
+        peak[1:-1, 1:-1] = ((m[1:-1, 1:-1] >= m[1:-1, :-2]) & (m[1:-1, 1:-1] >= m[1:-1, 2:]) & (np.abs(gx[1:-1, 1:-1]) >= np.abs(gy[1:-1, 1:-1]))) | ((m[1:-1, 1:-1] >= m[:-2, 1:-1]) & (m[1:-1, 1:-1] >= m[2:, 1:-1]) & (np.abs(gy[1:-1, 1:-1]) > np.abs(gx[1:-1, 1:-1])))
+        return Detection(edges=peak & (m > p.threshold), gx=gx, gy=gy)
+
+
+class Broken(Detector):
+    name = "broken_edges"
+    doc = "returns the wrong shape"
+
+    @classmethod
+    def detect(cls, image, p):
+        return Detection(edges=np.zeros((3, 3), bool), gx=np.zeros((3, 3)), gy=np.zeros((3, 3)))
+'''
+
+
+def test_a_plugin_detector_is_loaded_by_name_and_verified_like_canny(tmp_path, monkeypatch, rendered):
+    entry = "[wiredsl.detectors]\ngradient_edges = wdetect:Gradient\nbroken_edges = wdetect:Broken\n"
+    monkeypatch.syspath_prepend(str(make_dist(tmp_path / "site", "wdetect", PLUGIN, entry)))
+    plugins.rescan()
+    try:
+        r = _verify("--images", rendered / "ideal" / "left_00[01].png", "--detector", "gradient_edges", "--param",
+                    "threshold=15", "-o", tmp_path / "out")
+        assert r.exit_code == 0, r.output
+        doc = json.loads((tmp_path / "out" / "verification.json").read_text())
+        assert doc["detectors"] == [{"name": "gradient_edges", "params": {"threshold": 15.0}}]
+        assert doc["objects"][0]["verified_fraction"] > 0.9
+        r = _verify("--images", rendered / "ideal" / "left_000.png", "--detector", "broken_edges", "-o",
+                    tmp_path / "bad")
+        assert r.exit_code == 1 and "error[E181]" in r.stderr and "wdetect" in r.stderr, r.output
+        listed = CliRunner().invoke(main, ["plugins"])
+        assert "detector\tgradient_edges\twdetect 0.3\twdetect:Gradient\tok" in listed.output, listed.output
+    finally:
+        plugins.rescan()
+
+
+def test_verifying_one_image_costs_little(rendered):
+    """Not a timing test (benchmarks/verify_speed.py measures): the work is vectorised, a few array passes."""
+    img = cv2.imread(str(rendered / "ideal" / "left_000.png"), cv2.IMREAD_GRAYSCALE)
+    scene = wiredsl.compile(FENCE)
+    from wiredsl.engine.simulate import Options, project_pose
+    from wiredsl.engine.world import build_world
+
+    world = build_world(scene)
+    view = project_pose(scene, world, scene.path.pose(0), 0, Options(visibility="exact")).left
+    found = D.Canny.detect(img, D.CannyParams())
+    r = V.verify_image(view, found, img.shape, V.Settings(), V.ImageResult("x", "left", "0", "canny",
+                                                                             world.feature_ids))
+    assert r.samples == r.stats.tested.sum() > 500
+    assert math.isfinite(float(np.nanmean(r.stats.offset_mean)))
+
+
+def test_refine_moves_wrong_poses_onto_the_edges_and_says_how_far(rendered, tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    from wiredsl.engine.geometry import camera_from_world
+
+    scene = wiredsl.compile(FENCE)
+    rng = np.random.default_rng(0)
+    rows = []
+    for k in range(3):
+        R_cw, t_cw = camera_from_world(scene.path.pose(k), scene.rig.left.rotation, scene.rig.left.position)
+        R_wc = R_cw.T @ Rotation.from_rotvec(rng.normal(0, 0.002, 3)).as_matrix()
+        p = -R_cw.T @ t_cw + rng.normal(0, 0.01, 3)
+        rows.append(f"{k} " + " ".join(f"{v:.12f}" for v in (*p, *Rotation.from_matrix(R_wc).as_quat())))
+    (tmp_path / "off.tum").write_text("\n".join(rows) + "\n")
+    args = ["--images", rendered / "ideal" / "left_00[012].png", "--poses", tmp_path / "off.tum", "--match", "order",
+            "--detector", "canny", "--fit"]
+    plain = _verify(*args, "-o", tmp_path / "plain")
+    refined = _verify(*args, "--refine", "-o", tmp_path / "refined")
+    assert plain.exit_code == 0 and refined.exit_code == 0, refined.output
+    moved = json.loads((tmp_path / "refined" / "verification.json").read_text())["refined"]
+    assert len(moved) == 3
+    for m in moved:
+        assert m["rms_offset_after_px"] < 0.2 < 0.3 < m["rms_offset_before_px"]
+        assert 0.005 < m["rotation_deg"] < 1 and m["translation"] < 0.05
+    shift = {p: json.loads((tmp_path / p / "fit.json").read_text())["lateral_shift_law"]["rms"]
+             for p in ("plain", "refined")}
+    assert shift["refined"] < 0.1 < shift["plain"]
+    assert "refined 3 poses" in refined.stderr
+
+
+def test_board_poses_verify_a_rendered_chessboard_and_a_missing_board_is_an_error(tmp_path):
+    from test_board import BOARD, CHESS
+
+    scene = tmp_path / "boards.wd"
+    scene.write_text(BOARD.format(board=CHESS))
+    r = CliRunner().invoke(main, ["render", str(scene), "-o", str(tmp_path / "r"), "--edges", "none", "--blur", "0.7",
+                                  "--noise", "1", "--seed", "1"])
+    assert r.exit_code == 0, r.output
+    v = CliRunner().invoke(main, ["verify", str(scene), "--images", str(tmp_path / "r" / "*.png"), "--poses", "board",
+                                  "--detector", "canny", "--detector", "harris", "--fit", "-o", str(tmp_path / "v")])
+    assert v.exit_code == 0, v.output
+    doc = json.loads((tmp_path / "v" / "verification.json").read_text())
+    assert doc["poses"].startswith("the scene's board") and doc["objects"][0]["verified_fraction"] > 0.8
+    fit = {e["parameter"]: e for e in json.loads((tmp_path / "v" / "fit.json").read_text())["estimates"]}
+    assert fit["corner_loss.keep"]["value"] > 0.97 and fit["lateral_shift.range"]["value"] < 0.3
+    assert json.loads((tmp_path / "v" / "fit.json").read_text())["stereo_matcher"]["matched"] > 100
+    blank = tmp_path / "blank"
+    blank.mkdir()
+    for k in range(2):
+        cv2.imwrite(str(blank / f"left_{k:03d}.png"), np.full((480, 640), 128, np.uint8))
+    e = CliRunner().invoke(main, ["verify", str(scene), "--images", str(blank / "*.png"), "--poses", "board",
+                                  "--detector", "canny", "-o", str(tmp_path / "e")])
+    assert e.exit_code == 1 and "error[E197]" in e.stderr and "found in 0 of 2 frames" in e.stderr, e.output
+
+
+def test_opencvs_stereo_chessboard_images_verify_with_canny_lsd_and_harris(tmp_path):
+    """Real images (tests/data/opencv_stereo/, 13 pairs) with poses from the board: most edges and corners found."""
+    r = CliRunner().invoke(main, ["verify", "scenes/chessboard.wd", "--images", "tests/data/opencv_stereo/*.jpg",
+                                  "--poses", "board", "--detector", "canny", "--detector", "lsd", "--detector",
+                                  "harris", "--fit", "-o", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    objects = {o["detector"]: o for o in json.loads((tmp_path / "verification.json").read_text())["objects"]}
+    assert objects["canny"]["images"] == 26 and 0.8 < objects["canny"]["verified_fraction"] < 0.95
+    assert 0.85 < objects["lsd"]["verified_fraction"] < 0.97
+    fit = json.loads((tmp_path / "fit.json").read_text())
+    est = {e["parameter"]: e for e in fit["estimates"]}
+    assert est["corner_loss.keep"]["value"] > 0.98
+    assert 0 < est["lateral_shift.range"]["value"] < 2 and fit["stereo_matcher"]["matched"] > 500
+    assert CliRunner().invoke(main, ["check", str(tmp_path / "measured.wd")]).exit_code == 0
+
+
+def test_frames_pair_the_cameras_images_by_the_number_in_their_names(tmp_path):
+    rig = wiredsl.compile(FENCE).rig
+    for name in ("left_003.png", "right_003.png", "left_010.png", "right01.png"):
+        (tmp_path / name).write_bytes(b"")
+    frames = I.frames_of([(str(tmp_path / "*.png"), None)], rig)
+    assert [(str(f.key), sorted(f.images)) for f in frames] == [("1", ["right"]), ("3", ["left", "right"]),
+                                                                ("10", ["left"])]
+    (tmp_path / "t").mkdir()
+    (tmp_path / "t" / "1305031102.175304.png").write_bytes(b"")
+    (frame,) = I.frames_of([(str(tmp_path / "t" / "*.png"), "right")], rig)
+    assert str(frame.key) == "1305031102.175304" and list(frame.images) == ["right"]

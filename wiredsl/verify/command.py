@@ -1,0 +1,301 @@
+"""`wiredsl verify`: images in, detectors run, the projected scene verified, the table, Figure 7 and (--fit) the
+fitted pipeline out. Images are read one frame at a time (a stereo pair at most), so memory does not grow
+with the number of images."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from wiredsl.diagnostics import Diagnostic, WiredslError
+from wiredsl.verify import fit as fitting
+from wiredsl.verify import images as im
+from wiredsl.verify import report
+from wiredsl.verify import verification as ver
+from wiredsl.verify.detectors import Detection, checked, params_of, registry
+
+
+@dataclass
+class Request:
+    scene: str
+    images: list[tuple[str, str | None]]  # (glob, camera or None)
+    detectors: list[str]
+    params: list[str] = field(default_factory=list)
+    poses: str = "path"  # path | board | FILE
+    pose_format: str | None = None
+    match: str = "auto"
+    settings: ver.Settings = field(default_factory=ver.Settings)
+    fit: bool = False
+    seed: int = 0
+    pipeline_name: str = "measured"
+    refine: bool = False
+    plot_format: str = "png"
+    edge_loss: str = "gaps"  # gaps | raw: see fit.fit
+
+
+@dataclass
+class Outcome:
+    written: list[str]
+    fit: fitting.Fit | None
+    frames: int
+    images: int
+    warnings: list[Diagnostic]
+    summary: list[dict]
+    notes: list[str]
+    refined: list[dict] = field(default_factory=list)
+
+
+def _detectors(names: list[str], params: list[str]):
+    """[(name, class, params)] for --detector names and --param [DET.]KEY=VALUE pairs (usage errors raised as
+    ValueError)."""
+    from wiredsl.plugins import lookup
+
+    reg = registry()
+    chosen = []
+    for name in names:
+        cls, why = lookup(reg, name)
+        if cls is None:
+            if why:
+                raise WiredslError([Diagnostic("error", "E180", why, None)])
+            raise ValueError(f"unknown detector {name!r}: built in are {', '.join(reg.builtins)}; a plug-in is an "
+                             "installed entry point of the group wiredsl.detectors")
+        chosen.append((name, cls))
+    out = []
+    used = set()
+    for name, cls in chosen:
+        mine = []
+        for k, pair in enumerate(params):
+            key = pair.partition("=")[0].strip()
+            det, dot, bare = key.rpartition(".")
+            if dot and det == name:
+                mine.append(f"{bare}={pair.partition('=')[2]}")
+                used.add(k)
+            elif not dot and key.replace("-", "_") in cls.Params.model_fields:
+                mine.append(pair)
+                used.add(k)
+        out.append((name, cls, params_of(cls, mine)))
+    unused = [params[k] for k in range(len(params)) if k not in used]
+    if unused:
+        raise ValueError(f"--param {unused[0]!r} matches no parameter of the detectors "
+                         f"({', '.join(n for n, _ in chosen)})")
+    return out
+
+
+def sums_of(results: list[ver.ImageResult], cfg: ver.Settings, edge_det: str | None,
+            corner_det: str | None) -> fitting.ImageSums:
+    """What one image (its results by detector) gives the fit: the first edge and the first corner detector."""
+    s = fitting.ImageSums()
+    for r in results:
+        if r.detector == edge_det and r.stats is not None:
+            st = r.stats
+            s.tested, s.verified = float(st.tested.sum()), float(st.verified.sum())
+            s.length, s.lost_middle, s.lost_ends = (float(st.tested_length.sum()), float(st.lost_middle.sum()),
+                                                    float(st.lost_ends.sum()))
+            s.ends, s.gap_ends = float(st.ends.sum()), float(st.gap_ends.sum())
+            ok = st.run_n >= fitting.MIN_STROKE_SAMPLES
+            d = st.run_mean[ok]
+            s.strokes, s.d1, s.d2, s.offsets = int(ok.sum()), float(d.sum()), float((d * d).sum()), d.tolist()
+            s.noise = float(np.nansum(st.run_noise[ok]))
+            tested = st.tested > 0
+            s.runs, s.run_strokes = float(st.runs[tested].sum()), int(tested.sum())
+            e = st.run_end_diff[np.isfinite(st.run_end_diff)]
+            s.fitted, s.fitted2 = len(e), float((e * e).sum())
+        if r.detector == corner_det and r.corners is not None:
+            c = r.corners
+            s.corners, s.found = float(len(c.fid)), float(c.found.sum())
+            far = c.found & (c.error > cfg.inlier)
+            s.displaced, s.displaced_r = float(far.sum()), float(c.error[far].sum())
+            if r.stereo is not None:
+                s.matched, s.wrong = float(len(r.stereo[1])), float(r.stereo[1].sum())
+    return s
+
+
+def run(req: Request, out: Path, progress=None) -> Outcome:
+    from wiredsl.engine import occlusion
+    from wiredsl.engine.simulate import Options, project_pose, project_view, require_buildable
+    from wiredsl.engine.world import build_world
+    from wiredsl.language.compile import compile_file
+
+    scene, warnings, program = compile_file(req.scene)
+    require_buildable(scene, path=req.poses == "path")
+    dets = _detectors(req.detectors, req.params)
+    frames = im.frames_of(req.images, scene.rig)
+    if req.poses == "path":
+        im.assign_path(frames, scene)
+        pose_note = "the scene's path, in name order"
+    elif req.poses == "board":
+        pose_note, frames = _board_poses(frames, scene, warnings)
+    else:
+        side = _pose_side(frames)
+        match = im.assign_file(frames, scene, req.poses, req.pose_format, req.match, side)
+        pose_note = f"{req.poses} ({req.pose_format or 'format from its content'}, matched by {match}; the poses " \
+                    f"of the {side} camera)"
+    world = build_world(scene)
+    occluders = occlusion.Occluders.of_world(world)
+    opts = Options(visibility="exact")
+    cfg = req.settings
+    edge_det = next((n for n, c, _ in dets if c.finds == "edges"), None)
+    corner_det = next((n for n, c, _ in dets if c.finds == "corners"), None)
+    rows: list[tuple] = []
+    fractions = report.ObjectFractions()
+    sums: list[fitting.ImageSums] = []
+    notes: set[str] = set()
+    refined: list[dict] = []
+    n_images = 0
+    for i, frame in enumerate(frames):
+        im.check_finite_pose(frame)
+        pose = project_pose(scene, world, frame.pose, i, opts, occluders=occluders)
+        views = {"left": pose.left, "right": pose.right}
+        per_side: dict[str, tuple] = {}
+        for side, path in frame.images.items():
+            view = views[side]
+            cam = view.camera
+            grey = im.read_grey(path, cam.width, cam.height, warnings)
+            found = {}
+            for name, cls, params in dets:
+                found[name] = _detect(cls, name, grey, params)
+                if found[name].note:
+                    notes.add(f"{name}: {found[name].note}")
+            if req.refine and edge_det is not None:
+                from wiredsl.verify import refine
+
+                def project(R, t, cam=cam):
+                    return project_view(world, cam, R, t, world.mask(None), opts.tolerance, occluders)
+
+                view, moved = refine.refine_view(project, view, found[edge_det], grey.shape, cfg)
+                refined.append({"image": path, **moved})
+            results = [ver.verify_image(view, found[name], grey.shape, cfg,
+                                        ver.ImageResult(path, side, frame.label, name, world.feature_ids))
+                       for name, _, _ in dets]
+            per_side[side] = (grey if corner_det is not None and len(frame.images) == 2 else None, found, results)
+            n_images += 1
+        if corner_det is not None and len(per_side) == 2:
+            (gl, fl, rl), (gr, fr_, rr) = per_side["left"], per_side["right"]
+            lm = next(r for r in rl if r.detector == corner_det).corners
+            rm = next(r for r in rr if r.detector == corner_det).corners
+            left_res = next(r for r in rl if r.detector == corner_det)
+            left_res.stereo = ver.stereo_mismatches(gl, gr, lm, rm, fl[corner_det].corners, fr_[corner_det].corners,
+                                                    cfg.radius)
+        for side, (_, _, results) in per_side.items():
+            for r in results:
+                rows.extend(report.rows_of(r))
+                fractions.add(r)
+            sums.append(sums_of(results, cfg, edge_det, corner_det))
+        if progress is not None:
+            progress(i + 1, len(frames))
+    out.mkdir(parents=True, exist_ok=True)
+    summary = fractions.summary()
+    meta = {"scene": str(req.scene), "images": n_images, "frames": len(frames), "poses": pose_note,
+            "detectors": [{"name": n, "params": p.model_dump()} for n, _, p in dets],
+            "settings": {"step_px": cfg.step, "band_px": cfg.band, "angle_deg": float(np.degrees(cfg.angle)),
+                         "corner_radius_px": cfg.radius, "corner_inlier_px": cfg.inlier},
+            "objects": summary, "notes": sorted(notes), "refined": refined}
+    written = report.write_table(out, rows, meta)
+    caption = (f"{Path(req.scene).name}; {n_images} images; detectors {', '.join(n for n, _, _ in dets)}; "
+               f"samples every {cfg.step:g} px, searched +-{cfg.band:g} px, gradient within "
+               f"{np.degrees(cfg.angle):.0f} deg")
+    if summary:
+        name = f"figure7.{req.plot_format}"
+        report.figure7(fractions, out / name, caption, req.plot_format)
+        written.append(name)
+    result = None
+    if req.fit:
+        from wiredsl.io.files import json_text, write_atomic
+
+        result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss)
+        det_text = "; ".join(f"{n} ({', '.join(f'{k} {v}' for k, v in p.model_dump().items())})" for n, _, p in dets)
+        provenance = [f"Fitted by `wiredsl verify` from {n_images} images of {len(frames)} frames "
+                      f"({', '.join(g for g, _ in req.images)}) against {Path(req.scene).name}.",
+                      f"Detectors: {det_text}.", f"Poses: {pose_note}.",
+                      f"Intervals: 95% bootstrap over images ({fitting.B} resamples, seed {req.seed}; percentiles widened "
+                      "by sqrt(n / (n - 1)) t / z for n images).",
+                      "Include this file in the scene and build with --pipeline " + req.pipeline_name + "."]
+        text = fitting.pipeline_text(result, req.pipeline_name, provenance)
+        write_atomic(out / f"{req.pipeline_name}.wd", text)
+        write_atomic(out / "fit.json", json_text({**result.to_json(), "seed": req.seed, "bootstrap": fitting.B},
+                                                 indent=1))
+        written += [f"{req.pipeline_name}.wd", "fit.json"]
+    return Outcome(written, result, len(frames), n_images, warnings, summary, sorted(notes), refined)
+
+
+def _detect(cls, name: str, grey: np.ndarray, params) -> Detection:
+    from wiredsl.verify.detectors import BUILTIN
+
+    try:
+        det = cls.detect(grey, params)
+        return checked(det, grey.shape, name)
+    except (ValueError, TypeError, ArithmeticError, IndexError, KeyError, AttributeError) as exc:
+        if name in BUILTIN:
+            raise
+        from wiredsl.plugins import failure
+
+        raise failure("detector", name, registry(), f"failed: {type(exc).__name__}: {exc}") from None
+
+
+def _pose_side(frames: list[im.Frame]) -> str:
+    """The camera a pose file's poses are of: the left, unless every image is the right camera's."""
+    return "right" if all(set(f.images) == {"right"} for f in frames) else "left"
+
+
+def _board_poses(frames: list[im.Frame], scene, warnings: list[Diagnostic]) -> tuple[str, list[im.Frame]]:
+    """`--poses board`: each frame's pose from the board in its left image (its right one in a right-only
+    frame), found by board.py (solvePnP with the scene's camera). Frames without the board are left out with a
+    warning (W196); a board found in fewer than half of the frames is E197. One image is read at a time."""
+    from wiredsl.verify import board
+
+    kept, missed = [], []
+    for frame in frames:
+        side = "left" if "left" in frame.images else "right"
+        path = frame.images[side]
+        cam = scene.camera(getattr(scene.rig, side).camera)
+        grey = im.read_grey(path, cam.width, cam.height, warnings)
+        try:
+            found = board.board_poses(scene, [(path, grey)], side, least=0.0)
+        except WiredslError as err:  # not found in this one image: its warning, and the frame is left out
+            if any(d.severity == "error" and d.code != "E197" for d in err.diagnostics):
+                raise
+            warnings.extend(d for d in err.diagnostics if d.severity == "warning")
+            missed.append(path)
+            continue
+        pose = found.poses[0]
+        if pose.found and pose.robot_pose is not None:
+            frame.pose = pose.robot_pose
+            frame.pose_from = f"board in {path} (reprojection {pose.rms:.3g} px rms)"
+            kept.append(frame)
+        else:
+            warnings.extend(found.diagnostics)
+            missed.append(path)
+    if not kept or len(kept) < board.LEAST_FRACTION * len(frames):
+        shown = ", ".join(Path(m).name for m in missed[:5]) + (", ..." if len(missed) > 5 else "")
+        raise WiredslError([*warnings, Diagnostic(
+            "error", "E197", f"the board is found in {len(kept)} of {len(frames)} frames (at least half needed); "
+            f"not in: {shown}", None, "check the board's size in the scene (inner corners across and down), the "
+            "lighting, and that the whole board is in view")])
+    return f"the scene's board, by solvePnP ({len(kept)} of {len(frames)} frames)", kept
+
+
+def progress_printer(stream=None):
+    """A progress bar on stderr (a terminal: redrawn in place; otherwise a line every 10%)."""
+    stream = stream or sys.stderr
+    tty = stream.isatty()
+    state = {"last": -1}
+
+    def show(done: int, total: int) -> None:
+        if tty:
+            width = 30
+            k = int(width * done / total)
+            stream.write(f"\rverify [{'#' * k}{'.' * (width - k)}] {done}/{total} frames")
+            if done == total:
+                stream.write("\n")
+            stream.flush()
+        else:
+            tenth = 10 * done // total
+            if tenth != state["last"] and (tenth > state["last"]):
+                state["last"] = tenth
+                if total >= 20:
+                    stream.write(f"verify: {done}/{total} frames\n")
+
+    return show

@@ -1,0 +1,370 @@
+"""Each effect's parameters estimated from the verification, with 95% bootstrap intervals over images, written
+as a pipeline block (`pipeline measured { ... }`) that a scene includes.
+
+Per image the verification leaves a few sums (`ImageSums`); a statistic is a ratio of weighted sums, so a
+bootstrap replicate is the image weights of a multinomial resample (B x images) times those sums: every
+replicate costs one matrix product, whatever the number of images. The resamples are drawn from a generator
+keyed by the seed and the statistic's name (the same seed gives the same intervals).
+
+- edge_loss.fraction = the length lost in the strokes' middles less the detector's own loss at an edge's end
+  (measured at the model strokes' ends) at each end of each gap, over the length tested; its interval is
+  widened by END_DOUBT of that correction. The fragments (verified runs per stroke) are reported beside it:
+  the effect removes one gap a stroke, so it leaves 2 runs.
+- lateral_shift.range: the mean offsets d of the fragments the detector found (runs of verified samples;
+  the effect shifts each fragment edge_loss leaves on its own) are taken as the effect's shifts, uniform on
+  [-range, range]: range = sqrt(3 (var(d) - noise)), with noise the mean measurement variance of a fragment's
+  mean (its samples' scatter about a line fitted to them, over their number); their mean is reported apart. Which law fits d better, uniform or normal (sigma^2 =
+  mean(d^2)), is decided by the Kolmogorov-Smirnov statistic (smaller D; both laws' parameters estimated from
+  the same d, so the p-values are optimistic), with the log-likelihoods beside it.
+- approx_error.sigma: a line fitted to each stroke's verified offsets along it gives the offsets e0, e1 of
+  its two ends; the effect moves each end by N(0, sigma^2) in each direction after one shift of the whole
+  stroke, so e1 - e0 ~ N(0, 2 sigma^2): sigma = sqrt(mean((e1 - e0)^2) / 2).
+- corner_loss.keep = model corners with a detected corner within the radius / model corners (corner detector).
+- corner_mismatch: a found corner farther than `inlier` px from the model's is displaced. The effect moves a
+  fraction of corners to a uniform point of the disc of `radius`; a move shorter than `inlier` is not seen,
+  so radius R solves E[r | r > t] = (2/3)(R^3 - t^3)/(R^2 - t^2) at the displaced corners' mean distance and
+  fraction = displaced / found / (1 - (t/R)^2). In stereo pairs the matcher's wrong-pair rate is reported too.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+B = 1000  # bootstrap resamples
+PAPER = {"edge_loss.fraction": 0.29, "lateral_shift.range": 3.0, "approx_error.sigma": 0.15,
+         "corner_loss.keep": 0.85, "corner_mismatch.fraction": 0.01, "corner_mismatch.radius": 10.0}
+# The edge-loss correction takes a gap's ends to lose what a model stroke's ends lose. In the round trip
+# (tests/test_verify_roundtrip.py) the two differ by up to about a fifth of the correction, so its interval is
+# widened by this share of the correction either way.
+END_DOUBT = 0.25
+MIN_STROKE_SAMPLES = 5  # verified samples a stroke needs for its mean offset to count
+MIN = {"edges": 20, "strokes": 5, "corners": 10, "displaced": 3}  # below these a statistic is not estimated
+
+
+@dataclass
+class ImageSums:
+    """What one image contributes to the fit."""
+
+    tested: float = 0.0  # samples
+    verified: float = 0.0
+    length: float = 0.0  # px of stroke tested
+    lost_middle: float = 0.0  # px lost farther than the margin from the strokes' ends
+    lost_ends: float = 0.0  # px lost within it
+    ends: float = 0.0  # stroke ends tested
+    gap_ends: float = 0.0  # ends of the gaps in the middles
+    strokes: int = 0  # runs (fragments) with enough verified samples for a mean offset
+    d1: float = 0.0  # sum of their mean offsets
+    d2: float = 0.0  # sum of their squared mean offsets
+    noise: float = 0.0  # sum of their means' measurement variances
+    offsets: list = field(default_factory=list)  # their mean offsets
+    runs: float = 0.0
+    run_strokes: int = 0
+    fitted: int = 0  # runs with a fitted line
+    fitted2: float = 0.0  # sum of (e1 - e0)^2
+    corners: float = 0.0  # model corners tested
+    found: float = 0.0
+    displaced: float = 0.0
+    displaced_r: float = 0.0  # sum of their distances
+    loc2: float = 0.0  # sum of squared localisation errors of undisplaced found corners
+    matched: float = 0.0  # stereo matcher
+    wrong: float = 0.0
+
+
+@dataclass
+class Estimate:
+    key: str  # stage.param
+    value: float | None  # None: not estimated (the paper's value is kept)
+    lo: float | None = None
+    hi: float | None = None
+    note: str = ""
+
+    @property
+    def used(self) -> float:
+        return self.value if self.value is not None else PAPER[self.key]
+
+    def to_json(self) -> dict:
+        return {"parameter": self.key, "value": self.value, "low95": self.lo, "high95": self.hi,
+                "paper": PAPER.get(self.key), "used": self.used if self.key in PAPER else self.value,
+                "note": self.note}
+
+
+def _weights(n: int, seed: int, name: str) -> np.ndarray:
+    rng = np.random.default_rng([seed, zlib.crc32(name.encode())])
+    return rng.multinomial(n, np.full(n, 1.0 / n), size=B).astype(float)
+
+
+def _interval(reps: np.ndarray, value: float | None = None, n: int | None = None
+              ) -> tuple[float | None, float | None]:
+    """The 2.5% and 97.5% quantiles of the replicates; with the estimate and the number of images n, the
+    replicates' spread about the estimate is first widened by sqrt(n / (n - 1)) t(n - 1) / z: the bootstrap's
+    variance of a mean is (n - 1) / n of the usual estimate, and with an estimated spread Student's t, not the
+    normal z, gives 95% (with few images the plain percentiles cover about 90%)."""
+    reps = reps[np.isfinite(reps)]
+    if len(reps) < B // 2:
+        return None, None
+    if value is not None and n is not None and n > 1 and math.isfinite(value):
+        from scipy import stats
+
+        widen = math.sqrt(n / (n - 1)) * float(stats.t.ppf(0.975, n - 1)) / float(stats.norm.ppf(0.975))
+        reps = value + (reps - value) * widen
+    lo, hi = np.quantile(reps, [0.025, 0.975])
+    return max(float(lo), 0.0), float(hi)  # every parameter is >= 0 (fractions are clipped to 1 by callers)
+
+
+def _ratio(num: np.ndarray, den: np.ndarray, seed: int, name: str, fn=lambda r: r, fraction: bool = True):
+    """(value, lo, hi) of fn(sum num / sum den) over images, and its bootstrap."""
+    total = den.sum()
+    if total <= 0:
+        return None, None, None
+    value = float(fn(num.sum() / total))
+    W = _weights(len(num), seed, name)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        reps = fn((W @ num) / (W @ den))
+    lo, hi = _interval(np.asarray(reps, float), value, int((den > 0).sum()))
+    if hi is not None and fraction:
+        hi = min(hi, 1.0)
+    return value, lo, hi
+
+
+def _edge_loss(col, seed: int):
+    """(fraction, lo, hi, end loss px): the lost length in the strokes' middles less the detector's own end loss
+    at each gap end, over the tested length."""
+
+    def value(lost_mid, lost_ends, ends, gap_ends, length):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            end = np.where(ends > 0, lost_ends / np.maximum(ends, 1), 0.0)
+            return np.clip((lost_mid - end * gap_ends) / length, 0.0, 1.0), end
+
+    keys = ("lost_middle", "lost_ends", "ends", "gap_ends", "length")
+    f, end = value(*(col[k].sum() for k in keys))
+    W = _weights(len(col["length"]), seed, "edge_loss.fraction")
+    reps, _ = value(*(W @ col[k] for k in keys))
+    lo, hi = _interval(np.asarray(reps, float), float(f), int((col["length"] > 0).sum()))
+    if lo is not None:  # the correction's own assumption, that a gap's end loses what a stroke's end does
+        s = END_DOUBT * float(end) * col["gap_ends"].sum() / col["length"].sum()
+        lo, hi = max(lo - s, 0.0), hi + s
+    return float(f), lo, None if hi is None else min(hi, 1.0), float(end)
+
+
+def _shift_range(col, seed: int):
+    """(range, lo, hi): sqrt(3 v) with v the fragments' mean offsets' variance about their mean, less their
+    measurement variance (from each fragment's scatter about its fitted line)."""
+
+    def value(n, d1, d2, noise):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            m = d1 / n
+            return np.sqrt(3 * np.maximum(d2 / n - m * m - noise / n, 0.0))
+
+    keys = ("strokes", "d1", "d2", "noise")
+    f = value(*(col[k].sum() for k in keys))
+    W = _weights(len(col["strokes"]), seed, "lateral_shift.range")
+    lo, hi = _interval(np.asarray(value(*(W @ col[k] for k in keys)), float), float(f),
+                       int((col["strokes"] > 0).sum()))
+    return float(f), lo, hi
+
+
+def disc_radius(mean_r: np.ndarray, t: float) -> np.ndarray:
+    """R with E[r | r > t] = mean_r for r uniform over a disc of radius R (bisection, vectorised)."""
+    mean_r = np.asarray(mean_r, float)
+    lo = np.full(mean_r.shape, t)
+    hi = np.maximum(3.0 * mean_r, t + 1e-9) + 1.0
+
+    def m(R):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(R - t > 1e-12, (2.0 / 3.0) * (R**3 - t**3) / (R**2 - t**2), t)
+
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        below = m(mid) < mean_r
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    return (lo + hi) / 2
+
+
+def law_test(d: np.ndarray) -> dict:
+    """Uniform on [-R, R] against N(0, sigma^2) for the stroke shifts d, both fitted by their second moment."""
+    from scipy import stats
+
+    d = np.asarray(d, float)
+    m2 = float(np.mean(d * d))
+    R, sigma = math.sqrt(3 * m2), math.sqrt(m2)
+    ks_u = stats.kstest(d, stats.uniform(loc=-R, scale=2 * R).cdf) if R > 0 else None
+    ks_n = stats.kstest(d, stats.norm(0, sigma).cdf) if sigma > 0 else None
+    r_mle = float(np.abs(d).max())
+    ll_u = -len(d) * math.log(2 * r_mle) if r_mle > 0 else None
+    ll_n = float(stats.norm(0, sigma).logpdf(d).sum()) if sigma > 0 else None
+    better = None
+    if ks_u is not None and ks_n is not None:
+        better = "uniform" if ks_u.statistic <= ks_n.statistic else "normal"
+    return {"n": len(d), "mean": float(d.mean()), "rms": sigma, "uniform_range": R,
+            "ks_uniform": None if ks_u is None else {"D": float(ks_u.statistic), "p": float(ks_u.pvalue)},
+            "ks_normal": None if ks_n is None else {"D": float(ks_n.statistic), "p": float(ks_n.pvalue)},
+            "loglik_uniform_mle": ll_u, "loglik_normal": ll_n, "better": better}
+
+
+@dataclass
+class Fit:
+    estimates: list[Estimate]
+    shift_law: dict | None
+    fragments: dict
+    stereo: dict
+    images: int
+
+    def get(self, key: str) -> Estimate:
+        return next(e for e in self.estimates if e.key == key)
+
+    def to_json(self) -> dict:
+        return {"images": self.images, "estimates": [e.to_json() for e in self.estimates],
+                "lateral_shift_law": self.shift_law, "fragments": self.fragments, "stereo_matcher": self.stereo}
+
+
+def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 10.0, edge_loss: str = "gaps"
+        ) -> Fit:
+    """Every estimate. `edge_loss`: "gaps" (the default) fits the gaps, the detector's own loss at each gap's
+    ends taken off (what a simulation's edge_loss stage injected, as the round trip checks); "raw" everything
+    the detector lost (1 - the verified fraction: a simulation with it loses as much as the detector did)."""
+    n = len(sums)
+    col = {k: np.array([getattr(s, k) for s in sums], float) for k in
+           ("tested", "verified", "length", "lost_middle", "lost_ends", "ends", "gap_ends", "strokes", "d1", "d2", "noise", "runs",
+            "run_strokes", "fitted", "fitted2", "corners", "found",
+            "displaced", "displaced_r", "matched", "wrong")}
+    out = []
+    # edge loss: the gaps themselves (the detector's end loss at each gap end taken off), or everything lost
+    if col["tested"].sum() >= MIN["edges"]:
+        raw, rlo, rhi = _ratio(col["tested"] - col["verified"], col["tested"], seed, "edge_loss.raw")
+        raw_note = (f"1 - verified fraction of {int(col['tested'].sum()):,} samples over "
+                    f"{int((col['tested'] > 0).sum())} images")
+        v, lo, hi, end = _edge_loss(col, seed)
+        gaps_note = (f"lost length over {col['length'].sum():,.0f} px of {int((col['tested'] > 0).sum())} images, "
+                     f"less the detector's own loss at an edge's end ({end:.3g} px, measured at the model strokes' "
+                     f"ends) at each of {int(col['gap_ends'].sum())} gap ends")
+        if edge_loss == "raw":
+            out.append(Estimate("edge_loss.fraction", raw, rlo, rhi, raw_note + f" (the gaps alone: {100 * v:.3g}%)"))
+        else:
+            span = f", [{100 * rlo:.3g}%, {100 * rhi:.3g}%]" if rlo is not None and rhi is not None else ""
+            out.append(Estimate("edge_loss.fraction", v, lo, hi, gaps_note + f" (everything lost: {100 * raw:.3g}%"
+                                                                             f"{span})"))
+    else:
+        out.append(Estimate("edge_loss.fraction", None, note="no edge detector, or too few edge samples"))
+    # lateral shift and its law
+    offsets = np.concatenate([np.asarray(s.offsets, float) for s in sums]) if n else np.zeros(0)
+    law = None
+    if col["strokes"].sum() >= MIN["strokes"]:
+        v, lo, hi = _shift_range(col, seed)
+        law = law_test(offsets)
+        note = (f"sqrt(3 (var d - noise)) of the mean offsets d of {len(offsets)} fragments (mean {law['mean']:+.3g} "
+                f"px, not part of the effect; their measurement noise "
+                f"{math.sqrt(max(col['noise'].sum() / col['strokes'].sum(), 0)):.3g} px rms)")
+        if law["better"] == "normal":
+            note += f"; a normal law fits better (KS D {law['ks_normal']['D']:.3g} against uniform's " \
+                    f"{law['ks_uniform']['D']:.3g}): this is the uniform range of the same spread"
+        out.append(Estimate("lateral_shift.range", v, lo, hi, note))
+    else:
+        out.append(Estimate("lateral_shift.range", None, note="too few strokes with verified samples"))
+    if col["fitted"].sum() >= MIN["strokes"]:
+        v, lo, hi = _ratio(col["fitted2"], 2 * col["fitted"], seed, "approx_error.sigma", np.sqrt, False)
+        out.append(Estimate("approx_error.sigma", v, lo, hi, f"from the fitted ends of {int(col['fitted'].sum())} "
+                                                               "fragments (e1 - e0 ~ N(0, 2 sigma^2))"))
+    else:
+        out.append(Estimate("approx_error.sigma", None, note="too few strokes with a fitted line"))
+    # corners
+    if col["corners"].sum() >= MIN["corners"]:
+        v, lo, hi = _ratio(col["found"], col["corners"], seed, "corner_loss.keep")
+        out.append(Estimate("corner_loss.keep", v, lo, hi, f"{int(col['found'].sum())} of "
+                                                           f"{int(col['corners'].sum())} model corners found within "
+                                                           f"{radius:g} px"))
+    else:
+        out.append(Estimate("corner_loss.keep", None, note="no corner detector, or too few model corners"))
+    out += _mismatch(col, seed, inlier, radius)
+    fragments = {}
+    if col["run_strokes"].sum():
+        fragments = {"runs_per_stroke": float(col["runs"].sum() / col["run_strokes"].sum()),
+                     "strokes": int(col["run_strokes"].sum()), "effect_gives": 2}
+    stereo = {"matched": int(col["matched"].sum()), "wrong": int(col["wrong"].sum()),
+              "rate": float(col["wrong"].sum() / col["matched"].sum()) if col["matched"].sum() else None}
+    return Fit(out, law, fragments, stereo, n)
+
+
+def _mismatch(col, seed: int, t: float, radius: float) -> list[Estimate]:
+    found, disp, disp_r = col["found"], col["displaced"], col["displaced_r"]
+    if found.sum() < MIN["corners"]:
+        why = "too few found corners"
+        return [Estimate("corner_mismatch.fraction", None, note=why), Estimate("corner_mismatch.radius", None, note=why)]
+    if disp.sum() < MIN["displaced"]:
+        upper = min(1.0, 3.0 / found.sum())
+        return [Estimate("corner_mismatch.fraction", float(disp.sum() / found.sum()), 0.0, upper,
+                         f"{int(disp.sum())} of {int(found.sum())} found corners displaced beyond {t:g} px "
+                         "(interval: rule of three)"),
+                Estimate("corner_mismatch.radius", None, note=f"fewer than {MIN['displaced']} displaced corners")]
+    mean_r = float(disp_r.sum() / disp.sum())
+    R = float(disc_radius(np.array([mean_r]), t)[0])
+    W = _weights(len(found), seed, "corner_mismatch")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        Rb = disc_radius((W @ disp_r) / (W @ disp), t)
+        fb = (W @ disp) / (W @ found) / (1 - (t / Rb) ** 2)
+    f = float(disp.sum() / found.sum() / (1 - (t / R) ** 2))
+    k = int((found > 0).sum())
+    flo, fhi = _interval(np.minimum(fb, 1.0), min(f, 1.0), k)
+    return [Estimate("corner_mismatch.fraction", min(f, 1.0), flo, None if fhi is None else min(fhi, 1.0),
+                     f"{int(disp.sum())} of {int(found.sum())} found corners displaced beyond {t:g} px, corrected "
+                     f"for the moves shorter than that"),
+            Estimate("corner_mismatch.radius", R, *_interval(Rb, R, k),
+                     f"from their mean distance {mean_r:.3g} px (uniform over the disc)")]
+
+
+# --------------------------------------------------------------------------- the pipeline block
+
+def _num(x: float) -> str:
+    return f"{x:.4g}"
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.4g}%"
+
+
+def pipeline_text(f: Fit, name: str, provenance: list[str]) -> str:
+    """The fitted pipeline as a `.wd` file (canonical form), intervals and provenance in comments."""
+    from wiredsl.language.fmt import format_text
+
+    def iv(e: Estimate, fmt) -> str:
+        if e.value is None:
+            return f"not estimated ({e.note}): the paper's value"
+        span = f", 95% interval [{fmt(e.lo)}, {fmt(e.hi)}]" if e.lo is not None else ""
+        return f"{fmt(e.value)}{span}: {e.note}"
+
+    lines = ["wiredsl 1", *[f"# {p}" for p in provenance], f"pipeline {name} {{"]
+    e = f.get("edge_loss.fraction")
+    lines.append(f"  # edge loss {iv(e, _pct)}")
+    if f.fragments:
+        lines.append(f"  # fragments: {f.fragments['runs_per_stroke']:.3g} verified runs a stroke over "
+                     f"{f.fragments['strokes']} strokes (the effect's one gap leaves 2)")
+    lines.append(f"  edge_loss fraction {_pct(e.used)}")
+    e = f.get("lateral_shift.range")
+    lines.append(f"  # lateral shift range {iv(e, lambda x: _num(x) + ' px')}")
+    if f.shift_law and f.shift_law.get("better"):
+        law = f.shift_law
+        lines.append(f"  # law of the shifts: {law['better']} fits better (Kolmogorov-Smirnov D uniform "
+                     f"{law['ks_uniform']['D']:.3g} p {law['ks_uniform']['p']:.3g}, normal {law['ks_normal']['D']:.3g} "
+                     f"p {law['ks_normal']['p']:.3g}; parameters fitted from the same {law['n']} strokes)")
+    lines.append(f"  lateral_shift range {_num(e.used)}px")
+    e = f.get("approx_error.sigma")
+    lines.append(f"  # approximation error sigma {iv(e, lambda x: _num(x) + ' px')}")
+    lines.append(f"  approx_error sigma {_num(e.used)}px")
+    e = f.get("corner_loss.keep")
+    lines.append(f"  # corner keep {iv(e, _pct)}")
+    lines.append(f"  corner_loss keep {_pct(e.used)}")
+    ef, er = f.get("corner_mismatch.fraction"), f.get("corner_mismatch.radius")
+    lines.append(f"  # corner mismatch fraction {iv(ef, _pct)}")
+    lines.append(f"  # corner mismatch radius {iv(er, lambda x: _num(x) + ' px')}")
+    if f.stereo.get("matched"):
+        lines.append(f"  # stereo matcher (NCC within the radius): {f.stereo['wrong']} wrong of {f.stereo['matched']} "
+                     "matched corners")
+    else:
+        lines.append("  # stereo matcher: no stereo pairs with corners, not measured")
+    lines.append(f"  corner_mismatch fraction {_pct(ef.used)} radius {_num(er.used)}px")
+    lines.append("}")
+    text = "\n".join(line.replace("\n", " ") for line in lines) + "\n"
+    return format_text(text)
