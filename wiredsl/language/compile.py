@@ -664,8 +664,8 @@ class Compiler(CameraCompiler):
             self.out.extend([Diagnostic(
                 "warning", "W148", f"line {line} repeats the timestamp of line {earlier}: its pose is dropped, the "
                 f"first kept{more}", _line_span(target, text, line),
-                notes=(where, "evo keeps both rows and its association uses the first; a trajectory's timestamps "
-                       "should increase"))])
+                notes=(where, "a trajectory's timestamps should increase; evo reads both rows and reports them in "
+                       "its --check"))])
         if traj.normalised:
             line, message = traj.normalised[0]
             more = f" (and {len(traj.normalised) - 1} more)" if len(traj.normalised) > 1 else ""
