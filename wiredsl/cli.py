@@ -897,7 +897,8 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
 
     if output is not None:
         _folder_name(Path(output), (".yaml", ".yml", ".json", ".xml"),
-                     "stereo.yaml, left.yaml and right.yaml are written into it")
+                     "stereo.yaml, left.yaml, right.yaml, camchain.yaml, basalt_calib.json and the "
+                     "camodocal files are written into it")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
     if scene.rig is None:
