@@ -55,7 +55,7 @@ def _oracle(path: Path) -> list[dict]:
                 for s in ("LEFT", "RIGHT")]
     elif "Camera.fx" in keys or "Camera1.fx" in keys:  # ORB-SLAM settings
         fisheye = fs.getNode("Camera.type").string() == "KannalaBrandt8"
-        for p in ("Camera1", "Camera2") if "Camera1.fx" in keys else ("Camera",):
+        for p in ("Camera1", "Camera2") if "Camera1.fx" in keys else ("Camera", "Camera2"):
             if f"{p}.fx" not in keys:
                 break
             g = {k: fs.getNode(f"{p}.{k}").real() for k in ("fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4", "p1", "p2")}
@@ -93,7 +93,8 @@ def _scene(path: Path, entry: str) -> str:
         """)
 
 
-FILES = sorted(p.name for p in CORPUS.iterdir() if p.suffix in (".yaml", ".yml"))
+FILES = sorted(p.name for p in CORPUS.iterdir() if p.suffix in (".yaml", ".yml")  # the wide-angle lenses' files
+               and not p.name.startswith("vinsfusion_"))  # are test_calibration_slam.py's
 
 
 def test_the_corpus_is_there():
@@ -148,6 +149,9 @@ def _T(R, t):
     ("openvins_euroc_mav_kalibr_imucam_chain.yaml", lambda fs: np.linalg.inv(
         _mat(fs.getNode("cam1").getNode("T_imu_cam")).reshape(4, 4)) @ _mat(fs.getNode("cam0").getNode("T_imu_cam"))
      .reshape(4, 4)),
+    # ORB-SLAM3's Tlr (before 1.0) maps the right camera's points into the left's
+    ("orbslam3_old_Stereo_RealSense_T265.yaml", lambda fs: np.linalg.inv(np.vstack([fs.getNode("Tlr").mat().astype(
+        float), [0, 0, 0, 1]]))),
     # ORB-SLAM3's T_c1_c2 maps camera 2's points into camera 1's
     ("orbslam3_Stereo_TUM-VI.yaml", lambda fs: np.linalg.inv(fs.getNode("Stereo.T_c1_c2").mat().astype(float))),
     # ORB-SLAM2's rectification: R2 X_r = R1 X_l + (P2[0,3] / fx', 0, 0)

@@ -257,8 +257,9 @@ def test_export_of_a_trial_writes_the_rig_that_trial_saw(tmp_path):
 
 
 @pytest.mark.parametrize("content, message", [
-    (KALIBR.replace("radtan", "fov", 1), "distortion model 'fov' (the FOV"),
-    (KALIBR.replace("camera_model: pinhole", "camera_model: omni", 1), "camera model 'omni' (the unified"),
+    (KALIBR.replace("radtan", "fov", 1), "the fov model has 1 numbers (w), the file has 4"),
+    (KALIBR.replace("camera_model: pinhole", "camera_model: omni", 1), "intrinsics [xi, fu, fv, pu, pv] must have 5"),
+    (KALIBR.replace("camera_model: pinhole", "camera_model: scaramuzza", 1), "camera model 'scaramuzza' is not"),
     (ROS.replace("cols: 5\n  data: [-0.2917, 0.0742, 0.0003, -0.0001, 0.0]",
                  "cols: 12\n  data: [-0.2917, 0.0742, 0.0003, -0.0001, 0, 0, 0, 0, 0.001, 0, 0, 0]"),
      "thin-prism distortion (s1..s4 = 0.001, 0, 0, 0)"),

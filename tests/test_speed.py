@@ -19,7 +19,8 @@ GOLDEN = "3c56cb961be53f82b3619302c6cca33ae4ee10ef99b0ad0e09e1e787e30961f7"
 
 def members_hash(path) -> str:
     """The hash, of the members as layout 3 held them: layout 4 added the strokes' last column, `contour`
-    (all 0 in a scene without meshes), and the version number."""
+    (all 0 in a scene without meshes), layout 5 the view cameras' xi, alpha, beta, w (0, 0, 1, 0 for the lab's
+    radtan cameras), and the version number."""
     h = hashlib.sha256()
     with zipfile.ZipFile(path) as z:
         for name in sorted(z.namelist()):
@@ -30,12 +31,15 @@ def members_hash(path) -> str:
 
 
 def _as_layout_3(name: str, data: bytes) -> bytes:
-    if not (name.endswith("_strokes.npy") or name == "layout.npy"):
+    if not (name.endswith(("_strokes.npy", "_view_cameras.npy")) or name == "layout.npy"):
         return data
     a = np.lib.format.read_array(io.BytesIO(data))
     if name == "layout.npy":
-        assert a == 4
+        assert a == 5
         a = np.array(3, dtype=a.dtype)
+    elif name.endswith("_view_cameras.npy"):
+        assert a.shape[1] == 20 and (a[:, 16:] == [0.0, 0.0, 1.0, 0.0]).all()
+        a = np.ascontiguousarray(a[:, :16])
     else:
         assert a.shape[1] == 11 and not a[:, 10].any()
         a = np.ascontiguousarray(a[:, :10])

@@ -338,3 +338,77 @@ def test_an_orientation_given_two_ways_or_in_part_is_refused_at_the_header(tmp_p
         compile_file(f)
     (d,) = err.value.diagnostics
     assert d.code == "E145" and message in d.message and d.span.line == 1
+
+
+# --------------------------------------------------------------------------- files as they are
+
+def _fr2_desk_like(n: int = 2000, repeat_at: int = 1000) -> tuple[str, int]:
+    """A TUM ground truth in fr2/desk's layout (3 comment lines, 100 Hz motion capture, 4 decimals) with the pose of
+    row `repeat_at` followed by a second row at the same timestamp, as fr2/desk has one; and that row's line."""
+    t0 = 1311868164.3633
+    k = np.arange(n)
+    rows_ = []
+    for i in k:
+        a = 0.002 * i
+        q = Rotation.from_euler("xyz", [0.3 * math.sin(a), 0.2, a]).as_quat()
+        rows_.append(f"{t0 + 0.01 * i:.4f} {1.2 + math.cos(a):.4f} {-0.6 + math.sin(a):.4f} {1.45 + 0.01 * a:.4f} "
+                     + " ".join(f"{v:.4f}" for v in q))
+    dup = rows_[repeat_at].split()
+    dup[1] = f"{float(dup[1]) + 0.0003:.4f}"
+    rows_.insert(repeat_at + 1, " ".join(dup))
+    head = "# ground truth trajectory\n# file: 'rgbd_dataset_freiburg2_desk.bag'\n# timestamp tx ty tz qx qy qz qw\n"
+    return head + "\n".join(rows_) + "\n", 3 + repeat_at + 2
+
+
+def _evo_tum(text: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """evo's TUM reader, as evo/tools/file_interface.py read_tum_trajectory_file (MichaelGrupp/evo @ 26d0953): rows
+    split on spaces after dropping `#` lines, every row kept (duplicates too), stamps, xyz and the quaternion rolled
+    to w first. Returns (stamps, xyz, rotation matrices) of all rows. (Checked once against evo 1.38.1 itself,
+    installed apart: the same rows, to 1e-15.)"""
+    raw = [line.split(" ") for line in text.splitlines() if line and not line.startswith("#")]
+    mat = np.array(raw).astype(float)
+    quat = np.roll(mat[:, 4:], 1, axis=1)  # w x y z, as evo keeps it
+    R = Rotation.from_quat(np.roll(quat, -1, axis=1)).as_matrix()  # scipy takes x y z w
+    return mat[:, 0], mat[:, 1:4], R
+
+
+def test_a_repeated_timestamp_is_dropped_with_one_warning_and_the_poses_are_evos(tmp_path):
+    text, line = _fr2_desk_like()
+    f = scene_file(tmp_path, '  read "groundtruth.txt"', {"groundtruth.txt": text})
+    scene, diags, _ = compile_file(f)
+    warned = [d for d in diags if d.severity == "warning"]
+    assert [(d.code, d.span.line) for d in warned] == [("W148", line)], [d.message for d in warned]
+    assert f"line {line} repeats the timestamp of line {line - 1}" in warned[0].message
+    stamps, xyz, R = _evo_tum(text)
+    first = np.concatenate([[True], stamps[1:] != stamps[:-1]])  # the rows evo's association uses
+    assert len(stamps) == 2001 and first.sum() == 2000
+    traj = trajectory.read(text)
+    np.testing.assert_array_equal(traj.positions, xyz[first])
+    np.testing.assert_allclose(traj.rotations, R[first], atol=1e-12)
+    np.testing.assert_allclose(traj.times, stamps[first] - stamps[0], atol=1e-6)  # wiredsl's: from the first pose
+    assert traj.repeated == ((line, line - 1),)
+    assert len(scene.path.transforms) == 2000
+
+
+def test_lines_outside_the_window_are_not_judged(tmp_path):
+    text, _ = _fr2_desk_like(400, 300)  # the repeat 3 s in
+    lines = text.splitlines()
+    lines[3 + 350] = lines[3 + 350].replace(lines[3 + 350].split()[0], "1311868160.0000")  # goes back, 3.5 s in
+    text = "\n".join(lines) + "\n"
+    f = scene_file(tmp_path, '  read "gt.txt" from 0.5s to 2s', {"gt.txt": text})
+    scene, diags, _ = compile_file(f)
+    assert not [d for d in diags if d.severity in ("warning", "error")]
+    assert len(scene.path.transforms) == 151  # 0.5 s to 2 s at 100 Hz
+    f = scene_file(tmp_path, '  read "gt.txt" from 0.5s', {"gt.txt": text})
+    with pytest.raises(WiredslError) as err:
+        compile_file(f)
+    assert "does not increase" in str(err.value) and f"gt.txt:{3 + 350 + 1}:" in str(err.value)
+
+
+def test_many_repeats_are_one_warning_naming_the_lines(tmp_path):
+    text = "0 0 0 0 0 0 0 1\n0 0.1 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n2 2 0 0 0 0 0 1\n"
+    f = scene_file(tmp_path, '  read "a.tum"', {"a.tum": text})
+    scene, diags, _ = compile_file(f)
+    (w,) = [d for d in diags if d.code == "W148"]
+    assert w.span.line == 2 and "also lines 4, 5" in w.message
+    assert [t[0][3] for t in scene.path.transforms] == [0.0, 1.0, 2.0]

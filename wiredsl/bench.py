@@ -92,8 +92,8 @@ def _true_curves(world: World, view, fid: int, segment: int) -> np.ndarray:
         t = np.linspace(0, 1, 20001)[:, None]
         P = A + t * (B - A)
     Pc = geometry.world_to_cam(P, view.R_cw, view.t_cw)
-    if cam.distortion == "equidistant":  # the near rule of a fisheye, a little inside its limit
-        Pc = Pc[geometry.visible(Pc, 1, geometry.lens_limit(cam) * 0.999)]
+    if cam.distortion != "radtan":  # the near rule of an angle-bounded lens, a little inside its limit
+        Pc = Pc[geometry.visible(Pc, geometry.MODELS.index(cam.distortion), geometry.lens_limit(cam) * 0.999)]
     else:
         Pc = Pc[Pc[:, 2] > geometry.NEAR * 1.01]
         xy = geometry.cam_to_plane(Pc)

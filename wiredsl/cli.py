@@ -908,7 +908,9 @@ def lsp(print_grammar: bool) -> None:
 @guarded
 def export_calibration(file: str, output: str | None, trial: int | None, seed: int | None,
                        pipeline_name: str | None, diagnostics: str) -> None:
-    """Write the rig's cameras as OpenCV (stereo.yaml) and ROS (left.yaml, right.yaml) calibration files."""
+    """Write the rig's cameras as calibration files: OpenCV (stereo.yaml) and ROS (left.yaml, right.yaml) for
+    pinhole and fisheye lenses, Kalibr (camchain.yaml), basalt (basalt_calib.json) and camodocal
+    (left_camodocal.yaml, right_camodocal.yaml) for the lenses each format has."""
     from pathlib import Path
 
     from wiredsl.effects import calibration_error as calib
@@ -918,7 +920,8 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
 
     if output is not None:
         _folder_name(Path(output), (".yaml", ".yml", ".json", ".xml"),
-                     "stereo.yaml, left.yaml and right.yaml are written into it")
+                     "stereo.yaml, left.yaml, right.yaml, camchain.yaml, basalt_calib.json and the "
+                     "camodocal files are written into it")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
     if scene.rig is None:
@@ -935,9 +938,10 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
         # the run's own checked draw (a refused draw is redrawn), so the files are the rig the trial saw
         scene = calib.perturb(scene, run.calibration_draws([trial])[0], scene.rig.calibration.order)
     out = Path(output) if output else Path("build") / scene.name / "calibration"
-    for name, text in rig_files(scene).items():
+    files = rig_files(scene)
+    for name, text in files.items():
         write_atomic(out / name, text)
-    click.echo(f"wrote {out}/stereo.yaml, left.yaml, right.yaml" + (f" (trial {trial}, seed {seed})"
+    click.echo(f"wrote {out}/" + ", ".join(files) + (f" (trial {trial}, seed {seed})"
                if trial is not None else " (nominal rig)"), err=True)
 
 

@@ -268,9 +268,10 @@ CODES: dict[str, str] = {
     'W128': "the mesh reader (trimesh) warned about the file (a damaged or partly read mesh); its words are quoted",
     'E130': 'silhouette not between two ellipses of its own model',
     'E140': 'matrix of the wrong shape, not symmetric, not positive semi-definite, or an entry over 1e100',
-    'E141': ('calibration file malformed or not usable: a matrix file, or an OpenCV, ROS, Kalibr or ORB-SLAM file '
-            "(a value of the wrong type, nesting over 64 deep, thin-prism or tilt terms, Kalibr's "
-            'omni/ds/eucm/fov, skew, no extrinsics, a garbage results-cam.txt, PyYAML missing)'),
+    'E141': ('calibration file malformed or not usable: a matrix file, or an OpenCV, ROS, Kalibr, ORB-SLAM, '
+            'camodocal (VINS) or basalt file (a value of the wrong type, nesting over 64 deep, thin-prism or tilt '
+            'terms, a camera model wiredsl does not implement (named, with those it does), skew, no extrinsics, '
+            'a garbage results-cam.txt, PyYAML missing)'),
     'W143': ('a calibration file read with a doubt: a fisheye labelled plumb_bob, a `size` beside `read` that '
             "rescales the file's camera matrix or does not hold its centre, a rotation written with few digits"),
     'W144': ("a rig's extrinsics that are probably wrong: cameras over 5 m apart (a T in millimetres), the right "
@@ -279,6 +280,8 @@ CODES: dict[str, str] = {
             'beyond the fold is never reached (a fisheye bounded by its `fov` or imaging to 180 deg is not '
             "warned), or a radtan lens scales the image corner's radius by over 4x or under 1/4x (a `k1` of 1e6 "
             'from a file: the image spans a sliver of what the focal length gives)'),
+    'W148': ("a trajectory's timestamp repeats the one before it: that line's pose is dropped, the first kept "
+             '(one warning naming every such line; lines outside `from`/`to` are not judged)'),
     'E142': 'view-dependency file does not fit its schema (at build time)',
     'E145': ('trajectory file malformed or not usable (at its line: timestamps not increasing, a quaternion or '
             'matrix far from a rotation, non-finite values, wrong column count, missing columns; at the '

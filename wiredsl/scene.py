@@ -27,6 +27,10 @@ CALIBRATION_PARAMETERS = {
     "k4": "fourth coefficient (radtan: OpenCV's rational k4; equidistant: k4 of theta^8)",
     "k5": "OpenCV's rational k5",
     "k6": "OpenCV's rational k6",
+    "xi": "unified and double-sphere models: xi",
+    "alpha": "extended unified and double-sphere models: alpha",
+    "beta": "extended unified model: beta",
+    "w": "FOV (ATAN) model: w (rad)",
     "tx": "mount translation along camera x (m)",
     "ty": "mount translation along camera y (m)",
     "tz": "mount translation along camera z (m)",
@@ -38,7 +42,9 @@ CALIBRATION_PARAMETERS = {
 
 class Node(BaseModel):
     # allow_inf_nan=False: a non-finite number is refused at construction, so no dump or JSON can carry one
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
+    # ser_json_inf_nan: a non-finite number that got in anyway stays one in a JSON-mode dump (not null, as it would
+    # through a model serializer such as Camera's), so that the writers refuse it by name
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False, ser_json_inf_nan="constants")
 
 
 def omitted_when_none(*names: str):
@@ -49,6 +55,20 @@ def omitted_when_none(*names: str):
         out = handler(self)
         for name in names:
             if getattr(self, name) is None:
+                out.pop(name, None)
+        return out
+
+    return dump
+
+
+def omitted_when_default(**defaults):
+    """A model serializer leaving out these fields while they hold their defaults: documents of cameras without
+    them stay as they were before the fields existed (use as `_dump = omitted_when_default(name=default)`)."""
+    @model_serializer(mode="wrap")
+    def dump(self, handler):
+        out = handler(self)
+        for name, default in defaults.items():
+            if getattr(self, name) == default:
                 out.pop(name, None)
         return out
 
@@ -159,7 +179,9 @@ class Camera(Node):
 
     The lens model maps a camera-frame point to (x_d, y_d) (engine/geometry.py): `radtan` is OpenCV's
     full rational model (k1..k6, p1, p2), `equidistant` OpenCV's fisheye / Kannala-Brandt (k1..k4 on the
-    angle theta from the optical axis; p1 = p2 = k5 = k6 = 0).
+    angle theta from the optical axis; p1 = p2 = k5 = k6 = 0); `unified` Mei's unified model (xi, then radtan
+    k1, k2, p1, p2), `eucm` the extended unified model (alpha, beta), `ds` the double-sphere model (xi, alpha)
+    and `fov` Devernay and Faugeras's FOV (ATAN) model (w). A model's unused numbers keep their defaults.
     """
 
     name: str
@@ -174,15 +196,21 @@ class Camera(Node):
     p2: float = 0.0
     width: int = Field(gt=0)
     height: int = Field(gt=0)
-    distortion: Literal["radtan", "equidistant"] = "radtan"
+    distortion: Literal["radtan", "equidistant", "unified", "eucm", "ds", "fov"] = "radtan"
     k3: float = 0.0
     k4: float = 0.0
     k5: float = 0.0
     k6: float = 0.0
     fov: float | None = Field(None, gt=0, le=6.283185307179586,
-                              description="equidistant: the lens's full field of view (rad); nothing farther "
+                              description="every model but radtan: the lens's full field of view (rad); nothing farther "
                                           "than fov / 2 from the optical axis is imaged (default: where the "
                                           "lens's theta_d stops increasing, at most 360 deg)")
+    xi: float = Field(0.0, description="unified: Mei's xi (>= 0); ds: the double sphere's xi (in (-1, 1])")
+    alpha: float = Field(0.0, description="eucm and ds: alpha, in [0, 1]")
+    beta: float = Field(1.0, description="eucm: beta (> 0)")
+    w: float = Field(0.0, description="fov: Devernay and Faugeras's w (rad), in (0, pi)")
+
+    _dump = omitted_when_default(xi=0.0, alpha=0.0, beta=1.0, w=0.0)
 
 
 class Mount(Node):

@@ -144,8 +144,9 @@ class KernelStage:
     view is the right camera, and its statistics row (float64, one slot per `stats` column, added to in place).
     `params` are the Params fields it takes, `stats` the columns of its statistics row: (Stats key, "add" or
     "peak"), recorded as the numpy path records them. With `camera=True` the function takes one argument more,
-    after `stats`: the view's camera, float64 (16,): its nominal image width and height, then f, ax, ay, cx, cy,
-    k1, k2, p1, p2, k3, k4, k5, k6 and the distortion model's code (`wiredsl.engine.geometry.CAMERA_ROW`): what
+    after `stats`: the view's camera, float64 (20,): its nominal image width and height, then f, ax, ay, cx, cy,
+    k1, k2, p1, p2, k3, k4, k5, k6, xi, alpha, beta, w and the distortion model's code
+    (`wiredsl.engine.geometry.CAMERA_ROW`): what
     `ctx.camera` gives the numpy code (a rolling shutter needs the image height, say). An effect without a kernel
     (kernel None) runs on the numpy path, and so do the stages after it (`--engine auto` says so on stderr).
     """

@@ -27,7 +27,21 @@ Which points are imaged (the near rule), with the lens limit of `lens_limit`:
   else where theta_d stops increasing, at most 180 deg) and the point at least
   NEAR from the camera centre; so a fisheye sees points beside and behind its
   own plane (Z <= 0) when its field of view passes 180 deg.
+- the wide-angle models (unified, eucm, ds, fov): theta below the model's own valid region (and half a declared
+  `fov`), the point at least NEAR from the camera centre, as for a fisheye.
 Callers clip in 3D first (`clip_segments_lens`).
+
+The wide-angle models (Usenko, Demmel, Cremers, "The Double Sphere Camera Model", 3DV 2018, sec. 3, which
+tabulates them with their valid regions), d = sqrt(X^2 + Y^2 + Z^2), pixels as above:
+- unified (Mei and Rives, ICRA 2007; Kalibr `omni`, camodocal MEI, OpenCV omnidir): m = (X, Y) / (Z + xi d),
+  then (Mei's form) OpenCV's radtan k1, k2, p1, p2 on m; valid where Z > -w d, w = min(xi, 1 / xi);
+- eucm (Khomenko et al., RA-L 2016): m = (X, Y) / (alpha rho + (1 - alpha) Z), rho = sqrt(beta (X^2 + Y^2)
+  + Z^2); valid where Z > -w rho, w = alpha / (1 - alpha) for alpha <= 1/2, else (1 - alpha) / alpha;
+- ds (double sphere): d2 = sqrt(X^2 + Y^2 + (xi d + Z)^2), m = (X, Y) / (alpha d2 + (1 - alpha)(xi d + Z));
+  valid where Z > -w2 d, w2 = (w1 + xi) / sqrt(2 w1 xi + xi^2 + 1), w1 as eucm's w;
+- fov (Devernay and Faugeras, MVA 2001; Kalibr's `fov` distortion, basalt's fov): r_u = |(X, Y)| / Z,
+  r_d = atan(2 r_u tan(w / 2)) / w, m = (X, Y) / Z * r_d / r_u; valid in front of the camera (Z > 0).
+Each valid region is rotationally symmetric: an angle from the optical axis, as a fisheye's lens limit.
 """
 
 from __future__ import annotations
@@ -98,10 +112,17 @@ def cam_to_plane(P_cam: np.ndarray) -> np.ndarray:
     return P_cam[..., :2] / P_cam[..., 2:3]
 
 
-MODELS = ("radtan", "equidistant")  # a camera's lens model; its code in camera tables is its index
+# a camera's lens model; its code in camera tables is its index. Every model but radtan (code 0) bounds what it
+# images by an angle from the optical axis (its lens limit)
+MODELS = ("radtan", "equidistant", "unified", "eucm", "ds", "fov")
+RADTAN, EQUIDISTANT, UNIFIED, EUCM, DS, FOV = range(len(MODELS))
 # A camera's numbers in the engine's tables; the kernel's camera rows add the model code (CAMERA_ROW).
-CAMERA_KEYS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+CAMERA_KEYS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "xi", "alpha", "beta", "w")
 CAMERA_ROW = (*CAMERA_KEYS, "model")
+RADTAN_KEYS = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+# the model's own parameters beside the pixel scale and centre (a file or a statement giving another is refused)
+MODEL_KEYS = {"radtan": RADTAN_KEYS, "equidistant": ("k1", "k2", "k3", "k4"), "unified": ("xi", "k1", "k2", "p1", "p2"),
+              "eucm": ("alpha", "beta"), "ds": ("xi", "alpha"), "fov": ("w",)}
 
 
 def distort(xy: np.ndarray, k1, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0, k5=0.0, k6=0.0) -> np.ndarray:
@@ -161,8 +182,7 @@ def plane_to_pixels(xy_d: np.ndarray, f, ax, ay, cx, cy) -> np.ndarray:
 
 def camera_table(cam) -> dict:
     """A Camera's numbers by CAMERA_KEYS, with its model code ("model") and lens limit ("limit")."""
-    table = {k: float(getattr(cam, k)) for k in CAMERA_KEYS}
-    table["model"] = MODELS.index(cam.distortion)
+    table = _numbers(cam)
     table["limit"] = lens_limit(cam)
     return table
 
@@ -181,19 +201,168 @@ def project_xyz(X: np.ndarray, Y: np.ndarray, Z: np.ndarray, g: dict) -> tuple[n
 
     Contiguous coordinates cost less than the columns of an (m, 3) array; a camera's numbers given as
     scalars cost less than a column a number, and give the same doubles."""
-    fish = np.asarray(g["model"]) == 1
-    if fish.ndim:
-        fish = np.broadcast_to(fish, np.shape(X))
+    code = np.asarray(g["model"])
+    present = distinct(code.ravel()).astype(int).tolist() if code.ndim else [int(code)]
+    xd = yd = None
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-        xd = yd = None
-        if not fish.all() or fish.size == 0:
-            front = Z > 0
-            xd, yd = distort_xy(np.where(front, X / Z, np.nan), np.where(front, Y / Z, np.nan), g["k1"], g["k2"],
-                                g["p1"], g["p2"], g["k3"], g["k4"], g["k5"], g["k6"])
-        if fish.any():
-            fx, fy = fisheye_xy(X, Y, Z, g["k1"], g["k2"], g["k3"], g["k4"])
-            xd, yd = (fx, fy) if xd is None else (np.where(fish, fx, xd), np.where(fish, fy, yd))
+        for m in present:
+            mx, my = model_plane_xy(m, X, Y, Z, g)
+            if xd is None or len(present) == 1:
+                xd, yd = mx, my
+            else:
+                here = np.broadcast_to(code == m, np.shape(mx))
+                xd, yd = np.where(here, mx, xd), np.where(here, my, yd)
+        if xd is None:
+            xd = yd = np.zeros(np.shape(X))
         return g["f"] * g["ax"] * xd + g["cx"], g["f"] * g["ay"] * yd + g["cy"]
+
+
+def model_plane_xy(model: int, X, Y, Z, g: dict):
+    """Distorted unit-plane coordinates (x_d, y_d) of camera points under lens model `model` (its code) with
+    the numbers g (CAMERA_KEYS, scalars or arrays); NaN where the model has no image (callers clip first)."""
+    if model == RADTAN:
+        front = Z > 0
+        return distort_xy(np.where(front, X / Z, np.nan), np.where(front, Y / Z, np.nan), g["k1"], g["k2"],
+                          g["p1"], g["p2"], g["k3"], g["k4"], g["k5"], g["k6"])
+    if model == EQUIDISTANT:
+        return fisheye_xy(X, Y, Z, g["k1"], g["k2"], g["k3"], g["k4"])
+    if model == FOV:
+        rho = np.hypot(X, Y)
+        w = g["w"]
+        two_tan = 2.0 * np.tan(0.5 * w)
+        # atan2 (rho 2 tan(w/2), Z) / (w rho); on the axis its limit 2 tan(w/2) / (w Z)
+        scale = np.where(rho > 0, np.arctan2(rho * two_tan, Z) / (w * np.where(rho > 0, rho, 1.0)), two_tan / (w * Z))
+        return scale * X, scale * Y
+    d = np.sqrt(X * X + Y * Y + Z * Z)
+    if model == UNIFIED:
+        den = Z + g["xi"] * d
+        return distort_xy(X / den, Y / den, g["k1"], g["k2"], g["p1"], g["p2"], g["k3"], g["k4"], g["k5"], g["k6"])
+    a = g["alpha"]
+    if model == EUCM:
+        den = a * np.sqrt(g["beta"] * (X * X + Y * Y) + Z * Z) + (1.0 - a) * Z
+    else:  # DS
+        zs = g["xi"] * d + Z
+        den = a * np.sqrt(X * X + Y * Y + zs * zs) + (1.0 - a) * zs
+    return X / den, Y / den
+
+
+def lens_radius(theta, cam) -> np.ndarray:
+    """The undistorted-by-radtan unit-plane radius |m| (Mei's radtan not applied) of rays at angles theta from
+    the optical axis, for an angle-bounded camera (`cam`: a Camera or a dict of CAMERA_KEYS and "model")."""
+    g = _numbers(cam)
+    theta = np.asarray(theta, dtype=float)
+    s, c = np.sin(theta), np.cos(theta)
+    if g["model"] == UNIFIED:  # before Mei's radtan
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return s / (c + g["xi"])
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        X, _ = model_plane_xy(g["model"], s, np.zeros_like(s), c, g)
+    return X
+
+
+def lens_theta(r, cam) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of `lens_radius`: angles theta (n,) from the optical axis of rays whose radius is r (n,), by
+    each model's closed-form unprojection (equidistant: Newton's method), and which have one (n,).
+
+    A radius past the model's image (beyond the circle its valid region maps to) has none."""
+    g = _numbers(cam)
+    r = np.asarray(r, dtype=float)
+    m = g["model"]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if m == EQUIDISTANT:
+            theta, res = fisheye_theta(r, g["k1"], g["k2"], g["k3"], g["k4"])
+            return theta, np.isfinite(theta) & (res < 1e-12) & (theta >= 0)
+        r2 = r * r
+        if m == UNIFIED:  # Mei and Rives 2007, eq. (the lifting): (x, y, z) = f (mx, my, 1) - (0, 0, xi)
+            xi = g["xi"]
+            f = (xi + np.sqrt(1.0 + (1.0 - xi * xi) * r2)) / (1.0 + r2)
+            theta = np.arctan2(f * r, f - xi)
+        elif m == EUCM:  # Khomenko et al. 2016: z = (1 - beta alpha^2 r^2) / (alpha sqrt(...) + 1 - alpha)
+            a, b = g["alpha"], g["beta"]
+            z = (1.0 - b * a * a * r2) / (a * np.sqrt(1.0 - (2.0 * a - 1.0) * b * r2) + 1.0 - a)
+            theta = np.arctan2(r, z)
+        elif m == DS:  # Usenko et al. 2018, eq. (44)-(46)
+            a, xi = g["alpha"], g["xi"]
+            mz = (1.0 - a * a * r2) / (a * np.sqrt(1.0 - (2.0 * a - 1.0) * r2) + 1.0 - a)
+            k = (mz * xi + np.sqrt(mz * mz + (1.0 - xi * xi) * r2)) / (mz * mz + r2)
+            theta = np.arctan2(k * r, k * mz - xi)
+        elif m == FOV:  # Devernay and Faugeras 2001: r_u = tan(r_d w) / (2 tan(w / 2))
+            w = g["w"]
+            theta = np.where(r * w < 0.5 * math.pi, np.arctan(np.tan(r * w) / (2.0 * np.tan(0.5 * w))), np.nan)
+        else:
+            theta = np.arctan(r)
+        return theta, np.isfinite(theta) & (theta >= 0)
+
+
+def _numbers(cam) -> dict:
+    """A camera's CAMERA_KEYS and model code as a dict (a Camera, or such a dict already)."""
+    if isinstance(cam, dict):
+        return cam
+    return {**{k: float(getattr(cam, k)) for k in CAMERA_KEYS}, "model": MODELS.index(cam.distortion)}
+
+
+def undistort_radtan(xd: np.ndarray, k1, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0, k5=0.0, k6=0.0, steps: int = 20,
+                     start: np.ndarray | None = None):
+    """Unit-plane points xy (n, 2) whose `distort` is xd (n, 2), by Newton's method from xd (or `start`), and the
+    residual max |distort(xy) - xd| (n,)."""
+    lens = (k1, k2, p1, p2, k3, k4, k5, k6)
+    xy = np.array(xd if start is None else start, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        for _ in range(steps):
+            x, y = xy[:, 0], xy[:, 1]
+            r2 = x * x + y * y
+            num, den = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+            rad = num / den
+            # d rad / d x = g x, d rad / d y = g y
+            g = 2.0 * ((k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)) * den - num * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) \
+                / (den * den)
+            j11 = rad + g * x * x + 2.0 * p1 * y + 6.0 * p2 * x
+            j12 = g * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+            j22 = rad + g * y * y + 6.0 * p1 * y + 2.0 * p2 * x
+            res = distort(xy, *lens) - xd
+            det = j11 * j22 - j12 * j12
+            xy = xy - np.column_stack([j22 * res[:, 0] - j12 * res[:, 1],
+                                       j11 * res[:, 1] - j12 * res[:, 0]]) / det[:, None]
+        return xy, np.abs(distort(xy, *lens) - xd).max(axis=1)
+
+
+def pixels_to_rays(uv: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
+    """Unit rays (n, 3) in the camera frame of pixels (n, 2) under `cam` by its model's own unprojection, and
+    which have one inside the lens's valid region (n,) (others are (0, 0, 1))."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    xd = np.column_stack([(uv[:, 0] - cam.cx) / (cam.f * cam.ax), (uv[:, 1] - cam.cy) / (cam.f * cam.ay)])
+    limit = lens_limit(cam)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        if cam.distortion in ("radtan", "unified") and is_distorted(cam):
+            keys = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+            lens = [getattr(cam, k) for k in keys]
+            # Newton from the radial root inside the fold (bisected): from xd itself it may find the one beyond
+            r_fold = fold_radius(cam.k1, cam.k2, cam.k3, cam.k4, cam.k5, cam.k6)
+            rd = np.hypot(xd[:, 0], xd[:, 1])
+            lo, hi = np.zeros(len(rd)), np.full(len(rd), min(r_fold, 1e8))
+            for _ in range(80):
+                mid = 0.5 * (lo + hi)
+                below = distort_xy(mid, 0.0, *lens[:2], 0.0, 0.0, *lens[4:])[0] < rd
+                lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+            start = xd * np.where(rd > 0, lo / np.where(rd > 0, rd, 1.0), 0.0)[:, None]
+            m, res = undistort_radtan(xd, *lens, start=start)
+            ok = np.isfinite(m).all(axis=1) & (res < 1e-12)
+            if cam.distortion == "unified":  # Mei's radtan on m must not fold before m is reached
+                ok &= np.hypot(m[:, 0], m[:, 1]) < fold_radius(cam.k1, cam.k2)
+        else:
+            m, ok = xd, np.ones(len(xd), dtype=bool)
+        r = np.hypot(m[:, 0], m[:, 1])
+        if cam.distortion == "radtan":
+            ok &= r < limit
+            rays = np.column_stack([m, np.ones(len(m))])
+        else:
+            theta, good = lens_theta(r, cam)
+            ok &= good & (theta < limit)
+            s = np.where(r > 0, np.sin(theta) / np.where(r > 0, r, 1.0), 0.0)
+            rays = np.column_stack([m * s[:, None], np.cos(theta)])
+        rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        ok &= np.isfinite(rays).all(axis=1)
+    return np.where(ok[:, None], rays, np.array([0.0, 0.0, 1.0])), ok
 
 
 def cam_to_pixels(P_cam: np.ndarray, cam) -> np.ndarray:
@@ -203,7 +372,7 @@ def cam_to_pixels(P_cam: np.ndarray, cam) -> np.ndarray:
 
 def is_distorted(cam) -> bool:
     """Whether lines are curves in the camera's image (any fisheye; a radtan with a coefficient)."""
-    return cam.distortion != "radtan" or any(getattr(cam, k) != 0.0 for k in CAMERA_KEYS[5:])
+    return cam.distortion != "radtan" or any(getattr(cam, k) != 0.0 for k in RADTAN_KEYS)
 
 
 def visible(P_cam: np.ndarray, model, limit) -> np.ndarray:
@@ -212,7 +381,7 @@ def visible(P_cam: np.ndarray, model, limit) -> np.ndarray:
     model and limit (`lens_limit`) are scalars or one per point.
     """
     X, Y, Z = P_cam[..., 0], P_cam[..., 1], P_cam[..., 2]
-    fisheye = np.asarray(model) == 1
+    fisheye = np.asarray(model) != RADTAN  # every other model bounds an angle
     radtan = fish = None
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         if not fisheye.all():
@@ -227,15 +396,80 @@ def visible(P_cam: np.ndarray, model, limit) -> np.ndarray:
     return np.where(fisheye, fish, radtan)
 
 
-def lens_limit(cam, **values) -> float:
-    """radtan: the fold radius on the unit plane; equidistant: the largest angle from the axis imaged (rad).
+def lens_limit(cam, *, bounded: bool = True, **values) -> float:
+    """radtan: the fold radius on the unit plane; the other models: the largest angle from the axis imaged (rad),
+    the model's own valid region and (with `bounded`) half a declared fov, whichever is smaller.
 
-    values (e.g. k1=...) replace the camera's own coefficients (a perturbed camera).
+    values (e.g. k1=...) replace the camera's own numbers (a perturbed camera).
     """
-    k = [values.get(n, getattr(cam, n)) for n in ("k1", "k2", "k3", "k4", "k5", "k6")]
+    g = {n: float(values.get(n, getattr(cam, n))) for n in CAMERA_KEYS[5:]}
+    if cam.distortion == "radtan":
+        return fold_radius(*(g[n] for n in ("k1", "k2", "k3", "k4", "k5", "k6")))
+    fov = cam.fov if bounded else None
     if cam.distortion == "equidistant":
-        return fisheye_max_angle(*k[:4], cam.fov)
-    return fold_radius(*k)
+        return fisheye_max_angle(g["k1"], g["k2"], g["k3"], g["k4"], fov)
+    limit = model_max_angle(cam.distortion, g)
+    return min(limit, fov / 2) if fov is not None else limit
+
+
+def model_max_angle(model: str, g: dict) -> float:
+    """The valid region of a wide-angle model as an angle from the optical axis (the DS paper's regions: Z > -w d
+    and its kin); NaN for numbers that define no model (the caller refuses them). The unified model's radtan also
+    stops where it folds (`fold_radius` of k1, k2), as radtan's does."""
+    def acos_(w):
+        return math.acos(-w) if -1.0 <= w <= 1.0 else (math.pi if w > 1 else math.nan)
+
+    def w_of(alpha):  # the EUCM and DS papers' w (w1): alpha / (1 - alpha) up to 1/2, then (1 - alpha) / alpha
+        if not 0.0 <= alpha <= 1.0:
+            return math.nan
+        return alpha / (1.0 - alpha) if alpha <= 0.5 else (1.0 - alpha) / alpha
+
+    if model == "fov":
+        return math.pi / 2 if 0.0 < g["w"] < math.pi else math.nan
+    if model == "unified":
+        xi = g["xi"]
+        if not xi >= 0.0:
+            return math.nan
+        limit = acos_(min(xi, 1.0 / xi) if xi > 0 else 0.0)
+        r_fold = fold_radius(g["k1"], g["k2"])
+        if math.isfinite(r_fold):  # the angle whose |m| reaches the fold
+            theta, ok = lens_theta(np.array([r_fold]), {"model": UNIFIED, "xi": xi})
+            if ok[0]:
+                limit = min(limit, float(theta[0]))
+        return limit
+    if model == "eucm":
+        w, beta = w_of(g["alpha"]), g["beta"]
+        if not beta > 0.0 or math.isnan(w):
+            return math.nan
+        return math.pi if w >= 1.0 else math.pi / 2 + math.atan(w * math.sqrt(beta / (1.0 - w * w)))
+    if model == "ds":
+        w1, xi = w_of(g["alpha"]), g["xi"]
+        if math.isnan(w1) or not -1.0 < xi <= 1.0:
+            return math.nan
+        return _ds_fold(g["alpha"], xi, acos_((w1 + xi) / math.sqrt(2.0 * w1 * xi + xi * xi + 1.0)))
+    raise ValueError(f"unknown lens model {model!r}")
+
+
+def _ds_fold(alpha: float, xi: float, limit: float, n: int = 2048) -> float:
+    """The double sphere's valid region (the paper's, `limit`) cut where its radius stops increasing, which for a
+    negative xi can come first: the first zero of d r / d theta (up to a positive factor, cos D + sin^2 (alpha xi
+    / d2 + 1 - alpha), D the projection's denominator) or of D, sampled on n steps then bisected."""
+    def g(t):
+        s, c = np.sin(t), np.cos(t)
+        zs = xi + c
+        d2 = np.sqrt(s * s + zs * zs)
+        D = alpha * d2 + (1.0 - alpha) * zs
+        return np.minimum(c * D + s * s * (alpha * xi / d2 + 1.0 - alpha), D)
+
+    t = np.linspace(0.0, limit, n + 1)[1:]
+    bad = np.flatnonzero(~(g(t) > 0))
+    if len(bad) == 0:
+        return limit
+    lo, hi = (float(t[bad[0] - 1]) if bad[0] > 0 else 0.0), float(t[bad[0]])
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if g(mid) > 0 else (lo, mid)
+    return lo
 
 
 def fisheye_max_angle(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0.0, fov: float | None = None) -> float:
@@ -342,10 +576,10 @@ def clip_segments_lens(A: np.ndarray, B: np.ndarray, model: np.ndarray, limit: n
     n = len(A)
     model = np.broadcast_to(np.asarray(model), (n,))
     limit = np.broadcast_to(np.asarray(limit, dtype=float), (n,))
-    rad = np.flatnonzero(model != 1)
+    rad = np.flatnonzero(model == RADTAN)
     t0, t1, keep = clip_segments_cone(A[rad], B[rad], NEAR, limit[rad] * (1 - 1e-9))
     rows, lo, hi = [rad[keep]], [t0[keep]], [t1[keep]]
-    fish = np.flatnonzero(model == 1)
+    fish = np.flatnonzero(model != RADTAN)  # every angle-bounded lens
     if len(fish):
         Af, Bf, lim = A[fish], B[fish], limit[fish] * (1 - 1e-9)  # strictly inside, as `visible` asks
         narrow = lim <= math.pi / 2

@@ -12,8 +12,9 @@ Each image stage's numba function lives with its effect (its KernelStage names i
 
     stage(pts, start, meta, corners, cfid, key, params, epipole, right, stats) -> (pts, start, meta, corners, cfid)
 
-(a stage whose KernelStage says `camera=True` takes one more argument, `camera`: float64 (16,), the view's
-nominal image width and height, then its CAMERA_ROW: f, ax, ay, cx, cy, k1, k2, p1, p2, k3..k6, model code), and
+(a stage whose KernelStage says `camera=True` takes one more argument, `camera`: float64 (20,), the view's
+nominal image width and height, then its CAMERA_ROW: f, ax, ay, cx, cy, k1, k2, p1, p2, k3..k6, xi,
+alpha, beta, w, model code), and
 may call the shared parts here (keyed draws `_bits`/`_uniform`/`_normal_pair`, `_arcs`, `_total_length`,
 `_keep`, `_unroll`, the metadata columns FID..OCC). `compose` builds the loop over a stage list from those
 names, so this module names no effect. numba is imported only here and by those functions' modules, and
@@ -27,6 +28,8 @@ import sys
 
 import numpy as np
 from numba import njit
+
+from wiredsl.engine.geometry import CAMERA_ROW
 
 FID, SEG, FRAG, KIND, CLIP, CLOSED, OCC = range(7)  # columns of a stroke's metadata row
 NMETA = 7
@@ -231,19 +234,46 @@ def _project(X, R, t, cam, limit, out, ok):
     """Perturbed camera (R (3, 3), t (3,), cam = geometry.CAMERA_ROW, lens limit) applied to world points:
     geometry.project and geometry.visible, term by term."""
     f, ax, ay, cx, cy, k1, k2, p1, p2 = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5], cam[6], cam[7], cam[8]
-    k3, k4, k5, k6, fisheye = cam[9], cam[10], cam[11], cam[12], cam[13] == 1.0
+    k3, k4, k5, k6, xi, alpha, beta, w = cam[9], cam[10], cam[11], cam[12], cam[13], cam[14], cam[15], cam[16]
+    model = int(cam[17])
+    two_tan = 2.0 * math.tan(0.5 * w) if model == 5 else 0.0
     for i in range(len(X)):
         Px = R[0, 0] * X[i, 0] + R[0, 1] * X[i, 1] + R[0, 2] * X[i, 2] + t[0]
         Py = R[1, 0] * X[i, 0] + R[1, 1] * X[i, 1] + R[1, 2] * X[i, 2] + t[1]
         Pz = R[2, 0] * X[i, 0] + R[2, 1] * X[i, 1] + R[2, 2] * X[i, 2] + t[2]
-        if fisheye:
+        if model != 0:  # an angle-bounded lens (geometry.MODELS)
             rho = math.hypot(Px, Py)
-            theta = math.atan2(rho, Pz)
-            good = theta < limit and math.sqrt(Px * Px + Py * Py + Pz * Pz) > 1e-3
-            t2 = theta * theta
-            td = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
-            scale = td / rho if rho > 0 else 0.0
-            xd, yd = scale * Px, scale * Py
+            d = math.sqrt(Px * Px + Py * Py + Pz * Pz)
+            good = math.atan2(rho, Pz) < limit and d > 1e-3
+            xd, yd = 0.0, 0.0
+            if good:
+                if model == 1:
+                    theta = math.atan2(rho, Pz)
+                    t2 = theta * theta
+                    td = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+                    scale = td / rho if rho > 0 else 0.0
+                    xd, yd = scale * Px, scale * Py
+                elif model == 5:
+                    if rho > 0:
+                        scale = math.atan2(rho * two_tan, Pz) / (w * rho)
+                    else:
+                        scale = two_tan / (w * Pz)
+                    xd, yd = scale * Px, scale * Py
+                else:
+                    if model == 2:
+                        den = Pz + xi * d
+                    elif model == 3:
+                        den = alpha * math.sqrt(beta * (Px * Px + Py * Py) + Pz * Pz) + (1.0 - alpha) * Pz
+                    else:
+                        zs = xi * d + Pz
+                        den = alpha * math.sqrt(Px * Px + Py * Py + zs * zs) + (1.0 - alpha) * zs
+                    xd, yd = Px / den, Py / den
+                    if model == 2:  # Mei's radtan on the unified model's m
+                        x, y = xd, yd
+                        r2 = x * x + y * y
+                        radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+                        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+                        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
         else:
             good = Pz > 1e-3
             z = Pz if good else 1.0
@@ -475,7 +505,7 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
              functions, params, keys, epipole, right, stats, cameras=(), camera=None):
     """The compiled view_batch of the stage functions `functions` (KernelStage.function, in order), with every
     argument in the one layout it is compiled for (no second compile). `cameras`: per function, whether it takes
-    the view's `camera` row (KernelStage.camera), float64 (16,): width, height, then the nominal CAMERA_ROW."""
+    the view's `camera` row (KernelStage.camera), float64 (20,): width, height, then the nominal CAMERA_ROW."""
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
     batch = compose(tuple(functions), tuple(bool(c) for c in cameras) or (False,) * len(functions))
@@ -483,7 +513,7 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
     announce_compile(batch)
     return batch(f2(tpts, 2), i1(tstart), np.ascontiguousarray(meta, dtype=np.int64).reshape(-1, NMETA),
                       f2(tcorners, 2), i1(cfid), f2(W, 3), f2(CW, 3),
-                      np.ascontiguousarray(R_cw, dtype=np.float64).reshape(-1, 3, 3), f2(t_cw, 3), f2(cams, 14),
+                      np.ascontiguousarray(R_cw, dtype=np.float64).reshape(-1, 3, 3), f2(t_cw, 3), f2(cams, len(CAMERA_ROW)),
                       np.ascontiguousarray(folds, dtype=np.float64).reshape(-1), float(width), float(height),
                       bool(calibrated), f2(params, params.shape[-1]),
                       np.ascontiguousarray(keys, dtype=np.uint64).reshape(len(functions), len(folds)),
@@ -588,8 +618,8 @@ def warm(functions: tuple[str, ...] = (), cameras: tuple[bool, ...] = ()) -> Non
     workers."""
     z2, zi, G = np.zeros((0, 2)), np.zeros(0, np.int64), len(functions)
     run_view(np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([0, 2]), np.zeros((1, NMETA), np.int64), z2, zi,
-             np.zeros((2, 3)), np.zeros((0, 3)), np.eye(3)[None], np.zeros((1, 3)), np.ones((1, 14)), np.ones(1),
-             10.0, 10.0, True, functions, np.zeros((G, 3)), np.ones((G, 1), np.uint64), np.ones(3), True,
+             np.zeros((2, 3)), np.zeros((0, 3)), np.eye(3)[None], np.zeros((1, 3)), np.ones((1, len(CAMERA_ROW))),
+             np.ones(1), 10.0, 10.0, True, functions, np.zeros((G, 3)), np.ones((G, 1), np.uint64), np.ones(3), True,
              np.zeros((G, NSTAT)), cameras)
 
 

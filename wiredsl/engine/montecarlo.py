@@ -734,7 +734,7 @@ def raw_template(view: View, world: World) -> tuple[im.ImageSet, np.ndarray, np.
 
 
 def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every trial's camera for one side at one pose: R_cw (T, 3, 3), t_cw (T, 3), intrinsics (T, 14) as
+    """Every trial's camera for one side at one pose: R_cw (T, 3, 3), t_cw (T, 3), intrinsics (T, 18) as
     geometry.CAMERA_ROW, and the lens limit (T,) (`geometry.lens_limit`)."""
     p = rig["params"]
     R_wr, t_wr = geometry.world_from_robot(pose)
@@ -750,7 +750,7 @@ def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.nd
         if cam.distortion == "radtan" and not any(np.any(p[k]) for k in ("k3", "k4", "k5", "k6")):
             rig["folds"] = np.broadcast_to(geometry.fold_radius(p["k1"], p["k2"]), len(cams)).astype(float)
         else:
-            lens = ("k1", "k2", "k3", "k4", "k5", "k6")
+            lens = geometry.CAMERA_KEYS[5:]
             rig["folds"] = np.array([geometry.lens_limit(cam, **{k: float(p[k][i]) for k in lens})
                                      for i in range(len(cams))])
     return R_cw, t_cw, rig["cams"], rig["folds"]

@@ -750,7 +750,7 @@ def _ellipse_intervals(world: World, views: list[View], cam: dict, masks: np.nda
     vv, ee = np.nonzero(masks[:, world.ell_fid]) if len(world.ell_fid) else (np.zeros(0, int),) * 2
     c, U, V = (x[vv, ee] for x in ellipses)
     arc = world.ell_arc[ee]
-    fish = cam["model"][vv] == 1
+    fish = cam["model"][vv] != geometry.RADTAN  # an angle-bounded lens
     rad = np.flatnonzero(~fish)
     owner, lo, hi = _front_intervals(c[rad, 2], U[rad, 2], V[rad, 2], arc[rad])
     if fish.any():  # the parts a fisheye images (its region is not bounded by a plane)
@@ -791,7 +791,7 @@ def _fold_runs(ell: _Ellipses, cam: dict, cid, ts, P, bounds, n_seg: int):
     v_of = ell.vid[e_of]
     # a fisheye's intervals are exact already (their ends lie on its limit); a radtan's are cut at the fold
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        inside = (cam["model"][v_of] == 1) | (np.hypot(Pe[:, 0] / Pe[:, 2], Pe[:, 1] / Pe[:, 2])
+        inside = (cam["model"][v_of] != geometry.RADTAN) | (np.hypot(Pe[:, 0] / Pe[:, 2], Pe[:, 1] / Pe[:, 2])
                                                < cam["limit"][v_of])
     first = np.zeros(len(icid), dtype=bool)
     first[bounds[n_seg:-1] - lo] = True

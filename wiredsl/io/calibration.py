@@ -35,15 +35,18 @@ import numpy as np
 
 from wiredsl.io.files import require_finite
 
-FORMATS = ("opencv", "ros", "kalibr")
+FORMATS = ("opencv", "ros", "kalibr", "camodocal", "basalt")
 MAX_BYTES = 4 << 20
 MAX_VALUE = 1e12  # any number a calibration file gives: products of a few stay far from overflow
 MIN_FOCAL = 1e-6  # px: a focal length below is no camera, and its square underflows
 MAX_DEPTH = 64  # nesting of a calibration file's mappings and lists (real ones have 3)
 RADTAN = ("plumb_bob", "radtan", "rational_polynomial", "pinhole", "none")
 EQUIDISTANT = ("equidistant", "fisheye", "kannalabrandt8", "kannala_brandt", "kb4")
-KALIBR_MODELS = {"omni": "the unified (Mei) omnidirectional model", "ds": "the double-sphere model",
-                 "eucm": "the extended unified model", "fov": "the FOV (field-of-view) distortion model"}
+WIDE = ("unified", "eucm", "ds", "fov")  # wiredsl's wide-angle models; a CameraFile's dist is MODEL_KEYS' order
+WIDE_KEYS = {"unified": ("xi", "k1", "k2", "p1", "p2"), "eucm": ("alpha", "beta"), "ds": ("xi", "alpha"), "fov": ("w",)}
+SUPPORTED = ("wiredsl's lens models are pinhole with radtan distortion (plumb_bob, rational_polynomial, radtan8), "
+             "equidistant (Kannala-Brandt: kb4, KANNALA_BRANDT, KannalaBrandt8), unified (Mei: omni, MEI, ucm), "
+             "eucm (extended unified), ds (double sphere) and fov (ATAN)")
 
 
 class CalibrationFileError(ValueError):
@@ -59,13 +62,14 @@ class CameraFile:
     fy: float
     cx: float
     cy: float
-    dist: tuple[float, ...]  # radtan: OpenCV's (k1, k2, p1, p2, k3, k4, k5, k6); equidistant: (k1, k2, k3, k4)
+    dist: tuple[float, ...]  # radtan: OpenCV's (k1, k2, p1, p2, k3, k4, k5, k6); equidistant: (k1, k2, k3, k4);
+    # the others: WIDE_KEYS' numbers (unified: xi, k1, k2, p1, p2)
     width: int | None
     height: int | None
     R: np.ndarray | None = None  # (3, 3): from the previous camera's frame to this one's, X = R X_prev + T
     T: np.ndarray | None = None  # (3,) in the file's units (metres for Kalibr and ROS)
     sigma: dict[str, float] = field(default_factory=dict)  # standard deviations, by wiredsl parameter name
-    model: str = "radtan"  # or "equidistant"
+    model: str = "radtan"  # or "equidistant", "unified", "eucm", "ds", "fov" (geometry.MODELS)
     notes: tuple[str, ...] = ()  # doubts about the file, for a warning
     intrinsics: bool = True  # False for an extrinsics-only file (stereo_calib's extrinsics.yml)
 
@@ -102,6 +106,15 @@ def read(path: str | Path, fmt: str | None = None) -> list[CameraFile]:
         doc = _yaml(text)
     if not isinstance(doc, dict):
         raise CalibrationFileError(f"expected a mapping of names to values at the top of the file, found {_kind(doc)}")
+    from wiredsl.io import calibration_slam as slam
+
+    if fmt in (None, "camodocal") and slam.is_camodocal(doc):
+        return slam.camodocal(doc)
+    if fmt in (None, "basalt") and slam.is_basalt(doc):
+        return slam.basalt(doc)
+    if fmt in ("camodocal", "basalt"):
+        raise CalibrationFileError(f"the file is not {fmt}'s: " + ("no model_type with projection_parameters"
+                                                                    if fmt == "camodocal" else "no value0.intrinsics"))
     fmt = fmt or ("kalibr" if _is_kalibr(doc) else "ros" if _is_ros(doc) else "opencv")
     return {"opencv": _opencv, "ros": _ros, "kalibr": _kalibr}[fmt](doc)
 
@@ -341,14 +354,19 @@ def _distortion(name: str, D, model) -> tuple[str, tuple[float, ...]]:
         raise CalibrationFileError(f"{name}: the distortion model must be a name, is {_kind(model)}")
     m = model.strip().lower()
     d = _floats(D, f"{name}: the distortion coefficients") if D is not None else np.zeros(0)
+    if m in WIDE:
+        want = len(WIDE_KEYS[m])
+        if d.size != want:
+            raise CalibrationFileError(f"{name}: the {m} model has {want} numbers ({', '.join(WIDE_KEYS[m])}), "
+                                       f"the file has {d.size}")
+        return m, tuple(float(x) for x in d)
     if m in EQUIDISTANT:
         if d.size > 4:
             raise CalibrationFileError(f"{name}: an equidistant (fisheye) lens has 4 coefficients k1..k4, "
                                        f"the file has {d.size}")
         return "equidistant", tuple(float(x) for x in np.pad(d, (0, 4 - d.size)))
     if m not in RADTAN:
-        raise CalibrationFileError(f"{name}: distortion model '{model}' is not supported: wiredsl reads radtan "
-                                   "(plumb_bob, rational_polynomial) and equidistant (fisheye, Kannala-Brandt)")
+        raise CalibrationFileError(f"{name}: distortion model '{model}' is not supported: {SUPPORTED}")
     if d.size > 14 or d.size not in (0, 1, 2, 3, 4, 5, 8, 12, 14):
         raise CalibrationFileError(f"{name}: OpenCV's distortion vector has 4, 5, 8, 12 or 14 values, the file "
                                    f"has {d.size}")
@@ -466,7 +484,7 @@ def _orbslam(doc: dict) -> list[CameraFile]:
             cams[1] = _with_pose(cams[1], R2.T @ R1, R2.T @ t, "LEFT.R, RIGHT.R and RIGHT.P")
         return cams
     cams = []
-    for prefix in ("Camera1", "Camera2") if "Camera1.fx" in doc else ("Camera",):
+    for prefix in ("Camera1", "Camera2") if "Camera1.fx" in doc else ("Camera", "Camera2"):
         if f"{prefix}.fx" not in doc:
             break
         v = {k: _num(doc[f"{prefix}.{k}"], f"{prefix}.{k}") for k in ("fx", "fy", "cx", "cy")
@@ -483,7 +501,13 @@ def _orbslam(doc: dict) -> list[CameraFile]:
                 break
         K = [[v["fx"], 0, v["cx"]], [0, v["fy"], v["cy"]], [0, 0, 1]]
         cams.append(_intrinsics(prefix, K, D, size, "equidistant" if fisheye else "plumb_bob"))
-    if len(cams) == 2 and "Stereo.T_c1_c2" in doc:
+    if len(cams) == 2 and "Tlr" in doc:  # before ORB-SLAM3 1.0: Tlr maps the right camera's points into the left's
+        M = _floats(doc["Tlr"], "Tlr")
+        if M.size not in (12, 16):
+            raise CalibrationFileError(f"Tlr must be a 3x4 or 4x4 matrix, has {M.size} values")
+        M = _inverse(_transform(np.concatenate([M[:12], [0, 0, 0, 1]]), "Tlr"))
+        cams[1] = _with_pose(cams[1], M[:3, :3], M[:3, 3], "Tlr")
+    elif len(cams) == 2 and "Stereo.T_c1_c2" in doc:
         M = _inverse(_transform(doc["Stereo.T_c1_c2"], "Stereo.T_c1_c2"))  # T_c1_c2 maps camera 2's points to 1's
         cams[1] = _with_pose(cams[1], M[:3, :3], M[:3, 3], "Stereo.T_c1_c2")
     return cams
@@ -530,17 +554,8 @@ def _kalibr(doc: dict) -> list[CameraFile]:
         model = cam.get("camera_model", "pinhole")
         if not isinstance(model, str):
             raise CalibrationFileError(f"{name}: camera_model must be a name, is {_kind(model)}")
-        if model != "pinhole":
-            what = KALIBR_MODELS.get(model, "unknown")
-            raise CalibrationFileError(f"{name}: Kalibr camera model '{model}' ({what}) is not supported: wiredsl's "
-                                       "cameras are pinhole (with radtan, equidistant or no distortion)")
-        dmodel = cam.get("distortion_model", "radtan")
-        if isinstance(dmodel, str) and dmodel in KALIBR_MODELS:
-            raise CalibrationFileError(f"{name}: Kalibr distortion model '{dmodel}' ({KALIBR_MODELS[dmodel]}) is "
-                                       "not supported: wiredsl reads radtan, equidistant and none")
-        fu, fv, pu, pv = _floats(_get(cam, "intrinsics"), f"{name}: intrinsics [fu, fv, pu, pv]", 4)
-        c = _intrinsics(name, [[fu, 0, pu], [0, fv, pv], [0, 0, 1]], cam.get("distortion_coeffs"),
-                        cam.get("resolution"), dmodel)
+        dmodel = cam.get("distortion_model", "none" if model in ("ds", "eucm") else "radtan")
+        c = _kalibr_intrinsics(name, model, dmodel, cam)
         c = replace(c, name=name)
         if "T_cam_imu" in cam:
             T_imu.append(_transform(cam["T_cam_imu"], f"{name}: T_cam_imu"))
@@ -558,6 +573,37 @@ def _kalibr(doc: dict) -> list[CameraFile]:
     if not out:
         raise CalibrationFileError("no 'cam0' in the file")
     return out
+
+
+# Kalibr's camera models (aslam_cv's camera geometries): intrinsics before fu, fv, pu, pv, and the distortion
+# models each takes ("none" is no distortion): the names of kalibr_calibrate_cameras' --models, camera-distortion
+KALIBR_CAMERAS = {"pinhole": ((), ("radtan", "equidistant", "fov", "none")), "omni": (("xi",), ("radtan", "none")),
+                  "eucm": (("alpha", "beta"), ("none",)), "ds": (("xi", "alpha"), ("none",))}
+
+
+def _kalibr_intrinsics(name: str, model, dmodel, cam: dict) -> CameraFile:
+    """One camchain camera: pinhole-radtan, -equi, -fov or -none, omni-radtan or -none, eucm-none, ds-none."""
+    if not isinstance(model, str) or not isinstance(dmodel, str):
+        raise CalibrationFileError(f"{name}: camera_model and distortion_model must be names")
+    if model not in KALIBR_CAMERAS or dmodel not in KALIBR_CAMERAS[model][1]:
+        known = ", ".join(f"{m}-{d}" for m, (_, ds) in KALIBR_CAMERAS.items() for d in ds)
+        what = f"camera model '{model}'" if model not in KALIBR_CAMERAS else f"camera '{model}-{dmodel}'"
+        raise CalibrationFileError(f"{name}: Kalibr {what} is not supported: wiredsl reads Kalibr's {known}")
+    extra = KALIBR_CAMERAS[model][0]
+    values = _floats(_get(cam, "intrinsics"), f"{name}: intrinsics [{', '.join((*extra, 'fu', 'fv', 'pu', 'pv'))}]",
+                     len(extra) + 4)
+    lead, (fu, fv, pu, pv) = list(values[:len(extra)]), values[len(extra):]
+    d = cam.get("distortion_coeffs") if dmodel != "none" else None
+    if model == "pinhole":
+        kind = {"fov": "fov", "none": "radtan"}.get(dmodel, dmodel)
+        D = d if kind != "radtan" or d is not None else None
+    elif model == "omni":
+        kind, D = "unified", lead + (list(_floats(d, f"{name}: distortion_coeffs [k1, k2, r1, r2]", 4)) if d is not None
+                                     else [0.0] * 4)
+    else:
+        kind, D = model, lead
+    c = _intrinsics(name, [[fu, 0, pu], [0, fv, pv], [0, 0, 1]], D, cam.get("resolution"), kind)
+    return replace(c, name=name)
 
 
 _PLUSMINUS = re.compile(r"^\s*(\w[\w ]*?):\s*\[([^\]]*)\]\s*\+-\s*\[([^\]]*)\]")
@@ -612,8 +658,8 @@ def _kalibr_camera(c: dict) -> CameraFile:
     name, kind = c["name"], c.get("type", "")
     for word, model in (("Omni", "omni"), ("DoubleSphere", "ds"), ("ExtendedUnified", "eucm"), ("Fov", "fov")):
         if word in kind:
-            raise CalibrationFileError(f"{name}: Kalibr camera model '{model}' ({KALIBR_MODELS[model]}) is not "
-                                       "supported: wiredsl's cameras are pinhole (radtan, equidistant or none)")
+            raise CalibrationFileError(f"{name}: Kalibr's results-cam.txt of a '{model}' camera is not read (its "
+                                       "standard deviations are of other numbers): read the camchain YAML")
     equidistant = "Equidistant" in kind
     if "projection" not in c:
         raise CalibrationFileError(f"{name} (line {c['line']}): no 'projection: [...] +- [...]' line")
@@ -689,16 +735,45 @@ def ros_yaml(name: str, cam: dict, R: np.ndarray | None = None, P: np.ndarray | 
 # --------------------------------------------------------------------------- a scene's rig as files
 
 def rig_files(scene) -> dict[str, str]:
-    """The rig's cameras as files: OpenCV stereo YAML (M1, D1, M2, D2, R, T) and one ROS camera_info each,
-    with the stereo rectification R and P that ROS's stereo nodes use (two radtan or two equidistant cameras
-    of one image size; otherwise R = I and P = [K | 0])."""
+    """The rig's cameras as files: OpenCV stereo YAML (M1, D1, M2, D2, R, T) and one ROS camera_info each, with the
+    stereo rectification R and P that ROS's stereo nodes use (two radtan or two equidistant cameras of one image size;
+    otherwise R = I and P = [K | 0]), for the lenses OpenCV and ROS have (radtan, equidistant); and for the SLAM tools
+    a Kalibr camchain (camchain.yaml), basalt's calibration (basalt_calib.json, with T_imu_cam the mounts on the robot)
+    and camodocal's YAML a camera (left_camodocal.yaml, right_camodocal.yaml), each when it has the rig's lenses."""
+    from wiredsl.io import calibration_slam as slam
+
     rig, cams = scene.rig, {c.name: c for c in scene.cameras}
-    mats = {}
+    lenses = [cams[getattr(rig, side).camera] for side in ("left", "right")]
+    R, T = rig.stereo_extrinsics()
+    out: dict[str, str] = {}
+    if all(c.distortion in ("radtan", "equidistant") for c in lenses):
+        out.update(_opencv_rig_files(rig, lenses, R, T))
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, T
+    mounts = []
     for side in ("left", "right"):
-        c = cams[getattr(rig, side).camera]
+        m = getattr(rig, side)
+        P = np.eye(4)
+        P[:3, :3], P[:3, 3] = np.array(m.rotation), np.array(m.position)  # camera -> robot
+        mounts.append(P)
+    for name, write in (("camchain.yaml", lambda: slam.kalibr_yaml(lenses, [None, M])),
+                        ("basalt_calib.json", lambda: slam.basalt_json(lenses, mounts))):
+        try:
+            out[name] = write()
+        except CalibrationFileError:  # a lens the format has not: that file is not written
+            pass
+    for side, c in zip(("left", "right"), lenses, strict=True):
+        text = slam.camodocal_yaml(side, c)
+        if text is not None:
+            out[f"{side}_camodocal.yaml"] = text
+    return out
+
+
+def _opencv_rig_files(rig, lenses, R, T) -> dict[str, str]:
+    mats = {}
+    for side, c in zip(("left", "right"), lenses, strict=True):
         K = np.array([[c.f * c.ax, 0, c.cx], [0, c.f * c.ay, c.cy], [0, 0, 1.0]])
         mats[side] = {"K": K, "D": distortion_vector(c), "width": c.width, "height": c.height, "model": c.distortion}
-    R, T = rig.stereo_extrinsics()
     rect: dict = {"left": {}, "right": {}}
     l, r = mats["left"], mats["right"]
     rectify = {"radtan": stereo_rectify, "equidistant": fisheye_stereo_rectify}.get(l["model"])

@@ -11,8 +11,9 @@ from __future__ import annotations
 import json
 import math
 
-NPZ_VERSION = 4  # 1: seven stroke columns; 2: closed, fragment, occluded, views and conics added;
-# 3: view cameras with k3..k6 and the lens model; 4: the stroke column `contour`
+NPZ_VERSION = 5  # 1: seven stroke columns; 2: closed, fragment, occluded, views and conics added;
+# 3: view cameras with k3..k6 and the lens model; 4: the stroke column `contour`; 5: view cameras with the
+# wide-angle models' xi, alpha, beta, w
 
 STROKE_COLUMNS = (
     ("trial", "Monte-Carlo trial (0 for the ideal projection)"),
@@ -39,14 +40,16 @@ VIEW_COLUMNS = (
     ("pose", "index of the pose in the scene's path"),
     ("camera", "0 left, 1 right"),
 )
-# `model`: the lens model's code, 0 radtan, 1 equidistant (geometry.MODELS)
+# `model`: the lens model's code, 0 radtan, 1 equidistant, 2 unified, 3 eucm, 4 ds, 5 fov (geometry.MODELS); the
+# wide-angle models' numbers after it
+LENS_MODELS = ("radtan", "equidistant", "unified", "eucm", "ds", "fov")
 CAMERA_COLUMNS = ("f", "ax", "ay", "cx", "cy", "k1", "k2", "p1", "p2", "width", "height", "k3", "k4", "k5", "k6",
-                  "model")
+                  "model", "xi", "alpha", "beta", "w")
 
 
 def camera_value(camera, column: str) -> float:
     """A camera's number in CAMERA_COLUMNS (the lens model as its code)."""
-    return ("radtan", "equidistant").index(camera.distortion) if column == "model" else getattr(camera, column)
+    return LENS_MODELS.index(camera.distortion) if column == "model" else getattr(camera, column)
 
 
 CONIC_COLUMNS = (
@@ -71,7 +74,7 @@ MEMBERS = (
     ("b_views", "int32", f"(V, {len(VIEW_COLUMNS)})", "one row a camera view (trial, pose, camera)"),
     ("b_view_cameras", "float64", f"(V, {len(CAMERA_COLUMNS)})",
      "each view's camera as projected (perturbed under calibration error): " + ", ".join(CAMERA_COLUMNS)
-     + " (0 radtan, 1 equidistant)"),
+     + " (model: " + ", ".join(f"{i} {m}" for i, m in enumerate(LENS_MODELS)) + ")"),
     ("b_view_poses", "float64", "(V, 12)", "each view's R (row-major, 9) and t (3) of P_cam = R P_world + t, "
      "full precision"),
     ("b_conics", "float64", "(K, 7)", "analytic ellipse images (undistorted cameras, ideal projection only): "

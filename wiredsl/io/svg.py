@@ -239,11 +239,10 @@ def _fov_rays(view: View) -> np.ndarray:
     cam = view.camera
     us = np.linspace(0.0, cam.width, 17)
     xd = (us - cam.cx) / (cam.f * cam.ax)
-    if cam.distortion == "equidistant":  # theta from theta_d, no farther than the lens limit
+    if cam.distortion != "radtan":  # an angle-bounded lens: its own unprojection, no farther than its limit
         limit = geometry.lens_limit(cam)
-        reach = geometry.fisheye_theta_d(limit, cam.k1, cam.k2, cam.k3, cam.k4)
-        th, _ = geometry.fisheye_theta(np.minimum(np.abs(xd), reach), cam.k1, cam.k2, cam.k3, cam.k4)
-        th = np.clip(np.nan_to_num(th, nan=limit), 0.0, limit)
+        rays, ok = geometry.pixels_to_rays(np.column_stack([us, np.full_like(us, cam.cy)]), cam)
+        th = np.where(ok, np.arctan2(np.abs(rays[:, 0]), rays[:, 2]), limit)
         rays = np.column_stack([np.sign(xd) * np.sin(th), np.zeros_like(us), np.cos(th)])
     else:
         rays = np.column_stack([xd, np.zeros_like(us), np.ones_like(us)])

@@ -12,6 +12,14 @@ Formats (each pose is the file's frame, the "body", in the file's world):
   without a t column, a `rate` gives the timestamps.
 
 Every problem is a `TrajectoryError` naming the line of the file it is on.
+
+Files as they are (the rules, `judge`): a line whose timestamp repeats the one before it (TUM's fr2/desk has
+one) is dropped, the first pose with that timestamp kept, and `Trajectory.repeated` names it for a warning. evo
+reads such a file too: its reader keeps every row and its `check` reports "not ascending or duplicates"; its
+association (evo/core/sync.py matching_time_indices) matches a repeated timestamp to the first row up to v1.36
+(np.argmin) and to the last from v1.38 (np.searchsorted, side "right"). A timestamp that goes back is an error. Given the window (`from`, `to`: seconds from the file's first pose), only the lines in
+it and the one pose either side of it (what interpolation uses) are judged and kept; the others are not judged.
+A line that is not numbers is an error wherever it is (its time is unknown).
 """
 
 from __future__ import annotations
@@ -57,6 +65,8 @@ class Trajectory:
     rotations: np.ndarray  # (n, 3, 3) world_from_body
     lines: np.ndarray  # (n,) the line of each pose in the file
     normalised: tuple[tuple[int, str], ...] = ()  # (line, what was off) of rotations normalised beyond ROUNDING
+    repeated: tuple[tuple[int, int], ...] = ()  # (line dropped, the earlier line with its timestamp)
+    origin: float | None = None  # the file's first timestamp (times[0] unless lines before the window were left)
 
 
 def guess_format(text: str) -> str:
@@ -76,10 +86,11 @@ def guess_format(text: str) -> str:
     raise TrajectoryError("the file holds no poses")
 
 
-def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rate: float | None = None
-         ) -> Trajectory:
+def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rate: float | None = None,
+         window: tuple[float | None, float | None] | None = None) -> Trajectory:
     """The poses of a trajectory file's text; KITTI's timestamps from `times` (`read_times`) or `rate`, a CSV's
-    without a time column from `rate`."""
+    without a time column from `rate`; judged by the module's rules within `window` (from, to: seconds from the
+    first pose; None: the whole file)."""
     fmt = fmt or guess_format(text)
     if fmt == "csv" and times is None:
         traj = _csv(text, fmt, rate)
@@ -105,8 +116,35 @@ def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rat
     if len(far):
         raise TrajectoryError(f"a position beyond {MAX_COORDINATE:g} m", int(traj.lines[far[0]]))
     if traj.times is not None:
-        _check_increasing(traj.times, traj.lines)
+        traj = judge(traj, window)
     return traj
+
+
+def judge(traj: Trajectory, window: tuple[float | None, float | None] | None = None) -> Trajectory:
+    """The poses the module's rules keep: within the window and one pose either side of it, repeated timestamps
+    dropped (named in `repeated`); an error at a timestamp that goes back among them."""
+    t = traj.times
+    origin = float(t[0])
+    keep = np.ones(len(t), dtype=bool)
+    if window is not None and len(t):
+        rel = t - origin
+        lo = -np.inf if window[0] is None else window[0]
+        hi = np.inf if window[1] is None else window[1]
+        inside = (rel >= lo) & (rel <= hi)
+        keep = inside.copy()
+        keep[1:] |= inside[:-1]  # the pose after the window's last, and the one before its first
+        keep[:-1] |= inside[1:]
+        keep[0] = True  # the first pose sets the clock
+    idx = np.flatnonzero(keep)
+    tk = t[idx]
+    again = np.concatenate([[False], tk[1:] == tk[:-1]])
+    first = idx[np.maximum.accumulate(np.where(~again, np.arange(len(idx)), 0))]  # the run's first line
+    repeated = tuple((int(traj.lines[i]), int(traj.lines[j])) for i, j in zip(idx[again], first[again], strict=True))
+    idx = idx[~again]
+    _check_increasing(t[idx], traj.lines[idx])
+    lines = set(traj.lines[idx].tolist())
+    return Trajectory(t[idx], traj.positions[idx], traj.rotations[idx], traj.lines[idx],
+                      tuple(n for n in traj.normalised if n[0] in lines), repeated, origin)
 
 
 def _numbers(words: list[str], n: int, what: str, line: int) -> list[float]:
@@ -308,7 +346,7 @@ def resample(traj: Trajectory, every: float | None = None, start: float | None =
             raise TrajectoryError("the file has no timestamps: give KITTI's times file or a rate")
         P, R = traj.positions, traj.rotations
         return P[:limit], R[:limit]
-    t = traj.times - traj.times[0]  # a times file need not start at 0
+    t = traj.times - (traj.times[0] if traj.origin is None else traj.origin)  # a times file need not start at 0
     lo = 0.0 if start is None else max(start, 0.0)  # the window starts at the first pose at the earliest
     hi = t[-1] if end is None else min(end, t[-1])
     if lo > hi:

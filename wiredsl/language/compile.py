@@ -678,9 +678,18 @@ class Compiler(CameraCompiler):
                 self.out.error("E110", f"{key} must be > 0, got {sb.get(key):g}", sb.span(key))
                 return None
         try:
-            traj = trajectory.read(text, sb.get("format"), times, sb.get("rate"))
+            traj = trajectory.read(text, sb.get("format"), times, sb.get("rate"), (sb.get("from"), sb.get("to")))
         except trajectory.TrajectoryError as exc:
             return self._trajectory_error(exc, target, text, where, file_arg.span)
+        if traj.repeated:  # one warning, at the first, naming every dropped line
+            (line, earlier), rest = traj.repeated[0], traj.repeated[1:]
+            more = f"; also lines {', '.join(str(r[0]) for r in rest[:10])}" + (" ..." if len(rest) > 10 else "") \
+                if rest else ""
+            self.out.extend([Diagnostic(
+                "warning", "W148", f"line {line} repeats the timestamp of line {earlier}: its pose is dropped, the "
+                f"first kept{more}", _line_span(target, text, line),
+                notes=(where, "a trajectory's timestamps should increase; evo reads both rows and reports them in "
+                       "its --check"))])
         if traj.normalised:
             line, message = traj.normalised[0]
             more = f" (and {len(traj.normalised) - 1} more)" if len(traj.normalised) > 1 else ""

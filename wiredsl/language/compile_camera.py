@@ -22,8 +22,10 @@ MAX_MATRIX = 1_000
 BARE_FOCAL_METRES = 0.1  # a bare focal length this long (in m) is more likely mm written without its unit
 PLAUSIBLE_FOV = 1000  # f over the image's larger side beyond which a focal length is probably missing its unit
 MAX_MATRIX_ENTRY = 1e100  # calibration entries: inverses, square roots and products of them stay finite
-LENS = ("distortion", "k", "k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
+LENS = ("distortion", "k", "k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2", "xi", "alpha", "beta", "w")
 ENTRIES = ("first", "second", "third")  # `read ... entry`: these, or camN (Kalibr's name, N from 0)
+LENS_RANGES = {"unified": "xi >= 0", "eucm": "alpha in [0, 1], beta > 0", "ds": "alpha in [0, 1], xi in (-1, 1]",
+               "fov": "w in (0, 180) deg"}
 STEREO_BASELINE = 5.0  # metres: a stereo pair's |T| beyond this is more likely in millimetres
 
 
@@ -151,7 +153,9 @@ class CameraCompiler:
             return None
         for note in c.notes:
             self.out.warning("W143", f"calibration file {path}: {note}", path_span)
-        coeffs = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6") if c.model == "radtan" else ("k1", "k2", "k3", "k4")
+        from wiredsl.engine.geometry import MODEL_KEYS
+
+        coeffs = MODEL_KEYS[c.model]  # the order of a calibration's `dist`
         out = {"focal": ((c.fx, "image", "px"), span), "aspect": ((1.0, c.fy / c.fx), span),
                "centre": ((c.cx, c.cy), span), "distortion": (c.model, span)}
         out.update({k: (v, span) for k, v in zip(coeffs, c.dist, strict=True)})
@@ -266,11 +270,15 @@ class CameraCompiler:
 
         corner = float(radius_of(np.array([0.0, cam.width, 0.0, cam.width]),
                                  np.array([0.0, 0.0, cam.height, cam.height])).max())
-        if cam.distortion == "equidistant":
-            stop = geometry.fisheye_max_angle(*k)
+        if cam.distortion != "radtan":  # an angle-bounded lens: its own valid region, without the declared fov
+            stop = geometry.lens_limit(cam, bounded=False)
             if stop >= math.pi or (cam.fov is not None and cam.fov / 2 <= stop):
                 return
-            reach, angle = float(geometry.fisheye_theta_d(stop, *k)), stop
+            unit = {**geometry.camera_table(cam), "f": 1.0, "ax": 1.0, "ay": 1.0, "cx": 0.0, "cy": 0.0,
+                    "p1": 0.0, "p2": 0.0}
+            with np.errstate(all="ignore"):  # the distorted radius at the limit (inf where the model's is)
+                reach = abs(float(geometry.project(np.array([[math.sin(stop), 0.0, math.cos(stop)]]), unit)[0, 0]))
+            reach, angle = (reach if math.isfinite(reach) else math.inf), stop
         else:
             def radius(r: float) -> float:  # the distorted radius of unit-plane radius r (radial terms; inf on
                 with np.errstate(over="ignore", invalid="ignore"):  # overflow, past any image's corner)
@@ -303,16 +311,21 @@ class CameraCompiler:
                              "target was seen; check the coefficients if this is not expected")
 
     def _lens(self, b: Bound, s: dict[str, tuple[object, Span]]) -> dict | None:
-        """The lens model and its coefficients beside k1; None after reporting a clause the model has not."""
+        """The lens model and its numbers beside k1; None after reporting a clause the model has not or numbers that
+        define no lens of the model."""
+        from wiredsl.engine import geometry
+
         model, mspan = s.get("distortion", ("radtan", b.name_span))
-        foreign = ("k", "p1", "p2", "k5", "k6") if model == "equidistant" else ("fov",)
+        own = geometry.MODEL_KEYS[model]
         ok = True
-        for key in foreign:
-            if key in s:
+        for key in ("k", "k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2", "xi", "alpha", "beta", "w", "fov"):
+            if key in s and key not in own and not (key == "k" and "k1" in own) and not (key == "fov"
+                                                                                        and model != "radtan"):
                 ok = False
-                hint = ("the equidistant (fisheye) model takes k1..k4 on the angle theta and a fov; "
-                        "use 'distortion radtan' for OpenCV's k1..k6, p1, p2" if model == "equidistant"
-                        else "a field of view bounds a fisheye: add 'distortion equidistant'")
+                hint = (f"the {model} model's numbers are {', '.join(own)}" + (" and a fov" if model != "radtan"
+                                                                                  else "")
+                        + ("; a field of view bounds a wide-angle lens: choose its 'distortion' model"
+                           if key == "fov" else ""))
                 self.out.error("E103", f"camera '{b.name}': '{key}' does not belong to the {model} lens model",
                                s[key][1], hint)
         fov = s.get("fov", (None, None))
@@ -322,7 +335,16 @@ class CameraCompiler:
             ok = False
         if not ok:
             return None
-        out = {k: s.get(k, (0.0,))[0] for k in ("k2", "p1", "p2", "k3", "k4", "k5", "k6")}
+        out = {k: s.get(k, (0.0,))[0] for k in ("k2", "p1", "p2", "k3", "k4", "k5", "k6", "xi", "alpha", "w")}
+        out["beta"] = s.get("beta", (1.0,))[0]
+        if model not in ("radtan", "equidistant"):
+            numbers = {**{k: 0.0 for k in geometry.CAMERA_KEYS[5:]}, **out,
+                       "k1": -s["k"][0] if "k" in s else s.get("k1", (0.0,))[0]}
+            if math.isnan(geometry.model_max_angle(model, numbers)):
+                where = next((s[k][1] for k in own if k in s), mspan)
+                self.out.error("E110", f"camera '{b.name}': these numbers define no {model} lens", where,
+                               LENS_RANGES[model])
+                return None
         return {**out, "distortion": model, "fov": fov[0]}
 
     def _positive(self, v: float, what: str, span: Span | None) -> None:

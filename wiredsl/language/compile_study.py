@@ -31,6 +31,8 @@ CAMERA_FACTORS = {
     "k3": ("number", None, "k3 (OpenCV's, or the fisheye's)"),
     "k4": ("number", None, "k4 (rational, or the fisheye's)"),
     "k5": ("number", None, "OpenCV's rational k5"), "k6": ("number", None, "OpenCV's rational k6"),
+    "xi": ("number", None, "xi (unified, ds)"), "alpha": ("number", None, "alpha (eucm, ds)"),
+    "beta": ("number", 0.0, "beta (eucm)"), "w": ("number", 0.0, "w (fov, rad)"),
 }
 MAX_TRIALS = 10**9  # design points x trials
 
@@ -212,9 +214,14 @@ def _camera_factor(sb: Bound, ref: ast.Ref, kind: str, units: dict[str, str], ou
                   did_you_mean(param, CAMERA_FACTORS) or "parameters: " + ", ".join(CAMERA_FACTORS))
         return None
     cam = cameras.get(name) if isinstance(cameras, dict) else None
-    if getattr(cam, "distortion", None) == "equidistant" and param in ("p1", "p2", "k5", "k6"):
-        out.error("E104", f"camera '{name}' has an equidistant lens, which has no '{param}'", span,
-                  "a fisheye's coefficients are k1..k4 (and k, which is -k1)")
+    from wiredsl.engine.geometry import MODEL_KEYS
+
+    model = getattr(cam, "distortion", None)
+    if model is not None and param not in ("f", "ax", "ay", "cx", "cy") and not (
+            param in MODEL_KEYS[model] or (param == "k" and "k1" in MODEL_KEYS[model])):
+        out.error("E104", f"camera '{name}' has the {model} lens model, which has no '{param}'", span,
+                  f"its numbers are {', '.join(MODEL_KEYS[model])}" + (" (and k, which is -k1)"
+                                                                         if "k1" in MODEL_KEYS[model] else ""))
         return None
     value_kind, low, _ = CAMERA_FACTORS[param]
     return _values(sb, f"camera.{name}", param, value_kind,

@@ -186,17 +186,26 @@ _CAMERA = [
         example="k4 0"),
     Sig("k5", "OpenCV's rational k5 (denominator's r^4)", (S("number", "k5"),), example="k5 0"),
     Sig("k6", "OpenCV's rational k6 (denominator's r^6)", (S("number", "k6"),), example="k6 0"),
-    Sig("distortion", "the lens model: radtan (OpenCV's k1..k6, p1, p2; the default) or equidistant "
-        "(OpenCV's fisheye, Kannala-Brandt: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8))",
-        (S("word", "model", "radtan", "equidistant"),), example="distortion equidistant"),
-    Sig("fov", "equidistant: the lens's full field of view; nothing farther than half of it from the optical "
-        "axis is imaged (default: where theta_d stops increasing, at most 360 deg)", (S("angle", "field of view"),),
-        example="fov 190deg"),
-    Sig("read", "take the camera's parameters from a calibration file (OpenCV, ROS or Kalibr); "
+    Sig("distortion", "the lens model: radtan (OpenCV's k1..k6, p1, p2; the default), equidistant "
+        "(OpenCV's fisheye, Kannala-Brandt: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8)), unified (Mei's "
+        "unified model, Kalibr's omni: xi, then radtan k1, k2, p1, p2), eucm (extended unified: alpha, beta), "
+        "ds (double sphere: xi, alpha) or fov (Devernay and Faugeras's FOV / ATAN model: w)",
+        (S("word", "model", "radtan", "equidistant", "unified", "eucm", "ds", "fov"),),
+        example="distortion equidistant"),
+    Sig("xi", "unified: Mei's xi (>= 0); ds: the double sphere's xi (in (-1, 1])", (S("number", "xi"),),
+        example="xi 0.9"),
+    Sig("alpha", "eucm and ds: alpha, in [0, 1]", (S("number", "alpha"),), example="alpha 0.6"),
+    Sig("beta", "eucm: beta (> 0)", (S("number", "beta"),), example="beta 1.1"),
+    Sig("w", "fov: the FOV model's w, in (0, 180) deg", (S("angle", "w"),), example="w 53deg"),
+    Sig("fov", "every lens model but radtan: the lens's full field of view; nothing farther than half of it from "
+        "the optical axis is imaged (default: the model's own valid region; equidistant: where theta_d stops "
+        "increasing, at most 360 deg)", (S("angle", "field of view"),), example="fov 190deg"),
+    Sig("read", "take the camera's parameters from a calibration file (OpenCV, ROS, Kalibr, ORB-SLAM, camodocal / "
+        "VINS or basalt); "
         "statements beside it override them", (S("str", "path"),),
         {"format": C("the file's format (default: recognised from its content)",
-                     S("word", "format", "opencv", "ros", "kalibr")),
-         "entry": C("which camera of a file with several: first, second, third (OpenCV's M1/M2, Kalibr's "
+                     S("word", "format", "opencv", "ros", "kalibr", "camodocal", "basalt")),
+         "entry": C("which camera of a file with several: first, second, third (OpenCV's M1/M2, Kalibr's and basalt's "
                     "cam0/cam1...) or Kalibr's camN", S("word", "entry", "first", "second", "third",
                                                           *(f"cam{i}" for i in range(10))))},
         example='read "calib/stereo.yaml" entry second'),

@@ -58,25 +58,39 @@ def undistort(uv: np.ndarray, cam, engine: str = "auto", limit: float | None = N
               ) -> tuple[np.ndarray, np.ndarray]:
     """Undistorted unit-plane coordinates (n, 2) of pixels (n, 2) under `cam`, and which converged (n,).
 
-    Newton's method on `geometry.distort` from the distorted point; a point is kept when the
-    residual is below 1e-12 and it lies inside the fold radius (where the projection is one-to-one).
-    `engine`: "numpy" (the reference), "numba" (the same operations compiled point by point, equal to the
-    last bit; `wiredsl[fast]`) or "auto" (numba when installed). `limit`: the camera's
-    `geometry.lens_limit`, when the caller has it already.
+    Each lens model's own unprojection: radtan by Newton's method on `geometry.distort` from the distorted point
+    (`engine`: "numpy", the reference `geometry.undistort_radtan`; "numba", the same operations compiled point by
+    point, equal to the last bit, `wiredsl[fast]`; "auto", numba when installed), kept when the residual is below
+    1e-12 and it lies inside the fold radius (`limit`: the camera's `geometry.lens_limit`, when the caller has it
+    already); the other models by their closed forms (`geometry.pixels_to_rays`), kept inside the lens's valid
+    region and less than 90 deg from the axis (a ray at or past 90 deg has no point on the unit plane, so it is
+    not triangulated).
     """
-    xd = pixels_to_distorted(np.asarray(uv, dtype=float).reshape(-1, 2), cam)
-    if cam.distortion == "equidistant":
-        return _undistort_fisheye(xd, cam)
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     if not geometry.is_distorted(cam):
-        return xd, np.ones(len(xd), dtype=bool)
-    lens = tuple(float(getattr(cam, k)) for k in ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"))
+        return pixels_to_distorted(uv, cam), np.ones(len(uv), dtype=bool)
+    if cam.distortion == "radtan":
+        return _undistort_radtan(pixels_to_distorted(uv, cam), cam, engine, limit)
+    rays, ok = geometry.pixels_to_rays(uv, cam)
+    ok &= rays[:, 2] > math.cos(math.pi / 2 - 1e-6)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = rays[:, :2] / np.where(ok, rays[:, 2], 1.0)[:, None]
+    return np.where(ok[:, None], xy, 0.0), ok
+
+
+def _undistort_radtan(xd: np.ndarray, cam, engine: str, limit: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """`undistort` of a radtan camera's distorted unit-plane points xd (n, 2), on `engine`."""
+    lens = tuple(float(getattr(cam, k)) for k in geometry.RADTAN_KEYS)
     limit = geometry.lens_limit(cam) if limit is None else limit
     compiled = kernel() if engine != "numpy" else None
     if engine == "numba" and compiled is None:
         raise ImportError("the numba engine needs numba: pip install 'wiredsl[fast]'")
     if compiled is not None:
         return compiled.undistort_radtan(np.ascontiguousarray(xd), *lens, NEWTON_STEPS, float(limit))
-    return _undistort_radtan(xd, lens, limit)
+    xy, res = geometry.undistort_radtan(xd, *lens, steps=NEWTON_STEPS)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(xy).all(axis=1) & (res < 1e-12) & (np.hypot(xy[:, 0], xy[:, 1]) < limit)
+    return np.where(ok[:, None], xy, 0.0), ok
 
 
 def kernel():
@@ -92,43 +106,6 @@ def kernel():
 
 
 _KERNEL = None
-
-
-def _undistort_radtan(xd: np.ndarray, lens: tuple, limit: float) -> tuple[np.ndarray, np.ndarray]:
-    """`undistort`'s numpy reference for a radtan camera: Newton's method on all points at once."""
-    k1, k2, p1, p2, k3, k4, k5, k6 = lens
-    xy = xd.copy()
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        for _ in range(NEWTON_STEPS):
-            x, y = xy[:, 0], xy[:, 1]
-            r2 = x * x + y * y
-            num, den = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-            rad = num / den
-            # d rad / d x = g x, d rad / d y = g y
-            g = 2.0 * ((k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)) * den - num * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) \
-                / (den * den)
-            j11 = rad + g * x * x + 2.0 * p1 * y + 6.0 * p2 * x
-            j12 = g * x * y + 2.0 * p1 * x + 2.0 * p2 * y
-            j22 = rad + g * y * y + 6.0 * p1 * y + 2.0 * p2 * x
-            res = geometry.distort(xy, *lens) - xd
-            det = j11 * j22 - j12 * j12
-            xy = xy - np.column_stack([j22 * res[:, 0] - j12 * res[:, 1],
-                                       j11 * res[:, 1] - j12 * res[:, 0]]) / det[:, None]
-        res = np.abs(geometry.distort(xy, *lens) - xd).max(axis=1)
-        ok = np.isfinite(xy).all(axis=1) & (res < 1e-12) & (np.hypot(xy[:, 0], xy[:, 1]) < limit)
-    return np.where(ok[:, None], xy, 0.0), ok
-
-
-def _undistort_fisheye(xd: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
-    """`undistort` for an equidistant camera: theta from theta_d by Newton's method, kept below the lens limit
-    and below 90 deg (a ray at or past 90 deg has no point on the unit plane, so it is not triangulated)."""
-    rd = np.hypot(xd[:, 0], xd[:, 1])
-    theta, res = geometry.fisheye_theta(rd, cam.k1, cam.k2, cam.k3, cam.k4, NEWTON_STEPS)
-    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        ok = np.isfinite(theta) & (res < 1e-12) & (theta >= 0) \
-            & (theta < min(geometry.lens_limit(cam), math.pi / 2 - 1e-6))
-        scale = np.where(rd > 0, np.tan(np.where(ok, theta, 0.0)) / np.where(rd > 0, rd, 1.0), 1.0)
-    return np.where(ok[:, None], xd * scale[:, None], 0.0), ok
 
 
 def triangulate(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
