@@ -509,7 +509,8 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
     batch = compose(tuple(functions), tuple(bool(c) for c in cameras) or (False,) * len(functions))
-    camera = np.zeros(16) if camera is None else np.ascontiguousarray(camera, dtype=np.float64).reshape(16)
+    width = 2 + len(CAMERA_ROW)  # the view's width, height, then its CAMERA_ROW
+    camera = np.zeros(width) if camera is None else np.ascontiguousarray(camera, dtype=np.float64).reshape(width)
     announce_compile(batch)
     return batch(f2(tpts, 2), i1(tstart), np.ascontiguousarray(meta, dtype=np.int64).reshape(-1, NMETA),
                       f2(tcorners, 2), i1(cfid), f2(W, 3), f2(CW, 3),
