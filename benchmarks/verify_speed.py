@@ -96,8 +96,9 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--images", type=int, default=1000, help="the larger folder (default 1000)")
     args = ap.parse_args()
-    import wiredsl as w
     from verify_drawing import render_records
+
+    import wiredsl as w
 
     print(load())
     with tempfile.TemporaryDirectory() as d:

@@ -5,9 +5,8 @@ varied) at 640 x 480, detected (Canny, Harris), verified and fitted. The fitted 
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
+
 import wiredsl
 from wiredsl.io import render
 from wiredsl.scene import Pipeline, Stage

@@ -376,7 +376,6 @@ def plugins() -> None:
     from wiredsl.effects import REGISTRY as effects
     from wiredsl.measures import REGISTRY as measures
     from wiredsl.plugins import installed, lookup
-
     from wiredsl.verify.detectors import registry as detectors
 
     rows, bad = [], 0

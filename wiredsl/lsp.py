@@ -278,9 +278,7 @@ def signature(sig: Sig) -> str:
 
 def _clause_detail(sig: Sig, key: str) -> str:
     if sig.keyword in CONTEXTS["pipeline"]:
-        from wiredsl.effects import REGISTRY
-
-        from wiredsl.effects import BUILTIN
+        from wiredsl.effects import BUILTIN, REGISTRY
 
         f = REGISTRY[sig.keyword].Params.model_fields[key]
         extra = f.json_schema_extra if isinstance(f.json_schema_extra, dict) else {}

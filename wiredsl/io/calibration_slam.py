@@ -18,8 +18,15 @@ import math
 
 import numpy as np
 
-from wiredsl.io.calibration import SUPPORTED, CalibrationFileError, CameraFile, _floats, _intrinsics, _kind, _num, \
-    _with_pose
+from wiredsl.io.calibration import (
+    SUPPORTED,
+    CalibrationFileError,
+    CameraFile,
+    _intrinsics,
+    _kind,
+    _num,
+    _with_pose,
+)
 
 CAMODOCAL = ("PINHOLE", "MEI", "KANNALA_BRANDT")
 BASALT = ("pinhole", "pinhole-radtan8", "kb4", "ucm", "eucm", "ds", "fov")

@@ -17,8 +17,8 @@ import pydantic
 
 from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, did_you_mean
 from wiredsl.effects import REGISTRY
-from wiredsl.language import ast
 from wiredsl.io.files import printable_path
+from wiredsl.language import ast
 from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
 from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE, Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS, UNITS

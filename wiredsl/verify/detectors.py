@@ -164,7 +164,7 @@ BUILTIN: dict[str, type[Detector]] = {d.name: d for d in (Canny, LSD, Harris, Sh
 def _check(obj) -> str | None:
     if getattr(obj, "finds", None) not in ("edges", "corners"):
         return "declares `finds` neither 'edges' nor 'corners'"
-    if getattr(obj, "detect").__func__ is Detector.detect.__func__:
+    if obj.detect.__func__ is Detector.detect.__func__:
         return "does not define detect()"
     return None
 
