@@ -1,5 +1,6 @@
 """What `mesh read` costs: real CAD parts (compile cold and from the features' cache, a view with exact
-visibility, peak memory against occlusion.BUDGET), then importing a mesh (read, features, scene nodes) and exact hidden lines per view on
+visibility, peak memory against occlusion.BUDGET), then importing a mesh (read, features, scene nodes) and exact hidden
+lines per view on
 a scene with it, at several sizes of mesh, each size in its own process (so its peak RSS is its own).
 Times are CPU times of the one process (OMP_NUM_THREADS=1): a shared machine slows wall time, not these.
 

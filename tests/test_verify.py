@@ -233,7 +233,7 @@ def test_undisturbed_images_verify_almost_whole_and_unshifted(rendered, tmp_path
 def test_poses_from_a_trajectory_file_by_order_and_by_time(rendered, tmp_path):
     scene = wiredsl.compile(FENCE)
     mount = scene.rig.left
-    rows_t, rows_o = [], []
+    rows_t = []
     for k in range(5):
         from wiredsl.engine.geometry import camera_from_world
 
@@ -352,7 +352,9 @@ class Gradient(Detector):
         m = np.hypot(gx, gy)
         # thin: a pixel whose magnitude is a maximum along x or y
         peak = np.zeros_like(m, bool)
-        peak[1:-1, 1:-1] = ((m[1:-1, 1:-1] >= m[1:-1, :-2]) & (m[1:-1, 1:-1] >= m[1:-1, 2:]) & (np.abs(gx[1:-1, 1:-1]) >= np.abs(gy[1:-1, 1:-1]))) | ((m[1:-1, 1:-1] >= m[:-2, 1:-1]) & (m[1:-1, 1:-1] >= m[2:, 1:-1]) & (np.abs(gy[1:-1, 1:-1]) > np.abs(gx[1:-1, 1:-1])))
+        c, ax, ay = m[1:-1, 1:-1], np.abs(gx[1:-1, 1:-1]), np.abs(gy[1:-1, 1:-1])
+        peak[1:-1, 1:-1] = (((c >= m[1:-1, :-2]) & (c >= m[1:-1, 2:]) & (ax >= ay))
+                            | ((c >= m[:-2, 1:-1]) & (c >= m[2:, 1:-1]) & (ay > ax)))
         return Detection(edges=peak & (m > p.threshold), gx=gx, gy=gy)
 
 

@@ -1,6 +1,7 @@
 """The round trip (issue 24, item 5): a scene's features disturbed by the engine with known parameters, drawn
 by `wiredsl render` (step edges with a band wider than the shifts, no faces, corner marks; blur and noise
-varied) at 640 x 480, detected (Canny, Harris), verified and fitted. The fitted parameters must hold the injected ones within their
+varied) at 640 x 480, detected (Canny, Harris), verified and fitted. The fitted parameters must hold the injected ones
+within their
 95% intervals in at least 90% of 30 random settings (27 of 30), each parameter on its own."""
 
 from __future__ import annotations

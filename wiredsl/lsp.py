@@ -335,7 +335,9 @@ def mesh_summary(path: str, src: str) -> str:
     if found is None:
         errors = [d.message for d in out.diagnostics if d.severity == "error"]
         return f"\n\n**cannot read the mesh**: {errors[0] if errors else 'see the diagnostics'}"
-    return (f"\n\n`{b.get('read')}`: {found.triangles:,} triangles, {mesh_size(found)}, of them {int(found.contour.sum())} smooth (contours)")
+    smooth = int(found.contour.sum())
+    return (f"\n\n`{b.get('read')}`: {found.triangles:,} triangles, {mesh_size(found)}, "
+            f"of them {smooth} smooth (contours)")
 
 
 @dataclass(frozen=True)

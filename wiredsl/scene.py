@@ -202,8 +202,8 @@ class Camera(Node):
     k5: float = 0.0
     k6: float = 0.0
     fov: float | None = Field(None, gt=0, le=6.283185307179586,
-                              description="every model but radtan: the lens's full field of view (rad); nothing farther "
-                                          "than fov / 2 from the optical axis is imaged (default: where the "
+                              description="every model but radtan: the lens's full field of view (rad); nothing "
+                                          "farther than fov / 2 from the optical axis is imaged (default: where the "
                                           "lens's theta_d stops increasing, at most 360 deg)")
     xi: float = Field(0.0, description="unified: Mei's xi (>= 0); ds: the double sphere's xi (in (-1, 1])")
     alpha: float = Field(0.0, description="eucm and ds: alpha, in [0, 1]")

@@ -510,12 +510,12 @@ def fold_radius(k1: float, k2: float = 0.0, k3: float = 0.0, k4: float = 0.0, k5
 def _balance(k, powers) -> tuple[float, list[float]]:
     """sigma and the coefficients k_i sigma^p_i of a polynomial 1 + sum k_i s^p_i rewritten in t = s / sigma,
     sigma chosen so that the largest of them is 1 in size (and none overflows on the way: logarithms)."""
-    logs = [-math.log(abs(x)) / p for x, p in zip(k, powers) if x != 0.0]
+    logs = [-math.log(abs(x)) / p for x, p in zip(k, powers, strict=False) if x != 0.0]
     if not logs:
         return 1.0, [0.0] * len(k)
     log_sigma = min(logs)
     scaled = [0.0 if x == 0.0 else math.copysign(math.exp(math.log(abs(x)) + p * log_sigma), x)
-              for x, p in zip(k, powers)]
+              for x, p in zip(k, powers, strict=False)]
     return math.exp(min(log_sigma, 709.0)), scaled
 
 

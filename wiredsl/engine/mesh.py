@@ -9,7 +9,8 @@
 - A closed loop of sharp edges with at least RIM_MIN vertices, planar and on an ellipse to RIM_TOL of its
   size, whose edges' middles are also on it to RIM_EDGE of its radius and RIM_EDGE_ABS metres (so that a
   polygon with filleted corners, whose vertices may all be near one circle, keeps its straight sides), is
-  a rim: an `ellipse`. The vertices are in metres (the caller scales them). A smooth region (triangles joined by edges that are not sharp) whose
+  a rim: an `ellipse`. The vertices are in metres (the caller scales them). A smooth region (triangles joined by edges
+  that are not sharp) whose
   vertices all lie on two rims, or on one rim and one apex vertex, is the side of a cylinder or cone: a
   `silhouette` between them (an apex is an ellipse of radius APEX_RADIUS).
 - Other sharp edges form chains between nodes (vertices where other than two meet, or where the chain

@@ -305,7 +305,8 @@ def save_features(key: str, f) -> None:
         "corner_ref": np.array([j for _, j in refs], np.int64),
         "face_points": cat(f.faces, (0, 3)), "face_len": np.array([len(p) for p in f.faces], np.int64),
         "vertices": f.vertices, "occluders": np.asarray(f.occluders, np.int64).reshape(-1, 3),
-        "contour": np.asarray(f.contour, bool), "counts": np.array([f.degenerate, f.nonmanifold, f.triangles], np.int64)}
+        "contour": np.asarray(f.contour, bool),
+        "counts": np.array([f.degenerate, f.nonmanifold, f.triangles], np.int64)}
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     try:

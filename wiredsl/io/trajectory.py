@@ -17,7 +17,8 @@ Files as they are (the rules, `judge`): a line whose timestamp repeats the one b
 one) is dropped, the first pose with that timestamp kept, and `Trajectory.repeated` names it for a warning. evo
 reads such a file too: its reader keeps every row and its `check` reports "not ascending or duplicates"; its
 association (evo/core/sync.py matching_time_indices) matches a repeated timestamp to the first row up to v1.36
-(np.argmin) and to the last from v1.38 (np.searchsorted, side "right"). A timestamp that goes back is an error. Given the window (`from`, `to`: seconds from the file's first pose), only the lines in
+(np.argmin) and to the last from v1.38 (np.searchsorted, side "right"). A timestamp that goes back is an error. Given
+the window (`from`, `to`: seconds from the file's first pose), only the lines in
 it and the one pose either side of it (what interpolation uses) are judged and kept; the others are not judged.
 A line that is not numbers is an error wherever it is (its time is unknown).
 """

@@ -179,7 +179,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
             left_res = next(r for r in rl if r.detector == corner_det)
             left_res.stereo = ver.stereo_mismatches(gl, gr, lm, rm, fl[corner_det].corners, fr_[corner_det].corners,
                                                     cfg.radius)
-        for side, (_, _, results) in per_side.items():
+        for _side, (_, _, results) in per_side.items():
             for r in results:
                 rows.extend(report.rows_of(r))
                 fractions.add(r)
@@ -210,8 +210,8 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         provenance = [f"Fitted by `wiredsl verify` from {n_images} images of {len(frames)} frames "
                       f"({', '.join(g for g, _ in req.images)}) against {Path(req.scene).name}.",
                       f"Detectors: {det_text}.", f"Poses: {pose_note}.",
-                      f"Intervals: 95% bootstrap over images ({fitting.B} resamples, seed {req.seed}; percentiles widened "
-                      "by sqrt(n / (n - 1)) t / z for n images).",
+                      f"Intervals: 95% bootstrap over images ({fitting.B} resamples, seed {req.seed}; "
+                      "percentiles widened by sqrt(n / (n - 1)) t / z for n images).",
                       "Include this file in the scene and build with --pipeline " + req.pipeline_name + "."]
         text = fitting.pipeline_text(result, req.pipeline_name, provenance)
         write_atomic(out / f"{req.pipeline_name}.wd", text)

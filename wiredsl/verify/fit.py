@@ -13,7 +13,8 @@ keyed by the seed and the statistic's name (the same seed gives the same interva
 - lateral_shift.range: the mean offsets d of the fragments the detector found (runs of verified samples;
   the effect shifts each fragment edge_loss leaves on its own) are taken as the effect's shifts, uniform on
   [-range, range]: range = sqrt(3 (var(d) - noise)), with noise the mean measurement variance of a fragment's
-  mean (its samples' scatter about a line fitted to them, over their number); their mean is reported apart. Which law fits d better, uniform or normal (sigma^2 =
+  mean (its samples' scatter about a line fitted to them, over their number); their mean is reported apart. Which law
+  fits d better, uniform or normal (sigma^2 =
   mean(d^2)), is decided by the Kolmogorov-Smirnov statistic (smaller D; both laws' parameters estimated from
   the same d, so the p-values are optimistic), with the log-likelihoods beside it.
 - approx_error.sigma: a line fitted to each stroke's verified offsets along it gives the offsets e0, e1 of
@@ -228,8 +229,8 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     the detector lost (1 - the verified fraction: a simulation with it loses as much as the detector did)."""
     n = len(sums)
     col = {k: np.array([getattr(s, k) for s in sums], float) for k in
-           ("tested", "verified", "length", "lost_middle", "lost_ends", "ends", "gap_ends", "strokes", "d1", "d2", "noise", "runs",
-            "run_strokes", "fitted", "fitted2", "corners", "found",
+           ("tested", "verified", "length", "lost_middle", "lost_ends", "ends", "gap_ends", "strokes", "d1", "d2",
+            "noise", "runs", "run_strokes", "fitted", "fitted2", "corners", "found",
             "displaced", "displaced_r", "matched", "wrong")}
     out = []
     # edge loss: the gaps themselves (the detector's end loss at each gap end taken off), or everything lost
@@ -292,7 +293,8 @@ def _mismatch(col, seed: int, t: float, radius: float) -> list[Estimate]:
     found, disp, disp_r = col["found"], col["displaced"], col["displaced_r"]
     if found.sum() < MIN["corners"]:
         why = "too few found corners"
-        return [Estimate("corner_mismatch.fraction", None, note=why), Estimate("corner_mismatch.radius", None, note=why)]
+        return [Estimate("corner_mismatch.fraction", None, note=why),
+                Estimate("corner_mismatch.radius", None, note=why)]
     if disp.sum() < MIN["displaced"]:
         upper = min(1.0, 3.0 / found.sum())
         return [Estimate("corner_mismatch.fraction", float(disp.sum() / found.sum()), 0.0, upper,

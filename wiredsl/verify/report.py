@@ -115,7 +115,7 @@ def figure7(fr: ObjectFractions, path: Path, caption: str, fmt: str = "png", dpi
     fig, ax = plt.subplots(figsize=(fig_w, 4.4))
     width = min(0.8 / max(1, len(dets)), 0.45)
     for j, det in enumerate(dets):
-        xs, ys, lo, hi = [], [], [], []
+        xs, ys, lo = [], [], []
         for i, obj in enumerate(objs):
             s = next((s for s in summary if s["detector"] == det and s["object"] == obj), None)
             if s is None:
