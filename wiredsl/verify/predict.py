@@ -210,7 +210,14 @@ def plot(comparison: dict, path, caption: str, fmt: str = "png") -> None:
 
     plt = _pyplot()
 
-    keys = [k for k, e in comparison.items() if e["real"]]
+    keys = [k for k, e in comparison.items() if e["real"] and e["ks"] is not None]
+    if not keys:  # no edge detector and no stereo pair with a corner detector: nothing to compare
+        fig = plt.figure(figsize=(6, 2))
+        fig.text(0.5, 0.5, "nothing to compare: no edge detector, and no stereo pair with a corner detector",
+                 ha="center", fontsize=9)
+        _save(fig, path, fmt, 110)
+        plt.close(fig)
+        return
     fig, axes = plt.subplots(len(keys), 2, figsize=(11, 3.2 * len(keys)), squeeze=False,
                              gridspec_kw={"width_ratios": [2, 1]})
     for row, key in zip(axes, keys, strict=True):
