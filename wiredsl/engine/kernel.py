@@ -509,11 +509,13 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
     batch = compose(tuple(functions), tuple(bool(c) for c in cameras) or (False,) * len(functions))
-    camera = np.zeros(16) if camera is None else np.ascontiguousarray(camera, dtype=np.float64).reshape(16)
+    n_camera = 2 + len(CAMERA_ROW)  # the image's width and height, then the camera row
+    camera = np.zeros(n_camera) if camera is None else np.ascontiguousarray(camera, dtype=np.float64).reshape(n_camera)
     announce_compile(batch)
     return batch(f2(tpts, 2), i1(tstart), np.ascontiguousarray(meta, dtype=np.int64).reshape(-1, NMETA),
                       f2(tcorners, 2), i1(cfid), f2(W, 3), f2(CW, 3),
-                      np.ascontiguousarray(R_cw, dtype=np.float64).reshape(-1, 3, 3), f2(t_cw, 3), f2(cams, len(CAMERA_ROW)),
+                      np.ascontiguousarray(R_cw, dtype=np.float64).reshape(-1, 3, 3), f2(t_cw, 3),
+                      f2(cams, len(CAMERA_ROW)),
                       np.ascontiguousarray(folds, dtype=np.float64).reshape(-1), float(width), float(height),
                       bool(calibrated), f2(params, params.shape[-1]),
                       np.ascontiguousarray(keys, dtype=np.uint64).reshape(len(functions), len(folds)),
