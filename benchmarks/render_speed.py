@@ -35,7 +35,10 @@ def main() -> None:
                             ("faces, blur 1, noise 2", rd.Look(blur=1.0, noise=2.0)),
                             ("no faces", rd.Look(faces="none"))):
             n = 2 * len(poses)
-            s = cpu(lambda: list(rd.render(scene, pipeline=None, seed=1, poses=poses, look=look)))
+            def views(scene=scene, poses=poses, look=look):
+                return list(rd.render(scene, pipeline=None, seed=1, poses=poses, look=look))
+
+            s = cpu(views)
             print(f"{name:12} {cam.width:>4}x{cam.height:<4} {label:28} {n:>5} {s:>7.2f} {s / n:>8.3f}")
 
 

@@ -196,3 +196,29 @@ def test_the_language_server_takes_a_board_for_a_model(tmp_path):
     assert found is not None and found[1].line == declared
     shown = lsp.hover(index, text, index.path, declared, 2)
     assert shown is not None and "calibration board" in shown
+
+
+def test_hostile_images_are_diagnostics_before_anything_is_decoded(tmp_path):
+    import struct
+    import zlib
+
+    scene = wiredsl.compile(CHESSBOARD)
+    bomb = tmp_path / "bomb.png"  # a header claiming 30000 x 30000 px, with one row of data
+    ihdr = struct.pack(">IIBBBBB", 30000, 30000, 8, 0, 0, 0, 0)
+    chunk = lambda tag, data: (struct.pack(">I", len(data)) + tag + data  # noqa: E731
+                               + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF))
+    bomb.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 30001))
+                     + chunk(b"IEND", b""))
+    empty = tmp_path / "empty.jpg"
+    empty.write_bytes(b"")
+    deep = tmp_path / "deep.png"
+    cv2.imwrite(str(deep), np.full((480, 640), 40000, np.uint16))  # 16-bit: OpenCV reads it as 8-bit grey
+    cut = tmp_path / "cut.jpg"
+    cut.write_bytes((STEREO / "left01.jpg").read_bytes()[:3000])  # a JPEG cut short
+    good = [STEREO / f"left{n:02d}.jpg" for n in _numbers()]
+    found = board_poses(scene, [*good, bomb, empty, deep, cut], "left")
+    by_file = {Path(d.span.file).name: d for d in found.diagnostics}
+    assert "30000 x 30000 px" in by_file["bomb.png"].message and by_file["bomb.png"].code == "E199"
+    assert by_file["empty.jpg"].code == "E199"
+    assert by_file["deep.png"].code == "W196" and by_file["cut.jpg"].code in ("E199", "W196")
+    assert len(found.found) == 13

@@ -225,3 +225,53 @@ def test_png_writer_round_trips_through_opencv():
     img = (np.arange(37 * 53) * 7 % 256).astype(np.uint8).reshape(37, 53)
     back = cv2.imdecode(np.frombuffer(rd.png_bytes(img), np.uint8), cv2.IMREAD_UNCHANGED)
     assert back.dtype == np.uint8 and np.array_equal(back, img)
+
+
+LENS = """wiredsl 1
+scene lens
+model panel {
+  face plate through (0, -0.3, 0.6) (0, 0.05, 0.6) (0, 0.05, 1.4) (0, -0.3, 1.4)
+}
+place panel as p at (1.5m, 0, 0)
+camera eye {
+  focal 130px
+  size (200px, 150px)
+  centre (101.7px, 73.2px)
+  {lens}
+}
+rig pair {
+  left eye at (0, 0.05m, 1m) looking (1, 0.1, 0.02)
+  right eye at (0, -0.05m, 1m) looking (1, 0.1, 0.02)
+}
+path here { pose (0, 0) heading 0deg }
+"""
+
+
+@pytest.mark.parametrize("lens", ["k1 -0.25\n  k2 0.05", "distortion equidistant\n  k1 0.02\n  k2 -0.01"],
+                         ids=["radtan", "equidistant"])
+def test_a_face_outline_lies_where_opencv_projects_it_under_a_lens(tmp_path, lens):
+    """The faces are ray cast through undistorted pixels: the plate's vertical outline (x = 0.05 m in the
+    model, no feature drawn) against cv2.projectPoints / cv2.fisheye.projectPoints, row by row."""
+    path = tmp_path / "lens.wd"
+    path.write_text(LENS.replace("{lens}", lens))
+    doc = _render(path, tmp_path / "r", "--no-effects", "--edges", "none", "--supersample", "8", "--cameras", "left")
+    img = cv2.imread(str(tmp_path / "r" / "left_000.png"), cv2.IMREAD_UNCHANGED).astype(float)
+    cam, view = doc["cameras"]["left"], doc["poses"][0]["images"]["left"]
+    z = np.linspace(0.75, 1.25, 60)
+    X = np.column_stack([np.full_like(z, 1.5), np.full_like(z, 0.05), z])  # the plate's left side (world)
+    rvec, tvec, K = cv2.Rodrigues(np.array(view["R_cw"]))[0], np.array(view["t_cw"]), np.array(cam["K"])
+    c = cam["coefficients"]
+    if cam["distortion"] == "equidistant":
+        uv, _ = cv2.fisheye.projectPoints(X[:, None, :], rvec, tvec, K, np.array([c["k1"], c["k2"], c["k3"], c["k4"]]))
+    else:
+        uv, _ = cv2.projectPoints(X, rvec, tvec, K, np.array([c["k1"], c["k2"], c["p1"], c["p2"], c["k3"]]))
+    uv = uv.reshape(-1, 2)
+    plate = img[int(uv[:, 1].mean()), int(uv[:, 0].mean()) + 6]  # the plate's grey, right of the outline
+    errs = []
+    for r in range(int(np.ceil(uv[:, 1].min())) + 2, int(uv[:, 1].max()) - 2):
+        u = np.interp(r, uv[:, 1], uv[:, 0]) if uv[0, 1] < uv[-1, 1] else np.interp(r, uv[::-1, 1], uv[::-1, 0])
+        a, b = int(round(u)) - 3, int(round(u)) + 3
+        share = (img[r, a:b + 1] - 128.0) / (plate - 128.0)  # the plate's share of each pixel
+        errs.append(b + 0.5 - share.sum() - u)  # the outline by the area method, plate on the right
+    errs = np.array(errs)
+    assert len(errs) > 20 and abs(errs.mean()) < 0.05 and np.abs(errs).max() < 0.2, (errs.mean(), np.abs(errs).max())

@@ -1020,7 +1020,6 @@ def render(file: str, output: str | None, pipeline_name: str | None, no_effects:
                + (f"pipeline {choice.pipeline.name})" if choice.pipeline else "ideal projection)"), err=True)
 
 
-
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.argument("name", required=False)

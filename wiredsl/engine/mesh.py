@@ -141,10 +141,14 @@ def features(V: np.ndarray, F: np.ndarray, crease: float) -> MeshFeatures:
                                  "a": APEX_RADIUS, "b": APEX_RADIUS})
             out.silhouettes.append((on[0], len(out.ellipses) - 1))
         ruled[g_] = True
-    # faces: planar regions bounded by one convex loop
+    # faces: planar regions bounded by one convex loop (a region of one triangle: the triangle, unless a sliver,
+    # all at once: a soup of 200,000 triangles is 200,000 regions)
     is_face = np.zeros(n_region, bool)
+    single = flat & (np.diff(bounds) == 1)
+    lone = dict(zip(np.flatnonzero(single).tolist(), _triangle_faces(V, F[first[single]]), strict=True))
     for g_ in np.flatnonzero(flat).tolist():
-        poly = _convex_boundary(V, F[np.sort(by_region[bounds[g_]:bounds[g_ + 1]])], N[first[g_]])
+        poly = lone[g_] if g_ in lone else _convex_boundary(V, F[np.sort(by_region[bounds[g_]:bounds[g_ + 1]])],
+                                                             N[first[g_]])
         if poly is not None:
             out.faces.append(poly)
             is_face[g_] = True
@@ -294,6 +298,21 @@ def _rim(P: np.ndarray, size: float) -> dict | None:
         a = b = float((a + b) / 2)
     axis = axis - (axis @ n) * n
     return {"centre": centre, "normal": n, "axis": axis / np.linalg.norm(axis), "a": float(a), "b": float(b)}
+
+
+def _triangle_faces(V: np.ndarray, F: np.ndarray) -> list[np.ndarray | None]:
+    """`_convex_boundary` of each triangle F (k, 3) alone, at once: its corners (3, 3), or None for a sliver
+    (a corner within COLLINEAR of the length from its neighbours' line, which `_drop_collinear` drops)."""
+    P = V[F]  # (k, 3, 3): a, b, c
+    length = np.linalg.norm(P[:, 1] - P[:, 0], axis=1) + np.linalg.norm(P[:, 2] - P[:, 1], axis=1)
+    tol = COLLINEAR * np.where(length > 0, length, 1.0)
+    sliver = np.zeros(len(F), bool)
+    for j in range(3):  # corner j against the line through the other two
+        A, X, B = P[:, (j - 1) % 3], P[:, j], P[:, (j + 1) % 3]
+        ab = B - A
+        off = np.linalg.norm(np.cross(X - A, ab), axis=1) / np.maximum(np.linalg.norm(ab, axis=1), 1e-300)
+        sliver |= (off <= tol) & (((X - A) * ab).sum(1) >= 0) & (((B - X) * ab).sum(1) >= 0)
+    return [None if bad else tri for tri, bad in zip(P, sliver, strict=True)]
 
 
 def _convex_boundary(V: np.ndarray, F: np.ndarray, normal: np.ndarray) -> np.ndarray | None:

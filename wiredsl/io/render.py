@@ -328,7 +328,8 @@ def _charuco_image(columns: int, rows: int, square: float, marker: float, dictio
     import cv2
 
     aruco = cv2.aruco
-    board = aruco.CharucoBoard((columns, rows), square, marker, aruco.getPredefinedDictionary(getattr(aruco, dictionary)))
+    words = aruco.getPredefinedDictionary(getattr(aruco, dictionary))
+    board = aruco.CharucoBoard((columns, rows), square, marker, words)
     return board.generateImage((64 * columns, 64 * rows), marginSize=0, borderBits=1)
 
 
@@ -425,10 +426,11 @@ def manifest(scene, images: list[Image], *, seed: int, pipeline: str | None, loo
     for im_ in images:
         entry = poses.setdefault(im_.pose, {"index": im_.pose, "pose": list(scene.path.pose(im_.pose)), "images": {}})
         entry["images"][im_.side] = {"file": im_.name, "R_cw": im_.R_cw.tolist(), "t_cw": im_.t_cw.tolist()}
-    return {"document": "render", "tool_version": __version__, "scene": emit.scene_ref(scene).model_dump(mode="json"), "seed": seed,
-            "pipeline": pipeline, "blur": look.blur, "noise": look.noise, "edges": look.edges,
+    return {"document": "render", "tool_version": __version__, "scene": emit.scene_ref(scene).model_dump(mode="json"),
+            "seed": seed, "pipeline": pipeline, "blur": look.blur, "noise": look.noise, "edges": look.edges,
             "width": look.width, "ink": look.ink, "background": look.background, "faces": look.faces,
-            "corners": look.corners, "supersample": look.supersample, "visibility": visibility, "pixel_centres": "integer (OpenCV)",
+            "corners": look.corners, "supersample": look.supersample, "visibility": visibility,
+            "pixel_centres": "integer (OpenCV)",
             "cameras": cams, "poses": [poses[k] for k in sorted(poses)]}
 
 

@@ -213,7 +213,7 @@ def plugins_changed(manifest: Path, used: list[dict]) -> str | None:
 
 
 def numpy_forced(scene: Scene, study: Study, X: np.ndarray) -> str | None:
-    """The line saying that a stage without a compiled kernel makes the study run on numpy, or None."""
+    """The line saying that a stage without a compiled kernel (and those after it) run on numpy, or None."""
     from wiredsl.effects import REGISTRY as effects
     from wiredsl.run import numpy_forced_line
 

@@ -136,6 +136,10 @@ def _image(item, cam: Camera):
         name, img = str(item[0]), np.asarray(item[1])
     else:
         name = os.fspath(item)
+        size = header_size(name)  # a header's claim is checked before anything is decoded (a 30000 x 30000 bomb)
+        if size is not None and size != (cam.width, cam.height):
+            return name, Diagnostic("error", "E199", f"the image is {size[0]} x {size[1]} px, camera '{cam.name}' "
+                                    f"{cam.width} x {cam.height}", Span(name, 1, 1, 1, 1))
         img = cv2.imread(name, cv2.IMREAD_GRAYSCALE)
         if img is None:
             return name, Diagnostic("error", "E199", "cannot read this image", Span(name, 1, 1, 1, 1))
@@ -148,6 +152,26 @@ def _image(item, cam: Camera):
         return name, Diagnostic("error", "E199", f"the image is {img.shape[1]} x {img.shape[0]} px, camera "
                                 f"'{cam.name}' {cam.width} x {cam.height}", Span(name, 1, 1, 1, 1))
     return name, img
+
+
+def header_size(path: str) -> tuple[int, int] | None:
+    """(width, height) a PNG's or a JPEG's header claims, read without decoding; None for other files (or a
+    header too damaged to say: the decoder then refuses the file)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(65536)
+    except OSError:
+        return None
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and len(head) >= 24:
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if head[:2] == b"\xff\xd8":  # JPEG: walk the segments to the first start of frame
+        i = 2
+        while i + 9 <= len(head) and head[i] == 0xFF:
+            marker, length = head[i + 1], int.from_bytes(head[i + 2:i + 4], "big")
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+                return int.from_bytes(head[i + 7:i + 9], "big"), int.from_bytes(head[i + 5:i + 7], "big")
+            i += 2 + length
+    return None
 
 
 def _chessboard(cv2, img: np.ndarray, board: Board):
