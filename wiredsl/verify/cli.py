@@ -42,6 +42,11 @@ from wiredsl.cli import diagnostics_option, guarded, report
 @click.option("--edge-loss", "edge_loss", type=click.Choice(["gaps", "raw"]), default="gaps", show_default=True,
               help="Fit edge_loss to the gaps (the detector's own loss at each gap's ends taken off), or to all "
                    "that was lost (1 - the verified fraction).")
+@click.option("--predict", is_flag=True,
+              help="With --fit: simulate the frames with the fitted pipeline and compare the verified fraction, "
+                   "lateral offset and stereo 3D corner error with the real detector's (prediction.json, plot).")
+@click.option("--trials", type=click.IntRange(1, 100000), default=50, show_default=True,
+              help="Simulated trials a frame for --predict.")
 @click.option("--pipeline-name", default="measured", show_default=True, help="The fitted pipeline's name.")
 @click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True,
               help="Seed of the bootstrap resamples.")
@@ -50,7 +55,7 @@ from wiredsl.cli import diagnostics_option, guarded, report
 @diagnostics_option
 @guarded
 def verify(file, globs, cameras, poses, pose_format, match, detectors, params, step, band, angle, radius, inlier,
-           refine, do_fit, edge_loss, pipeline_name, seed, plot_format, output, diagnostics) -> None:
+           refine, do_fit, edge_loss, predict, trials, pipeline_name, seed, plot_format, output, diagnostics) -> None:
     """Verify the scene's projected model against detected features in images (the paper's Figure 7), and with
     --fit estimate each effect's parameters as a pipeline."""
     from pathlib import Path
@@ -65,6 +70,8 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
         raise click.UsageError("verify's Figure 7 needs matplotlib: pip install 'wiredsl[plot]'") from None
     if len(cameras) > len(globs):
         raise click.BadParameter("more --camera than --images", param_hint="--camera")
+    if predict and not do_fit:
+        raise click.BadParameter("needs --fit (the prediction simulates the fitted pipeline)", param_hint="--predict")
     if not pipeline_name.isidentifier():
         raise click.BadParameter("must be a name (letters, digits, _)", param_hint="--pipeline-name")
     out = Path(output)
@@ -76,7 +83,7 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
     pairs = [(g, cameras[k] if k < len(cameras) else None) for k, g in enumerate(globs)]
     req = command.Request(file, pairs, list(detectors), list(params), poses, pose_format, match,
                           Settings(step, band, math.radians(angle), radius, inlier), do_fit, seed, pipeline_name,
-                          refine, plot_format, edge_loss)
+                          refine, plot_format, edge_loss, predict, trials)
     try:
         outcome = command.run(req, out, command.progress_printer())
     except ValueError as exc:
@@ -95,6 +102,10 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
                    f"{statistics.median(m['translation'] for m in r):.3g} (scene units); median RMS offset "
                    f"{statistics.median(before) if before else float('nan'):.3g} -> "
                    f"{statistics.median(after) if after else float('nan'):.3g} px", err=True)
+    for key, e in (outcome.prediction or {}).items():
+        if e["ks"] is not None:
+            click.echo(f"predict\t{key}\treal {e['real_mean']:.4g}\tsimulated {e['simulated_mean']:.4g}\t"
+                       f"KS p {e['ks']['p']:.3g}\tMann-Whitney p {e['mann_whitney']['p']:.3g}")
     for note in outcome.notes:
         click.echo(f"note: {note}", err=True)
     click.echo(f"wrote {out}: {', '.join(outcome.written)}", err=True)

@@ -34,6 +34,9 @@ class Request:
     refine: bool = False
     plot_format: str = "png"
     edge_loss: str = "gaps"  # gaps | raw: see fit.fit
+    predict: bool = False  # simulate the frames with the fitted pipeline and compare (predict.py)
+    trials: int = 50
+    predict_pipeline: object = None  # a Pipeline to predict with instead of the fitted one (tests)
 
 
 @dataclass
@@ -46,6 +49,7 @@ class Outcome:
     summary: list[dict]
     notes: list[str]
     refined: list[dict] = field(default_factory=list)
+    prediction: dict | None = None  # --predict: predict.compare's measures
 
 
 def _detectors(names: list[str], params: list[str]):
@@ -145,6 +149,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
     notes: set[str] = set()
     refined: list[dict] = []
     n_images = 0
+    observed = []
     for i, frame in enumerate(frames):
         im.check_finite_pose(frame)
         pose = project_pose(scene, world, frame.pose, i, opts, occluders=occluders)
@@ -170,16 +175,19 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
             results = [ver.verify_image(view, found[name], grey.shape, cfg,
                                         ver.ImageResult(path, side, frame.label, name, world.feature_ids))
                        for name, _, _ in dets]
-            per_side[side] = (grey if corner_det is not None and len(frame.images) == 2 else None, found, results)
+            per_side[side] = (grey if corner_det is not None and len(frame.images) == 2 else None, found, results,
+                              grey.shape)
             n_images += 1
         if corner_det is not None and len(per_side) == 2:
-            (gl, fl, rl), (gr, fr_, rr) = per_side["left"], per_side["right"]
+            (gl, fl, rl, _), (gr, fr_, rr, _) = per_side["left"], per_side["right"]
             lm = next(r for r in rl if r.detector == corner_det).corners
             rm = next(r for r in rr if r.detector == corner_det).corners
             left_res = next(r for r in rl if r.detector == corner_det)
             left_res.stereo = ver.stereo_mismatches(gl, gr, lm, rm, fl[corner_det].corners, fr_[corner_det].corners,
                                                     cfg.radius)
-        for _side, (_, _, results) in per_side.items():
+        if req.predict:
+            observed.append(_observed(frame, views, per_side, edge_det, corner_det, cfg))
+        for _side, (_, _, results, _) in per_side.items():
             for r in results:
                 rows.extend(report.rows_of(r))
                 fractions.add(r)
@@ -218,7 +226,62 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         write_atomic(out / "fit.json", json_text({**result.to_json(), "seed": req.seed, "bootstrap": fitting.B},
                                                  indent=1))
         written += [f"{req.pipeline_name}.wd", "fit.json"]
-    return Outcome(written, result, len(frames), n_images, warnings, summary, sorted(notes), refined)
+    prediction = None
+    if req.predict:
+        prediction = _predict(req, out, scene, world, observed, cfg, n_images)
+        written += ["prediction.json", f"prediction.{req.plot_format}"]
+    return Outcome(written, result, len(frames), n_images, warnings, summary, sorted(notes), refined, prediction)
+
+
+def _observed(frame, views, per_side, edge_det, corner_det, cfg):
+    """A frame's real measures for the prediction (predict.py)."""
+    from wiredsl.verify import predict
+
+    o = predict.Observed(frame.label, tuple(frame.pose))
+    for side, (_, _, results, shape) in per_side.items():
+        o.shape[side] = shape
+        r = next((r for r in results if r.detector == edge_det), None)
+        o.values[side] = predict.edge_values(r.stats if r is not None else None)
+    if corner_det is not None and len(per_side) == 2:
+        found = {s: per_side[s][1][corner_det].corners for s in ("left", "right")}
+        o.corner_error_3d = predict.corner_error_3d(views["left"], views["right"], found["left"], found["right"],
+                                                    cfg.radius)
+    return o
+
+
+def _predict(req: Request, out: Path, scene, world, observed, cfg, n_images: int) -> dict:
+    """--predict: the frames simulated with the fitted pipeline (or req.predict_pipeline), compared image by
+    image with the real detector's measures; prediction.json and the prediction plot."""
+    import os
+    import tempfile
+
+    from wiredsl.io.files import json_text, write_atomic
+    from wiredsl.language.compile import compile_file
+    from wiredsl.verify import predict
+
+    pipeline = req.predict_pipeline
+    if pipeline is None:
+        with tempfile.NamedTemporaryFile("w", suffix=".wd", dir=out, delete=False) as f:
+            f.write(f'wiredsl 1\ninclude "{Path(req.scene).resolve()}"\n'
+                    f'include "{(out / (req.pipeline_name + ".wd")).resolve()}"\n')
+        try:
+            pipeline = compile_file(f.name)[0].pipeline(req.pipeline_name)
+        finally:
+            os.unlink(f.name)
+    sim = predict.simulate(scene, world, pipeline, observed, cfg, req.trials, req.seed)
+    comp = predict.compare(observed, sim)
+    predict.per_image(comp, observed, sim)
+    stages = ", ".join(f"{s.effect} " + " ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                                                  for k, v in s.params.items()) for s in pipeline.stages)
+    caption = (f"{Path(req.scene).name}; {n_images} images; pipeline {pipeline.name} ({stages}); {req.trials} "
+               f"trials a frame, seed {req.seed}")
+    name = f"prediction.{req.plot_format}"
+    predict.plot(comp, out / name, caption, req.plot_format)
+    doc = {"pipeline": pipeline.name, "stages": [s.model_dump() for s in pipeline.stages], "trials": req.trials,
+           "seed": req.seed,
+           "measures": {k: {kk: vv for kk, vv in e.items() if not kk.startswith("_")} for k, e in comp.items()}}
+    write_atomic(out / "prediction.json", json_text(doc, indent=1))
+    return doc["measures"]
 
 
 def _detect(cls, name: str, grey: np.ndarray, params) -> Detection:
