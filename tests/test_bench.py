@@ -26,14 +26,28 @@ pipeline shake {
 """
 
 
+class TickClock:
+    """A fake timer: each reading is `step` seconds after the last, so a timed row takes `step` seconds whatever
+    the machine's speed or load, and which rows fit a budget is decided by the bench's arithmetic alone."""
+
+    def __init__(self, step: float):
+        self.now, self.step = 0.0, step
+
+    def __call__(self) -> float:
+        self.now += self.step
+        return self.now
+
+
 @pytest.fixture
 def small_bench(monkeypatch):
-    """The bench's knobs turned down: two tolerances, two trial counts, few points, short timing loops."""
+    """The bench's knobs turned down: two tolerances, two trial counts, few points, short timing loops, and a
+    fake clock (10 ms a timed row)."""
     monkeypatch.setattr(bench, "TOLERANCES", (0.03, 1.0))
     monkeypatch.setattr(bench, "SPACINGS", (0.5, 2.0))
     monkeypatch.setattr(bench, "TRIALS", (10, 100, 10**9))
     monkeypatch.setattr(bench, "PRECISION_POINTS", 5000)
     monkeypatch.setattr(bench, "MIN_SECONDS", 0.0)
+    monkeypatch.setattr(bench, "clock", TickClock(0.01))
 
 
 def _table(markdown: str, title: str) -> list[list[str]]:
@@ -77,10 +91,10 @@ def test_the_trials_rows_are_timed_after_a_warm_up(monkeypatch, small_bench, tmp
     (tmp_path / "tiny.wd").write_text(TINY)
     scene, _, _ = compile_file(tmp_path / "tiny.wd")
     events = []
-    real_batches, real_clock = Run.batches, bench.time.perf_counter
+    real_batches, real_clock = Run.batches, bench.clock
     monkeypatch.setattr(Run, "batches", lambda self, trials, *a: (events.append(("batch", len(trials))),
                                                                    real_batches(self, trials, *a))[1])
-    monkeypatch.setattr(bench.time, "perf_counter", lambda: (events.append(("clock",)), real_clock())[1])
+    monkeypatch.setattr(bench, "clock", lambda: (events.append(("clock",)), real_clock())[1])
     bench.trials_table(scene, build_world(scene), budget=5.0)
     first_clock = events.index(("clock",))
     assert ("batch", 1) in events[:first_clock]
@@ -97,12 +111,33 @@ def test_tolerance_rows_keep_their_promise(monkeypatch):
     assert table.rows[0][3] > table.rows[-1][3]  # finer tolerance, more vertices
 
 
-def test_trials_table_respects_its_budget_and_says_what_it_skipped():
+def test_trials_table_respects_its_budget_and_says_what_it_skipped(monkeypatch):
+    """On a fake clock (0.3 s a row) the first row runs at 10 / 0.3 = 33 trials/s, so 100 trials (3 s) would
+    overrun a 1 s budget: every later row is skipped, each with its predicted time."""
+    monkeypatch.setattr(bench, "clock", TickClock(0.3))
     scene, _, _ = compile_file("scenes/lab.wd")
     table = bench.trials_table(scene, build_world(scene), budget=1.0)
-    assert table.rows and table.rows[0][0] == 10
-    assert all(row[2] > 0 for row in table.rows)
-    assert any("not run" in note for note in table.notes)
+    assert [row[0] for row in table.rows] == [10]
+    assert table.rows[0][2] > 0 and table.rows[0][3] == pytest.approx(0.3)
+    assert table.notes == [f"{n:,} trials not run: at the measured 33 trials/s they would take {bench._fmt(n * 0.03)} s, "
+                           "over the budget of 1 s (--budget)." for n in bench.TRIALS[1:]]
+
+
+def test_trials_rows_run_while_their_predicted_time_fits_the_budget(monkeypatch, small_bench, tmp_path):
+    """10 ms a row: 10 trials run first (1,000/s), 100 are predicted at 0.1 s and run (10,000/s), 10**9 would take
+    100,000 s; with the budget cut to what the first row spent plus less than the second's prediction, the second
+    is skipped too."""
+    (tmp_path / "tiny.wd").write_text(TINY)
+    scene, _, _ = compile_file(tmp_path / "tiny.wd")
+    world = build_world(scene)
+    table = bench.trials_table(scene, world, budget=1.0)
+    assert [row[0] for row in table.rows] == [10, 100]
+    assert table.notes == ["1,000,000,000 trials not run: at the measured 10,000 trials/s they would take "
+                           "100,000 s, over the budget of 1 s (--budget)."]
+    monkeypatch.setattr(bench, "clock", TickClock(0.01))
+    table = bench.trials_table(scene, world, budget=0.1)  # 0.01 spent + 0.1 predicted > 0.1
+    assert [row[0] for row in table.rows] == [10]
+    assert table.notes[0].startswith("100 trials not run: at the measured 1,000 trials/s they would take 0.1 s, over")
 
 
 def test_view_dependency_table_says_how_far_whole_feature_lists_are_from_hidden_lines():
