@@ -399,6 +399,27 @@ def _w147(lens: str) -> list[str]:
     return [w.message for w in warnings if w.code == "W147"]
 
 
+def _w147_where(lens: str) -> list[tuple[int, int, str]]:
+    """(line, column, the text under the span) of each W147 of a camera with these lens lines."""
+    from helpers import compile_text
+
+    text = f"wiredsl 1\ncamera c {{\n  focal 500px\n  size (640px, 480px)\n{lens}}}\n"
+    _, warnings = compile_text(text, "t.wd")
+    lines = text.splitlines()
+    return [(w.span.line, w.span.col, lines[w.span.line - 1][w.span.col - 1:w.span.end_col - 1])
+            for w in warnings if w.code == "W147"]
+
+
+def test_w147_points_at_the_number_that_folds_the_lens():
+    """A fisheye whose positive k1 cannot fold it and whose k2 does: the warning is on k2, not on the first
+    coefficient written (or the model's name); a radtan k1 that folds is blamed over a harmless k2; of a k1 and a
+    huge k3 that squeeze the image, the k3 (its term at the corner dwarfs k1's)."""
+    assert _w147_where("  distortion equidistant\n  k1 0.01\n  focal 150px\n  k2 -0.01\n") == [(8, 6, "-0.01")]
+    assert _w147_where("  k2 0.001\n  k1 -0.5\n") == [(6, 6, "-0.5")]
+    assert _w147_where("  k1 0.1\n  k3 1e6\n") == [(6, 6, "1e6")]
+    assert _w147_where("  k1 1e6\n  k2 0.1\n") == [(5, 6, "1e6")]
+
+
 def test_a_lens_that_does_not_image_its_own_image_is_w147():
     """k1 = -0.5 folds 39.2 deg off axis (d/dr r (1 + k1 r^2) = 0 at r^2 = 2/3, radius r (1 - 1/3)); k1 = 1e6
     squeezes the image into a sliver (the corner's unit-plane radius from cv2.undistortPoints); a fisheye whose

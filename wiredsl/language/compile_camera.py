@@ -251,11 +251,34 @@ class CameraCompiler:
         if self.out.n_errors != n0 or lens is None:
             return None
         cam = Camera(name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, width=int(w), height=int(h), **lens)
-        span = next((s[k][1] for k in ("k1", "k", "k2", "k3", "k4", "k5", "k6", "distortion") if k in s), where)
-        self._lens_reach(cam, span)
+        span = next((s[k][1] for k in ("distortion", *LENS) if k in s), where)
+        self._lens_reach(cam, span, s)
         return cam
 
-    def _lens_reach(self, cam: Camera, span: Span) -> None:
+    @staticmethod
+    def _lens_culprit(cam: Camera, s: dict, span: Span, corner_radius: float | None = None) -> Span:
+        """Where W147 points: the lens number most to blame among those written. For a fold, the one whose removal
+        (set to 0) moves the fold farthest out (a k2 that bends a fisheye back, not the k1 written before it; a
+        unified lens's xi); for a radtan scale, the radial term largest at the corner's unit-plane radius."""
+        from wiredsl.engine import geometry
+
+        written = [(key, "k1" if key == "k" else key) for key in LENS[1:] if key in s]  # 'k' is -k1
+        if not written:
+            return span
+        if corner_radius is not None:
+            powers = {"k1": 2, "k2": 4, "k3": 6, "k4": 2, "k5": 4, "k6": 6}
+
+            def blame(name: str) -> float:  # log |k r^p| (a k3 of 1e300 at a large radius overflows a float)
+                k = getattr(cam, name)
+                return math.log(abs(k)) + powers[name] * math.log(corner_radius) if name in powers and k else -math.inf
+        else:
+            def blame(name: str) -> float:  # how far out the fold goes without it (nan: no lens without it)
+                with np.errstate(all="ignore"):
+                    limit = geometry.lens_limit(cam, bounded=False, **{name: 0.0})
+                return -math.inf if math.isnan(limit) else limit
+        return s[max(written, key=lambda kn: blame(kn[1]))[0]][1]
+
+    def _lens_reach(self, cam: Camera, span: Span, s: dict) -> None:
         """W147, a lens that does not image its own image: its distortion folds back inside the image (a real
         calibration can, past where its target was seen; a sign error does), so the part beyond the fold is never
         reached; or (radtan) it scales the corner's radius by over 4x or under 1/4x (a k1 of 1e6 read from a
@@ -298,7 +321,8 @@ class CameraCompiler:
                     seen, bare = (math.degrees(2 * math.atan(x)) for x in (hi, corner))
                     self.out.warning("W147", f"camera '{cam.name}': its distortion scales the image corner's "
                                              f"radius by {scale:.3g}, so its image spans {seen:.3g} deg across the "
-                                             f"diagonal where its focal length alone gives {bare:.3g} deg", span,
+                                             f"diagonal where its focal length alone gives {bare:.3g} deg",
+                                     self._lens_culprit(cam, s, span, hi),
                                      "check the coefficients (their signs, a file's units)")
                 return
         u, v = np.meshgrid(np.linspace(0.5, cam.width - 0.5, 64), np.linspace(0.5, cam.height - 0.5, 48))
@@ -306,7 +330,8 @@ class CameraCompiler:
         if lost >= 0.01:
             self.out.warning("W147", f"camera '{cam.name}': its distortion folds back {math.degrees(angle):.3g} deg "
                                      f"from the optical axis, so {lost:.0%} of its image (farther than "
-                                     f"{reach * cam.f:.4g} px from the centre) is never reached", span,
+                                     f"{reach * cam.f:.4g} px from the centre) is never reached",
+                             self._lens_culprit(cam, s, span),
                              "beyond the fold the lens model is not one-to-one: a calibration holds where its "
                              "target was seen; check the coefficients if this is not expected")
 
