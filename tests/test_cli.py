@@ -226,7 +226,7 @@ NOT_FOR_THE_LAB = {
     "numba", "llvmlite", "scipy", "matplotlib", "trimesh", "yaml", "dask", "pygls", "jsonschema", "cv2", "numpy.ma",
     "wiredsl.api", "wiredsl.bench", "wiredsl.lsp", "wiredsl.study", "wiredsl.measures", "wiredsl.engine.kernel",
     "wiredsl.engine.mesh", "wiredsl.io.calibration", "wiredsl.io.trajectory", "wiredsl.io.mesh", "wiredsl.io.load",
-    "wiredsl.io.schema", "wiredsl.language.compile_study", "wiredsl.language.fmt",
+    "wiredsl.io.schema", "wiredsl.language.compile_study", "wiredsl.language.fmt", "wiredsl.io.render",
     *(f"wiredsl.effects.{e}_kernel" for e in ("approx_error", "corner_loss", "corner_mismatch", "edge_loss",
                                                "lateral_shift", "stereo_mismatch")),
 }
