@@ -61,6 +61,23 @@ def test_tina_k_sign_is_barrel_for_positive_k():
     assert u == pytest.approx(320 + 500 * 0.5 * (1 - 0.1 * 0.25))
 
 
+def test_world_from_robot_via_camera_is_the_robot_whose_mounted_camera_is_there():
+    """Against 4x4 homogeneous matrices and a general inverse: world_from_robot = world_from_camera .
+    inverse(robot_from_camera); and camera_from_world of the pose found gives the camera back."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        T_rc, T_wc = np.eye(4), np.eye(4)
+        T_rc[:3, :3], T_rc[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+        T_wc[:3, :3], T_wc[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3) * 10
+        pose = geometry.world_from_robot_via_camera(T_wc[:3, :3], T_wc[:3, 3], T_rc[:3, :3], T_rc[:3, 3])
+        assert len(pose) == 12
+        np.testing.assert_allclose(np.reshape(pose, (3, 4)), (T_wc @ np.linalg.inv(T_rc))[:3], atol=1e-12)
+        R_cw, t_cw = geometry.camera_from_world(pose, T_rc[:3, :3], T_rc[:3, 3])
+        np.testing.assert_allclose(np.column_stack([R_cw, t_cw]), np.linalg.inv(T_wc)[:3], atol=1e-12)
+
+
 def test_camera_from_world_puts_a_point_ahead_at_the_centre():
     R_rc = np.column_stack([[0, -1, 0], [0, 0, -1], [1, 0, 0]])  # looking along robot x
     R_cw, t_cw = geometry.camera_from_world((1.0, 2.0, math.pi / 2), R_rc, (0.0, 0.0, 1.2))

@@ -102,6 +102,16 @@ def camera_from_world(pose, mount_rotation, mount_position):
     return R_cw, -R_cw @ t_wc
 
 
+def world_from_robot_via_camera(R_wc, t_wc, mount_rotation, mount_position) -> tuple[float, ...]:
+    """The robot pose whose camera, mounted as `camera_from_world` takes it (mount_rotation robot_from_camera,
+    mount_position in the robot frame), is at world_from_camera (R_wc, t_wc): camera_from_world's inverse, as the
+    12 numbers of the row-major [R_wr | t_wr] that `world_from_robot` reads."""
+    R_rc, p_rc = np.asarray(mount_rotation, dtype=float), np.asarray(mount_position, dtype=float)
+    R_wr = np.asarray(R_wc, dtype=float) @ R_rc.T  # world from robot = world from camera . camera from robot
+    t_wr = np.asarray(t_wc, dtype=float) - R_wr @ p_rc
+    return tuple(float(v) for v in np.column_stack([R_wr, t_wr]).ravel())
+
+
 def world_to_cam(P_world: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray) -> np.ndarray:
     """P_cam, shape (..., 3), from P_world, shape (..., 3)."""
     return P_world @ R_cw.T + t_cw

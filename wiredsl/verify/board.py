@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from wiredsl.diagnostics import Diagnostic, Span, WiredslError
+from wiredsl.engine import geometry
 from wiredsl.scene import Board, Camera, Scene
 
 LEAST_FRACTION = 0.5  # a board found in fewer than this share of the images (or in none) is an error
@@ -244,8 +245,6 @@ def _solve(cv2, obj: np.ndarray, pts: np.ndarray, cam: Camera) -> tuple[np.ndarr
 
 
 def _project(P_cam: np.ndarray, cam: Camera) -> np.ndarray:
-    from wiredsl.engine import geometry
-
     return geometry.cam_to_pixels(P_cam, cam)
 
 
@@ -255,8 +254,4 @@ def _robot_pose(scene: Scene, side: str | None, R_cw: np.ndarray, t_cw: np.ndarr
     if side is None or scene.rig is None:
         return None
     mount = getattr(scene.rig, side)
-    R_rc, p = np.array(mount.rotation), np.array(mount.position)
-    R_wc, t_wc = R_cw.T, -R_cw.T @ t_cw  # world from camera
-    R_wr = R_wc @ R_rc.T  # world from robot = world from camera . camera from robot
-    t_wr = t_wc - R_wr @ p
-    return tuple(float(v) for v in np.column_stack([R_wr, t_wr]).ravel())
+    return geometry.world_from_robot_via_camera(R_cw.T, -R_cw.T @ t_cw, mount.rotation, mount.position)

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl.diagnostics import Diagnostic, Span, WiredslError
+from wiredsl.engine import geometry
 
 MAX_BYTES = 256 << 20  # an image file larger than this is refused unread
 MAX_PIXELS = 100_000_000  # width x height from the header: more is refused before decoding
@@ -106,14 +107,6 @@ def frames_of(patterns: list[tuple[str, str | None]], rig) -> list[Frame]:
 
 # --------------------------------------------------------------------------- poses
 
-def camera_pose_to_robot(R_wc: np.ndarray, t_wc: np.ndarray, mount) -> tuple[float, ...]:
-    """The robot pose ([R | t] row-major, world_from_robot) whose camera on `mount` is at world_from_camera."""
-    R_rc, p_rc = np.asarray(mount.rotation, float), np.asarray(mount.position, float)
-    R_wr = R_wc @ R_rc.T
-    t_wr = t_wc - R_wr @ p_rc
-    return tuple(float(v) for v in np.column_stack([R_wr, t_wr]).ravel())
-
-
 def assign_path(frames: list[Frame], scene) -> None:
     """`--poses path`: the k-th frame (in name order) takes the scene path's pose k."""
     n = len(scene.path.poses) if scene.path is not None else 0
@@ -150,7 +143,8 @@ def assign_file(frames: list[Frame], scene, path: str, fmt: str | None, match: s
                 first = next(iter(frame.images.values()))
                 raise error("E192", f"the pose file has {n} pose{'s' * (n != 1)} for {len(frames)} frames of "
                                     f"images: {Path(first).name} has none", path, int(traj.lines[-1]) if n else 1)
-            frame.pose = camera_pose_to_robot(traj.rotations[k], traj.positions[k], mount)
+            frame.pose = geometry.world_from_robot_via_camera(traj.rotations[k], traj.positions[k], mount.rotation,
+                                                              mount.position)
             frame.pose_from = f"{path}:{int(traj.lines[k])}"
         return match
     start, scale = _first_stamp(text, fmt or trajectory.guess_format(text))
@@ -167,7 +161,7 @@ def assign_file(frames: list[Frame], scene, path: str, fmt: str | None, match: s
         s = min(max(s, t[0]), t[-1])
         P = np.array([np.interp(s, t, traj.positions[:, k]) for k in range(3)])
         R = slerp([s]).as_matrix()[0] if slerp is not None else traj.rotations[0]
-        frame.pose = camera_pose_to_robot(R, P, mount)
+        frame.pose = geometry.world_from_robot_via_camera(R, P, mount.rotation, mount.position)
         frame.pose_from = f"{path} at t={frame.key}"
     return match
 
