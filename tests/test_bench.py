@@ -119,8 +119,8 @@ def test_trials_table_respects_its_budget_and_says_what_it_skipped(monkeypatch):
     table = bench.trials_table(scene, build_world(scene), budget=1.0)
     assert [row[0] for row in table.rows] == [10]
     assert table.rows[0][2] > 0 and table.rows[0][3] == pytest.approx(0.3)
-    assert table.notes == [f"{n:,} trials not run: at the measured 33 trials/s they would take {bench._fmt(n * 0.03)} s, "
-                           "over the budget of 1 s (--budget)." for n in bench.TRIALS[1:]]
+    assert table.notes == [f"{n:,} trials not run: at the measured 33 trials/s they would take "
+                           f"{bench._fmt(n * 0.03)} s, over the budget of 1 s (--budget)." for n in bench.TRIALS[1:]]
 
 
 def test_trials_rows_run_while_their_predicted_time_fits_the_budget(monkeypatch, small_bench, tmp_path):
