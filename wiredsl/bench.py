@@ -359,6 +359,8 @@ def _panel(ax, t: Table) -> None:
     ax.set_ylabel(t.columns[t.plot[1]] + " (log)")
     pos = ys > 0
     floor = 10 ** (math.floor(math.log10(ys[pos].min())) - 1) if pos.any() else 1e-3
+    lo, hi = xs.min(), xs.max()
+    ax.set_xlim(lo / 2, hi * 3)  # before plotting: rows of one x value would autoscale to a singular range
     ax.plot(xs[pos], ys[pos], "-o", color="#1f4e79", lw=1.5, ms=5)
     if (~pos).any():
         ax.axhline(floor, color="#888888", ls=":", lw=1)
@@ -375,8 +377,6 @@ def _panel(ax, t: Table) -> None:
     ax.text(0.98, 0.97, note, transform=ax.transAxes, ha="right", va="top",
             fontsize=8.5, color="#444444")
     ax.grid(True, which="major", color="#e0e0e0", lw=0.8)
-    lo, hi = xs.min(), xs.max()
-    ax.set_xlim(lo / 2, hi * 3)
     w = 0.56 * LABEL_PT * len(note)  # the note's corner is no place for a label
     _labels(ax, xs[pos], ys[pos], [n for n, p in zip(names, pos, strict=True) if p],
             reserved=[(0.98 * AXES_PT[0] - w, 0.97 * AXES_PT[1] - LABEL_PT - 2, AXES_PT[0], AXES_PT[1])])
