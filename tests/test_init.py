@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import tomllib
@@ -40,6 +41,28 @@ def test_the_starter_project_passes_its_own_ci_script(tmp_path, monkeypatch):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "ci.sh: all checks passed" in proc.stdout
     assert (root / "build/ci/study/table.json").is_file()
+
+
+def test_the_starter_readme_names_the_folders_its_commands_write(tmp_path, monkeypatch):
+    """Each `wiredsl` command of the project's README, run as written (the study without plots, in-process),
+    writes the folder its comment names (it once said build/my_lab_shift/ for build/my_lab-shift/)."""
+    monkeypatch.chdir(tmp_path)
+    assert CliRunner().invoke(main, ["init", "my-lab"]).exit_code == 0
+    monkeypatch.chdir(tmp_path / "my-lab")
+    readme = Path("README.md").read_text()
+    ran = []
+    for line in readme.split("```sh\n", 1)[1].split("```", 1)[0].splitlines():
+        command, _, comment = line.partition("#")
+        args = command.split()
+        folder = re.search(r"build/\S+/", comment)
+        if args[0] != "wiredsl" or folder is None:
+            continue
+        extra = ["--no-plots", "--executor", "inprocess"] if args[1] == "study" else []
+        r = CliRunner().invoke(main, [*args[1:], *extra])
+        assert r.exit_code == 0, (line, r.output)
+        assert Path(folder.group(0)).is_dir(), (line, sorted(p.name for p in Path("build").iterdir()))
+        ran.append(args[1])
+    assert ran == ["build", "study"]
 
 
 def test_the_starter_scene_holds_a_model_a_camera_a_path_and_a_study():

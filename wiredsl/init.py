@@ -140,9 +140,11 @@ pipeline and a study.
 ```sh
 wiredsl check scenes/{{package}}.wd        # every problem, with file, line and column
 wiredsl build scenes/{{package}}.wd        # build/{{package}}/: features.json, manifest.json, an SVG a pose
-wiredsl study scenes/{{package}}.wd shift  # build/{{package}}_shift/: the study's table and plots
+wiredsl study scenes/{{package}}.wd shift  # build/{{package}}-shift/: the study's table and plots
 bash ci.sh                                 # what CI runs (.github/workflows/wiredsl.yml)
 ```
+
+The study's plots need matplotlib (`pip install 'wiredsl[plot]'`); without it, give `--no-plots`.
 """
 
 # --- the plug-in package ---------------------------------------------------------------------------------------
