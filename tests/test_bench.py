@@ -156,3 +156,25 @@ def test_a_scene_without_corners_has_no_trials_rows_and_says_why(tmp_path):
     scene, _, _ = compile_file(tmp_path / "c.wd")
     table = bench.trials_table(scene, build_world(scene), budget=1.0)
     assert table.rows == [] and "no corners" in table.notes[0]
+
+
+def test_zero_error_labels_of_nearby_points_do_not_overlap():
+    """Three rows of zero error close together on the x axis (a box's exact, 0.25 m grid and own mesh): their
+    labels used to be drawn over each other at one height; each now sits above its point, one line up if need be."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    table = bench.Table("t", ["from", "wrong", "time"], plot=(2, 1), short="t",
+                        rows=[["exact", 0.0, 0.0013], ["grid 0.25 m", 0.0, 0.0005],
+                              ["scene's mesh 'around'", 0.0, 0.0007], ["grid 2 m", 0.25, 0.00026],
+                              ["grid 1 m", 0.25, 0.0045]])
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    bench._panel(ax, table)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    boxes = [t.get_window_extent(renderer) for t in ax.texts if t.get_text().endswith("zero error")]
+    plt.close(fig)
+    assert len(boxes) == 3
+    assert not any(a.overlaps(b) for i, a in enumerate(boxes) for b in boxes[i + 1:])

@@ -370,9 +370,17 @@ def _panel(ax, t: Table) -> None:
         for y0 in (floor * 1.8, floor * 2.2):  # break marks: the axis does not reach zero
             ax.plot([-0.015, 0.015], [y0 / 1.1, y0 * 1.1], transform=ax.get_yaxis_transform(), color="#333333",
                     lw=1.2, clip_on=False)
-    for x, name in zip(xs[~pos], np.array(names, dtype=object)[~pos], strict=True):
-        ax.annotate(f"{name.split(' (')[0]}: zero error", (x, floor), xytext=(0, 8), textcoords="offset points",
-                    fontsize=8.5, color="#c62828", ha="center")
+    to_axes = ax.transScale + ax.transLimits  # data -> axes fraction, on the log scales (x limits are set)
+    taken: list[tuple[float, float, float]] = []  # zero-error labels placed: (left, right, height) in points
+    for x, name in sorted(zip(xs[~pos], np.array(names, dtype=object)[~pos], strict=True), key=lambda p: p[0]):
+        text = f"{name.split(' (')[0]}: zero error"
+        px, half = to_axes.transform([[x, floor]])[0, 0] * AXES_PT[0], 0.28 * LABEL_PT * len(text)
+        dy = 8.0
+        while any(left < px + half and px - half < right and h == dy for left, right, h in taken):
+            dy += LABEL_PT + 3  # a neighbour's label is there: one line higher
+        taken.append((px - half, px + half, dy))
+        ax.annotate(text, (x, floor), xytext=(0, dy), textcoords="offset points", fontsize=LABEL_PT,
+                    color="#c62828", ha="center")
     note = f"points labelled by {t.columns[0]}"
     ax.text(0.98, 0.97, note, transform=ax.transAxes, ha="right", va="top",
             fontsize=8.5, color="#444444")
