@@ -42,9 +42,10 @@ CHILD = textwrap.dedent("""
     import wiredsl.engine.occlusion as occlusion
     occlusion.BUDGET = 16 * 2**20
     eye, P = eye_and_points(sys.argv[1], 100_000)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     hidden = eye.hidden(P)
     print(json.dumps({"hidden": np.flatnonzero(hidden).tolist(), "n": len(P),
-                      "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                      "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "before_mb": before}))
 """)
 
 
@@ -84,7 +85,9 @@ def test_a_big_gear_is_tested_under_a_2_gb_address_space_limit(gear_folder):
     # the same answers, in this process, for the first 5,000 points with a budget of a few pairs a block
     import wiredsl.engine.occlusion as occlusion
 
-    assert out["peak_mb"] < 512  # the budget bounds the working arrays (measured: 158 MB)
+    # what testing the points adds to the peak is bounded by the budget (measured: 0 to 3 MB; the peak, 100-160 MB,
+    # is reading the mesh)
+    assert out["peak_mb"] - out["before_mb"] < 16 * 8, out
     eye, P = eye_and_points(str(gear_folder), 100_000)
     want = np.flatnonzero(np.isin(np.arange(5_000), out["hidden"]))
     old = occlusion.BUDGET
