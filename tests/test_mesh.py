@@ -147,6 +147,35 @@ def test_hidden_lines_by_mesh_faces_match_a_brute_force_ray_caster(tmp_path):
     assert (got_points == want.ravel()).mean() > 0.999
 
 
+def test_arcs_hidden_by_mesh_faces_match_a_brute_force_ray_caster(tmp_path):
+    """Ellipse arcs behind a faceted ball: the exact arc-against-triangle intervals (four circular intervals a
+    pair) against every triangle tested at 721 points of each arc."""
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.4)
+    ball.apply_translation((2.0, 0.0, 1.0))
+    ball.export(tmp_path / "ball.stl")
+    w = build_world(compile_file(_scene(tmp_path, 'mesh read "ball.stl"', "place m as m1\n"))[0])
+    rng = np.random.default_rng(11)
+    eye = np.array([0.0, 0.05, 1.1])
+    n = 40
+    c = rng.uniform((2.6, -0.6, 0.4), (3.6, 0.6, 1.6), (n, 3))  # ellipses behind and beside the ball
+    U, V = rng.normal(0, 0.3, (n, 3)), rng.normal(0, 0.3, (n, 3))
+    lo = rng.uniform(-np.pi, np.pi, n)
+    hi = lo + rng.uniform(0.5, 2 * np.pi, n)
+    R = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    e = Occluders.of_world(w).seen_from(R, -R @ eye)
+    r, t0, t1, _ = e.arc_pieces((c - eye) @ R.T, U @ R.T, V @ R.T, lo, hi)
+    s = np.linspace(0.0, 1.0, 721)
+    t = lo[:, None] + (hi - lo)[:, None] * s
+    P = (c[:, None] + np.cos(t)[..., None] * U[:, None] + np.sin(t)[..., None] * V[:, None]).reshape(-1, 3)
+    want = _brute_hidden(P, eye, w.triangles).reshape(n, len(s))
+    shown, near_edge = np.zeros_like(want), np.zeros_like(want)
+    for row, a, b in zip(r, t0, t1, strict=True):
+        shown[row] |= (t[row] >= a) & (t[row] <= b)
+        near_edge[row] |= (np.abs(t[row] - a) < 1e-6) | (np.abs(t[row] - b) < 1e-6)
+    assert 0.1 < want.mean() < 0.9  # the ball hides part of the arcs, not all
+    assert ((shown == ~want) | near_edge).all()
+
+
 def _scene(tmp_path: Path, mesh: str, extra: str = "") -> Path:
     path = tmp_path / "s.wd"
     path.write_text(f"wiredsl 1\nmodel m {{\n  {mesh}\n}}\n{extra}")

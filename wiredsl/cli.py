@@ -546,8 +546,10 @@ def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None
 @click.option("--tolerance", type=float, default=0.1, show_default=True, callback=_tolerance,
               help=f"Largest deviation (px, {TOLERANCE_PX[0]:g} to {TOLERANCE_PX[1]:g}) of an emitted polyline "
                    "from the true image curve.")
-@click.option("--visibility", type=click.Choice(["scene", "exact", "all"]), default="scene", show_default=True,
-              help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion.")
+@click.option("--visibility", type=click.Choice(["auto", "scene", "exact", "all"]), default="auto", show_default=True,
+              help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion; auto: "
+                   "exact where faces would hide what the lists cannot say and it is affordable (else scene, with "
+                   "warning W129).")
 @click.option("--engine", type=click.Choice(["auto", "kernel", "numpy"]), default="auto", show_default=True,
               help="Monte-Carlo engine: the compiled kernel (needs wiredsl[fast]) or the numpy reference; auto: the "
                    "kernel, when numba is installed, for --trial and for runs large enough to pay for loading it "
@@ -607,6 +609,9 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     if out_format == "npz" and out_dir is None:
         raise click.BadParameter("npz cannot go to stdout", param_hint="-o")
     world = build_world(scene)
+    if visibility == "auto":
+        visibility = _auto_visibility(scene, world, program, chosen_poses, cameras, trials if exact_calibration else 1,
+                                      diagnostics)
     opts = Options(tolerance=tolerance, visibility=visibility, poses=chosen_poses, right=cameras == "both")
     with _setup_errors():
         if study_name is not None or point is not None:
@@ -705,6 +710,20 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                    f"seed {seed if effects else '-'}"
                    + (f", pipeline {pipeline.name}: {', '.join(e.name for e, _ in run.stages)}" if effects else
                       ", ideal projection") + ")", err=True)
+
+
+def _auto_visibility(scene, world, program, poses, cameras: str, repeats: int, fmt: str) -> str:
+    """`--visibility auto`: exact or scene (run.choose_visibility); W129 at the first `mesh read` (or the file's
+    start) when the scene's faces would hide something that this build keeps."""
+    from wiredsl import run as runs
+    from wiredsl.diagnostics import Diagnostic, Span
+
+    n_poses = len(poses) if poses else len(scene.path.poses) if scene.path is not None else 0
+    choice = runs.choose_visibility(scene, world, n_poses * (2 if cameras == "both" else 1) * repeats)
+    if choice.warning is not None:
+        span = program.mesh_reports[0][0] if program.mesh_reports else Span(scene.source, 1, 1, 1, 1)
+        report([Diagnostic("warning", "W129", choice.warning, span)], program.sources, fmt)
+    return choice.mode
 
 
 def _stdout_utf8(text: str) -> None:

@@ -53,6 +53,43 @@ def choose_pipeline(scene: Scene, name: str | None = None, no_effects: bool = Fa
     return PipelineChoice(pipeline)
 
 
+# --visibility auto (the default of `wiredsl build`): exact hidden lines when a view's faces would hide something
+# that the view-points' lists cannot say, if affordable. Cost: CPU seconds a view and occluding triangle on the
+# shared 2-core machine, the slowest part measured (benchmarks/meshes.py, 2026-11-26: the 43k-triangle cycloidal
+# gear, 30,535 occluders, 12.4 s a view; the 84k counter 9.7 s for 78,776; scenes/meshes.wd 0.03 s for 1,422)
+EXACT_SECONDS_PER_TRIANGLE = 4e-4
+AUTO_EXACT_SECONDS = 60.0  # the estimated CPU up to which auto removes hidden lines exactly
+
+
+@dataclass(frozen=True)
+class VisibilityChoice:
+    mode: str  # "exact" or "scene"
+    warning: str | None = None  # why faces that hide something do not hide it in this build (W129)
+    seconds: float = 0.0  # the estimated CPU of exact visibility
+
+
+def choose_visibility(scene: Scene, world: World, views: int) -> VisibilityChoice:
+    """What `--visibility auto` means for this scene and number of views (poses x cameras, times the trials when
+    each trial projects afresh): exact when the scene has faces and either no view-points (nothing else would
+    hide anything) or view-points whose lists are computed (`visibility auto`) and a mesh's occluding surfaces
+    (whole-feature lists draw a mesh's features through what stands in front), and the estimate is at most
+    AUTO_EXACT_SECONDS; else the view-points' lists (`scene`), with a warning when exact was wanted."""
+    triangles = len(world.triangles)
+    vp = scene.viewpoints
+    meshes = any(m.surfaces for m in scene.models)
+    wanted = triangles > 0 and (vp is None or (vp.visibility == "auto" and meshes))
+    seconds = views * triangles * EXACT_SECONDS_PER_TRIANGLE
+    if not wanted:
+        return VisibilityChoice("scene")
+    if seconds <= AUTO_EXACT_SECONDS:
+        return VisibilityChoice("exact", seconds=seconds)
+    shown = "every feature whole" if vp is None else "the view-points' lists of whole features"
+    return VisibilityChoice("scene", f"hidden lines are not removed: {views} view{'s' * (views != 1)} x {triangles:,} "
+                            f"occluding triangles would take about {seconds:,.0f} s of CPU with exact visibility "
+                            f"(over {AUTO_EXACT_SECONDS:.0f} s), so {shown} are drawn; `--visibility exact` changes "
+                            "the answer (fewer poses with --pose also make it affordable)", seconds)
+
+
 def check_poses(scene: Scene, poses) -> tuple[int, ...] | None:
     """The chosen pose indices, sorted and unique (None: every pose); a pose off the path is refused."""
     if poses is None:

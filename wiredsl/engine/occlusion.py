@@ -47,6 +47,7 @@ RAY_END = 1e-7  # fraction of the eye-to-point distance treated as touching the 
 SAMPLES = 128  # samples a segment or a full ellipse against the curved surfaces; a section gets its share
 BISECT = 40  # halvings of a sample step that brackets a change of visibility
 SLIVER = 1e-9  # parameter length below which a visible or hidden piece is dropped (rounding, not geometry)
+MIN_PIECE_PX = 0.01  # image length (px) below which a visible piece is dropped and a hidden gap closed (below)
 GRID_NEAR = 1e-2  # metres from the eye's plane within which a triangle is tested against every query
 GRID_REACH = 10.0  # the grid spans image-plane coordinates (x/z, y/z) within this; beyond, its border cells
 GRID_MAX = 512  # cells a side of the grid of chunks
@@ -54,6 +55,8 @@ CHUNK = 8  # triangles a chunk: the grid bins chunks, so that a view's set-up co
 BUDGET = 64 * 2**20  # bytes of working arrays the tests of one call hold at once (the memory bound, below)
 FACE_PAIR_BYTES = 1024  # working bytes a (query, triangle) pair costs, temporaries included (measured: ~700)
 SURFACE_PAIR_BYTES = 4096  # working bytes a (point, surface) pair costs in the root finder (measured: ~2,600)
+ARC_PAIR_BYTES = 4096  # working bytes an (arc piece, triangle) pair costs (its conditions, ends and pieces)
+ARC_PIECE = np.pi / 8  # radians of an arc piece whose image box is asked of the grid
 SAMPLE_BYTES = 256  # working bytes a sample point of a feature costs (its point, parameter, row, flags)
 
 
@@ -88,9 +91,11 @@ class Occluders:
         a, b = w.sil_pair[:, 0], w.sil_pair[:, 1]
         return cls(w.triangles, w.ell_c[a], w.ell_U[a], w.ell_V[a], w.ell_c[b], w.ell_U[b], w.ell_V[b])
 
-    def seen_from(self, R_cw: np.ndarray, t_cw: np.ndarray) -> Eye:
-        """The occluders in a camera's frame (P_cam = R P_world + t): the eye at the origin."""
-        return Eye(self, np.asarray(R_cw, float), np.asarray(t_cw, float))
+    def seen_from(self, R_cw: np.ndarray, t_cw: np.ndarray, px: float = 0.0) -> Eye:
+        """The occluders in a camera's frame (P_cam = R P_world + t): the eye at the origin. `px`: the camera's
+        pixels a radian (its focal length in pixels), which sets what is too small to keep (MIN_PIECE_PX); 0 keeps
+        every piece."""
+        return Eye(self, np.asarray(R_cw, float), np.asarray(t_cw, float), float(px))
 
 
 def _chunks(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -116,8 +121,8 @@ def _chunks(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class Eye:
     """What hides what from an eye at the origin of a camera's frame (P_cam = R P_world + t)."""
 
-    def __init__(self, world: Occluders, R: np.ndarray, t: np.ndarray):
-        self.R, self.t = R, t
+    def __init__(self, world: Occluders, R: np.ndarray, t: np.ndarray, px: float = 0.0):
+        self.R, self.t, self.px = R, t, px
         self.tris_w = world.tris
         occ = Occluders(world.tris[:0], world.ca @ R.T + t, world.Ua @ R.T, world.Va @ R.T,
                         world.cb @ R.T + t, world.Ub @ R.T, world.Vb @ R.T, np.zeros((0, 3)), np.zeros(0))
@@ -136,8 +141,11 @@ class Eye:
     # ----------------------------------------------------------------------- points
 
     def hidden(self, P: np.ndarray) -> np.ndarray:
-        """Whether each point (n, 3) is hidden by a face or a surface."""
-        return self.hidden_by_faces(P) | self.hidden_by_surfaces(P)
+        """Whether each point (n, 3) is hidden by a face or a surface (surfaces tested only where no face hides)."""
+        out = self.hidden_by_faces(P)
+        rest = np.flatnonzero(~out)
+        out[rest] = self.hidden_by_surfaces(P[rest])
+        return out
 
     def hidden_by_faces(self, P: np.ndarray) -> np.ndarray:
         out = np.zeros(len(P), dtype=bool)
@@ -150,12 +158,12 @@ class Eye:
                 out[r[hi > lo]] = True
         return out
 
-    def _pairs(self, A: np.ndarray, B: np.ndarray):
-        """(row, G, h) in slices of at most BUDGET / FACE_PAIR_BYTES pairs: the conditions of every triangle whose
+    def _pairs(self, A: np.ndarray, B: np.ndarray, pair_bytes: int = FACE_PAIR_BYTES):
+        """(row, G, h) in slices of at most BUDGET / pair_bytes pairs: the conditions of every triangle whose
         image-plane box meets that of segment A B (rows, camera frame), from the chunks the grid gives (the
         rest cannot hide any of it)."""
         r_all, t_all = self.grid.pairs(A, B)
-        step = max(1, BUDGET // FACE_PAIR_BYTES)
+        step = max(1, BUDGET // pair_bytes)
         ahead = (A[:, 2] > 0) & (B[:, 2] > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
             qa = A[:, :2] / np.where(ahead, A[:, 2], 1.0)[:, None]
@@ -223,25 +231,103 @@ class Eye:
                     hid_b.append(hi[hi > lo])
         if len(self.sphere_c) and n:
             D = B - A
+            faces = tuple(np.concatenate(x) if x else np.zeros(0) for x in (hid_r, hid_a, hid_b))
             r, a, b = _hidden_runs(lambda rows, u: A[rows] + u[:, None] * D[rows], self.hidden_by_surfaces,
-                                   t0, t1, np.full(n, SAMPLES))
+                                   t0, t1, np.full(n, SAMPLES), faces)
             hid_r.append(r)
             hid_a.append(a)
             hid_b.append(b)
-        return _complement(n, t0, t1, hid_r, hid_a, hid_b)
+        return self._tidy(t0, t1, _complement(n, t0, t1, hid_r, hid_a, hid_b),
+                          lambda rows, u: A[rows] + u[:, None] * (B - A)[rows], 1)
 
     def arc_pieces(self, c: np.ndarray, U: np.ndarray, V: np.ndarray, lo: np.ndarray, hi: np.ndarray):
-        """Visible parts of arcs [lo, hi] (rows) of the ellipse c + cos(t) U + sin(t) V: (row, t0, t1)."""
+        """Visible parts of arcs [lo, hi] (rows) of the ellipses c + cos(t) U + sin(t) V (one ellipse (3,), or
+        one a row (n, 3)): (row, t0, t1, cut) of each piece."""
         n = len(lo)
-        count = np.maximum(16, np.ceil(SAMPLES * (hi - lo) / (2 * np.pi))).astype(int)
+        c, U, V = (np.broadcast_to(np.asarray(x, float), (n, 3)) for x in (c, U, V))
+        hid_r, hid_a, hid_b = [], [], []
+        if len(self.tris_w) and n:
+            hid_r, hid_a, hid_b = ([x] for x in self._arc_face_intervals(c, U, V, lo, hi))
+        if len(self.sphere_c) and n:
+            count = np.maximum(16, np.ceil(SAMPLES * (hi - lo) / (2 * np.pi))).astype(int)
+            faces = tuple(np.concatenate(x) if x else np.zeros(0) for x in (hid_r, hid_a, hid_b))
+            r, a, b = _hidden_runs(lambda rows, t: ellipse_points(c[rows], U[rows], V[rows], t),
+                                   self.hidden_by_surfaces, lo, hi, count, faces)
+            hid_r.append(r)
+            hid_a.append(a)
+            hid_b.append(b)
+        return self._tidy(lo, hi, _complement(n, lo, hi, hid_r, hid_a, hid_b),
+                          lambda rows, t: ellipse_points(c[rows], U[rows], V[rows], t), 8)
 
-        def point(rows, t):
-            m = len(t)
-            return ellipse_points(np.broadcast_to(c, (m, 3)), np.broadcast_to(U, (m, 3)), np.broadcast_to(V, (m, 3)),
-                                  t)
+    def _tidy(self, lo, hi, pieces, point, chords: int):
+        """Pieces (row, u0, u1, cut) without what no image shows: a hidden gap (between two pieces, or between a
+        piece and its row's end) whose image is shorter than MIN_PIECE_PX is closed, then a visible piece that
+        short is dropped; a row left whole is not cut. Image lengths are the angle seen from the eye (the sum
+        over `chords` chords) times self.px: at the image's centre; a pinhole image is up to 1 / cos^2 of the
+        field angle longer at its edges."""
+        r, a, b, cut = pieces
+        if self.px <= 0 or len(r) == 0:
+            return pieces
 
-        r, a, b = _hidden_runs(point, self.hidden, lo, hi, count)
-        return _complement(n, lo, hi, [r], [a], [b])
+        def short(rows, u0, u1):
+            s = np.linspace(0.0, 1.0, chords + 1)
+            u = u0[:, None] + (u1 - u0)[:, None] * s  # (m, chords + 1)
+            P = point(np.repeat(rows, chords + 1), u.ravel()).reshape(len(rows), chords + 1, 3)
+            p, q = P[:, :-1], P[:, 1:]
+            angle = np.arctan2(np.linalg.norm(np.cross(p, q), axis=2), (p * q).sum(axis=2)).sum(axis=1)
+            return angle * self.px < MIN_PIECE_PX
+
+        first = np.concatenate([[True], r[1:] != r[:-1]])
+        last = np.concatenate([r[1:] != r[:-1], [True]])
+        start = np.where(first, lo[r], np.concatenate([[0.0], b[:-1]]))  # the hidden gap before each piece
+        close = a <= start
+        close[~close] = short(r[~close], start[~close], a[~close])
+        end = np.zeros(len(r), dtype=bool)  # the gap after a row's last piece is closed
+        e = np.flatnonzero(last)
+        end[e] = (b[e] >= hi[r[e]]) | short(r[e], b[e], hi[r[e]])
+        head = np.flatnonzero(first | ~close)  # the first piece of each run of pieces joined across closed gaps
+        tail = np.concatenate([head[1:], [len(r)]]) - 1
+        gr = r[head]
+        ga = np.where(first[head] & close[head], lo[gr], a[head])
+        gb = np.where(end[tail], hi[gr], b[tail])
+        whole = (ga == lo[gr]) & (gb == hi[gr])
+        keep = whole | ~short(gr, ga, gb)
+        return gr[keep], ga[keep], gb[keep], (cut[head] & ~whole)[keep]
+
+    def _arc_face_intervals(self, c, U, V, lo, hi):
+        """The parts (row, a, b) of arcs [lo, hi] of c + cos(t) U + sin(t) V that each triangle hides, exactly.
+
+        Each arc is cut into pieces of at most ARC_PIECE radians, each inside the triangle of its ends and the
+        meeting point of its end tangents (so its image inside that triangle's image box, which the grid is asked
+        about). On an arc a triangle's condition g P + h >= 0 is al + be cos t + ga sin t >= 0, true on one
+        circular interval around atan2(ga, be): between the at most 8 ends of the four conditions' intervals,
+        the triangle hides the pieces whose middles meet all four.
+        """
+        k = np.maximum(1, np.ceil((hi - lo) / ARC_PIECE)).astype(int)
+        own = np.repeat(np.arange(len(lo)), k)
+        j = np.arange(k.sum()) - np.repeat(np.cumsum(k) - k, k)
+        sa = lo[own] + (hi - lo)[own] * j / k[own]
+        sb = np.where(j == k[own] - 1, hi[own], lo[own] + (hi - lo)[own] * (j + 1) / k[own])
+        mid, half = (sa + sb) / 2, (sb - sa) / 2
+        C, Uo, Vo = c[own], U[own], V[own]
+        hull = np.stack([ellipse_points(C, Uo, Vo, sa), ellipse_points(C, Uo, Vo, sb),
+                         C + (np.cos(mid)[:, None] * Uo + np.sin(mid)[:, None] * Vo) / np.cos(half)[:, None]], axis=1)
+        z = hull[:, :, 2]
+        ahead = z.min(axis=1) > 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = hull[:, :, :2] / np.where(ahead[:, None], z, 1.0)[:, :, None]
+        margin = 1e-12 * (1 + np.abs(q).max(axis=(1, 2)))[:, None]
+        A = np.column_stack([q.min(axis=1) - margin, np.where(ahead, 1.0, -1.0)])  # a segment with that box
+        B = np.column_stack([q.max(axis=1) + margin, np.where(ahead, 1.0, -1.0)])
+        out_r, out_a, out_b = [np.zeros(0, int)], [np.zeros(0)], [np.zeros(0)]
+        for rows in _blocks(self.grid.load(A, B), ARC_PAIR_BYTES):
+            for r, G, h in self._pairs(A[rows], B[rows], ARC_PAIR_BYTES):
+                r = r + rows.start
+                i, a, b = _arc_pair_intervals(G, h, C[r], Uo[r], Vo[r], sa[r], sb[r])
+                out_r.append(own[r[i]])
+                out_a.append(a)
+                out_b.append(b)
+        return np.concatenate(out_r), np.concatenate(out_a), np.concatenate(out_b)
 
 
 def _surface_hulls(o: Occluders) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -308,6 +394,29 @@ def _pair_intervals(G: np.ndarray, h: np.ndarray, A: np.ndarray, D: np.ndarray):
     hi = np.minimum(upper.min(axis=1, initial=np.inf), 1.0)
     # a point (D = 0) hidden by every condition: the whole [0, 1]
     return lo, np.where(never.any(axis=1), -np.inf, hi)
+
+
+def _arc_pair_intervals(G: np.ndarray, h: np.ndarray, c, U, V, lo, hi):
+    """The parts (pair, a, b) of the arcs [lo, hi] (p,) of c + cos(t) U + sin(t) V that the triangle of each pair
+    hides (G (p, 4, 3), h (p, 4) as in _triangle_conditions), as at most 9 pieces a pair."""
+    al = np.einsum("pkj,pj->pk", G, c) + h  # (p, 4): al + be cos t + ga sin t >= 0
+    be = np.einsum("pkj,pj->pk", G, U)
+    ga = np.einsum("pkj,pj->pk", G, V)
+    rho = np.hypot(be, ga)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.where(rho > 0, -al / np.where(rho > 0, rho, 1.0), np.inf)
+    turn = np.abs(x) < 1  # the condition changes at atan2(ga, be) +- arccos(x)
+    phi, delta = np.arctan2(ga, be), np.arccos(np.where(turn, x, 1.0))
+    ends = np.concatenate([phi - delta, phi + delta], axis=1)  # (p, 8)
+    ends = lo[:, None] + np.mod(ends - lo[:, None], 2 * np.pi)
+    ends = np.where(np.concatenate([turn, turn], axis=1), np.minimum(ends, hi[:, None]), lo[:, None])
+    cuts = np.sort(np.concatenate([lo[:, None], ends, hi[:, None]], axis=1), axis=1)  # (p, 10)
+    a, b = cuts[:, :-1], cuts[:, 1:]
+    m = (a + b) / 2
+    cm, sm = np.cos(m), np.sin(m)
+    hides = (b > a) & (al[:, :, None] + be[:, :, None] * cm[:, None] + ga[:, :, None] * sm[:, None] >= 0).all(axis=1)
+    i, k = np.nonzero(hides)
+    return i, a[i, k], b[i, k]
 
 
 class _Grid:
@@ -431,11 +540,10 @@ def _ray_hits_ruled(P, X, ca, Ua, Va, cb, Ub, Vb) -> np.ndarray:
     X (m, 9, 3) holds the row's cross products (ca, Ua, Va)_i x (cb, Ub, Vb)_j.
     """
     mm = np.einsum("mkj,mj->mk", X, P)
-    m = {(i, j): mm[:, 3 * i + j] for i in range(3) for j in range(3)}
     # g(th) = det(Ea(th), Eb(th), P) = a0 + a1 cos + b1 sin + a2 cos 2th + b2 sin 2th
-    a0 = m[0, 0] + (m[1, 1] + m[2, 2]) / 2
-    a1, b1 = m[1, 0] + m[0, 1], m[2, 0] + m[0, 2]
-    a2, b2 = (m[1, 1] - m[2, 2]) / 2, (m[1, 2] + m[2, 1]) / 2
+    a0 = mm[:, 0] + (mm[:, 4] + mm[:, 8]) / 2
+    a1, b1 = mm[:, 3] + mm[:, 1], mm[:, 6] + mm[:, 2]
+    a2, b2 = (mm[:, 4] - mm[:, 8]) / 2, (mm[:, 5] + mm[:, 7]) / 2
     scale = np.maximum.reduce([np.abs(a0), np.abs(a1), np.abs(b1), np.abs(a2), np.abs(b2)])
     scale = np.where(scale > 0, scale, 1.0)
     a0, a1, b1, a2, b2 = (x / scale for x in (a0, a1, b1, a2, b2))
@@ -449,44 +557,116 @@ def _ray_hits_ruled(P, X, ca, Ua, Va, cb, Ub, Vb) -> np.ndarray:
     phi = np.arctan2(b1, a1)
     th[:, 0], th[:, 1] = phi - half, phi + half
     on_circle[:, :2] = (~quartic & (np.abs(a0) <= R) & (R > 0))[:, None]
-    if quartic.any():  # z^2 g as a polynomial in z = exp(i th): c4 z^4 + ... + c0, roots by a companion matrix
+    if quartic.any():
         q_ = quartic
-        c4 = (a2[q_] - 1j * b2[q_]) / 2
-        c3, c2 = (a1[q_] - 1j * b1[q_]) / 2, a0[q_] + 0j
-        c1, c0 = (a1[q_] + 1j * b1[q_]) / 2, (a2[q_] + 1j * b2[q_]) / 2
-        C = np.zeros((len(c4), 4, 4), dtype=complex)
-        C[:, 0, 0], C[:, 0, 1], C[:, 0, 2], C[:, 0, 3] = -c3 / c4, -c2 / c4, -c1 / c4, -c0 / c4
-        C[:, 1, 0] = C[:, 2, 1] = C[:, 3, 2] = 1.0
-        z = np.linalg.eigvals(C)  # (m', 4)
-        on_circle[q_] = np.abs(np.abs(z) - 1.0) < 1e-6
-        tq = np.angle(z)
         A0, A1, B1, A2, B2 = (x[q_, None] for x in (a0, a1, b1, a2, b2))
-        for _ in range(3):  # Newton on the real polynomial (the closed form above needs none)
-            g = A0 + A1 * np.cos(tq) + B1 * np.sin(tq) + A2 * np.cos(2 * tq) + B2 * np.sin(2 * tq)
-            dg = -A1 * np.sin(tq) + B1 * np.cos(tq) - 2 * A2 * np.sin(2 * tq) + 2 * B2 * np.cos(2 * tq)
+        tq, on_circle[q_] = _trig_quadratic_roots(A0, A1, B1, A2, B2)
+        for _ in range(2):  # Newton on the trigonometric polynomial: the roots to the last bits
+            c, s = np.cos(tq), np.sin(tq)
+            c2, s2 = c * c - s * s, 2 * s * c
+            g = A0 + A1 * c + B1 * s + A2 * c2 + B2 * s2
+            dg = B1 * c - A1 * s + 2 * (B2 * c2 - A2 * s2)
             step = np.divide(g, dg, out=np.zeros_like(g), where=np.abs(dg) > 1e-12)
             tq = tq - np.clip(step, -0.1, 0.1)
         th[q_] = tq
-    cos, sin = np.cos(th)[..., None], np.sin(th)[..., None]
-    q = ca[:, None] + cos * Ua[:, None] + sin * Va[:, None]  # Ea(th), (m, 4, 3)
-    w = cb[:, None] + cos * Ub[:, None] + sin * Vb[:, None] - q  # the ruling's direction
-    d = np.broadcast_to(P[:, None], q.shape)
-    dw = np.cross(d, w)
-    n2 = (dw * dw).sum(-1)
-    ok = on_circle & (n2 > 1e-24 * (d * d).sum(-1) * np.maximum((w * w).sum(-1), 1e-300))
+    # each real root th: the ruling Ea(th) + s w meets the ray t P where q + s w = t P
+    row, k = np.nonzero(on_circle)
+    cos, sin = np.cos(th[row, k])[:, None], np.sin(th[row, k])[:, None]
+    q = ca[row] + cos * Ua[row] + sin * Va[row]
+    w = cb[row] + cos * Ub[row] + sin * Vb[row] - q
+    d = P[row]
+    dw = _cross(d, w)
+    n2 = (dw * dw).sum(1)
+    ok = n2 > 1e-24 * (d * d).sum(1) * np.maximum((w * w).sum(1), 1e-300)
     n2 = np.where(ok, n2, 1.0)
-    t = (np.cross(q, w) * dw).sum(-1) / n2  # q + s w = t d
-    s = (np.cross(q, d) * dw).sum(-1) / n2
-    return (ok & (s >= 0) & (s <= 1) & (t > RAY_END) & (t < 1 - RAY_END)).any(axis=1)
+    t = (_cross(q, w) * dw).sum(1) / n2
+    s = (_cross(q, d) * dw).sum(1) / n2
+    hit = ok & (s >= 0) & (s <= 1) & (t > RAY_END) & (t < 1 - RAY_END)
+    out = np.zeros(len(P), dtype=bool)
+    out[row[hit]] = True
+    return out
 
 
-def _hidden_runs(point, hidden, lo: np.ndarray, hi: np.ndarray, count: np.ndarray):
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of (n, 3) arrays (np.cross's axis handling costs more than this)."""
+    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
+
+
+_EIGHTH = np.arange(8) * (np.pi / 4)
+
+
+def _trig_quadratic_roots(a0, a1, b1, a2, b2) -> tuple[np.ndarray, np.ndarray]:
+    """The four roots th (m, 4) of g = a0 + a1 cos + b1 sin + a2 cos 2th + b2 sin 2th (columns (m, 1), the
+    largest coefficient of a row about 1), and whether each is real (a root of the complex quartic within 1e-6
+    of the unit circle, as the companion matrices' eigenvalues were tested before).
+
+    With x = tan((th - phi) / 2), (1 + x^2)^2 g is a real quartic in x whose leading coefficient is g(phi + pi):
+    phi is the eighth of a turn where |g(phi + pi)| is largest (at least half the largest coefficient, since
+    eight samples determine g), so no real root is near infinity. Ferrari's method in closed form: the
+    depressed quartic y^4 + p y^2 + q y + r is split into two real quadratics by a positive root of its
+    resolvent cubic (Cardano's or Viete's formula, Newton steps kept where they lower the residual), and a
+    complex pair counts as real when its imaginary part is within the same 1e-6 of the circle.
+    """
+    a0, a1, b1, a2, b2 = (x[:, 0] for x in (a0, a1, b1, a2, b2))
+    ck, sk, c2k, s2k = np.cos(_EIGHTH), np.sin(_EIGHTH), np.cos(2 * _EIGHTH), np.sin(2 * _EIGHTH)
+    g8 = a0[:, None] - a1[:, None] * ck - b1[:, None] * sk + a2[:, None] * c2k + b2[:, None] * s2k
+    j = np.abs(g8).argmax(axis=1)
+    cp, sp, c2p, s2p = ck[j], sk[j], c2k[j], s2k[j]
+    A1, B1 = a1 * cp + b1 * sp, b1 * cp - a1 * sp  # g in th - phi
+    A2, B2 = a2 * c2p + b2 * s2p, b2 * c2p - a2 * s2p
+    c4 = a0 - A1 + A2
+    B, C = (2 * B1 - 4 * B2) / c4, (2 * a0 - 6 * A2) / c4
+    D, E = (2 * B1 + 4 * B2) / c4, (a0 + A1 + A2) / c4
+    BB = B * B
+    p = C - 3 * BB / 8  # x = y - B / 4
+    q = D - B * C / 2 + BB * B / 8
+    r = E - B * D / 4 + BB * C / 16 - 3 * BB * BB / 256
+    # the resolvent m^3 + p m^2 + (p^2 / 4 - r) m - q^2 / 8 = 0, its largest real root (>= 0)
+    P3, Q3 = -p * p / 12 - r, -p ** 3 / 108 + p * r / 3 - q * q / 8  # in m = w - p / 3: w^3 + P3 w + Q3
+    disc = (Q3 / 2) ** 2 + (P3 / 3) ** 3
+    root = np.sqrt(np.maximum(disc, 0.0))
+    cardano = np.cbrt(-Q3 / 2 + root) + np.cbrt(-Q3 / 2 - root)
+    rho = np.sqrt(np.maximum(-P3 / 3, 0.0))
+    cosine = np.clip(np.divide(-Q3, 2 * rho ** 3, out=np.zeros_like(Q3), where=rho > 0), -1.0, 1.0)
+    m = np.where(disc > 0, cardano, 2 * rho * np.cos(np.arccos(cosine) / 3)) - p / 3
+    lin, q8 = p * p / 4 - r, q * q / 8
+    for _ in range(2):
+        f = ((m + p) * m + lin) * m - q8
+        df = (3 * m + 2 * p) * m + lin
+        m2 = m - np.divide(f, df, out=np.zeros_like(f), where=np.abs(df) > 1e-300)
+        m = np.where(np.abs(((m2 + p) * m2 + lin) * m2 - q8) < np.abs(f), m2, m)
+    m = np.maximum(m, 0.0)
+    s = np.sqrt(2 * m)
+    # (y^2 + s y + p/2 + m - q/(2s)) (y^2 - s y + p/2 + m + q/(2s)); q/(2s) = sqrt((p/2 + m)^2 - r) near s = 0
+    wide = s > 1e-3
+    qs = np.where(wide, np.divide(q, 2 * s, out=np.zeros_like(q), where=wide),
+                  np.copysign(np.sqrt(np.maximum((p / 2 + m) ** 2 - r, 0.0)), q))
+    d1, d2 = s * s - 4 * (p / 2 + m - qs), s * s - 4 * (p / 2 + m + qs)
+    r1, r2 = np.sqrt(np.maximum(d1, 0.0)), np.sqrt(np.maximum(d2, 0.0))
+    x = np.column_stack([-s + r1, -s - r1, s + r2, s - r2]) / 2 - (B / 4)[:, None]
+    imag = np.sqrt(np.maximum(-np.column_stack([d1, d1, d2, d2]), 0.0)) / 2
+    return _EIGHTH[j][:, None] + 2 * np.arctan(x), imag < 0.5e-6 * (1 + x * x)
+
+
+def _hidden_runs(point, hidden, lo: np.ndarray, hi: np.ndarray, count: np.ndarray, known=None):
     """Hidden sub-intervals (row, a, b) of [lo, hi] per row: `count` samples, changes bisected; rows in blocks
-    of at most BUDGET / SAMPLE_BYTES samples."""
+    of at most BUDGET / SAMPLE_BYTES samples. `known` (row, a, b): intervals hidden by something else (the faces,
+    exactly); a sample whose steps to both neighbours lie in them is not tested (its runs change only there)."""
     parts = []
+    if known is not None:
+        kr, ka, kb = known
+        kr = kr.astype(int)
+        ka, kb = np.maximum(ka, lo[kr]), np.minimum(kb, hi[kr])
+        order = np.argsort(kr, kind="stable")
+        kr, ka, kb = kr[order], ka[order], kb[order]
     for rows in _blocks(count, SAMPLE_BYTES):
+        block_known = None
+        if known is not None:
+            i0, i1 = np.searchsorted(kr, [rows.start, rows.stop])
+            block_known = (kr[i0:i1] - rows.start, ka[i0:i1], kb[i0:i1])
         r, a, b = _hidden_runs_block(lambda rr, u, s=rows.start: point(rr + s, u), hidden, lo[rows], hi[rows],
-                                     count[rows])
+                                     count[rows], block_known)
         parts.append((r + rows.start, a, b))
     if len(parts) == 1:
         return parts[0]
@@ -495,7 +675,27 @@ def _hidden_runs(point, hidden, lo: np.ndarray, hi: np.ndarray, count: np.ndarra
     return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
 
 
-def _hidden_runs_block(point, hidden, lo: np.ndarray, hi: np.ndarray, count: np.ndarray):
+def _known_steps(lo: np.ndarray, hi: np.ndarray, count: np.ndarray, known) -> np.ndarray:
+    """Whether each sample's step to the next one (of its row: samples lo + (hi - lo) j / (count - 1)) lies
+    inside one of the `known` intervals (row, a, b), with a margin of 1e-6 of a step: (sum(count),)."""
+    first = np.cumsum(count) - count
+    out = np.zeros(int(count.sum()) + 1, dtype=np.int64)
+    kr, ka, kb = known
+    span = (hi - lo)[kr]
+    n1 = (count - 1)[kr]
+    ok = (kb > ka) & (span > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x0 = np.where(ok, (ka - lo[kr]) / np.where(ok, span, 1.0) * n1, 0.0)
+        x1 = np.where(ok, (kb - lo[kr]) / np.where(ok, span, 1.0) * n1, 0.0)
+    j0 = np.clip(np.ceil(x0 + 1e-6), 0, n1).astype(np.int64)  # the first sample at or after a
+    j1 = np.clip(np.floor(x1 - 1e-6), 0, n1).astype(np.int64)  # the last sample at or before b
+    ok &= j1 > j0  # steps j0 .. j1 - 1 are inside
+    np.add.at(out, first[kr[ok]] + j0[ok], 1)
+    np.add.at(out, first[kr[ok]] + j1[ok], -1)
+    return np.cumsum(out)[:-1] > 0
+
+
+def _hidden_runs_block(point, hidden, lo: np.ndarray, hi: np.ndarray, count: np.ndarray, known=None):
     """_hidden_runs of one block of rows."""
     n = len(lo)
     if n == 0:
@@ -503,7 +703,13 @@ def _hidden_runs_block(point, hidden, lo: np.ndarray, hi: np.ndarray, count: np.
     row = np.repeat(np.arange(n), count)
     j = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
     u = lo[row] + (hi - lo)[row] * j / (count[row] - 1)
-    H = hidden(point(row, u))
+    if known is None or len(known[0]) == 0:
+        H = hidden(point(row, u))
+    else:  # a sample both of whose steps are known hidden is counted hidden: runs then differ only inside them
+        step_in = _known_steps(lo, hi, count, known)
+        H = step_in & np.concatenate([[False], step_in[:-1]])
+        test = np.flatnonzero(~H)
+        H[test] = hidden(point(row[test], u[test]))
     change = np.flatnonzero((row[:-1] == row[1:]) & (H[:-1] != H[1:]))
     a, b, ha = u[change], u[change + 1], H[change]
     cr = row[change]
@@ -572,15 +778,26 @@ def split_segments(eye: Eye, A, B, t0, t1, keep):
     return idx[r], u0, u1, np.where(cut, _rank(r), -1), cut
 
 
-def split_arcs(eye: Eye, c, U, V, intervals: list[tuple[float, float]], full: bool):
-    """The unoccluded parts of an ellipse's arcs [(t0, t1)], and whether occlusion cut any."""
-    lo = np.array([a for a, _ in intervals], dtype=float)
-    hi = np.array([b for _, b in intervals], dtype=float)
-    _, a, b, cut = eye.arc_pieces(c, U, V, lo, hi)
-    out = list(zip(a.tolist(), b.tolist(), strict=True))
-    if full and len(out) > 1 and len(intervals) == 1 and out[0][0] == lo[0] and out[-1][1] == hi[0]:
-        out = [(out[-1][0], out[0][1] + (hi[0] - lo[0])), *out[1:-1]]  # one arc across the seam
-    return out, bool(cut.any())
+def split_arcs(eye: Eye, c, U, V, owner, lo, hi, full):
+    """The unoccluded parts of the arcs [lo, hi] of ellipses c + cos(t) U + sin(t) V (rows (E, 3), arcs of ellipse
+    owner, sorted): (owner, t0, t1) of each part, and whether occlusion cut any of each ellipse's arcs (E,). A
+    full ellipse given as one arc and seen in parts keeps one part across its seam."""
+    n = len(c)
+    r, a, b, cut = eye.arc_pieces(c[owner], U[owner], V[owner], lo, hi)
+    e = owner[r]
+    hid = np.zeros(n, dtype=bool)
+    hid[e[cut]] = True
+    arcs = np.bincount(owner, minlength=n)
+    parts = np.bincount(e, minlength=n)
+    keep = np.ones(len(e), dtype=bool)
+    a, b = a.copy(), b.copy()
+    for k in np.flatnonzero(full & (arcs == 1) & (parts > 1)).tolist():
+        i0, i1 = np.searchsorted(e, [k, k + 1])
+        j = np.searchsorted(owner, k)
+        if a[i0] == lo[j] and b[i1 - 1] == hi[j]:  # one arc across the seam, first
+            a[i0], b[i0] = a[i1 - 1], b[i0] + (hi[j] - lo[j])
+            keep[i1 - 1] = False
+    return e[keep], a[keep], b[keep], hid
 
 
 def number_parts(features: list) -> None:

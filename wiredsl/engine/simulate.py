@@ -241,7 +241,8 @@ def _project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mas
     cam = _camera_table(cams)
     masks = np.asarray(masks, dtype=bool).reshape(len(views), -1)
     out = _Emitted(views)
-    eyes = None if occluders is None else [occluders.seen_from(v.R_cw, v.t_cw) for v in views]
+    eyes = None if occluders is None else [occluders.seen_from(v.R_cw, v.t_cw, v.camera.f * max(v.camera.ax, v.camera.ay))
+                                           for v in views]  # pixels a radian: what is too small to keep
     ellipses = _ellipses_cam(world, views)
     seg = _straight_segments(world, views, cam, masks, eyes, ellipses)
     ell = _ellipse_intervals(world, views, cam, masks, eyes, ellipses)
@@ -767,16 +768,18 @@ def _ellipse_intervals(world: World, views: list[View], cam: dict, masks: np.nda
     whole[one] = (lo[first] == arc[one, 0]) & (hi[first] == arc[one, 1])
     full = world.ell_full[ee]
     hid = np.zeros(len(vv), dtype=bool)
-    if eyes is not None:  # --visibility exact: the unoccluded arcs, ellipse by ellipse (occlusion.py)
-        parts = []
-        for e in geometry.distinct(owner).tolist():
-            mine = owner == e
-            arcs, hid[e] = occlusion.split_arcs(eyes[vv[e]], c[e], U[e], V[e],
-                                                list(zip(lo[mine].tolist(), hi[mine].tolist(), strict=True)),
-                                                bool(full[e]))
-            parts += [(e, a, b) for a, b in arcs]
-        owner = np.array([p[0] for p in parts], dtype=int)
-        lo, hi = np.array([p[1] for p in parts], dtype=float), np.array([p[2] for p in parts], dtype=float)
+    if eyes is not None:  # --visibility exact: the unoccluded arcs, view by view (occlusion.py)
+        parts = [(np.zeros(0, int), np.zeros(0), np.zeros(0))]
+        for k, eye in enumerate(eyes):
+            mine = np.flatnonzero(vv == k)  # the view's ellipses (vv is sorted) and their arcs
+            if len(mine) == 0:
+                continue
+            at = np.flatnonzero((owner >= mine[0]) & (owner <= mine[-1]))
+            o, a, b, hid[mine] = occlusion.split_arcs(eye, c[mine], U[mine], V[mine], owner[at] - mine[0], lo[at],
+                                                      hi[at], full[mine])
+            parts.append((o + mine[0], a, b))
+        owner, lo, hi = (np.concatenate(x) for x in zip(*parts, strict=True))
+        owner = owner.astype(int)
     return _Ellipses(vv, c, U, V, arc, full, world.ell_fid[ee], owner, lo, hi, whole, hid)
 
 

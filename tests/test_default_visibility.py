@@ -1,0 +1,99 @@
+"""`build --visibility auto` (the default, issue 25): exact hidden lines where a scene's faces would hide what the
+view-points' lists cannot say and it is affordable, else the lists and warning W129."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+import trimesh
+from click.testing import CliRunner
+
+from wiredsl import run as runs
+from wiredsl.cli import main
+from wiredsl.engine.world import build_world
+from wiredsl.language.compile import compile_file
+
+
+def _build(tmp_path, scene: str, *extra: str):
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["build", scene, "-o", str(out), "--no-effects", "--no-svg", "--force", *extra])
+    assert r.exit_code == 0, r.output
+    return json.loads((out / "features.json").read_text()), json.loads((out / "manifest.json").read_text()), r
+
+
+def _through_the_ball(dump) -> int:
+    """Points of the cone's silhouette (sampled along its lines) inside the image of the ball, 1 px in from its
+    outline, over every view: the cone stands behind the ball in scenes/meshes.wd."""
+    inside = 0
+    for pose in dump["poses"]:
+        for view in (pose["left"], pose["right"]):
+            strokes = view["lines"] + view["polylines"]
+            ball = np.concatenate([np.array(f["points"]) for f in strokes if f["source"] == "ball1.surface"])
+            centre = ball.mean(axis=0)
+            radius = np.linalg.norm(ball - centre, axis=1).min()
+            for f in strokes:
+                if f["source"] == "cone1.side1":
+                    p = np.array(f["points"])
+                    s = np.linspace(0, 1, 50)[:, None, None]
+                    q = (p[:-1] + s * (p[1:] - p[:-1])).reshape(-1, 2)
+                    inside += int((np.linalg.norm(q - centre, axis=1) < radius - 1.0).sum())
+    return inside
+
+
+def test_the_default_removes_the_cones_silhouette_behind_the_ball(tmp_path):
+    dump, manifest, _ = _build(tmp_path, "scenes/meshes.wd")
+    assert manifest["visibility"] == "exact"
+    assert _through_the_ball(dump) == 0
+    listed, manifest, _ = _build(tmp_path, "scenes/meshes.wd", "--visibility", "scene")
+    assert manifest["visibility"] == "scene"
+    assert _through_the_ball(listed) > 0  # the view-points' whole-feature lists draw it through the ball
+
+
+@pytest.mark.parametrize("name, mode", [("lab", "scene"), ("fisheye", "scene"), ("box", "scene"),
+                                        ("cylinder", "scene"), ("handheld", "exact"), ("meshes", "exact")])
+def test_what_auto_chooses_for_the_example_scenes(name, mode):
+    """Hand-made faces with the paper's computed lists (lab, fisheye) or authored lists (box) keep them; no faces
+    (cylinder): nothing to decide; faces and no view-points (handheld), or a mesh's surfaces: exact."""
+    scene = compile_file(f"scenes/{name}.wd")[0]
+    choice = runs.choose_visibility(scene, build_world(scene), 2 * len(scene.path.poses))
+    assert (choice.mode, choice.warning) == (mode, None)
+
+
+def test_exact_beyond_the_budget_warns_w129_at_the_mesh_and_keeps_the_lists(tmp_path):
+    ball = trimesh.creation.icosphere(subdivisions=6, radius=0.4)  # 81,920 triangles
+    ball.export(tmp_path / "ball.stl")
+    (tmp_path / "s.wd").write_text("""wiredsl 1
+model m {
+  mesh read "ball.stl"
+}
+place m as m1 at (2m, 0, 1m)
+camera eye {
+  focal 4mm
+  pixel 0.008mm
+  size (640px, 480px)
+}
+rig pair {
+  left eye at (0, 0.05m, 0.8m) looking (1, 0, -0.15)
+  right eye at (0, -0.05m, 0.8m) looking (1, 0, -0.15)
+}
+path p {
+  straight from (0, 0) to (0.2m, 0) step 0.1m
+}
+""")
+    scene = compile_file(tmp_path / "s.wd")[0]
+    world = build_world(scene)
+    triangles = len(world.triangles)
+    seconds = 6 * triangles * runs.EXACT_SECONDS_PER_TRIANGLE
+    assert seconds > runs.AUTO_EXACT_SECONDS  # 3 poses x 2 cameras: over the budget
+    _, manifest, r = _build(tmp_path, str(tmp_path / "s.wd"))
+    assert manifest["visibility"] == "scene"
+    warning = next(line for line in r.stderr.splitlines() if "W129" in line)
+    assert re.match(r".*s\.wd:3:3: warning\[W129\]", warning), warning
+    assert f"{triangles:,} occluding triangles" in warning and "--visibility exact" in warning
+    # one pose and one camera are affordable: exact, and no warning
+    _, manifest, r = _build(tmp_path, str(tmp_path / "s.wd"), "--pose", "0", "--cameras", "left")
+    assert manifest["visibility"] == "exact" and "W129" not in r.stderr
+
