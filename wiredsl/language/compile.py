@@ -929,8 +929,9 @@ def read_mesh_features(fb: Bound, units: dict[str, str], out: Collector):
         out.error("E110", f"shortest must be in 0..{MAX_MAGNITUDE:g} m, got {shortest:g}", fb.span("shortest"))
         return None
     if budget < 0:
-        out.error("E110", f"budget must be >= 0, got {budget}", fb.span("budget"))
+        out.error("E110", f"budget must be >= 0, got {budget:g}", fb.span("budget"))
         return None
+    budget = int(budget)
     try:
         target = FsPath(fb.stmt.span.file).parent / path
         data = ast.read_bytes(target, "mesh file", where, limit=mesh_io.MAX_MESH_BYTES)
