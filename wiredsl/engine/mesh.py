@@ -45,6 +45,7 @@ APEX_RADIUS = 1e-6  # metres: the rim of a cone's apex
 MERGE_LATERAL = 1e-3  # of the diagonal: consecutive crease edges merge into one line when every vertex dropped
 MERGE_ANGLE = math.radians(5)  # is within this distance of it and within tan(MERGE_ANGLE) x its length
 SHORTEST = 0.002  # of the diagonal: the default minimum length of a line or polyline (and extent of a face)
+CONTOUR_SMOOTH = 2  # passes of normal smoothing before the facing test of a contour (Contours)
 BUDGET = 200  # the default most lines and polylines a mesh gives: the longest and sharpest
 
 
@@ -476,7 +477,10 @@ class Contours:
     """The edges of a smooth surface that can be on its occluding contour: edges between two triangles.
 
     `seen_from(eye)` gives those between a triangle facing the eye and one facing away (each pair's
-    facing compared with the edge's winding, so an inconsistently wound mesh still reads right).
+    facing compared with the edge's winding, so an inconsistently wound mesh still reads right). A
+    consistently wound surface's facing is taken with its normals smoothed CONTOUR_SMOOTH times (each
+    triangle's normal the sum of its vertices' area-weighted normals), at its centroid: a scan's noise then
+    does not flip facings all over it, and its contour is a few long chains rather than thousands of bits.
     """
 
     ends: np.ndarray  # (E, 2, 3) the edges' end points
@@ -496,7 +500,15 @@ class Contours:
         i0, i1 = order[start[two]], order[start[two] + 1]
         N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
         t = np.stack([i0 // 3, i1 // 3], axis=1)
-        return cls(V[d[i0]], N[t], V[F[t, 0]], (d[i0] == d[i1]).all(axis=1), d[i0])
+        flipped = (d[i0] == d[i1]).all(axis=1)
+        if flipped.any():  # wound inconsistently: the triangles' own normals, compared edge by edge
+            return cls(V[d[i0]], N[t], V[F[t, 0]], flipped, d[i0])
+        for _ in range(CONTOUR_SMOOTH):  # triangle -> vertex (area-weighted) -> triangle normals
+            at_vertex = np.zeros_like(V)
+            for j in range(3):
+                np.add.at(at_vertex, F[:, j], N)
+            N = at_vertex[F].sum(axis=1)
+        return cls(V[d[i0]], N[t], V[F].mean(axis=1)[t], flipped, d[i0])
 
     def seen_from(self, eye: np.ndarray) -> np.ndarray:
         """Boolean (E,): the edges on the occluding contour seen from `eye` (3,)."""
