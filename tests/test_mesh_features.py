@@ -83,7 +83,8 @@ def test_the_budget_keeps_the_longest_and_sharpest():
         assert len(f.lines) + len(f.polylines) == budget  # honoured, and there are more to choose from
         assert kept <= pieces and previous <= kept  # the same pieces, a larger budget keeps more of them
         previous = kept
-    # the kept ones rank first: longer than the typical piece (the sharpest, non-manifold and boundary edges, rank high too)
+    # the kept ones rank first: longer than the typical piece (the sharpest, non-manifold and boundary edges
+    # rank high too)
     length = lambda P: float(np.linalg.norm(np.diff(P, axis=0), axis=1).sum())  # noqa: E731
     f = M.features(m.vertices, m.faces, CREASE, budget=40)
     kept_len = [length(np.stack(x)) for x in f.lines] + [length(P) for P in f.polylines]
@@ -170,6 +171,7 @@ def test_contours_are_polylines_chained_end_to_end(tmp_path, monkeypatch):
 
     scene = compile_file(tmp_path / "s.wd")[0]
     surface = scene.model("obj").surfaces[0]
+    whole = 0
     for pose in poses:
         view = pose["left"]
         records = [r for r in view["lines"] + view["polylines"] if r.get("contour")]
@@ -189,6 +191,8 @@ def test_contours_are_polylines_chained_end_to_end(tmp_path, monkeypatch):
             cont = M.Contours.of(V, F)
             eye = _eye(scene, pose)
             assert edges == int(cont.seen_from(eye).sum())
+            whole += 1
+    assert whole == len(poses) == 2  # the bunny is whole in every view
 
 
 def _eye(scene, pose) -> np.ndarray:
