@@ -282,7 +282,8 @@ def test_a_triangle_soup_gives_each_triangle_its_face_without_a_scan_a_region(mo
     calls = [0]
     real = mesh._chains
     monkeypatch.setattr(mesh, "_chains", lambda *a: calls.__setitem__(0, calls[0] + 1) or real(*a))
-    found = mesh.features(T.reshape(-1, 3), np.arange(3 * m).reshape(m, 3), math.radians(30))
+    # every edge kept (no shortest length, no budget): a lone triangle is a face when its edges are features
+    found = mesh.features(T.reshape(-1, 3), np.arange(3 * m).reshape(m, 3), math.radians(30), 0.0, 10**9)
     assert calls[0] == 1  # the sharp edges' chains once; no per-region boundary walk for lone triangles
     faces = {tuple(map(tuple, f)) for f in found.faces}
     assert len(found.faces) == m - 5 - found.degenerate

@@ -209,8 +209,9 @@ def test_contours_are_marked_in_the_dump_and_cut_by_exact_visibility():
 
     views = json.loads(r.stdout)["poses"][0]
     lines = views["left"]["lines"]
-    contour = [ln for ln in lines if ln.get("contour")]
+    contour = [ln for ln in lines + views["left"]["polylines"] if ln.get("contour")]
     assert contour and all(ln["source"] == "ball1.surface" for ln in contour)
+    assert [ln for ln in contour if ln["kind"] == "polyline"]  # chained end to end
     assert not [ln for ln in lines if ln["source"] == "ball1.surface" and not ln.get("contour")]
     crate = {ln["source"] for ln in lines if ln["source"].startswith("crate1.")
              and math.dist(*ln["points"]) > 0.5}  # (hidden edges keep slivers of 1e-5 px at visible corners)

@@ -63,20 +63,23 @@ def test_a_polygon_with_filleted_corners_stays_a_polyline_with_its_straight_side
     mesh = prism(outline, 5e-3)
     f = M.features(mesh.vertices, mesh.faces, CREASE)
     assert not f.ellipses and not f.silhouettes
-    # every edge of both outlines (ends and middles) lies on a line or polyline found: no sharp edge dropped
+    # every edge of both outlines (ends and middles) lies on a line or polyline found, to the collinear merge's
+    # lateral tolerance (a fillet's vertices may be merged into a chord): no sharp edge dropped
+    merge = M.MERGE_LATERAL * float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
     for z in (0.0, 5e-3):
         P = np.column_stack([outline, np.full(len(outline), z)])
         mids = (P + np.roll(P, -1, axis=0)) / 2
-        assert _on_polylines(np.vstack([P, mids]), f).max() < 1e-9
-    # each straight side (the outline's long edges) is one segment of a line or polyline found
-    segs = {tuple(np.round(np.concatenate(sorted([a, b], key=tuple)), 12))
-            for P in [np.array(x) for x in f.lines] + list(f.polylines) for a, b in zip(P[:-1], P[1:], strict=True)}
+        assert _on_polylines(np.vstack([P, mids]), f).max() <= merge + 1e-12
+    # each straight side (the outline's long edges) lies on one segment of a line or polyline found (to the
+    # merge's tolerance: a segment may reach on into the fillet)
+    segs = [np.array([a, b]) for P in [np.array(x) for x in f.lines] + list(f.polylines)
+            for a, b in zip(P[:-1], P[1:], strict=True)]
     side = np.linalg.norm(np.roll(outline, -1, axis=0) - outline, axis=1)
     for z in (0.0, 5e-3):
         P = np.column_stack([outline, np.full(len(outline), z)])
         for i in np.flatnonzero(side > 2 * rho * 1e-3):
-            a, b = P[i], P[(i + 1) % len(P)]
-            assert tuple(np.round(np.concatenate(sorted([a, b], key=tuple)), 12)) in segs
+            ab = np.array([P[i], P[(i + 1) % len(P)]])
+            assert any(_on_polylines(ab, M.MeshFeatures(polylines=[s])).max() <= merge + 1e-12 for s in segs)
 
 
 @pytest.mark.parametrize("sections, radius", [(16, 0.02), (40, 0.25), (256, 0.5)])
@@ -100,16 +103,18 @@ def _load(name: str, kind: str) -> trimesh.Trimesh:
     return trimesh.load(io.BytesIO(data), file_type=kind, force="mesh")  # processed: repeated vertices merged
 
 
-def _crease_points(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+def _crease_points(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Trimesh's sharp edges (adjacent faces' normals over CREASE apart, boundary and non-manifold edges) as
     points along them (each edge's 1/4, 1/2, 3/4) and the length each point stands for."""
-    adj = mesh.face_adjacency_edges[mesh.face_adjacency_angles > CREASE]
+    sharp = mesh.face_adjacency_angles > CREASE
+    adj = mesh.face_adjacency_edges[sharp]
     e = np.sort(mesh.edges, axis=1)
     uniq, count = np.unique(e, axis=0, return_counts=True)
     E = np.vstack([adj, uniq[count != 2]])
+    angle = np.concatenate([mesh.face_adjacency_angles[sharp], np.full((count != 2).sum(), math.pi)])
     A, B = mesh.vertices[E[:, 0]], mesh.vertices[E[:, 1]]
     pts = np.vstack([A + s * (B - A) for s in (0.25, 0.5, 0.75)])
-    return pts, np.tile(np.linalg.norm(B - A, axis=1) / 3, 3)
+    return pts, np.tile(np.linalg.norm(B - A, axis=1) / 3, 3), np.tile(angle, 3)
 
 
 def _feature_points(f: M.MeshFeatures, step: float) -> tuple[np.ndarray, np.ndarray]:
@@ -133,17 +138,30 @@ def _feature_points(f: M.MeshFeatures, step: float) -> tuple[np.ndarray, np.ndar
 
 @pytest.mark.parametrize("name, kind", [("counter.stl", "stl"), ("cycloidal.ply", "ply"), ("adis16480.stl", "stl")])
 def test_sharp_edges_of_real_cad_parts_are_covered(name, kind):
+    """At the defaults (SHORTEST, BUDGET, the collinear merge), 99.9% of the length of trimesh's crease edges
+    lies on a feature, to the merge's lateral tolerance. The cycloidal gear's flanks are tessellated with
+    creases of 30-45 deg (1,500 short lines across its thickness): the budget keeps its real edges (90 deg,
+    the outlines of its faces) and drops those, so there the share is taken of creases sharper than 85 deg
+    (99.91%; 99.83% of those over 60 deg, 91.6% of all);
+    with no budget and no shortest length, all of its crease length is covered."""
     mesh = _load(name, kind)
-    f = M.features(mesh.vertices * (1e-3 if name == "counter.stl" else 1.0), mesh.faces, CREASE)
     scale = 1e-3 if name == "counter.stl" else 1.0
-    pts, weight = _crease_points(mesh)
+    size = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0))) * scale
+    pts, weight, angle = _crease_points(mesh)
     pts = pts * scale
-    step = 1e-4 * float(np.linalg.norm(np.ptp(mesh.vertices, axis=0))) * scale
-    fp, ftol = _feature_points(f, step)
-    d, i = cKDTree(fp).query(pts, k=8)
-    covered = (d <= ftol[i] + 1e-9).any(axis=1)
-    share = weight[covered].sum() / weight.sum()
-    assert share >= 0.999, f"{name}: {100 * (1 - share):.3f}% of crease length on no feature"
+    step = 1e-4 * size
+    options = [({}, 0.0)] + ([({"shortest": 0.0, "budget": 10**6}, 0.0), ({}, math.radians(85))]
+                              if name == "cycloidal.ply" else [])
+    for opts, sharper in options[1:] if name == "cycloidal.ply" else options:
+        f = M.features(mesh.vertices * scale, mesh.faces, CREASE, **opts)
+        fp, ftol = _feature_points(f, step)
+        d, i = cKDTree(fp).query(pts, k=8)
+        covered = (d <= ftol[i] + M.MERGE_LATERAL * size + 1e-9).any(axis=1)
+        w = weight * (angle >= sharper)
+        share = w[covered].sum() / w.sum()
+        assert share >= 0.999, f"{name} {opts} {sharper}: {100 * (1 - share):.3f}% of crease length on no feature"
+    if name != "cycloidal.ply":
+        assert len(f.lines) + len(f.polylines) < M.BUDGET  # the budget cut nothing of these parts
 
 
 def test_collinear_points_are_dropped_in_few_rounds_and_never_off_the_line():

@@ -42,6 +42,11 @@ COLLINEAR = 1e-6  # of a chain's length: points this far off its line are still 
 CORNER_TURN = math.radians(30)  # a chain turning more than this at a vertex has a corner there
 FLAT = math.radians(0.01)  # normals of one planar region differ by at most this
 APEX_RADIUS = 1e-6  # metres: the rim of a cone's apex
+MERGE_LATERAL = 1e-3  # of the diagonal: consecutive crease edges merge into one line when every vertex dropped
+MERGE_ANGLE = math.radians(5)  # is within this distance of it and within tan(MERGE_ANGLE) x its length
+SHORTEST = 0.002  # of the diagonal: the default minimum length of a line or polyline (and extent of a face)
+CONTOUR_SMOOTH = 2  # passes of normal smoothing before the facing test of a contour (Contours)
+BUDGET = 200  # the default most lines and polylines a mesh gives: the longest and sharpest
 
 
 @dataclass
@@ -71,8 +76,11 @@ def merge_vertices(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return V[first], inverse.reshape(-1)[F]
 
 
-def features(V: np.ndarray, F: np.ndarray, crease: float) -> MeshFeatures:
-    """The features of the mesh (V (n, 3), F (m, 3)) with crease angle `crease` (radians)."""
+def features(V: np.ndarray, F: np.ndarray, crease: float, shortest: float | None = None,
+             budget: int = BUDGET) -> MeshFeatures:
+    """The features of the mesh (V (n, 3), F (m, 3)) with crease angle `crease` (radians): lines and polylines
+    at least `shortest` long (default SHORTEST of the diagonal), at most `budget` of them (ranked by length
+    times dihedral angle), corners where kept ones meet, faces at least `shortest` across."""
     V, F = merge_vertices(np.asarray(V, float), np.asarray(F, np.int64))
     size = float(np.linalg.norm(np.ptp(V, axis=0))) or 1.0
     N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
@@ -96,6 +104,10 @@ def features(V: np.ndarray, F: np.ndarray, crease: float) -> MeshFeatures:
     same_way = (d[i0] == d[i1]).all(axis=1)  # wound inconsistently: one normal is flipped
     cos = (N[tri[i0]] * N[tri[i1]]).sum(1) * np.where(same_way, -1.0, 1.0)
     sharp[two] = cos < math.cos(crease)
+    # each edge's sharpness for ranking: its dihedral angle; a boundary counts as 90 deg, a non-manifold as 180
+    dihedral = np.where(count == 1, math.pi / 2, math.pi)
+    dihedral[two] = np.arccos(np.clip(cos, -1.0, 1.0))
+    shortest = SHORTEST * size if shortest is None else shortest
     # smooth regions: triangles joined through edges that are not sharp
     region = _components(len(F), tri[i0][~sharp[two]], tri[i1][~sharp[two]])
     chains = _chains(edges[sharp], len(V))
@@ -142,21 +154,29 @@ def features(V: np.ndarray, F: np.ndarray, crease: float) -> MeshFeatures:
                                  "a": APEX_RADIUS, "b": APEX_RADIUS})
             out.silhouettes.append((on[0], len(out.ellipses) - 1))
         ruled[g_] = True
-    # faces: planar regions bounded by one convex loop (a region of one triangle: the triangle, unless a sliver,
-    # all at once: a soup of 200,000 triangles is 200,000 regions)
+    key = edges[:, 0] * len(V) + edges[:, 1]  # sorted (np.unique): an edge by its ends
+    edge_of = lambda a, b: np.searchsorted(key, np.minimum(a, b) * len(V) + np.maximum(a, b))  # noqa: E731
+    kept_edge = np.zeros(len(edges), bool)
+    _lines_and_corners(V, rest, out, lambda a, b: dihedral[edge_of(a, b)], kept_edge, edge_of,
+                       MERGE_LATERAL * size, shortest, budget)
+    # faces: planar regions bounded by one convex loop, at least `shortest` across; a region of one triangle
+    # (unless a sliver) only when its three edges are on kept features (a scan's lone noisy triangles are
+    # not faces); lone triangles all at once: a soup of 200,000 triangles is 200,000 regions
     is_face = np.zeros(n_region, bool)
     single = flat & (np.diff(bounds) == 1)
-    lone = dict(zip(np.flatnonzero(single).tolist(), _triangle_faces(V, F[first[single]]), strict=True))
+    T1 = F[first[single]]
+    bounded = kept_edge[edge_of(T1, np.roll(T1, -1, axis=1))].all(axis=1)
+    lone = dict(zip(np.flatnonzero(single).tolist(), zip(_triangle_faces(V, T1), bounded.tolist(), strict=True),
+                    strict=True))
     for g_ in np.flatnonzero(flat).tolist():
-        poly = lone[g_] if g_ in lone else _convex_boundary(V, F[np.sort(by_region[bounds[g_]:bounds[g_ + 1]])],
-                                                             N[first[g_]])
-        if poly is not None:
+        poly = (lone[g_][0] if lone[g_][1] else None) if g_ in lone else \
+            _convex_boundary(V, F[np.sort(by_region[bounds[g_]:bounds[g_ + 1]])], N[first[g_]])
+        if poly is not None and np.ptp(poly, axis=0).max() >= shortest:  # a smaller one only occludes
             out.faces.append(poly)
             is_face[g_] = True
     keep = ~ruled[region] & ~is_face[region]
     out.occluders = F[keep]
-    out.contour = ~flat[region[keep]]
-    _lines_and_corners(V, rest, out)
+    out.contour = ~flat[region[keep]] | single[region[keep]]  # a lone triangle that is no face: surface too
     return out
 
 
@@ -367,36 +387,89 @@ def _drop_collinear(P: np.ndarray, closed: bool) -> np.ndarray:
     return P[keep]
 
 
-def _lines_and_corners(V: np.ndarray, chains: list[tuple[np.ndarray, bool]], out: MeshFeatures) -> None:
-    """Lines and polylines of the sharp chains (split at sharp turns) and the corners where they meet."""
-    ends: dict[int, list[tuple[str, int]]] = {}
-    sharp_turns: set[int] = set()
+def _simplify(P: np.ndarray, lateral: float) -> np.ndarray:
+    """Indices of the points of the open chain P (k, 3) kept when nearly collinear runs merge (Ramer-Douglas-
+    Peucker): every dropped point is within min(lateral, tan(MERGE_ANGLE) x L) of the kept segment of length L
+    that replaces it (and between its ends); the ends are kept."""
+    keep = np.zeros(len(P), bool)
+    keep[[0, -1]] = True
+    stack = [(0, len(P) - 1)]
+    tan = math.tan(MERGE_ANGLE)
+    while stack:
+        i, j = stack.pop()
+        if j - i < 2:
+            continue
+        a, ab = P[i], P[j] - P[i]
+        L = float(np.linalg.norm(ab))
+        Q = P[i + 1:j] - a
+        if L > 0:
+            u = ab / L
+            t = Q @ u
+            off = np.linalg.norm(Q - t[:, None] * u, axis=1)
+            off = np.where((t < 0) | (t > L), np.inf, off)  # folding back past an end is not on the segment
+        else:
+            off = np.linalg.norm(Q, axis=1) + np.inf
+        k = int(np.argmax(off))
+        if off[k] > min(lateral, tan * L):
+            keep[i + 1 + k] = True
+            stack += [(i, i + 1 + k), (i + 1 + k, j)]
+    return np.flatnonzero(keep)
+
+
+def _lines_and_corners(V: np.ndarray, chains: list[tuple[np.ndarray, bool]], out: MeshFeatures, angle_of,
+                       kept_edge: np.ndarray, edge_of, lateral: float, shortest: float, budget: int) -> None:
+    """Lines and polylines of the sharp chains (nearly collinear edges merged, split at sharp turns of what
+    is left), those at least `shortest` long, the `budget` with the largest length x dihedral angle; and
+    the corners where kept ones meet. `kept_edge` is set for the mesh edges (`edge_of(a, b)`) they cover."""
+    pieces = []  # (points, first vertex, last vertex, length, score)
     for path, closed in chains:
         P = V[path]
+        seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
+        weight = np.concatenate([[0.0], np.cumsum(seg * angle_of(path[:-1], path[1:]))])
+        along = np.concatenate([[0.0], np.cumsum(seg)])
+        kept = _simplify(P, lateral)
+        Q = P[kept]
+        # cut where the chain turns sharply at a point the merge keeps (a scan's zig-zag merges away)
         u, w = P[1:-1] - P[:-2], P[2:] - P[1:-1]
         cosang = (u * w).sum(1) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), 1e-300)
-        turns = (np.flatnonzero(cosang < math.cos(CORNER_TURN)) + 1).tolist()
-        sharp_turns.update(path[turns].tolist())
-        cut = [0, *turns, len(path) - 1]
+        turned = np.zeros(len(P), bool)
+        turned[1:-1] = cosang < math.cos(CORNER_TURN)
+        turns = np.flatnonzero(turned[kept]).tolist()
+        cut = [0, *turns, len(kept) - 1]
         if closed and len(cut) == 2:  # a loop with no corner: one closed polyline, cut where it starts
-            cut = [0, (len(path) - 1) // 2, len(path) - 1]
+            cut = [0, (len(kept) - 1) // 2, len(kept) - 1] if len(kept) > 2 else cut
         for s, e in zip(cut[:-1], cut[1:], strict=True):
-            piece = _drop_collinear(P[s:e + 1], closed=False)
-            if len(piece) == 2:
-                out.lines.append((piece[0], piece[1]))
-                ref = ("line", len(out.lines) - 1)
-            else:
-                out.polylines.append(piece)
-                ref = ("polyline", len(out.polylines) - 1)
-            for v in (int(path[s]), int(path[e])):
-                ends.setdefault(v, []).append(ref)
-    deg: dict[int, int] = {}
-    for path, _ in chains:
-        for v in (int(path[0]), int(path[-1])):
-            deg[v] = deg.get(v, 0) + 1
-    for v, refs in ends.items():
-        if deg.get(v, 0) >= 3 or v in sharp_turns:
-            out.corners.append((V[v], list(dict.fromkeys(refs))))
+            a, b = int(kept[s]), int(kept[e])
+            pieces.append((Q[s:e + 1], int(path[a]), int(path[b]), along[b] - along[a], weight[b] - weight[a],
+                           path[a:b + 1]))
+    long_enough = [p for p in pieces if p[3] >= shortest]
+    order = sorted(range(len(long_enough)), key=lambda k: -long_enough[k][4])[:max(budget, 0)]
+    ends: dict[int, list[tuple[str, int]]] = {}
+    for k in sorted(order):  # in the chains' order
+        piece, v0, v1 = long_enough[k][:3]
+        on = long_enough[k][5]
+        kept_edge[edge_of(on[:-1], on[1:])] = True
+        if len(piece) == 2:
+            out.lines.append((piece[0], piece[1]))
+            ref = ("line", len(out.lines) - 1)
+        else:
+            out.polylines.append(piece)
+            ref = ("polyline", len(out.polylines) - 1)
+        for v in (v0, v1):
+            ends.setdefault(v, []).append(ref)
+    for v, refs in ends.items():  # three or more kept ends, or two that turn (not a loop's own cut)
+        refs = list(dict.fromkeys(refs))
+        if len(ends[v]) >= 3 or (len(ends[v]) == 2 and len(refs) == 2 and _turn(V[v], *refs, out)):
+            out.corners.append((V[v], refs))
+
+
+def _turn(at: np.ndarray, r0: tuple[str, int], r1: tuple[str, int], out: MeshFeatures) -> bool:
+    """Two features ending at `at` turn there by more than CORNER_TURN."""
+    def away(ref):  # the direction from `at` into the feature
+        P = np.stack(out.lines[ref[1]]) if ref[0] == "line" else out.polylines[ref[1]]
+        d = P[1] - P[0] if np.array_equal(P[0], at) else P[-2] - P[-1]
+        return d / (np.linalg.norm(d) or 1.0)
+    return float(away(r0) @ away(r1)) > -math.cos(CORNER_TURN)
 
 
 @dataclass(frozen=True)
@@ -404,13 +477,17 @@ class Contours:
     """The edges of a smooth surface that can be on its occluding contour: edges between two triangles.
 
     `seen_from(eye)` gives those between a triangle facing the eye and one facing away (each pair's
-    facing compared with the edge's winding, so an inconsistently wound mesh still reads right).
+    facing compared with the edge's winding, so an inconsistently wound mesh still reads right). A
+    consistently wound surface's facing is taken with its normals smoothed CONTOUR_SMOOTH times (each
+    triangle's normal the sum of its vertices' area-weighted normals), at its centroid: a scan's noise then
+    does not flip facings all over it, and its contour is a few long chains rather than thousands of bits.
     """
 
     ends: np.ndarray  # (E, 2, 3) the edges' end points
     normal: np.ndarray  # (E, 2, 3) normals of the edge's two triangles
     origin: np.ndarray  # (E, 2, 3) a vertex of each
     flipped: np.ndarray  # (E,) the two triangles are wound inconsistently
+    verts: np.ndarray  # (E, 2) the edges' end vertices (indices)
 
     @classmethod
     def of(cls, V: np.ndarray, F: np.ndarray) -> Contours:
@@ -423,9 +500,35 @@ class Contours:
         i0, i1 = order[start[two]], order[start[two] + 1]
         N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
         t = np.stack([i0 // 3, i1 // 3], axis=1)
-        return cls(V[d[i0]], N[t], V[F[t, 0]], (d[i0] == d[i1]).all(axis=1))
+        flipped = (d[i0] == d[i1]).all(axis=1)
+        if flipped.any():  # wound inconsistently: the triangles' own normals, compared edge by edge
+            return cls(V[d[i0]], N[t], V[F[t, 0]], flipped, d[i0])
+        for _ in range(CONTOUR_SMOOTH):  # triangle -> vertex (area-weighted) -> triangle normals
+            at_vertex = np.zeros_like(V)
+            for j in range(3):
+                np.add.at(at_vertex, F[:, j], N)
+            N = at_vertex[F].sum(axis=1)
+        return cls(V[d[i0]], N[t], V[F].mean(axis=1)[t], flipped, d[i0])
 
     def seen_from(self, eye: np.ndarray) -> np.ndarray:
         """Boolean (E,): the edges on the occluding contour seen from `eye` (3,)."""
         front = ((eye - self.origin) * self.normal).sum(-1) > 0  # (E, 2)
         return (front[:, 0] != front[:, 1]) ^ self.flipped
+
+    def chains(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The edges e (k,) (those `seen_from` an eye) chained end to end: (the edges in chain order, each
+        one's chain number, whether it runs backwards). A chain ends where other than two of them meet."""
+        if len(e) == 0:
+            return e, np.zeros(0, int), np.zeros(0, bool)
+        E = self.verts[e]
+        n = int(E.max()) + 1
+        pair = np.minimum(E[:, 0], E[:, 1]) * n + np.maximum(E[:, 0], E[:, 1])
+        sort = np.argsort(pair, kind="stable")
+        idx, chain, back = [], [], []
+        for c, (path, _) in enumerate(_chains(E, n)):  # vertex paths; each step is one of the edges
+            a, b = path[:-1], path[1:]
+            j = sort[np.searchsorted(pair[sort], np.minimum(a, b) * n + np.maximum(a, b))]
+            idx.append(j)
+            chain.append(np.full(len(j), c))
+            back.append(E[j, 0] != a)
+        return e[np.concatenate(idx)], np.concatenate(chain), np.concatenate(back)

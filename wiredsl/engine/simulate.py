@@ -10,6 +10,7 @@ rectangle [0, width] x [0, height] after it.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import gc
 import math
@@ -240,7 +241,7 @@ def _project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mas
         return views
     cam = _camera_table(cams)
     masks = np.asarray(masks, dtype=bool).reshape(len(views), -1)
-    out = _Emitted(views)
+    out = _Emitted(views, frozenset(fid for fid, _ in world.contours))
     eyes = None if occluders is None else [occluders.seen_from(v.R_cw, v.t_cw, v.camera.f * max(v.camera.ax, v.camera.ay))
                                            for v in views]  # pixels a radian: what is too small to keep
     ellipses = _ellipses_cam(world, views)
@@ -288,8 +289,9 @@ def _too_many(exc: geometry.TooManyVertices, tol: float) -> WiredslError:
 class _Emitted:
     """Features and raw strokes as they are produced, delivered to the views in a stable order."""
 
-    def __init__(self, views: list[View]):
+    def __init__(self, views: list[View], chained: frozenset = frozenset()):
         self.views = views
+        self.chained = chained  # fids whose pieces of one segment join end to end (contours)
         self.features: list[tuple[tuple, ImageFeature]] = []
         self.raw: list = []  # functions giving [(key, Raw)]: called the first time a view's strokes are read
 
@@ -306,17 +308,41 @@ class _Emitted:
     def deliver(self) -> None:
         for key, f in sorted(self.features, key=lambda kf: kf[0]):
             self.views[key[0]].features.append(f)
-        strokes = _RawStrokes(self.raw, len(self.views))
+        if self.chained:
+            for v in self.views:
+                v.features = _joined(v.features, self.chained)
+        strokes = _RawStrokes(self.raw, len(self.views), self.chained)
         for k, v in enumerate(self.views):
             v.raw = _Strokes(strokes, k)
+
+
+def _joined(items: list, chained: frozenset, points: str = "points") -> list:
+    """Consecutive strokes (ImageFeature or Raw) of a chained feature and one segment whose ends meet, joined
+    into one polyline (closed when it comes back to its start uncut); other items as they are."""
+    out = []
+    for f in items:
+        prev = out[-1] if out else None
+        if (f.fid in chained and f.kind in ("line", "polyline") and prev is not None and prev.fid == f.fid
+                and prev.kind in ("line", "polyline") and prev.segment == f.segment and not prev.closed
+                and np.array_equal(getattr(prev, points)[-1], getattr(f, points)[0])):
+            P = np.concatenate([getattr(prev, points), getattr(f, points)[1:]])
+            prev = out[-1] = dataclasses.replace(prev, kind="polyline", clipped=prev.clipped or f.clipped,
+                                                 occluded=prev.occluded or f.occluded,
+                                                 fragment=prev.fragment if prev.fragment >= 0 else f.fragment)
+            setattr(prev, points, P)
+            if not prev.clipped and len(P) > 3 and np.array_equal(P[0], P[-1]):
+                prev.closed = True
+        else:
+            out.append(f)
+    return out
 
 
 class _RawStrokes:
     """The raw strokes of views projected together, made for all of them the first time any view's are read
     (the Monte-Carlo engines read them; a plain build, which writes the clipped features, never does)."""
 
-    def __init__(self, makers: list, n_views: int):
-        self.makers, self.n_views, self.lists = makers, n_views, None
+    def __init__(self, makers: list, n_views: int, chained: frozenset = frozenset()):
+        self.makers, self.n_views, self.lists, self.chained = makers, n_views, None, chained
 
     def of(self, k: int) -> list[Raw]:
         if self.lists is None:
@@ -324,6 +350,8 @@ class _RawStrokes:
             with gc_paused():
                 for key, r in sorted((kr for make in self.makers for kr in make()), key=lambda kr: kr[0]):
                     lists[key[0]].append(r)
+            if self.chained:
+                lists = [_joined(x, self.chained, "world") for x in lists]
             self.lists, self.makers = lists, None
         return self.lists[k]
 
@@ -486,7 +514,8 @@ def _straight_segments(world: World, views: list[View], cam: dict, masks: np.nda
 
 def _with_contours(world: World, views: list[View], masks: np.ndarray, sil: tuple) -> tuple:
     """The silhouette sides and the occluding-contour edges of smooth mesh surfaces (engine/mesh.py) of
-    every view: (view, A, B, fid, segment), camera frame; a contour's segment is the edge's index."""
+    every view: (view, A, B, fid, segment), camera frame; a contour's edges come chained end to end, its
+    segment the chain's number in the view (`_Emitted.deliver` joins each chain's pieces into polylines)."""
     if not world.contours:
         return sil
     parts = [sil]
@@ -494,9 +523,10 @@ def _with_contours(world: World, views: list[View], masks: np.ndarray, sil: tupl
         eye = -v.R_cw.T @ v.t_cw  # the camera's centre in the world
         for fid, cont in world.contours:
             if masks[k, fid]:
-                e = np.flatnonzero(cont.seen_from(eye))
+                e, chain, back = cont.chains(np.flatnonzero(cont.seen_from(eye)))
                 P = cont.ends[e] @ v.R_cw.T + v.t_cw
-                parts.append((np.full(len(e), k), P[:, 0], P[:, 1], np.full(len(e), fid), e))
+                P = np.where(back[:, None, None], P[:, ::-1], P)
+                parts.append((np.full(len(e), k), P[:, 0], P[:, 1], np.full(len(e), fid), chain))
     return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
 
 

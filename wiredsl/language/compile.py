@@ -924,11 +924,19 @@ def read_mesh_features(fb: Bound, units: dict[str, str], out: Collector):
     if scale is None:
         return None
     up, origin = fb.get("up", "z"), fb.get("origin", "file")
+    shortest, budget = fb.get("shortest"), fb.get("budget", mesh_features.BUDGET)
+    if shortest is not None and not 0 <= shortest <= MAX_MAGNITUDE:
+        out.error("E110", f"shortest must be in 0..{MAX_MAGNITUDE:g} m, got {shortest:g}", fb.span("shortest"))
+        return None
+    if budget < 0:
+        out.error("E110", f"budget must be >= 0, got {budget:g}", fb.span("budget"))
+        return None
+    budget = int(budget)
     try:
         target = FsPath(fb.stmt.span.file).parent / path
         data = ast.read_bytes(target, "mesh file", where, limit=mesh_io.MAX_MESH_BYTES)
         kind = mesh_io.FORMATS.get(target.suffix.lower(), "")
-        key = mesh_io.features_key(data, kind, (scale, up, crease, origin))
+        key = mesh_io.features_key(data, kind, (scale, up, crease, origin, shortest, budget))
         found = mesh_io.load_features(key)
         if found is None:
             raw = mesh_io.read_mesh(target, data)
@@ -952,7 +960,7 @@ def read_mesh_features(fb: Bound, units: dict[str, str], out: Collector):
         if origin != "file":  # the part's centre, or the centre of its base, at the model's origin
             V = V - np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2] if origin == "base" else
                               (lo[2] + hi[2]) / 2])
-        found = mesh_features.features(V, raw.triangles, crease)
+        found = mesh_features.features(V, raw.triangles, crease, shortest, budget)
         if not (len(found.lines) + len(found.polylines) + len(found.ellipses) + len(found.faces)
                 + len(found.occluders)):
             out.error("E125", f"mesh file {path}: no triangle has an area", where)

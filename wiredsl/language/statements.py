@@ -162,7 +162,11 @@ _MODEL = [
                          S("word", "axis", "x", "y", "z")),
                  "origin": C("where the part's origin is: file (as the file has it, the default), centre (of its "
                              "bounding box) or base (the centre of the bottom of its bounding box)",
-                             S("word", "origin", "file", "centre", "base"))},
+                             S("word", "origin", "file", "centre", "base")),
+                 "shortest": C("lines, polylines and faces shorter than this are left out (default 0.2% of the "
+                               "part's bounding-box diagonal; 0 keeps every one)", S("length", "length")),
+                 "budget": C("at most this many lines and polylines, the longest and sharpest (ranked by length "
+                             "x dihedral angle; default 200)", S("integer", "n"))},
         example='mesh read "crate.obj" crease 30deg units mm up y origin base'),
 ]
 
