@@ -1080,3 +1080,7 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
 from wiredsl.verify.cli import verify  # noqa: E402  (its own module; registered here, imports nothing heavy)
 
 main.add_command(verify)
+
+from wiredsl.export import export  # noqa: E402  (its own module, as verify)
+
+main.add_command(export)
