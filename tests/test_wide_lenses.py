@@ -132,7 +132,8 @@ def test_each_model_matches_its_papers_formulas_on_both_engines_to_1e_9_px(model
     """320 random cameras, 30 points each up to the valid region's edge. The error allowed is 1e-9 px where the
     pixel is within 20 image widths of the centre (the unified model with xi < 1 and EUCM with alpha < 1/2 send their
     edge to infinity, where a double's own rounding of the point exceeds 1e-9 px; there the relative error is below
-    1e-6, the cancellation in the denominator at 1e-9 of the edge)."""
+    2e-7: what one ulp of the point's coordinates moves the pixel by, amplified by Mei's radtan near its fold; see
+    the next test)."""
     rng = np.random.default_rng(2600 + MODELS.index(model))
     worst, near_edge, n = 0.0, 0, 0
     for _ in range(N_CAMERAS):
@@ -149,12 +150,37 @@ def test_each_model_matches_its_papers_formulas_on_both_engines_to_1e_9_px(model
             err = np.abs(got - ref).max(axis=1)
             assert (err[~far] < 1e-9).all(), (model, cam, err[~far].max())
             # out there (1e10 px and more near such an edge) the cancellation in z + xi d costs relative digits
-            assert (err[far] < 1e-6 * np.abs(ref[far]).max(axis=1)).all()
+            assert (err[far] < 2e-7 * np.abs(ref[far]).max(axis=1)).all()
             worst = max(worst, float(err[~far].max(initial=0)))
         theta = np.arctan2(np.hypot(P[:, 0], P[:, 1]), P[:, 2])
         near_edge += int(((theta > limit * (1 - 1e-6)) & ~far).sum())
         n += int((~far).sum())
     assert n > 7000 and near_edge > 300, (n, near_edge, worst)
+
+
+@pytest.mark.parametrize("model", ["unified", "eucm", "ds"])
+def test_near_the_edge_the_error_is_what_one_ulp_of_the_point_makes(model):
+    """Where a model sends its edge to infinity its denominator (xi d + z, alpha rho + (1 - alpha) z) cancels. Summed
+    as (p^2 - q^2) / (p - q) (geometry.stable_sum) the rounding is not amplified: the error stays within a few times
+    how far the reference pixel moves when one coordinate of the point moves by one ulp (the point's own precision).
+    (Summed plainly, over 120 cameras a model, it was 20x (eucm), 50x (ds) and 2000x (unified with radtan) that.) Mei's radtan is left out of the unified
+    cameras here: its polynomial near the fold amplifies rounding by itself (up to 205x, measured)."""
+    rng = np.random.default_rng(2700 + MODELS.index(model))
+    ratios = []
+    for _ in range(40):
+        cam = random_camera(rng, model)
+        if model == "unified":
+            cam = cam.model_copy(update={"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0})
+        P = sample_points(rng, geometry.lens_limit(cam), 30)
+        ref = np.array([[float(v) for v in mp_pixel(p, cam)] for p in P])
+        far = np.flatnonzero(np.hypot(ref[:, 0] - cam.cx, ref[:, 1] - cam.cy) > 20 * cam.width)
+        for got in (geometry.cam_to_pixels(P[far], cam), kernel_pixels(P[far], cam)[0]):
+            for g, i in zip(got, far, strict=True):
+                moved = max(np.hypot(*(np.array([float(v) for v in mp_pixel(q, cam)]) - ref[i]))
+                            for q in (P[i] + np.eye(3)[j] * (np.nextafter(P[i][j], np.inf) - P[i][j]) for j in range(3)))
+                ratios.append(np.hypot(*(g - ref[i])) / moved)
+    bound = {"unified": 4, "eucm": 2.5, "ds": 8}[model]  # measured 1.7, 1.1, 6.4 (summed plainly: 54, 4.5, 7.0)
+    assert len(ratios) > 100 and max(ratios) < bound, (len(ratios), max(ratios))
 
 
 def test_the_unified_model_matches_opencv_omnidir_to_1e_9_px():

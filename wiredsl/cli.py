@@ -1026,3 +1026,7 @@ from wiredsl.verify.cli import verify  # noqa: E402
 
 main.add_command(render)
 main.add_command(verify)
+
+from wiredsl.export import export  # noqa: E402  (its own module, as verify)
+
+main.add_command(export)

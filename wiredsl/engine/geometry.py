@@ -243,17 +243,30 @@ def model_plane_xy(model: int, X, Y, Z, g: dict):
         # atan2 (rho 2 tan(w/2), Z) / (w rho); on the axis its limit 2 tan(w/2) / (w Z)
         scale = np.where(rho > 0, np.arctan2(rho * two_tan, Z) / (w * np.where(rho > 0, rho, 1.0)), two_tan / (w * Z))
         return scale * X, scale * Y
-    d = np.sqrt(X * X + Y * Y + Z * Z)
+    r2 = X * X + Y * Y
+    d = np.sqrt(r2 + Z * Z)
+    xi = g["xi"]
     if model == UNIFIED:
-        den = Z + g["xi"] * d
+        den = stable_sum(xi * d, Z, xi * xi * r2 - (1.0 - xi) * (1.0 + xi) * (Z * Z))
         return distort_xy(X / den, Y / den, g["k1"], g["k2"], g["p1"], g["p2"], g["k3"], g["k4"], g["k5"], g["k6"])
     a = g["alpha"]
     if model == EUCM:
-        den = a * np.sqrt(g["beta"] * (X * X + Y * Y) + Z * Z) + (1.0 - a) * Z
+        den = stable_sum(a * np.sqrt(g["beta"] * r2 + Z * Z), (1.0 - a) * Z,
+                         a * a * g["beta"] * r2 + (2.0 * a - 1.0) * (Z * Z))
     else:  # DS
-        zs = g["xi"] * d + Z
-        den = a * np.sqrt(X * X + Y * Y + zs * zs) + (1.0 - a) * zs
+        zs = stable_sum(xi * d, Z, xi * xi * r2 - (1.0 - xi) * (1.0 + xi) * (Z * Z))
+        den = stable_sum(a * np.sqrt(r2 + zs * zs), (1.0 - a) * zs, a * a * r2 + (2.0 * a - 1.0) * (zs * zs))
     return X / den, Y / den
+
+
+def stable_sum(p, q, squares):
+    """p + q, where p >= 0 (xi d, alpha rho: a distance's multiple) or of the sign opposite q's, and `squares` is
+    p^2 - q^2 written out from the point's coordinates: where p and q have opposite signs their sum cancels near a
+    lens's edge, and (p^2 - q^2) / (p - q) keeps the digits that the point's own coordinates hold (the rounding of p
+    and q is not amplified; what cancels in `squares` is the point's true closeness to the edge). The kernel's
+    _project evaluates the same expressions."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(p * q < 0, squares / (p - q), p + q)
 
 
 def lens_radius(theta, cam) -> np.ndarray:

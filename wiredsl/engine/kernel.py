@@ -230,6 +230,12 @@ def _within(r2, x, y, limit):
 
 
 @njit(cache=True)
+def _stable_sum(p, q, squares):
+    """geometry.stable_sum of scalars."""
+    return squares / (p - q) if p * q < 0 else p + q
+
+
+@njit(cache=True)
 def _project(X, R, t, cam, limit, out, ok):
     """Perturbed camera (R (3, 3), t (3,), cam = geometry.CAMERA_ROW, lens limit) applied to world points:
     geometry.project and geometry.visible, term by term."""
@@ -260,13 +266,16 @@ def _project(X, R, t, cam, limit, out, ok):
                         scale = two_tan / (w * Pz)
                     xd, yd = scale * Px, scale * Py
                 else:
+                    r2 = Px * Px + Py * Py  # geometry.model_plane_xy's stable sums, term by term
                     if model == 2:
-                        den = Pz + xi * d
+                        den = _stable_sum(xi * d, Pz, xi * xi * r2 - (1.0 - xi) * (1.0 + xi) * (Pz * Pz))
                     elif model == 3:
-                        den = alpha * math.sqrt(beta * (Px * Px + Py * Py) + Pz * Pz) + (1.0 - alpha) * Pz
+                        den = _stable_sum(alpha * math.sqrt(beta * r2 + Pz * Pz), (1.0 - alpha) * Pz,
+                                          alpha * alpha * beta * r2 + (2.0 * alpha - 1.0) * (Pz * Pz))
                     else:
-                        zs = xi * d + Pz
-                        den = alpha * math.sqrt(Px * Px + Py * Py + zs * zs) + (1.0 - alpha) * zs
+                        zs = _stable_sum(xi * d, Pz, xi * xi * r2 - (1.0 - xi) * (1.0 + xi) * (Pz * Pz))
+                        den = _stable_sum(alpha * math.sqrt(r2 + zs * zs), (1.0 - alpha) * zs,
+                                          alpha * alpha * r2 + (2.0 * alpha - 1.0) * (zs * zs))
                     xd, yd = Px / den, Py / den
                     if model == 2:  # Mei's radtan on the unified model's m
                         x, y = xd, yd

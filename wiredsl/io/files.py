@@ -249,7 +249,7 @@ def write_atomic(path: str | os.PathLike, data: str | bytes, tidy: bool = True) 
 # What other commands (viewdep, bench, export-calibration) write into a build folder: a rebuild keeps it.
 KEPT = ("viewdep.json", "bench.svg", "bench.png", "bench.pdf", "calibration")
 _OURS = re.compile(r"^(manifest\.json|features\.(json|jsonl|npz)|pose_\d+\.svg|viewdep\.json|bench\.(svg|png|pdf)"
-                   r"|calibration|render\.json|(left|right)_\d+\.png)$")
+                   r"|calibration|render\.json|(left|right)_\d+\.png|ideal|trial_\d{5,})$")
 
 
 def check_output_folder(target: str | os.PathLike, force: bool = False) -> None:

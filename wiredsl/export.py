@@ -1,0 +1,147 @@
+"""`wiredsl export`: a build's ideal or disturbed observations as a COLMAP text model or a ROS 2 bag.
+
+The run comes from `wiredsl.run` through the API's batches (io/observations.py); the writers are
+io/export_colmap.py and io/export_rosbag.py. The output folder is written whole or not at all (a temporary
+folder renamed into place): `ideal/` for the ideal projection, `trial_00000/`, ... for a pipeline's trials,
+and manifest.json (what was run: scene, pipeline, seed, trials, format, versions).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from wiredsl.cli import EXIT_INVALID, _folder_name, _setup_errors, diagnostics_option, guarded, report
+
+FORMATS = ("colmap", "rosbag2")
+MAX_EXPORT_TRIALS = 100_000  # one folder a trial
+
+
+@click.command("export")
+@click.argument("file", type=click.Path(dir_okay=False))
+@click.option("--format", "fmt", type=click.Choice(FORMATS), required=True,
+              help="colmap: cameras.txt, images.txt, points3D.txt; rosbag2: a ROS 2 bag (sqlite3) a trial.")
+@click.option("-o", "--output", default=None, help="Output folder (default build/<scene name>/<format>/).")
+@click.option("--no-effects", is_flag=True, help="Export the ideal projection, whatever the scene's pipelines.")
+@click.option("--pipeline", "pipeline_name", default=None, help="The pipeline whose trials are exported "
+              "(default: the scene's default).")
+@click.option("--trials", type=click.IntRange(1, MAX_EXPORT_TRIALS), default=1, show_default=True,
+              help="Trials 0..N-1 of the run, one folder each.")
+@click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=None,
+              help="The run's seed (default: drawn, and recorded in manifest.json).")
+@click.option("--period", type=click.FloatRange(1e-6, 3600), default=0.1, show_default=True,
+              help="rosbag2: seconds between the path's poses (pose i is stamped 1 s + i * period).")
+@click.option("--undistort", is_flag=True, help="colmap: a PINHOLE camera and undistorted 2D points, for any lens "
+              "(needed for the lenses COLMAP has no model for: ds, unified with distortion).")
+@click.option("--force", is_flag=True, help="Replace an output folder that holds files wiredsl did not write.")
+@diagnostics_option
+@guarded
+def export(file: str, fmt: str, output: str | None, no_effects: bool, pipeline_name: str | None, trials: int,
+           seed: int | None, period: float, undistort: bool, force: bool, diagnostics: str) -> None:
+    """Write what the rig observes along the path (the ideal projection, or a pipeline's trials) in the formats
+    SfM and SLAM code reads: a COLMAP text model or a ROS 2 bag."""
+    import importlib.util
+    import secrets
+    from pathlib import Path
+
+    from wiredsl import run as runs
+    from wiredsl.language.compile import compile_file
+
+    if undistort and fmt != "colmap":
+        raise click.BadParameter("--undistort is for --format colmap", param_hint="--undistort")
+    need = {"colmap": None, "rosbag2": "rosbags"}[fmt]
+    if need and importlib.util.find_spec(need) is None:
+        raise click.UsageError(f"--format {fmt} needs the {need} library: pip install 'wiredsl[formats]'")
+    if output is not None:
+        _folder_name(Path(output), (".txt", ".db3", ".yaml", ".json"), "ideal/ or trial_NNNNN/ folders and "
+                     "manifest.json are written into it")
+    scene, warnings, program = compile_file(file)
+    report(warnings, program.sources, diagnostics)
+    with _setup_errors():
+        choice = runs.choose_pipeline(scene, pipeline_name, no_effects)
+    if choice.note is not None:
+        click.echo(f"note: {choice.note}", err=True)
+    pipeline = choice.pipeline if choice.pipeline is not None and choice.pipeline.stages else None
+    if pipeline is None and (trials != 1 or seed is not None):
+        click.echo("note: the ideal projection has one trial and no draws: --trials and --seed are not used",
+                   err=True)
+    seed = (seed if seed is not None else secrets.randbits(63)) if pipeline is not None else 0
+    out = Path(output) if output is not None else Path("build") / scene.name / fmt
+    try:
+        counts = write(out, scene, fmt, pipeline, trials, seed, period, undistort, force)
+    except ExportError as exc:
+        click.echo(f"wiredsl: error: {exc}", err=True)
+        sys.exit(EXIT_INVALID)
+    what = f"pipeline {pipeline.name}, {trials} trial{'s' * (trials != 1)}, seed {seed}" if pipeline else \
+        "ideal projection"
+    click.echo(f"wrote {out} ({fmt}, {what})", err=True)
+    for note in counts:
+        click.echo(f"note: {note}", err=True)
+
+
+class ExportError(ValueError):
+    """The scene cannot be exported in the format asked (no rig, no path, a lens the format lacks)."""
+
+
+def write(out, scene, fmt: str, pipeline, n_trials: int, seed: int, period: float, undistort: bool = False,
+          force: bool = False) -> list[str]:
+    """Write the export folder `out` whole (atomically); the notes to tell the user (observations left out)."""
+    from wiredsl import __version__
+    from wiredsl.io import export_colmap, observations
+    from wiredsl.io.files import json_text, output_folder
+
+    try:
+        src, each = observations.trials(scene, pipeline, n_trials, seed)
+        if fmt == "colmap" and not undistort:
+            for side in observations.CAMERAS:
+                export_colmap.colmap_camera(src.cameras[side])
+    except (ValueError, export_colmap.ColmapLensError) as exc:
+        raise ExportError(str(exc)) from None
+    period_ns = round(period * 1e9)
+    left_out, lost = 0, 0
+    folders = []
+    with output_folder(out, force) as stage:
+        for trial in each:
+            name = f"trial_{trial.trial:05d}" if pipeline is not None else "ideal"
+            folders.append(name)
+            if fmt == "colmap":
+                model = export_colmap.model(src, trial, undistort)
+                (stage / name).mkdir()
+                for fname, text in model.files.items():
+                    (stage / name / fname).write_text(text, encoding="utf-8")
+                left_out += model.behind
+                lost += model.undistorted_out
+            else:
+                from wiredsl.io import export_rosbag
+
+                left_out += export_rosbag.write(stage / name, src, trial, period_ns)
+        manifest = {"wiredsl": __version__, "scene": scene.name, "format": fmt,
+                    "pipeline": pipeline.name if pipeline is not None else None, "seed": seed,
+                    "trials": n_trials if pipeline is not None else 1, "folders": folders,
+                    "versions": _versions(fmt)}
+        if fmt == "rosbag2":
+            manifest["period_ns"] = period_ns
+        if fmt == "colmap":
+            manifest["undistort"] = undistort
+        (stage / "manifest.json").write_text(json_text(manifest, indent=1) + "\n", encoding="utf-8")
+    notes = []
+    if left_out:
+        notes.append(f"{left_out} corner observation{'s' * (left_out != 1)} behind a camera's image plane (a lens "
+                     "wider than 180 deg) left out: the format projects only points in front")
+    if lost:
+        notes.append(f"{lost} corner observation{'s' * (lost != 1)} whose pixel has no ray in the lens's valid "
+                     "region left out (--undistort)")
+    return notes
+
+
+def _versions(fmt: str) -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for pkg in ({"rosbag2": ("rosbags",), "colmap": ()}[fmt]):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = None
+    return out
