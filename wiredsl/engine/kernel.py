@@ -75,7 +75,7 @@ def _normal_pair(key, pair):
 def _arcs(pts, start):
     """Arc length at each vertex from its stroke's start, and stroke lengths (as imageset.arc_lengths)."""
     S = len(start) - 1
-    arc = np.empty(len(pts))
+    arc = np.zeros(len(pts))
     L = np.zeros(S)
     for k in range(S):
         a, b = start[k], start[k + 1]
@@ -89,6 +89,21 @@ def _arcs(pts, start):
                 arc[i] = acc
             L[k] = arc[b - 1]
     return arc, L
+
+
+@njit(cache=True)
+def _stroke_arcs(pts, start, k, arc, L):
+    """_arcs of stroke k alone, into arc and L (the same sums): for the strokes a cut needs, not every stroke."""
+    a, b = start[k], start[k + 1]
+    if b > a:
+        acc = 0.0
+        arc[a] = 0.0
+        for i in range(a + 1, b):
+            dx = pts[i, 0] - pts[i - 1, 0]
+            dy = pts[i, 1] - pts[i - 1, 1]
+            acc = acc + math.sqrt(dx * dx + dy * dy)
+            arc[i] = acc
+        L[k] = arc[b - 1]
 
 
 @njit(cache=True)
@@ -237,10 +252,16 @@ def _project(X, R, t, cam, limit, out, ok):
     k3, k4, k5, k6, xi, alpha, beta, w = cam[9], cam[10], cam[11], cam[12], cam[13], cam[14], cam[15], cam[16]
     model = int(cam[17])
     two_tan = 2.0 * math.tan(0.5 * w) if model == 5 else 0.0
+    # the camera's pose as scalars: read once, not once a point (the writes below may alias R and t for all
+    # the compiler knows, so it would reload them)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], \
+        R[2, 1], R[2, 2]
+    t0, t1, t2 = t[0], t[1], t[2]
     for i in range(len(X)):
-        Px = R[0, 0] * X[i, 0] + R[0, 1] * X[i, 1] + R[0, 2] * X[i, 2] + t[0]
-        Py = R[1, 0] * X[i, 0] + R[1, 1] * X[i, 1] + R[1, 2] * X[i, 2] + t[1]
-        Pz = R[2, 0] * X[i, 0] + R[2, 1] * X[i, 1] + R[2, 2] * X[i, 2] + t[2]
+        X0, X1, X2 = X[i, 0], X[i, 1], X[i, 2]
+        Px = r00 * X0 + r01 * X1 + r02 * X2 + t0
+        Py = r10 * X0 + r11 * X1 + r12 * X2 + t1
+        Pz = r20 * X0 + r21 * X1 + r22 * X2 + t2
         if model != 0:  # an angle-bounded lens (geometry.MODELS)
             rho = math.hypot(Px, Py)
             d = math.sqrt(Px * Px + Py * Py + Pz * Pz)
@@ -299,14 +320,19 @@ def _pieces(n):
 
 @njit(cache=True)
 def _keep_vertex_runs(pts, start, meta, ok):
-    """imageset.keep_vertex_runs."""
-    arc, L = _arcs(pts, start)
+    """imageset.keep_vertex_runs (arc lengths measured only along the strokes that are cut: a whole one is copied)."""
     S = len(start) - 1
+    arc = np.zeros(len(pts))
+    L = np.zeros(S)
     n_max = len(pts)
     ps, pa, pb, pf, pc, pcut, pw = _pieces(n_max)
     q = 0
     for k in range(S):
         a, b = start[k], start[k + 1]
+        for i in range(a, b):
+            if not ok[i]:
+                _stroke_arcs(pts, start, k, arc, L)
+                break
         i = a
         while i < b:
             if not ok[i]:
@@ -361,18 +387,21 @@ def _liang_barsky(ax, ay, bx, by, width, height):
 
 @njit(cache=True)
 def _clip_rect(pts, start, meta, width, height):
-    """imageset.clip_rect."""
-    arc, L = _arcs(pts, start)
+    """imageset.clip_rect (arc lengths measured only along the strokes that cross the border: a stroke inside is
+    copied whole)."""
     S = len(start) - 1
+    arc = np.zeros(len(pts))
+    L = np.zeros(S)
     n_max = len(pts)
     ps, pa, pb, pf, pc, pcut, pw = _pieces(n_max)
     q = 0
     for k in range(S):
         a, b = start[k], start[k + 1]
         if b - a >= 2 and _inside(pts, a, b, width, height):  # the loop below would keep it whole: say so
-            ps[q], pa[q], pb[q], pw[q], pf[q], pc[q], pcut[q] = k, 0.0, L[k], True, meta[k, FRAG], meta[k, CLOSED], 0
+            ps[q], pa[q], pb[q], pw[q], pf[q], pc[q], pcut[q] = k, 0.0, 0.0, True, meta[k, FRAG], meta[k, CLOSED], 0
             q += 1
             continue
+        _stroke_arcs(pts, start, k, arc, L)
         open_run = False
         ja, t0a = 0, 0.0
         prev_keep, prev_t1 = False, 0.0
