@@ -213,3 +213,55 @@ def test_auto_loads_the_kernel_only_for_runs_large_enough_to_pay_for_it(tmp_path
     r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "--seed", "4", "--trials", "3", "--trial", "3", "-o",
                                   str(out)])
     assert r.exit_code == 2 and "trial 3 is not in 0..2 (a run of --trials 3)" in r.output
+
+
+def test_the_generated_loop_is_keyed_on_the_contents_of_every_file_its_stages_call(tmp_path, monkeypatch):
+    """A stage calling a numba helper of another module (as `from m import f` and as `m.f`): editing the helper's
+    file changes the generated loop's key even when its time stamp and size are put back, and the loop then
+    gives the new helper's result; touching the files without editing them keeps the key (no recompile)."""
+    import importlib
+    import os
+    import sys
+
+    from wiredsl.engine import kernel as kn
+
+    pkg = tmp_path / "wdhash"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    helper = "from numba import njit\n\n\n@njit(cache=True)\ndef shift():\n    return {}\n"
+    (pkg / "helpers.py").write_text(helper.format("1.0"))
+    (pkg / "more.py").write_text(helper.format("10.0"))
+    (pkg / "kernel.py").write_text(
+        "from numba import njit\n\nimport wdhash.more as more\nfrom wdhash.helpers import shift\n\n\n"
+        "@njit(cache=True)\ndef stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):\n"
+        "    return pts + shift() + more.shift(), start, meta, corners, cfid\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+
+    def loop() -> tuple[str, float]:
+        for m in [m for m in sys.modules if m.startswith("wdhash")]:
+            del sys.modules[m]
+        importlib.invalidate_caches()
+        kn._composed.clear()
+        batch = kn.compose(("wdhash.kernel:stage",))
+        pts = kn.run_view(np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([0, 2]), np.zeros((1, kn.NMETA), np.int64),
+                          np.zeros((0, 2)), np.zeros(0, np.int64), np.zeros((2, 3)), np.zeros((0, 3)), np.eye(3)[None],
+                          np.zeros((1, 3)), np.ones((1, 18)), np.ones(1), 10.0, 10.0, False, ("wdhash.kernel:stage",),
+                          np.zeros((1, 3)), np.ones((1, 1), np.uint64), np.ones(3), True, np.zeros((1, 6)))[0]
+        return batch.__module__, float(pts[0, 0])
+
+    first, got = loop()
+    assert got == 11.0
+    paths = [pkg / n for n in ("helpers.py", "more.py", "kernel.py")]
+    for p in paths:  # touched, not edited: the same loop
+        os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 10**9))
+    assert loop() == (first, 11.0)
+    keys = {first}
+    for p, new, value in ((paths[0], "2.0", 12.0), (paths[1], "20.0", 22.0)):
+        st = p.stat()
+        p.write_text(helper.format(new))
+        os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns))  # the same size and time stamp: only the text differs
+        assert p.stat().st_size == st.st_size or new == "20.0"
+        key, got = loop()
+        assert key not in keys and got == value
+        keys.add(key)

@@ -31,7 +31,8 @@ def _split_ellipses(pts, start, meta):
         return pts, start, meta
     closed = (meta[:, CLOSED] != 0) & ell
     upts, ustart, umeta = _unroll(pts, start, meta, closed)
-    arc, Lu = _arcs(upts, ustart)
+    # arc lengths along the ellipses only (the other strokes are kept whole), summed with the moments' weights
+    arc, Lu = np.zeros(len(upts)), np.zeros(S)
     crossings = np.empty(len(upts))
     second = np.empty(len(upts))  # each crossing's point on a loop's second lap
     seg = np.empty(len(upts))  # segment lengths (the moments' weights)
@@ -49,9 +50,11 @@ def _split_ellipses(pts, start, meta):
             dy = upts[i + 1, 1] - upts[i, 1]
             w = math.sqrt(dx * dx + dy * dy)
             seg[i] = w
+            arc[i + 1] = arc[i] + w  # as _arcs sums them
             tot += w
             cx += w * ((upts[i, 0] + upts[i + 1, 0]) / 2)
             cy += w * ((upts[i, 1] + upts[i + 1, 1]) / 2)
+        Lu[k] = arc[b - 1]
         tot = max(tot, 1e-300)
         cx /= tot
         cy /= tot

@@ -37,7 +37,7 @@ def _in_band(ax, ay, bx, by, e0, e1, e2, tanb, everything):
 
 @njit(cache=True)
 def _drop_band(pts, start, meta, e, band):
-    """stereo_mismatch._drop_band. Each segment's angle is computed once: slot start[k] + i holds segment
+    """stereo_mismatch._drop_band, and the strokes' total length before it. Each segment's angle is computed once: slot start[k] + i holds segment
     i of stroke k, the last slot of a closed stroke its closing segment (an unrolled loop reuses them)."""
     S = len(start) - 1
     everything = band >= math.pi / 2
@@ -61,6 +61,9 @@ def _drop_band(pts, start, meta, e, band):
             intact[k] = not hit
     upts, ustart, umeta = _unroll(pts, start, meta, cut_loop)
     arc, uL = _arcs(upts, ustart)
+    before = 0.0  # the strokes' length before the cut, as _total_length sums it (a loop's first lap: its own arcs)
+    for k in range(S):
+        before += arc[ustart[k] + start[k + 1] - start[k] - 1] if cut_loop[k] else uL[k]
     ps, pa, pb, pf, pc, pcut, pw = _pieces(len(upts) + S)
     q = 0
     for k in range(S):
@@ -92,18 +95,20 @@ def _drop_band(pts, start, meta, e, band):
                     pw[q], pf[q] = True, umeta[k, FRAG]
                 q += 1
                 run = -1
-    return _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, pcut, pw, q)
+    out = _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, pcut, pw, q)
+    return out[0], out[1], out[2], before
 
 
 @njit(cache=True)
 def stage(pts, start, meta, corners, cfid, key, params, e, right, st):
     band, fraction, disparity = params[0], params[1], params[2]
-    before = _total_length(pts, start)
-    st[0] += before
     if band > 0 and len(start) > 1:
-        pts, start, meta = _drop_band(pts, start, meta, e, band)
+        pts, start, meta, before = _drop_band(pts, start, meta, e, band)
+        st[0] += before
         st[1] += _total_length(pts, start)
     else:
+        before = _total_length(pts, start)
+        st[0] += before
         st[1] += before
     if not right or fraction == 0 or disparity == 0:
         return pts, start, meta, corners, cfid
