@@ -22,7 +22,7 @@ import numpy as np
 from wiredsl.diagnostics import Diagnostic, WiredslError
 from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.effects import calibration_error as calib
-from wiredsl.effects.base import CAMERA_INDEX, Context, Stats, stream_key
+from wiredsl.effects.base import CAMERA_INDEX, Context, PackedContext, Stats, stream_key
 from wiredsl.engine import geometry
 from wiredsl.engine import imageset as im
 from wiredsl.engine.simulate import (
@@ -268,6 +268,8 @@ class Run:
                 self.trace["reproject"] += 1
                 rigs = checked
         out = []
+        # the numpy path with built-in stages only: every view's trials packed in one set, each stage run once
+        packed = [] if not kernel and all(e.name in BUILTIN for e, _ in self.image_stages) else None
         for j, result in enumerate(base):
             disturbed = {}
             views = {"left": None, "right": None}
@@ -287,6 +289,9 @@ class Run:
                                                   self.template(result, side, raw=True, keep=keep))
                 else:
                     sets = self.template(result, side, raw=False, keep=keep)[0].repeat_trials(len(batch))
+                if packed is not None:
+                    packed.append((result, side, sets, disturbed))
+                    continue
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
                               point=self.point, camera=getattr(result, side).camera)
@@ -299,7 +304,34 @@ class Run:
                                             self._stage_of(effect))
                 disturbed[side] = sets
             out.append((result, disturbed, views))
+        if packed:
+            self._packed_stages(batch, packed)
         return out
+
+    def _packed_stages(self, batch: Sequence[int], views: list) -> None:
+        """The image stages (built-in effects) on many views' trials at once: [(result, side, ImageSet of the
+        batch, the result's dict of disturbed sets)], each set put in its dict. The same draws, outputs and
+        statistics as one view at a time (`PackedContext`), with a stage's Python paid once, not once a view."""
+        T = len(batch)
+        for effect, _ in self.image_stages:
+            self.trace[effect.name] += len(views)
+        poses = np.array([r.index for r, _, _, _ in views], dtype=np.int64)
+        cameras = np.array([CAMERA_INDEX[side] for _, side, _, _ in views], dtype=np.int64)
+        epipoles = []
+
+        def view_epipoles():  # as each view's stage would ask for it: once a view, in order
+            if not epipoles:
+                epipoles.append(np.array([self.epipole(r.pose, side) for r, side, _, _ in views]))
+            return epipoles[0]
+
+        ctx = PackedContext(pose=-1, side="", trials=np.tile(np.asarray(batch, dtype=np.int64), len(views)),
+                            seed=self.seed, stats=self.stats, point=self.point, per_view=T,
+                            poses=np.repeat(poses, T), cameras=np.repeat(cameras, T), view_epipoles=view_epipoles)
+        sets = im.concat([s for _, _, s, _ in views], T)
+        for effect, params in self.image_stages:
+            sets = effect.apply(params, sets, ctx)
+        for (_, side, _, disturbed), s in zip(views, im.split(sets, len(views), T), strict=True):
+            disturbed[side] = s
 
     def _stage_of(self, effect) -> str:
         """'stage G of N' for an effect of the pipeline (as the scene lists its stages that run)."""
