@@ -262,14 +262,17 @@ def keep_vertex_runs(s: ImageSet, ok: np.ndarray) -> ImageSet:
                           closed=whole & s.closed[stroke], cut=~whole, whole=whole)
 
 
-def clip_rect(s: ImageSet, width: float, height: float) -> ImageSet:
-    """Strokes cut to the image rectangle [0, width] x [0, height]; cut strokes are flagged `clipped`."""
+def clip_rect(s: ImageSet, width, height) -> ImageSet:
+    """Strokes cut to the image rectangle [0, width] x [0, height] (numbers, or arrays of one a vertex: views of
+    several cameras); cut strokes are flagged `clipped`."""
     x, y = s.pts[:, 0], s.pts[:, 1]
-    if len(x) == 0 or (x.min() >= 0 and y.min() >= 0 and x.max() <= width and y.max() <= height):
+    if len(x) == 0 or (x.min() >= 0 and y.min() >= 0 and np.all(x <= width) and np.all(y <= height)):
         return s
     from wiredsl.engine.geometry import clip_segments_rect
 
     n = len(s.pts)
+    if np.ndim(width):  # a pair of vertices is cut to its first vertex's image (pairs across strokes are not used)
+        width, height = width[:-1], height[:-1]
     t0, t1, keep = clip_segments_rect(s.pts[:-1], s.pts[1:], width, height)
     last = s.start[1:] - 1
     real = np.ones(n - 1, dtype=bool)
