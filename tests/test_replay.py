@@ -211,5 +211,5 @@ def test_packed_views_of_cameras_of_two_sizes_are_each_cut_to_their_own_image(tm
     (_, res), = run.batches([3])
     for side, (w, h) in (("left", (640, 480)), ("right", (400, 300))):
         pts = np.concatenate([d[side].pts for _, d, _ in res])
-        assert pts.min() >= -1e-9 and pts[:, 0].max() <= w + 1e-9 and pts[:, 1].max() <= h + 1e-9  # cut points: rounding
+        assert pts.min() >= -1e-9 and pts[:, 0].max() <= w + 1e-9 and pts[:, 1].max() <= h + 1e-9  # cut: rounding
         assert (pts[:, 0] > 400).any() if side == "left" else any(d[side].clipped.any() for _, d, _ in res)
