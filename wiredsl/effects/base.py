@@ -237,7 +237,9 @@ class Effect:
       `take(keep)` / `take_corners(keep)`. `ctx` is a Context: `pose` (index), `side` ("left" / "right"),
       `trials` (the absolute trial numbers, by batch index), `camera` (the view's nominal wiredsl.scene.Camera:
       `width`, `height`, `f`, `ax`, `ay`, `cx`, `cy`, distortion), `epipole()` (homogeneous, in this camera's
-      pixels), `stats` (a Stats to add measured sums to) and `draws(name, batch_index, per_item, normal)`.
+      pixels), `stats` (a Stats to add measured sums to; `add(name, batch_index, **per_item_values)` adds their
+      sums) and `draws(name, batch_index, per_item, normal)`. (The built-in effects are also handed a
+      `PackedContext`: several views in one set, `epipoles(batch_index)` and `right(batch_index)` per item.)
       Draw randomness only with `ctx.draws(cls.name, ...)`: keyed by (seed, stage, trial, pose, camera, design
       point), so a trial's values do not depend on its batch or on other stages, and a seed reproduces them;
     - `report(params, stats) -> dict` (optional): measured statistics for the run manifest (JSON values).
