@@ -62,3 +62,14 @@ def engine(request, monkeypatch):
 
         monkeypatch.setattr(Effect, "apply", classmethod(apply))
     return request.param
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _trusted_models_checked():
+    """Every model the compiler makes without validation (`wiredsl.scene.trusted`) is also validated, in every test
+    that compiles in this process: the two must be equal, type for type and bit for bit."""
+    from wiredsl import scene
+
+    scene.CHECK_TRUSTED = True
+    yield
+    scene.CHECK_TRUSTED = False

@@ -248,6 +248,39 @@ def test_the_labs_check_and_build_import_only_what_they_use(args, absent, tmp_pa
     assert not loaded, f"`wiredsl {' '.join(args)}` imported {loaded}"
 
 
+_VALIDATED = """
+import json, sys
+from pydantic._internal._mock_val_ser import MockValSer
+from wiredsl.cli import main
+from wiredsl.scene import Node
+try:
+    main(sys.argv[1:], standalone_mode=False)
+except SystemExit as e:
+    if e.code:
+        raise
+def every(c):
+    for s in c.__subclasses__():
+        yield s
+        yield from every(s)
+print(json.dumps(sorted({c.__name__ for c in every(Node) if not isinstance(c.__pydantic_validator__, MockValSer)})))
+"""
+
+
+def test_the_labs_build_makes_no_validator_for_the_nodes_the_compiler_checked(tmp_path):
+    """The compiler makes the scene's nodes from checked values (`scene.trusted`) and every model's validator is
+    built when first used (`defer_build`): a one-trial build of the lab builds only those of the models it dumps
+    (the cameras, the features document's parts), not the lines, placements, rig, path or scene (each costs the
+    cold start its schema)."""
+    r = subprocess.run([sys.executable, "-c", _VALIDATED, "build", "scenes/lab.wd", "--engine", "numpy", "-o",
+                        str(tmp_path / "out")], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    built = set(json.loads(r.stdout.strip().splitlines()[-1]))
+    from wiredsl import scene
+
+    nodes = {c.__name__ for c in scene.Node.__subclasses__()}
+    assert built & nodes == {"Camera"}, built
+
+
 # --------------------------------------------------------------------------- options and output folders
 
 def test_diagnostics_option_on_every_command_and_format_only_for_dumps(tmp_path):

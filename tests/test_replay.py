@@ -165,3 +165,51 @@ def test_a_huge_run_streams_its_trials_and_keeps_no_per_trial_state():
     next(it)
     assert [len(v) if isinstance(v, list) else 1 for v in run.stats.samples.values()] == sizes
     assert run.stats.samples["calibration_error.moments"][0] == 32
+
+
+def _packed_against_view_by_view(scene, trials) -> None:
+    world = build_world(scene)
+    for pipe in pipelines(scene):
+        runs = {}
+        for pack in (True, False):
+            run = runs[pack] = Run.create(scene, world, pipe, 77, Options())
+            run.engine, run.pack = "numpy", pack
+            runs[pack, "out"] = outputs(run, trials, len(trials))
+        assert runs[True, "out"] == runs[False, "out"], (scene.name, pipe.name)
+        packed, alone = runs[True], runs[False]
+        assert packed.trace == alone.trace and packed.manifest() == alone.manifest(), (scene.name, pipe.name)
+        for a, b in ((packed.stats.sums, alone.stats.sums), (packed.stats.maxima, alone.stats.maxima)):
+            assert {k: dict(v) for k, v in a.items() if any(v.values())} == \
+                {k: dict(v) for k, v in b.items() if any(v.values())}, (scene.name, pipe.name)
+
+
+@pytest.mark.parametrize("path", SCENES)
+def test_views_packed_in_one_set_give_each_views_own_output_and_statistics(path):
+    """The numpy path runs the built-in stages on all views of a batch at once (`Run.pack`): every view's strokes,
+    corners, the statistics to the last bit and the manifest equal those of a view at a time."""
+    scene, _, _ = compile_file(path)
+    _packed_against_view_by_view(scene, [3])
+    _packed_against_view_by_view(scene, list(range(10, 15)))
+
+
+def test_packed_views_of_cameras_of_two_sizes_are_each_cut_to_their_own_image(tmp_path):
+    """The lab with a smaller right camera: each view re-projected with calibration is cut to its own camera's
+    image, as a view at a time is (and some strokes are cut there that the left camera's size would keep)."""
+    import shutil
+
+    root = Path(__file__).resolve().parent.parent / "scenes"
+    shutil.copytree(root / "models", tmp_path / "models")
+    shutil.copy(root / "lab.info", tmp_path / "lab.info")
+    text = (root / "lab.wd").read_text().replace("  k 0.018\n", "  k 0.018\n  size (400px, 300px)\n")
+    (tmp_path / "lab.wd").write_text(text)
+    scene, _, _ = compile_file(str(tmp_path / "lab.wd"))
+    assert scene.camera("cam_r").width == 400 and scene.camera("cam_l").width == 640
+    _packed_against_view_by_view(scene, [3, 4])
+    calibration, _ = compile_text("wiredsl 1\npipeline c {\n  calibration_error sigma 0.01\n}\n")
+    run = Run.create(scene, build_world(scene), calibration.pipelines[0], 77, Options())
+    run.engine = "numpy"
+    (_, res), = run.batches([3])
+    for side, (w, h) in (("left", (640, 480)), ("right", (400, 300))):
+        pts = np.concatenate([d[side].pts for _, d, _ in res])
+        assert pts.min() >= -1e-9 and pts[:, 0].max() <= w + 1e-9 and pts[:, 1].max() <= h + 1e-9  # cut: rounding
+        assert (pts[:, 0] > 400).any() if side == "left" else any(d[side].clipped.any() for _, d, _ in res)

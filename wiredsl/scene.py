@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, model_serializer
 
@@ -44,7 +44,53 @@ class Node(BaseModel):
     # allow_inf_nan=False: a non-finite number is refused at construction, so no dump or JSON can carry one
     # ser_json_inf_nan: a non-finite number that got in anyway stays one in a JSON-mode dump (not null, as it would
     # through a model serializer such as Camera's), so that the writers refuse it by name
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False, ser_json_inf_nan="constants")
+    # defer_build: a model's validator and serializer are built when first used, not on import: the compiler makes
+    # most of a scene's nodes from values it has checked (`trusted`), and a build never validates them
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False, ser_json_inf_nan="constants",
+                              defer_build=True)
+
+
+N = TypeVar("N", bound=BaseModel)
+CHECK_TRUSTED = False  # the test suite sets it (tests/conftest.py): `trusted` then validates too, and compares
+
+
+def trusted(cls: type[N], **values) -> N:
+    """A model of values the compiler has checked, each of its field's type already (floats as float, vectors as
+    tuples of floats, lists, nested models): made without validation (`model_construct`), so that compiling
+    builds no validator for it. Under CHECK_TRUSTED the same values also go through validation, and the two
+    models must be equal, type for type and bit for bit (`same_nodes`)."""
+    made = cls.model_construct(**values)
+    if CHECK_TRUSTED:
+        checked = cls(**values)
+        problem = same_nodes(made, checked)
+        if problem is not None:
+            raise AssertionError(f"trusted {cls.__name__}: {problem}")
+    return made
+
+
+def same_nodes(a, b, where: str = "") -> str | None:
+    """Where two values (models, containers, numbers) differ in type or value (floats bit for bit), or None."""
+    import struct
+
+    if type(a) is not type(b):
+        return f"{where or 'value'}: {type(a).__name__} against {type(b).__name__} ({a!r}, {b!r})"
+    if isinstance(a, BaseModel):
+        if a.model_fields_set != b.model_fields_set:
+            return f"{where}: fields set {sorted(a.model_fields_set)} against {sorted(b.model_fields_set)}"
+        return next((p for name in type(a).model_fields
+                     if (p := same_nodes(getattr(a, name), getattr(b, name), f"{where}.{name}")) is not None), None)
+    if isinstance(a, (list, tuple)):
+        if len(a) != len(b):
+            return f"{where}: {len(a)} items against {len(b)}"
+        return next((p for i, (x, y) in enumerate(zip(a, b, strict=True)) if (p := same_nodes(x, y, f"{where}[{i}]")) is not None),
+                    None)
+    if isinstance(a, dict):
+        if list(a) != list(b):
+            return f"{where}: keys {list(a)} against {list(b)}"
+        return next((p for k in a if (p := same_nodes(a[k], b[k], f"{where}[{k!r}]")) is not None), None)
+    if isinstance(a, float):
+        return None if struct.pack("<d", a) == struct.pack("<d", b) else f"{where}: {a!r} against {b!r}"
+    return None if a == b else f"{where}: {a!r} against {b!r}"
 
 
 def omitted_when_none(*names: str):

@@ -33,7 +33,7 @@ class ApproxError(Effect):
     def disturb(cls, p: ApproxErrorParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         vtrial = np.repeat(s.trial, s.counts)
         noise = p.sigma * ctx.draws(cls.name, vtrial, 2, normal=True)
-        ctx.stats.add(cls.name, count=2 * len(noise), sum_sq=(noise**2).sum())
+        ctx.add(cls.name, vtrial, count=np.full(len(noise), 2), sum_sq=noise**2)
         return im.replace(s, pts=s.pts + noise)
 
     @classmethod

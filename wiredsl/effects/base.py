@@ -121,13 +121,60 @@ class Context:
         """Draws (n, per_item) for items of trials `batch_index` (n,), sorted: item j of a trial gets the
         draws j * per_item .. j * per_item + per_item - 1 of its trial's key, uniform in [0, 1) or normal."""
         batch_index = np.asarray(batch_index, dtype=np.int64)
-        keys = stream_key(stage, self.trials, self.pose, CAMERA_INDEX[self.side], self.seed, self.point)
+        keys = self.keys(stage)
         counts = np.bincount(batch_index, minlength=len(self.trials))
         first = np.cumsum(counts) - counts
         j = np.arange(len(batch_index)) - first[batch_index]
         index = j[:, None] * per_item + np.arange(per_item)[None, :]
         fn = keyed_normal if normal else keyed_uniform
         return fn(keys[batch_index][:, None], index).reshape(len(batch_index), per_item)
+
+    def keys(self, stage: str) -> np.ndarray:
+        """The stage's keys, by batch index (`stream_key`)."""
+        return stream_key(stage, self.trials, self.pose, CAMERA_INDEX[self.side], self.seed, self.point)
+
+    def add(self, stage: str, batch_index: np.ndarray, **values: np.ndarray) -> None:
+        """Add the sums of per-item values (arrays aligned with `batch_index`, sorted) to the stage's statistics:
+        what `stats.add(stage, name=values.sum())` does for one view (views packed: each view's sum in turn, so
+        that the sums are those of a view at a time, to the last bit)."""
+        self.stats.add(stage, **{k: np.sum(v) for k, v in values.items()})
+
+    def epipoles(self, batch_index: np.ndarray) -> np.ndarray:
+        """The epipole (homogeneous pixels) of each item's view, (n, 3)."""
+        return np.broadcast_to(self.epipole(), (len(batch_index), 3))
+
+    def right(self, batch_index: np.ndarray) -> np.ndarray:
+        """Whether each item's view is the right camera's, (n,) bool."""
+        return np.full(len(batch_index), self.side == "right")
+
+
+@dataclass
+class PackedContext(Context):
+    """Several views' trials in one ImageSet, for the built-in effects (the one-trial build's path): batch index b is
+    trial b % per_view of view b // per_view, of pose `poses[b]` and camera `cameras[b]` (CAMERA_INDEX); `trials`
+    are the absolute trial numbers by batch index. The draws are keyed as one view at a time would key them (the
+    same stream_key of the same (trial, pose, camera)), and statistics are summed view by view."""
+
+    per_view: int = 1
+    poses: np.ndarray | None = None  # (B,) pose index by batch index
+    cameras: np.ndarray | None = None  # (B,) camera index by batch index
+    view_epipoles: Callable[[], np.ndarray] | None = None  # (views, 3): each view's epipole
+
+    def keys(self, stage: str) -> np.ndarray:
+        return stream_key(stage, self.trials, self.poses, self.cameras, self.seed, self.point)
+
+    def add(self, stage: str, batch_index: np.ndarray, **values: np.ndarray) -> None:
+        views = len(self.trials) // self.per_view
+        bounds = np.searchsorted(batch_index, np.arange(views + 1) * self.per_view)
+        for v in range(views):
+            lo, hi = bounds[v], bounds[v + 1]
+            self.stats.add(stage, **{k: np.sum(a[lo:hi]) for k, a in values.items()})
+
+    def epipoles(self, batch_index: np.ndarray) -> np.ndarray:
+        return self.view_epipoles()[np.asarray(batch_index) // self.per_view]
+
+    def right(self, batch_index: np.ndarray) -> np.ndarray:
+        return self.cameras[batch_index] == CAMERA_INDEX["right"]
 
 
 @dataclass(frozen=True)
@@ -190,7 +237,9 @@ class Effect:
       `take(keep)` / `take_corners(keep)`. `ctx` is a Context: `pose` (index), `side` ("left" / "right"),
       `trials` (the absolute trial numbers, by batch index), `camera` (the view's nominal wiredsl.scene.Camera:
       `width`, `height`, `f`, `ax`, `ay`, `cx`, `cy`, distortion), `epipole()` (homogeneous, in this camera's
-      pixels), `stats` (a Stats to add measured sums to) and `draws(name, batch_index, per_item, normal)`.
+      pixels), `stats` (a Stats to add measured sums to; `add(name, batch_index, **per_item_values)` adds their
+      sums) and `draws(name, batch_index, per_item, normal)`. (The built-in effects are also handed a
+      `PackedContext`: several views in one set, `epipoles(batch_index)` and `right(batch_index)` per item.)
       Draw randomness only with `ctx.draws(cls.name, ...)`: keyed by (seed, stage, trial, pose, camera, design
       point), so a trial's values do not depend on its batch or on other stages, and a seed reproduces them;
     - `report(params, stats) -> dict` (optional): measured statistics for the run manifest (JSON values).

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
 from wiredsl.engine import imageset as im
 
@@ -25,7 +27,7 @@ class CornerLoss(Effect):
     @classmethod
     def disturb(cls, p: CornerLossParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         keep = ctx.draws(cls.name, s.corner_trial)[:, 0] < p.keep
-        ctx.stats.add(cls.name, total=len(keep), kept=keep.sum())
+        ctx.add(cls.name, s.corner_trial, total=np.ones(len(keep), dtype=int), kept=keep)
         return s.take_corners(keep)
 
     @classmethod

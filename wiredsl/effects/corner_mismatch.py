@@ -32,7 +32,7 @@ class CornerMismatch(Effect):
         r = p.radius * np.sqrt(draws[:, 1])  # uniform over the disc
         theta = 2 * np.pi * draws[:, 2]
         move = np.where(hit[:, None], np.column_stack([r * np.cos(theta), r * np.sin(theta)]), 0.0)
-        ctx.stats.add(cls.name, total=len(hit), shifted=hit.sum())
+        ctx.add(cls.name, s.corner_trial, total=np.ones(len(hit), dtype=int), shifted=hit)
         ctx.stats.peak(cls.name, max_distance=np.linalg.norm(move, axis=1).max(initial=0.0))
         return im.replace(s, corners=s.corners + move)
 

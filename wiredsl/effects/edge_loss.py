@@ -47,8 +47,8 @@ class EdgeLoss(Effect):
                                np.zeros(closed.sum(), int)])
         order = np.lexsort((frag, stroke))
         out = im.keep_intervals(s, stroke[order], a[order], b[order], frag[order])
-        _, kept = im.arc_lengths(out)
-        ctx.stats.add(cls.name, total_length=L.sum(), kept_length=kept.sum())
+        ctx.add(cls.name, s.trial, total_length=L)
+        ctx.add(cls.name, out.trial, kept_length=im.arc_lengths(out)[1])
         return out
 
     @classmethod

@@ -35,7 +35,7 @@ class LateralShift(Effect):
         d = p.range * (2 * ctx.draws(cls.name, s.trial)[:, 0] - 1)
         normals = im.vertex_normals(s)
         pts = s.pts + np.repeat(d, s.counts)[:, None] * normals
-        ctx.stats.add(cls.name, count=len(d), sum_abs=np.abs(d).sum())
+        ctx.add(cls.name, s.trial, count=np.ones(len(d), dtype=int), sum_abs=np.abs(d))
         ctx.stats.peak(cls.name, max_abs=np.abs(d).max(initial=0.0))
         return im.replace(s, pts=pts)
 

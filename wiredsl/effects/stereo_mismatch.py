@@ -27,9 +27,10 @@ class StereoMismatchParams(Params):
 
 
 def epipolar_directions(points: np.ndarray, epipole: np.ndarray) -> np.ndarray:
-    """Unit direction of the epipolar line through each point (n, 2), from a homogeneous epipole."""
-    ex, ey, ew = epipole
-    d = points * ew - np.array([ex, ey])
+    """Unit direction of the epipolar line through each point (n, 2), from a homogeneous epipole (3,), or one a
+    point (n, 3)."""
+    e = np.asarray(epipole)
+    d = points * e[..., 2:] - e[..., :2]
     norm = np.linalg.norm(d, axis=1, keepdims=True)
     return np.divide(d, norm, out=np.tile([1.0, 0.0], (len(d), 1)), where=norm > 0)
 
@@ -43,10 +44,12 @@ def angle_to_epipolar(a: np.ndarray, b: np.ndarray, epipole: np.ndarray) -> np.n
 
 def in_band(a: np.ndarray, b: np.ndarray, epipole: np.ndarray, band: float) -> np.ndarray:
     """Whether segments a->b (n, 2) are within `band` of the epipolar line through their midpoints:
-    angle_to_epipolar <= band, decided as |cross| <= tan(band) |dot| (no atan2, no normalising)."""
+    angle_to_epipolar <= band, decided as |cross| <= tan(band) |dot| (no atan2, no normalising). The epipole is
+    homogeneous, (3,) or one a segment (n, 3)."""
     if band >= math.pi / 2:
         return np.ones(len(a), dtype=bool)
-    ex, ey, ew = epipole
+    e = np.asarray(epipole)
+    ex, ey, ew = e[..., 0], e[..., 1], e[..., 2]
     mx, my = (a[:, 0] + b[:, 0]) / 2, (a[:, 1] + b[:, 1]) / 2
     lx, ly = mx * ew - ex, my * ew - ey
     at_epipole = (lx == 0) & (ly == 0)  # no epipolar line: take the x axis, as epipolar_directions does
@@ -70,22 +73,29 @@ class StereoMismatch(Effect):
 
     @classmethod
     def disturb(cls, p: StereoMismatchParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
-        epipole = ctx.epipole()
-        before = im.arc_lengths(s)[1].sum()
+        ctx.add(cls.name, s.trial, length_in=im.arc_lengths(s)[1])
+        epipole = ctx.epipoles(s.trial)  # each stroke's view's, (strokes, 3)
         if p.band > 0 and s.n_strokes:
             s = _drop_band(s, epipole, p.band)
-        ctx.stats.add(cls.name, length_in=before, length_after_band=im.arc_lengths(s)[1].sum())
-        if ctx.side != "right" or p.fraction == 0 or p.disparity == 0:
+            epipole = ctx.epipoles(s.trial)
+        ctx.add(cls.name, s.trial, length_after_band=im.arc_lengths(s)[1])
+        right = np.flatnonzero(ctx.right(s.trial))  # the strokes of right views (all of a view's)
+        if not len(right) or p.fraction == 0 or p.disparity == 0:
             return s
-        draws = ctx.draws(cls.name, s.trial, 2)
+        draws = ctx.draws(cls.name, s.trial[right], 2)
         hit = draws[:, 0] < p.fraction
         shift = np.where(hit, p.disparity * (2 * draws[:, 1] - 1), 0.0)
-        mid = np.add.reduceat(s.pts, s.start[:-1], axis=0) / s.counts[:, None] if s.n_strokes else np.zeros((0, 2))
-        direction = epipolar_directions(mid, epipole)
-        move = np.repeat(shift[:, None] * direction, s.counts, axis=0)
-        ctx.stats.add(cls.name, right_strokes=len(hit), shifted=hit.sum())
+        mid = np.add.reduceat(s.pts, s.start[:-1], axis=0)[right] / s.counts[right, None]
+        direction = epipolar_directions(mid, epipole[right])
+        move = np.repeat(shift[:, None] * direction, s.counts[right], axis=0)
+        ctx.add(cls.name, s.trial[right], right_strokes=np.ones(len(hit), dtype=int), shifted=hit)
         ctx.stats.peak(cls.name, max_shift=np.abs(shift).max(initial=0.0))
-        return im.replace(s, pts=s.pts + move)
+        if len(right) == s.n_strokes:
+            return im.replace(s, pts=s.pts + move)
+        pts = s.pts.copy()
+        vertices = np.repeat(np.isin(np.arange(s.n_strokes), right), s.counts)
+        pts[vertices] += move
+        return im.replace(s, pts=pts)
 
     @classmethod
     def report(cls, p: StereoMismatchParams, stats: Stats) -> dict:
@@ -98,7 +108,8 @@ class StereoMismatch(Effect):
 
 
 def _drop_band(s: im.ImageSet, epipole: np.ndarray, band: float) -> im.ImageSet:
-    """Remove every stroke segment within `band` of its epipolar line; keep the rest as fragments.
+    """Remove every stroke segment within `band` of its epipolar line; keep the rest as fragments. `epipole`:
+    each stroke's view's, (strokes, 3).
 
     A closed stroke's segments include its closing one; its kept runs are taken once around the loop,
     a run through the loop's start being one piece; a loop that loses nothing stays whole and closed.
@@ -107,17 +118,18 @@ def _drop_band(s: im.ImageSet, epipole: np.ndarray, band: float) -> im.ImageSet:
     first, last = s.start[:-1], s.start[1:] - 1
     loops = np.flatnonzero(s.closed & (s.counts > 1))
     closing_inside = np.zeros(S, dtype=bool)
-    closing_inside[loops] = in_band(s.pts[last[loops]], s.pts[first[loops]], epipole, band)
-    real = s.vertex_stroke()[:-1] == s.vertex_stroke()[1:] if len(s.pts) else np.zeros(0, bool)
-    inside = in_band(s.pts[:-1], s.pts[1:], epipole, band)
-    hit = np.bincount(s.vertex_stroke()[:-1][real & inside], minlength=S) > 0 if len(s.pts) else np.zeros(S, bool)
+    closing_inside[loops] = in_band(s.pts[last[loops]], s.pts[first[loops]], epipole[loops], band)
+    stroke_of = s.vertex_stroke()
+    real = stroke_of[:-1] == stroke_of[1:] if len(s.pts) else np.zeros(0, bool)
+    inside = in_band(s.pts[:-1], s.pts[1:], epipole[stroke_of[:-1]], band)
+    hit = np.bincount(stroke_of[:-1][real & inside], minlength=S) > 0 if len(s.pts) else np.zeros(S, bool)
     cut_loops = s.closed & (hit | closing_inside)
     intact = s.closed & ~cut_loops
     u = im.unroll_closed(s, cut_loops)  # a cut loop: twice round, of which one lap from a dropped segment is used
     stroke_of = u.vertex_stroke()
     pair_stroke = stroke_of[:-1]
     real = stroke_of[:-1] == stroke_of[1:]
-    inside = in_band(u.pts[:-1], u.pts[1:], epipole, band)
+    inside = in_band(u.pts[:-1], u.pts[1:], epipole[pair_stroke], band)
     local = np.arange(len(u.pts) - 1) - u.start[pair_stroke]
     c = s.counts[pair_stroke]  # a loop's own number of segments
     lap = real & inside & cut_loops[pair_stroke] & (local < c)

@@ -88,6 +88,39 @@ def empty() -> ImageSet:
                     np.zeros((0, 2)), z, z)
 
 
+def concat(sets: list[ImageSet], per_set: int) -> ImageSet:
+    """One ImageSet from several of `per_set` trials each (several views' batches): trial k of set i gets batch
+    index i * per_set + k, so that the strokes stay ordered by batch index."""
+    offsets = np.cumsum([0] + [len(s.pts) for s in sets])
+    cat = lambda name: np.concatenate([getattr(s, name) for s in sets])  # noqa: E731
+    return ImageSet(
+        pts=np.concatenate([s.pts for s in sets]).reshape(-1, 2),
+        start=np.concatenate([s.start[:-1] + o for s, o in zip(sets, offsets, strict=False)] + [offsets[-1:]]),
+        fid=cat("fid"), segment=cat("segment"), fragment=cat("fragment"), kind=cat("kind"), clipped=cat("clipped"),
+        closed=cat("closed"), trial=np.concatenate([s.trial + i * per_set for i, s in enumerate(sets)]),
+        corners=np.concatenate([s.corners for s in sets]).reshape(-1, 2), corner_fid=cat("corner_fid"),
+        corner_trial=np.concatenate([s.corner_trial + i * per_set for i, s in enumerate(sets)]),
+        occluded=cat("occluded"))
+
+
+def split(s: ImageSet, n: int, per_set: int) -> list[ImageSet]:
+    """The inverse of `concat`: the n sets of `per_set` trials each (batch indices i * per_set .. back to 0..),
+    each a slice of `s`'s arrays."""
+    bounds = np.arange(n + 1) * per_set
+    cut = np.searchsorted(s.trial, bounds).tolist()
+    corner_cut = np.searchsorted(s.corner_trial, bounds).tolist()
+    out = []
+    for i in range(n):
+        a, b, c, d = cut[i], cut[i + 1], corner_cut[i], corner_cut[i + 1]
+        start = s.start[a:b + 1]
+        out.append(ImageSet(
+            pts=s.pts[start[0]:start[-1]], start=start - start[0], fid=s.fid[a:b], segment=s.segment[a:b],
+            fragment=s.fragment[a:b], kind=s.kind[a:b], clipped=s.clipped[a:b], closed=s.closed[a:b],
+            trial=s.trial[a:b] - i * per_set, corners=s.corners[c:d], corner_fid=s.corner_fid[c:d],
+            corner_trial=s.corner_trial[c:d] - i * per_set, occluded=s.occluded[a:b]))
+    return out
+
+
 def segmented_cumsum(values: np.ndarray, start: np.ndarray) -> np.ndarray:
     """Running sums of `values` (N,) restarting at every stroke start (CSR `start`), each stroke summed on
     its own in order: a stroke's sums do not depend on the strokes packed before it (replay holds bit
@@ -229,14 +262,17 @@ def keep_vertex_runs(s: ImageSet, ok: np.ndarray) -> ImageSet:
                           closed=whole & s.closed[stroke], cut=~whole, whole=whole)
 
 
-def clip_rect(s: ImageSet, width: float, height: float) -> ImageSet:
-    """Strokes cut to the image rectangle [0, width] x [0, height]; cut strokes are flagged `clipped`."""
+def clip_rect(s: ImageSet, width, height) -> ImageSet:
+    """Strokes cut to the image rectangle [0, width] x [0, height] (numbers, or arrays of one a vertex: views of
+    several cameras); cut strokes are flagged `clipped`."""
     x, y = s.pts[:, 0], s.pts[:, 1]
-    if len(x) == 0 or (x.min() >= 0 and y.min() >= 0 and x.max() <= width and y.max() <= height):
+    if len(x) == 0 or (x.min() >= 0 and y.min() >= 0 and np.all(x <= width) and np.all(y <= height)):
         return s
     from wiredsl.engine.geometry import clip_segments_rect
 
     n = len(s.pts)
+    if np.ndim(width):  # a pair of vertices is cut to its first vertex's image (pairs across strokes are not used)
+        width, height = width[:-1], height[:-1]
     t0, t1, keep = clip_segments_rect(s.pts[:-1], s.pts[1:], width, height)
     last = s.start[1:] - 1
     real = np.ones(n - 1, dtype=bool)

@@ -22,7 +22,7 @@ import numpy as np
 from wiredsl.diagnostics import Diagnostic, WiredslError
 from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.effects import calibration_error as calib
-from wiredsl.effects.base import CAMERA_INDEX, Context, Stats, stream_key
+from wiredsl.effects.base import CAMERA_INDEX, Context, PackedContext, Stats, stream_key
 from wiredsl.engine import geometry
 from wiredsl.engine import imageset as im
 from wiredsl.engine.simulate import (
@@ -70,6 +70,7 @@ class Run:
     exact_calibration: bool = False  # project each trial's perturbed rig from scratch (slow reference)
     point: int | None = None  # a study's design point: one more component of every draw's key
     engine: str = "auto"  # "kernel" (compiled, numba), "numpy" (the readable reference), "auto": kernel if installed
+    pack: bool = True  # numpy path, built-in stages: all views of a batch in one set (False: a view at a time)
 
     @classmethod
     def create(cls, scene: Scene, world: World, pipeline, seed: int, options: Options,
@@ -268,6 +269,8 @@ class Run:
                 self.trace["reproject"] += 1
                 rigs = checked
         out = []
+        # the numpy path with built-in stages only: every view's trials packed in one set, each stage run once
+        packed = [] if self.pack and not kernel and all(e.name in BUILTIN for e, _ in self.image_stages) else None
         for j, result in enumerate(base):
             disturbed = {}
             views = {"left": None, "right": None}
@@ -283,10 +286,19 @@ class Run:
                     sets = concat_trials([to_imageset(getattr(r[j], side), self.world) for r in per_trial])
                     views[side] = [getattr(r[j], side) for r in per_trial]
                 elif rigs is not None:
+                    template = self.template(result, side, raw=True, keep=keep)
+                    if packed is not None:  # cut to the image below, with the other views
+                        sets, ok, views[side] = projected(getattr(result, side), self.world, rigs[side], result.pose,
+                                                          side, template)
+                        packed.append((result, side, sets, disturbed, ok, rigs[side]["camera"]))
+                        continue
                     sets, views[side] = reproject(getattr(result, side), self.world, rigs[side], result.pose, side,
-                                                  self.template(result, side, raw=True, keep=keep))
+                                                  template)
                 else:
                     sets = self.template(result, side, raw=False, keep=keep)[0].repeat_trials(len(batch))
+                if packed is not None:
+                    packed.append((result, side, sets, disturbed, None, None))
+                    continue
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
                               point=self.point, camera=getattr(result, side).camera)
@@ -299,7 +311,41 @@ class Run:
                                             self._stage_of(effect))
                 disturbed[side] = sets
             out.append((result, disturbed, views))
+        if packed:
+            self._packed_stages(batch, packed)
         return out
+
+    def _packed_stages(self, batch: Sequence[int], views: list) -> None:
+        """The image stages (built-in effects) on many views' trials at once: [(result, side, ImageSet of the
+        batch, the result's dict of disturbed sets, which vertices are imaged or None, the perturbed camera or
+        None)], each set put in its dict. With a camera, the set is the re-projection before its cuts
+        (`projected`), cut here (`cut_to_image`). The same draws, outputs and statistics as one view at a time
+        (`PackedContext`), with a stage's Python paid once, not once a view."""
+        T = len(batch)
+        for effect, _ in self.image_stages:
+            self.trace[effect.name] += len(views)
+        poses = np.array([v[0].index for v in views], dtype=np.int64)
+        cameras = np.array([CAMERA_INDEX[v[1]] for v in views], dtype=np.int64)
+        epipoles = []
+
+        def view_epipoles():  # as each view's stage would ask for it: once a view, in order
+            if not epipoles:
+                epipoles.append(np.array([self.epipole(v[0].pose, v[1]) for v in views]))
+            return epipoles[0]
+
+        ctx = PackedContext(pose=-1, side="", trials=np.tile(np.asarray(batch, dtype=np.int64), len(views)),
+                            seed=self.seed, stats=self.stats, point=self.point, per_view=T,
+                            poses=np.repeat(poses, T), cameras=np.repeat(cameras, T), view_epipoles=view_epipoles)
+        sets = im.concat([v[2] for v in views], T)
+        if views[0][4] is not None:  # re-projected: cut to each view's image
+            sizes = {(v[5].width, v[5].height) for v in views}
+            width, height = sizes.pop() if len(sizes) == 1 else \
+                (np.repeat([float(v[5].width) for v in views], T), np.repeat([float(v[5].height) for v in views], T))
+            sets = cut_to_image(sets, np.concatenate([v[4] for v in views]), width, height)
+        for effect, params in self.image_stages:
+            sets = effect.apply(params, sets, ctx)
+        for (_, side, _, disturbed, *_), s in zip(views, im.split(sets, len(views), T), strict=True):
+            disturbed[side] = s
 
     def _stage_of(self, effect) -> str:
         """'stage G of N' for an effect of the pipeline (as the scene lists its stages that run)."""
@@ -783,21 +829,36 @@ def reproject(view: View, world: World, rig: dict, pose: tuple, side: str, templ
     behind the near plane or past the fold radius are cut away. Returns the ImageSet and
     a function giving trial k's View (its camera and pose) for the dump.
     """
+    rep, ok, view_of = projected(view, world, rig, pose, side, template)
+    cam = rig["camera"]
+    return cut_to_image(rep, ok, cam.width, cam.height), view_of
+
+
+def projected(view: View, world: World, rig: dict, pose: tuple, side: str, template: tuple | None = None):
+    """`reproject` before its cuts: every trial's strokes projected (ImageSet), whether each vertex is imaged (N,),
+    and the trials' views; the corners are already those within the image."""
     template, W, CW = template if template is not None else raw_template(view, world)
     R_cw, t_cw, cams, folds = trial_cameras(rig, pose)
     T = len(cams)
-    rep = template.repeat_trials(T)
     uv, ok = project_trials(W, R_cw, t_cw, cams, folds)
-    # a vertex the perturbation takes behind the near plane or past the fold (a stroke cut there in the
-    # ideal view) is cut away with its neighbours' span, as the ideal path cuts in 3D
     cam = rig["camera"]
-    with np.errstate(over="ignore", invalid="ignore"):  # as the kernel: a huge distortion's far vertices measure
-        rep = im.keep_vertex_runs(im.replace(rep, pts=uv), ok)  # inf and are cut away, never reach the image
-        rep = im.clip_rect(rep, cam.width, cam.height)
     cuv, cok = project_trials(CW, R_cw, t_cw, cams, folds)
     cok &= (cuv[:, 0] >= 0) & (cuv[:, 0] <= cam.width) & (cuv[:, 1] >= 0) & (cuv[:, 1] <= cam.height)
-    rep = im.replace(rep, corners=cuv).take_corners(cok)
-    return rep, view_maker(rig, R_cw, t_cw, side)
+    rep = im.replace(template.repeat_trials(T), pts=uv, corners=cuv).take_corners(cok)
+    return rep, ok, view_maker(rig, R_cw, t_cw, side)
+
+
+def cut_to_image(rep: im.ImageSet, ok: np.ndarray, width, height) -> im.ImageSet:
+    """Projected strokes cut where a vertex is not imaged (`ok` False) and to the image [0, width] x [0, height]
+    (numbers, or arrays by batch index when the set packs views of cameras of several sizes).
+
+    A vertex the perturbation takes behind the near plane or past the fold (a stroke cut there in the ideal view)
+    is cut away with its neighbours' span, as the ideal path cuts in 3D."""
+    with np.errstate(over="ignore", invalid="ignore"):  # as the kernel: a huge distortion's far vertices measure
+        rep = im.keep_vertex_runs(rep, ok)  # inf and are cut away, never reach the image
+        if np.ndim(width):  # each vertex's image size
+            width, height = (np.repeat(np.asarray(a)[rep.trial], rep.counts) for a in (width, height))
+        return im.clip_rect(rep, width, height)
 
 
 def view_maker(rig: dict, R_cw: np.ndarray, t_cw: np.ndarray, side: str) -> TrialViews:

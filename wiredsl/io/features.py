@@ -4,17 +4,15 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import ConfigDict, Field, model_serializer
+from pydantic import Field, model_serializer
 
 from wiredsl.scene import SCHEMA_VERSION, Camera, Mat34, Vec2, Vec3, omitted_when_none
 from wiredsl.scene import Node as SceneNode
 
 
 class Node(SceneNode):
-    """The output documents' base: validators built when first used, since a build writes its dump from arrays
-    (io/emit.py) and only makes a manifest."""
-
-    model_config = ConfigDict(**SceneNode.model_config, defer_build=True)
+    """The output documents' base (validators built when first used, as the scene's nodes': a build writes its dump
+    from arrays, io/emit.py, and only makes a manifest)."""
 
 
 class Feature(Node):

@@ -40,6 +40,7 @@ from wiredsl.scene import (
     Silhouette,
     Stage,
     Viewpoints,
+    trusted,
 )
 
 FORMAT_VERSION = 1
@@ -143,7 +144,8 @@ class Compiler(CameraCompiler):
         if self.out.n_errors:
             # Sentinel; never returned to a user, compile_program raises first.
             return Scene.model_construct(name=name, source=root.path)
-        return Scene(
+        return trusted(
+            Scene,
             name=name,
             source=root.path.replace(os.sep, "/"),
             models=[d.value for d in self.models.values()],
@@ -243,7 +245,7 @@ class Compiler(CameraCompiler):
                 if self._ref(kinds, "line", ref.value, ref.span, in_model) and kinds[ref.value] not in (
                         "line", "polyline"):
                     self.out.error("E104", f"'{ref.value}' is a {kinds[ref.value]}, not a line", ref.span)
-        model = Model(name=b.name, **feats)
+        model = trusted(Model, name=b.name, **feats)
         if self._declare(self.models, "model", b.name, b.name_span, model):
             self.features[b.name] = kinds
 
@@ -276,7 +278,7 @@ class Compiler(CameraCompiler):
         if np.linalg.norm(p1 - p0) <= GEOM_EPS:
             self.out.error("E120", f"line '{fb.name}' has zero length", fb.stmt.span, "its two ends are the same point")
             return None
-        return Line(name=fb.name, start=fb.get("from"), end=fb.get("to"))
+        return trusted(Line, name=fb.name, start=fb.get("from"), end=fb.get("to"))
 
     def _points(self, fb: Bound, key: str, least: int, what: str) -> list | None:
         pts = fb.get(key)
@@ -299,7 +301,7 @@ class Compiler(CameraCompiler):
             self.out.error("E120", f"polyline '{fb.name}' has a zero-length segment (points {i + 1} and "
                                    f"{(i + 1) % len(pts) + 1} coincide)", fb.get("through")[i].span)
             return None
-        return Polyline(name=fb.name, points=pts, closed=closed)
+        return trusted(Polyline, name=fb.name, points=pts, closed=closed)
 
     def _feature_ellipse(self, fb: Bound) -> Ellipse | None:
         n, u = _unit(self._point(fb, "normal")), _unit(self._point(fb, "axis"))
@@ -329,15 +331,16 @@ class Compiler(CameraCompiler):
             return None
         u = u - (u @ n) * n  # remove the tolerated rounding so the frame is exactly orthonormal
         u /= np.linalg.norm(u)
-        return Ellipse(name=fb.name, centre=fb.get("centre"), normal=tuple(n), axis=tuple(u), a=a, b=b, t0=t0, t1=t1)
+        return trusted(Ellipse, name=fb.name, centre=fb.get("centre"), normal=tuple(float(v) for v in n),
+                       axis=tuple(float(v) for v in u), a=a, b=b, t0=t0, t1=t1)
 
     def _feature_silhouette(self, fb: Bound) -> Silhouette:
         refs = fb.clauses["between"][0]
-        return Silhouette(name=fb.name, ellipses=(refs[0].value, refs[1].value))
+        return trusted(Silhouette, name=fb.name, ellipses=(refs[0].value, refs[1].value))
 
     def _feature_corner(self, fb: Bound) -> Corner:
         joins = [r.value for r in fb.get("joins", [])]
-        return Corner(name=fb.name, at=fb.get("at"), joins=joins)
+        return trusted(Corner, name=fb.name, at=fb.get("at"), joins=joins)
 
     def _feature_face(self, fb: Bound) -> Face | None:
         pts = self._points(fb, "through", 3, "vertices")
@@ -356,7 +359,7 @@ class Compiler(CameraCompiler):
             self.out.error("E123", f"face '{fb.name}' is not planar (a vertex is {off:.3g} m off its plane)",
                            fb.span("through"))
             return None
-        return Face(name=fb.name, vertices=pts)
+        return trusted(Face, name=fb.name, vertices=pts)
 
     def _board(self, b: Bound) -> None:
         """`board`: a model whose corners, lines and face are a calibration board's (scene.Board's frame)."""
@@ -403,8 +406,8 @@ class Compiler(CameraCompiler):
                 self.out.error("E110", f"a {columns} x {rows} charuco board needs {wanted} markers; dictionary "
                                        f"{dictionary} has {size}", b.span("dictionary"))
                 return
-        board = Board(kind=kind, columns=columns, rows=rows, square=side, margin=margin, marker=marker,
-                      dictionary=dictionary)
+        board = trusted(Board, kind=kind, columns=columns, rows=rows, square=side, margin=margin, marker=marker,
+                        dictionary=dictionary)
         model = board_model(b.name, board)
         if self._declare(self.models, "model", b.name, b.name_span, model):
             kinds = {f.name: "line" for f in model.lines} | {c.name: "corner" for c in model.corners}
@@ -419,7 +422,7 @@ class Compiler(CameraCompiler):
         R = self._rotation(b)
         if R is None:
             return
-        placement = Placement(name=name, model=model, position=b.get("at", (0.0, 0.0, 0.0)), rotation=_mat(R))
+        placement = trusted(Placement, name=name, model=model, position=b.get("at", (0.0, 0.0, 0.0)), rotation=_mat(R))
         self._declare(self.placements, "placement", name, b.span("as"), placement)
 
     def _rotation(self, b: Bound) -> np.ndarray | None:
@@ -520,8 +523,8 @@ class Compiler(CameraCompiler):
         mode = mode or ("authored" if visible else "all")
         if visible and mode != "authored":
             self.out.error("E103", f"'visible' lists need 'visibility authored', not {mode}", b.name_span)
-        return Viewpoints(name=b.name, names=names, points=points, triangles=triangles, visibility=mode, file=file,
-                          visible={k: sorted(set(v)) for k, v in visible.items()})
+        return trusted(Viewpoints, name=b.name, names=names, points=points, triangles=triangles, visibility=mode,
+                       file=file, visible={k: sorted(set(v)) for k, v in visible.items()})
 
     def _declare_index(self, index: dict, names: list, sb: Bound) -> bool:
         if sb.name in index:
@@ -641,7 +644,7 @@ class Compiler(CameraCompiler):
             if self.out.n_errors == n0:  # else the statements that failed are the reason, reported already
                 self.out.error("E102", f"path '{b.name}' has no poses", b.name_span)
             return None
-        return Path(name=b.name, poses=poses)
+        return trusted(Path, name=b.name, poses=poses)
 
     def _trajectory(self, b: Bound, reads: dict[str, Bound], rig: Rig | None) -> Path | None:
         """A 6-DoF path from a trajectory file: world_from_robot = world_from_file . file_from_body .
@@ -719,7 +722,7 @@ class Compiler(CameraCompiler):
         floor = [(float(t[0]), float(t[1]), math.atan2(r[1, 0], r[0, 0])) for r, t in zip(R_wr, t_wr, strict=True)]
         transforms = [tuple(tuple(float(v) for v in row) for row in np.column_stack([r, t])) for r, t
                       in zip(R_wr, t_wr, strict=True)]
-        return Path(name=b.name, poses=floor, transforms=transforms)
+        return trusted(Path, name=b.name, poses=floor, transforms=transforms)
 
     def _trajectory_error(self, exc, target: FsPath, text: str, where: str, span: Span) -> None:
         """Report a TrajectoryError at its line of the file, else at `span` of the statement."""
@@ -815,13 +818,14 @@ class Compiler(CameraCompiler):
             last = (rank, name) if last is None or rank >= last[0] else last
             params = {k: sb.get(k) for k in sb.clauses}
             try:
-                stages.append(Stage(effect=name, params=params_of("effect", effect, REGISTRY, params).model_dump()))
+                checked = params_of("effect", effect, REGISTRY, params).model_dump()
+                stages.append(trusted(Stage, effect=name, params=checked))
             except pydantic.ValidationError as exc:
                 for err in exc.errors():
                     key = str(err["loc"][0]) if err["loc"] else ""
                     self.out.error("E110", f"{name} {key}: {_range_message(err, params.get(key))}",
                                    sb.span(key) if key in sb.clauses else stmt.span, _percent_hint(sb, key))
-        pipeline = Pipeline(name=b.name, default=b.has("default"), stages=stages)
+        pipeline = trusted(Pipeline, name=b.name, default=b.has("default"), stages=stages)
         self._declare(self.pipelines, "pipeline", b.name, b.name_span, pipeline)
 
     def _studies(self, path: Path | None) -> list:
@@ -860,23 +864,23 @@ def board_model(name: str, board: Board) -> Model:
     s, m = board.square, board.margin
     nx, ny = board.inner
     x0, x1, y0, y1 = -s, nx * s, -s, ny * s
-    lines = [Line(name=f"v{i}", start=(i * s, y0, 0.0), end=(i * s, y1, 0.0)) for i in range(nx)]
-    lines += [Line(name=f"h{j}", start=(x0, j * s, 0.0), end=(x1, j * s, 0.0)) for j in range(ny)]
+    lines = [trusted(Line, name=f"v{i}", start=(i * s, y0, 0.0), end=(i * s, y1, 0.0)) for i in range(nx)]
+    lines += [trusted(Line, name=f"h{j}", start=(x0, j * s, 0.0), end=(x1, j * s, 0.0)) for j in range(ny)]
     for a in range(nx + 1):  # square columns: square (a, b) spans x in [(a - 1) s, a s]
         if a % 2 == 0:
-            lines.append(Line(name=f"top{a}", start=((a - 1) * s, y0, 0.0), end=(a * s, y0, 0.0)))
+            lines.append(trusted(Line, name=f"top{a}", start=((a - 1) * s, y0, 0.0), end=(a * s, y0, 0.0)))
         if (a + ny) % 2 == 0:
-            lines.append(Line(name=f"bottom{a}", start=((a - 1) * s, y1, 0.0), end=(a * s, y1, 0.0)))
+            lines.append(trusted(Line, name=f"bottom{a}", start=((a - 1) * s, y1, 0.0), end=(a * s, y1, 0.0)))
     for c in range(ny + 1):
         if c % 2 == 0:
-            lines.append(Line(name=f"left{c}", start=(x0, (c - 1) * s, 0.0), end=(x0, c * s, 0.0)))
+            lines.append(trusted(Line, name=f"left{c}", start=(x0, (c - 1) * s, 0.0), end=(x0, c * s, 0.0)))
         if (nx + c) % 2 == 0:
-            lines.append(Line(name=f"right{c}", start=(x1, (c - 1) * s, 0.0), end=(x1, c * s, 0.0)))
-    corners = [Corner(name=f"c{j}_{i}", at=(i * s, j * s, 0.0), joins=[f"v{i}", f"h{j}"])
+            lines.append(trusted(Line, name=f"right{c}", start=(x1, (c - 1) * s, 0.0), end=(x1, c * s, 0.0)))
+    corners = [trusted(Corner, name=f"c{j}_{i}", at=(i * s, j * s, 0.0), joins=[f"v{i}", f"h{j}"])
                for j in range(ny) for i in range(nx)]
-    face = Face(name=board.face, vertices=[(x0 - m, y0 - m, 0.0), (x1 + m, y0 - m, 0.0), (x1 + m, y1 + m, 0.0),
-                                           (x0 - m, y1 + m, 0.0)])
-    return Model(name=name, lines=lines, corners=corners, faces=[face], board=board)
+    face = trusted(Face, name=board.face, vertices=[(x0 - m, y0 - m, 0.0), (x1 + m, y0 - m, 0.0),
+                                                    (x1 + m, y1 + m, 0.0), (x0 - m, y1 + m, 0.0)])
+    return trusted(Model, name=name, lines=lines, corners=corners, faces=[face], board=board)
 
 
 def _line_span(path: FsPath, text: str, line: int) -> Span:

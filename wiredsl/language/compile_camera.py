@@ -16,7 +16,7 @@ import numpy as np
 from wiredsl.diagnostics import Collector, Span, WiredslError, did_you_mean
 from wiredsl.language import ast
 from wiredsl.language.statements import MAX_MAGNITUDE, Bound, bind
-from wiredsl.scene import CALIBRATION_PARAMETERS, Calibration, Camera, Mount, Rig
+from wiredsl.scene import CALIBRATION_PARAMETERS, Calibration, Camera, Mount, Rig, trusted
 
 MAX_MATRIX = 1_000
 BARE_FOCAL_METRES = 0.1  # a bare focal length this long (in m) is more likely mm written without its unit
@@ -406,7 +406,7 @@ class CameraCompiler:
             return None
         if calibration is not None and not self._calibration_fits_lenses(calibration, mounts, seen["calibration"]):
             return None
-        rig = Rig(name=b.name, left=mounts["left"], right=mounts["right"], calibration=calibration)
+        rig = trusted(Rig, name=b.name, left=mounts["left"], right=mounts["right"], calibration=calibration)
         self._check_stereo(rig, seen["right"])
         return rig
 
@@ -450,7 +450,7 @@ class CameraCompiler:
             self.out.error("E122", "viewing direction is vertical: the camera's image axes are undefined",
                            sb.span("looking"), "tilt it slightly, e.g. (0.01, 0, -1)")
             return None
-        return Mount(camera=cam, position=sb.get("at"), rotation=_mat(R)) if ok else None
+        return trusted(Mount, camera=cam, position=sb.get("at"), rotation=_mat(R)) if ok else None
 
     def _relative_mount(self, sb: Bound, other: Mount | Bound | None, side: str) -> Mount | None:
         """A camera's mount from a calibration file's extrinsics and the other camera's mount. When both
@@ -490,7 +490,7 @@ class CameraCompiler:
             self.out.error("E141", f"calibration file {path}: the translation T is beyond {MAX_MAGNITUDE:g} m", span)
             return None
         self.relative_file = path
-        return Mount(camera=sb.pos(0), position=tuple(float(x) for x in p_s), rotation=_mat(R_s))
+        return trusted(Mount, camera=sb.pos(0), position=tuple(float(x) for x in p_s), rotation=_mat(R_s))
 
     def _check_stereo(self, rig: Rig, span: Span) -> None:
         """Warnings for a rig that is probably not what was meant: a baseline in millimetres, sides swapped."""
@@ -553,7 +553,7 @@ class CameraCompiler:
             self.out.error("E140", f"calibration {kind} matrix {problem}", mspan)
         if self.out.n_errors != n0:
             return None
-        return Calibration(kind=kind, order=[o.value for o in order], matrix=M.tolist())
+        return trusted(Calibration, kind=kind, order=[o.value for o in order], matrix=M.tolist())
 
     def _kalibr_calibration(self, sb: Bound) -> Calibration | None:
         """The rig's calibration uncertainty as Kalibr reports it: independent standard deviations
@@ -577,8 +577,8 @@ class CameraCompiler:
                 self.out.error("E104", f"Kalibr's file gives no standard deviation for '{name}'", span,
                                did_you_mean(name, sigma) or "it has: " + ", ".join(sigma))
                 return None
-        return Calibration(kind="covariance", order=[n for n, _ in names],
-                           matrix=np.diag([sigma[n] ** 2 for n, _ in names]).tolist())
+        return trusted(Calibration, kind="covariance", order=[n for n, _ in names],
+                       matrix=np.diag([sigma[n] ** 2 for n, _ in names]).tolist())
 
 
 def rotation(axis: str, angle: float) -> np.ndarray:
