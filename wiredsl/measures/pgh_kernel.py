@@ -83,3 +83,64 @@ def histograms(a, b, starts, n_angle, directed, n_dist, d_max, point_span):
                 else:
                     _add(out, i, abin, near_end, far_end, rho, w, n_dist, d_max)
     return out
+
+
+
+@njit(cache=True)
+def _best(S, i, owner, best):
+    """best[k] = the largest S[i, r] over the ideal rows r of owner k (-inf where k has none)."""
+    best[:] = -np.inf
+    for r in range(S.shape[1]):
+        if S[i, r] > best[owner[r]]:
+            best[owner[r]] = S[i, r]
+
+
+@njit(cache=True)
+def own_scores(root, key, order, bounds, ideal_t, owner, sources, tie):
+    """`pgh._own_scores` a trial at a time (rows `order[bounds[g]:bounds[g + 1]]` are trial g's): each disturbed
+    row's best score among its own source's ideal rows (0 if none), and whether that is the best among every
+    source (within `tie`). The scores of a trial are one matrix product of its rows alone with the ideal rows
+    (`ideal_t`: (bins, n)), so they do not depend on which other trials share the call."""
+    M = root.shape[0]
+    K = len(sources)
+    best = np.empty(K)
+    own = np.zeros(M)
+    recog = np.zeros(M, dtype=np.bool_)
+    for g in range(len(bounds) - 1):
+        idx = order[bounds[g]:bounds[g + 1]]
+        S = np.dot(root[idx], ideal_t)
+        for i in range(len(idx)):
+            m = idx[i]
+            _best(S, i, owner, best)
+            col = min(np.searchsorted(sources, key[m]), K - 1)
+            if sources[col] != key[m]:
+                continue
+            other = -1.0
+            for k in range(K):
+                if k != col and best[k] > other:
+                    other = best[k]
+            own[m] = best[col]
+            recog[m] = best[col] >= other - tie
+    return own, recog
+
+
+@njit(cache=True)
+def located_scores(root, L, trial, order, bounds, n_trials, ideal_t, owner, n):
+    """`pgh._located`'s scores (n_trials, n), a trial at a time as `own_scores`: per trial and candidate
+    view-point, the length-weighted sum of each disturbed row's best match among the candidate's ideal rows
+    (float32 products, as float64); and each trial's length (n_trials,)."""
+    score = np.zeros((n_trials, n))
+    w = np.zeros(n_trials)
+    best = np.empty(n, dtype=ideal_t.dtype)
+    for g in range(len(bounds) - 1):
+        idx = order[bounds[g]:bounds[g + 1]]
+        S = np.dot(root[idx], ideal_t)
+        for i in range(len(idx)):
+            m = idx[i]
+            _best(S, i, owner, best)
+            t = trial[m]
+            for c in range(n):
+                if best[c] > -np.inf:
+                    score[t, c] += L[m] * np.float64(best[c])
+            w[t] += L[m]
+    return score, w
