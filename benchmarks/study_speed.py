@@ -66,9 +66,10 @@ def machine_speedup(n: int = 4_000_000) -> float:
     return one / two
 
 
-def _timed_study(tree: Path, out: Path, env: dict | None = None, cpu: bool = False, **kw):
-    """The wall time (with `cpu`: (wall, the study process's CPU time)) of one `sources` study run by `tree`'s
-    wiredsl in a new process (benchmarks/_study.py)."""
+def _timed_study(tree: Path, out: Path, env: dict | None = None, cpu: bool = False, full: bool = False, **kw):
+    """The wall time (with `cpu`: (wall, the study process's CPU time); with `full`: _study.py's whole record,
+    the workers' CPU time included) of one `sources` study run by `tree`'s wiredsl in a new process
+    (benchmarks/_study.py)."""
     import json
     import os
     import subprocess
@@ -82,7 +83,7 @@ def _timed_study(tree: Path, out: Path, env: dict | None = None, cpu: bool = Fal
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
     got = json.loads(proc.stdout.strip().splitlines()[-1])
-    return (got["wall"], got["cpu"]) if cpu else got["wall"]
+    return got if full else (got["wall"], got["cpu"]) if cpu else got["wall"]
 
 
 def side_by_side(ref: str, repeat: int, workers: int) -> None:
