@@ -3,7 +3,7 @@
 Every executor calls the same spawn-safe function, `shards.run_chunk`, on chunks of consecutive shards
 (a point's shards together, so a worker sets each point up once); it returns the shards' arrays, and the
 caller hears of each finished shard (in whatever order) with its arrays, and journals them. A worker
-process imports, loads the kernel and prepares the measures once per study (`shards.compute` keeps them),
+process imports, loads the kernel and prepares the measures once per study (`shards._setup` keeps them),
 not once per shard or chunk.
 """
 
