@@ -615,3 +615,21 @@ def test_the_tables_json_is_json_dumps_indented_by_one():
         assert indented(d) == json.dumps(d, indent=1, allow_nan=False)
     with pytest.raises(ValueError):
         indented({"x": [float("nan")]})
+
+
+def test_a_workers_blas_libraries_all_run_on_one_thread_numbas_too():
+    """In a fresh process (as a worker is), every BLAS library is limited inside `one_blas_thread`, scipy's that
+    numba's compiled PGH products call included (loaded lazily, it would run on every core: other sums, so
+    another table, and oversubscribed workers)."""
+    import subprocess
+    import sys
+
+    code = ("import threadpoolctl\nfrom wiredsl.study import shards\nwith shards.one_blas_thread():\n"
+            "    from wiredsl.measures import pgh_kernel\n    import numpy as np\n"
+            "    pgh_kernel.own_scores(np.ones((2, 3)), np.array([1, 1]), np.arange(2), np.array([0, 2]),\n"
+            "                          np.ones((3, 2)), np.zeros(2, dtype=np.int64), np.array([1]), 1e-6)\n"
+            "    print([(i['filepath'], i['num_threads']) for i in threadpoolctl.threadpool_info()\n"
+            "           if i['user_api'] == 'blas'])\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    libraries = eval(out)  # noqa: S307 (our own printed list)
+    assert any("scipy" in path for path, _ in libraries) and all(n == 1 for _, n in libraries), libraries

@@ -355,5 +355,7 @@ def one_blas_thread():
     except ImportError:
         yield
         return
+    with contextlib.suppress(ImportError):  # numba's compiled measures (PGH's products) call scipy's own BLAS: it is
+        import scipy.linalg.cython_blas  # noqa: F401  loaded now, so that the limit covers it (else 2 threads, other sums)
     with threadpool_limits(limits=1, user_api="blas"):
         yield
