@@ -27,6 +27,7 @@ PARTS = [
     ("measures/pgh.py measure", "measures/pgh.py", "measure"),
     ("  pgh _own_scores", "measures/pgh.py", "_own_scores"),
     ("  pgh _located", "measures/pgh.py", "_located"),
+    ("  pgh prepare (ideal and view-point PGHs)", "measures/pgh.py", "prepare"),
     ("  pgh histograms", "measures/pgh.py", "histograms"),
     ("measures/stereo3d.py measure", "measures/stereo3d.py", "measure"),
     ("  stereo3d undistort", "measures/stereo3d.py", "undistort"),
@@ -36,7 +37,10 @@ PARTS = [
     ("  rotation_vectors", "effects/calibration_error.py", "rotation_vectors"),
     ("shard writes (shards.write / journal append)", "study/", "write|append"),
     ("  fsync", "~", "<built-in method posix.fsync>"),
-    ("shard reads (shards.read / journal replay)", "study/", "read|replay"),
+    ("shard reads (shards.read / journal replay)", "study/", "read$|replay"),
+    ("  measures' read-only views (shards.read_only)", "study/shards.py", "read_only"),
+    ("pooled measure calls (shards._measure_pool)", "study/shards.py", "_measure_pool"),
+    ("  sets concatenated (shards._stack)", "study/shards.py", "_stack"),
     ("table (report.rows, to_json, to_csv)", "study/report.py", "rows|to_json|to_csv"),
 ]
 

@@ -53,23 +53,34 @@ def main() -> None:
     counts = [int(w) for w in args.workers.split(",")]
     print(f"machine: {os.cpu_count()} cores; {load()} before")
     best: dict[int, float] = {}
+    cpu: dict[int, float] = {}
     offered: dict[int, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         _timed_study(ROOT, Path(tmp) / "warm", limit=4)  # numba's caches filled
         for _ in range(args.repeat):
             for w in counts:
-                wall = _timed_study(ROOT, Path(tmp) / f"w{w}", executor="processes", workers=w, points=args.points)
-                best[w] = min(wall, best.get(w, float("inf")))
+                got = _timed_study(ROOT, Path(tmp) / f"w{w}", full=True, executor="processes", workers=w,
+                                   points=args.points)
+                best[w] = min(got["wall"], best.get(w, float("inf")))
+                cpu[w] = min(got["cpu"] + got["cpu_workers"], cpu.get(w, float("inf")))
                 offered[w] = max(machine(w) if w > 1 else 1.0, offered.get(w, 0.0))
-                print(f"  {w} workers: {wall:7.1f} s ({load()})", flush=True)
+                print(f"  {w} workers: {got['wall']:7.1f} s wall, {got['cpu']:6.1f} s CPU in the study's process + "
+                      f"{got['cpu_workers']:6.1f} s in its workers ({load()})", flush=True)
     points = 9 * args.points
     print(f"study: lab sources, {points} points x 2 trials x 3 poses (pgh, stereo3d), processes; best of {args.repeat}")
+    print("wall clock (what a quiet machine with that many free cores shows; a loaded one shows its load):")
     base = best[counts[0]] * counts[0]
     for w in counts:
         speedup = base / best[w]
         print(f"  {w:3d} workers: {best[w]:7.1f} s  {points / best[w]:7.1f} points/s  speed-up {speedup:5.2f}x  "
               f"efficiency {speedup / w:5.2f}  (the machine offered {offered[w]:.2f}x of pure-Python work: "
               f"{speedup / offered[w]:.0%} of it reached)")
+    print("CPU time, the study's process and its workers together (load-independent: the work that parallelism adds;"
+          " efficiency = CPU of the first count / CPU of this one, the wall efficiency on idle cores when every "
+          "worker is busy to the end):")
+    for w in counts:
+        print(f"  {w:3d} workers: {cpu[w]:7.1f} CPU-s  {points / cpu[w]:7.1f} points per CPU-second  "
+              f"CPU efficiency {cpu[counts[0]] / cpu[w]:5.2f}")
     print(f"machine: {load()} after (target: efficiency >= 0.8 from 1 to the machine's cores)")
 
 

@@ -66,9 +66,10 @@ def machine_speedup(n: int = 4_000_000) -> float:
     return one / two
 
 
-def _timed_study(tree: Path, out: Path, env: dict | None = None, cpu: bool = False, **kw):
-    """The wall time (with `cpu`: (wall, the study process's CPU time)) of one `sources` study run by `tree`'s
-    wiredsl in a new process (benchmarks/_study.py)."""
+def _timed_study(tree: Path, out: Path, env: dict | None = None, cpu: bool = False, full: bool = False, **kw):
+    """The wall time (with `cpu`: (wall, the study process's CPU time); with `full`: _study.py's whole record,
+    the workers' CPU time included) of one `sources` study run by `tree`'s wiredsl in a new process
+    (benchmarks/_study.py)."""
     import json
     import os
     import subprocess
@@ -82,7 +83,35 @@ def _timed_study(tree: Path, out: Path, env: dict | None = None, cpu: bool = Fal
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
     got = json.loads(proc.stdout.strip().splitlines()[-1])
-    return (got["wall"], got["cpu"]) if cpu else got["wall"]
+    return got if full else (got["wall"], got["cpu"]) if cpu else got["wall"]
+
+
+def table_difference(a: bytes, b: bytes) -> str:
+    """How two study tables (CSV) differ: rows that differ, by statistic, and the largest relative difference of
+    the mean and quantiles and of the standard error (cells compared as numbers)."""
+    import csv
+    import io
+
+    ra, rb = list(csv.reader(io.StringIO(a.decode()))), list(csv.reader(io.StringIO(b.decode())))
+    if len(ra) != len(rb) or ra[0] != rb[0]:
+        return f"different shapes ({len(ra)} and {len(rb)} lines)"
+    head = ra[0]
+    stat, which = head.index("statistic"), head.index("measure")
+    worst = {"mean and quantiles": 0.0, "sem": 0.0}
+    rows: dict[str, int] = {}
+    for x, y in zip(ra[1:], rb[1:], strict=True):
+        if x == y:
+            continue
+        rows[f"{x[which]}.{x[stat]}"] = rows.get(f"{x[which]}.{x[stat]}", 0) + 1
+        for col, u, v in zip(head, x, y, strict=True):
+            if u != v and col in ("mean", "sem", "q05", "q25", "q50", "q75", "q95") and u and v:
+                rel = abs(float(u) - float(v)) / max(abs(float(u)), abs(float(v)))
+                group = "sem" if col == "sem" else "mean and quantiles"
+                worst[group] = max(worst[group], rel)
+    if not rows:
+        return "equal"
+    return (f"{sum(rows.values())} of {len(ra) - 1} rows differ ({', '.join(f'{k} {v}' for k, v in rows.items())}); "
+            f"largest relative difference {worst['mean and quantiles']:.1e} (mean, quantiles), {worst['sem']:.1e} (sem)")
 
 
 def side_by_side(ref: str, repeat: int, workers: int) -> None:
@@ -140,6 +169,8 @@ def side_by_side(ref: str, repeat: int, workers: int) -> None:
             print(f"\ntable.csv equal to {names[1]}'s: {table[names[2]] == table[names[1]]}; "
                   f"to {names[0]}'s: {table[names[2]] == table[names[0]]}; "
                   f"{ref}'s two equal each other: {table[names[0]] == table[names[1]]}")
+            for name in names[:2]:
+                print(f"this checkout's table against {name}'s: {table_difference(table[name], table[names[2]])}")
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)], check=False)
     print(f"machine: {load()} after (target: this checkout >= 5x {ref}'s points/s per core)")

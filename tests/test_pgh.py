@@ -223,3 +223,34 @@ def test_disturbances_lower_the_scores():
     (batch, [(result, disturbed, _)]), = list(run.batches(list(range(8))))
     out = PGH.measure(p, prep, result, disturbed, 8)
     assert 0.3 < out["match"].mean() < 0.99 and out["recognition"].mean() < 1.0
+
+
+def test_the_compiled_scores_agree_with_the_matrix_products_and_do_not_depend_on_other_trials():
+    """pgh_kernel.own_scores and located_scores (a product a trial) against the numpy reference (one BLAS product
+    for the whole batch): scores to rounding, the same decisions; and a trial's values are the same measured
+    alone as with the others of its batch."""
+    from wiredsl.measures import pgh
+
+    run = lab_run(LAB.pipeline("paper"), poses=(2,))
+    p = PGHParams()
+    prep = PGH.prepare(p, run)
+    (batch, [(result, disturbed, _)]), = list(run.batches(list(range(12))))
+    seg = segments(disturbed["left"])
+    root = np.sqrt(pgh.flat(histograms(np.stack([seg["a"], seg["b"]], axis=1), p, group=seg["trial"])))
+    ref, db = prep.views[(result.index, "left")], prep.databases[(result.index, "left")]
+    key = pgh.source_key(seg["fid"], seg["segment"])
+    groups = pgh.by_trial(seg["trial"])
+    own, recog = pgh._own_scores(root, key, ref, groups)
+    own_np, recog_np = pgh._own_scores(root, key, ref)
+    assert 0.3 < own.mean() < 1 and np.allclose(own, own_np, rtol=0, atol=1e-13)
+    assert np.array_equal(recog, recog_np)
+    located = pgh._located(root, seg["length"], seg["trial"], 12, db, groups)
+    assert np.array_equal(located, pgh._located(root, seg["length"], seg["trial"], 12, db))
+    assert 0 < located.sum() <= 12
+    for t in (0, 5, 11):  # trial t alone, renumbered 0
+        rows = seg["trial"] == t
+        alone = pgh._own_scores(root[rows], key[rows], ref, pgh.by_trial(np.zeros(rows.sum(), dtype=int)))
+        assert np.array_equal(alone[0], own[rows]) and np.array_equal(alone[1], recog[rows])
+        one = pgh._located(root[rows], seg["length"][rows], np.zeros(rows.sum(), dtype=int), 1, db,
+                           pgh.by_trial(np.zeros(rows.sum(), dtype=int)))
+        assert one[0] == located[t]

@@ -529,3 +529,107 @@ def test_grid_plot_legend_names_each_other_factor_whole_with_its_unit():
     plt.close(fig)
     assert by_range == ["calibration_error.sigma=0.01", "calibration_error.sigma=0.02"]  # a number: no unit
     assert by_sigma == ["lateral_shift.range=1 px", "lateral_shift.range=2 px"]
+
+
+POOLED = """wiredsl 1
+include "{lab}"
+study pooled {{
+  pipeline paper
+  vary lateral_shift.range values [0, 1px, 2px, 3px, 4px, 5px]
+  vary calibration_error.sigma values [0.005, 0.01, 0.03]
+  trials 2
+  poses [0, 3]
+  seed 4
+  measure pgh
+  measure stereo3d
+  measure survival
+}}
+"""
+
+
+def test_pooled_measures_give_each_point_its_own_values_bit_for_bit(tmp_path, monkeypatch):
+    """pgh, stereo3d and survival measure several design points' trials in one call (shards.measure_points):
+    each point's values are those of a call of its own, to the last bit, whatever other points share the pool."""
+    from wiredsl.measures.stereo3d import Stereo3D
+
+    path = tmp_path / "p.wd"
+    path.write_text(POOLED.format(lab=Path("scenes/lab.wd").resolve().as_posix()))
+    scene = compile_file(path)[0]
+    _, js = jobs(scene, scene.study("pooled"), tmp_path / "out")
+    calls = []
+    original = Stereo3D.measure.__func__
+    monkeypatch.setattr(Stereo3D, "measure", classmethod(lambda cls, p, prep, pose, sets, n: (
+        calls.append(n), original(cls, p, prep, pose, sets, n))[1]))
+    alone = [shards.compute(j) for j in js]
+    assert set(calls) == {2}
+    calls.clear()
+    together = shards.compute_chunk(js)
+    assert max(calls) == 2 * len(js)  # one call a pose for every point
+    shifted = shards.compute_chunk(js[1:])  # other pools: the same values
+    for a, b, c in zip(alone, together, [None, *shifted], strict=True):
+        assert a.keys() == b.keys() and all(a[k].shape == (2, 2) for k in a)
+        assert all(np.array_equal(a[k], b[k]) for k in a)
+        assert c is None or all(np.array_equal(a[k], c[k]) for k in a)
+
+
+def test_a_pooled_study_resumed_or_run_by_processes_gives_the_same_table(tmp_path):
+    """An interrupted run resumed (its points pooled differently from an uninterrupted run's) and a run on two
+    processes (chunked differently again) write the in-process run's table byte for byte."""
+    path = tmp_path / "p.wd"
+    path.write_text(POOLED.format(lab=Path("scenes/lab.wd").resolve().as_posix()))
+    scene = compile_file(path)[0]
+    study = scene.study("pooled")
+    pools = []
+    original = shards._measure_pool
+    shards._measure_pool = lambda pool, *a: (pools.append(len(pool)), original(pool, *a))[1]
+    try:
+        run_study(scene, study, tmp_path / "whole", executor="inprocess")
+        assert run_study(scene, study, tmp_path / "resumed", executor="inprocess", limit=3) is None
+    finally:
+        shards._measure_pool = original
+    assert max(pools) > 1 and 1 in pools  # points pooled, differently in the interrupted run
+    run_study(scene, study, tmp_path / "resumed", executor="inprocess")
+    run_study(scene, study, tmp_path / "two", executor="processes", workers=2)
+    for name in ("table.csv", "table.json"):
+        whole = (tmp_path / "whole" / name).read_bytes()
+        assert whole == (tmp_path / "resumed" / name).read_bytes() == (tmp_path / "two" / name).read_bytes()
+
+
+def test_the_tables_json_is_json_dumps_indented_by_one():
+    """report.indented writes what json.dumps(indent=1) writes, character for character (random documents)."""
+    from wiredsl.study.report import indented
+
+    rng = np.random.default_rng(3)
+    leaves = [None, True, False, 0, -7, 10 ** 30, 1.5, 1e-06, -0.0, 1e300, 5e-324, "a\"b\\\n\u00e9\u4e2d", ""]
+
+    def doc(depth):
+        r = rng.random()
+        if depth > 3 or r < 0.4:
+            return leaves[rng.integers(len(leaves))]
+        if r < 0.7:
+            return {f"k{i}\u00e9\n"[: rng.integers(1, 5)] + str(i): doc(depth + 1) for i in range(rng.integers(0, 4))}
+        return [doc(depth + 1) for _ in range(rng.integers(0, 4))]
+
+    for _ in range(2000):
+        d = doc(0)
+        assert indented(d) == json.dumps(d, indent=1, allow_nan=False)
+    with pytest.raises(ValueError):
+        indented({"x": [float("nan")]})
+
+
+def test_a_workers_blas_libraries_all_run_on_one_thread_numbas_too():
+    """In a fresh process (as a worker is), every BLAS library is limited inside `one_blas_thread`, scipy's that
+    numba's compiled PGH products call included (loaded lazily, it would run on every core: other sums, so
+    another table, and oversubscribed workers)."""
+    import subprocess
+    import sys
+
+    code = ("import threadpoolctl\nfrom wiredsl.study import shards\nwith shards.one_blas_thread():\n"
+            "    from wiredsl.measures import pgh_kernel\n    import numpy as np\n"
+            "    pgh_kernel.own_scores(np.ones((2, 3)), np.array([1, 1]), np.arange(2), np.array([0, 2]),\n"
+            "                          np.ones((3, 2)), np.zeros(2, dtype=np.int64), np.array([1]), 1e-6)\n"
+            "    print([(i['filepath'], i['num_threads']) for i in threadpoolctl.threadpool_info()\n"
+            "           if i['user_api'] == 'blas'])\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    libraries = eval(out)  # noqa: S307 (our own printed list)
+    assert any("scipy" in path for path, _ in libraries) and all(n == 1 for _, n in libraries), libraries

@@ -39,9 +39,7 @@ class Sampler:
 
 def sampler(p: CalibrationErrorParams, kind: str, matrix, order: list[str]) -> Sampler:
     """Decompose the calibration matrix once (only when this stage runs)."""
-    M = np.asarray(matrix, dtype=float)
-    M = (M + M.T) / 2
-    w, V = np.linalg.eigh(M)  # symmetric: eigen- and singular vectors coincide on the PSD part
+    w, V = _eigh(np.asarray(matrix, dtype=float))
     top = max(float(np.abs(w).max(initial=0.0)), 1e-300)
     if kind == "information":
         ok = w > p.cutoff * top
@@ -53,6 +51,22 @@ def sampler(p: CalibrationErrorParams, kind: str, matrix, order: list[str]) -> S
     loose = [] if kind == "covariance" else [order[int(np.argmax(np.abs(V[:, i])))] for i in np.flatnonzero(~ok)]
     basis = V * scale[None, :]
     return Sampler(basis, loose, basis @ basis.T)
+
+
+def _eigh(M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """eigh of the symmetrised matrix, kept for the last few matrices: a study's design points decompose the
+    same calibration with different sigmas (the decomposition does not depend on sigma)."""
+    key = (M.shape, M.tobytes())
+    if key not in _EIGH:
+        M = (M + M.T) / 2
+        if len(_EIGH) >= 8:
+            _EIGH.pop(next(iter(_EIGH)))
+        _EIGH[key] = np.linalg.eigh(M)  # symmetric: eigen- and singular vectors coincide on the PSD part
+    w, V = _EIGH[key]
+    return w.copy(), V.copy()
+
+
+_EIGH: dict = {}
 
 
 def draws(s: Sampler, trials: np.ndarray, seed: int, point: int | None = None, attempt: int = 0) -> np.ndarray:

@@ -408,7 +408,7 @@ class Run:
         epipole = self.epipole(result.pose, side) if any(e.kernel.epipole for e, _ in stages) else np.zeros(3)
         args = (template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams,
                 folds, cam.width, cam.height, raw, functions, params, keys, epipole, side == "right", stats,
-                tuple(e.kernel.camera for e, _ in stages), camera_row(view.camera))
+                tuple(e.kernel.camera for e, _ in stages), self._camera_row(result, side, keep))
         plugins = self._kernel_rows["plugins"]
         if not plugins:
             pts, start, m, trial, corners, cfid, ctrial = kn.run_view(*args)
@@ -424,6 +424,16 @@ class Run:
                         clipped=m[:, 4].astype(bool), closed=m[:, 5].astype(bool), trial=trial, corners=corners,
                         corner_fid=cfid, corner_trial=ctrial, occluded=m[:, 6].astype(bool))
         return s, view_of
+
+    def _camera_row(self, result: PoseResult, side: str, keep: bool) -> np.ndarray:
+        """`camera_row` of an ideal view's camera, kept with the templates (shared by the runs of a study's points:
+        its lens limit alone cost a tenth of a small point's batch)."""
+        if not keep:
+            return camera_row(getattr(result, side).camera)
+        key = ("camera_row", result.index, side)
+        if key not in self._templates:
+            self._templates[key] = camera_row(getattr(result, side).camera)
+        return self._templates[key]
 
     def engines(self) -> dict[str, str]:
         """Which engine ran each stage (calibration_error's draws are numpy's on both: they set the cameras)."""

@@ -64,6 +64,9 @@ class Measure:
     statistics: ClassVar[tuple[str, ...]]
     weights: ClassVar[dict[str, str]] = {}  # statistic -> count statistic that weights it across trials
     units: ClassVar[dict[str, str]] = {}  # statistic -> its unit (m, px, count, fraction), shown on plots' axes
+    # True: a trial's values depend only on that trial's disturbed features (and the pose and prepared data), so a
+    # study may measure the trials of several design points in one call, their trial indices renumbered 0..n-1
+    pooled: ClassVar[bool] = False
     doc: ClassVar[str]
 
     @classmethod

@@ -252,6 +252,7 @@ class Reference:
     root: np.ndarray
     sources: np.ndarray
     starts: np.ndarray
+    owner: np.ndarray | None = None  # (n,) index into `sources` of each row, for the compiled scoring
 
     @classmethod
     def of(cls, s: im.ImageSet, p: PGHParams) -> Reference:
@@ -260,7 +261,15 @@ class Reference:
         key = source_key(seg["fid"], seg["segment"])
         order = np.argsort(key, kind="stable")
         sources, starts = np.unique(key[order], return_index=True)
-        return cls(np.sqrt(flat(h))[order], sources, starts)
+        root = np.sqrt(flat(h))[order]
+        return cls(root, sources, starts, np.repeat(np.arange(len(sources)), np.diff([*starts, len(root)])))
+
+
+def by_trial(trial: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows grouped by trial: (order, bounds), trial g's rows order[bounds[g]:bounds[g + 1]] (in row order)."""
+    order = np.argsort(trial, kind="stable")
+    t = trial[order]
+    return order, np.flatnonzero(np.concatenate([[True], t[1:] != t[:-1], [True]])) if len(t) else np.zeros(1, int)
 
 
 @dataclass
@@ -283,6 +292,7 @@ class PGH(Measure):
     name = "pgh"
     Params = PGHParams
     statistics = ("match", "recognition", "viewpoint", "viewpoint_cameras")
+    pooled = True  # each trial's values from its own features only
     # viewpoint is defined only where a camera has a view-point mesh to rank: weighted by those cameras, a scene
     # without a mesh gets no viewpoint row (not a 0 that reads as "never located")
     weights = {"viewpoint": "viewpoint_cameras"}
@@ -316,9 +326,9 @@ class PGH(Measure):
             chosen = np.sort(chosen)
             for side, refs in sets[heading].items():
                 rows = [refs[v] for v in chosen]
+                root = np.concatenate([r.root for r in rows]).astype(np.float32)
                 databases[(result.index, side)] = Database(
-                    np.concatenate([r.root for r in rows]).astype(np.float32),
-                    np.repeat(np.arange(len(chosen)), [len(r.root) for r in rows]),
+                    root, np.repeat(np.arange(len(chosen)), [len(r.root) for r in rows]),
                     len(chosen), int(np.flatnonzero(chosen == truth)[0]))
         return Prepared(views, databases)
 
@@ -342,24 +352,30 @@ class PGH(Measure):
             h = histograms(np.stack([seg["a"], seg["b"]], axis=1), p, group=seg["trial"])
             root = np.sqrt(flat(h))
             L, trial = seg["length"], seg["trial"]
-            own, recog = _own_scores(root, source_key(seg["fid"], seg["segment"]), ref)
+            groups = by_trial(trial)
+            own, recog = _own_scores(root, source_key(seg["fid"], seg["segment"]), ref, groups)
             total += np.bincount(trial, weights=L, minlength=n_trials)
             matched += np.bincount(trial, weights=L * own, minlength=n_trials)
             recognised += np.bincount(trial, weights=L * recog, minlength=n_trials)
             if db is not None:
-                located += _located(root, L, trial, n_trials, db)
+                located += _located(root, L, trial, n_trials, db, groups)
         some = total > 0
         return {"match": np.where(some, matched / np.where(some, total, 1.0), 0.0),
                 "recognition": np.where(some, recognised / np.where(some, total, 1.0), 0.0),
                 "viewpoint": located / max(cameras, 1), "viewpoint_cameras": np.full(n_trials, float(cameras))}
 
 
-def _own_scores(root: np.ndarray, key: np.ndarray, ref: Reference) -> tuple[np.ndarray, np.ndarray]:
+def _own_scores(root: np.ndarray, key: np.ndarray, ref: Reference, groups: tuple | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Each disturbed segment's best score among its own source's ideal segments (0 if none), and
     whether that is the best score among all ideal segments of the view (within TIE)."""
     K = len(ref.sources)
     if K == 0:
         return np.zeros(len(root)), np.zeros(len(root), dtype=bool)
+    compiled = kernel()
+    if compiled is not None and groups is not None:  # a product a trial: the same whatever shares the call
+        return compiled.own_scores(np.ascontiguousarray(root), np.ascontiguousarray(key, dtype=np.int64), *groups,
+                                   _transposed(ref), ref.owner, ref.sources, TIE)
     best = np.maximum.reduceat(root @ ref.root.T, ref.starts, axis=1)  # (M, K): best score per source
     col = np.minimum(np.searchsorted(ref.sources, key), K - 1)
     has = ref.sources[col] == key
@@ -370,11 +386,19 @@ def _own_scores(root: np.ndarray, key: np.ndarray, ref: Reference) -> tuple[np.n
     return np.where(has, own, 0.0), has & (own >= other - TIE)
 
 
-def _located(root: np.ndarray, L: np.ndarray, trial: np.ndarray, n_trials: int, db: Database) -> np.ndarray:
+def _located(root: np.ndarray, L: np.ndarray, trial: np.ndarray, n_trials: int, db: Database,
+             groups: tuple | None = None) -> np.ndarray:
     """Per trial, 1.0 when the nearest view-point's ideal PGH set scores highest (within TIE), else 0.
 
     A set's score is the length-weighted mean over the disturbed segments of each one's best match in the set.
     """
+    compiled = kernel()
+    if compiled is not None and groups is not None:  # a product a trial: the same whatever shares the call
+        score, w = compiled.located_scores(np.ascontiguousarray(root, dtype=np.float32), np.ascontiguousarray(L),
+                                           np.ascontiguousarray(trial, dtype=np.int64), *groups, n_trials,
+                                           _transposed(db), db.owner.astype(np.int64), db.n)
+        score /= np.where(w > 0, w, 1.0)[:, None]
+        return ((w > 0) & (score[:, db.truth] >= score.max(axis=1) - TIE)).astype(float)
     score = np.zeros((n_trials, db.n))
     if len(db.root):
         S = root.astype(np.float32) @ db.root.T
@@ -386,6 +410,15 @@ def _located(root: np.ndarray, L: np.ndarray, trial: np.ndarray, n_trials: int, 
     w = np.bincount(trial, weights=L, minlength=n_trials)
     score /= np.where(w > 0, w, 1.0)[:, None]
     return ((w > 0) & (score[:, db.truth] >= score.max(axis=1) - TIE)).astype(float)
+
+
+def _transposed(ref) -> np.ndarray:
+    """A Reference's or Database's roots as a C-contiguous (bins, rows) array, made once and kept on it."""
+    t = getattr(ref, "_t", None)
+    if t is None:
+        t = np.ascontiguousarray(ref.root.T)
+        object.__setattr__(ref, "_t", t)
+    return t
 
 
 # the view-points' ideal views depend only on the nominal scene and the projection options, not on a run's

@@ -164,6 +164,7 @@ class Stereo3D(Measure):
     Params = Stereo3DParams
     statistics = ("points", "error_mean", "error_median", "error_rms", "outliers",
                   "corners", "corner_error", "line_points", "line_error")
+    pooled = True  # each trial's values from its own features only
     weights = {"error_mean": "points", "error_median": "points", "error_rms": "points", "outliers": "points",
                "corner_error": "corners", "line_error": "line_points"}
     units = {"points": "count", "error_mean": "m", "error_median": "m", "error_rms": "m", "outliers": "fraction",

@@ -26,6 +26,7 @@ class Survival(Measure):
     name = "survival"
     Params = SurvivalParams
     statistics = ("features", "length", "corners", "ideal_features", "ideal_corners")
+    pooled = True  # each trial's values from its own features only
     weights = {"features": "ideal_features", "length": "ideal_features", "corners": "ideal_corners"}
     units = {"features": "fraction", "length": "fraction", "corners": "fraction", "ideal_features": "count",
              "ideal_corners": "count"}

@@ -3,7 +3,7 @@
 Every executor calls the same spawn-safe function, `shards.run_chunk`, on chunks of consecutive shards
 (a point's shards together, so a worker sets each point up once); it returns the shards' arrays, and the
 caller hears of each finished shard (in whatever order) with its arrays, and journals them. A worker
-process imports, loads the kernel and prepares the measures once per study (`shards.compute` keeps them),
+process imports, loads the kernel and prepares the measures once per study (`shards._setup` keeps them),
 not once per shard or chunk.
 """
 
@@ -93,7 +93,7 @@ def _processes(jobs: Sequence[Job], done: Done, workers: int) -> None:
     ctx = multiprocessing.get_context(method)
     if method == "forkserver":
         # numba and the compiled measures too (skipped without the `fast` extra): imported once, not per worker
-        ctx.set_forkserver_preload(["wiredsl.study.shards", "wiredsl.measures", "threadpoolctl", "numba",
+        ctx.set_forkserver_preload(["wiredsl.study.shards", "wiredsl.measures", "threadpoolctl", "numba", "scipy.linalg",
                                     "wiredsl.engine.kernel", "wiredsl.measures.pgh_kernel",
                                     "wiredsl.measures.stereo3d_kernel"])  # missing ones are skipped
     parts = chunks(jobs, workers)

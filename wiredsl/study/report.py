@@ -88,9 +88,10 @@ def rows(study: Study, X: np.ndarray, per_point: list[dict[str, np.ndarray]],
     error by the ratio estimator over trials, and quantiles over the views of weight > 0 (a view of weight
     0 holds only a placeholder); a point where no view has a weight gets no row.
     """
-    out = []
+    found = []  # (fields, values pooled): the quantiles are computed together below
     labels = [f.label for f in study.factors]
     for p, arrays in enumerate(per_point):
+        values = {k: _f(v) for k, v in zip(labels, X[p], strict=True)}
         for name, V in arrays.items():
             measure, stat = name.split(".", 1)
             w = (weights or {}).get(name)
@@ -106,11 +107,20 @@ def rows(study: Study, X: np.ndarray, per_point: list[dict[str, np.ndarray]],
             if n > 1:
                 resid = per_s[keep] - mean * per_w[keep]
                 sem = _f(math.sqrt((resid ** 2).sum() / (n * (n - 1))) / per_w[keep].mean())
-            q = np.quantile(V[valid], QUANTILES)
-            out.append(Row(point=p, values={k: _f(v) for k, v in zip(labels, X[p], strict=True)}, measure=measure,
-                           statistic=stat, n=n, n_values=int(valid.sum()), mean=_f(mean), sem=sem,
-                           **{f"q{int(round(a * 100)):02d}": _f(v) for a, v in zip(QUANTILES, q, strict=True)}))
-    return out
+            pooled = V[valid]
+            found.append(({"point": p, "values": values, "measure": measure, "statistic": stat, "n": n,
+                           "n_values": len(pooled), "mean": _f(mean), "sem": sem}, pooled))
+    # np.quantile of every row of a (rows, k) stack is what it gives each row alone: one call per count k
+    q = [None] * len(found)
+    by_size: dict[int, list[int]] = {}
+    for i, (_, pooled) in enumerate(found):
+        by_size.setdefault(len(pooled), []).append(i)
+    for k, idx in by_size.items():
+        Q = np.quantile(np.stack([found[i][1] for i in idx]), QUANTILES, axis=1).T
+        for i, row in zip(idx, Q.tolist(), strict=True):
+            q[i] = row
+    names = [f"q{int(round(a * 100)):02d}" for a in QUANTILES]
+    return [Row(**fields, **dict(zip(names, qs, strict=True))) for (fields, _), qs in zip(found, q, strict=True)]
 
 
 CONSTANT = "the statistic has the same value at every point of A and B: no variance to apportion"
@@ -172,7 +182,40 @@ def _cell(x: float | None) -> str:
 
 
 def to_json(doc: BaseModel) -> str:
-    return json.dumps(doc.model_dump(mode="json"), indent=1, sort_keys=False, allow_nan=False) + "\n"
+    """The document as JSON indented by 1: the text of json.dumps(..., indent=1, allow_nan=False), written by
+    `indented` (json's own indenting encoder is pure Python and was a seventh of a small study's time)."""
+    return indented(doc.model_dump(mode="json")) + "\n"
+
+
+def indented(obj, level: int = 0) -> str:
+    """json.dumps(obj, indent=1, allow_nan=False) of plain JSON data (dicts with string keys, lists, tuples,
+    strings, numbers, booleans, None), character for character."""
+    if isinstance(obj, str):
+        return _string(obj)
+    if obj is None or obj is True or obj is False:
+        return "null" if obj is None else "true" if obj else "false"
+    if isinstance(obj, int):
+        return int.__repr__(obj)
+    if isinstance(obj, float):
+        if not math.isfinite(obj):
+            raise ValueError(f"Out of range float values are not JSON compliant: {obj!r}")
+        return float.__repr__(obj)
+    pad = "\n" + " " * (level + 1)
+    if isinstance(obj, dict):
+        if not obj:
+            return "{}"
+        if not all(isinstance(k, str) for k in obj):
+            return json.dumps(obj, indent=1, allow_nan=False).replace("\n", "\n" + " " * level)
+        return "{" + pad + ("," + pad).join(_string(k) + ": " + indented(v, level + 1) for k, v in obj.items()) \
+            + "\n" + " " * level + "}"
+    if isinstance(obj, (list, tuple)):
+        if not obj:
+            return "[]"
+        return "[" + pad + ("," + pad).join(indented(v, level + 1) for v in obj) + "\n" + " " * level + "]"
+    raise TypeError(f"Object of type {type(obj).__name__} is not JSON serializable")
+
+
+_string = json.encoder.encode_basestring_ascii
 
 
 class PluginUse(_Node):

@@ -13,12 +13,13 @@ import hashlib
 import io
 import json
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from wiredsl.engine import imageset as im
 from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
@@ -82,6 +83,23 @@ _WORKER: dict = {}  # per process: digest -> (world, base run, prepared); (diges
 
 def compute(job: Job) -> dict[str, np.ndarray]:
     """One shard's per-trial values: {"measure.statistic": (n_poses, n_trials)}."""
+    run, prepared = _setup(job)
+    return measure_batches(run, prepared, list(range(job.shard.lo, job.shard.hi)))
+
+
+def compute_chunk(jobs: list[Job]) -> list[dict[str, np.ndarray]]:
+    """`compute` of each job, the trials of consecutive design points measured together (`measure_points`)."""
+    units = []
+    for job in jobs:
+        run, prepared = _setup(job)
+        units.append((run, prepared, list(range(job.shard.lo, job.shard.hi))))
+    return measure_points(units)
+
+
+def _setup(job: Job) -> tuple[Run, list]:
+    """The run of a job's design point and its measures' prepared data, kept per worker: the world, the run of
+    no stages and (unless the study varies the cameras) the prepared measures once per study, a point's run
+    once per point."""
     from wiredsl.language.compile_study import measure_registry
 
     registry = job.registry if job.registry is not None else measure_registry()
@@ -101,8 +119,7 @@ def compute(job: Job) -> dict[str, np.ndarray]:
             del _WORKER[old]
         run = point_run(scene, world, study, job.shard.point, job.values, base=base)
         _WORKER[key] = (run, prepared if prepared is not None else _prepare(study, registry, run))
-    run, prepared = _WORKER[key]
-    return measure_batches(run, prepared, list(range(job.shard.lo, job.shard.hi)))
+    return _WORKER[key]
 
 
 def _prepare(study: Study, registry: dict, run: Run) -> list:
@@ -131,24 +148,96 @@ def measure_batches(run: Run, prepared, trials: list[int]) -> dict[str, np.ndarr
 
     Each measure gets read-only views of the pose and the disturbed sets (one cannot change what another
     reads), and what an installed one returns is checked before anything reads it."""
-    parts: dict[str, list[list[np.ndarray]]] = {}
-    for batch, batch_out in run.batches(trials):
-        for j, (result, disturbed, _views) in enumerate(batch_out):
-            pose, sets = read_only(result), {side: read_only(v) for side, v in disturbed.items()}
-            for measure, params, prep in prepared:
-                where = f"pose {result.index}, trials {batch[0]}..{batch[-1]}" + (
-                    f", design point {run.point}" if run.point is not None else "")
-                got = _guarded(measure, "measure()", measure.measure, params, prep, pose, sets, len(batch),
-                               where=where)
-                values = statistics_of(measure, got, len(batch))
+    return measure_points([(run, prepared, trials)])[0]
+
+
+def measure_points(units: list[tuple[Run, list, list[int]]]) -> list[dict[str, np.ndarray]]:
+    """`measure_batches` of several design points' (run, prepared, trials), in order.
+
+    Consecutive points that share their prepared measures and ideal poses (a study that does not vary the
+    cameras) have their engine batches pooled, up to an engine batch's trials (`Run.batch_size`): a `pooled`
+    measure is called once a pose for the whole pool, its disturbed sets concatenated with the trials renumbered
+    0..n-1, and its values split back by point. Its values are each trial's own, so they are those of a call per
+    point (a study's cost is then per trial, not per measure call). Other measures are called per batch.
+    """
+    parts: list[dict[str, list[list[np.ndarray]]]] = [{} for _ in units]
+    pool: list[tuple[int, Run, list, Sequence[int], list]] = []  # (unit, run, prepared, batch, [(result, sets)])
+    frozen: dict[int, tuple] = {}  # id(pose result) -> (result, its read-only view): poses shared by the pool
+
+    def flush() -> None:
+        if pool:
+            _measure_pool(pool, parts, frozen)
+            pool.clear()
+
+    for u, (run, prepared, trials) in enumerate(units):
+        for batch, batch_out in run.batches(trials):
+            got = [(result, disturbed) for result, disturbed, _views in batch_out]
+            if pool and not (pool[0][2] is prepared and _same_poses(pool[0][4], got)
+                             and sum(len(b) for *_, b, _ in pool) + len(batch) <= run.batch_size()):
+                flush()
+            pool.append((u, run, prepared, batch, got))
+    flush()
+    return [{k: np.stack([np.concatenate(r) for r in rows]) for k, rows in p.items()} for p in parts]
+
+
+def _same_poses(a: list, b: list) -> bool:
+    return len(a) == len(b) and all(x[0] is y[0] and x[1].keys() == y[1].keys() for x, y in zip(a, b, strict=True))
+
+
+def _measure_pool(pool: list, parts: list[dict], frozen: dict) -> None:
+    """Every measure on every pose of a pool of batches (one point's, or several points' sharing their poses)."""
+    prepared = pool[0][2]
+    sizes = [len(batch) for _, _, _, batch, _ in pool]
+    ends = np.cumsum(sizes)[:-1]
+    points = sorted({run.point for _, run, _, _, _ in pool if run.point is not None})
+    for j in range(len(pool[0][4])):
+        result = pool[0][4][j][0]
+        if id(result) not in frozen:
+            frozen[id(result)] = (result, read_only(result))
+        pose = frozen[id(result)][1]
+        sides = pool[0][4][j][1].keys()
+        pooled = {side: read_only(_stack([entry[4][j][1][side] for entry in pool], sizes)) for side in sides} \
+            if len(pool) > 1 else None
+        for measure, params, prep in prepared:
+            if pooled is not None and getattr(measure, "pooled", False):
+                calls = [(pooled, sum(sizes), pool[0][3][0], pool[-1][3][-1], points)]
+            else:
+                calls = [({side: read_only(v) for side, v in entry[4][j][1].items()}, len(entry[3]), entry[3][0],
+                          entry[3][-1], [entry[1].point] if entry[1].point is not None else []) for entry in pool]
+            values_of = []
+            for sets, n, first, last, at in calls:
+                where = f"pose {result.index}, trials {first}..{last}" + (
+                    f", design point {at[0]}" if len(at) == 1 else f", design points {at[0]}..{at[-1]}" if at else "")
+                got = _guarded(measure, "measure()", measure.measure, params, prep, pose, sets, n, where=where)
+                values = statistics_of(measure, got, n)
                 if isinstance(values, str):
                     raise failure("measure", measure.name, REGISTRY, values, where)
+                values_of.append(values)
+            if len(values_of) == 1 and len(pool) > 1:  # one pooled call: split by entry
+                values_of = [{stat: v[lo:hi] for stat, v in values_of[0].items()}
+                             for lo, hi in zip([0, *ends], [*ends, sum(sizes)], strict=True)]
+            for (u, *_), values in zip(pool, values_of, strict=True):
                 for stat, v in values.items():
-                    rows = parts.setdefault(f"{measure.name}.{stat}", [])
+                    rows = parts[u].setdefault(f"{measure.name}.{stat}", [])
                     if len(rows) <= j:
                         rows.append([])
                     rows[j].append(v)
-    return {k: np.stack([np.concatenate(r) for r in rows]) for k, rows in parts.items()}
+
+
+def _stack(sets: list[im.ImageSet], sizes: list[int]) -> im.ImageSet:
+    """One ImageSet of several batches' sets (of `sizes` trials each), their trials renumbered in order."""
+    offsets = np.cumsum([0, *sizes[:-1]])
+    vertex = np.cumsum([0] + [len(s.pts) for s in sets])
+    cat = lambda name: np.concatenate([getattr(s, name) for s in sets])  # noqa: E731
+    return im.ImageSet(
+        pts=cat("pts").reshape(-1, 2),
+        start=np.concatenate([s.start[:-1] + o for s, o in zip(sets, vertex, strict=False)] + [[vertex[-1]]]
+                             ).astype(int),
+        fid=cat("fid"), segment=cat("segment"), fragment=cat("fragment"), kind=cat("kind"), clipped=cat("clipped"),
+        closed=cat("closed"), trial=np.concatenate([s.trial + o for s, o in zip(sets, offsets, strict=True)]),
+        corners=cat("corners").reshape(-1, 2), corner_fid=cat("corner_fid"),
+        corner_trial=np.concatenate([s.corner_trial + o for s, o in zip(sets, offsets, strict=True)]),
+        occluded=cat("occluded"))
 
 
 def statistics_of(measure, got, n: int) -> dict[str, np.ndarray] | str:
@@ -250,18 +339,12 @@ def read(job: Job) -> dict[str, np.ndarray] | None:
     return arrays
 
 
-def run_job(job: Job) -> tuple[Shard, dict[str, np.ndarray]]:
-    """Compute one shard (the function every executor calls, through `run_chunk`); returns it and its arrays,
-    which the study's process appends to its journal."""
-    return job.shard, compute(job)
-
-
 def run_chunk(jobs: list[Job]) -> list[tuple[Shard, dict[str, np.ndarray]]]:
-    """Compute a chunk of shards in one worker call (one message each way, the scene and study pickled once),
-    with BLAS on one thread: a study's workers take one core each, and a matrix product's sums then do not
+    """Compute a chunk of shards in one worker call (one message each way, the scene and study pickled once; the
+    trials of its consecutive points measured together, `compute_chunk`), with BLAS on one thread: a study's workers take one core each, and a matrix product's sums then do not
     depend on how many threads the machine offered (a table is the same on every machine)."""
     with one_blas_thread():
-        return [run_job(job) for job in jobs]
+        return list(zip([job.shard for job in jobs], compute_chunk(jobs), strict=True))
 
 
 @contextlib.contextmanager
@@ -272,5 +355,7 @@ def one_blas_thread():
     except ImportError:
         yield
         return
+    with contextlib.suppress(ImportError):  # numba's compiled measures (PGH's products) call scipy's own BLAS: it is
+        import scipy.linalg.cython_blas  # noqa: F401  loaded now, so that the limit covers it (else 2 threads, other sums)
     with threadpool_limits(limits=1, user_api="blas"):
         yield
