@@ -72,28 +72,9 @@ def _normal_pair(key, pair):
 # ----------------------------------------------------------------------------- packed strokes
 
 @njit(cache=True)
-def _arcs(pts, start):
-    """Arc length at each vertex from its stroke's start, and stroke lengths (as imageset.arc_lengths)."""
-    S = len(start) - 1
-    arc = np.zeros(len(pts))
-    L = np.zeros(S)
-    for k in range(S):
-        a, b = start[k], start[k + 1]
-        if b > a:
-            acc = 0.0
-            arc[a] = 0.0
-            for i in range(a + 1, b):
-                dx = pts[i, 0] - pts[i - 1, 0]
-                dy = pts[i, 1] - pts[i - 1, 1]
-                acc = acc + math.sqrt(dx * dx + dy * dy)
-                arc[i] = acc
-            L[k] = arc[b - 1]
-    return arc, L
-
-
-@njit(cache=True)
 def _stroke_arcs(pts, start, k, arc, L):
-    """_arcs of stroke k alone, into arc and L (the same sums): for the strokes a cut needs, not every stroke."""
+    """Arc length at each vertex of stroke k from its start, into arc, and its length into L[k]: alone for
+    the strokes a cut needs, or for every stroke through _arcs."""
     a, b = start[k], start[k + 1]
     if b > a:
         acc = 0.0
@@ -104,6 +85,17 @@ def _stroke_arcs(pts, start, k, arc, L):
             acc = acc + math.sqrt(dx * dx + dy * dy)
             arc[i] = acc
         L[k] = arc[b - 1]
+
+
+@njit(cache=True)
+def _arcs(pts, start):
+    """Arc length at each vertex from its stroke's start, and stroke lengths (as imageset.arc_lengths)."""
+    S = len(start) - 1
+    arc = np.zeros(len(pts))
+    L = np.zeros(S)
+    for k in range(S):
+        _stroke_arcs(pts, start, k, arc, L)
+    return arc, L
 
 
 @njit(cache=True)
