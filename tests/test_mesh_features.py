@@ -209,15 +209,43 @@ def test_shortest_and_budget_are_options_of_mesh_read_and_keys_of_the_cache(tmp_
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     _bunny().export(tmp_path / "b.ply")
     counts = []
-    for extra in ("", "budget 7", "budget 7 shortest 1cm", "", "budget 0"):
+    for extra in ("", "budget 7", "budget 7 shortest 1cm", "", "budget 0", "budget auto", "budget 100000"):
         (tmp_path / "s.wd").write_text(f'wiredsl 1\nmodel m {{\n  mesh read "b.ply" {extra}\n}}\n')
         m = compile_file(tmp_path / "s.wd")[0].model("m")
         counts.append((len(m.lines) + len(m.polylines), len(m.corners)))
-    assert counts[0] == counts[3] and counts[0][0] == M.BUDGET
-    assert counts[1][0] == 7 and counts[2][0] <= 7 and counts[4] == (0, 0)
-    (tmp_path / "s.wd").write_text('wiredsl 1\nmodel m {\n  mesh read "b.ply" budget -1\n}\n')
+    assert counts[0] == counts[3] == counts[5] and counts[0][0] == M.BUDGET  # a scan: auto is BUDGET
+    assert counts[1][0] == 7 and counts[2][0] <= 7 and counts[4] == (0, 0) and counts[6][0] > 1000
+    r = CliRunner().invoke(main, ["check", str(tmp_path / "s.wd")])  # what was read, and what the budget cut
+    assert "read as a scan (1.06% of its edge length between coplanar triangles): budget 100000 cut nothing" \
+        in r.output
+    (tmp_path / "s.wd").write_text('wiredsl 1\nmodel m {\n  mesh read "b.ply"\n}\n')
     r = CliRunner().invoke(main, ["check", str(tmp_path / "s.wd")])
-    assert r.exit_code == 1 and "E110" in r.output and "Traceback" not in r.output
+    assert "read as a scan (1.06% of its edge length between coplanar triangles): budget 200 left out 1,028 " \
+           "lines and polylines" in r.output
+    for bad, code in (("budget -1", "E110"), ("budget all", "E106"), ("budget 2.5", "E106")):
+        (tmp_path / "s.wd").write_text(f'wiredsl 1\nmodel m {{\n  mesh read "b.ply" {bad}\n}}\n')
+        r = CliRunner().invoke(main, ["check", str(tmp_path / "s.wd")])
+        assert r.exit_code == 1 and code in r.output and "Traceback" not in r.output, r.output
+
+
+def test_a_changed_default_is_a_new_cache_key(tmp_path, monkeypatch):
+    """The defaults of `budget auto` (BUDGET, PLANAR_EDGE, CAD_PLANAR) live in engine/mesh.py, whose source is part
+    of the features' cache key: changing one reads the mesh afresh."""
+    from wiredsl.io import mesh as io_mesh
+
+    data, options = b"solid x\nendsolid x\n", (1.0, "z", CREASE, "file", None, "auto")
+    key = io_mesh.features_key(data, "stl", options)
+    source = open(M.__file__).read()
+    for name in ("BUDGET", "PLANAR_EDGE", "CAD_PLANAR"):
+        line = next(x for x in source.splitlines() if x.startswith(f"{name} = "))
+        changed = tmp_path / f"{name}.py"
+        changed.write_text(source.replace(line, line.replace(" = ", " = 2 * ", 1)))
+        monkeypatch.setattr(M, "__file__", str(changed))
+        assert io_mesh.features_key(data, "stl", options) != key
+    monkeypatch.setattr(M, "__file__", str(tmp_path / "BUDGET.py"))
+    monkeypatch.undo()
+    assert io_mesh.features_key(data, "stl", options) == key
+    assert io_mesh.features_key(data, "stl", (*options[:-1], M.BUDGET)) != key  # auto is not the number
 
 
 def test_a_noisy_sphere_has_a_few_contour_chains_on_its_analytic_outline(monkeypatch):

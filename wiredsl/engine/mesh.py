@@ -16,7 +16,11 @@
 - Other sharp edges form chains between nodes (vertices where other than two meet, or where the chain
   turns by more than CORNER_TURN); a chain whose points are collinear to COLLINEAR of its length is a
   `line`, otherwise a `polyline` through its turning points.
-- Corners: vertices where three or more sharp edges meet, or two at a turn sharper than CORNER_TURN,
+- Lines and polylines shorter than `shortest` are left out; a scan keeps at most BUDGET of them (the largest
+  length x dihedral angle), a CAD part every one (`budget auto`). A mesh is a CAD part when at least CAD_PLANAR
+  of its interior edge length lies between triangles whose normals agree to PLANAR_EDGE (the diagonals of its
+  tessellated flats and ruled surfaces), else a scan (`is_scan`).
+- Corners: vertices where three or more kept lines and polylines meet, or two at a turn sharper than CORNER_TURN,
   joined to the lines and polylines that end there.
 - A planar region (normals within FLAT of each other) bounded by one convex loop is a `face`. Every other
   smooth or non-convex triangle is kept as an occluder; smooth regions that are not cylinder or cone
@@ -46,7 +50,11 @@ MERGE_LATERAL = 1e-3  # of the diagonal: consecutive crease edges merge into one
 MERGE_ANGLE = math.radians(5)  # is within this distance of it and within tan(MERGE_ANGLE) x its length
 SHORTEST = 0.002  # of the diagonal: the default minimum length of a line or polyline (and extent of a face)
 CONTOUR_SMOOTH = 2  # passes of normal smoothing before the facing test of a contour (Contours)
-BUDGET = 200  # the default most lines and polylines a mesh gives: the longest and sharpest
+BUDGET = 200  # the most lines and polylines a scan gives by default (`budget auto`): the longest and sharpest
+PLANAR_EDGE = math.radians(0.1)  # an interior edge whose triangles' normals agree to this is planar (a flat's
+#   diagonal in a CAD tessellation; real parts rounded to float32 100 m from their origin still are)
+CAD_PLANAR = 0.10  # a mesh at least this share of whose interior edge length is planar is a CAD part (no budget by
+#   default); below, a scan. CAD parts measure 26-71%, scans 0.4-1.1% (docs/how-to/meshes-at-full-size.md)
 
 
 @dataclass
@@ -62,6 +70,10 @@ class MeshFeatures:
     vertices: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     occluders: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), int))  # triangles kept as occluders
     contour: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # per occluder: a smooth surface's
+    planar: float = 0.0  # share of the interior edges' length between triangles within PLANAR_EDGE of coplanar
+    scan: bool = False  # read as a scan (planar < CAD_PLANAR), not a CAD part
+    budget: int | None = None  # the budget applied (None: none, every line and polyline kept)
+    cut: int = 0  # lines and polylines at least `shortest` long that the budget left out
     degenerate: int = 0  # triangles dropped for having no area
     nonmanifold: int = 0  # edges with more than two triangles
     triangles: int = 0  # triangles the mesh had
@@ -77,10 +89,11 @@ def merge_vertices(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def features(V: np.ndarray, F: np.ndarray, crease: float, shortest: float | None = None,
-             budget: int = BUDGET) -> MeshFeatures:
+             budget: int | None | str = "auto") -> MeshFeatures:
     """The features of the mesh (V (n, 3), F (m, 3)) with crease angle `crease` (radians): lines and polylines
     at least `shortest` long (default SHORTEST of the diagonal), at most `budget` of them (ranked by length
-    times dihedral angle), corners where kept ones meet, faces at least `shortest` across."""
+    times dihedral angle; "auto": BUDGET for a scan, none for a CAD part, see `is_scan`; None: none), corners
+    where kept ones meet, faces at least `shortest` across."""
     V, F = merge_vertices(np.asarray(V, float), np.asarray(F, np.int64))
     size = float(np.linalg.norm(np.ptp(V, axis=0))) or 1.0
     N = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
@@ -107,6 +120,8 @@ def features(V: np.ndarray, F: np.ndarray, crease: float, shortest: float | None
     # each edge's sharpness for ranking: its dihedral angle; a boundary counts as 90 deg, a non-manifold as 180
     dihedral = np.where(count == 1, math.pi / 2, math.pi)
     dihedral[two] = np.arccos(np.clip(cos, -1.0, 1.0))
+    out.planar, out.scan = is_scan(np.linalg.norm(V[edges[two, 0]] - V[edges[two, 1]], axis=1), cos)
+    out.budget = (BUDGET if out.scan else None) if budget == "auto" else budget
     shortest = SHORTEST * size if shortest is None else shortest
     # smooth regions: triangles joined through edges that are not sharp
     region = _components(len(F), tri[i0][~sharp[two]], tri[i1][~sharp[two]])
@@ -158,7 +173,7 @@ def features(V: np.ndarray, F: np.ndarray, crease: float, shortest: float | None
     edge_of = lambda a, b: np.searchsorted(key, np.minimum(a, b) * len(V) + np.maximum(a, b))  # noqa: E731
     kept_edge = np.zeros(len(edges), bool)
     _lines_and_corners(V, rest, out, lambda a, b: dihedral[edge_of(a, b)], kept_edge, edge_of,
-                       MERGE_LATERAL * size, shortest, budget)
+                       MERGE_LATERAL * size, shortest, out.budget)
     # faces: planar regions bounded by one convex loop, at least `shortest` across; a region of one triangle
     # (unless a sliver) only when its three edges are on kept features (a scan's lone noisy triangles are
     # not faces); lone triangles all at once: a soup of 200,000 triangles is 200,000 regions
@@ -178,6 +193,19 @@ def features(V: np.ndarray, F: np.ndarray, crease: float, shortest: float | None
     out.occluders = F[keep]
     out.contour = ~flat[region[keep]] | single[region[keep]]  # a lone triangle that is no face: surface too
     return out
+
+
+def is_scan(length: np.ndarray, cos: np.ndarray) -> tuple[float, bool]:
+    """Whether interior edges of these lengths, between triangles whose normals' dot products are `cos`, are a
+    scan's rather than a CAD part's: (the share of their length within PLANAR_EDGE of planar, share < CAD_PLANAR).
+
+    A CAD tessellation splits its flats, and the ruled quads of its cylinders, cones and fillets, along edges
+    between exactly coplanar triangles: a third to two thirds of its edge length. A scan's noise tilts every
+    pair of neighbours (a bunny has 1.1% of its edge length under 0.1 deg): a sharp edge of a CAD part is the
+    part's, a scan's are mostly noise, and the budget is for those."""
+    total = float(length.sum())
+    planar = float(length[cos >= math.cos(PLANAR_EDGE)].sum()) / total if total > 0 else 0.0
+    return planar, planar < CAD_PLANAR
 
 
 def as_nodes(found: MeshFeatures, file: str) -> dict[str, list]:
@@ -417,10 +445,11 @@ def _simplify(P: np.ndarray, lateral: float) -> np.ndarray:
 
 
 def _lines_and_corners(V: np.ndarray, chains: list[tuple[np.ndarray, bool]], out: MeshFeatures, angle_of,
-                       kept_edge: np.ndarray, edge_of, lateral: float, shortest: float, budget: int) -> None:
+                       kept_edge: np.ndarray, edge_of, lateral: float, shortest: float, budget: int | None) -> None:
     """Lines and polylines of the sharp chains (nearly collinear edges merged, split at sharp turns of what
-    is left), those at least `shortest` long, the `budget` with the largest length x dihedral angle; and
-    the corners where kept ones meet. `kept_edge` is set for the mesh edges (`edge_of(a, b)`) they cover."""
+    is left), those at least `shortest` long, the `budget` (None: all) with the largest length x dihedral angle;
+    and the corners where kept ones meet. `kept_edge` is set for the mesh edges (`edge_of(a, b)`) they cover;
+    `out.cut` counts those the budget left out."""
     pieces = []  # (points, first vertex, last vertex, length, score)
     for path, closed in chains:
         P = V[path]
@@ -443,7 +472,9 @@ def _lines_and_corners(V: np.ndarray, chains: list[tuple[np.ndarray, bool]], out
             pieces.append((Q[s:e + 1], int(path[a]), int(path[b]), along[b] - along[a], weight[b] - weight[a],
                            path[a:b + 1]))
     long_enough = [p for p in pieces if p[3] >= shortest]
-    order = sorted(range(len(long_enough)), key=lambda k: -long_enough[k][4])[:max(budget, 0)]
+    order = sorted(range(len(long_enough)), key=lambda k: -long_enough[k][4])
+    order = order if budget is None else order[:max(budget, 0)]
+    out.cut = len(long_enough) - len(order)
     ends: dict[int, list[tuple[str, int]]] = {}
     for k in sorted(order):  # in the chains' order
         piece, v0, v1 = long_enough[k][:3]

@@ -252,7 +252,7 @@ def features_key(data: bytes, kind: str, options: tuple) -> str:
 
 
 _ARRAYS = ("lines", "poly_points", "poly_len", "ell", "sil", "corner_at", "corner_len", "corner_kind",
-           "corner_ref", "face_points", "face_len", "vertices", "occluders", "contour", "counts")
+           "corner_ref", "face_points", "face_len", "vertices", "occluders", "contour", "counts", "read_as")
 
 
 def load_features(key: str):
@@ -275,7 +275,8 @@ def load_features(key: str):
                          faces=split(a["face_points"], a["face_len"]), vertices=a["vertices"],
                          occluders=a["occluders"], contour=a["contour"],
                          degenerate=int(a["counts"][0]), nonmanifold=int(a["counts"][1]),
-                         triangles=int(a["counts"][2]))
+                         triangles=int(a["counts"][2]), planar=float(a["read_as"][0]), scan=bool(a["read_as"][1]),
+                         budget=None if a["read_as"][2] < 0 else int(a["read_as"][2]), cut=int(a["read_as"][3]))
         kinds = ("line", "polyline")
         refs = split(np.column_stack([a["corner_kind"], a["corner_ref"]]), a["corner_len"])
         f.corners = [(p, [(kinds[int(k)], int(j)) for k, j in r]) for p, r in zip(a["corner_at"], refs, strict=True)]
@@ -306,7 +307,8 @@ def save_features(key: str, f) -> None:
         "face_points": cat(f.faces, (0, 3)), "face_len": np.array([len(p) for p in f.faces], np.int64),
         "vertices": f.vertices, "occluders": np.asarray(f.occluders, np.int64).reshape(-1, 3),
         "contour": np.asarray(f.contour, bool),
-        "counts": np.array([f.degenerate, f.nonmanifold, f.triangles], np.int64)}
+        "counts": np.array([f.degenerate, f.nonmanifold, f.triangles], np.int64),
+        "read_as": np.array([f.planar, f.scan, -1 if f.budget is None else f.budget, f.cut], np.float64)}
     buf = io.BytesIO()
     np.savez(buf, **arrays)
     try:

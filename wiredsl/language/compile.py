@@ -928,14 +928,14 @@ def read_mesh_features(fb: Bound, units: dict[str, str], out: Collector):
     if scale is None:
         return None
     up, origin = fb.get("up", "z"), fb.get("origin", "file")
-    shortest, budget = fb.get("shortest"), fb.get("budget", mesh_features.BUDGET)
+    shortest, budget = fb.get("shortest"), fb.get("budget", "auto")  # auto: BUDGET for a scan, none for CAD
     if shortest is not None and not 0 <= shortest <= MAX_MAGNITUDE:
         out.error("E110", f"shortest must be in 0..{MAX_MAGNITUDE:g} m, got {shortest:g}", fb.span("shortest"))
         return None
-    if budget < 0:
+    if budget != "auto" and budget < 0:
         out.error("E110", f"budget must be >= 0, got {budget:g}", fb.span("budget"))
         return None
-    budget = int(budget)
+    budget = budget if budget == "auto" else int(budget)
     try:
         target = FsPath(fb.stmt.span.file).parent / path
         data = ast.read_bytes(target, "mesh file", where, limit=mesh_io.MAX_MESH_BYTES)
@@ -1018,4 +1018,12 @@ def mesh_size(found) -> str:
     counts = (f"{len(found.lines)} lines, {len(found.polylines)} polylines, {len(found.ellipses)} ellipses, "
               f"{len(found.silhouettes)} silhouettes, {len(found.corners)} corners, {len(found.faces)} faces, "
               f"{len(found.occluders)} occluding triangles")
-    return f"{size}, from {box(lo)} to {box(hi)} m; {counts}"
+    return f"{size}, from {box(lo)} to {box(hi)} m; {counts}; {read_as(found)}"
+
+
+def read_as(found) -> str:
+    """Whether a mesh was read as a CAD part or a scan, and what its budget left out, for `check` and hover."""
+    kind = "a scan" if found.scan else "a CAD part"
+    kept = (f"budget {found.budget} left out {found.cut:,} lines and polylines" if found.cut else
+            "every line and polyline kept" if found.budget is None else f"budget {found.budget} cut nothing")
+    return f"read as {kind} ({100 * found.planar:.3g}% of its edge length between coplanar triangles): {kept}"

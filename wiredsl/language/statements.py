@@ -30,7 +30,7 @@ ARUCO = tuple(f"DICT_{n}X{n}_{k}" for n in (4, 5, 6, 7) for k in (50, 100, 250, 
 @dataclass(frozen=True)
 class Slot:
     """One value a statement takes. `kind` is a scalar kind, `vecN:kind`, or one of
-    name, ref, refs, str, word, pts, matrix, names."""
+    name, ref, refs, str, word, pts, matrix, names. `choices`: a word's words, or the words a scalar also takes."""
 
     kind: str
     label: str
@@ -166,7 +166,9 @@ _MODEL = [
                  "shortest": C("lines, polylines and faces shorter than this are left out (default 0.2% of the "
                                "part's bounding-box diagonal; 0 keeps every one)", S("length", "length")),
                  "budget": C("at most this many lines and polylines, the longest and sharpest (ranked by length "
-                             "x dihedral angle; default 200)", S("integer", "n"))},
+                             "x dihedral angle); auto (the default): 200 for a scan, every one for a CAD part "
+                             "(told apart by the share of its edges between coplanar triangles)",
+                             S("integer", "n", "auto"))},
         example='mesh read "crate.obj" crease 30deg units mm up y origin base'),
 ]
 
@@ -532,6 +534,8 @@ def _convert(slot: Slot, arg: ast.Arg, units: dict[str, str], out: Collector) ->
     kind = slot.kind
     bad = Value(None, arg.span)
     if kind in SCALARS:
+        if slot.choices and isinstance(arg, ast.Ref) and arg.name in slot.choices:  # a word it also takes (auto)
+            return Value(arg.name, arg.span)
         if not isinstance(arg, ast.Number):
             out.error("E106", f"expected {_a(slot.label)} ({KIND_NAMES.get(kind, kind)}), got {_show(arg)}", arg.span)
             return bad
