@@ -228,9 +228,9 @@ def _documents(path: str, text: str) -> list[tuple[str, object]]:
 @guarded
 def reference() -> None:
     """Print the language reference (Markdown), generated from the statement table."""
-    from wiredsl.docgen import statements
+    from wiredsl.language.statements import reference as table
 
-    click.echo(statements())
+    click.echo(table())
 
 
 @main.command()

@@ -366,3 +366,15 @@ def takes(sig: Sig) -> str:
     if sig.block:
         out.append("{ ... }" if sig.block_required else "[{ ... }]")
     return " ".join(out)
+
+
+def reference() -> str:
+    """The language reference as a Markdown table: every statement of every context, what it takes, what it means
+    (`wiredsl reference`, and the site's language page)."""
+    out = ["| where | statement | takes | meaning |", "|---|---|---|---|"]
+    for ctx, sigs in CONTEXTS.items():
+        for sig in sigs.values():
+            where = "top level" if ctx == "top" else f"`{ctx}` block"
+            text = takes(sig).replace("|", "\\|")
+            out.append(f"| {where} | `{sig.keyword}` | `{text}` | {sig.doc.splitlines()[0]} |")
+    return "\n".join(out)
