@@ -19,6 +19,15 @@ def compile_text(text: str, path: str = "t.wd"):
     return compile_program(program)
 
 
+def camera_scene(camera: str, right: str = "right c at (0, -0.06, 1) looking (1, 0, 0)", more: str = "") -> str:
+    """A scene of one line seen by a rig whose left camera is `camera c { <camera> }` at (0, 0.06, 1), looking
+    along x; `right` mounts its right camera, `more` adds statements (another camera) before the rig. The set-up
+    of the calibration-file tests: `camera` is typically a `read "<file>"` statement."""
+    return ("wiredsl 1\nmodel m {\n  line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)\n}\nplace m as p\n"
+            f"camera c {{\n  {camera}\n}}\n{more}"
+            f"rig r {{\n  left c at (0, 0.06, 1) looking (1, 0, 0)\n  {right}\n}}\npath run {{ pose (0, 0) }}\n")
+
+
 def errors_of(text: str) -> list[str]:
     """'line:col: CODE message' of every error a text produces."""
     try:
