@@ -12,6 +12,30 @@ from wiredsl.language.ast import Program, parse_text
 from wiredsl.language.compile import compile_program
 
 
+# The six faces of the 1 m box at the origin, as statements of a model block (hidden lines known by construction).
+BOX_FACES = """
+  face south through (0, 0, 0) (1, 0, 0) (1, 0, 1) (0, 0, 1)
+  face north through (0, 1, 0) (1, 1, 0) (1, 1, 1) (0, 1, 1)
+  face west through (0, 0, 0) (0, 1, 0) (0, 1, 1) (0, 0, 1)
+  face east through (1, 0, 0) (1, 1, 0) (1, 1, 1) (1, 0, 1)
+  face bottom through (0, 0, 0) (1, 0, 0) (1, 1, 0) (0, 1, 0)
+  face top through (0, 0, 1) (1, 0, 1) (1, 1, 1) (0, 1, 1)
+"""
+
+
+# A stereo pair of 640 x 480 cameras 0.8 m up, 10 cm apart, looking along x and a little down.
+EYE_RIG = """camera eye {
+  focal 4mm
+  pixel 0.008mm
+  size (640px, 480px)
+}
+rig pair {
+  left eye at (0, 0.05m, 0.8m) looking (1, 0, -0.15)
+  right eye at (0, -0.05m, 0.8m) looking (1, 0, -0.15)
+}
+"""
+
+
 def compile_text(text: str, path: str = "t.wd"):
     """Compile a one-file scene from text; returns (scene, warnings)."""
     file = parse_text(text, path)
