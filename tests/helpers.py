@@ -12,11 +12,44 @@ from wiredsl.language.ast import Program, parse_text
 from wiredsl.language.compile import compile_program
 
 
+# The six faces of the 1 m box at the origin, as statements of a model block (hidden lines known by construction).
+BOX_FACES = """
+  face south through (0, 0, 0) (1, 0, 0) (1, 0, 1) (0, 0, 1)
+  face north through (0, 1, 0) (1, 1, 0) (1, 1, 1) (0, 1, 1)
+  face west through (0, 0, 0) (0, 1, 0) (0, 1, 1) (0, 0, 1)
+  face east through (1, 0, 0) (1, 1, 0) (1, 1, 1) (1, 0, 1)
+  face bottom through (0, 0, 0) (1, 0, 0) (1, 1, 0) (0, 1, 0)
+  face top through (0, 0, 1) (1, 0, 1) (1, 1, 1) (0, 1, 1)
+"""
+
+
+# A stereo pair of 640 x 480 cameras 0.8 m up, 10 cm apart, looking along x and a little down.
+EYE_RIG = """camera eye {
+  focal 4mm
+  pixel 0.008mm
+  size (640px, 480px)
+}
+rig pair {
+  left eye at (0, 0.05m, 0.8m) looking (1, 0, -0.15)
+  right eye at (0, -0.05m, 0.8m) looking (1, 0, -0.15)
+}
+"""
+
+
 def compile_text(text: str, path: str = "t.wd"):
     """Compile a one-file scene from text; returns (scene, warnings)."""
     file = parse_text(text, path)
     program = Program(file, files={path: file}, statements=list(file.statements))
     return compile_program(program)
+
+
+def camera_scene(camera: str, right: str = "right c at (0, -0.06, 1) looking (1, 0, 0)", more: str = "") -> str:
+    """A scene of one line seen by a rig whose left camera is `camera c { <camera> }` at (0, 0.06, 1), looking
+    along x; `right` mounts its right camera, `more` adds statements (another camera) before the rig. The set-up
+    of the calibration-file tests: `camera` is typically a `read "<file>"` statement."""
+    return ("wiredsl 1\nmodel m {\n  line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)\n}\nplace m as p\n"
+            f"camera c {{\n  {camera}\n}}\n{more}"
+            f"rig r {{\n  left c at (0, 0.06, 1) looking (1, 0, 0)\n  {right}\n}}\npath run {{ pose (0, 0) }}\n")
 
 
 def errors_of(text: str) -> list[str]:

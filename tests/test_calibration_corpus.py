@@ -3,13 +3,12 @@ and its cameras project as OpenCV projects the file's own values, read independe
 
 from __future__ import annotations
 
-import textwrap
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from helpers import compile_text
+from helpers import camera_scene, compile_text
 
 from wiredsl.engine import geometry
 from wiredsl.io import calibration as cf
@@ -75,22 +74,7 @@ def _oracle(path: Path) -> list[dict]:
 
 
 def _scene(path: Path, entry: str) -> str:
-    return textwrap.dedent(f"""\
-        wiredsl 1
-        model m {{
-          line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)
-        }}
-        place m as p
-        camera c {{
-          size (640px, 480px)
-          read "{path}" entry {entry}
-        }}
-        rig r {{
-          left c at (0, 0.06, 1) looking (1, 0, 0)
-          right c at (0, -0.06, 1) looking (1, 0, 0)
-        }}
-        path run {{ pose (0, 0) }}
-        """)
+    return camera_scene(f'size (640px, 480px)\n  read "{path}" entry {entry}')
 
 
 FILES = sorted(p.name for p in CORPUS.iterdir() if p.suffix in (".yaml", ".yml")  # the wide-angle lenses' files

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import random
 import sys
-import textwrap
 from pathlib import Path
 
 from click.testing import CliRunner
@@ -172,24 +171,9 @@ def scene_text(name: str, kind: tuple[bool, bool]) -> str:
     if name == "results-cam.txt":
         left = right = "focal 500px\n  size (640px, 480px)"
         mount += '\n  calibration covariance kalibr "results-cam.txt"'
-    return textwrap.dedent(f"""\
-        wiredsl 1
-        model m {{
-          line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)
-        }}
-        place m as p
-        camera c {{
-          {left}
-        }}
-        camera c2 {{
-          {right}
-        }}
-        rig r {{
-          left c at (0, 0.06, 1) looking (1, 0, 0)
-          {mount}
-        }}
-        path run {{ pose (0, 0) }}
-        """)
+    from helpers import camera_scene
+
+    return camera_scene(left, mount, more=f"camera c2 {{\n  {right}\n}}\n")
 
 
 def run(n: int, folder: Path, seed: int = 0) -> dict[str, int]:

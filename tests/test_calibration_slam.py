@@ -7,13 +7,12 @@ name; export-calibration writes Kalibr, basalt and camodocal files that read bac
 from __future__ import annotations
 
 import json
-import textwrap
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from helpers import compile_text
+from helpers import camera_scene, compile_text
 from test_wide_lenses import mp_pixel
 
 from wiredsl.engine import geometry
@@ -24,21 +23,7 @@ CORPUS = Path(__file__).parent / "data" / "calibration"
 
 
 def _scene(path: Path, entry: str = "first", fmt: str = "") -> str:
-    return textwrap.dedent(f"""\
-        wiredsl 1
-        model m {{
-          line a from (2, -0.5, 0.3) to (2, 0.5, 1.8)
-        }}
-        place m as p
-        camera c {{
-          read "{path}" entry {entry}{fmt}
-        }}
-        rig r {{
-          left c at (0, 0.06, 1) looking (1, 0, 0)
-          right c at (0, -0.06, 1) looking (1, 0, 0)
-        }}
-        path run {{ pose (0, 0) }}
-        """)
+    return camera_scene(f'read "{path}" entry {entry}{fmt}')
 
 
 def _oracle(path: Path) -> list[Camera]:

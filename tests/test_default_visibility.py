@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 from click.testing import CliRunner
+from helpers import EYE_RIG
 
 from wiredsl import run as runs
 from wiredsl.cli import main
@@ -70,16 +71,7 @@ model m {
   mesh read "ball.stl"
 }
 place m as m1 at (2m, 0, 1m)
-camera eye {
-  focal 4mm
-  pixel 0.008mm
-  size (640px, 480px)
-}
-rig pair {
-  left eye at (0, 0.05m, 0.8m) looking (1, 0, -0.15)
-  right eye at (0, -0.05m, 0.8m) looking (1, 0, -0.15)
-}
-path p {
+""" + EYE_RIG + """path p {
   straight from (0, 0) to (0.2m, 0) step 0.1m
 }
 """)

@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import compile_text
+from helpers import BOX_FACES, compile_text
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -17,14 +17,6 @@ from wiredsl.engine.simulate import Options, silhouettes_cam, simulate
 from wiredsl.engine.world import build_world, surface_triangles
 from wiredsl.language.compile import compile_file
 
-BOX_FACES = """
-  face south through (0, 0, 0) (1, 0, 0) (1, 0, 1) (0, 0, 1)
-  face north through (0, 1, 0) (1, 1, 0) (1, 1, 1) (0, 1, 1)
-  face west through (0, 0, 0) (0, 1, 0) (0, 1, 1) (0, 0, 1)
-  face east through (1, 0, 0) (1, 1, 0) (1, 1, 1) (1, 0, 1)
-  face bottom through (0, 0, 0) (1, 0, 0) (1, 1, 0) (0, 1, 0)
-  face top through (0, 0, 1) (1, 0, 1) (1, 1, 1) (0, 1, 1)
-"""
 
 
 def eye_at(world, eye):

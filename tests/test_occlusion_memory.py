@@ -12,22 +12,14 @@ import textwrap
 
 import numpy as np
 import pytest
+from helpers import EYE_RIG
 
 SCENE = """wiredsl 1
 model gear {
   mesh read "gear.ply" scale 0.2 origin centre
 }
 place gear as gear1 at (2.0m, 0, 0.3m)
-camera eye {
-  focal 4mm
-  pixel 0.008mm
-  size (640px, 480px)
-}
-rig pair {
-  left eye at (0, 0.05m, 0.8m) looking (1, 0, -0.15)
-  right eye at (0, -0.05m, 0.8m) looking (1, 0, -0.15)
-}
-path approach {
+""" + EYE_RIG + """path approach {
   straight from (0, 0) to (0.5m, 0) step 0.5m
 }
 """

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 from click.testing import CliRunner
-from helpers import compile_text
+from helpers import BOX_FACES, compile_text
 
 from wiredsl.cli import main
 from wiredsl.engine.visibility import nearest_viewpoint, visible_features
@@ -27,14 +27,7 @@ model box {
   line se from (1, 0, 0) to (1, 0, 1)
   line nw from (0, 1, 0) to (0, 1, 1)
   line ne from (1, 1, 0) to (1, 1, 1)
-  corner top_ne at (1, 1, 1)
-  face south through (0, 0, 0) (1, 0, 0) (1, 0, 1) (0, 0, 1)
-  face north through (0, 1, 0) (1, 1, 0) (1, 1, 1) (0, 1, 1)
-  face west through (0, 0, 0) (0, 1, 0) (0, 1, 1) (0, 0, 1)
-  face east through (1, 0, 0) (1, 1, 0) (1, 1, 1) (1, 0, 1)
-  face bottom through (0, 0, 0) (1, 0, 0) (1, 1, 0) (0, 1, 0)
-  face top through (0, 0, 1) (1, 0, 1) (1, 1, 1) (0, 1, 1)
-}
+  corner top_ne at (1, 1, 1)""" + BOX_FACES + """}
 place box as b
 """
 

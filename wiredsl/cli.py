@@ -9,148 +9,15 @@ import contextlib
 import gc
 import json
 import os
-import signal
 import sys
-import threading
-from collections.abc import Callable
-from functools import wraps
 
 import click
 
 from wiredsl import __version__
-
-EXIT_INVALID = 1
-EXIT_INTERNAL = 3
-
-
-def _colour() -> bool:
-    return sys.stderr.isatty() and "NO_COLOR" not in os.environ
-
-
-def report(diags, sources: dict[str, str], fmt: str) -> None:
-    """Print diagnostics to stderr in text or JSON form."""
-    from wiredsl.diagnostics import render, render_json
-
-    if not diags:
-        return
-    if fmt == "json":
-        sys.stderr.write(render_json(diags))
-    else:
-        sys.stderr.write(render(diags, sources, colour=_colour()))
-
-
-class Stopped(BaseException):
-    """SIGINT or SIGTERM arrived: unwind (every `finally` removes its temporaries), then exit 128 + signal."""
-
-    def __init__(self, signum: int):
-        super().__init__(signum)
-        self.signum = signum
-
-
-def _stop(signum: int, frame) -> None:
-    for s in (signal.SIGINT, signal.SIGTERM):  # a second signal must not interrupt the clean-up
-        signal.signal(s, signal.SIG_IGN)
-    raise Stopped(signum)
-
-
-def _stop_in(exc: BaseException | None) -> BaseException | None:
-    """The Stopped or KeyboardInterrupt an exception was raised from or during, if any."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, (Stopped, KeyboardInterrupt)):
-            return exc
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return None
-
-
-def _exit_stopped(exc: BaseException) -> None:
-    signum = exc.signum if isinstance(exc, Stopped) else signal.SIGINT
-    click.echo(f"wiredsl: stopped by {signal.Signals(signum).name}; temporary files removed", err=True)
-    sys.exit(128 + signum)
-
-
-def guarded(fn: Callable) -> Callable:
-    """Turn WiredslError into diagnostics and exit 1, signals into a clean exit 130/143; never a traceback."""
-
-    @wraps(fn)
-    def wrapper(*args, **kwargs):
-        from wiredsl.diagnostics import WiredslError
-        from wiredsl.io.files import OutputFolderError, UnwritableValue
-
-        main_thread = threading.current_thread() is threading.main_thread()
-        previous = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
-        try:
-            out = fn(*args, **kwargs)
-            if not sys.stdout.closed:  # (the language server's client closes it on exit)
-                sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
-            return out
-        except BrokenPipeError:
-            if not _stdout_closed():
-                raise  # another pipe (a worker's): not the reader of our output going away
-            _quiet_exit()
-        except WiredslError as err:
-            if os.environ.get("WIREDSL_DEBUG") and getattr(err, "detail", None):  # a plug-in's own traceback
-                click.echo(err.detail.rstrip("\n"), err=True)
-            report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diagnostics", "text"))
-            sys.exit(EXIT_INVALID)
-        except (Stopped, KeyboardInterrupt) as exc:
-            _exit_stopped(exc)
-        except (click.exceptions.Exit, click.ClickException, SystemExit):
-            raise
-        except OutputFolderError as exc:
-            raise click.BadParameter(str(exc), param_hint="-o") from None
-        except UnwritableValue as exc:  # the input drove a number out of range; nothing was written
-            click.echo(f"wiredsl: error: nothing written: {exc}", err=True)
-            sys.exit(EXIT_INVALID)
-        except OSError as exc:  # the disk, not the input or a bug: say which file and why
-            where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-            click.echo(f"wiredsl: error: cannot write{where}: {exc.strerror or exc}", err=True)
-            sys.exit(EXIT_INVALID)
-        except Exception as exc:  # a bug: say so plainly, keep the traceback for WIREDSL_DEBUG
-            stop = _stop_in(exc)
-            if stop is not None:  # the signal landed inside compiled code, which wraps it in a SystemError
-                _exit_stopped(stop)
-            if os.environ.get("WIREDSL_DEBUG"):
-                raise
-            click.echo(f"wiredsl: internal error ({type(exc).__name__}: {exc}); this is a bug, please report it "
-                       "with the input (set WIREDSL_DEBUG=1 for a traceback)", err=True)
-            sys.exit(EXIT_INTERNAL)
-        finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
-
-    return wrapper
-
-
-def _stdout_closed() -> bool:
-    """Has the reader of stdout gone away (`wiredsl build -o - | head`)? Not an error: we stop quietly."""
-    import select
-
-    try:
-        poll = select.poll()
-        poll.register(sys.stdout.fileno(), select.POLLOUT)
-        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poll.poll(0))
-    except (AttributeError, OSError, ValueError):  # no real file descriptor (tests), or no poll
-        return False
-
-
-def _quiet_exit() -> None:
-    """Exit 0 after the reader closed stdout; what Python still holds for it goes to /dev/null, so the
-    interpreter's last flush does not complain either."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, sys.stdout.fileno())
-    sys.exit(0)
-
-
-def _sources(diags) -> dict[str, str]:
-    from wiredsl.diagnostics import read_sources
-
-    return read_sources(diags)
-
-
-diagnostics_option = click.option("--diagnostics", type=click.Choice(["text", "json"]), default="text",
-                                  show_default=True, help="Form of diagnostics on stderr.")
+from wiredsl.cli_base import EXIT_INVALID, diagnostics_option, folder_name, guarded, report, setup_errors
+from wiredsl.export import export
+from wiredsl.io.render_cli import render
+from wiredsl.verify.cli import verify
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -212,7 +79,7 @@ def _tune_gc() -> None:
 @guarded
 def check(files: tuple[str, ...], diagnostics: str) -> None:
     """Check scene FILES; exit 0 when all are valid, 1 with diagnostics."""
-    from wiredsl.diagnostics import WiredslError
+    from wiredsl.diagnostics import WiredslError, read_sources
     from wiredsl.language.compile import compile_file
 
     failed = False
@@ -227,7 +94,7 @@ def check(files: tuple[str, ...], diagnostics: str) -> None:
         except WiredslError as err:
             all_diags += err.diagnostics
             failed = True
-    report(all_diags, _sources(all_diags), diagnostics)
+    report(all_diags, read_sources(all_diags), diagnostics)
     if failed:
         sys.exit(EXIT_INVALID)
     if diagnostics == "text":
@@ -361,9 +228,9 @@ def _documents(path: str, text: str) -> list[tuple[str, object]]:
 @guarded
 def reference() -> None:
     """Print the language reference (Markdown), generated from the statement table."""
-    from wiredsl.docgen import statements
+    from wiredsl.language.statements import reference as table
 
-    click.echo(statements())
+    click.echo(table())
 
 
 @main.command()
@@ -391,7 +258,6 @@ def plugins() -> None:
                                              "wiredsl.measures, wiredsl.detectors)")
     if bad:
         sys.exit(EXIT_INVALID)
-
 
 
 @main.command()
@@ -449,17 +315,7 @@ def _folder_output(output: str | None, scene_name: str, force: bool):
         raise click.BadParameter("must not be empty", param_hint="-o")
     out = Path(output) if output is not None else Path("build") / scene_name
     check_output_folder(out, force)
-    return _folder_name(out, DUMP_SUFFIXES, "the dump is written into it as features.json, .jsonl or .npz")
-
-
-def _folder_name(out, suffixes: tuple[str, ...], inside: str):
-    """-o of a command that writes a folder: a name that looks like one of its files is a mistake."""
-    if out.exists() and not out.is_dir():
-        raise click.BadParameter(f"must name a folder: {out} is a file", param_hint="-o")
-    if out.suffix.lower() in suffixes and not out.is_dir():
-        raise click.BadParameter(f"{out} looks like a file name; -o names the output folder ({inside})",
-                                 param_hint="-o")
-    return out
+    return folder_name(out, DUMP_SUFFIXES, "the dump is written into it as features.json, .jsonl or .npz")
 
 
 def _size(n: float) -> str:
@@ -589,7 +445,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                                  param_hint="--trial")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
-    with _setup_errors():
+    with setup_errors():
         chosen_poses = runs.check_poses(scene, poses) if poses else None
         choice = runs.choose_pipeline(scene, pipeline_name, no_effects)
     pipeline = choice.pipeline
@@ -613,7 +469,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         visibility = _auto_visibility(scene, world, program, chosen_poses, cameras, trials if exact_calibration else 1,
                                       diagnostics)
     opts = Options(tolerance=tolerance, visibility=visibility, poses=chosen_poses, right=cameras == "both")
-    with _setup_errors():
+    with setup_errors():
         if study_name is not None or point is not None:
             run, pipeline, trial_list = _study_point(scene, world, study_name, point, only_trial, seed,
                                                      pipeline_name, no_effects, opts, poses, out_format)
@@ -748,17 +604,6 @@ def _numba_without_blas() -> None:
         import numba.np.arraymath  # noqa: F401
     finally:
         del sys.modules["scipy.linalg.cython_blas"]
-
-
-@contextlib.contextmanager
-def _setup_errors():
-    """A run's options that do not fit the scene: a usage error naming the option."""
-    from wiredsl.run import RunSetupError
-
-    try:
-        yield
-    except RunSetupError as err:
-        raise click.BadParameter(str(err), param_hint=err.option) from None
 
 
 def _study_point(scene, world, study_name, point, only_trial, seed, pipeline_name, no_effects, opts, poses,
@@ -937,7 +782,7 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     from wiredsl.language.compile import compile_file
 
     if output is not None:
-        _folder_name(Path(output), (".yaml", ".yml", ".json", ".xml"),
+        folder_name(Path(output), (".yaml", ".yml", ".json", ".xml"),
                      "stereo.yaml, left.yaml, right.yaml, camchain.yaml, basalt_calib.json and the "
                      "camodocal files are written into it")
     scene, warnings, program = compile_file(file)
@@ -949,7 +794,7 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
             raise click.UsageError("--trial needs the run's --seed (see its manifest.json)")
         from wiredsl import run as runs
 
-        with _setup_errors():
+        with setup_errors():
             run = runs.start(scene, runs.choose_pipeline(scene, pipeline_name).pipeline, seed=seed)
         if run.sampler() is None:
             raise click.UsageError("no calibration_error stage with a rig calibration: each trial has the nominal rig")
@@ -989,7 +834,7 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
     from wiredsl.study import run_study
 
     if output is not None:
-        _folder_name(Path(output), (".csv", ".json", ".png", ".svg"), "table.csv, table.json and plots/ are written "
+        folder_name(Path(output), (".csv", ".json", ".png", ".svg"), "table.csv, table.json and plots/ are written "
                      "into it")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
@@ -1021,12 +866,7 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
     click.echo(f"wrote {out}: " + ", ".join(written), err=True)
 
 
-from wiredsl.io.render_cli import render  # noqa: E402  (their own modules; registered here, importing nothing heavy)
-from wiredsl.verify.cli import verify  # noqa: E402
-
+# Commands in modules of their own (importing nothing heavy), registered here.
 main.add_command(render)
 main.add_command(verify)
-
-from wiredsl.export import export  # noqa: E402  (its own module, as verify)
-
 main.add_command(export)

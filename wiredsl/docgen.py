@@ -26,15 +26,9 @@ def _cell(text: object) -> str:
 
 def statements() -> str:
     """The language reference: every statement of every context, as `wiredsl reference` prints it."""
-    from wiredsl.language.statements import CONTEXTS, takes
+    from wiredsl.language.statements import reference
 
-    out = ["| where | statement | takes | meaning |", "|---|---|---|---|"]
-    for ctx, sigs in CONTEXTS.items():
-        for sig in sigs.values():
-            where = "top level" if ctx == "top" else f"`{ctx}` block"
-            text = takes(sig).replace("|", "\\|")
-            out.append(f"| {where} | `{sig.keyword}` | `{text}` | {sig.doc.splitlines()[0]} |")
-    return "\n".join(out)
+    return reference()
 
 
 def diagnostics() -> str:

@@ -12,7 +12,7 @@ import sys
 
 import click
 
-from wiredsl.cli import EXIT_INVALID, _folder_name, _setup_errors, diagnostics_option, guarded, report
+from wiredsl.cli_base import EXIT_INVALID, diagnostics_option, folder_name, guarded, report, setup_errors
 
 FORMATS = ("colmap", "rosbag2")
 MAX_EXPORT_TRIALS = 100_000  # one folder a trial
@@ -54,11 +54,11 @@ def export(file: str, fmt: str, output: str | None, no_effects: bool, pipeline_n
     if need and importlib.util.find_spec(need) is None:
         raise click.UsageError(f"--format {fmt} needs the {need} library: pip install 'wiredsl[formats]'")
     if output is not None:
-        _folder_name(Path(output), (".txt", ".db3", ".yaml", ".json"), "ideal/ or trial_NNNNN/ folders and "
+        folder_name(Path(output), (".txt", ".db3", ".yaml", ".json"), "ideal/ or trial_NNNNN/ folders and "
                      "manifest.json are written into it")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
-    with _setup_errors():
+    with setup_errors():
         choice = runs.choose_pipeline(scene, pipeline_name, no_effects)
     if choice.note is not None:
         click.echo(f"note: {choice.note}", err=True)

@@ -16,7 +16,8 @@ from pathlib import Path
 
 from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, source_lines
 from wiredsl.language import ast
-from wiredsl.language.statements import CONTEXTS, Sig, bind, takes
+from wiredsl.language.bind import bind
+from wiredsl.language.statements import CONTEXTS, Sig, takes
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
 
 # The kind of symbol a reference slot names, by the slot's label in the statement table.

@@ -102,13 +102,20 @@ def camera_from_world(pose, mount_rotation, mount_position):
     return R_cw, -R_cw @ t_wc
 
 
+def world_from_robot_via(R_wx, t_wx, R_rx, p_rx) -> tuple[np.ndarray, np.ndarray]:
+    """(R_wr (..., 3, 3), t_wr (..., 3)): world_from_robot = world_from_x . x_from_robot, for a frame x on the robot
+    (a camera, a trajectory file's body) at world_from_x (R_wx (..., 3, 3), t_wx (..., 3)) and mounted at
+    robot_from_x (R_rx (3, 3), p_rx (3,): x's axes and origin in the robot frame)."""
+    R_rx, p_rx = np.asarray(R_rx, dtype=float), np.asarray(p_rx, dtype=float)
+    R_wr = np.asarray(R_wx, dtype=float) @ R_rx.T
+    return R_wr, np.asarray(t_wx, dtype=float) - R_wr @ p_rx
+
+
 def world_from_robot_via_camera(R_wc, t_wc, mount_rotation, mount_position) -> tuple[float, ...]:
     """The robot pose whose camera, mounted as `camera_from_world` takes it (mount_rotation robot_from_camera,
     mount_position in the robot frame), is at world_from_camera (R_wc, t_wc): camera_from_world's inverse, as the
     12 numbers of the row-major [R_wr | t_wr] that `world_from_robot` reads."""
-    R_rc, p_rc = np.asarray(mount_rotation, dtype=float), np.asarray(mount_position, dtype=float)
-    R_wr = np.asarray(R_wc, dtype=float) @ R_rc.T  # world from robot = world from camera . camera from robot
-    t_wr = np.asarray(t_wc, dtype=float) - R_wr @ p_rc
+    R_wr, t_wr = world_from_robot_via(R_wc, t_wc, mount_rotation, mount_position)
     return tuple(float(v) for v in np.column_stack([R_wr, t_wr]).ravel())
 
 

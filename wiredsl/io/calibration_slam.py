@@ -1,6 +1,6 @@
 """Calibration files of visual-inertial SLAM tools: camodocal's YAML (VINS-Mono / VINS-Fusion: PINHOLE, MEI,
 KANNALA_BRANDT) and basalt's calibration JSON (cereal: pinhole, pinhole-radtan8, kb4, ucm, eucm, ds, fov); read
-into `calibration.CameraFile`s and written back (with Kalibr camchains) by `rig_files`.
+into `camera_file.CameraFile`s and written back (with Kalibr camchains) by `rig_files`.
 
 Conventions, from the tools' sources:
 - camodocal MEI: m = (x, y) / (z + xi d), then radtan k1, k2, p1, p2 on m, u = gamma1 m_x + u0 (wiredsl's unified);
@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from wiredsl.io.calibration import (
+from wiredsl.io.camera_file import (
     SUPPORTED,
     CalibrationFileError,
     CameraFile,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from wiredsl.cli import _folder_name, _setup_errors, diagnostics_option, guarded, report
+from wiredsl.cli_base import diagnostics_option, folder_name, guarded, report, setup_errors
 
 
 def _grey_range(lo: float, hi: float):
@@ -63,10 +63,10 @@ def render(file: str, output: str | None, pipeline_name: str | None, no_effects:
     from wiredsl.language.compile import compile_file
 
     if output is not None:
-        _folder_name(Path(output), (".png", ".json"), "one PNG a view and render.json are written into it")
+        folder_name(Path(output), (".png", ".json"), "one PNG a view and render.json are written into it")
     scene, warnings, program = compile_file(file)
     report(warnings, program.sources, diagnostics)
-    with _setup_errors():
+    with setup_errors():
         chosen = runs.check_poses(scene, poses) if poses else None
         choice = runs.choose_pipeline(scene, pipeline_name, no_effects)
     if choice.note is not None:
@@ -75,7 +75,7 @@ def render(file: str, output: str | None, pipeline_name: str | None, no_effects:
     look = rd.Look(blur=blur, noise=noise, edges=edges, width=stroke_width, ink=ink, background=background,
                    faces=faces, corners=corners, supersample=supersample, boards=rd.scene_boards(scene))
     out = Path(output) if output is not None else Path("build") / scene.name / "render"
-    with _setup_errors():
+    with setup_errors():
         images = rd.write(out, scene, pipeline=choice.pipeline, seed=seed, look=look, poses=chosen, cameras=cameras,
                           visibility=visibility, force=force)
     click.echo(f"wrote {len(images)} image{'s' * (len(images) != 1)} and render.json to {out} (seed {seed}, "

@@ -32,6 +32,8 @@ from decimal import Decimal
 
 import numpy as np
 
+from wiredsl.engine import geometry
+
 FORMATS = ("tum", "euroc", "kitti", "csv")
 ROUNDING = 1e-3  # |length - 1| of a quaternion (or R^T R - I of a matrix) up to this: printed digits, silent
 NOT_UNIT = 0.1  # beyond this it is not a rotation: an error; in between, normalised with a warning
@@ -379,9 +381,7 @@ def world_from_robot(P: np.ndarray, R: np.ndarray, body: tuple, world: tuple) ->
     world_from_robot = world_from_file . file_from_body . body_from_robot, with `body` = robot_from_body (R, p)
     and `world` = world_from_file (R, t)."""
     (R_rb, p_rb), (R_sf, t_sf) = body, world
-    R_wr = R_sf @ R @ R_rb.T
-    t_wr = (R_sf @ (R @ (-R_rb.T @ p_rb) + P)[..., None])[..., 0] + t_sf
-    return R_wr, t_wr
+    return geometry.world_from_robot_via(R_sf @ R, P @ R_sf.T + t_sf, R_rb, p_rb)
 
 
 def implausible(R_wr: np.ndarray, t_wr: np.ndarray) -> list[tuple[str, str]]:

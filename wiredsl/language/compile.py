@@ -20,7 +20,8 @@ from wiredsl.effects import REGISTRY
 from wiredsl.io.files import printable_path
 from wiredsl.language import ast
 from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
-from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE, Bound, bind
+from wiredsl.language.bind import Bound, bind
+from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
 from wiredsl.plugins import params_of
 from wiredsl.scene import (

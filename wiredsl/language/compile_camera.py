@@ -15,7 +15,8 @@ import numpy as np
 
 from wiredsl.diagnostics import Collector, Span, WiredslError, did_you_mean
 from wiredsl.language import ast
-from wiredsl.language.statements import MAX_MAGNITUDE, Bound, bind
+from wiredsl.language.bind import Bound, bind
+from wiredsl.language.statements import MAX_MAGNITUDE
 from wiredsl.scene import CALIBRATION_PARAMETERS, Calibration, Camera, Mount, Rig, trusted
 
 MAX_MATRIX = 1_000

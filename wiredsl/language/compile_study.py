@@ -16,7 +16,7 @@ import pydantic
 from wiredsl.diagnostics import NOT_INSTALLED, Collector, Span, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.language import ast
-from wiredsl.language.statements import Bound, Value, bind, quantity
+from wiredsl.language.bind import Bound, Value, bind, quantity
 from wiredsl.plugins import lookup, params_of
 from wiredsl.scene import Factor, MeasureUse, Pipeline, Study
 

@@ -96,12 +96,16 @@ def histograms(a, b, starts, n_angle, directed, n_dist, d_max, point_span):
 
 
 @njit(cache=True)
-def _best(S, i, owner, best):
-    """best[k] = the largest S[i, r] over the ideal rows r of owner k (-inf where k has none)."""
-    best[:] = -np.inf
-    for r in range(S.shape[1]):
-        if S[i, r] > best[owner[r]]:
-            best[owner[r]] = S[i, r]
+def _trial_best(root, idx, ideal_t, owner, k):
+    """One trial's rows `idx`: best[i, j] = the largest score (one matrix product of the rows with the ideal rows
+    `ideal_t`) of row idx[i] over the ideal rows r of owner j < k (-inf where j has none), in the product's dtype."""
+    S = np.dot(root[idx], ideal_t)
+    best = np.full((len(idx), k), -np.inf, dtype=S.dtype)
+    for i in range(len(idx)):
+        for r in range(S.shape[1]):
+            if S[i, r] > best[i, owner[r]]:
+                best[i, owner[r]] = S[i, r]
+    return best
 
 
 @njit(cache=True)
@@ -112,15 +116,14 @@ def own_scores(root, key, order, bounds, ideal_t, owner, sources, tie):
     (`ideal_t`: (bins, n)), so they do not depend on which other trials share the call."""
     M = root.shape[0]
     K = len(sources)
-    best = np.empty(K)
     own = np.zeros(M)
     recog = np.zeros(M, dtype=np.bool_)
     for g in range(len(bounds) - 1):
         idx = order[bounds[g]:bounds[g + 1]]
-        S = np.dot(root[idx], ideal_t)
+        trial_best = _trial_best(root, idx, ideal_t, owner, K)
         for i in range(len(idx)):
             m = idx[i]
-            _best(S, i, owner, best)
+            best = trial_best[i]
             col = min(np.searchsorted(sources, key[m]), K - 1)
             if sources[col] != key[m]:
                 continue
@@ -140,13 +143,12 @@ def located_scores(root, L, trial, order, bounds, n_trials, ideal_t, owner, n):
     (float32 products, as float64); and each trial's length (n_trials,)."""
     score = np.zeros((n_trials, n))
     w = np.zeros(n_trials)
-    best = np.empty(n, dtype=ideal_t.dtype)
     for g in range(len(bounds) - 1):
         idx = order[bounds[g]:bounds[g + 1]]
-        S = np.dot(root[idx], ideal_t)
+        trial_best = _trial_best(root, idx, ideal_t, owner, n)
         for i in range(len(idx)):
             m = idx[i]
-            _best(S, i, owner, best)
+            best = trial_best[i]
             t = trial[m]
             for c in range(n):
                 if best[c] > -np.inf:

@@ -6,7 +6,7 @@ import math
 
 import click
 
-from wiredsl.cli import diagnostics_option, guarded, report
+from wiredsl.cli_base import diagnostics_option, guarded, report
 
 
 @click.command()
