@@ -388,6 +388,36 @@ def pixels_to_rays(uv: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
     return np.where(ok[:, None], rays, np.array([0.0, 0.0, 1.0])), ok
 
 
+def pixels_to_rays_newton(u: np.ndarray, v: np.ndarray, g: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit rays (x, y, z), (n,) each, in the camera frame of pixels u, v (n,) each under the camera numbers g
+    (CAMERA_KEYS and "model"; a camera table or a kernel's camera row as a dict), NaN where none is found.
+
+    `pixels_to_rays` without the fold radius, so that a compiled stage, handed only a camera row, computes the same
+    (wiredsl.effects.stereo_mismatch_kernel._pixel_ray, term by term): a radtan's (and Mei's on a unified
+    model's) distortion undone by `undistort_radtan`'s Newton's method from the distorted point itself (right
+    wherever it converges inside the fold: every pixel of a mildly distorted lens), then the model's own lifting
+    (`lens_theta`). No lens-limit test: a pixel past the lens's image gets whatever ray the formulas give."""
+    model = int(g["model"])
+    xd = (u - g["cx"]) / (g["f"] * g["ax"])
+    yd = (v - g["cy"]) / (g["f"] * g["ay"])
+    lens = [float(g[k]) for k in RADTAN_KEYS]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        if model in (RADTAN, UNIFIED) and any(lens):
+            m, res = undistort_radtan(np.column_stack([xd, yd]), *lens)
+            fail = ~(res < 1e-12)
+            mx, my = np.where(fail, np.nan, m[:, 0]), np.where(fail, np.nan, m[:, 1])
+        else:
+            mx, my = xd, yd
+        if model == RADTAN:
+            n = np.sqrt(mx * mx + my * my + 1.0)
+            return mx / n, my / n, 1.0 / n
+        r = np.hypot(mx, my)
+        theta, ok = lens_theta(r, g)
+        theta = np.where(ok, theta, np.nan)
+        s = np.where(r > 0, np.sin(theta) / np.where(r > 0, r, 1.0), 0.0)
+        return mx * s, my * s, np.cos(theta)
+
+
 def cam_to_pixels(P_cam: np.ndarray, cam) -> np.ndarray:
     """The whole chain for points the camera images: P_cam (..., 3) -> pixels (..., 2)."""
     return project(P_cam, camera_table(cam))
