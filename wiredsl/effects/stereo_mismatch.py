@@ -6,7 +6,8 @@ segment by segment, leaving fragments). Then, in the right image (the matched
 one; the left is the reference), each remaining stroke is mismatched with
 probability `fraction` and moves along its epipolar line by a uniform amount in
 [-disparity, disparity]. The epipolar geometry is the nominal rig's (the one a
-matcher would use), as a pinhole model.
+matcher would use), through its lenses: under a distorted lens the epipolar
+lines are curves, and the direction at a point is the curve's tangent there.
 """
 
 from __future__ import annotations
