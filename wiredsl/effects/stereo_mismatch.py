@@ -37,33 +37,28 @@ def epipolar_directions(points: np.ndarray, epipole: np.ndarray) -> np.ndarray:
     return np.divide(d, norm, out=np.tile([1.0, 0.0], (len(d), 1)), where=norm > 0)
 
 
-STEP = 0.01  # px: the central differences' step for a distorted lens's epipolar tangent
+NUDGE = 1e-4  # the 3D step (a unit ray's length: 1e-4 rad) of the central differences of a lens's epipolar tangent
 
 
 def epipolar_tangents(points: np.ndarray, epipole: np.ndarray, g: dict) -> np.ndarray:
     """Unit tangent of the epipolar curve through each point (n, 2) of a camera with numbers g (a camera table,
     `geometry.camera_table`) whose epipole (homogeneous, `Run.epipole`: K X for the other camera's centre X in
     this camera's frame) is given, (3,) or one a point (n, 3): the image of the point's epipolar plane under the
-    lens. The pixel's ray d and the rays a STEP away on each axis (`geometry.pixels_to_rays_newton`) give the
-    lens's Jacobian J (3 x 2, central differences); the tangent t solves J t = w in least squares, w the part of
-    -X across d (the 3D point moving away from the other camera, within the plane): under a pinhole lens the
-    direction `epipolar_directions` gives, whose sign it keeps. Where no ray is found, that pinhole direction.
-    The compiled kernel's `_tangent` computes the same, term by term."""
+    lens. The pixel's unit ray d (`geometry.pixels_to_rays_newton`) moved NUDGE away from and towards the other
+    camera's centre (along -X and X: within the plane), projected through the lens (`geometry.project_xyz`): the
+    difference of the two images, central differences. Under a pinhole lens the direction `epipolar_directions`
+    gives, whose sign it keeps. Where no ray or image is found, that pinhole direction. The compiled kernel's
+    `_tangent` computes the same, term by term."""
     e = np.broadcast_to(np.asarray(epipole, dtype=float), (len(points), 3))
-    n = len(points)
-    u, v = points[:, 0], points[:, 1]
-    x, y, z = (c.reshape(5, n) for c in geometry.pixels_to_rays_newton(
-        np.concatenate([u, u + STEP, u - STEP, u, u]), np.concatenate([v, v, v, v + STEP, v - STEP]), g))
+    x, y, z = geometry.pixels_to_rays_newton(points[:, 0], points[:, 1], g)
     Xx = (e[:, 0] - g["cx"] * e[:, 2]) / (g["f"] * g["ax"])  # K^-1 e: X up to a positive scale
     Xy = (e[:, 1] - g["cy"] * e[:, 2]) / (g["f"] * g["ay"])
     Xz = e[:, 2]
-    ux, uy, uz = x[1] - x[2], y[1] - y[2], z[1] - z[2]
-    vx, vy, vz = x[3] - x[4], y[3] - y[4], z[3] - z[4]
-    along = Xx * x[0] + Xy * y[0] + Xz * z[0]
-    wx, wy, wz = along * x[0] - Xx, along * y[0] - Xy, along * z[0] - Xz
-    a, b, c = ux * ux + uy * uy + uz * uz, ux * vx + uy * vy + uz * vz, vx * vx + vy * vy + vz * vz
-    p, q = ux * wx + uy * wy + uz * wz, vx * wx + vy * wy + vz * wz
-    tx, ty = c * p - b * q, a * q - b * p
+    step = NUDGE / np.sqrt(Xx * Xx + Xy * Xy + Xz * Xz)
+    Xx, Xy, Xz = Xx * step, Xy * step, Xz * step
+    ua, va = geometry.project_xyz(x - Xx, y - Xy, z - Xz, g)
+    ub, vb = geometry.project_xyz(x + Xx, y + Xy, z + Xz, g)
+    tx, ty = ua - ub, va - vb
     with np.errstate(invalid="ignore", over="ignore"):
         norm = np.sqrt(tx * tx + ty * ty)
         good = np.isfinite(norm) & (norm > 0)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 from numba import njit
 
-from wiredsl.engine.kernel import CLOSED, FRAG, _arcs, _keep, _pieces, _total_length, _uniform, _unroll
+from wiredsl.engine.kernel import CLOSED, FRAG, _arcs, _keep, _pieces, _stable_sum, _total_length, _uniform, _unroll
 
 
 @njit(cache=True)
@@ -21,7 +21,8 @@ def _epi_dir(x, y, e0, e1, e2):
     return 1.0, 0.0
 
 
-STEP = 0.01  # stereo_mismatch.STEP
+NUDGE = 1e-4  # stereo_mismatch.NUDGE
+NEWTON_TOL = 1e-14  # geometry.NEWTON_TOL
 
 
 @njit(cache=True, error_model="numpy")
@@ -36,8 +37,8 @@ def _distort(x, y, k1, k2, p1, p2, k3, k4, k5, k6):
 
 @njit(cache=True, error_model="numpy")
 def _undistort(xd, yd, k1, k2, p1, p2, k3, k4, k5, k6):
-    """geometry.undistort_radtan of one point from itself (20 Newton steps), NaN where its residual is not below
-    1e-12."""
+    """geometry.undistort_radtan of one point from itself (20 Newton steps at most, tol NEWTON_TOL), NaN where its
+    residual is not below 1e-12."""
     x, y = xd, yd
     for _ in range(20):
         r2 = x * x + y * y
@@ -50,6 +51,8 @@ def _undistort(xd, yd, k1, k2, p1, p2, k3, k4, k5, k6):
         j22 = rad + g * y * y + 6.0 * p1 * y + 2.0 * p2 * x
         ex, ey = _distort(x, y, k1, k2, p1, p2, k3, k4, k5, k6)
         r0, r1 = ex - xd, ey - yd
+        if abs(r0) <= NEWTON_TOL and abs(r1) <= NEWTON_TOL:
+            break
         det = j11 * j22 - j12 * j12
         x, y = x - (j22 * r0 - j12 * r1) / det, y - (j11 * r1 - j12 * r0) / det
     ex, ey = _distort(x, y, k1, k2, p1, p2, k3, k4, k5, k6)
@@ -70,7 +73,10 @@ def _theta(r, cam):
         for _ in range(20):
             t2 = theta * theta
             slope = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-            theta = theta - (theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - r) / slope
+            res = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - r
+            if abs(res) <= NEWTON_TOL:
+                break
+            theta = theta - res / slope
         t2 = theta * theta
         if not abs(theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - r) < 1e-12:
             return math.nan
@@ -111,24 +117,59 @@ def _pixel_ray(u, v, cam):
 
 
 @njit(cache=True, error_model="numpy")
+def _pixel(X, Y, Z, cam):
+    """geometry.project_xyz of one camera point, the camera a kernel camera row (no lens-limit test: NaN where the
+    model has no image, as geometry.model_plane_xy)."""
+    model = int(cam[19])
+    k1, k2, p1, p2, k3, k4, k5, k6 = cam[7], cam[8], cam[9], cam[10], cam[11], cam[12], cam[13], cam[14]
+    xi, a, beta, w = cam[15], cam[16], cam[17], cam[18]
+    if model == 0:
+        if Z > 0:
+            xd, yd = _distort(X / Z, Y / Z, k1, k2, p1, p2, k3, k4, k5, k6)
+        else:
+            xd, yd = math.nan, math.nan
+    elif model == 1:
+        rho = math.hypot(X, Y)
+        theta = math.atan2(rho, Z)
+        t2 = theta * theta
+        td = theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+        scale = td / rho if rho > 0 else (0.0 if Z > 0 else math.nan)
+        xd, yd = scale * X, scale * Y
+    elif model == 5:
+        rho = math.hypot(X, Y)
+        two_tan = 2.0 * math.tan(0.5 * w)
+        scale = math.atan2(rho * two_tan, Z) / (w * rho) if rho > 0 else two_tan / (w * Z)
+        xd, yd = scale * X, scale * Y
+    else:
+        r2 = X * X + Y * Y
+        d = math.sqrt(r2 + Z * Z)
+        if model == 2:
+            den = _stable_sum(xi * d, Z, xi * xi * r2 - (1.0 - xi) * (1.0 + xi) * (Z * Z))
+            xd, yd = _distort(X / den, Y / den, k1, k2, p1, p2, k3, k4, k5, k6)
+        else:
+            if model == 3:
+                den = _stable_sum(a * math.sqrt(beta * r2 + Z * Z), (1.0 - a) * Z,
+                                  a * a * beta * r2 + (2.0 * a - 1.0) * (Z * Z))
+            else:
+                zs = _stable_sum(xi * d, Z, xi * xi * r2 - (1.0 - xi) * (1.0 + xi) * (Z * Z))
+                den = _stable_sum(a * math.sqrt(r2 + zs * zs), (1.0 - a) * zs, a * a * r2 + (2.0 * a - 1.0) * (zs * zs))
+            xd, yd = X / den, Y / den
+    return cam[2] * cam[3] * xd + cam[5], cam[2] * cam[4] * yd + cam[6]
+
+
+@njit(cache=True, error_model="numpy")
 def _tangent(x, y, e0, e1, e2, cam):
     """stereo_mismatch.epipolar_tangents of one point: the unit tangent of the epipolar curve through it (the
     pinhole direction, _epi_dir, where there is none)."""
-    x0, y0, z0 = _pixel_ray(x, y, cam)
-    x1, y1, z1 = _pixel_ray(x + STEP, y, cam)
-    x2, y2, z2 = _pixel_ray(x - STEP, y, cam)
-    x3, y3, z3 = _pixel_ray(x, y + STEP, cam)
-    x4, y4, z4 = _pixel_ray(x, y - STEP, cam)
+    dx, dy, dz = _pixel_ray(x, y, cam)
     Xx = (e0 - cam[5] * e2) / (cam[2] * cam[3])
     Xy = (e1 - cam[6] * e2) / (cam[2] * cam[4])
     Xz = e2
-    ux, uy, uz = x1 - x2, y1 - y2, z1 - z2
-    vx, vy, vz = x3 - x4, y3 - y4, z3 - z4
-    along = Xx * x0 + Xy * y0 + Xz * z0
-    wx, wy, wz = along * x0 - Xx, along * y0 - Xy, along * z0 - Xz
-    a, b, c = ux * ux + uy * uy + uz * uz, ux * vx + uy * vy + uz * vz, vx * vx + vy * vy + vz * vz
-    p, q = ux * wx + uy * wy + uz * wz, vx * wx + vy * wy + vz * wz
-    tx, ty = c * p - b * q, a * q - b * p
+    step = NUDGE / math.sqrt(Xx * Xx + Xy * Xy + Xz * Xz)
+    Xx, Xy, Xz = Xx * step, Xy * step, Xz * step
+    ua, va = _pixel(dx - Xx, dy - Xy, dz - Xz, cam)
+    ub, vb = _pixel(dx + Xx, dy + Xy, dz + Xz, cam)
+    tx, ty = ua - ub, va - vb
     norm = math.sqrt(tx * tx + ty * ty)
     if math.isfinite(norm) and norm > 0:
         return tx / norm, ty / norm
