@@ -24,7 +24,8 @@ def pytest_configure(config):
     from wiredsl.effects import BUILTIN
     from wiredsl.engine import kernel
 
-    kernel.warm(tuple(e.kernel.function for e in BUILTIN.values() if e.kernel is not None))
+    kernels = [e.kernel for e in BUILTIN.values() if e.kernel is not None]
+    kernel.warm(tuple(k.function for k in kernels), tuple(k.camera for k in kernels))
 
 
 @pytest.fixture(autouse=True, scope="session")

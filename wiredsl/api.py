@@ -180,7 +180,9 @@ def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str |
     return _batches(scene, trials, seed, pipeline, opts, engine)
 
 
-def _batches(scene: Scene, trials: int, seed: int, pipeline, opts, engine: str) -> Iterator[Batch]:
+def _batches(scene: Scene, trials: int, seed: int, pipeline, opts, engine: str, only: int | None = None
+             ) -> Iterator[Batch]:
+    """The run's batches of trials 0..trials-1 (`only`: trial `only` alone, the same draws)."""
     from wiredsl import run as runs
     from wiredsl.io.emit import batch_arrays, contours
 
@@ -191,7 +193,7 @@ def _batches(scene: Scene, trials: int, seed: int, pipeline, opts, engine: str) 
                 None) for r in run.ideal()]
         yield Batch([0], batch_arrays([0], out, contours(run.world), renumber=False), ids, out, kinds)
         return
-    for batch, batch_out in run.batches(range(trials)):
+    for batch, batch_out in run.batches(range(only, only + 1) if only is not None else range(trials)):
         yield Batch(batch, batch_arrays(batch, batch_out, contours(run.world)), ids, batch_out, kinds)
 
 

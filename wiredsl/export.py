@@ -28,17 +28,22 @@ MAX_EXPORT_TRIALS = 100_000  # one folder a trial
               "(default: the scene's default).")
 @click.option("--trials", type=click.IntRange(1, MAX_EXPORT_TRIALS), default=1, show_default=True,
               help="Trials 0..N-1 of the run, one folder each.")
+@click.option("--trial", "only_trial", type=click.IntRange(0, MAX_EXPORT_TRIALS - 1), default=None,
+              help="Export trial K alone (folder trial_K): the same draws as build --seed S --trial K. With "
+                   "--trials N, K must be below N.")
 @click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=None,
               help="The run's seed (default: drawn, and recorded in manifest.json).")
 @click.option("--period", type=click.FloatRange(1e-6, 3600), default=0.1, show_default=True,
-              help="rosbag2: seconds between the path's poses (pose i is stamped 1 s + i * period).")
+              help="rosbag2: seconds between the path's poses (pose i is stamped 1 s + i * period), for a path "
+                   "without timestamps (a path read from a trajectory file keeps the file's own).")
 @click.option("--undistort", is_flag=True, help="colmap: a PINHOLE camera and undistorted 2D points, for any lens "
               "(needed for the lenses COLMAP has no model for: ds, unified with distortion).")
 @click.option("--force", is_flag=True, help="Replace an output folder that holds files wiredsl did not write.")
 @diagnostics_option
 @guarded
 def export(file: str, fmt: str, output: str | None, no_effects: bool, pipeline_name: str | None, trials: int,
-           seed: int | None, period: float, undistort: bool, force: bool, diagnostics: str) -> None:
+           only_trial: int | None, seed: int | None, period: float, undistort: bool, force: bool,
+           diagnostics: str) -> None:
     """Write what the rig observes along the path (the ideal projection, or a pipeline's trials) in the formats
     SfM and SLAM code reads: a COLMAP text model or a ROS 2 bag."""
     import importlib.util
@@ -48,6 +53,12 @@ def export(file: str, fmt: str, output: str | None, no_effects: bool, pipeline_n
     from wiredsl import run as runs
     from wiredsl.language.compile import compile_file
 
+    ctx = click.get_current_context(silent=True)
+    trials_given = ctx is not None and ctx.get_parameter_source("trials") not in (
+        None, click.core.ParameterSource.DEFAULT)
+    if only_trial is not None and trials_given and only_trial >= trials:
+        raise click.BadParameter(f"trial {only_trial} is not in 0..{trials - 1} (a run of --trials {trials})",
+                                 param_hint="--trial")
     if undistort and fmt != "colmap":
         raise click.BadParameter("--undistort is for --format colmap", param_hint="--undistort")
     need = {"colmap": None, "rosbag2": "rosbags"}[fmt]
@@ -63,18 +74,20 @@ def export(file: str, fmt: str, output: str | None, no_effects: bool, pipeline_n
     if choice.note is not None:
         click.echo(f"note: {choice.note}", err=True)
     pipeline = choice.pipeline if choice.pipeline is not None and choice.pipeline.stages else None
-    if pipeline is None and (trials != 1 or seed is not None):
-        click.echo("note: the ideal projection has one trial and no draws: --trials and --seed are not used",
-                   err=True)
+    if pipeline is None and (trials != 1 or seed is not None or only_trial is not None):
+        click.echo("note: the ideal projection has one trial and no draws: --trials, --trial and --seed are not "
+                   "used", err=True)
+        only_trial = None
     seed = (seed if seed is not None else secrets.randbits(63)) if pipeline is not None else 0
     out = Path(output) if output is not None else Path("build") / scene.name / fmt
     try:
-        counts = write(out, scene, fmt, pipeline, trials, seed, period, undistort, force)
+        counts = write(out, scene, fmt, pipeline, trials, seed, period, undistort, force, only_trial)
     except ExportError as exc:
         click.echo(f"wiredsl: error: {exc}", err=True)
         sys.exit(EXIT_INVALID)
-    what = f"pipeline {pipeline.name}, {trials} trial{'s' * (trials != 1)}, seed {seed}" if pipeline else \
-        "ideal projection"
+    what = (f"pipeline {pipeline.name}, " + (f"trial {only_trial}" if only_trial is not None else
+                                              f"{trials} trial{'s' * (trials != 1)}") + f", seed {seed}") \
+        if pipeline else "ideal projection"
     click.echo(f"wrote {out} ({fmt}, {what})", err=True)
     for note in counts:
         click.echo(f"note: {note}", err=True)
@@ -85,14 +98,15 @@ class ExportError(ValueError):
 
 
 def write(out, scene, fmt: str, pipeline, n_trials: int, seed: int, period: float, undistort: bool = False,
-          force: bool = False) -> list[str]:
-    """Write the export folder `out` whole (atomically); the notes to tell the user (observations left out)."""
+          force: bool = False, only_trial: int | None = None) -> list[str]:
+    """Write the export folder `out` whole (atomically); the notes to tell the user (observations left out).
+    `only_trial`: trial K of the run alone."""
     from wiredsl import __version__
     from wiredsl.io import export_colmap, observations
     from wiredsl.io.files import json_text, output_folder
 
     try:
-        src, each = observations.trials(scene, pipeline, n_trials, seed)
+        src, each = observations.trials(scene, pipeline, n_trials, seed, only=only_trial)
         if fmt == "colmap" and not undistort:
             for side in observations.CAMERAS:
                 export_colmap.colmap_camera(src.cameras[side])
@@ -118,8 +132,11 @@ def write(out, scene, fmt: str, pipeline, n_trials: int, seed: int, period: floa
                 left_out += export_rosbag.write(stage / name, src, trial, period_ns)
         manifest = {"wiredsl": __version__, "scene": scene.name, "format": fmt,
                     "pipeline": pipeline.name if pipeline is not None else None, "seed": seed,
-                    "trials": n_trials if pipeline is not None else 1, "folders": folders,
+                    "trials": n_trials if pipeline is not None and only_trial is None else 1, "folders": folders,
                     "versions": _versions(fmt)}
+        if only_trial is not None and pipeline is not None:
+            manifest["trial"] = only_trial
+        manifest["clock"] = "trajectory" if src.stamps_ns is not None else "period"
         if fmt == "rosbag2":
             manifest["period_ns"] = period_ns
         if fmt == "colmap":

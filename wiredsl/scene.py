@@ -308,7 +308,11 @@ class Path(Node):
                                           "trajectory file, its poses' projections onto the floor")
     transforms: list[Mat34] | None = Field(None, description="of a path read from a trajectory file: every "
                                            "pose's world_from_robot [R | t] (rows), in full 6-DoF")
-    _dump = omitted_when_none("transforms")
+    times: list[float] | None = Field(None, description="of a path read from a trajectory file with timestamps: "
+                                      "each pose's time, seconds from the file's first timestamp")
+    start_ns: int | None = Field(None, description="with times: the file's first timestamp on its own clock, "
+                                 "integer nanoseconds (None: the file has no clock, as KITTI poses with a rate)")
+    _dump = omitted_when_none("transforms", "times", "start_ns")
 
     def pose(self, i: int) -> tuple[float, ...]:
         """Pose i as the engine takes it (geometry.world_from_robot): (x, y, heading), or [R | t] row-major."""

@@ -147,6 +147,11 @@ class Context:
         """Whether each item's view is the right camera's, (n,) bool."""
         return np.full(len(batch_index), self.side == "right")
 
+    def view_cameras(self, batch_index: np.ndarray) -> tuple[list, np.ndarray]:
+        """The nominal cameras of the items' views (wiredsl.scene.Camera, or None where not known): the distinct
+        ones, and each item's index into them, (n,)."""
+        return [self.camera], np.zeros(len(batch_index), dtype=np.int64)
+
 
 @dataclass
 class PackedContext(Context):
@@ -159,6 +164,7 @@ class PackedContext(Context):
     poses: np.ndarray | None = None  # (B,) pose index by batch index
     cameras: np.ndarray | None = None  # (B,) camera index by batch index
     view_epipoles: Callable[[], np.ndarray] | None = None  # (views, 3): each view's epipole
+    cameras_of_views: list | None = None  # (views,): each view's nominal camera
 
     def keys(self, stage: str) -> np.ndarray:
         return stream_key(stage, self.trials, self.poses, self.cameras, self.seed, self.point)
@@ -175,6 +181,14 @@ class PackedContext(Context):
 
     def right(self, batch_index: np.ndarray) -> np.ndarray:
         return self.cameras[batch_index] == CAMERA_INDEX["right"]
+
+    def view_cameras(self, batch_index: np.ndarray) -> tuple[list, np.ndarray]:
+        views = self.cameras_of_views or [None]
+        first = {}
+        index = np.array([first.setdefault(id(c), len(first)) for c in views], dtype=np.int64)
+        distinct = list({id(c): c for c in views}.values())
+        view = np.asarray(batch_index) // self.per_view if self.cameras_of_views else np.zeros(len(batch_index), int)
+        return distinct, index[view]
 
 
 @dataclass(frozen=True)

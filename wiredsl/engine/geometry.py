@@ -180,15 +180,23 @@ def fisheye_theta_d(theta, k1, k2=0.0, k3=0.0, k4=0.0):
     return theta * (1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
 
 
-def fisheye_theta(theta_d: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0, steps: int = 20) -> tuple[np.ndarray, np.ndarray]:
+def fisheye_theta(theta_d: np.ndarray, k1, k2=0.0, k3=0.0, k4=0.0, steps: int = 20, tol: float | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """The angles theta (n,) whose theta_d are given (Newton's method), and the residual |theta_d(theta) - given|
-    (n,); the caller bounds theta by the lens limit, below which the map is one-to-one."""
+    (n,); the caller bounds theta by the lens limit, below which the map is one-to-one. With `tol`, an angle stops
+    where its residual is within it."""
     theta = np.array(theta_d, dtype=float)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         for _ in range(steps):
             t2 = theta * theta
             slope = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
-            theta = theta - (fisheye_theta_d(theta, k1, k2, k3, k4) - theta_d) / slope
+            res = fisheye_theta_d(theta, k1, k2, k3, k4) - theta_d
+            if tol is not None:
+                done = np.abs(res) <= tol
+                if np.all(done):
+                    break
+                res = np.where(done, 0.0, res)
+            theta = theta - res / slope
         return theta, np.abs(fisheye_theta_d(theta, k1, k2, k3, k4) - theta_d)
 
 
@@ -290,17 +298,17 @@ def lens_radius(theta, cam) -> np.ndarray:
     return X
 
 
-def lens_theta(r, cam) -> tuple[np.ndarray, np.ndarray]:
+def lens_theta(r, cam, tol: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The inverse of `lens_radius`: angles theta (n,) from the optical axis of rays whose radius is r (n,), by
     each model's closed-form unprojection (equidistant: Newton's method), and which have one (n,).
 
-    A radius past the model's image (beyond the circle its valid region maps to) has none."""
+    A radius past the model's image (beyond the circle its valid region maps to) has none. `tol`: fisheye_theta's."""
     g = _numbers(cam)
     r = np.asarray(r, dtype=float)
     m = g["model"]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         if m == EQUIDISTANT:
-            theta, res = fisheye_theta(r, g["k1"], g["k2"], g["k3"], g["k4"])
+            theta, res = fisheye_theta(r, g["k1"], g["k2"], g["k3"], g["k4"], tol=tol)
             return theta, np.isfinite(theta) & (res < 1e-12) & (theta >= 0)
         r2 = r * r
         if m == UNIFIED:  # Mei and Rives 2007, eq. (the lifting): (x, y, z) = f (mx, my, 1) - (0, 0, xi)
@@ -332,9 +340,10 @@ def _numbers(cam) -> dict:
 
 
 def undistort_radtan(xd: np.ndarray, k1, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0, k5=0.0, k6=0.0, steps: int = 20,
-                     start: np.ndarray | None = None):
+                     start: np.ndarray | None = None, tol: float | None = None):
     """Unit-plane points xy (n, 2) whose `distort` is xd (n, 2), by Newton's method from xd (or `start`), and the
-    residual max |distort(xy) - xd| (n,)."""
+    residual max |distort(xy) - xd| (n,). With `tol`, a point stops where both its residuals are within it (what
+    a loop over the points that breaks there gives)."""
     lens = (k1, k2, p1, p2, k3, k4, k5, k6)
     xy = np.array(xd if start is None else start, dtype=float)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -351,8 +360,13 @@ def undistort_radtan(xd: np.ndarray, k1, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0,
             j22 = rad + g * y * y + 6.0 * p1 * y + 2.0 * p2 * x
             res = distort(xy, *lens) - xd
             det = j11 * j22 - j12 * j12
-            xy = xy - np.column_stack([j22 * res[:, 0] - j12 * res[:, 1],
-                                       j11 * res[:, 1] - j12 * res[:, 0]]) / det[:, None]
+            step = np.column_stack([j22 * res[:, 0] - j12 * res[:, 1], j11 * res[:, 1] - j12 * res[:, 0]]) / det[:, None]
+            if tol is not None:
+                done = (np.abs(res) <= tol).all(axis=1)
+                if done.all():
+                    break
+                step[done] = 0.0
+            xy = xy - step
         return xy, np.abs(distort(xy, *lens) - xd).max(axis=1)
 
 
@@ -393,6 +407,39 @@ def pixels_to_rays(uv: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray]:
         rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
         ok &= np.isfinite(rays).all(axis=1)
     return np.where(ok[:, None], rays, np.array([0.0, 0.0, 1.0])), ok
+
+
+NEWTON_TOL = 1e-14  # pixels_to_rays_newton: a point's Newton's method stops where its residuals are within this
+
+
+def pixels_to_rays_newton(u: np.ndarray, v: np.ndarray, g: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit rays (x, y, z), (n,) each, in the camera frame of pixels u, v (n,) each under the camera numbers g
+    (CAMERA_KEYS and "model"; a camera table or a kernel's camera row as a dict), NaN where none is found.
+
+    `pixels_to_rays` without the fold radius, so that a compiled stage, handed only a camera row, computes the same
+    (wiredsl.effects.stereo_mismatch_kernel._pixel_ray, term by term): a radtan's (and Mei's on a unified
+    model's) distortion undone by `undistort_radtan`'s Newton's method from the distorted point itself (right
+    wherever it converges inside the fold: every pixel of a mildly distorted lens), then the model's own lifting
+    (`lens_theta`). No lens-limit test: a pixel past the lens's image gets whatever ray the formulas give."""
+    model = int(g["model"])
+    xd = (u - g["cx"]) / (g["f"] * g["ax"])
+    yd = (v - g["cy"]) / (g["f"] * g["ay"])
+    lens = [float(g[k]) for k in RADTAN_KEYS]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        if model in (RADTAN, UNIFIED) and any(lens):
+            m, res = undistort_radtan(np.column_stack([xd, yd]), *lens, tol=NEWTON_TOL)
+            fail = ~(res < 1e-12)
+            mx, my = np.where(fail, np.nan, m[:, 0]), np.where(fail, np.nan, m[:, 1])
+        else:
+            mx, my = xd, yd
+        if model == RADTAN:
+            n = np.sqrt(mx * mx + my * my + 1.0)
+            return mx / n, my / n, 1.0 / n
+        r = np.hypot(mx, my)
+        theta, ok = lens_theta(r, g, tol=NEWTON_TOL)
+        theta = np.where(ok, theta, np.nan)
+        s = np.where(r > 0, np.sin(theta) / np.where(r > 0, r, 1.0), 0.0)
+        return mx * s, my * s, np.cos(theta)
 
 
 def cam_to_pixels(P_cam: np.ndarray, cam) -> np.ndarray:

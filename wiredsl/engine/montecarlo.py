@@ -335,7 +335,8 @@ class Run:
 
         ctx = PackedContext(pose=-1, side="", trials=np.tile(np.asarray(batch, dtype=np.int64), len(views)),
                             seed=self.seed, stats=self.stats, point=self.point, per_view=T,
-                            poses=np.repeat(poses, T), cameras=np.repeat(cameras, T), view_epipoles=view_epipoles)
+                            poses=np.repeat(poses, T), cameras=np.repeat(cameras, T), view_epipoles=view_epipoles,
+                            cameras_of_views=[getattr(v[0], v[1]).camera for v in views])
         sets = im.concat([v[2] for v in views], T)
         if views[0][4] is not None:  # re-projected: cut to each view's image
             sizes = {(v[5].width, v[5].height) for v in views}

@@ -12,6 +12,9 @@
 - Points: the scene's corners (POINT3D_ID = corner index + 1, the same in every trial, so tracks can be
   compared across trials), each with the track of the views that observed it; a corner no view observed is
   left out. ERROR is the track's mean distance (px) between each observation and the nominal projection.
+- Times: COLMAP's model has none. When the path was read from a trajectory file with timestamps, `times.txt`
+  beside the model lists each image's time as TUM RGB-D's `rgb.txt` does, `timestamp filename` a line (seconds
+  on the file's clock, to the nanosecond, `observations.stamps_ns`), in IMAGE_ID order.
 - Lines are not written: COLMAP's model holds points only (the ROS 2 bag carries the strokes).
 - COLMAP puts the top-left pixel's centre at (0.5, 0.5), wiredsl at (0, 0): cx, cy and every 2D point are
   written half a pixel further right and down, so COLMAP's projection equals the exported points.
@@ -67,6 +70,12 @@ def colmap_camera(cam) -> tuple[str, list[float]]:
     raise ColmapLensError(f"camera '{cam.name}' has {what} ('{d}'), which COLMAP has no camera model for (it has "
                           f"{', '.join(MODELS)} for wiredsl's lenses): give --undistort to write a PINHOLE camera "
                           "and undistorted points, or export a ROS 2 bag (--format rosbag2)")
+
+
+def _seconds(ns: int) -> str:
+    """Integer nanoseconds as exact decimal seconds."""
+    sign, ns = ("-", -ns) if ns < 0 else ("", ns)
+    return f"{sign}{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}"
 
 
 def _num(x: float) -> str:
@@ -150,6 +159,11 @@ def model(src: Source, trial: Trial, undistort: bool = False) -> Model:
         err = float(np.mean(errors[pid])) if pid in errors else 0.0
         lines_p.append(" ".join([str(pid), *(_num(x) for x in X), "255 255 255", _num(err),
                                  *(f"{i} {j}" for i, j in tracks[pid])]))
-    files = {name: "\n".join(lines) + "\n" for name, lines in
-             (("cameras.txt", lines_c), ("images.txt", lines_i), ("points3D.txt", lines_p))}
+    named = [("cameras.txt", lines_c), ("images.txt", lines_i), ("points3D.txt", lines_p)]
+    if src.stamps_ns is not None:
+        views = sorted((2 * v.pose + CAMERAS.index(v.side) + 1, v) for v in trial.views)
+        named.append(("times.txt", ["# image times on the trajectory file's clock (seconds), as TUM's rgb.txt",
+                                    "# timestamp filename"] +
+                      [f"{_seconds(src.stamps_ns[v.pose])} {v.side}_{v.pose:03d}.png" for _, v in views]))
+    files = {name: "\n".join(lines) + "\n" for name, lines in named}
     return Model(files, behind, lost)

@@ -1,6 +1,8 @@
 """A trial's observations as a ROS 2 bag (rosbag2, sqlite3 storage, CDR), written by the `rosbags` library.
 
-Pose i of the path is stamped START + i * period. Topics (frames: `world`, `base_link`, `left_camera`,
+Pose i of the path is stamped with its time on the trajectory file's clock when the path was read from a file
+with timestamps (`observations.stamps_ns`: the file's own nanoseconds, so the bag lines up with the dataset's
+ground truth and images), else START + i * period. Topics (frames: `world`, `base_link`, `left_camera`,
 `right_camera`, the cameras' frames in ROS's optical convention, x right, y down, z forward, as wiredsl's):
 
 | topic | type | what |
@@ -148,7 +150,7 @@ def write(path: Path, src: Source, trial: Trial, period_ns: int) -> int:
     from rosbags.rosbag2 import Writer
 
     store = typestore()
-    stamp = {p: START_NS + p * period_ns for p in src.poses}
+    stamp = {p: src.stamps_ns[p] if src.stamps_ns is not None else START_NS + p * period_ns for p in src.poses}
     left_out = 0
     with Writer(path, version=9) as writer:
         conns = {}

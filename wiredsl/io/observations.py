@@ -47,6 +47,17 @@ class Source:
     feature_ids: list[str]
     poses: list[int]  # the path's pose indices, in order
     robot: list[tuple[np.ndarray, np.ndarray]]  # world_from_robot (R, t) of each pose
+    stamps_ns: list[int] | None = None  # each pose's time on the trajectory file's clock (None: the path has none)
+
+
+def stamps_ns(path) -> list[int] | None:
+    """Each pose's time in integer nanoseconds on the clock of the trajectory file the path was read from: the
+    file's first timestamp (exact) plus the pose's seconds from it; a file without a clock of its own (KITTI poses
+    with a rate) starts at 0. None for a path without times (poses written in the scene)."""
+    if path.times is None:
+        return None
+    start = path.start_ns or 0
+    return [start + round(t * 1e9) for t in path.times]
 
 
 def source(scene, world) -> Source:
@@ -64,7 +75,8 @@ def source(scene, world) -> Source:
     robot = [geometry.world_from_robot(scene.path.pose(i)) for i in poses]
     robot = [(np.asarray(R, dtype=float), np.asarray(t, dtype=float)) for R, t in robot]
     return Source(scene, cameras, mounts, np.asarray(world.corners, dtype=float),
-                  [world.feature_ids[f] for f in world.corner_fid], list(world.feature_ids), poses, robot)
+                  [world.feature_ids[f] for f in world.corner_fid], list(world.feature_ids), poses, robot,
+                  stamps_ns(scene.path))
 
 
 def camera_from_world(src: Source, pose: int, side: str) -> tuple[np.ndarray, np.ndarray]:
@@ -76,10 +88,12 @@ def camera_from_world(src: Source, pose: int, side: str) -> tuple[np.ndarray, np
     return np.asarray(R, dtype=float), np.asarray(t, dtype=float)
 
 
-def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto") -> tuple[Source, Iterator[Trial]]:
+def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto", only: int | None = None
+           ) -> tuple[Source, Iterator[Trial]]:
     """The shared Source and each trial's views, trial by trial (a batch of trials in memory at a time).
 
-    `pipeline` None: the ideal projection (one trial, numbered 0), whatever the scene's default pipeline."""
+    `pipeline` None: the ideal projection (one trial, numbered 0), whatever the scene's default pipeline.
+    `only`: trial `only` of the run alone (its own draws: what `build --trial K` replays)."""
     from wiredsl import run as runs
     from wiredsl.api import _batches
     from wiredsl.engine.simulate import Options
@@ -94,7 +108,8 @@ def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto") -> t
 
     def each() -> Iterator[Trial]:
         nominal = {(p, s): camera_from_world(src, p, s) for p in src.poses for s in CAMERAS}
-        for batch in _batches(scene, n_trials if pipeline is not None else 1, seed, chosen, opts, engine):
+        for batch in _batches(scene, n_trials if pipeline is not None else 1, seed, chosen, opts, engine,
+                              only if pipeline is not None else None):
             yield from _split(batch, nominal, fid_corner)
 
     return src, each()

@@ -70,6 +70,7 @@ class Trajectory:
     normalised: tuple[tuple[int, str], ...] = ()  # (line, what was off) of rotations normalised beyond ROUNDING
     repeated: tuple[tuple[int, int], ...] = ()  # (line dropped, the earlier line with its timestamp)
     origin: float | None = None  # the file's first timestamp (times[0] unless lines before the window were left)
+    start_ns: int | None = None  # the file's first timestamp on its own clock, integer nanoseconds (None: no clock)
 
 
 def guess_format(text: str) -> str:
@@ -104,7 +105,8 @@ def read(text: str, fmt: str | None = None, times: np.ndarray | None = None, rat
             if len(stamps) != len(traj.lines):
                 n, m = len(stamps), len(traj.lines)
                 raise TrajectoryError(f"the times file has {n} timestamp{'s' * (n != 1)} for {m} pose{'s' * (m != 1)}")
-            traj = Trajectory(stamps, traj.positions, traj.rotations, traj.lines, traj.normalised)
+            traj = Trajectory(stamps, traj.positions, traj.rotations, traj.lines, traj.normalised,
+                              start_ns=round(float(times[0]) * 1e9) if len(times) else None)
         elif rate is not None:
             traj = Trajectory(np.arange(len(traj.lines)) / rate, traj.positions, traj.rotations, traj.lines,
                               traj.normalised)
@@ -147,7 +149,7 @@ def judge(traj: Trajectory, window: tuple[float | None, float | None] | None = N
     _check_increasing(t[idx], traj.lines[idx])
     lines = set(traj.lines[idx].tolist())
     return Trajectory(t[idx], traj.positions[idx], traj.rotations[idx], traj.lines[idx],
-                      tuple(n for n in traj.normalised if n[0] in lines), repeated, origin)
+                      tuple(n for n in traj.normalised if n[0] in lines), repeated, origin, traj.start_ns)
 
 
 def _numbers(words: list[str], n: int, what: str, line: int) -> list[float]:
@@ -197,7 +199,8 @@ def _table(text: str, n: int, what: str, sep: str | None = None, after: int = 0
 def _tum(text: str) -> Trajectory:
     lines, a, words = _table(text, 8, "timestamp tx ty tz qx qy qz qw")
     R, fixed = _from_quaternions(a[:, 4:8], lines)
-    return Trajectory(_seconds([w[0] for w in words]), a[:, 1:4], R, lines, fixed)
+    stamps = [w[0] for w in words]
+    return Trajectory(_seconds(stamps), a[:, 1:4], R, lines, fixed, start_ns=_nanoseconds(stamps))
 
 
 def _kitti(text: str) -> Trajectory:
@@ -283,8 +286,15 @@ def _csv(text: str, fmt: str, rate: float | None = None) -> Trajectory:
     if rate is not None:
         return Trajectory(np.arange(len(a)) / rate, positions, R, lines, fixed)
     k, factor = cols["t"]
-    t = _seconds([w[k] for w in words], factor)
-    return Trajectory(t, positions, R, lines, fixed)
+    stamps = [w[k] for w in words]
+    return Trajectory(_seconds(stamps, factor), positions, R, lines, fixed, start_ns=_nanoseconds(stamps, factor))
+
+
+def _nanoseconds(stamps: list[str], factor: float = 1.0) -> int | None:
+    """The first timestamp (its unit `factor` seconds) in integer nanoseconds, in exact decimal."""
+    if not stamps:
+        return None
+    return int((Decimal(stamps[0]) * Decimal(repr(factor)) * 10**9).to_integral_value())
 
 
 def _seconds(stamps: list[str], factor: float = 1.0) -> np.ndarray:
@@ -340,15 +350,21 @@ def _check_increasing(t: np.ndarray, lines: np.ndarray) -> None:
 
 
 def resample(traj: Trajectory, every: float | None = None, start: float | None = None, end: float | None = None,
-             limit: int | None = None, max_poses: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+             limit: int | None = None, max_poses: int | None = None, with_times: bool = False) -> tuple:
     """(positions (n, 3), rotations (n, 3, 3)) of the poses in the window [start, end] (seconds from the file's
     first pose): every `every` seconds by linear and spherical (slerp) interpolation, else the file's own;
-    at most `limit` (the first)."""
+    at most `limit` (the first). `with_times`: and the poses' times (n,), seconds from the file's first pose (None
+    for a file without timestamps)."""
+    P, R, ts = _resample(traj, every, start, end, limit, max_poses)
+    return (P, R, ts) if with_times else (P, R)
+
+
+def _resample(traj: Trajectory, every, start, end, limit, max_poses) -> tuple:
     if traj.times is None:
         if every is not None or start is not None or end is not None:
             raise TrajectoryError("the file has no timestamps: give KITTI's times file or a rate")
         P, R = traj.positions, traj.rotations
-        return P[:limit], R[:limit]
+        return P[:limit], R[:limit], None
     t = traj.times - (traj.times[0] if traj.origin is None else traj.origin)  # a times file need not start at 0
     lo = 0.0 if start is None else max(start, 0.0)  # the window starts at the first pose at the earliest
     hi = t[-1] if end is None else min(end, t[-1])
@@ -357,7 +373,7 @@ def resample(traj: Trajectory, every: float | None = None, start: float | None =
                               f"{t[-1]:g} s)")
     if every is None:
         keep = (t >= lo) & (t <= hi)
-        return traj.positions[keep][:limit], traj.rotations[keep][:limit]
+        return traj.positions[keep][:limit], traj.rotations[keep][:limit], t[keep][:limit]
     if max_poses is not None and hi - lo >= every * max_poses:  # no division: a tiny period would give inf
         raise TrajectoryError(f"one pose every {every:g} s over {hi - lo:g} s exceeds the limit of {max_poses:,} "
                               "poses")
@@ -370,10 +386,10 @@ def resample(traj: Trajectory, every: float | None = None, start: float | None =
     ts = np.minimum(ts, t[-1])  # the last sample may pass the end by rounding
     P = np.column_stack([np.interp(ts, t, traj.positions[:, k]) for k in range(3)])
     if len(t) == 1:
-        return P, np.repeat(traj.rotations[:1], n, axis=0)
+        return P, np.repeat(traj.rotations[:1], n, axis=0), ts
     from scipy.spatial.transform import Rotation, Slerp
 
-    return P, Slerp(t, Rotation.from_matrix(traj.rotations))(ts).as_matrix()
+    return P, Slerp(t, Rotation.from_matrix(traj.rotations))(ts).as_matrix(), ts
 
 
 def world_from_robot(P: np.ndarray, R: np.ndarray, body: tuple, world: tuple) -> tuple[np.ndarray, np.ndarray]:

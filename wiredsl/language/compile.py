@@ -700,8 +700,9 @@ class Compiler(CameraCompiler):
             self.out.extend([Diagnostic("warning", "W145", message + more, _line_span(target, text, line),
                                         notes=(where,))])
         try:
-            P, R = trajectory.resample(traj, sb.get("every"), sb.get("from"), sb.get("to"),
-                                       int(sb.get("limit")) if sb.has("limit") else None, MAX_POSES)
+            P, R, times = trajectory.resample(traj, sb.get("every"), sb.get("from"), sb.get("to"),
+                                              int(sb.get("limit")) if sb.has("limit") else None, MAX_POSES,
+                                              with_times=True)
         except trajectory.TrajectoryError as exc:
             return self._trajectory_error(exc, target, text, where, sb.span("every") if sb.has("every")
                                           else file_arg.span)
@@ -723,7 +724,9 @@ class Compiler(CameraCompiler):
         floor = [(float(t[0]), float(t[1]), math.atan2(r[1, 0], r[0, 0])) for r, t in zip(R_wr, t_wr, strict=True)]
         transforms = [tuple(tuple(float(v) for v in row) for row in np.column_stack([r, t])) for r, t
                       in zip(R_wr, t_wr, strict=True)]
-        return trusted(Path, name=b.name, poses=floor, transforms=transforms)
+        stamps = [float(x) for x in times] if times is not None else None
+        return trusted(Path, name=b.name, poses=floor, transforms=transforms, times=stamps,
+                       start_ns=traj.start_ns if stamps is not None else None)
 
     def _trajectory_error(self, exc, target: FsPath, text: str, where: str, span: Span) -> None:
         """Report a TrajectoryError at its line of the file, else at `span` of the statement."""
