@@ -107,3 +107,41 @@ def test_a_dump_on_stdout_is_utf8_whatever_the_terminals_encoding(tmp_path):
     assert p.returncode == 0, p.stderr
     assert json.loads(p.stdout.decode("utf-8"))["scene"]["file"] == "läb.wd"
 
+
+def test_npz_fragment_numbers_are_the_dumps_in_either_order():
+    """The writer's fragment numbers (adjacent groups: ranks within runs; any other order: a stable sort) against
+    the JSON dump's own numbering (`montecarlo.features_of`, a count a stroke), on random stroke sets whose
+    (trial, feature, segment) groups are adjacent and on the same sets shuffled within each trial."""
+    from collections import Counter
+
+    from wiredsl.engine import imageset as im
+    from wiredsl.io.emit import _json_fragments
+
+    def dumps(s):
+        out = np.empty(s.n_strokes, dtype=int)
+        for t in np.unique(s.trial):
+            idx = np.flatnonzero(s.trial == t)
+            groups, seen = Counter((s.fid[i], s.segment[i]) for i in idx), Counter()
+            for i in idx:
+                key = (s.fid[i], s.segment[i])
+                out[i] = seen[key] if s.fragment[i] >= 0 or groups[key] > 1 else -1
+                seen[key] += 1
+        return out
+
+    rng = np.random.default_rng(7)
+    adjacent = shuffled = 0
+    for _ in range(200):
+        n = int(rng.integers(1, 40))
+        trial = np.sort(rng.integers(0, 4, n))
+        fid, seg = rng.integers(0, 5, n), rng.integers(-1, 2, n)
+        order = np.lexsort((seg, fid, trial)) if rng.random() < 0.5 else np.arange(n)
+        s = im.ImageSet(pts=np.zeros((2 * n, 2)), start=np.arange(0, 2 * n + 1, 2), fid=fid[order],
+                        segment=seg[order], fragment=rng.integers(-1, 2, n), kind=np.zeros(n, int),
+                        clipped=np.zeros(n, bool), closed=np.zeros(n, bool), trial=trial,
+                        corners=np.zeros((0, 2)), corner_fid=np.zeros(0, int), corner_trial=np.zeros(0, int),
+                        occluded=np.zeros(n, bool))
+        key = (s.trial * 10 + s.fid) * 10 + s.segment
+        runs = key[np.r_[True, key[1:] != key[:-1]]]
+        adjacent, shuffled = adjacent + (len(set(runs)) == len(runs)), shuffled + (len(set(runs)) < len(runs))
+        assert _json_fragments(s).tolist() == dumps(s).tolist()
+    assert adjacent > 50 and shuffled > 50  # both paths taken
