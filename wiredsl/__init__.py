@@ -4,7 +4,7 @@ Stages, one module each: parse (lark tree) -> ast (spans) -> compile (Scene)
 -> simulate (numpy) -> emit (JSON, SVG).
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 
 _API = ("compile", "simulate", "Simulator", "Batch", "CameraAt", "CompileError", "CompileWarning", "PluginError",

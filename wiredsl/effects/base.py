@@ -65,15 +65,25 @@ def keyed_uniform(key: np.ndarray, index: np.ndarray) -> np.ndarray:
 
 
 def keyed_normal(key: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Standard normals by Box-Muller: normals 2i and 2i + 1 are r cos(phi) and r sin(phi), with
-    r = sqrt(-2 ln(1 - u_2i)) and phi = 2 pi u_2i+1 from uniform draws 2i and 2i + 1 of the key."""
-    index = np.asarray(index, dtype=np.uint64)
-    pair = index >> np.uint64(1)
-    u1 = keyed_uniform(key, np.uint64(2) * pair)
-    u2 = keyed_uniform(key, np.uint64(2) * pair + np.uint64(1))
-    r = np.sqrt(-2.0 * np.log1p(-u1))
-    phi = 2.0 * np.pi * u2
-    return np.where(index & np.uint64(1), r * np.sin(phi), r * np.cos(phi))
+    """Standard normals by Marsaglia's polar method: normals 2j and 2j + 1 are u f and v f, with
+    f = sqrt(-2 ln(s) / s), from the first attempt a = 0, 1, ... whose s = u^2 + v^2 is in (0, 1), where
+    u = 2 uniform(2i) - 1 and v = 2 uniform(2i + 1) - 1 of the key at i = j + a 2**32 (attempt 0 uses uniforms 2j
+    and 2j + 1; about one pair in five takes a second attempt). No trigonometry: a third of Box-Muller's cost."""
+    key, index = np.broadcast_arrays(np.asarray(key, dtype=np.uint64), np.asarray(index, dtype=np.uint64))
+    keys, pair = key.ravel(), index.ravel() >> np.uint64(1)
+    u, v, s = np.empty(len(pair)), np.empty(len(pair)), np.empty(len(pair))
+    todo = np.arange(len(pair))
+    attempt = 0
+    while len(todo):
+        i = np.uint64(2) * (pair[todo] + np.uint64(attempt << 32))
+        ut = 2.0 * keyed_uniform(keys[todo], i) - 1.0
+        vt = 2.0 * keyed_uniform(keys[todo], i + np.uint64(1)) - 1.0
+        st = ut * ut + vt * vt
+        ok = (st < 1.0) & (st > 0.0)
+        u[todo[ok]], v[todo[ok]], s[todo[ok]] = ut[ok], vt[ok], st[ok]
+        todo, attempt = todo[~ok], attempt + 1
+    f = np.sqrt(-2.0 * np.log(s) / s)
+    return np.where(index.ravel() & np.uint64(1), v * f, u * f).reshape(index.shape)
 
 
 def param(default: float, kind: str, doc: str, **limits: Any) -> Any:

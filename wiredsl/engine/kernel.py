@@ -39,7 +39,7 @@ NSTAT = 6  # the least width of a stage's statistics row (montecarlo.stage_rows)
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
-_S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
+_S30, _S27, _S31, _S11, _S32 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11), np.uint64(32)
 _ONE = np.uint64(1)
 _TWO = np.uint64(2)
 
@@ -61,12 +61,18 @@ def _uniform(key, index):
 
 @njit(cache=True)
 def _normal_pair(key, pair):
-    """Normals 2 pair and 2 pair + 1 of a key (base.keyed_normal)."""
-    u1 = _uniform(key, _TWO * np.uint64(pair))
-    u2 = _uniform(key, _TWO * np.uint64(pair) + _ONE)
-    r = math.sqrt(-2.0 * math.log1p(-u1))
-    phi = 2.0 * math.pi * u2
-    return r * math.cos(phi), r * math.sin(phi)
+    """Normals 2 pair and 2 pair + 1 of a key (base.keyed_normal: Marsaglia's polar method, attempt a at uniforms
+    2 (pair + a 2**32) and the next)."""
+    attempt = np.uint64(0)
+    while True:
+        i = _TWO * (np.uint64(pair) + (attempt << _S32))
+        u = 2.0 * _uniform(key, i) - 1.0
+        v = 2.0 * _uniform(key, i + _ONE) - 1.0
+        s = u * u + v * v
+        if s < 1.0 and s > 0.0:
+            f = math.sqrt(-2.0 * math.log(s) / s)
+            return u * f, v * f
+        attempt += _ONE
 
 
 # ----------------------------------------------------------------------------- packed strokes

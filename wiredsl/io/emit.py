@@ -396,6 +396,15 @@ def _json_fragments(s) -> np.ndarray:
     trial, fid, seg = (np.asarray(a, dtype=np.int64) for a in (s.trial, s.fid, s.segment))
     nf, ns = int(fid.max()) + 1, int(seg.max()) + 2  # segment -1 (none) is shifted to 0
     key = (trial * nf + fid) * ns + seg + 1
+    first = np.empty(n, dtype=bool)
+    first[0] = True
+    np.not_equal(key[1:], key[:-1], out=first[1:])
+    group_start = np.flatnonzero(first)
+    runs = np.sort(key[group_start])
+    if not (runs[1:] == runs[:-1]).any():  # each group's strokes are adjacent, as the engines give them: a
+        group = np.cumsum(first) - 1  # stroke's rank is its place in its run (no stable sort of every stroke)
+        count = np.diff(np.append(group_start, n))[group]
+        return np.where((s.fragment >= 0) | (count > 1), np.arange(n) - group_start[group], -1)
     order = np.argsort(key, kind="stable")
     key = key[order]
     first = np.empty(n, dtype=bool)
