@@ -252,6 +252,7 @@ _VALIDATED = """
 import json, sys
 from pydantic._internal._mock_val_ser import MockValSer
 from wiredsl.cli import main
+from wiredsl.effects.base import Params
 from wiredsl.scene import Node
 try:
     main(sys.argv[1:], standalone_mode=False)
@@ -262,23 +263,30 @@ def every(c):
     for s in c.__subclasses__():
         yield s
         yield from every(s)
-print(json.dumps(sorted({c.__name__ for c in every(Node) if not isinstance(c.__pydantic_validator__, MockValSer)})))
+print(json.dumps(sorted({c.__name__ for base in (Node, Params) for c in every(base)
+                          if not isinstance(c.__pydantic_validator__, MockValSer)})))
 """
 
 
 def test_the_labs_build_makes_no_validator_for_the_nodes_the_compiler_checked(tmp_path):
-    """The compiler makes the scene's nodes from checked values (`scene.trusted`) and every model's validator is
-    built when first used (`defer_build`): a one-trial build of the lab builds only those of the models it dumps
-    (the cameras, the features document's parts), not the lines, placements, rig, path or scene (each costs the
-    cold start its schema)."""
-    r = subprocess.run([sys.executable, "-c", _VALIDATED, "build", "scenes/lab.wd", "--engine", "numpy", "-o",
-                        str(tmp_path / "out")], cwd=ROOT, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    built = set(json.loads(r.stdout.strip().splitlines()[-1]))
+    """The compiler makes the scene's nodes and the stages' parameters from checked values (`scene.trusted`,
+    `scene.checked`) and every model's validator is built when first used (`defer_build`): a one-trial build of the
+    lab builds only those of the models it dumps (the cameras, the features document's parts), not the lines,
+    placements, rig, path, scene or effects' parameters, and `check` builds none (the first costs pydantic's plug-in
+    loader, some 9 ms: it imports importlib.metadata and scans the installed packages' entry points)."""
     from wiredsl import scene
+    from wiredsl.effects import BUILTIN
 
     nodes = {c.__name__ for c in scene.Node.__subclasses__()}
-    assert built & nodes == {"Camera"}, built
+    params = {e.Params.__name__ for e in BUILTIN.values()}
+    for args, expected in ((["build", "scenes/lab.wd", "--engine", "numpy", "-o", str(tmp_path / "out")], {"Camera"}),
+                           (["check", "scenes/lab.wd"], set())):
+        r = subprocess.run([sys.executable, "-c", _VALIDATED, *args], cwd=ROOT, capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        built = set(json.loads(r.stdout.strip().splitlines()[-1]))
+        assert built & (nodes | params) == expected, (args, built)
+        if args[0] == "check":
+            assert not built, built
 
 
 # --------------------------------------------------------------------------- options and output folders

@@ -179,3 +179,38 @@ def test_the_scene_is_named_by_its_own_file_not_by_what_it_includes(tmp_path):
         compile_file(tmp_path / "twice.wd")
     assert [(d.code, d.span.line, d.message) for d in err.value.diagnostics] == [(
         "E105", 4, "the scene is named twice")]
+
+
+def test_checked_models_equal_validated_ones_and_leave_the_rest_to_validation():
+    """`scene.checked` skips validation only for values validation would pass unchanged: for the others (an int
+    for a float, out of bounds, non-finite, an unknown key, a wrong Literal, a string for a number) it validates,
+    so its result or its error is pydantic's own."""
+    import math
+
+    import pydantic
+
+    from wiredsl.effects import REGISTRY
+    from wiredsl.scene import Camera, checked, plainly_valid, same_nodes
+
+    cam = dict(name="c", f=500.0, cx=320.0, cy=240.0, width=640, height=480)
+    good = [(Camera, cam), (Camera, {**cam, "distortion": "fov", "w": 0.5, "fov": 2.0}), (Camera, {**cam, "fov": None}),
+            (REGISTRY["edge_loss"].Params, {"fraction": 0.3}), (REGISTRY["calibration_error"].Params, {})]
+    for model, values in good:
+        assert plainly_valid(model, values), values
+        assert same_nodes(checked(model, **values), model(**values)) is None
+    Edge = REGISTRY["edge_loss"].Params
+    bad = [(Camera, {**cam, "f": 500}), (Camera, {**cam, "f": -1.0}), (Camera, {**cam, "f": math.inf}),
+           (Camera, {**cam, "width": 640.0}), (Camera, {**cam, "width": True}), (Camera, {**cam, "distortion": "x"}),
+           (Camera, {**cam, "fov": 7.0}), (Camera, {**cam, "colour": "red"}), (Edge, {"fraction": 1}),
+           (Edge, {"fraction": 1.5}), (Edge, {"fraction": math.nan}), (Edge, {"fraction": "0.3"}),
+           (Edge, {"fraction": True})]
+    for model, values in bad:
+        assert not plainly_valid(model, values), values
+        try:
+            expected = model(**values)
+        except pydantic.ValidationError as exc:
+            with pytest.raises(pydantic.ValidationError) as got:
+                checked(model, **values)
+            assert got.value.errors() == exc.errors()
+        else:  # validation converts it (1 to 1.0): checked gives the converted value too
+            assert same_nodes(checked(model, **values), expected) is None

@@ -312,11 +312,25 @@ def _files_hash(plugin: Plugin, modules: list[str]) -> str:
     return h.hexdigest()
 
 
+def params_dump(params) -> dict:
+    """`params.model_dump()`, without building the model's serializer when it would give `dict(params)` (plainly
+    valid values)."""
+    from wiredsl.scene import plainly_valid
+
+    values = dict(params)
+    decorators = type(params).__pydantic_decorators__
+    plain = not (decorators.field_serializers or decorators.model_serializers)
+    return values if plain and plainly_valid(type(params), values) else params.model_dump()
+
+
 def params_of(kind: str, cls: type, registry: Mapping, values: dict):
     """`cls.Params(**values)`: a plug-in's model guarded (its validators are its code; a pydantic ValidationError
-    passes, as a built-in's does, for the caller's range message)."""
+    passes, as a built-in's does, for the caller's range message). A built-in's are made without validation when
+    the values are plainly valid (`scene.checked`), as the compiler's are."""
     if not isinstance(registry, Registry) or cls.name in registry.builtins:
-        return cls.Params(**values)
+        from wiredsl.scene import checked
+
+        return checked(cls.Params, **values)
     from pydantic import ValidationError
 
     try:

@@ -171,7 +171,9 @@ def to_json(doc, indent: int | None = 1) -> str:
 # --------------------------------------------------------------------------- disturbed output
 
 def stage_records(run) -> list[StageRecord]:
-    return [StageRecord(effect=e.name, params=p.model_dump()) for e, p in run.stages]
+    from wiredsl.plugins import params_dump
+
+    return [StageRecord(effect=e.name, params=params_dump(p)) for e, p in run.stages]
 
 
 def disturbed_results(batch_out, k: int) -> list[PoseResult]:

@@ -22,7 +22,7 @@ from wiredsl.language import ast
 from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
 from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE, Bound, bind
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
-from wiredsl.plugins import params_of
+from wiredsl.plugins import params_dump, params_of
 from wiredsl.scene import (
     Board,
     Camera,
@@ -818,7 +818,7 @@ class Compiler(CameraCompiler):
             last = (rank, name) if last is None or rank >= last[0] else last
             params = {k: sb.get(k) for k in sb.clauses}
             try:
-                checked = params_of("effect", effect, REGISTRY, params).model_dump()
+                checked = params_dump(params_of("effect", effect, REGISTRY, params))
                 stages.append(trusted(Stage, effect=name, params=checked))
             except pydantic.ValidationError as exc:
                 for err in exc.errors():
