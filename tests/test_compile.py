@@ -214,3 +214,24 @@ def test_checked_models_equal_validated_ones_and_leave_the_rest_to_validation():
             assert got.value.errors() == exc.errors()
         else:  # validation converts it (1 to 1.0): checked gives the converted value too
             assert same_nodes(checked(model, **values), expected) is None
+
+
+def test_dumped_equals_pydantics_dump_and_falls_back_where_it_is_not_plain():
+    """`scene.dumped` gives `model_dump(mode="json")` type for type for every scene's cameras (the lens numbers
+    left out at their defaults, those set kept) and whole scene, and pydantic's own dump where a value is not plain
+    (a non-finite number stays one, as the model's ser_json_inf_nan dumps it, for the writers to refuse)."""
+    import math
+
+    from wiredsl.scene import _NOT_PLAIN, Camera, _plain_dump, dumped, same_nodes
+
+    scenes = sorted(Path("scenes").glob("*.wd"))
+    assert len(scenes) >= 5
+    for path in scenes:
+        scene, _, _ = compile_file(path)
+        for node in [scene, *scene.cameras]:
+            assert same_nodes(dumped(node), node.model_dump(mode="json")) is None, path
+    cam = Camera(name="c", f=500.0, cx=320.0, cy=240.0, width=640, height=480, distortion="eucm", alpha=0.5)
+    d = dumped(cam)
+    assert d["alpha"] == 0.5 and "beta" not in d and "xi" not in d and d == cam.model_dump(mode="json")
+    odd = Camera.model_construct(name="c", f=math.inf, cx=320.0, cy=240.0, width=640, height=480)
+    assert _plain_dump(odd) is _NOT_PLAIN and dumped(odd)["f"] == math.inf
