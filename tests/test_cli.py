@@ -225,6 +225,7 @@ print(json.dumps(sorted(sys.modules)))
 NOT_FOR_THE_LAB = {
     "numba", "llvmlite", "scipy", "matplotlib", "trimesh", "yaml", "dask", "pygls", "jsonschema", "cv2", "numpy.ma",
     "importlib.metadata",  # pydantic's plug-in loader imports it with the first validator (~13 ms with its scan)
+    "socket",  # io/files.py names its temporaries by the host: os.uname() gives it without socket's import (~2 ms)
     "wiredsl.api", "wiredsl.bench", "wiredsl.lsp", "wiredsl.study", "wiredsl.measures", "wiredsl.engine.kernel",
     "wiredsl.engine.mesh", "wiredsl.io.calibration", "wiredsl.io.trajectory", "wiredsl.io.mesh", "wiredsl.io.load",
     "wiredsl.io.schema", "wiredsl.language.compile_study", "wiredsl.language.fmt", "wiredsl.io.render",
