@@ -93,7 +93,8 @@ def plainly_valid(model: type[BaseModel], values: dict) -> bool:
         if value is not None:
             for c in f.metadata:
                 bound = _BOUNDS.get(type(c).__name__)
-                if bound is None or type(c).__module__ != "annotated_types" or not bound[1](value, getattr(c, bound[0])):
+                if bound is None or type(c).__module__ != "annotated_types" \
+                        or not bound[1](value, getattr(c, bound[0])):
                     return False
     return True
 
