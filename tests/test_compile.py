@@ -235,3 +235,31 @@ def test_dumped_equals_pydantics_dump_and_falls_back_where_it_is_not_plain():
     assert d["alpha"] == 0.5 and "beta" not in d and "xi" not in d and d == cam.model_dump(mode="json")
     odd = Camera.model_construct(name="c", f=math.inf, cx=320.0, cy=240.0, width=640, height=480)
     assert _plain_dump(odd) is _NOT_PLAIN and dumped(odd)["f"] == math.inf
+
+
+def test_params_dump_equals_model_dump_and_leaves_excluded_fields_to_pydantic():
+    """`plugins.params_dump` gives `model_dump()` type for type for every built-in effect's parameters, and
+    pydantic's own dump for a model whose dump is not its fields (an excluded field, a serializer)."""
+    from pydantic import Field, field_serializer
+
+    from wiredsl.effects import BUILTIN
+    from wiredsl.effects.base import Params
+    from wiredsl.plugins import params_dump
+    from wiredsl.scene import same_nodes
+
+    for effect in BUILTIN.values():
+        p = effect.Params()
+        assert same_nodes(params_dump(p), p.model_dump()) is None, effect.name
+
+    class Hidden(Params):
+        a: float = 1.0
+        b: float = Field(2.0, exclude=True)
+
+    class Doubled(Params):
+        a: float = 1.0
+
+        @field_serializer("a")
+        def _twice(self, v):
+            return 2 * v
+
+    assert params_dump(Hidden()) == {"a": 1.0} and params_dump(Doubled()) == {"a": 2.0}

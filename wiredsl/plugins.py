@@ -313,14 +313,12 @@ def _files_hash(plugin: Plugin, modules: list[str]) -> str:
 
 
 def params_dump(params) -> dict:
-    """`params.model_dump()`, without building the model's serializer when it would give `dict(params)` (plainly
-    valid values)."""
-    from wiredsl.scene import plainly_valid
+    """`params.model_dump()`, made from the fields where that gives the same (`scene.plain_dump`), so that no
+    serializer is built (nor, with it, the validator)."""
+    from wiredsl.scene import plain_dump
 
-    values = dict(params)
-    decorators = type(params).__pydantic_decorators__
-    plain = not (decorators.field_serializers or decorators.model_serializers)
-    return values if plain and plainly_valid(type(params), values) else params.model_dump()
+    out = plain_dump(params)
+    return params.model_dump() if out is None else out
 
 
 def params_of(kind: str, cls: type, registry: Mapping, values: dict):

@@ -133,9 +133,16 @@ def checked(cls: type[N], **values) -> N:
 _NOT_PLAIN = object()
 
 
+def plain_dump(node: BaseModel) -> dict | None:
+    """`node`'s dump made from its fields (the same in python and json mode: see `dumped`), or None where it is
+    not plain."""
+    out = _plain_dump(node)
+    return None if out is _NOT_PLAIN else out
+
+
 def dumped(node: BaseModel) -> dict:
     """`node.model_dump(mode="json")`, made from its fields where that gives the same (`_plain_dump`: every value
-    None, a bool, int, str or finite float, a list, tuple or str-keyed dict of them, or a Node of them, whose only
+    None, a bool, int, str or finite float, a list, tuple or str-keyed dict of them, or a model of them, whose only
     serializers are `omitted_when_none` and `omitted_when_default`), so that dumping builds no serializer: pydantic
     builds a model's validator with it, and the first validator of a process costs pydantic's plug-in loader (some
     13 ms: it imports importlib.metadata and scans the installed packages' entry points). Under CHECK_TRUSTED the
@@ -160,10 +167,11 @@ def _plain_dump(v):
     if t is dict:
         out = {k: _plain_dump(x) for k, x in v.items()}
         return _NOT_PLAIN if any(type(k) is not str or x is _NOT_PLAIN for k, x in out.items()) else out
-    if not isinstance(v, Node):
+    if not isinstance(v, BaseModel):
         return _NOT_PLAIN
     decorators = t.__pydantic_decorators__
-    if decorators.field_serializers or t.model_computed_fields or v.__pydantic_extra__:
+    if decorators.field_serializers or t.model_computed_fields or v.__pydantic_extra__ \
+            or t.model_config.get("serialize_by_alias"):
         return _NOT_PLAIN
     omitted = {}
     for s in decorators.model_serializers.values():
