@@ -24,12 +24,13 @@ class Child:
     rss: float  # peak resident set size, MiB
 
 
-def run(args: list[str], quiet: bool = True, env: dict | None = None) -> Child:
-    """Run `python args...` in a new process (one thread for BLAS and numba; `env` added to the environment)
-    and measure it."""
+def run(args: list[str], quiet: bool = True, env: dict | None = None, cwd: str | None = None) -> Child:
+    """Run `python args...` in a new process (one thread for BLAS and numba; `env` added to the environment; in
+    `cwd`, whose wiredsl `-m` and `-c` import before an editable install's) and measure it."""
     t0 = time.perf_counter()
     out = subprocess.DEVNULL if quiet else None
-    proc = subprocess.Popen([sys.executable, *args], env={**ENV, **(env or {})}, stdout=out, stderr=subprocess.PIPE)
+    proc = subprocess.Popen([sys.executable, *args], env={**ENV, **(env or {})}, stdout=out, stderr=subprocess.PIPE,
+                            cwd=cwd)
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     err = proc.stderr.read().decode()

@@ -2,7 +2,7 @@
 dependencies a build needs (numpy, lark, click, pydantic). Best CPU time of several runs each, measured in the
 same run (target: build within 1.5x of the imports).
 
-    python benchmarks/cold_start.py [--repeat 7]
+    python benchmarks/cold_start.py [--repeat 7] [--baseline DIR]
 
 `python -X importtime -m wiredsl build ...` shows where the imports' time goes; `--phases` prints the CPU time
 of each phase of the paper build in a new process (imports, compiling, projection, the trial, dump, SVGs).
@@ -10,6 +10,10 @@ of each phase of the paper build in a new process (imports, compiling, projectio
 wiredsl's modules are byte-compiled first, as `pip install` does for an installed package: without their
 .pyc files (an editable install under PYTHONDONTWRITEBYTECODE=1) every run would compile about 50 modules
 from source, some 50 ms CPU that no installed wiredsl pays.
+
+--baseline DIR measures another checkout (e.g. main: `git archive main | tar -x -C DIR`) in the same run, through
+its folder (the children run there, and `-m` imports the wiredsl of the current folder first), each of its runs
+beside this checkout's (the same imports are the yardstick of both).
 """
 
 from __future__ import annotations
@@ -23,7 +27,9 @@ import tempfile
 
 sys.path.insert(0, os.path.dirname(__file__))
 
-from _cli import best, load, run  # noqa: E402
+from _cli import Child, best, load, run  # noqa: E402
+
+HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 PHASES = """
 import gc, time
@@ -65,36 +71,56 @@ print(f"  {'of which collecting garbage cycles':70s} {1e3 * collecting[1]:6.1f} 
 """
 
 
-def byte_compile() -> None:
-    """Write the .pyc files of the wiredsl the children import (the checkout's, from the current folder)."""
+def byte_compile(baseline: str | None = None) -> None:
+    """Write the .pyc files of the wiredsl the children import (the checkout's, from the current folder; and the
+    baseline's)."""
     spec = importlib.util.find_spec("wiredsl")
     compileall.compile_dir(os.path.dirname(spec.origin), quiet=1)
+    if baseline is not None:
+        compileall.compile_dir(os.path.join(baseline, "wiredsl"), quiet=1)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--phases", action="store_true", help="only the phases of a paper build, in a new process")
+    ap.add_argument("--baseline", default=None, help="another checkout's folder, measured beside this one")
     args = ap.parse_args()
-    byte_compile()
+    baseline = os.path.abspath(args.baseline) if args.baseline else None
+    byte_compile(baseline)
     if args.phases:
         run(["-c", PHASES], quiet=False)
+        if baseline is not None:
+            print(f"baseline {args.baseline}:")
+            run(["-c", PHASES], quiet=False, cwd=baseline)
         return
+    checkouts = {"this": HERE, **({"baseline": baseline} if baseline else {})}
     print(load())
     bare = best(["-c", "pass"], args.repeat)
     imports = best(["-c", "import numpy, lark, click, pydantic"], args.repeat)
+    commands = {"wiredsl check scenes/lab.wd": ["check", "scenes/lab.wd"],
+                "wiredsl build --no-effects": ["build", "scenes/lab.wd", "--no-effects", "-o", "{out}"],
+                "wiredsl build (paper pipeline)": ["build", "scenes/lab.wd", "--seed", "1", "-o", "{out}"]}
+    got: dict[tuple[str, str], list[Child]] = {(c, n): [] for c in checkouts for n in commands}
     with tempfile.TemporaryDirectory() as out:
-        build = best(["-m", "wiredsl", "build", "scenes/lab.wd", "--seed", "1", "-o", out], args.repeat)
-        ideal = best(["-m", "wiredsl", "build", "scenes/lab.wd", "--no-effects", "-o", out], args.repeat)
-    check = best(["-m", "wiredsl", "check", "scenes/lab.wd"], args.repeat)
+        for _ in range(args.repeat):  # each run of one checkout beside the other's: the machine is shared
+            for name, argv in commands.items():
+                for c, where in checkouts.items():
+                    got[c, name].append(run(["-m", "wiredsl", *(a.format(out=out) for a in argv)],
+                                            cwd=where))
     imports2 = best(["-c", "import numpy, lark, click, pydantic"], args.repeat)
     dep = min(imports.cpu, imports2.cpu)  # before and after: the machine is shared
     print(f"python -c pass                 : {bare.cpu:6.3f} s CPU")
-    print(f"import numpy, lark, click, pydantic: {dep:6.3f} s CPU, {imports.rss:.0f} MiB")
-    for name, c in (("wiredsl check scenes/lab.wd", check), ("wiredsl build --no-effects", ideal),
-                    ("wiredsl build (paper pipeline)", build)):
-        print(f"{name:31s}: {c.cpu:6.3f} s CPU = {c.cpu / dep:4.2f}x the imports (target <= 1.5x), "
-              f"{c.wall:.3f} s wall, {c.rss:.0f} MiB")
+    print(f"import numpy, lark, click, pydantic: {dep:6.3f} s CPU, {imports.rss:.0f} MiB "
+          f"(before {imports.cpu:.3f}, after {imports2.cpu:.3f})")
+    for c in checkouts:
+        if len(checkouts) > 1:
+            print(f"{c} ({checkouts[c]}):")
+        for name in commands:
+            runs = got[c, name]
+            fastest = min(runs, key=lambda r: r.cpu)
+            print(f"{name:31s}: {fastest.cpu:6.3f} s CPU = {fastest.cpu / dep:4.2f}x the imports (target <= 1.5x), "
+                  f"{min(r.wall for r in runs):.3f} s wall, {max(r.rss for r in runs):.0f} MiB")
     print(load())
 
 

@@ -179,3 +179,87 @@ def test_the_scene_is_named_by_its_own_file_not_by_what_it_includes(tmp_path):
         compile_file(tmp_path / "twice.wd")
     assert [(d.code, d.span.line, d.message) for d in err.value.diagnostics] == [(
         "E105", 4, "the scene is named twice")]
+
+
+def test_checked_models_equal_validated_ones_and_leave_the_rest_to_validation():
+    """`scene.checked` skips validation only for values validation would pass unchanged: for the others (an int
+    for a float, out of bounds, non-finite, an unknown key, a wrong Literal, a string for a number) it validates,
+    so its result or its error is pydantic's own."""
+    import math
+
+    import pydantic
+
+    from wiredsl.effects import REGISTRY
+    from wiredsl.scene import Camera, checked, plainly_valid, same_nodes
+
+    cam = dict(name="c", f=500.0, cx=320.0, cy=240.0, width=640, height=480)
+    good = [(Camera, cam), (Camera, {**cam, "distortion": "fov", "w": 0.5, "fov": 2.0}), (Camera, {**cam, "fov": None}),
+            (REGISTRY["edge_loss"].Params, {"fraction": 0.3}), (REGISTRY["calibration_error"].Params, {})]
+    for model, values in good:
+        assert plainly_valid(model, values), values
+        assert same_nodes(checked(model, **values), model(**values)) is None
+    Edge = REGISTRY["edge_loss"].Params
+    bad = [(Camera, {**cam, "f": 500}), (Camera, {**cam, "f": -1.0}), (Camera, {**cam, "f": math.inf}),
+           (Camera, {**cam, "width": 640.0}), (Camera, {**cam, "width": True}), (Camera, {**cam, "distortion": "x"}),
+           (Camera, {**cam, "fov": 7.0}), (Camera, {**cam, "colour": "red"}), (Edge, {"fraction": 1}),
+           (Edge, {"fraction": 1.5}), (Edge, {"fraction": math.nan}), (Edge, {"fraction": "0.3"}),
+           (Edge, {"fraction": True})]
+    for model, values in bad:
+        assert not plainly_valid(model, values), values
+        try:
+            expected = model(**values)
+        except pydantic.ValidationError as exc:
+            with pytest.raises(pydantic.ValidationError) as got:
+                checked(model, **values)
+            assert got.value.errors() == exc.errors()
+        else:  # validation converts it (1 to 1.0): checked gives the converted value too
+            assert same_nodes(checked(model, **values), expected) is None
+
+
+def test_dumped_equals_pydantics_dump_and_falls_back_where_it_is_not_plain():
+    """`scene.dumped` gives `model_dump(mode="json")` type for type for every scene's cameras (the lens numbers
+    left out at their defaults, those set kept) and whole scene, and pydantic's own dump where a value is not plain
+    (a non-finite number stays one, as the model's ser_json_inf_nan dumps it, for the writers to refuse)."""
+    import math
+
+    from wiredsl.scene import _NOT_PLAIN, Camera, _plain_dump, dumped, same_nodes
+
+    scenes = sorted(Path("scenes").glob("*.wd"))
+    assert len(scenes) >= 5
+    for path in scenes:
+        scene, _, _ = compile_file(path)
+        for node in [scene, *scene.cameras]:
+            assert same_nodes(dumped(node), node.model_dump(mode="json")) is None, path
+    cam = Camera(name="c", f=500.0, cx=320.0, cy=240.0, width=640, height=480, distortion="eucm", alpha=0.5)
+    d = dumped(cam)
+    assert d["alpha"] == 0.5 and "beta" not in d and "xi" not in d and d == cam.model_dump(mode="json")
+    odd = Camera.model_construct(name="c", f=math.inf, cx=320.0, cy=240.0, width=640, height=480)
+    assert _plain_dump(odd) is _NOT_PLAIN and dumped(odd)["f"] == math.inf
+
+
+def test_params_dump_equals_model_dump_and_leaves_excluded_fields_to_pydantic():
+    """`plugins.params_dump` gives `model_dump()` type for type for every built-in effect's parameters, and
+    pydantic's own dump for a model whose dump is not its fields (an excluded field, a serializer)."""
+    from pydantic import Field, field_serializer
+
+    from wiredsl.effects import BUILTIN
+    from wiredsl.effects.base import Params
+    from wiredsl.plugins import params_dump
+    from wiredsl.scene import same_nodes
+
+    for effect in BUILTIN.values():
+        p = effect.Params()
+        assert same_nodes(params_dump(p), p.model_dump()) is None, effect.name
+
+    class Hidden(Params):
+        a: float = 1.0
+        b: float = Field(2.0, exclude=True)
+
+    class Doubled(Params):
+        a: float = 1.0
+
+        @field_serializer("a")
+        def _twice(self, v):
+            return 2 * v
+
+    assert params_dump(Hidden()) == {"a": 1.0} and params_dump(Doubled()) == {"a": 2.0}

@@ -431,7 +431,6 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world
     from wiredsl.io import emit
-    from wiredsl.io.features import Manifest
     from wiredsl.io.files import json_text, output_folder, write_atomic
     from wiredsl.language.compile import compile_file
 
@@ -542,11 +541,10 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                             else:
                                 write_atomic(stage / what, text, tidy=False)
                     bar.update(len(batch))
-            manifest = Manifest(tool_version=__version__, scene=emit.scene_ref(scene),
-                                pipeline=pipeline.name if pipeline else None, seed=seed,
-                                trials=1 if only_trial is not None else len(trial_list),
-                                first_trial=shown, visibility=visibility,
-                                **run.manifest()).model_dump(mode="json")
+            manifest = emit.manifest_doc(tool_version=__version__, scene=emit.scene_ref(scene),
+                                         pipeline=pipeline.name if pipeline else None, seed=seed,
+                                         trials=1 if only_trial is not None else len(trial_list),
+                                         first_trial=shown, visibility=visibility, **run.manifest())
             if out_format == "npz":
                 writer.close(world.feature_ids, manifest)
             elif writer is not None:

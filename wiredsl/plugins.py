@@ -312,11 +312,23 @@ def _files_hash(plugin: Plugin, modules: list[str]) -> str:
     return h.hexdigest()
 
 
+def params_dump(params) -> dict:
+    """`params.model_dump()`, made from the fields where that gives the same (`scene.plain_dump`), so that no
+    serializer is built (nor, with it, the validator)."""
+    from wiredsl.scene import plain_dump
+
+    out = plain_dump(params)
+    return params.model_dump() if out is None else out
+
+
 def params_of(kind: str, cls: type, registry: Mapping, values: dict):
     """`cls.Params(**values)`: a plug-in's model guarded (its validators are its code; a pydantic ValidationError
-    passes, as a built-in's does, for the caller's range message)."""
+    passes, as a built-in's does, for the caller's range message). A built-in's are made without validation when
+    the values are plainly valid (`scene.checked`), as the compiler's are."""
     if not isinstance(registry, Registry) or cls.name in registry.builtins:
-        return cls.Params(**values)
+        from wiredsl.scene import checked
+
+        return checked(cls.Params, **values)
     from pydantic import ValidationError
 
     try:

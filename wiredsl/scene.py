@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Literal, TypeVar
+import math
+import operator
+from types import UnionType
+from typing import Any, Literal, TypeVar, Union, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, model_serializer
 
@@ -68,6 +71,127 @@ def trusted(cls: type[N], **values) -> N:
     return made
 
 
+_BOUNDS = {"Ge": ("ge", operator.ge), "Gt": ("gt", operator.gt), "Le": ("le", operator.le), "Lt": ("lt", operator.lt)}
+
+
+def plainly_valid(model: type[BaseModel], values: dict) -> bool:
+    """Whether validating `values` with `model` would pass and change nothing: every key one of its fields, every
+    value of its field's type exactly (a finite float for `float`, not an int that validation would convert; an int
+    for `int`, a bool for `bool`, a str for `str` or one of a Literal's strings; None where the field allows it; a
+    list or a str-keyed dict of such values; an instance of a model field's own class; anything for `Any`),
+    within the field's annotated_types bounds (Ge, Gt, Le, Lt), and no validator of the model's own. Anything else
+    is left to validation and its messages."""
+    decorators = model.__pydantic_decorators__
+    if decorators.validators or decorators.field_validators or decorators.root_validators \
+            or decorators.model_validators:
+        return False
+    fields = model.model_fields
+    for key, value in values.items():
+        f = fields.get(key)
+        if f is None or not _plain(f.annotation, value):
+            return False
+        if value is not None:
+            for c in f.metadata:
+                bound = _BOUNDS.get(type(c).__name__)
+                if bound is None or type(c).__module__ != "annotated_types" \
+                        or not bound[1](value, getattr(c, bound[0])):
+                    return False
+    return True
+
+
+def _plain(annotation, value) -> bool:
+    """Whether `value` is exactly of a plain `annotation` (see plainly_valid)."""
+    if annotation is float:
+        return type(value) is float and math.isfinite(value)
+    if annotation in (int, bool, str):
+        return type(value) is annotation
+    origin, args = get_origin(annotation), get_args(annotation)
+    if origin is Literal:
+        return type(value) is str and all(type(a) is str for a in args) and value in args
+    if origin in (Union, UnionType) and type(None) in args:
+        rest = [a for a in args if a is not type(None)]
+        return value is None or (len(rest) == 1 and _plain(rest[0], value))
+    if origin is list:
+        return type(value) is list and all(_plain(args[0], v) for v in value)
+    if origin is dict:
+        return type(value) is dict and args[0] is str and all(type(k) is str and _plain(args[1], v)
+                                                              for k, v in value.items())
+    if annotation is Any:  # validation takes anything as it is
+        return True
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):  # an instance is taken as it is
+        return type(value) is annotation
+    return False
+
+
+def checked(cls: type[N], **values) -> N:
+    """`cls(**values)`, made without validation (`trusted`) when the values are plainly valid (`plainly_valid`):
+    a model's validator costs its first use 0.5-1 ms, and the first validator of a process pydantic's plug-in
+    loader (some 9 ms: it imports importlib.metadata and scans the installed packages' entry points)."""
+    return trusted(cls, **values) if plainly_valid(cls, values) else cls(**values)
+
+
+_NOT_PLAIN = object()
+
+
+def plain_dump(node: BaseModel) -> dict | None:
+    """`node`'s dump made from its fields (the same in python and json mode: see `dumped`), or None where it is
+    not plain."""
+    out = _plain_dump(node)
+    return None if out is _NOT_PLAIN else out
+
+
+def dumped(node: BaseModel) -> dict:
+    """`node.model_dump(mode="json")`, made from its fields where that gives the same (`_plain_dump`: every value
+    None, a bool, int, str or finite float, a list, tuple or str-keyed dict of them, or a model of them, whose only
+    serializers are `omitted_when_none` and `omitted_when_default`), so that dumping builds no serializer: pydantic
+    builds a model's validator with it, and the first validator of a process costs pydantic's plug-in loader (some
+    13 ms: it imports importlib.metadata and scans the installed packages' entry points). Under CHECK_TRUSTED the
+    model's own dump is made too, and the two must be equal, type for type and bit for bit."""
+    out = _plain_dump(node)
+    if out is _NOT_PLAIN:
+        return node.model_dump(mode="json")
+    if CHECK_TRUSTED:
+        problem = same_nodes(out, node.model_dump(mode="json"))
+        if problem is not None:
+            raise AssertionError(f"dumped {type(node).__name__}: {problem}")
+    return out
+
+
+def _plain_dump(v):
+    t = type(v)
+    if v is None or t in (bool, int, str) or (t is float and math.isfinite(v)):
+        return v
+    if t in (list, tuple):
+        out = [_plain_dump(x) for x in v]
+        return _NOT_PLAIN if any(x is _NOT_PLAIN for x in out) else out
+    if t is dict:
+        out = {k: _plain_dump(x) for k, x in v.items()}
+        return _NOT_PLAIN if any(type(k) is not str or x is _NOT_PLAIN for k, x in out.items()) else out
+    if not isinstance(v, BaseModel):
+        return _NOT_PLAIN
+    decorators = t.__pydantic_decorators__
+    if decorators.field_serializers or t.model_computed_fields or v.__pydantic_extra__ \
+            or t.model_config.get("serialize_by_alias"):
+        return _NOT_PLAIN
+    omitted = {}
+    for s in decorators.model_serializers.values():
+        if not hasattr(s.func, "omitted"):
+            return _NOT_PLAIN
+        omitted.update(s.func.omitted)
+    out = {}
+    for name, f in t.model_fields.items():
+        if f.exclude or f.serialization_alias is not None or (f.alias is not None and f.alias != name):
+            return _NOT_PLAIN
+        out[name] = x = _plain_dump(getattr(v, name))
+        if x is _NOT_PLAIN:
+            return x
+    for name, default in omitted.items():
+        value = getattr(v, name)
+        if value is None if default is None else value == default:
+            out.pop(name, None)
+    return out
+
+
 def same_nodes(a, b, where: str = "") -> str | None:
     """Where two values (models, containers, numbers) differ in type or value (floats bit for bit), or None."""
     import struct
@@ -96,7 +220,6 @@ def same_nodes(a, b, where: str = "") -> str | None:
 def omitted_when_none(*names: str):
     """A model serializer leaving out these fields while they are None: documents without them stay as they
     were before the fields existed (use as `_dump = omitted_when_none("field")` in the class body)."""
-    @model_serializer(mode="wrap")
     def dump(self, handler):
         out = handler(self)
         for name in names:
@@ -104,13 +227,13 @@ def omitted_when_none(*names: str):
                 out.pop(name, None)
         return out
 
-    return dump
+    dump.omitted = dict.fromkeys(names)  # what `dumped` leaves out while None
+    return model_serializer(mode="wrap")(dump)
 
 
 def omitted_when_default(**defaults):
     """A model serializer leaving out these fields while they hold their defaults: documents of cameras without
     them stay as they were before the fields existed (use as `_dump = omitted_when_default(name=default)`)."""
-    @model_serializer(mode="wrap")
     def dump(self, handler):
         out = handler(self)
         for name, default in defaults.items():
@@ -118,7 +241,8 @@ def omitted_when_default(**defaults):
                 out.pop(name, None)
         return out
 
-    return dump
+    dump.omitted = dict(defaults)  # what `dumped` leaves out while it holds its default
+    return model_serializer(mode="wrap")(dump)
 
 
 class Line(Node):

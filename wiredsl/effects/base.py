@@ -94,7 +94,7 @@ def param(default: float, kind: str, doc: str, **limits: Any) -> Any:
 class Params(BaseModel):
     """Base of every effect's parameter model: frozen, no unknown fields."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
 
 @dataclass

@@ -35,7 +35,7 @@ from wiredsl.engine.simulate import (
     visibility_masks,
 )
 from wiredsl.engine.world import World
-from wiredsl.plugins import params_of
+from wiredsl.plugins import params_dump, params_of
 from wiredsl.scene import Scene
 
 BATCH = 256  # trials per batch at most: bounds memory whatever the number of trials
@@ -443,7 +443,7 @@ class Run:
 
     def manifest(self) -> dict:
         return {
-            "stages": [{"effect": e.name, "params": p.model_dump(), "measured": self._report(e, p)}
+            "stages": [{"effect": e.name, "params": params_dump(p), "measured": self._report(e, p)}
                        for e, p in self.stages],
             "ran": dict(sorted(self.trace.items())),
             "engine": "kernel" if self.uses_kernel() else "numpy",

@@ -16,14 +16,14 @@ from wiredsl.engine.world import World
 from wiredsl.io import layout
 from wiredsl.io.features import Features, SceneRef, StageRecord
 from wiredsl.io.files import json_text, printable_path, publish, require_finite
-from wiredsl.scene import SCHEMA_VERSION, Scene
+from wiredsl.scene import SCHEMA_VERSION, Scene, checked, dumped
 
 DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable across platforms
 
 
 def scene_ref(scene: Scene) -> SceneRef:
     digest = hashlib.sha256(Path(scene.source).read_bytes()).hexdigest()
-    return SceneRef(name=scene.name, file=printable_path(scene.source), sha256=digest)
+    return checked(SceneRef, name=scene.name, file=printable_path(scene.source), sha256=digest)
 
 
 def _r(x: float, decimals: int | None = DECIMALS) -> float:
@@ -105,7 +105,7 @@ def _view(v: SimView, world: World, cameras: dict, rounded_points: tuple) -> dic
         else:
             raise ValueError(f"unknown feature kind {f.kind!r}")
     if id(v.camera) not in cameras:
-        cameras[id(v.camera)] = v.camera.model_dump(mode="json")
+        cameras[id(v.camera)] = dumped(v.camera)
     # the camera's pose at full precision: re-projecting through it must give the dumped pixels
     return {"camera": cameras[id(v.camera)], "rotation": _full(v.R_cw).reshape(3, 3), "translation": _full(v.t_cw),
             "lines": lines, "polylines": polylines, "conics": conics_, "corners": corners}
@@ -120,8 +120,8 @@ def features_doc(scene: Scene, world: World, results: list[PoseResult], *, pipel
         pts = _rounded_points([v for r in results for v in (r.left, r.right) if v is not None])
         poses = [_pose_doc(r, world, cameras, pts) for r in results]
     return {"document": "features", "schema_version": SCHEMA_VERSION, "tool_version": __version__,
-            "scene": scene_ref(scene).model_dump(mode="json"), "pipeline": pipeline,
-            "stages": [s.model_dump(mode="json") for s in stages], "seed": seed, "trial": trial, "poses": poses}
+            "scene": dumped(scene_ref(scene)), "pipeline": pipeline, "stages": [dumped(s) for s in stages],
+            "seed": seed, "trial": trial, "poses": poses}
 
 
 def _pose_doc(r: PoseResult, world: World, cameras: dict, pts: tuple) -> dict:
@@ -170,8 +170,19 @@ def to_json(doc, indent: int | None = 1) -> str:
 
 # --------------------------------------------------------------------------- disturbed output
 
+def manifest_doc(**fields) -> dict:
+    """`Manifest(**fields).model_dump(mode="json")`, without validating or dumping through pydantic where the
+    values are plain (`scene.checked`, `scene.dumped`)."""
+    from wiredsl.io.features import Manifest, ManifestStage
+
+    stages = [checked(ManifestStage, **s) if type(s) is dict else s for s in fields.pop("stages", [])]
+    return dumped(checked(Manifest, stages=stages, **fields))
+
+
 def stage_records(run) -> list[StageRecord]:
-    return [StageRecord(effect=e.name, params=p.model_dump()) for e, p in run.stages]
+    from wiredsl.plugins import params_dump
+
+    return [checked(StageRecord, effect=e.name, params=params_dump(p)) for e, p in run.stages]
 
 
 def disturbed_results(batch_out, k: int) -> list[PoseResult]:

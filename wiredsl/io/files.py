@@ -17,7 +17,6 @@ import re
 import secrets
 import shutil
 import signal
-import socket
 import stat
 import tempfile
 from collections.abc import Iterator
@@ -27,7 +26,7 @@ import numpy as np
 
 _TEMP = re.compile(r"^\.(?P<target>.+)\.wiredsl-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[A-Za-z0-9_]+\.(tmp|old)$")
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
-_HOST = re.sub(r"[^A-Za-z0-9]", "_", socket.gethostname())[:64] or "host"
+_HOST = re.sub(r"[^A-Za-z0-9]", "_", os.uname().nodename)[:64] or "host"  # socket.gethostname(), without socket
 
 
 class UnwritableValue(ValueError):

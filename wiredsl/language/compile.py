@@ -23,7 +23,7 @@ from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotatio
 from wiredsl.language.bind import Bound, bind
 from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
-from wiredsl.plugins import params_of
+from wiredsl.plugins import params_dump, params_of
 from wiredsl.scene import (
     Board,
     Camera,
@@ -822,7 +822,7 @@ class Compiler(CameraCompiler):
             last = (rank, name) if last is None or rank >= last[0] else last
             params = {k: sb.get(k) for k in sb.clauses}
             try:
-                checked = params_of("effect", effect, REGISTRY, params).model_dump()
+                checked = params_dump(params_of("effect", effect, REGISTRY, params))
                 stages.append(trusted(Stage, effect=name, params=checked))
             except pydantic.ValidationError as exc:
                 for err in exc.errors():

@@ -17,7 +17,7 @@ from wiredsl.diagnostics import Collector, Span, WiredslError, did_you_mean
 from wiredsl.language import ast
 from wiredsl.language.bind import Bound, bind
 from wiredsl.language.statements import MAX_MAGNITUDE
-from wiredsl.scene import CALIBRATION_PARAMETERS, Calibration, Camera, Mount, Rig, trusted
+from wiredsl.scene import CALIBRATION_PARAMETERS, Calibration, Camera, Mount, Rig, checked, trusted
 
 MAX_MATRIX = 1_000
 BARE_FOCAL_METRES = 0.1  # a bare focal length this long (in m) is more likely mm written without its unit
@@ -251,7 +251,7 @@ class CameraCompiler:
         lens = self._lens(b, s)
         if self.out.n_errors != n0 or lens is None:
             return None
-        cam = Camera(name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, width=int(w), height=int(h), **lens)
+        cam = checked(Camera, name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, width=int(w), height=int(h), **lens)
         span = next((s[k][1] for k in ("distortion", *LENS) if k in s), where)
         self._lens_reach(cam, span, s)
         return cam
