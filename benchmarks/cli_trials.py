@@ -65,7 +65,7 @@ def main() -> None:
         def build(where: str, n: int) -> Child:
             return run(["-m", "wiredsl", "build", "scenes/lab.wd", "--trials", str(n), "--format", "npz", "--seed",
                         "1", "--no-svg", "--engine", "kernel", "-o", f"{out}/n{n}", "--force"],
-                       env={"PYTHONPATH": where})
+                       env={"PYTHONPATH": where}, cwd=where)  # -m imports the current folder's wiredsl first
 
         for where in checkouts.values():
             build(where, 2)  # the kernel's cache on disk
