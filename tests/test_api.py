@@ -181,7 +181,7 @@ def test_seeds_trials_and_steps_out_of_range_are_refused_by_name(lab, bad):
 
 
 @pytest.mark.parametrize(("kwargs", "message"), [
-    ({"visibility": "bogus"}, "visibility must be one of scene, exact, all"),  # was the scene's lists, silently
+    ({"visibility": "bogus"}, "visibility must be one of auto, scene, exact, all"),  # was the scene's lists, silently
     ({"cameras": "none"}, "cameras must be one of both, left"),  # was the left camera alone, silently
 ])
 def test_simulator_options_are_checked(lab, kwargs, message):

@@ -89,3 +89,67 @@ place m as m1 at (2m, 0, 1m)
     _, manifest, r = _build(tmp_path, str(tmp_path / "s.wd"), "--pose", "0", "--cameras", "left")
     assert manifest["visibility"] == "exact" and "W129" not in r.stderr
 
+
+
+def test_build_the_api_and_studies_share_one_default():
+    """wiredsl.DEFAULT_VISIBILITY is build's --visibility default and the API's visibility= default."""
+    import inspect
+
+    import wiredsl
+    from wiredsl import api
+
+    assert wiredsl.DEFAULT_VISIBILITY == "auto"
+    option = next(p for p in main.commands["build"].params if p.name == "visibility")
+    assert option.default == wiredsl.DEFAULT_VISIBILITY
+    for fn in (api.simulate, api.Simulator.__init__):
+        assert inspect.signature(fn).parameters["visibility"].default == wiredsl.DEFAULT_VISIBILITY
+
+
+def test_the_api_removes_hidden_lines_by_default_as_build_does(tmp_path):
+    """wiredsl.simulate and Simulator on scenes/meshes.wd: the cone's silhouette is not drawn through the ball
+    by default (auto: exact), and is with visibility="scene" -- the same answers as build's."""
+    import wiredsl
+
+    scene = wiredsl.compile("scenes/meshes.wd")
+    ideal = {vis: next(iter(wiredsl.simulate(scene, trials=1, seed=0, pipeline=None, **kw)))
+             for vis, kw in (("auto", {}), ("scene", {"visibility": "scene"}))}
+    build, _, _ = _build(tmp_path, "scenes/meshes.wd")
+    listed, _, _ = _build(tmp_path, "scenes/meshes.wd", "--visibility", "scene")
+    for vis, dump in (("auto", build), ("scene", listed)):  # the API's records are build's
+        rec = ideal[vis].records()
+        got = sum(1 for r in rec if r["source"] == "cone1.side1")
+        want = sum(1 for p in dump["poses"] for v in (p["left"], p["right"]) for f in v["lines"] + v["polylines"]
+                   if f["source"] == "cone1.side1")
+        assert got == want
+    sim = wiredsl.Simulator(scene, seed=0, pipeline=None)
+    assert sim.run.options.visibility == "exact"
+    assert wiredsl.Simulator(scene, seed=0, pipeline=None, visibility="scene").run.options.visibility == "scene"
+
+
+def test_a_study_decides_once_for_all_its_points(tmp_path):
+    """A study's visibility (shards.visibility): the mesh scene's few views are affordable (exact) when its
+    factors vary only the pipeline (one shared projection); when a factor varies the cameras, every point
+    projects its own and 512 points x 6 views of 1,422 triangles are over the budget: the lists, with W129."""
+    from wiredsl.scene import Study
+    from wiredsl.study import shards
+
+    scene = compile_file("scenes/meshes.wd")[0]
+    world = build_world(scene)
+    pipeline_only = Study.model_validate({"name": "p", "design": "grid", "trials": 4, "factors": [],
+                                          "measures": [{"name": "detection_rate"}]})
+    assert shards.visibility(pipeline_only, scene, world).mode == "exact"
+    assert shards.options(pipeline_only, scene, world).visibility == "exact"
+    cams = Study.model_validate({**pipeline_only.model_dump(), "factors": [
+        {"stage": "camera.eye", "param": "f", "values": [float(v) for v in np.linspace(490, 510, 512)]}]})
+    choice = shards.visibility(cams, scene, world)
+    assert choice.mode == "scene" and f"{512 * 6} views x 1,422 occluding triangles" in choice.warning
+    assert shards.options(cams, scene, world).visibility == "scene"
+
+
+def test_check_reports_the_cost_of_exact_visibility_for_meshes(tmp_path):
+    r = CliRunner().invoke(main, ["check", "scenes/meshes.wd"])
+    assert r.exit_code == 0
+    note = next(line for line in r.stderr.splitlines() if "exact visibility:" in line)
+    assert "6 views x 1,422 occluding triangles" in note and "uses exact hidden lines" in note
+    r = CliRunner().invoke(main, ["check", "scenes/lab.wd"])  # no meshes: no such note
+    assert r.exit_code == 0 and "exact visibility:" not in r.stderr

@@ -6,6 +6,12 @@ Stages, one module each: parse (lark tree) -> ast (spans) -> compile (Scene)
 
 __version__ = "0.2.0"
 
+# The visibility `wiredsl build`, the Python API (`simulate`, `Simulator`) and studies use unless told: "auto"
+# is exact hidden lines where a scene's faces would hide what the view-points' lists cannot say and the estimate
+# is affordable, else the lists (run.choose_visibility). Kept here, where importing costs nothing.
+DEFAULT_VISIBILITY = "auto"
+VISIBILITIES = ("auto", "scene", "exact", "all")
+
 
 _API = ("compile", "simulate", "Simulator", "Batch", "CameraAt", "CompileError", "CompileWarning", "PluginError",
         "Measure", "Effect")

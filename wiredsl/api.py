@@ -22,6 +22,7 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
+from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES
 from wiredsl.diagnostics import Diagnostic, WiredslError
 from wiredsl.effects.base import Effect
 from wiredsl.measures.base import Measure
@@ -162,13 +163,16 @@ def _pipeline(scene: Scene, pipeline: Pipeline | str | None) -> Pipeline | None:
 
 
 def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str | None = None,
-             poses: Sequence[int] | None = None, engine: str = "auto") -> Iterator[Batch]:
+             poses: Sequence[int] | None = None, engine: str = "auto",
+             visibility: str = DEFAULT_VISIBILITY) -> Iterator[Batch]:
     """The run's trials 0..trials-1, batch by batch (memory stays bounded however many trials).
 
     The same values as `wiredsl build --seed SEED --trials TRIALS --format npz` (whose file keeps float32
     pixels). `pipeline` is a pipeline's name or Pipeline (None: the scene's default, as build chooses it);
-    `poses` the path pose indices (None: every pose). A run without stages is the ideal projection: one
-    batch of one trial, numbered 0, with the analytic conics, as build writes it.
+    `poses` the path pose indices (None: every pose); `visibility` as build's `--visibility` (the same
+    default, wiredsl.DEFAULT_VISIBILITY: "auto" decides for the chosen poses x 2 cameras and warns W129, as a
+    UserWarning, when it keeps hidden lines). A run without stages is the ideal projection: one batch of one
+    trial, numbered 0, with the analytic conics, as build writes it.
     """
     from wiredsl import run as runs
     from wiredsl.engine.simulate import Options
@@ -176,17 +180,33 @@ def simulate(scene: Scene, *, trials: int, seed: int, pipeline: Pipeline | str |
     # the arguments are checked at the call, not at the first batch (simulate returns a generator)
     scene = _scene(scene, "simulate")
     trials, seed = _integer("trials", trials, 1, MAX_TRIAL + 1), _integer("seed", seed, 0, MAX_SEED)
-    opts = Options(poses=runs.check_poses(scene, _poses(poses)))
-    return _batches(scene, trials, seed, pipeline, opts, engine)
+    chosen = runs.check_poses(scene, _poses(poses))
+    n_poses = len(chosen) if chosen else len(scene.path.poses) if scene.path is not None else 0
+    world, mode = _visibility(scene, visibility, n_poses * 2)
+    return _batches(scene, trials, seed, pipeline, Options(visibility=mode, poses=chosen), engine, world)
 
 
-def _batches(scene: Scene, trials: int, seed: int, pipeline, opts, engine: str, only: int | None = None
+def _visibility(scene: Scene, visibility: str, views: int):
+    """(world, the projection's mode) for the API's `visibility` (run.resolve_visibility); W129 as a warning."""
+    import warnings
+
+    from wiredsl import run as runs
+    from wiredsl.engine.world import build_world
+
+    world = build_world(scene)
+    choice = runs.resolve_visibility(scene, world, _choice("visibility", visibility, VISIBILITIES), views)
+    if choice.warning is not None:
+        warnings.warn(f"W129: {choice.warning}", UserWarning, stacklevel=3)
+    return world, choice.mode
+
+
+def _batches(scene: Scene, trials: int, seed: int, pipeline, opts, engine: str, world=None, only: int | None = None
              ) -> Iterator[Batch]:
     """The run's batches of trials 0..trials-1 (`only`: trial `only` alone, the same draws)."""
     from wiredsl import run as runs
     from wiredsl.io.emit import batch_arrays, contours
 
-    run = runs.start(scene, _pipeline(scene, pipeline), seed=seed, options=opts, engine=engine)
+    run = runs.start(scene, _pipeline(scene, pipeline), seed=seed, options=opts, engine=engine, world=world)
     ids, kinds = run.world.feature_ids, feature_kinds(scene)
     if not run.stages:
         out = [(r, {side: _ideal_set(run, r, side) for side in ("left", "right") if getattr(r, side) is not None},
@@ -211,15 +231,18 @@ class Simulator:
     """
 
     def __init__(self, scene: Scene, seed: int, pipeline: Pipeline | str | None = None, *,
-                 cameras: str = "both", visibility: str = "scene", engine: str = "auto"):
+                 cameras: str = "both", visibility: str = DEFAULT_VISIBILITY, engine: str = "auto"):
         from wiredsl import run as runs
         from wiredsl.engine.simulate import Options
 
         self.scene = scene = _scene(scene, "Simulator")
-        opts = Options(visibility=_choice("visibility", visibility, ("scene", "exact", "all")),
-                       right=_choice("cameras", cameras, ("both", "left")) == "both")
+        right = _choice("cameras", cameras, ("both", "left")) == "both"
+        # "auto" decides for one pass over the path's poses (a single pose without a path)
+        views = (len(scene.path.poses) if scene.path is not None else 1) * (2 if right else 1)
+        world, mode = _visibility(scene, visibility, views)
         self.run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED),
-                              options=opts, engine=engine, need_path=False)
+                              options=Options(visibility=mode, right=right), engine=engine, need_path=False,
+                              world=world)
         self._lists: dict = {}  # view-point masks met so far
         self._occluders = None
         self._seen: OrderedDict = OrderedDict()  # (pose, trial, step) -> Batch: the last OBSERVED observations

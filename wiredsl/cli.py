@@ -13,7 +13,7 @@ import sys
 
 import click
 
-from wiredsl import __version__
+from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, __version__
 from wiredsl.cli_base import EXIT_INVALID, diagnostics_option, folder_name, guarded, report, setup_errors
 from wiredsl.export import export
 from wiredsl.io.render_cli import render
@@ -86,11 +86,13 @@ def check(files: tuple[str, ...], diagnostics: str) -> None:
     all_diags = []
     for f in files:
         try:
-            _, warnings, program = compile_file(f)
+            scene, warnings, program = compile_file(f)
             all_diags += warnings
             if diagnostics == "text":  # each mesh's size and bounds, as scaled and placed
                 for span, text in program.mesh_reports:
                     click.echo(f"{span}: note: {text}", err=True)
+                if program.mesh_reports:  # and what exact visibility would cost a build of every pose
+                    _exact_cost_note(scene, program)
         except WiredslError as err:
             all_diags += err.diagnostics
             failed = True
@@ -402,7 +404,7 @@ def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None
 @click.option("--tolerance", type=float, default=0.1, show_default=True, callback=_tolerance,
               help=f"Largest deviation (px, {TOLERANCE_PX[0]:g} to {TOLERANCE_PX[1]:g}) of an emitted polyline "
                    "from the true image curve.")
-@click.option("--visibility", type=click.Choice(["auto", "scene", "exact", "all"]), default="auto", show_default=True,
+@click.option("--visibility", type=click.Choice(VISIBILITIES), default=DEFAULT_VISIBILITY, show_default=True,
               help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion; auto: "
                    "exact where faces would hide what the lists cannot say and it is affordable (else scene, with "
                    "warning W129).")
@@ -566,6 +568,18 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
                       ", ideal projection") + ")", err=True)
 
 
+def _exact_cost_note(scene, program) -> None:
+    """`check`'s note on a scene with meshes: exact visibility's estimated CPU for a build of every pose with
+    both cameras, and what `--visibility auto` chooses (run.exact_cost_note)."""
+    from wiredsl import run as runs
+    from wiredsl.engine.world import build_world
+
+    views = (len(scene.path.poses) if scene.path is not None else 0) * (2 if scene.rig is not None else 1)
+    note = runs.exact_cost_note(scene, build_world(scene), views)
+    if note is not None:
+        click.echo(f"{program.mesh_reports[0][0]}: note: {note}", err=True)
+
+
 def _auto_visibility(scene, world, program, poses, cameras: str, repeats: int, fmt: str) -> str:
     """`--visibility auto`: exact or scene (run.choose_visibility); W129 at the first `mesh read` (or the file's
     start) when the scene's faces would hide something that this build keeps."""
@@ -626,8 +640,9 @@ def _study_point(scene, world, study_name, point, only_trial, seed, pipeline_nam
         raise click.BadParameter(f"point {point} is not in 0..{len(X) - 1}", param_hint="--point")
     if only_trial >= study.trials:
         raise click.BadParameter(f"trial {only_trial} is not in 0..{study.trials - 1}", param_hint="--trial")
-    study_opts = shards.options(study)
-    opts = dataclasses.replace(opts, poses=tuple(sorted(set(poses))) or study_opts.poses)
+    study_opts = shards.options(study, scene, world)  # the study's visibility too: the point as the study ran it
+    opts = dataclasses.replace(opts, poses=tuple(sorted(set(poses))) or study_opts.poses,
+                               visibility=study_opts.visibility)
     run = shards.point_run(scene, world, study, point, X[point], opts)
     lo, hi = shards.span_of(only_trial, study.trials)
     return run, design.pipeline_at(scene, study, X[point]), list(range(lo, hi))

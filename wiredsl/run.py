@@ -90,6 +90,33 @@ def choose_visibility(scene: Scene, world: World, views: int) -> VisibilityChoic
                             "the answer (fewer poses with --pose also make it affordable)", seconds)
 
 
+def resolve_visibility(scene: Scene, world: World, visibility: str, views: int) -> VisibilityChoice:
+    """The projection's mode for `visibility` (one of wiredsl.VISIBILITIES): "auto" as `choose_visibility` for
+    `views` views; the others as given."""
+    if visibility == "auto":
+        return choose_visibility(scene, world, views)
+    return VisibilityChoice(visibility)
+
+
+def exact_cost_note(scene: Scene, world: World, views: int) -> str | None:
+    """For a scene with meshes: the estimated CPU of exact visibility for `views` views and what
+    `--visibility auto` chooses (`wiredsl check`'s note); None without meshes."""
+    if not any(m.surfaces for m in scene.models):
+        return None
+    choice = choose_visibility(scene, world, views)
+    triangles = len(world.triangles)
+    seconds = views * triangles * EXACT_SECONDS_PER_TRIANGLE
+    if choice.mode == "exact":
+        why = "exact hidden lines"
+    elif choice.warning is not None:
+        why = f"the view-points' lists, with warning W129 (over {AUTO_EXACT_SECONDS:.0f} s)"
+    else:
+        why = "the view-points' lists (the scene's `visibility` is not auto)" if scene.viewpoints is not None \
+            else "no hidden lines (nothing occludes)"
+    return (f"exact visibility: {views} view{'s' * (views != 1)} x {triangles:,} occluding triangles, about "
+            f"{seconds:,.1f} s of CPU; `--visibility auto` (the default) uses {why}")
+
+
 def check_poses(scene: Scene, poses) -> tuple[int, ...] | None:
     """The chosen pose indices, sorted and unique (None: every pose); a pose off the path is refused."""
     if poses is None:

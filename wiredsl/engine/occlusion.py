@@ -78,13 +78,15 @@ class Occluders:
     Vb: np.ndarray
     chunk_c: np.ndarray | None = None
     chunk_r: np.ndarray | None = None
+    index: np.ndarray | None = None  # each triangle's index in the triangles given (before the Morton order)
 
     def __post_init__(self):
         if self.chunk_c is None:
-            tris, c, r = _chunks(np.asarray(self.tris, float).reshape(-1, 3, 3))
+            tris, c, r, index = _chunks(np.asarray(self.tris, float).reshape(-1, 3, 3))
             object.__setattr__(self, "tris", tris)
             object.__setattr__(self, "chunk_c", c)
             object.__setattr__(self, "chunk_r", r)
+            object.__setattr__(self, "index", index)
 
     @classmethod
     def of_world(cls, w: World) -> Occluders:
@@ -98,11 +100,12 @@ class Occluders:
         return Eye(self, np.asarray(R_cw, float), np.asarray(t_cw, float), float(px))
 
 
-def _chunks(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Triangles reordered along a Morton curve, and the bounding spheres (K, 3), (K,) of each CHUNK of them."""
+def _chunks(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Triangles reordered along a Morton curve, the bounding spheres (K, 3), (K,) of each CHUNK of them, and
+    each reordered triangle's index among those given."""
     T = len(tris)
     if T == 0:
-        return tris, np.zeros((0, 3)), np.zeros(0)
+        return tris, np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
     cen = tris.mean(axis=1)
     lo, span = cen.min(axis=0), np.maximum(np.ptp(cen, axis=0), 1e-300)
     q = np.minimum((cen - lo) / span * 1024, 1023).astype(np.int64)
@@ -110,12 +113,13 @@ def _chunks(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     for bit in range(10):  # interleave the bits of x, y, z
         for axis in range(3):
             code |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
-    tris = tris[np.argsort(code, kind="stable")]
+    index = np.argsort(code, kind="stable")
+    tris = tris[index]
     pad = (-T) % CHUNK
     V = np.concatenate([tris, np.repeat(tris[-1:], pad, axis=0)]).reshape(-1, CHUNK * 3, 3)
     c = (V.max(axis=1) + V.min(axis=1)) / 2
     r = np.linalg.norm(V - c[:, None], axis=2).max(axis=1) * (1 + 1e-9)
-    return tris, c, r
+    return tris, c, r, index
 
 
 class Eye:
@@ -123,7 +127,7 @@ class Eye:
 
     def __init__(self, world: Occluders, R: np.ndarray, t: np.ndarray, px: float = 0.0):
         self.R, self.t, self.px = R, t, px
-        self.tris_w = world.tris
+        self.tris_w, self.index = world.tris, world.index
         occ = Occluders(world.tris[:0], world.ca @ R.T + t, world.Ua @ R.T, world.Va @ R.T,
                         world.cb @ R.T + t, world.Ub @ R.T, world.Vb @ R.T, np.zeros((0, 3)), np.zeros(0))
         self.occ = occ
@@ -158,10 +162,12 @@ class Eye:
                 out[r[hi > lo]] = True
         return out
 
-    def _pairs(self, A: np.ndarray, B: np.ndarray, pair_bytes: int = FACE_PAIR_BYTES):
+    def _pairs(self, A: np.ndarray, B: np.ndarray, pair_bytes: int = FACE_PAIR_BYTES, own=None):
         """(row, G, h) in slices of at most BUDGET / pair_bytes pairs: the conditions of every triangle whose
         image-plane box meets that of segment A B (rows, camera frame), from the chunks the grid gives (the
-        rest cannot hide any of it)."""
+        rest cannot hide any of it). `own` (first, end, reach) a row (`segment_pieces`): the triangles
+        [first, end) (indices of those given) hide the row only where the ray meets them more than reach
+        (metres) before the point (as RAY_END does, by moving their plane's condition away from the eye)."""
         r_all, t_all = self.grid.pairs(A, B)
         step = max(1, BUDGET // pair_bytes)
         ahead = (A[:, 2] > 0) & (B[:, 2] > 0)
@@ -183,7 +189,19 @@ class Eye:
             thi = np.where(boxed[:, None], q.max(axis=1), np.inf)
             keep = ((tlo[inv] <= qhi[r]) & (thi[inv] >= qlo[r])).all(axis=1) & (z.max(axis=1) > 0)[inv]
             G, h = _triangle_conditions(W)
-            yield r[keep], G[inv[keep]], h[inv[keep]]
+            r, tk = r[keep], inv[keep]
+            G, h = G[tk], h[tk]
+            if own is not None:
+                first, end, reach = own
+                tri = self.index[u[tk]]
+                mine = np.flatnonzero((tri >= first[r]) & (tri < end[r]))
+                if len(mine):
+                    rm = r[mine]
+                    near = np.minimum(np.linalg.norm(A[rm], axis=1), np.linalg.norm(B[rm], axis=1))
+                    rest = np.minimum(1 - reach[rm] / np.maximum(near, 1e-300), 1 - RAY_END)  # the ray before reach
+                    h[mine, 3] = np.where(rest > RAY_END, h[mine, 3] * (1 - RAY_END) / np.maximum(rest, RAY_END),
+                                          -np.inf)
+            yield r, G, h
 
     def hidden_by_surfaces(self, P: np.ndarray) -> np.ndarray:
         out = np.zeros(len(P), dtype=bool)
@@ -215,15 +233,21 @@ class Eye:
 
     # ----------------------------------------------------------------------- features
 
-    def segment_pieces(self, A: np.ndarray, B: np.ndarray, t0: np.ndarray, t1: np.ndarray):
-        """Visible parts of segments A + u (B - A), u in [t0, t1] (rows (n,)): (row, u0, u1) of each piece."""
+    def segment_pieces(self, A: np.ndarray, B: np.ndarray, t0: np.ndarray, t1: np.ndarray, own=None):
+        """Visible parts of segments A + u (B - A), u in [t0, t1] (rows (n,)): (row, u0, u1) of each piece.
+        `own` (first, end, reach) (n,) each: the triangles [first, end) (indices of those the Occluders were
+        given) hide a row only where the ray meets them more than reach before the point (a contour and its
+        own surface, `mesh.Contours`); None: every triangle hides."""
         n = len(A)
         hid_r, hid_a, hid_b = [], [], []
+        if own is not None and not (own[1] > own[0]).any():
+            own = None
         if len(self.tris_w) and n:
             D = B - A
             A0, A1 = A + t0[:, None] * D, A + t1[:, None] * D
             for rows in _blocks(self.grid.load(A0, A1), FACE_PAIR_BYTES):
-                for r, G, h in self._pairs(A0[rows], A1[rows]):
+                block = None if own is None else tuple(x[rows] for x in own)
+                for r, G, h in self._pairs(A0[rows], A1[rows], own=block):
                     r = r + rows.start
                     lo, hi = _pair_intervals(G, h, A[r], D[r])
                     hid_r.append(r[hi > lo])
@@ -770,11 +794,13 @@ def _complement(n: int, lo: np.ndarray, hi: np.ndarray, rows: list, a: list, b: 
 
 # --------------------------------------------------------------------------- the projection's hooks
 
-def split_segments(eye: Eye, A, B, t0, t1, keep):
+def split_segments(eye: Eye, A, B, t0, t1, keep, own=None):
     """The unoccluded parts [u0, u1] of the kept segments A + u (B - A), u in [t0, t1]: (row, u0, u1, part
-    index or -1 when the segment lost nothing, whether occlusion cut it), one entry a part."""
+    index or -1 when the segment lost nothing, whether occlusion cut it), one entry a part. `own` (first, end,
+    reach) a row: `Eye.segment_pieces`."""
     idx = np.flatnonzero(keep)
-    r, u0, u1, cut = eye.segment_pieces(A[idx], B[idx], t0[idx], t1[idx])
+    r, u0, u1, cut = eye.segment_pieces(A[idx], B[idx], t0[idx], t1[idx],
+                                        None if own is None else tuple(x[idx] for x in own))
     return idx[r], u0, u1, np.where(cut, _rank(r), -1), cut
 
 

@@ -479,7 +479,7 @@ def _straight_segments(world: World, views: list[View], cam: dict, masks: np.nda
                        ) -> _Segments:
     """Lines, polyline segments and silhouette sides of every view, in that order within a view."""
     sv, sA, sB, sfid, sside = silhouettes_cams(world, views, masks, ellipses)
-    sv, sA, sB, sfid, sside = _with_contours(world, views, masks, (sv, sA, sB, sfid, sside))
+    (sv, sA, sB, sfid, sside), own = _with_contours(world, views, masks, (sv, sA, sB, sfid, sside))
     lv, ll = np.nonzero(masks[:, world.line_fid]) if len(world.line_fid) else (np.zeros(0, int),) * 2
     R = np.stack([v.R_cw for v in views])
     t = np.stack([v.t_cw for v in views])
@@ -492,8 +492,10 @@ def _straight_segments(world: World, views: list[View], cam: dict, masks: np.nda
     B = np.concatenate([ends[:, 1], sB])[order]
     fid = np.concatenate([world.line_fid[ll], sfid])[order]
     seg = np.concatenate([world.line_segment[ll], sside])[order]
+    own = tuple(np.concatenate([np.zeros(len(ll), x.dtype), x])[order] for x in own)  # a line: no own surface
     rows, t0, t1 = geometry.clip_segments_lens(A, B, cam["model"][vid], cam["limit"][vid])
     vid, A, B, fid, seg = vid[rows], A[rows], B[rows], fid[rows], seg[rows]  # a fisheye may cut one in parts
+    own = tuple(x[rows] for x in own)
     keep = np.ones(len(rows), dtype=bool)
     fid, seg = fid.astype(int), seg.astype(int)
     cut3d = (t0 > 0) | (t1 < 1)
@@ -502,7 +504,8 @@ def _straight_segments(world: World, views: list[View], cam: dict, masks: np.nda
         parts = []
         for k, eye in enumerate(eyes):
             m = np.flatnonzero(vid == k)
-            r, u0, u1, pc, hd = occlusion.split_segments(eye, A[m], B[m], t0[m], t1[m], keep[m])
+            r, u0, u1, pc, hd = occlusion.split_segments(eye, A[m], B[m], t0[m], t1[m], keep[m],
+                                                         tuple(x[m] for x in own))
             parts.append((m[r], u0, u1, pc, hd))
         rows, u0, u1, piece, hid = (np.concatenate(x) for x in zip(*parts, strict=True))
         rows = rows.astype(int)
@@ -512,12 +515,16 @@ def _straight_segments(world: World, views: list[View], cam: dict, masks: np.nda
     return _Segments(vid, A, B - A, fid, seg, t0, t1, keep, cut3d, piece.astype(int), hid.astype(bool))
 
 
-def _with_contours(world: World, views: list[View], masks: np.ndarray, sil: tuple) -> tuple:
+def _with_contours(world: World, views: list[View], masks: np.ndarray, sil: tuple) -> tuple[tuple, tuple]:
     """The silhouette sides and the occluding-contour edges of smooth mesh surfaces (engine/mesh.py) of
     every view: (view, A, B, fid, segment), camera frame; a contour's edges come chained end to end, its
-    segment the chain's number in the view (`_Emitted.deliver` joins each chain's pieces into polylines)."""
+    segment the chain's number in the view (`_Emitted.deliver` joins each chain's pieces into polylines).
+    And (first, end, reach) a row: a contour edge's own surface (its triangles [first, end) of World.triangles)
+    and how far before the edge that surface must be to hide it (`Contours`; a silhouette side: none)."""
+    n = len(sil[0])
+    own = [(np.zeros(n, int), np.zeros(n, int), np.zeros(n))]
     if not world.contours:
-        return sil
+        return sil, own[0]
     parts = [sil]
     for k, v in enumerate(views):
         eye = -v.R_cw.T @ v.t_cw  # the camera's centre in the world
@@ -527,7 +534,9 @@ def _with_contours(world: World, views: list[View], masks: np.ndarray, sil: tupl
                 P = cont.ends[e] @ v.R_cw.T + v.t_cw
                 P = np.where(back[:, None, None], P[:, ::-1], P)
                 parts.append((np.full(len(e), k), P[:, 0], P[:, 1], np.full(len(e), fid), chain))
-    return tuple(np.concatenate(x) for x in zip(*parts, strict=True))
+                own.append((np.full(len(e), cont.own[0]), np.full(len(e), cont.own[1]), cont.reach[e]))
+    return (tuple(np.concatenate(x) for x in zip(*parts, strict=True)),
+            tuple(np.concatenate(x) for x in zip(*own, strict=True)))
 
 
 def _emit_lines(s: _Segments, views: list[View], cam: dict, out: _Emitted) -> None:

@@ -117,12 +117,13 @@ def build_world(scene: Scene) -> World:
             w.face_src.append(f"{p.name}.{sf.name}")
             v = to_world(sf.vertices)
             F = np.array(sf.triangles, dtype=int).reshape(-1, 3)
+            first = len(tri_face)  # its first triangle's index in w.triangles
             tris.append(v[F])
             tri_face.extend([len(w.face_src) - 1] * len(sf.triangles))
             if sf.contour:  # the outline of its smooth part: a feature of each view (engine/mesh.py)
                 from wiredsl.engine.mesh import Contours
 
-                w.contours.append((new_id(sf.name, "contour"), Contours.of(v, F[np.array(sf.contour)])))
+                w.contours.append((new_id(sf.name, "contour"), Contours.of(v, F[np.array(sf.contour)], F, first)))
     w.lines = np.array(lines, dtype=float).reshape(-1, 2, 3)
     w.line_fid = np.array(line_fid, dtype=int)
     w.line_segment = np.array(line_seg, dtype=int)

@@ -108,8 +108,8 @@ def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto", only
 
     def each() -> Iterator[Trial]:
         nominal = {(p, s): camera_from_world(src, p, s) for p in src.poses for s in CAMERAS}
-        for batch in _batches(scene, n_trials if pipeline is not None else 1, seed, chosen, opts, engine,
-                              only if pipeline is not None else None):
+        for batch in _batches(scene, n_trials if pipeline is not None else 1, seed, chosen, opts, engine, world=world,
+                              only=only if pipeline is not None else None):
             yield from _split(batch, nominal, fid_corner)
 
     return src, each()

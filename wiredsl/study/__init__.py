@@ -150,6 +150,12 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
     if echo is not None:
         echo(f"study {study.name}: {len(X)} points x {study.trials} trials in {len(all_jobs)} shards, "
              f"{len(all_jobs) - len(todo)} done before; executor {executor}")
+        if todo:  # the one visibility of every point (shards.visibility), when it keeps hidden lines
+            from wiredsl.engine.world import build_world
+
+            choice = shards.visibility(study, scene, build_world(scene))
+            if choice.warning is not None:
+                echo(f"warning: W129: {choice.warning}")
     if todo:
         with journal.Writer(folder) as out:
             def finished(job: shards.Job, arrays: dict[str, np.ndarray]) -> None:

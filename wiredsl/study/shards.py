@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wiredsl import DEFAULT_VISIBILITY
 from wiredsl.engine import imageset as im
 from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
@@ -26,7 +27,7 @@ from wiredsl.engine.world import World, build_world
 from wiredsl.io.files import write_atomic
 from wiredsl.measures import BUILTIN, REGISTRY
 from wiredsl.plugins import call, failure, params_of
-from wiredsl.run import start
+from wiredsl.run import VisibilityChoice, resolve_visibility, start
 from wiredsl.scene import Scene, Study
 from wiredsl.study import design
 
@@ -61,8 +62,21 @@ def shards(n_points: int, trials: int, size: int = SHARD_TRIALS) -> list[Shard]:
     return [Shard(p, lo, min(lo + size, trials)) for p in range(n_points) for lo in range(0, trials, size)]
 
 
-def options(study: Study) -> Options:
-    return Options(poses=tuple(study.poses) if study.poses is not None else None)
+def options(study: Study, scene: Scene, world: World) -> Options:
+    """The projection's options of every run of a study: its poses, and one visibility for all its points."""
+    return Options(poses=tuple(study.poses) if study.poses is not None else None,
+                   visibility=visibility(study, scene, world).mode)
+
+
+def visibility(study: Study, scene: Scene, world: World) -> VisibilityChoice:
+    """wiredsl.DEFAULT_VISIBILITY ("auto") decided once for the whole study, from what it projects: its poses x 2
+    cameras, times its design points when a factor varies the cameras (each point then projects its own; else
+    the points share one projection, whatever their number). Every point uses the same mode, so that the points
+    compare: a Sobol' study that varies the cameras over thousands of points is usually over the budget and
+    keeps the view-points' lists (warning W129, said when the study starts)."""
+    poses = len(study.poses) if study.poses is not None else len(scene.path.poses) if scene.path is not None else 0
+    points = len(design.matrix(study)) if design.varies_scene(study) else 1
+    return resolve_visibility(scene, world, DEFAULT_VISIBILITY, poses * 2 * points)
 
 
 def point_run(scene: Scene, world: World, study: Study, point: int, values, opts: Options | None = None,
@@ -75,7 +89,7 @@ def point_run(scene: Scene, world: World, study: Study, point: int, values, opts
     values = np.asarray(values, dtype=float)
     lend = None if design.varies_scene(study) else base  # a point that varies the cameras projects its own
     return start(design.scene_at(scene, study, values), design.pipeline_at(scene, study, values), seed=study.seed,
-                 options=opts or options(study), world=world, point=point, base=lend)
+                 options=opts or options(study, scene, world), world=world, point=point, base=lend)
 
 
 _WORKER: dict = {}  # per process: digest -> (world, base run, prepared); (digest, point) -> (run, prepared)
@@ -107,17 +121,19 @@ def _setup(job: Job) -> tuple[Run, list]:
     if job.digest not in _WORKER:
         world = build_world(scene)
         _WORKER.clear()  # one study at a time per worker
-        base = start(scene, None, options=options(study), world=world)
+        opts = options(study, scene, world)
+        base = start(scene, None, options=opts, world=world)
         base.ideal()
         # a measure's reference data come from the ideal scene, which no pipeline parameter changes:
         # prepared once per study (with the run of no stages), unless the study varies the cameras
-        _WORKER[job.digest] = (world, base, None if design.varies_scene(study) else _prepare(study, registry, base))
-    world, base, prepared = _WORKER[job.digest]
+        _WORKER[job.digest] = (world, opts, base,
+                               None if design.varies_scene(study) else _prepare(study, registry, base))
+    world, opts, base, prepared = _WORKER[job.digest]
     key = (job.digest, job.shard.point)
     if key not in _WORKER:
         for old in [k for k in _WORKER if isinstance(k, tuple)]:  # a point's shards come together: keep one
             del _WORKER[old]
-        run = point_run(scene, world, study, job.shard.point, job.values, base=base)
+        run = point_run(scene, world, study, job.shard.point, job.values, opts, base=base)
         _WORKER[key] = (run, prepared if prepared is not None else _prepare(study, registry, run))
     return _WORKER[key]
 
