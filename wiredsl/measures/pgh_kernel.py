@@ -181,12 +181,27 @@ def roots(a, b, starts, order, n_angle, directed, n_dist, d_max, point_span):
 
 
 @njit(cache=True)
-def _best(S, i, owner, best):
-    """best[k] = the largest S[i, r] over the ideal rows r of owner k (-inf where k has none)."""
-    best[:] = -np.inf
-    for r in range(S.shape[1]):
-        if S[i, r] > best[owner[r]]:
-            best[owner[r]] = S[i, r]
+def _bounds(owner, k):
+    """Where each of k owners' rows start in `owner` (sorted: an owner's rows are contiguous), and the end (k + 1,)."""
+    out = np.zeros(k + 1, dtype=np.int64)
+    for r in range(len(owner)):
+        out[owner[r] + 1] += 1
+    for c in range(k):
+        out[c + 1] += out[c]
+    return out
+
+
+@njit(cache=True)
+def _best(S, i, bounds, best):
+    """best[k] = the largest S[i, r] over the ideal rows r of owner k, rows bounds[k]:bounds[k + 1] (-inf where k
+    has none): a running maximum over each owner's contiguous rows (max is exact: the order does not matter)."""
+    for k in range(len(bounds) - 1):
+        m = -np.inf
+        for r in range(bounds[k], bounds[k + 1]):
+            v = S[i, r]
+            if v > m:
+                m = v
+        best[k] = m
 
 
 @njit(cache=True)
@@ -198,6 +213,7 @@ def own_scores(root, key, order, bounds, ideal_t, owner, sources, tie):
     M = root.shape[0]
     K = len(sources)
     best = np.empty(K)
+    rows = _bounds(owner, K)
     own = np.zeros(M)
     recog = np.zeros(M, dtype=np.bool_)
     for g in range(len(bounds) - 1):
@@ -205,7 +221,7 @@ def own_scores(root, key, order, bounds, ideal_t, owner, sources, tie):
         S = np.dot(root[idx], ideal_t)
         for i in range(len(idx)):
             m = idx[i]
-            _best(S, i, owner, best)
+            _best(S, i, rows, best)
             col = min(np.searchsorted(sources, key[m]), K - 1)
             if sources[col] != key[m]:
                 continue
@@ -226,12 +242,13 @@ def located_scores(root, L, trial, order, bounds, n_trials, ideal_t, owner, n):
     score = np.zeros((n_trials, n))
     w = np.zeros(n_trials)
     best = np.empty(n, dtype=ideal_t.dtype)
+    rows = _bounds(owner, n)
     for g in range(len(bounds) - 1):
         idx = order[bounds[g]:bounds[g + 1]]
         S = np.dot(root[idx], ideal_t)
         for i in range(len(idx)):
             m = idx[i]
-            _best(S, i, owner, best)
+            _best(S, i, rows, best)
             t = trial[m]
             for c in range(n):
                 if best[c] > -np.inf:
