@@ -19,8 +19,10 @@ from wiredsl.measures.pgh import (
     PGHParams,
     angle_bins,
     bhattacharyya,
+    flat,
     histograms,
     raw_histograms,
+    roots,
     transfer_angle,
     transfer_dist,
 )
@@ -151,6 +153,34 @@ def test_the_compiled_pair_loop_agrees_with_numpy(p):
         s = segments(to_imageset(result.left, WORLD))
         ab = np.stack([s["a"], s["b"]], axis=1)
         assert np.abs(histograms(ab, p, engine="numpy") - histograms(ab, p, engine="numba")).max() < 1e-12
+
+
+@pytest.mark.parametrize("p", [*MODES, PGHParams(n_dist=30, n_angle=36), PGHParams(n_dist=3, n_angle=1)])
+def test_the_fused_roots_are_the_numpy_normalisation_of_the_compiled_histograms_to_the_last_bit(p):
+    """`roots` (histograms, totals by numpy's pairwise sum, division and sqrt in one compiled pass) against
+    np.sqrt(flat(histograms(engine="numba"))), bit for bit: groups in any order, empty histograms (total 0) and
+    bin counts below and above numpy's 8 and 128 summation blocks (13 x 10, 37 x 30, 2 x 3 bins)."""
+    rng = np.random.default_rng(12)
+    segs = random_segments(700, 13)
+    segs[::5, 1] = segs[::5, 0] + [4.0, 0.0]
+    segs[3] = [[1e6, 1e6], [1e6 + 1.0, 1e6]]  # alone, far beyond d_max of every other: only itself
+    group = rng.integers(0, 11, 700)
+    fused = roots(segs, p, group=group, engine="numba")
+    assert np.array_equal(fused, np.sqrt(flat(histograms(segs, p, group=group, engine="numba"))))
+    assert np.array_equal(roots(segs[:0], p), np.zeros((0, flat(histograms(segs[:1], p)).shape[1])))
+    blurred = p.model_copy(update={"blur_angle": 0.05})  # with a blur: the unfused path
+    assert np.array_equal(roots(segs, blurred, group=group), np.sqrt(flat(histograms(segs, blurred, group=group))))
+
+
+def test_the_kernels_pairwise_sum_is_numpys_to_the_last_bit():
+    """The fused roots' totals: numpy's own summation order (blocks of 8 partial sums, halves above 128)."""
+    from wiredsl.measures import pgh_kernel
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 8, 9, 127, 128, 129, 130, 257, 1000, 4097, 100_000):
+        for _ in range(5):
+            a = rng.random(n) * 10 ** rng.uniform(-8, 8, n)
+            assert 0.0 + pgh_kernel._pairwise_sum(a, 0, n) == a.sum()
 
 
 def test_a_segment_without_length_is_refused():

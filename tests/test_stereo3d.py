@@ -58,6 +58,50 @@ def test_exact_points_triangulate_exactly():
     assert ok.all() and np.abs(ours - X).max() < 1e-12
 
 
+@pytest.mark.parametrize("noise", [0.0, 1.0, 30.0, 300.0])
+def test_compiled_triangulation_is_the_svds_point_to_rounding_against_opencv_and_mpmath(noise):
+    """The numba engine (inverse iteration, Jacobi where it does not converge: large noise makes sigma_4 close to
+    sigma_3) against LAPACK's SVD (the numpy engine), OpenCV, and mpmath's 50-digit SVD for the worst points."""
+    mpmath = pytest.importorskip("mpmath")
+    rng = np.random.default_rng(7)
+    for _ in range(10):
+        P1, P2 = random_rig(rng)
+        K = np.array([[rng.uniform(300, 900), 0, 320], [0, rng.uniform(300, 900), 240], [0, 0, 1.0]])
+        X = rng.uniform(-1, 1, (200, 3)) + [0, 0, 5]
+        x1 = (K @ P1 @ np.column_stack([X, np.ones(200)]).T).T
+        x2 = (K @ P2 @ np.column_stack([X, np.ones(200)]).T).T
+        x1 = x1[:, :2] / x1[:, 2:] + rng.normal(0, noise, (200, 2))
+        x2 = x2[:, :2] / x2[:, 2:] + rng.normal(0, noise, (200, 2))
+        fast, ok_fast = triangulate(K @ P1, K @ P2, x1, x2, engine="numba")
+        ref, ok_ref = triangulate(K @ P1, K @ P2, x1, x2, engine="numpy")
+        h = cv2.triangulatePoints(K @ P1, K @ P2, x1.T.copy(), x2.T.copy())
+        cv = (h[:3] / h[3]).T
+        assert (ok_fast == ok_ref).all()
+        rel = np.abs(fast - ref).max(axis=1) / np.abs(ref).max(axis=1)
+        assert rel[ok_ref].max() < 1e-10, rel.max()
+        assert (np.abs(fast - cv).max(axis=1) / np.abs(cv).max(axis=1))[ok_ref].max() < 1e-9
+        i = int(np.argmax(np.where(ok_ref, rel, 0)))  # the worst point, against 50 digits
+        A = np.stack([x1[i, 0] * (K @ P1)[2] - (K @ P1)[0], x1[i, 1] * (K @ P1)[2] - (K @ P1)[1],
+                      x2[i, 0] * (K @ P2)[2] - (K @ P2)[0], x2[i, 1] * (K @ P2)[2] - (K @ P2)[1]])
+        with mpmath.workdps(50):
+            V = mpmath.svd_r(mpmath.matrix(A.tolist()))[2]
+            exact = np.array([float(V[3, c] / V[3, 3]) for c in range(3)])
+        assert np.abs(fast[i] - exact).max() <= max(1e-10 * np.abs(exact).max(), 2 * np.abs(ref[i] - exact).max())
+
+
+def test_compiled_triangulation_of_degenerate_rows_gives_no_nan():
+    """Exactly singular rows (a point on the baseline, both rays the same line) and zero rows: a finite point or
+    none, never a NaN."""
+    P1 = np.column_stack([np.eye(3), np.zeros(3)])
+    P2 = np.column_stack([np.eye(3), [-1.0, 0, 0]])
+    x = np.array([[0.0, 0.0], [1e-300, 0.0], [np.inf, 0.0]])
+    for engine in ("numba", "numpy"):
+        X, ok = triangulate(P1, P2, x[:2], x[:2], engine=engine)
+        assert np.isfinite(X).all() and X.shape == (2, 3)
+    X, ok = triangulate(P1, P2, x[2:], x[2:], engine="numba")
+    assert np.isfinite(X).all() and not ok.any()
+
+
 def test_undistortion_agrees_with_opencv():
     rng = np.random.default_rng(2)
     for _ in range(20):

@@ -96,16 +96,112 @@ def histograms(a, b, starts, n_angle, directed, n_dist, d_max, point_span):
 
 
 @njit(cache=True)
-def _trial_best(root, idx, ideal_t, owner, k):
-    """One trial's rows `idx`: best[i, j] = the largest score (one matrix product of the rows with the ideal rows
-    `ideal_t`) of row idx[i] over the ideal rows r of owner j < k (-inf where j has none), in the product's dtype."""
-    S = np.dot(root[idx], ideal_t)
-    best = np.full((len(idx), k), -np.inf, dtype=S.dtype)
-    for i in range(len(idx)):
-        for r in range(S.shape[1]):
-            if S[i, r] > best[i, owner[r]]:
-                best[i, owner[r]] = S[i, r]
-    return best
+def _block_sum(a, lo, n):
+    """numpy's pairwise sum of a[lo:lo + n] for n <= 128: 8 partial sums, combined as a tree, then the rest."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@njit(cache=True)
+def _pairwise_sum(a, lo, n):
+    """numpy's pairwise summation of a[lo:lo + n] (`pairwise_sum` of its add reduction: blocks of up to 128 values
+    as `_block_sum`, above that the sum of the two halves, the first a multiple of 8), so that a sum here is
+    numpy's to the last bit. The halving is walked with an explicit stack (numba's cache and recursion do not
+    mix)."""
+    los = np.empty(64, dtype=np.int64)
+    ns = np.empty(64, dtype=np.int64)
+    right = np.zeros(64, dtype=np.bool_)  # the node's first half is summed (in left), its second is being summed
+    left = np.empty(64)
+    d = 0
+    los[0], ns[0] = lo, n
+    while True:
+        while ns[d] > 128:  # down the first halves
+            half = ns[d] // 2
+            half -= half % 8
+            right[d] = False
+            los[d + 1], ns[d + 1] = los[d], half
+            d += 1
+        v = _block_sum(a, los[d], ns[d])
+        while True:  # up, adding second halves to their first
+            if d == 0:
+                return v
+            d -= 1
+            if not right[d]:
+                left[d] = v
+                right[d] = True
+                half = ns[d] // 2
+                half -= half % 8
+                los[d + 1], ns[d + 1] = los[d] + half, ns[d] - half
+                d += 1
+                break
+            v = left[d] + v
+
+
+@njit(cache=True)
+def roots(a, b, starts, order, n_angle, directed, n_dist, d_max, point_span):
+    """sqrt of the normalised PGHs as rows (n, bins), row order[i] that of sorted segment i: `histograms`, then
+    numpy's `h / where(total > 0, total, 1)` and `sqrt` of `pgh.histograms` without blur, fused (the totals by
+    numpy's pairwise sum, so the roots are the numpy path's to the last bit) and without its (n, bins)
+    temporaries."""
+    h = histograms(a, b, starts, n_angle, directed, n_dist, d_max, point_span)
+    n = h.shape[0]
+    bins = h.shape[1] * h.shape[2]
+    flat = h.reshape(n, bins)
+    out = np.empty((n, bins))
+    for i in range(n):
+        row = flat[i]
+        total = 0.0 + _pairwise_sum(row, 0, bins)
+        if not total > 0:
+            total = 1.0
+        dst = out[order[i]]
+        for k in range(bins):
+            dst[k] = math.sqrt(row[k] / total)
+    return out
+
+
+@njit(cache=True)
+def _bounds(owner, k):
+    """Where each of k owners' rows start in `owner` (sorted: an owner's rows are contiguous), and the end (k + 1,)."""
+    out = np.zeros(k + 1, dtype=np.int64)
+    for r in range(len(owner)):
+        out[owner[r] + 1] += 1
+    for c in range(k):
+        out[c + 1] += out[c]
+    return out
+
+
+@njit(cache=True)
+def _best(S, i, bounds, best):
+    """best[k] = the largest S[i, r] over the ideal rows r of owner k, rows bounds[k]:bounds[k + 1] (-inf where k
+    has none): a running maximum over each owner's contiguous rows (max is exact: the order does not matter)."""
+    for k in range(len(bounds) - 1):
+        m = -np.inf
+        for r in range(bounds[k], bounds[k + 1]):
+            v = S[i, r]
+            if v > m:
+                m = v
+        best[k] = m
 
 
 @njit(cache=True)
@@ -116,14 +212,16 @@ def own_scores(root, key, order, bounds, ideal_t, owner, sources, tie):
     (`ideal_t`: (bins, n)), so they do not depend on which other trials share the call."""
     M = root.shape[0]
     K = len(sources)
+    best = np.empty(K)
+    rows = _bounds(owner, K)
     own = np.zeros(M)
     recog = np.zeros(M, dtype=np.bool_)
     for g in range(len(bounds) - 1):
         idx = order[bounds[g]:bounds[g + 1]]
-        trial_best = _trial_best(root, idx, ideal_t, owner, K)
+        S = np.dot(root[idx], ideal_t)
         for i in range(len(idx)):
             m = idx[i]
-            best = trial_best[i]
+            _best(S, i, rows, best)
             col = min(np.searchsorted(sources, key[m]), K - 1)
             if sources[col] != key[m]:
                 continue
@@ -143,12 +241,14 @@ def located_scores(root, L, trial, order, bounds, n_trials, ideal_t, owner, n):
     (float32 products, as float64); and each trial's length (n_trials,)."""
     score = np.zeros((n_trials, n))
     w = np.zeros(n_trials)
+    best = np.empty(n, dtype=ideal_t.dtype)
+    rows = _bounds(owner, n)
     for g in range(len(bounds) - 1):
         idx = order[bounds[g]:bounds[g + 1]]
-        trial_best = _trial_best(root, idx, ideal_t, owner, n)
+        S = np.dot(root[idx], ideal_t)
         for i in range(len(idx)):
             m = idx[i]
-            best = trial_best[i]
+            _best(S, i, rows, best)
             t = trial[m]
             for c in range(n):
                 if best[c] > -np.inf:

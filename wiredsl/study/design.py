@@ -80,9 +80,16 @@ def sobol_indices(y: np.ndarray, n: int, d: int, seed: int = 0,
     res = scipy_sobol(func={"f_A": f_A, "f_B": f_B, "f_AB": f_AB}, n=n, rng=np.random.default_rng(seed))
     out = {"first_order": np.atleast_1d(res.first_order)[:d], "total_order": np.atleast_1d(res.total_order)[:d]}
     if n >= 4 and resamples > 0:
-        with warnings.catch_warnings():  # resamples of (nearly) constant values: NaN bounds, dropped by callers
-            warnings.simplefilter("ignore", RuntimeWarning)
-            ci = res.bootstrap(confidence_level=0.95, n_resamples=resamples)  # resamples with the rng above
+        # scipy's SobolResult.bootstrap draws its resamples from numpy's global RandomState (it passes no rng on):
+        # seeded here from `seed` and restored after, so that the intervals are the same on every run
+        state = np.random.get_state()
+        try:
+            np.random.seed(seed)
+            with warnings.catch_warnings():  # resamples of (nearly) constant values: NaN bounds, dropped by callers
+                warnings.simplefilter("ignore", RuntimeWarning)
+                ci = res.bootstrap(confidence_level=0.95, n_resamples=resamples)
+        finally:
+            np.random.set_state(state)
         out["first_order_ci"] = np.stack([np.atleast_1d(ci.first_order.confidence_interval.low),
                                           np.atleast_1d(ci.first_order.confidence_interval.high)])[:, :d]
         out["total_order_ci"] = np.stack([np.atleast_1d(ci.total_order.confidence_interval.low),

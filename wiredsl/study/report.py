@@ -157,10 +157,10 @@ def to_csv(table: StudyTable) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow([*table.factors, *COLUMNS])
-    for r in table.rows:
-        d = r.model_dump()
+    for r in table.rows:  # the fields read directly (what model_dump gives them, without a dict a row)
+        d = [getattr(r, c) for c in COLUMNS]
         w.writerow([repr(r.values[f]) for f in table.factors]
-                   + ["" if d[c] is None else repr(d[c]) if isinstance(d[c], float) else d[c] for c in COLUMNS])
+                   + ["" if v is None else repr(v) if isinstance(v, float) else v for v in d])
     return buf.getvalue()
 
 
