@@ -8,7 +8,8 @@ import math
 import numpy as np
 from numba import njit
 
-from wiredsl.engine.kernel import CLOSED, FRAG, _arcs, _keep, _pieces, _stable_sum, _total_length, _uniform, _unroll
+from wiredsl.engine.kernel import (CLOSED, FRAG, _arcs, _keep, _pieces, _stable_sum, _total_length, _uniform, _unroll,
+                                   distort_radtan, radtan_jacobian)
 
 
 @njit(cache=True)
@@ -26,36 +27,19 @@ NEWTON_TOL = 1e-14  # geometry.NEWTON_TOL
 
 
 @njit(cache=True, error_model="numpy")
-def _distort(x, y, k1, k2, p1, p2, k3, k4, k5, k6):
-    """geometry.distort_xy of one point."""
-    r2 = x * x + y * y
-    radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    return xd, yd
-
-
-@njit(cache=True, error_model="numpy")
 def _undistort(xd, yd, k1, k2, p1, p2, k3, k4, k5, k6):
     """geometry.undistort_radtan of one point from itself (20 Newton steps at most, tol NEWTON_TOL), NaN where its
     residual is not below 1e-12."""
     x, y = xd, yd
     for _ in range(20):
-        r2 = x * x + y * y
-        num, den = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        rad = num / den
-        g = 2.0 * ((k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)) * den - num * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) \
-            / (den * den)
-        j11 = rad + g * x * x + 2.0 * p1 * y + 6.0 * p2 * x
-        j12 = g * x * y + 2.0 * p1 * x + 2.0 * p2 * y
-        j22 = rad + g * y * y + 6.0 * p1 * y + 2.0 * p2 * x
-        ex, ey = _distort(x, y, k1, k2, p1, p2, k3, k4, k5, k6)
+        j11, j12, j22 = radtan_jacobian(x, y, k1, k2, p1, p2, k3, k4, k5, k6)
+        ex, ey = distort_radtan(x, y, k1, k2, p1, p2, k3, k4, k5, k6)
         r0, r1 = ex - xd, ey - yd
         if abs(r0) <= NEWTON_TOL and abs(r1) <= NEWTON_TOL:
             break
         det = j11 * j22 - j12 * j12
         x, y = x - (j22 * r0 - j12 * r1) / det, y - (j11 * r1 - j12 * r0) / det
-    ex, ey = _distort(x, y, k1, k2, p1, p2, k3, k4, k5, k6)
+    ex, ey = distort_radtan(x, y, k1, k2, p1, p2, k3, k4, k5, k6)
     if abs(ex - xd) < 1e-12 and abs(ey - yd) < 1e-12:
         return x, y
     return math.nan, math.nan
@@ -125,7 +109,7 @@ def _pixel(X, Y, Z, cam):
     xi, a, beta, w = cam[15], cam[16], cam[17], cam[18]
     if model == 0:
         if Z > 0:
-            xd, yd = _distort(X / Z, Y / Z, k1, k2, p1, p2, k3, k4, k5, k6)
+            xd, yd = distort_radtan(X / Z, Y / Z, k1, k2, p1, p2, k3, k4, k5, k6)
         else:
             xd, yd = math.nan, math.nan
     elif model == 1:
@@ -145,7 +129,7 @@ def _pixel(X, Y, Z, cam):
         d = math.sqrt(r2 + Z * Z)
         if model == 2:
             den = _stable_sum(xi * d, Z, xi * xi * r2 - (1.0 - xi) * (1.0 + xi) * (Z * Z))
-            xd, yd = _distort(X / den, Y / den, k1, k2, p1, p2, k3, k4, k5, k6)
+            xd, yd = distort_radtan(X / den, Y / den, k1, k2, p1, p2, k3, k4, k5, k6)
         else:
             if model == 3:
                 den = _stable_sum(a * math.sqrt(beta * r2 + Z * Z), (1.0 - a) * Z,

@@ -696,3 +696,27 @@ def record(name: str, columns, row: np.ndarray, stats) -> None:
     """Add one view's statistics row of stage `name` (its KernelStage's `stats` columns) to the run's Stats."""
     for (key, how), value in zip(columns, row, strict=False):
         (stats.add if how == "add" else stats.peak)(name, **{key: value})
+
+
+@njit(cache=True, error_model="numpy")
+def distort_radtan(x, y, k1, k2, p1, p2, k3, k4, k5, k6):
+    """`geometry.distort_xy` of one unit-plane point, operation for operation (a zero denominator gives inf or NaN,
+    never an exception)."""
+    r2 = x * x + y * y
+    radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return xd, yd
+
+
+@njit(cache=True, error_model="numpy")
+def radtan_jacobian(x, y, k1, k2, p1, p2, k3, k4, k5, k6):
+    """The Jacobian (j11, j12, j22; j21 = j12) of `distort_radtan` at one point, as `geometry.undistort_radtan`'s
+    Newton step computes it."""
+    r2 = x * x + y * y
+    num, den = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    rad = num / den
+    g = 2.0 * ((k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)) * den - num * (k4 + r2 * (2.0 * k5 + 3.0 * k6 * r2))) \
+        / (den * den)
+    return (rad + g * x * x + 2.0 * p1 * y + 6.0 * p2 * x, g * x * y + 2.0 * p1 * x + 2.0 * p2 * y,
+            rad + g * y * y + 6.0 * p1 * y + 2.0 * p2 * x)
