@@ -85,6 +85,10 @@ place m as m1 at (2m, 0, 1m)
     warning = next(line for line in r.stderr.splitlines() if "W129" in line)
     assert re.match(r".*s\.wd:3:3: warning\[W129\]", warning), warning
     assert f"{triangles:,} occluding triangles" in warning and "--visibility exact" in warning
+    import wiredsl  # the API says it as a UserWarning, with the API's remedy
+
+    with pytest.warns(UserWarning, match=r'W129: .*`visibility="exact"` changes the answer'):
+        wiredsl.simulate(scene, trials=1, seed=0, pipeline=None)
     # one pose and one camera are affordable: exact, and no warning
     _, manifest, r = _build(tmp_path, str(tmp_path / "s.wd"), "--pose", "0", "--cameras", "left")
     assert manifest["visibility"] == "exact" and "W129" not in r.stderr
@@ -143,6 +147,8 @@ def test_a_study_decides_once_for_all_its_points(tmp_path):
         {"stage": "camera.eye", "param": "f", "values": [float(v) for v in np.linspace(490, 510, 512)]}]})
     choice = shards.visibility(cams, scene, world)
     assert choice.mode == "scene" and f"{512 * 6} views x 1,422 occluding triangles" in choice.warning
+    # what a study's author can do about it: a study has no --visibility or --pose, but poses and points
+    assert "study's `poses`" in choice.warning and "--visibility" not in choice.warning
     assert shards.options(cams, scene, world).visibility == "scene"
 
 

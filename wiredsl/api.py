@@ -194,7 +194,8 @@ def _visibility(scene: Scene, visibility: str, views: int):
     from wiredsl.engine.world import build_world
 
     world = build_world(scene)
-    choice = runs.resolve_visibility(scene, world, _choice("visibility", visibility, VISIBILITIES), views)
+    choice = runs.resolve_visibility(scene, world, _choice("visibility", visibility, VISIBILITIES), views,
+                                     '`visibility="exact"` changes the answer (fewer poses also make it affordable)')
     if choice.warning is not None:
         warnings.warn(f"W129: {choice.warning}", UserWarning, stacklevel=3)
     return world, choice.mode

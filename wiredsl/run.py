@@ -68,12 +68,16 @@ class VisibilityChoice:
     seconds: float = 0.0  # the estimated CPU of exact visibility
 
 
-def choose_visibility(scene: Scene, world: World, views: int) -> VisibilityChoice:
+REMEDY_CLI = "`--visibility exact` changes the answer (fewer poses with --pose also make it affordable)"
+
+
+def choose_visibility(scene: Scene, world: World, views: int, remedy: str = REMEDY_CLI) -> VisibilityChoice:
     """What `--visibility auto` means for this scene and number of views (poses x cameras, times the trials when
     each trial projects afresh): exact when the scene has faces and either no view-points (nothing else would
     hide anything) or view-points whose lists are computed (`visibility auto`) and a mesh's occluding surfaces
     (whole-feature lists draw a mesh's features through what stands in front), and the estimate is at most
-    AUTO_EXACT_SECONDS; else the view-points' lists (`scene`), with a warning when exact was wanted."""
+    AUTO_EXACT_SECONDS; else the view-points' lists (`scene`), with a warning when exact was wanted, ending with
+    `remedy`: what the caller (command line, API or study) can do about it."""
     triangles = len(world.triangles)
     vp = scene.viewpoints
     meshes = any(m.surfaces for m in scene.models)
@@ -86,15 +90,15 @@ def choose_visibility(scene: Scene, world: World, views: int) -> VisibilityChoic
     shown = "every feature whole" if vp is None else "the view-points' lists of whole features"
     return VisibilityChoice("scene", f"hidden lines are not removed: {views} view{'s' * (views != 1)} x {triangles:,} "
                             f"occluding triangles would take about {seconds:,.0f} s of CPU with exact visibility "
-                            f"(over {AUTO_EXACT_SECONDS:.0f} s), so {shown} are drawn; `--visibility exact` changes "
-                            "the answer (fewer poses with --pose also make it affordable)", seconds)
+                            f"(over {AUTO_EXACT_SECONDS:.0f} s), so {shown} are drawn; {remedy}", seconds)
 
 
-def resolve_visibility(scene: Scene, world: World, visibility: str, views: int) -> VisibilityChoice:
+def resolve_visibility(scene: Scene, world: World, visibility: str, views: int, remedy: str = REMEDY_CLI
+                       ) -> VisibilityChoice:
     """The projection's mode for `visibility` (one of wiredsl.VISIBILITIES): "auto" as `choose_visibility` for
-    `views` views; the others as given."""
+    `views` views (`remedy` ends its warning); the others as given."""
     if visibility == "auto":
-        return choose_visibility(scene, world, views)
+        return choose_visibility(scene, world, views, remedy)
     return VisibilityChoice(visibility)
 
 

@@ -76,7 +76,9 @@ def visibility(study: Study, scene: Scene, world: World) -> VisibilityChoice:
     keeps the view-points' lists (warning W129, said when the study starts)."""
     poses = len(study.poses) if study.poses is not None else len(scene.path.poses) if scene.path is not None else 0
     points = len(design.matrix(study)) if design.varies_scene(study) else 1
-    return resolve_visibility(scene, world, DEFAULT_VISIBILITY, poses * 2 * points)
+    return resolve_visibility(scene, world, DEFAULT_VISIBILITY, poses * 2 * points,
+                              "fewer poses in the study's `poses` (or, when a factor varies the cameras, fewer "
+                              "points) make exact hidden lines affordable")
 
 
 def point_run(scene: Scene, world: World, study: Study, point: int, values, opts: Options | None = None,
