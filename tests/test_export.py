@@ -294,3 +294,24 @@ def test_bad_input_is_a_diagnostic_never_a_traceback(tmp_path, edit, args, code,
     r = _export(path, *fmt, *args, "-o", tmp_path / "out")
     assert r.exit_code == code and words in r.output and "Traceback" not in r.output, r.output
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("visibility, shown", [("auto", "exact"), ("scene", "scene"), ("all", "all")])
+def test_export_hides_what_build_hides_with_the_same_default(tmp_path, visibility, shown):
+    """scenes/meshes.wd: a corner of the crate behind the ball. export's --visibility is build's (the same
+    default, auto, which chooses exact here), so each image's 2D points are the corners build's dump keeps."""
+    import json
+
+    ex = CliRunner().invoke(main, ["export", "scenes/meshes.wd", "--format", "colmap", "-o", str(tmp_path / "ex"),
+                                   "--visibility", visibility])
+    assert ex.exit_code == 0, ex.output
+    assert json.loads((tmp_path / "ex" / "manifest.json").read_text())["visibility"] == shown
+    b = CliRunner().invoke(main, ["build", "scenes/meshes.wd", "--no-svg", "-o", str(tmp_path / "b"),
+                                  "--visibility", visibility])
+    assert b.exit_code == 0, b.output
+    dump = json.loads((tmp_path / "b" / "features.json").read_text())
+    want = [len(p[side]["corners"]) for p in dump["poses"] for side in ("left", "right")]
+    rows = [r for r in (tmp_path / "ex" / "ideal" / "images.txt").read_text().splitlines() if r and r[0] != "#"]
+    got = [len(r.split()) // 3 for r in rows[1::2]]  # each image: a header row, then (x, y, point id) triples
+    assert got == want
+    assert sum(want) == {"auto": 39, "scene": 40, "all": 48}[visibility]  # the ball does hide a corner

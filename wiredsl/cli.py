@@ -14,7 +14,8 @@ import sys
 import click
 
 from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, __version__
-from wiredsl.cli_base import EXIT_INVALID, diagnostics_option, folder_name, guarded, report, setup_errors
+from wiredsl.cli_base import (EXIT_INVALID, auto_visibility, diagnostics_option, folder_name, guarded, report,
+                              setup_errors)
 from wiredsl.export import export
 from wiredsl.io.render_cli import render
 from wiredsl.verify.cli import verify
@@ -467,7 +468,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
         raise click.BadParameter("npz cannot go to stdout", param_hint="-o")
     world = build_world(scene)
     if visibility == "auto":
-        visibility = _auto_visibility(scene, world, program, chosen_poses, cameras, trials if exact_calibration else 1,
+        visibility = auto_visibility(scene, world, program, chosen_poses, cameras, trials if exact_calibration else 1,
                                       diagnostics)
     opts = Options(tolerance=tolerance, visibility=visibility, poses=chosen_poses, right=cameras == "both")
     with setup_errors():
@@ -578,20 +579,6 @@ def _exact_cost_note(scene, program) -> None:
     note = runs.exact_cost_note(scene, build_world(scene), views)
     if note is not None:
         click.echo(f"{program.mesh_reports[0][0]}: note: {note}", err=True)
-
-
-def _auto_visibility(scene, world, program, poses, cameras: str, repeats: int, fmt: str) -> str:
-    """`--visibility auto`: exact or scene (run.choose_visibility); W129 at the first `mesh read` (or the file's
-    start) when the scene's faces would hide something that this build keeps."""
-    from wiredsl import run as runs
-    from wiredsl.diagnostics import Diagnostic, Span
-
-    n_poses = len(poses) if poses else len(scene.path.poses) if scene.path is not None else 0
-    choice = runs.choose_visibility(scene, world, n_poses * (2 if cameras == "both" else 1) * repeats)
-    if choice.warning is not None:
-        span = program.mesh_reports[0][0] if program.mesh_reports else Span(scene.source, 1, 1, 1, 1)
-        report([Diagnostic("warning", "W129", choice.warning, span)], program.sources, fmt)
-    return choice.mode
 
 
 def _stdout_utf8(text: str) -> None:

@@ -170,3 +170,18 @@ def setup_errors():
         yield
     except RunSetupError as err:
         raise click.BadParameter(str(err), param_hint=err.option) from None
+
+
+def auto_visibility(scene, world, program, poses, cameras: str, repeats: int, fmt: str) -> str:
+    """`--visibility auto` of build and export: exact or scene (run.choose_visibility) for `poses` (None: every
+    one) with `cameras` ("both" or "left"), `repeats` times; W129 at the first `mesh read` (or the file's
+    start) when the scene's faces would hide something that this build keeps."""
+    from wiredsl import run as runs
+    from wiredsl.diagnostics import Diagnostic, Span
+
+    n_poses = len(poses) if poses else len(scene.path.poses) if scene.path is not None else 0
+    choice = runs.choose_visibility(scene, world, n_poses * (2 if cameras == "both" else 1) * repeats)
+    if choice.warning is not None:
+        span = program.mesh_reports[0][0] if program.mesh_reports else Span(scene.source, 1, 1, 1, 1)
+        report([Diagnostic("warning", "W129", choice.warning, span)], program.sources, fmt)
+    return choice.mode

@@ -12,7 +12,9 @@ import sys
 
 import click
 
-from wiredsl.cli_base import EXIT_INVALID, diagnostics_option, folder_name, guarded, report, setup_errors
+from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES
+from wiredsl.cli_base import (EXIT_INVALID, auto_visibility, diagnostics_option, folder_name, guarded, report,
+                              setup_errors)
 
 FORMATS = ("colmap", "rosbag2")
 MAX_EXPORT_TRIALS = 100_000  # one folder a trial
@@ -38,11 +40,14 @@ MAX_EXPORT_TRIALS = 100_000  # one folder a trial
                    "without timestamps (a path read from a trajectory file keeps the file's own).")
 @click.option("--undistort", is_flag=True, help="colmap: a PINHOLE camera and undistorted 2D points, for any lens "
               "(needed for the lenses COLMAP has no model for: ds, unified with distortion).")
+@click.option("--visibility", type=click.Choice(VISIBILITIES), default=DEFAULT_VISIBILITY, show_default=True,
+              help="Hidden lines, as in build: scene (the view-points' lists), exact, all, or auto (exact where a "
+                   "mesh's faces would hide what the lists cannot say and it is affordable, else scene with W129).")
 @click.option("--force", is_flag=True, help="Replace an output folder that holds files wiredsl did not write.")
 @diagnostics_option
 @guarded
 def export(file: str, fmt: str, output: str | None, no_effects: bool, pipeline_name: str | None, trials: int,
-           only_trial: int | None, seed: int | None, period: float, undistort: bool, force: bool,
+           only_trial: int | None, seed: int | None, period: float, undistort: bool, visibility: str, force: bool,
            diagnostics: str) -> None:
     """Write what the rig observes along the path (the ideal projection, or a pipeline's trials) in the formats
     SfM and SLAM code reads: a COLMAP text model or a ROS 2 bag."""
@@ -79,9 +84,13 @@ def export(file: str, fmt: str, output: str | None, no_effects: bool, pipeline_n
                    "used", err=True)
         only_trial = None
     seed = (seed if seed is not None else secrets.randbits(63)) if pipeline is not None else 0
+    if visibility == "auto":  # build's rule and warning: every pose, both cameras
+        from wiredsl.engine.world import build_world
+
+        visibility = auto_visibility(scene, build_world(scene), program, None, "both", 1, diagnostics)
     out = Path(output) if output is not None else Path("build") / scene.name / fmt
     try:
-        counts = write(out, scene, fmt, pipeline, trials, seed, period, undistort, force, only_trial)
+        counts = write(out, scene, fmt, pipeline, trials, seed, period, undistort, force, only_trial, visibility)
     except ExportError as exc:
         click.echo(f"wiredsl: error: {exc}", err=True)
         sys.exit(EXIT_INVALID)
@@ -98,15 +107,15 @@ class ExportError(ValueError):
 
 
 def write(out, scene, fmt: str, pipeline, n_trials: int, seed: int, period: float, undistort: bool = False,
-          force: bool = False, only_trial: int | None = None) -> list[str]:
+          force: bool = False, only_trial: int | None = None, visibility: str = "scene") -> list[str]:
     """Write the export folder `out` whole (atomically); the notes to tell the user (observations left out).
-    `only_trial`: trial K of the run alone."""
+    `only_trial`: trial K of the run alone; `visibility`: the projection's mode (scene, exact or all)."""
     from wiredsl import __version__
     from wiredsl.io import export_colmap, observations
     from wiredsl.io.files import json_text, output_folder
 
     try:
-        src, each = observations.trials(scene, pipeline, n_trials, seed, only=only_trial)
+        src, each = observations.trials(scene, pipeline, n_trials, seed, only=only_trial, visibility=visibility)
         if fmt == "colmap" and not undistort:
             for side in observations.CAMERAS:
                 export_colmap.colmap_camera(src.cameras[side])
@@ -133,7 +142,7 @@ def write(out, scene, fmt: str, pipeline, n_trials: int, seed: int, period: floa
         manifest = {"wiredsl": __version__, "scene": scene.name, "format": fmt,
                     "pipeline": pipeline.name if pipeline is not None else None, "seed": seed,
                     "trials": n_trials if pipeline is not None and only_trial is None else 1, "folders": folders,
-                    "versions": _versions(fmt)}
+                    "visibility": visibility, "versions": _versions(fmt)}
         if only_trial is not None and pipeline is not None:
             manifest["trial"] = only_trial
         manifest["clock"] = "trajectory" if src.stamps_ns is not None else "period"

@@ -88,12 +88,13 @@ def camera_from_world(src: Source, pose: int, side: str) -> tuple[np.ndarray, np
     return np.asarray(R, dtype=float), np.asarray(t, dtype=float)
 
 
-def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto", only: int | None = None
-           ) -> tuple[Source, Iterator[Trial]]:
+def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto", only: int | None = None,
+           visibility: str = "scene") -> tuple[Source, Iterator[Trial]]:
     """The shared Source and each trial's views, trial by trial (a batch of trials in memory at a time).
 
     `pipeline` None: the ideal projection (one trial, numbered 0), whatever the scene's default pipeline.
-    `only`: trial `only` of the run alone (its own draws: what `build --trial K` replays)."""
+    `only`: trial `only` of the run alone (its own draws: what `build --trial K` replays). `visibility`: the
+    projection's mode (scene, exact or all; `wiredsl export` resolves auto as build does)."""
     from wiredsl import run as runs
     from wiredsl.api import _batches
     from wiredsl.engine.simulate import Options
@@ -103,7 +104,7 @@ def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto", only
     world = build_world(scene)
     src = source(scene, world)
     chosen = pipeline if pipeline is not None else Pipeline(name="ideal", stages=[])
-    opts = Options(poses=runs.check_poses(scene, None))
+    opts = Options(poses=runs.check_poses(scene, None), visibility=visibility)
     fid_corner = {int(f): i for i, f in enumerate(world.corner_fid)}
 
     def each() -> Iterator[Trial]:
