@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
+from helpers import EYE_RIG
 from test_mesh import _brute_hidden
 
 from wiredsl.engine.simulate import Options, silhouettes_cam, simulate
@@ -106,18 +107,9 @@ model m {{
   mesh read "s.stl"
 }}
 place m as m1 at {at}
-camera eye {{
-  focal 4mm
-  pixel 0.008mm
-  size (640px, 480px)
-}}
-rig pair {{
-  left eye at (0, 0.05m, 0.8m) looking (1, 0, -0.15)
-  right eye at (0, -0.05m, 0.8m) looking (1, 0, -0.15)
-}}
-path p {{
+""" + EYE_RIG + """path p {
   straight from (0, 0) to (1.2m, -0.2m) step 0.4m
-}}
+}
 """)
     scene = compile_file(tmp_path / "s.wd")[0]
     return scene, build_world(scene)
