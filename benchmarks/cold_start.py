@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import compileall
-import importlib.util
 import os
 import sys
 import tempfile
@@ -72,10 +71,9 @@ print(f"  {'of which collecting garbage cycles':70s} {1e3 * collecting[1]:6.1f} 
 
 
 def byte_compile(baseline: str | None = None) -> None:
-    """Write the .pyc files of the wiredsl the children import (the checkout's, from the current folder; and the
+    """Write the .pyc files of the wiredsl the children import (this checkout's, their current folder; and the
     baseline's)."""
-    spec = importlib.util.find_spec("wiredsl")
-    compileall.compile_dir(os.path.dirname(spec.origin), quiet=1)
+    compileall.compile_dir(os.path.join(HERE, "wiredsl"), quiet=1)
     if baseline is not None:
         compileall.compile_dir(os.path.join(baseline, "wiredsl"), quiet=1)
 
