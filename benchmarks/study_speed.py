@@ -114,6 +114,38 @@ def table_difference(a: bytes, b: bytes) -> str:
             f"largest relative difference {worst['mean and quantiles']:.1e} (mean, quantiles), {worst['sem']:.1e} (sem)")
 
 
+def table_agreement(ref: bytes, this: bytes) -> list[str]:
+    """Whether two study tables tell the same story where their draws differ: for each measure's statistic, the
+    design's points paired (the same factors in both), the mean over points of this table's mean less the
+    reference's, its standard error from the spread of the paired differences, and t = difference / error
+    (|t| > 3: a shift beyond what the two tables' own noise explains); the difference also relative to the
+    reference's mean level. A table whose draws changed on purpose (0.2.0's normals, the epipolar curve) differs
+    row by row; this says whether the change moved the results as a whole."""
+    import csv
+    import io
+    import math
+
+    def means(data: bytes) -> dict[tuple[str, str, str], float]:
+        rows = list(csv.DictReader(io.StringIO(data.decode())))
+        return {(r["measure"], r["statistic"], r["point"]): float(r["mean"]) for r in rows if r["mean"]}
+
+    a, b = means(ref), means(this)
+    stats = sorted({k[:2] for k in a} & {k[:2] for k in b})
+    lines = []
+    for m, s in stats:
+        d = [b[k] - a[k] for k in a if k[:2] == (m, s) and k in b and math.isfinite(a[k]) and math.isfinite(b[k])]
+        level = [abs(a[k]) for k in a if k[:2] == (m, s) and math.isfinite(a[k])]
+        if len(d) < 2:
+            continue
+        mean = sum(d) / len(d)
+        se = math.sqrt(sum((x - mean) ** 2 for x in d) / (len(d) - 1) / len(d))
+        t = mean / se if se > 0 else (0.0 if mean == 0 else math.inf)
+        rel = mean / (sum(level) / len(level)) if sum(level) > 0 else 0.0
+        lines.append(f"  {m + '.' + s:28s} {len(d):4d} points  this - reference {mean:+.3e} ({rel:+.1%} of its level)"
+                     f" +- {se:.1e}  t {t:+6.1f}{'  <- beyond the noise' if abs(t) > 3 else ''}")
+    return lines
+
+
 def side_by_side(ref: str, repeat: int, workers: int) -> None:
     """`sources` on commit `ref` and on this checkout, alternately; points/s per core and their ratio."""
     import os
@@ -171,6 +203,8 @@ def side_by_side(ref: str, repeat: int, workers: int) -> None:
                   f"{ref}'s two equal each other: {table[names[0]] == table[names[1]]}")
             for name in names[:2]:
                 print(f"this checkout's table against {name}'s: {table_difference(table[name], table[names[2]])}")
+            print(f"\nthis checkout's table against {names[1]}'s, point by point (paired over the design):")
+            print("\n".join(table_agreement(table[names[1]], table[names[2]])))
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)], check=False)
     print(f"machine: {load()} after (target: this checkout >= 5x {ref}'s points/s per core)")
