@@ -83,7 +83,8 @@ import numba
 getattr(cli, "_numba_without_blas", lambda: None)()  # as the command line loads it (where it does)
 t1 = time.process_time()
 from wiredsl.engine import kernel
-kernel.warm(functions, tuple(k.camera for k in stages if k is not None))
+kernel.warm(functions, tuple(k.camera for k in stages if k is not None),
+            tuple(k.workspace for k in stages if k is not None))
 print(t1 - t0, time.process_time() - t1)
 """
 

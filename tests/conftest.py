@@ -25,7 +25,8 @@ def pytest_configure(config):
     from wiredsl.engine import kernel
 
     kernels = [e.kernel for e in BUILTIN.values() if e.kernel is not None]
-    kernel.warm(tuple(k.function for k in kernels), tuple(k.camera for k in kernels))
+    kernel.warm(tuple(k.function for k in kernels), tuple(k.camera for k in kernels),
+                tuple(k.workspace for k in kernels))
 
 
 @pytest.fixture(autouse=True, scope="session")

@@ -218,7 +218,13 @@ class KernelStage:
     after `stats`: the view's camera, float64 (20,): its nominal image width and height, then f, ax, ay, cx, cy,
     k1, k2, p1, p2, k3, k4, k5, k6, xi, alpha, beta, w and the distortion model's code
     (`wiredsl.engine.geometry.CAMERA_ROW`): what
-    `ctx.camera` gives the numpy code (a rolling shutter needs the image height, say). An effect without a kernel
+    `ctx.camera` gives the numpy code (a rolling shutter needs the image height, say). `workspace`, optionally,
+    names ("module:attribute") an `@njit(cache=True)` function `(params, epipole, right, camera, trials) -> float64
+    1-D array` that the kernel calls once per view and batch, before its trials (`trials`: how many), with the
+    arguments the stage gets (`camera` as above, whether or not the stage takes it); the stage then takes the
+    array it returned as its last argument: what depends on the view only (a table over the image, say) is
+    computed once for the batch rather than once a trial. Every trial gets the same array: a stage reads it and
+    must not depend on what an earlier trial wrote into it. An effect without a kernel
     (kernel None) runs on the numpy path, and so do the stages after it (`--engine auto` says so on stderr).
     """
 
@@ -227,6 +233,7 @@ class KernelStage:
     stats: tuple[tuple[str, str], ...]
     epipole: bool = False  # the stage needs the view's epipole
     camera: bool = False  # the stage takes the view's camera row (see above)
+    workspace: str | None = None  # "module:attribute" of the view's workspace function (see above)
 
 
 class Effect:

@@ -139,7 +139,8 @@ class StereoMismatch(Effect):
     acts_on = "stereo"
     kernel = KernelStage("wiredsl.effects.stereo_mismatch_kernel:stage", ("band", "fraction", "disparity"),
                          (("length_in", "add"), ("length_after_band", "add"), ("right_strokes", "add"),
-                                  ("shifted", "add"), ("max_shift", "peak")), epipole=True, camera=True)
+                                  ("shifted", "add"), ("max_shift", "peak")), epipole=True, camera=True,
+                         workspace="wiredsl.effects.stereo_mismatch_kernel:workspace")
     Params = StereoMismatchParams
     doc = __doc__
 

@@ -8,8 +8,8 @@ import math
 import numpy as np
 from numba import njit
 
-from wiredsl.engine.kernel import (CLOSED, FRAG, _arcs, _keep, _pieces, _stable_sum, _total_length, _uniform, _unroll,
-                                   distort_radtan, radtan_jacobian)
+from wiredsl.engine.kernel import (CLOSED, FRAG, _keep, _pieces, _stable_sum, _stroke_arcs, _total_length, _uniform,
+                                   _unroll, distort_radtan, radtan_jacobian)
 
 
 @njit(cache=True)
@@ -145,6 +145,16 @@ def _pixel(X, Y, Z, cam):
 def _tangent(x, y, e0, e1, e2, cam):
     """stereo_mismatch.epipolar_tangents of one point: the unit tangent of the epipolar curve through it (the
     pinhole direction, _epi_dir, where there is none)."""
+    tx, ty, found = _curve_tangent(x, y, e0, e1, e2, cam)
+    if found:
+        return tx, ty
+    return _epi_dir(x, y, e0, e1, e2)
+
+
+@njit(cache=True, error_model="numpy")
+def _curve_tangent(x, y, e0, e1, e2, cam):
+    """The unit tangent of the epipolar curve through a point and whether there is one (_tangent without its
+    fallback)."""
     dx, dy, dz = _pixel_ray(x, y, cam)
     Xx = (e0 - cam[5] * e2) / (cam[2] * cam[3])
     Xy = (e1 - cam[6] * e2) / (cam[2] * cam[4])
@@ -156,8 +166,8 @@ def _tangent(x, y, e0, e1, e2, cam):
     tx, ty = ua - ub, va - vb
     norm = math.sqrt(tx * tx + ty * ty)
     if math.isfinite(norm) and norm > 0:
-        return tx / norm, ty / norm
-    return _epi_dir(x, y, e0, e1, e2)
+        return tx / norm, ty / norm, True
+    return 0.0, 0.0, False
 
 
 @njit(cache=True)
@@ -184,45 +194,174 @@ def _in_band(ax, ay, bx, by, e0, e1, e2, tanb, everything, curved, cam):
     return abs(dx * ly - dy * lx) <= tanb * abs(dx * lx + dy * ly)
 
 
+# ----------------------------------------------------------------------------- the view's table of tangents
+# Under a distorted lens the band's direction at a segment is the epipolar curve's tangent at its midpoint,
+# `_tangent`: an undistortion by Newton's method and two projections, some 100 ns. The view's workspace holds a
+# table of it over the image (`workspace`, once per view and batch), interpolated at each midpoint, with a
+# bound on the interpolation's angular error per cell; a segment whose angle to the interpolated direction is
+# farther than that bound from the band's edge is decided by the table, the rest by `_tangent` itself. The
+# decisions are `_in_band`'s, so the outputs are the same bytes. Before the table, a gate: every tangent over
+# the table lies within a cone about one direction, and a segment far enough outside that cone is outside the
+# band wherever it is (most segments: the lab's epipolar curves are near horizontal).
+
+GRID = 64.0  # pixels between the table's nodes
+EDGE = 8.0  # pixels the table reaches beyond the image (the stages before the band move points a little)
+SAFETY = 4.0  # a cell's bound: this many times the largest error sampled in it, plus TINY
+TINY = 1e-9  # radians: far above the rounding of the band's test (some 1e-16 relative)
+FEW = 4  # trials a batch below which no table is made (it costs some 400 tangents a view)
+HEAD = 8  # the header: nodes across and down, the first node's x and y, 1 / spacing, the gate's direction, its tangent
+
+
 @njit(cache=True)
-def _drop_band(pts, start, meta, e, band, cam):
-    """stereo_mismatch._drop_band, and the strokes' total length before it. Each segment's angle is computed once: slot start[k] + i holds segment
-    i of stroke k, the last slot of a closed stroke its closing segment (an unrolled loop reuses them)."""
+def workspace(params, e, right, camera, trials):
+    """The view's table of epipolar tangents (its workspace, see KernelStage.workspace): the header, the unit
+    tangents at nodes GRID apart covering the image and EDGE beyond it (x components, then y, row by row), then
+    per cell the tangents of band - d and of band + d, with d its bound (SAFETY times the largest angle between the
+    interpolated and the exact tangent at the cell's edge midpoints and centre, plus TINY; where a sample has no
+    curve, or a bound reaches 0 or pi/2, -1 and inf: nothing decided there). The gate: the nodes' mean direction
+    c and the tangent of band + s + d, with s the largest angle of a node from c and d the largest bound (inf where
+    a cell has none or the angle reaches pi/2): a bilinear mean of the nodes lies in their cone about c, and the
+    true tangent within d of it. Empty where the band needs none: no band, every direction, a pinhole, fewer than
+    FEW trials."""
+    band = params[0]
+    if not (band > 0 and band < math.pi / 2) or not _curved(camera) or trials < FEW:
+        return np.zeros(0)
+    e0, e1, e2 = e[0], e[1], e[2]
+    nx = int(math.ceil((camera[0] + 2 * EDGE) / GRID)) + 1
+    ny = int(math.ceil((camera[1] + 2 * EDGE) / GRID)) + 1
+    fine_x, fine_y = 2 * nx - 1, 2 * ny - 1  # nodes and the points halfway between them
+    tx, ty = np.empty((fine_y, fine_x)), np.empty((fine_y, fine_x))
+    found = np.empty((fine_y, fine_x), np.bool_)
+    for j in range(fine_y):
+        for i in range(fine_x):
+            tx[j, i], ty[j, i], found[j, i] = _curve_tangent(-EDGE + i * GRID / 2, -EDGE + j * GRID / 2, e0, e1, e2,
+                                                             camera)
+    m, c = nx * ny, (nx - 1) * (ny - 1)
+    ws = np.empty(HEAD + 2 * m + 2 * c)
+    ws[0], ws[1], ws[2], ws[3], ws[4] = nx, ny, -EDGE, -EDGE, 1.0 / GRID
+    cx, cy = 0.0, 0.0
+    for j in range(ny):
+        for i in range(nx):
+            ws[HEAD + j * nx + i] = tx[2 * j, 2 * i]
+            ws[HEAD + m + j * nx + i] = ty[2 * j, 2 * i]
+            cx, cy = cx + tx[2 * j, 2 * i], cy + ty[2 * j, 2 * i]
+    gate = True
+    spread, widest = 0.0, 0.0
+    for j in range(ny):
+        for i in range(nx):
+            dot = cx * tx[2 * j, 2 * i] + cy * ty[2 * j, 2 * i]
+            gate = gate and found[2 * j, 2 * i] and dot > 0
+            spread = max(spread, math.atan2(abs(cx * ty[2 * j, 2 * i] - cy * tx[2 * j, 2 * i]), dot))
+    for j in range(ny - 1):
+        for i in range(nx - 1):
+            good = True
+            worst = 0.0
+            for b in range(3):
+                for a in range(3):
+                    J, I = 2 * j + b, 2 * i + a
+                    good = good and found[J, I]
+                    if a % 2 == 0 and b % 2 == 0:
+                        continue
+                    u, v = a / 2, b / 2
+                    lx = ((1 - u) * (1 - v) * tx[2 * j, 2 * i] + u * (1 - v) * tx[2 * j, 2 * i + 2]
+                          + (1 - u) * v * tx[2 * j + 2, 2 * i] + u * v * tx[2 * j + 2, 2 * i + 2])
+                    ly = ((1 - u) * (1 - v) * ty[2 * j, 2 * i] + u * (1 - v) * ty[2 * j, 2 * i + 2]
+                          + (1 - u) * v * ty[2 * j + 2, 2 * i] + u * v * ty[2 * j + 2, 2 * i + 2])
+                    dot = lx * tx[J, I] + ly * ty[J, I]
+                    good = good and dot > 0
+                    worst = max(worst, math.atan2(abs(lx * ty[J, I] - ly * tx[J, I]), dot))
+            d = SAFETY * worst + TINY
+            ok = good and band - d > 0 and band + d < math.pi / 2
+            gate = gate and ok
+            widest = max(widest, d)
+            ws[HEAD + 2 * m + j * (nx - 1) + i] = math.tan(band - d) if ok else -1.0
+            ws[HEAD + 2 * m + c + j * (nx - 1) + i] = math.tan(band + d) if ok else math.inf
+    norm = math.sqrt(cx * cx + cy * cy)
+    ws[5], ws[6] = (cx / norm, cy / norm) if norm > 0 else (1.0, 0.0)
+    cone = band + spread + widest
+    ws[7] = math.tan(cone) if gate and cone < math.pi / 2 else math.inf
+    return ws
+
+
+@njit(cache=True, inline="always")
+def _table(ws, mx, my, dx, dy):
+    """The band's decision for a segment (dx, dy) with midpoint (mx, my) from the view's table: 1 within the band,
+    0 outside, -1 not decided (outside the table, or within its bound of the band's edge)."""
+    u, v = (mx - ws[2]) * ws[4], (my - ws[3]) * ws[4]
+    if not (u >= 0 and v >= 0 and u < ws[0] - 1 and v < ws[1] - 1):
+        return -1
+    if abs(dx * ws[6] - dy * ws[5]) > ws[7] * abs(dx * ws[5] + dy * ws[6]):  # outside the gate
+        return 0
+    nx, ny = int(ws[0]), int(ws[1])
+    i, j = int(u), int(v)
+    fu, fv = u - i, v - j
+    m = nx * ny
+    n = HEAD + j * nx + i
+    w00, w10, w01, w11 = (1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv
+    lx = w00 * ws[n] + w10 * ws[n + 1] + w01 * ws[n + nx] + w11 * ws[n + nx + 1]
+    ly = w00 * ws[m + n] + w10 * ws[m + n + 1] + w01 * ws[m + n + nx] + w11 * ws[m + n + nx + 1]
+    if lx == 0 and ly == 0:
+        return -1
+    cell = HEAD + 2 * m + j * (nx - 1) + i
+    cross, dot = abs(dx * ly - dy * lx), abs(dx * lx + dy * ly)
+    if cross <= ws[cell] * dot:
+        return 1
+    if cross > ws[cell + (nx - 1) * (ny - 1)] * dot:
+        return 0
+    return -1
+
+
+@njit(cache=True)
+def _drop_band(pts, start, meta, e, band, cam, ws):
+    """stereo_mismatch._drop_band, and the strokes' total lengths before and after it (as _total_length sums them).
+    Each segment's angle is computed once: slot start[k] + i holds segment i of stroke k, the last slot of a closed
+    stroke its closing segment (an unrolled loop reuses them). `ws`: the view's table of tangents (`workspace`), or
+    empty. Only the strokes with a segment in the band are measured and cut; with none, the input is returned."""
     S = len(start) - 1
     everything = band >= math.pi / 2
     e0, e1, e2 = e[0], e[1], e[2]
     tanb = math.tan(band) if not everything else 0.0
     curved = _curved(cam)
+    table = len(ws) > 0 and not everything
     inside = np.zeros(len(pts), np.bool_)
     cut_loop = np.zeros(S, np.bool_)
     intact = np.zeros(S, np.bool_)
+    hits = np.zeros(S, np.bool_)
+    loops = False
     for k in range(S):
         a, b = start[k], start[k + 1]
         hit = False
-        for i in range(a, b - 1):
-            inside[i] = _in_band(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1], e0, e1, e2, tanb, everything,
-                                 curved, cam)
+        closed = meta[k, CLOSED] != 0
+        for i in range(a, b if closed and b - a > 1 else b - 1):  # a closed stroke's last slot: its closing segment
+            j = i + 1 if i < b - 1 else a
+            ax, ay, bx, by = pts[i, 0], pts[i, 1], pts[j, 0], pts[j, 1]
+            # the table where it decides (in the loop, not in a function handed the arrays: a call per segment
+            # that takes an array costs its reference counts, and more than the table itself)
+            got = _table(ws, (ax + bx) / 2, (ay + by) / 2, bx - ax, by - ay) if table else -1
+            if got < 0:
+                got = 1 if _in_band(ax, ay, bx, by, e0, e1, e2, tanb, everything, curved, cam) else 0
+            inside[i] = got == 1
             hit = hit or inside[i]
-        if meta[k, CLOSED] != 0:
-            if b - a > 1:
-                inside[b - 1] = _in_band(pts[b - 1, 0], pts[b - 1, 1], pts[a, 0], pts[a, 1], e0, e1, e2, tanb,
-                                         everything, curved, cam)
-                hit = hit or inside[b - 1]
+        hits[k] = hit
+        if closed:
             cut_loop[k] = hit
             intact[k] = not hit
-    upts, ustart, umeta = _unroll(pts, start, meta, cut_loop)
-    arc, uL = _arcs(upts, ustart)
-    before = 0.0  # the strokes' length before the cut, as _total_length sums it (a loop's first lap: its own arcs)
-    for k in range(S):
-        before += arc[ustart[k] + start[k + 1] - start[k] - 1] if cut_loop[k] else uL[k]
+            loops = loops or hit
+    before = _total_length(pts, start)
+    if not hits.any():  # nothing in the band: the strokes as they are (what the cut below would copy)
+        return pts, start, meta, before, before
+    upts, ustart, umeta = _unroll(pts, start, meta, cut_loop) if loops else (pts, start, meta)
+    arc, uL = np.zeros(len(upts)), np.zeros(S)
     ps, pa, pb, pf, pc, pcut, pw = _pieces(len(upts) + S)
     q = 0
     for k in range(S):
         a, b = ustart[k], ustart[k + 1]
-        if intact[k]:
-            ps[q], pf[q], pc[q], pw[q] = k, umeta[k, FRAG], 1, True
-            q += 1
+        if not hits[k]:  # kept whole: a loop, or an open stroke of a segment or more
+            if intact[k] or b - a > 1:
+                ps[q], pf[q], pc[q], pw[q] = k, umeta[k, FRAG], umeta[k, CLOSED], True
+                q += 1
             continue
+        _stroke_arcs(upts, ustart, k, arc, uL)  # arc lengths along the strokes cut only
         c = start[k + 1] - start[k]
         p0 = -1
         if cut_loop[k]:
@@ -247,16 +386,16 @@ def _drop_band(pts, start, meta, e, band, cam):
                 q += 1
                 run = -1
     out = _keep(upts, ustart, umeta, arc, uL, ps, pa, pb, pf, pc, pcut, pw, q)
-    return out[0], out[1], out[2], before
+    return out[0], out[1], out[2], before, _total_length(out[0], out[1])
 
 
 @njit(cache=True)
-def stage(pts, start, meta, corners, cfid, key, params, e, right, st, camera):
+def stage(pts, start, meta, corners, cfid, key, params, e, right, st, camera, ws):
     band, fraction, disparity = params[0], params[1], params[2]
     if band > 0 and len(start) > 1:
-        pts, start, meta, before = _drop_band(pts, start, meta, e, band, camera)
+        pts, start, meta, before, after = _drop_band(pts, start, meta, e, band, camera, ws)
         st[0] += before
-        st[1] += _total_length(pts, start)
+        st[1] += after
     else:
         before = _total_length(pts, start)
         st[0] += before
@@ -270,6 +409,11 @@ def stage(pts, start, meta, corners, cfid, key, params, e, right, st, camera):
         hit = u0 < fraction
         shift = disparity * (2 * u1 - 1) if hit else 0.0
         a, b = start[k], start[k + 1]
+        st[2] += 1
+        st[3] += 1 if hit else 0
+        st[4] = max(st[4], abs(shift))
+        if not hit and not _has_zero(pts, a, b):  # a zero shift moves no point (only a -0.0 would become 0.0)
+            continue
         mx, my = 0.0, 0.0
         for i in range(a, b):
             mx += pts[i, 0]
@@ -283,7 +427,13 @@ def stage(pts, start, meta, corners, cfid, key, params, e, right, st, camera):
         for i in range(a, b):
             out[i, 0] = pts[i, 0] + shift * dx
             out[i, 1] = pts[i, 1] + shift * dy
-        st[2] += 1
-        st[3] += 1 if hit else 0
-        st[4] = max(st[4], abs(shift))
     return out, start, meta, corners, cfid
+
+
+@njit(cache=True)
+def _has_zero(pts, a, b):
+    """Whether a coordinate of vertices a..b-1 is zero (either sign)."""
+    for i in range(a, b):
+        if pts[i, 0] == 0 or pts[i, 1] == 0:
+            return True
+    return False

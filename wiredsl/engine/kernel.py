@@ -14,11 +14,13 @@ Each image stage's numba function lives with its effect (its KernelStage names i
 
 (a stage whose KernelStage says `camera=True` takes one more argument, `camera`: float64 (20,), the view's
 nominal image width and height, then its CAMERA_ROW: f, ax, ay, cx, cy, k1, k2, p1, p2, k3..k6, xi,
-alpha, beta, w, model code), and
-may call the shared parts here (keyed draws `_bits`/`_uniform`/`_normal_pair`, `_arcs`, `_total_length`,
-`_keep`, `_unroll`, the metadata columns FID..OCC). `compose` builds the loop over a stage list from those
-names, so this module names no effect. numba is imported only here and by those functions' modules, and
-they only when a run uses the kernel; compiled code is cached on disk, and a compile is announced on stderr.
+alpha, beta, w, model code; a stage whose KernelStage names a `workspace` function takes one more, last: the
+float64 array that function, `workspace(params, epipole, right, camera, trials) -> array`, made for the view
+before the batch's trials, for what depends on the view and not on the trial), and may call the shared parts
+here (keyed draws `_bits`/`_uniform`/`_normal_pair`, `_arcs`, `_total_length`, `_keep`, `_unroll`, the metadata
+columns FID..OCC). `compose` builds the loop over a stage list from those names, so this module names no effect.
+numba is imported only here and by those functions' modules, and they only when a run uses the kernel; compiled
+code is cached on disk, and a compile is announced on stderr.
 """
 
 from __future__ import annotations
@@ -517,10 +519,12 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
     (corners, fid, trial), strokes and corners ordered by trial.
 
     The template of the compiled loop: `compose` compiles it once per stage list, in a module of its own, with
-    the line that calls `_stages` replaced by a call of each stage's function in order (so that the kernel
-    names no effect, and a plug-in's function is composed as a built-in's is)."""
+    the line that calls `_stages` replaced by a call of each stage's function in order, and the line that calls
+    `_workspaces` by a call of each stage's workspace function, once for the batch (so that the kernel names no
+    effect, and a plug-in's function is composed as a built-in's is)."""
     res = []
     cres = []
+    _workspaces(params, epipole, right, camera, keys.shape[1])  # noqa: F821
     for t in range(keys.shape[1]):
         pts, start, meta, corners, cf = _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds,
                                                      width, height, calibrated, t)
@@ -532,13 +536,15 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
 
 
 def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds, width, height, calibrated,
-             functions, params, keys, epipole, right, stats, cameras=(), camera=None):
+             functions, params, keys, epipole, right, stats, cameras=(), camera=None, workspaces=()):
     """The compiled view_batch of the stage functions `functions` (KernelStage.function, in order), with every
     argument in the one layout it is compiled for (no second compile). `cameras`: per function, whether it takes
-    the view's `camera` row (KernelStage.camera), float64 (20,): width, height, then the nominal CAMERA_ROW."""
+    the view's `camera` row (KernelStage.camera), float64 (20,): width, height, then the nominal CAMERA_ROW.
+    `workspaces`: per function, its workspace function (KernelStage.workspace) or None."""
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
-    batch = compose(tuple(functions), tuple(bool(c) for c in cameras) or (False,) * len(functions))
+    batch = compose(tuple(functions), tuple(bool(c) for c in cameras) or (False,) * len(functions),
+                    tuple(workspaces) or (None,) * len(functions))
     n_camera = 2 + len(CAMERA_ROW)  # the image's width and height, then the camera row
     camera = np.zeros(n_camera) if camera is None else np.ascontiguousarray(camera, dtype=np.float64).reshape(n_camera)
     announce_compile(batch)
@@ -555,19 +561,22 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
 _composed: dict[tuple[str, ...], object] = {}
 
 
-def compose(functions: tuple[str, ...], cameras: tuple[bool, ...] = ()):
+def compose(functions: tuple[str, ...], cameras: tuple[bool, ...] = (), workspaces: tuple[str | None, ...] = ()):
     """view_batch compiled for the stage functions `functions` ("module:attribute" each), in order: a module
     written once per stage list (and per text of the source files involved, `_called`, since numba's cache
-    does not follow a change in a called function's file) into the user's cache folder, whose `_stages` calls each stage's
-    function with its own row of keys, parameters and statistics. Compiled code is cached on disk by numba."""
+    does not follow a change in a called function's file) into the user's cache folder, whose `_stages` calls each
+    stage's function with its own row of keys, parameters and statistics (and its view's camera row where
+    `cameras` says so, and the workspace its workspace function, `workspaces`, made for the view's batch).
+    Compiled code is cached on disk by numba."""
     cameras = cameras or (False,) * len(functions)
-    batch = _composed.get((functions, cameras))
+    workspaces = workspaces or (None,) * len(functions)
+    batch = _composed.get((functions, cameras, workspaces))
     if batch is None:
-        batch = _composed[(functions, cameras)] = _load(functions, cameras)
+        batch = _composed[(functions, cameras, workspaces)] = _load(functions, cameras, workspaces)
     return batch
 
 
-def _load(functions: tuple[str, ...], cameras: tuple[bool, ...]):
+def _load(functions: tuple[str, ...], cameras: tuple[bool, ...], workspaces: tuple[str | None, ...]):
     import hashlib
     import importlib
     import importlib.util
@@ -581,18 +590,24 @@ def _load(functions: tuple[str, ...], cameras: tuple[bool, ...]):
     from wiredsl.io.files import cache_folder, write_atomic
 
     parts = [f.split(":") for f in functions]
+    spaces = {g: w.split(":") for g, w in enumerate(workspaces) if w}
     calls = "".join(f"        pts, start, meta, corners, cf = _s{g}(pts, start, meta, corners, cf, keys[{g}, t], "
-                    f"params[{g}], epipole, right, stats[{g}]{', camera' if cameras[g] else ''})\n"
+                    f"params[{g}], epipole, right, stats[{g}]{', camera' if cameras[g] else ''}"
+                    f"{f', _w{g}' if g in spaces else ''})\n"
                     for g in range(len(functions)))
+    made = "".join(f"    _w{g} = _ws{g}(params[{g}], epipole, right, camera, keys.shape[1])\n" for g in spaces)
     template = inspect.getsource(view_batch)
     stages = re.search(r"^ *pts, start, meta, corners, cf = _stages\(.*?stats, camera\)\n", template,
                        re.M | re.S).group()
+    before = re.search(r"^ *_workspaces\(.*\n", template, re.M).group()
     source = ("from numba import njit\n\n"
               "from wiredsl.engine.kernel import _pack, _trial_input\n"
               + "".join(f"from {module} import {name} as _s{g}\n" for g, (module, name) in enumerate(parts))
-              + "\n\n@njit(cache=True)\n" + template.replace(stages, calls))
+              + "".join(f"from {module} import {name} as _ws{g}\n" for g, (module, name) in spaces.items())
+              + "\n\n@njit(cache=True)\n" + template.replace(stages, calls).replace(before, made))
     stamp = hashlib.sha256(source.encode())
-    called = _called([getattr(importlib.import_module(module), name) for module, name in parts])
+    called = _called([getattr(importlib.import_module(module), name)
+                      for module, name in [*parts, *spaces.values()]])
     for origin in sorted({__file__} | {f.py_func.__code__.co_filename for f in called}):
         stamp.update(f"{origin}\0{len(data := Path(origin).read_bytes())}\0".encode() + data)
     name = "wiredsl_stages_" + stamp.hexdigest()[:20]
@@ -682,14 +697,15 @@ def announce_compile(batch) -> None:
               file=sys.stderr, flush=True)
 
 
-def warm(functions: tuple[str, ...] = (), cameras: tuple[bool, ...] = ()) -> None:
+def warm(functions: tuple[str, ...] = (), cameras: tuple[bool, ...] = (), workspaces: tuple[str | None, ...] = ()
+         ) -> None:
     """Compile (or load from the cache) the kernel of a stage list on a tiny view, e.g. once before parallel test
     workers."""
     z2, zi, G = np.zeros((0, 2)), np.zeros(0, np.int64), len(functions)
     run_view(np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([0, 2]), np.zeros((1, NMETA), np.int64), z2, zi,
              np.zeros((2, 3)), np.zeros((0, 3)), np.eye(3)[None], np.zeros((1, 3)), np.ones((1, len(CAMERA_ROW))),
              np.ones(1), 10.0, 10.0, True, functions, np.zeros((G, 3)), np.ones((G, 1), np.uint64), np.ones(3), True,
-             np.zeros((G, NSTAT)), cameras)
+             np.zeros((G, NSTAT)), cameras, None, workspaces)
 
 
 def record(name: str, columns, row: np.ndarray, stats) -> None:

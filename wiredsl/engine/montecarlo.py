@@ -409,7 +409,8 @@ class Run:
         epipole = self.epipole(result.pose, side) if any(e.kernel.epipole for e, _ in stages) else np.zeros(3)
         args = (template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams,
                 folds, cam.width, cam.height, raw, functions, params, keys, epipole, side == "right", stats,
-                tuple(e.kernel.camera for e, _ in stages), self._camera_row(result, side, keep))
+                tuple(e.kernel.camera for e, _ in stages), self._camera_row(result, side, keep),
+                tuple(e.kernel.workspace for e, _ in stages))
         plugins = self._kernel_rows["plugins"]
         if not plugins:
             pts, start, m, trial, corners, cfid, ctrial = kn.run_view(*args)
@@ -508,15 +509,16 @@ def load_plugin_kernels(stages, stage_of) -> list:
     for effect, _ in stages:
         if effect.name in BUILTIN:
             continue
-        module, _, name = effect.kernel.function.partition(":")
+        for function in filter(None, (effect.kernel.function, effect.kernel.workspace)):
+            module, _, name = function.partition(":")
 
-        def load(module=module, name=name):
-            fn = getattr(importlib.import_module(module), name)
-            if not callable(fn):
-                raise TypeError(f"{module}:{name} is a {type(fn).__name__}, not a function")
-            return fn
+            def load(module=module, name=name):
+                fn = getattr(importlib.import_module(module), name)
+                if not callable(fn):
+                    raise TypeError(f"{module}:{name} is a {type(fn).__name__}, not a function")
+                return fn
 
-        plugin_call(effect, f"loading its kernel {effect.kernel.function}", load, where=stage_of(effect))
+            plugin_call(effect, f"loading its kernel {function}", load, where=stage_of(effect))
         out.append((effect, stage_of(effect)))
     return out
 
@@ -586,7 +588,7 @@ def kernel_apply(effect, params, s: im.ImageSet, ctx: Context) -> im.ImageSet:
             one.pts, one.start, meta, one.corners, one.corner_fid, z3, z3, np.zeros((1, 3, 3)), np.zeros((1, 3)),
             np.zeros((1, len(geometry.CAMERA_ROW))), np.zeros(1), 0.0, 0.0, False, functions, row, keys.reshape(1, 1),
             epipole, ctx.side == "right", stats, (effect.kernel.camera,),
-            camera_row(ctx.camera) if ctx.camera is not None else None)
+            camera_row(ctx.camera) if ctx.camera is not None else None, (effect.kernel.workspace,))
         kn.record(effect.name, effect.kernel.stats, stats[0], ctx.stats)
         parts.append(im.ImageSet(pts=pts, start=start, fid=m[:, 0], segment=m[:, 1], fragment=m[:, 2],
                                  kind=m[:, 3], clipped=m[:, 4].astype(bool), closed=m[:, 5].astype(bool),
