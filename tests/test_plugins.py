@@ -361,11 +361,30 @@ def stage(pts, start, meta, corners, cfid, key, params, epipole, right, stats):
 '''
 
 
-def test_a_plugin_effect_ships_its_own_kernel_and_runs_on_the_kernel_engine(tmp_path, monkeypatch):
+WORKSPACE_STAGE = (KERNEL_STAGE.replace("stats):", "stats, ws):").replace("+ shift", "+ ws[0]") + '''
+
+@njit(cache=True)
+def workspace(params, epipole, right, camera, trials):
+    """The view's shift, once a batch: the parameter where the view has a camera row (the nominal width)."""
+    out = np.zeros(2)
+    out[0] = params[1] if camera[0] > 0 else -1.0
+    out[1] = trials
+    return out
+''').replace("from numba import njit", "import numpy as np\nfrom numba import njit")
+
+
+@pytest.mark.parametrize("workspace", [False, True])
+def test_a_plugin_effect_ships_its_own_kernel_and_runs_on_the_kernel_engine(tmp_path, monkeypatch, workspace):
     """A plug-in's numba stage (its own module, named by its KernelStage) is composed with the built-ins' in the
-    compiled loop and gives what its numpy code gives; importing the effect does not import numba's code."""
-    site = make_dist(tmp_path / "site", "wdkern", KERNEL_EFFECT, "[wiredsl.effects]\njitter = wdkern:Jitter\n")
-    (site / "wdkern" / "kernel.py").write_text(KERNEL_STAGE)
+    compiled loop and gives what its numpy code gives; importing the effect does not import numba's code. With a
+    workspace function (KernelStage.workspace), the stage gets the array it made for the view as its last
+    argument (here the shift, read from it instead of the parameters)."""
+    effect = KERNEL_EFFECT.replace('(("count", "add"), ("sum_sq", "add")))',
+                                   '(("count", "add"), ("sum_sq", "add")),\n                         '
+                                   'workspace="wdkern.kernel:workspace")') if workspace else KERNEL_EFFECT
+    assert (effect != KERNEL_EFFECT) == workspace
+    site = make_dist(tmp_path / "site", "wdkern", effect, "[wiredsl.effects]\njitter = wdkern:Jitter\n")
+    (site / "wdkern" / "kernel.py").write_text(WORKSPACE_STAGE if workspace else KERNEL_STAGE)
     monkeypatch.syspath_prepend(str(site))
     plugins.rescan()
     try:
