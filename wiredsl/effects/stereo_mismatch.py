@@ -207,9 +207,13 @@ def _drop_band(s: im.ImageSet, epipole: np.ndarray, band: float, lens: tuple | N
     stroke_of = u.vertex_stroke()
     pair_stroke = stroke_of[:-1]
     real = stroke_of[:-1] == stroke_of[1:]
-    inside = in_band(u.pts[:-1], u.pts[1:], epipole[pair_stroke], band, rows(lens, pair_stroke))
     local = np.arange(len(u.pts) - 1) - u.start[pair_stroke]
     c = s.counts[pair_stroke]  # a loop's own number of segments
+    # each pair's segment decided once, above: slot start[k] + i holds segment i of stroke k, a loop's last slot its
+    # closing segment (the tangents under a distorted lens cost more than the rest of the band together)
+    slot = np.append(inside, False)
+    slot[last[loops]] = closing_inside[loops]
+    inside = slot[s.start[pair_stroke] + np.where(cut_loops[pair_stroke], local % np.maximum(c, 1), local)]
     lap = real & inside & cut_loops[pair_stroke] & (local < c)
     p0 = np.full(S, np.iinfo(np.int64).max // 4)
     np.minimum.at(p0, pair_stroke[lap], local[lap])  # a cut loop's first dropped segment
