@@ -327,7 +327,6 @@ def _drop_band(pts, start, meta, e, band, cam, ws):
     cut_loop = np.zeros(S, np.bool_)
     intact = np.zeros(S, np.bool_)
     hits = np.zeros(S, np.bool_)
-    loops = False
     for k in range(S):
         a, b = start[k], start[k + 1]
         hit = False
@@ -346,11 +345,10 @@ def _drop_band(pts, start, meta, e, band, cam, ws):
         if closed:
             cut_loop[k] = hit
             intact[k] = not hit
-            loops = loops or hit
     before = _total_length(pts, start)
     if not hits.any():  # nothing in the band: the strokes as they are (what the cut below would copy)
         return pts, start, meta, before, before
-    upts, ustart, umeta = _unroll(pts, start, meta, cut_loop) if loops else (pts, start, meta)
+    upts, ustart, umeta = _unroll(pts, start, meta, cut_loop)
     arc, uL = np.zeros(len(upts)), np.zeros(S)
     ps, pa, pb, pf, pc, pcut, pw = _pieces(len(upts) + S)
     q = 0

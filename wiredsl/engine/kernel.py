@@ -207,8 +207,14 @@ def _keep(pts, start, meta, arc, L, ps, pa, pb, pfrag, pclosed, pcut, pwhole, n)
 
 @njit(cache=True)
 def _unroll(pts, start, meta, which):
-    """imageset.unroll_closed for the closed strokes where which[k]: traversed twice, then vertex 0."""
+    """imageset.unroll_closed for the closed strokes where which[k]: traversed twice, then vertex 0. Where there
+    is none, the strokes themselves (not a copy: callers only read them)."""
     S = len(start) - 1
+    for k in range(S):
+        if which[k] and meta[k, CLOSED] != 0:
+            break
+    else:
+        return pts, start, meta
     ostart = np.zeros(S + 1, np.int64)
     for k in range(S):
         c = start[k + 1] - start[k]
