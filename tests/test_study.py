@@ -615,26 +615,41 @@ def test_a_pooled_study_resumed_or_run_by_processes_gives_the_same_table(tmp_pat
         assert whole == (tmp_path / "resumed" / name).read_bytes() == (tmp_path / "two" / name).read_bytes()
 
 
-def test_the_tables_json_is_json_dumps_indented_by_one():
-    """report.indented writes what json.dumps(indent=1) writes, character for character (random documents)."""
-    from wiredsl.study.report import indented
+def test_a_tables_json_reads_back_as_its_table_and_a_non_finite_row_is_refused():
+    """table.json (orjson, through emit.to_json) reads back as the same table, every float bit for bit (random rows
+    with awkward doubles and strings); a row with a non-finite number is refused when it is made."""
+    import pydantic
+
+    from wiredsl.io.features import SceneRef
+    from wiredsl.study.report import Row, StudyTable
 
     rng = np.random.default_rng(3)
-    leaves = [None, True, False, 0, -7, 10 ** 30, 1.5, 1e-06, -0.0, 1e300, 5e-324, "a\"b\\\n\u00e9\u4e2d", ""]
+    doubles = [0.0, -0.0, 1e-06, 5e-324, 1e300, -1.5, 0.1 + 0.2, 2.0 ** 53 + 1, 1 / 3]
+    names = ["a\"b\\\n\u00e9\u4e2d", "", "x.y"]
 
-    def doc(depth):
-        r = rng.random()
-        if depth > 3 or r < 0.4:
-            return leaves[rng.integers(len(leaves))]
-        if r < 0.7:
-            return {f"k{i}\u00e9\n"[: rng.integers(1, 5)] + str(i): doc(depth + 1) for i in range(rng.integers(0, 4))}
-        return [doc(depth + 1) for _ in range(rng.integers(0, 4))]
+    def x() -> float:
+        if rng.random() < 0.5:
+            return doubles[rng.integers(len(doubles))]
+        return float(rng.normal() * 10.0 ** rng.integers(-300, 300))
 
-    for _ in range(2000):
-        d = doc(0)
-        assert indented(d) == json.dumps(d, indent=1, allow_nan=False)
-    with pytest.raises(ValueError):
-        indented({"x": [float("nan")]})
+    rows = [Row(point=int(i), values={names[i % 3]: x()}, measure=names[(i + 1) % 3], statistic="s", n=1 + i,
+                n_values=2, mean=x(), sem=None if i % 4 == 0 else x(), q05=x(), q25=x(), q50=x(), q75=x(), q95=x())
+            for i in range(400)]
+    table = StudyTable(tool_version="t", scene=SceneRef(name="n", file="f", sha256="0" * 64), study="s",
+                       design="sobol", factors=list(names), seed=1, trials=2, rows=rows)
+    back = json.loads(emit.to_json(table))
+    assert back == table.model_dump(mode="json")
+    assert [struct_bits(r["mean"]) for r in back["rows"]] == [struct_bits(r.mean) for r in rows]
+    for bad in (math.nan, math.inf):
+        with pytest.raises(pydantic.ValidationError):
+            Row(point=0, values={}, measure="m", statistic="s", n=1, n_values=1, mean=bad, sem=None, q05=0.0,
+                q25=0.0, q50=0.0, q75=0.0, q95=0.0)
+
+
+def struct_bits(v: float) -> bytes:
+    import struct
+
+    return struct.pack("<d", v)
 
 
 def test_a_workers_blas_libraries_all_run_on_one_thread_numbas_too():

@@ -164,7 +164,7 @@ def to_json(doc, indent: int | None = 1) -> str:
     orjson writes each float as the shortest text that reads back as the same double, as Python's repr does
     (1e-6 where repr writes 1e-06)."""
     if not isinstance(doc, dict):
-        doc = doc.model_dump(mode="json")  # a model refuses non-finite numbers when it is made
+        doc = dumped(doc)  # a model refuses non-finite numbers when it is made
     return _dumps(doc, indent, newline=True).decode()  # no copy of a long text to add its newline
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl import __version__
+from wiredsl.io.emit import to_json
 from wiredsl.io.files import write_atomic
 from wiredsl.scene import Scene, Study
 from wiredsl.study import design, journal, report, shards
@@ -184,10 +185,10 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
                               factors=[f.label for f in study.factors], seed=study.seed, trials=study.trials,
                               rows=rows, sobol=report.sobol(study, rows))
     write_atomic(folder / "table.csv", report.to_csv(table))
-    write_atomic(folder / "table.json", report.to_json(table))
+    write_atomic(folder / "table.json", to_json(table))
     if table.sobol:
         write_atomic(folder / "sobol.csv", report.sobol_csv(table))
-    write_atomic(folder / "manifest.json", report.to_json(report.manifest(ref, study, all_jobs[0].digest, X,
+    write_atomic(folder / "manifest.json", to_json(report.manifest(ref, study, all_jobs[0].digest, X,
                                                                           shard_trials, used,
                                                                           engines(scene, study, X))))
     return table

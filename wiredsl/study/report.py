@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import platform
 from typing import Literal
@@ -29,7 +28,8 @@ QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
 
 
 class _Node(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    # allow_inf_nan=False: a non-finite number is refused when a row is made, so that no table carries one
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
 
 class Row(_Node):
@@ -179,43 +179,6 @@ def sobol_csv(table: StudyTable) -> str:
 
 def _cell(x: float | None) -> str:
     return "" if x is None else repr(x)
-
-
-def to_json(doc: BaseModel) -> str:
-    """The document as JSON indented by 1: the text of json.dumps(..., indent=1, allow_nan=False), written by
-    `indented` (json's own indenting encoder is pure Python and was a seventh of a small study's time)."""
-    return indented(doc.model_dump(mode="json")) + "\n"
-
-
-def indented(obj, level: int = 0) -> str:
-    """json.dumps(obj, indent=1, allow_nan=False) of plain JSON data (dicts with string keys, lists, tuples,
-    strings, numbers, booleans, None), character for character."""
-    if isinstance(obj, str):
-        return _string(obj)
-    if obj is None or obj is True or obj is False:
-        return "null" if obj is None else "true" if obj else "false"
-    if isinstance(obj, int):
-        return int.__repr__(obj)
-    if isinstance(obj, float):
-        if not math.isfinite(obj):
-            raise ValueError(f"Out of range float values are not JSON compliant: {obj!r}")
-        return float.__repr__(obj)
-    pad = "\n" + " " * (level + 1)
-    if isinstance(obj, dict):
-        if not obj:
-            return "{}"
-        if not all(isinstance(k, str) for k in obj):
-            return json.dumps(obj, indent=1, allow_nan=False).replace("\n", "\n" + " " * level)
-        return "{" + pad + ("," + pad).join(_string(k) + ": " + indented(v, level + 1) for k, v in obj.items()) \
-            + "\n" + " " * level + "}"
-    if isinstance(obj, (list, tuple)):
-        if not obj:
-            return "[]"
-        return "[" + pad + ("," + pad).join(indented(v, level + 1) for v in obj) + "\n" + " " * level + "]"
-    raise TypeError(f"Object of type {type(obj).__name__} is not JSON serializable")
-
-
-_string = json.encoder.encode_basestring_ascii
 
 
 class PluginUse(_Node):
