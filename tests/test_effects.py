@@ -397,3 +397,28 @@ def test_the_epipolar_band_follows_the_curve_and_the_documented_figures_hold(tmp
     text = Path("docs/explanation/uncertainty.md").read_text()
     assert f"within {line[r < 100].max():.1f} deg" in text and f"by {np.median(line):.1f} deg at the median" in text
     assert f"band at {np.mean(line > 5):.0%} of the pixels" in text
+
+
+@pytest.mark.parametrize("pack", [True, False])
+def test_exact_calibration_gives_the_stages_the_nominal_cameras_as_the_fast_path_does(monkeypatch, pack):
+    """Under calibration error, the image stages see each view's nominal camera (Context.view_cameras: what the
+    software believes), on the fast path and on the exact reference alike; the exact path gave them trial 0's
+    perturbed camera."""
+    from wiredsl.effects import stereo_mismatch
+
+    seen = {}
+    disturb = stereo_mismatch.StereoMismatch.disturb
+
+    def spy(params, sets, ctx):
+        cams, which = ctx.view_cameras(np.arange(len(ctx.trials)))
+        seen.setdefault(exact, []).extend(cams[i] for i in np.unique(which))
+        return disturb(params, sets, ctx)
+
+    monkeypatch.setattr(stereo_mismatch.StereoMismatch, "disturb", staticmethod(spy))
+    for exact in (False, True):
+        run, _ = run_pipeline("calibration_error sigma 0.05\nstereo_mismatch fraction 10%", trials=0,
+                              engine="numpy")
+        run.exact_calibration, run.pack = exact, pack
+        [_ for _ in run.batches(list(range(4)))]
+    nominal = {LAB.camera(getattr(LAB.rig, side).camera) for side in ("left", "right")}
+    assert seen[True] and all(c in nominal for c in seen[True] + seen[False])

@@ -255,7 +255,7 @@ class Run:
     def _batch(self, batch: Sequence[int], results: list[PoseResult] | None = None, keep: bool = True):
         sampler = self.sampler()
         per_trial = rigs = None
-        base = self.ideal() if results is None else results
+        base = nominal = self.ideal() if results is None else results
         kernel = self.uses_kernel()
         compiled = self.compiled_stages() if kernel else []
         keys = self._view_keys(batch, base, compiled) if kernel else None
@@ -290,18 +290,19 @@ class Run:
                     if packed is not None:  # cut to the image below, with the other views
                         sets, ok, views[side] = projected(getattr(result, side), self.world, rigs[side], result.pose,
                                                           side, template)
-                        packed.append((result, side, sets, disturbed, ok, rigs[side]["camera"]))
+                        packed.append((result, side, sets, disturbed, ok, rigs[side]["camera"],
+                                       getattr(nominal[j], side).camera))
                         continue
                     sets, views[side] = reproject(getattr(result, side), self.world, rigs[side], result.pose, side,
                                                   template)
                 else:
                     sets = self.template(result, side, raw=False, keep=keep)[0].repeat_trials(len(batch))
                 if packed is not None:
-                    packed.append((result, side, sets, disturbed, None, None))
+                    packed.append((result, side, sets, disturbed, None, None, getattr(nominal[j], side).camera))
                     continue
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
-                              point=self.point, camera=getattr(result, side).camera)
+                              point=self.point, camera=getattr(nominal[j], side).camera)  # as the fast path's
                 for effect, params in self.image_stages[len(compiled):]:
                     self.trace[effect.name] += 1
                     if effect.name in BUILTIN:
@@ -318,9 +319,9 @@ class Run:
     def _packed_stages(self, batch: Sequence[int], views: list) -> None:
         """The image stages (built-in effects) on many views' trials at once: [(result, side, ImageSet of the
         batch, the result's dict of disturbed sets, which vertices are imaged or None, the perturbed camera or
-        None)], each set put in its dict. With a camera, the set is the re-projection before its cuts
-        (`projected`), cut here (`cut_to_image`). The same draws, outputs and statistics as one view at a time
-        (`PackedContext`), with a stage's Python paid once, not once a view."""
+        None, the view's nominal camera)], each set put in its dict. With a camera, the set is the re-projection
+        before its cuts (`projected`), cut here (`cut_to_image`). The same draws, outputs and statistics as one
+        view at a time (`PackedContext`), with a stage's Python paid once, not once a view."""
         T = len(batch)
         for effect, _ in self.image_stages:
             self.trace[effect.name] += len(views)
@@ -336,7 +337,7 @@ class Run:
         ctx = PackedContext(pose=-1, side="", trials=np.tile(np.asarray(batch, dtype=np.int64), len(views)),
                             seed=self.seed, stats=self.stats, point=self.point, per_view=T,
                             poses=np.repeat(poses, T), cameras=np.repeat(cameras, T), view_epipoles=view_epipoles,
-                            cameras_of_views=[getattr(v[0], v[1]).camera for v in views])
+                            cameras_of_views=[v[6] for v in views])
         sets = im.concat([v[2] for v in views], T)
         if views[0][4] is not None:  # re-projected: cut to each view's image
             sizes = {(v[5].width, v[5].height) for v in views}
