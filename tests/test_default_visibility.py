@@ -159,3 +159,21 @@ def test_check_reports_the_cost_of_exact_visibility_for_meshes(tmp_path):
     assert "6 views x 1,422 occluding triangles" in note and "uses exact hidden lines" in note
     r = CliRunner().invoke(main, ["check", "scenes/lab.wd"])  # no meshes: no such note
     assert r.exit_code == 0 and "exact visibility:" not in r.stderr
+
+
+def test_a_studys_manifest_records_the_visibility_its_points_used(tmp_path):
+    """manifest.json says which hidden lines every point of the study had: the mesh scene's one pose, whose
+    projection the points share, is affordable exactly (as build's default gives it: its manifest says the
+    same), and the manifest is valid against schema/study-manifest.schema.json."""
+    from wiredsl.io import schema
+    from wiredsl.scene import Study
+    from wiredsl.study import run_study
+
+    scene = compile_file("scenes/meshes.wd")[0]
+    study = Study.model_validate({"name": "p", "design": "grid", "trials": 2, "poses": [0], "factors": [],
+                                  "measures": [{"name": "survival"}]})
+    run_study(scene, study, tmp_path / "st", executor="inprocess")
+    manifest = json.loads((tmp_path / "st" / "manifest.json").read_text())
+    assert schema.problems(manifest) == []
+    _, built, _ = _build(tmp_path, "scenes/meshes.wd", "--pose", "0")
+    assert manifest["visibility"] == built["visibility"] == "exact"

@@ -7,6 +7,7 @@ work) -> executors.py (where shards run) -> journal.py (where finished shards ar
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -141,6 +142,13 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
     if todo and (used or record.is_file()):
         write_atomic(record, json.dumps({"plugins": used}, indent=1) + "\n")
     forced = numpy_forced(scene, study, X)
+
+    @functools.cache
+    def chosen():  # the one visibility of every point (shards.visibility), decided once
+        from wiredsl.engine.world import build_world
+
+        return shards.visibility(study, scene, build_world(scene))
+
     if echo is not None and forced and todo:
         echo(forced)
     progress = Progress(all_jobs, echo)
@@ -152,9 +160,7 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
         echo(f"study {study.name}: {len(X)} points x {study.trials} trials in {len(all_jobs)} shards, "
              f"{len(all_jobs) - len(todo)} done before; executor {executor}")
         if todo:  # the one visibility of every point (shards.visibility), when it keeps hidden lines
-            from wiredsl.engine.world import build_world
-
-            choice = shards.visibility(study, scene, build_world(scene))
+            choice = chosen()
             if choice.warning is not None:
                 echo(f"warning: W129: {choice.warning}")
     if todo:
@@ -188,9 +194,9 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
     write_atomic(folder / "table.json", to_json(table))
     if table.sobol:
         write_atomic(folder / "sobol.csv", report.sobol_csv(table))
-    write_atomic(folder / "manifest.json", to_json(report.manifest(ref, study, all_jobs[0].digest, X,
-                                                                          shard_trials, used,
-                                                                          engines(scene, study, X))))
+    write_atomic(folder / "manifest.json", to_json(report.manifest(ref, study, all_jobs[0].digest, X, shard_trials,
+                                                                   used, engines(scene, study, X),
+                                                                   chosen().mode)))
     return table
 
 

@@ -208,12 +208,16 @@ class StudyManifest(_Node):
     versions: dict[str, str]
     plugins: list[PluginUse] = Field([], description="the installed plug-ins the study ran, each keying its shards")
     engines: dict[str, str] = Field({}, description="the engine each stage ran on: kernel (compiled) or numpy")
+    visibility: Literal["scene", "exact"] = Field(
+        "scene", description="the hidden lines of every point: scene (the nearest view-point's list) or exact "
+                             "(decided once for the study from what it projects, as `--visibility auto`)")
 
 
 def manifest(scene_ref: SceneRef, study: Study, digest: str, X: np.ndarray, shard_trials: int,
-             plugins: list[dict] = (), engines: dict[str, str] | None = None) -> StudyManifest:
+             plugins: list[dict] = (), engines: dict[str, str] | None = None,
+             visibility: str = "scene") -> StudyManifest:
     """What the table was made from: the study, the seeds, the design, the scene, the versions, the plug-ins
-    (package, version, hash of their files) and the engine of each stage."""
+    (package, version, hash of their files), the engine of each stage and the hidden lines' mode."""
     import scipy
 
     return StudyManifest(
@@ -222,5 +226,5 @@ def manifest(scene_ref: SceneRef, study: Study, digest: str, X: np.ndarray, shar
         points=[[_f(v) for v in row] for row in X], shard_trials=shard_trials,
         versions={"wiredsl": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
                   "python": platform.python_version()},
-        plugins=[PluginUse(**p) for p in plugins], engines=engines or {},
+        plugins=[PluginUse(**p) for p in plugins], engines=engines or {}, visibility=visibility,
     )
