@@ -32,7 +32,8 @@ PAGES = sorted(p for p in DOCS.rglob("*.md") if runnable(p))
 
 def test_the_tutorials_have_runnable_code():
     names = {p.relative_to(DOCS).as_posix() for p in PAGES}
-    assert {f"tutorials/{n}.md" for n in ("first-scene", "camera", "path", "mesh", "study", "closed-loop")} <= names
+    assert {f"tutorials/{n}.md" for n in ("first-scene", "camera", "path", "mesh", "study", "closed-loop",
+                                                   "measure-your-detector")} <= names
     assert "how-to/new-project.md" in names
     for page in PAGES:  # a marker before anything but a fence would silently not run
         text = page.read_text(encoding="utf-8")

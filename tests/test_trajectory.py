@@ -289,6 +289,22 @@ def test_body_placed_two_ways_is_refused(tmp_path):
         ("E103", "'camera' and 'at' both place the body: keep one")]
 
 
+def test_a_body_placed_by_a_rig_that_failed_is_not_told_the_scene_has_no_rig(tmp_path):
+    """A rig whose right mount's calibration file is missing is reported at the file; the path's `body camera
+    left` is not also told "the scene has no rig" (E102), which sent a reader looking for a missing statement."""
+    rig = ("camera c {\n  focal 700px\n  size (640px, 480px)\n}\n"
+           "rig r {\n  left c at (0, 0, 0) looking (1, 0, 0)\n  right c relative \"missing.yml\"\n}\n")
+    f = scene_file(tmp_path, '  read "a.tum"\n  body camera left', {"a.tum": "0 1 2 0 0 0 0 1\n"}, rig)
+    with pytest.raises(WiredslError) as err:
+        compile_file(f)
+    codes = [d.code for d in err.value.diagnostics]
+    assert codes and "E102" not in codes, codes
+    f = scene_file(tmp_path, '  read "a.tum"\n  body camera left', {"a.tum": "0 1 2 0 0 0 0 1\n"})
+    with pytest.raises(WiredslError) as err:  # without a rig statement it still is E102
+        compile_file(f)
+    assert [d.code for d in err.value.diagnostics] == ["E102"]
+
+
 @pytest.mark.parametrize(("block", "warned"), [
     ('  read "p.txt" format kitti', "rises"),  # KITTI's z is forward: the car would climb 9 m
     ('  read "p.txt" format kitti\n  world rotate x -90deg rotate z -90deg', "up (z) axis"),  # camera as robot

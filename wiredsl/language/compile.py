@@ -748,8 +748,9 @@ class Compiler(CameraCompiler):
             R = self._rotation(sb)
             return None if R is None else (R, np.array(sb.get("at", (0.0, 0.0, 0.0)), dtype=float))
         if rig is None:
-            self.out.error("E102", f"'{given[0]}' places the body by the rig's cameras: the scene has no rig",
-                           sb.span(given[0]))
+            if "rig" not in self.singles:  # else the rig's own errors, reported already, are the reason
+                self.out.error("E102", f"'{given[0]}' places the body by the rig's cameras: the scene has no rig",
+                               sb.span(given[0]))
             return None
         mount = rig.left if sb.get("camera", "left") == "left" else rig.right
         R_m, p_m = np.array(mount.rotation), np.array(mount.position)

@@ -49,7 +49,7 @@ from wiredsl.cli_base import diagnostics_option, guarded, report
               help="Simulated trials a frame for --predict.")
 @click.option("--pipeline-name", default="measured", show_default=True, help="The fitted pipeline's name.")
 @click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True,
-              help="Seed of the bootstrap resamples.")
+              help="Seed of the fit's bootstrap resamples and of --predict's simulated trials.")
 @click.option("--plot-format", type=click.Choice(["png", "svg", "pdf"]), default="png", show_default=True)
 @click.option("-o", "--output", required=True, help="Output folder.")
 @diagnostics_option
