@@ -447,7 +447,7 @@ def test_a_replayed_trial_needs_its_runs_seed():
 def test_a_study_without_matplotlib_is_refused_before_it_runs(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib now raises ImportError
     r = run("study", "scenes/studies/lab_study.wd", "shift_calibration", "-o", str(tmp_path / "s"))
-    assert r.exit_code == 2 and "wiredsl[plot]" in r.output and "--no-plots" in r.output
+    assert r.exit_code == 2 and "pip install '.[plot]'" in r.output and "--no-plots" in r.output
     assert not (tmp_path / "s").exists()  # nothing ran
 
 

@@ -158,5 +158,5 @@ def test_closed_loop_refuses_bad_arguments_before_it_drives(tmp_path, monkeypatc
     with pytest.raises(SystemExit) as stop:
         drive_to_bin.main(["--trials", "1", "-o", str(tmp_path)])
     assert stop.value.code == 2
-    assert "wiredsl[plot]" in capsys.readouterr().err
+    assert "pip install '.[plot]'" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())

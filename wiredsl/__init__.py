@@ -13,6 +13,12 @@ DEFAULT_VISIBILITY = "auto"
 VISIBILITIES = ("auto", "scene", "exact", "all")
 
 
+def install_hint(extra: str) -> str:
+    """How to install an optional extra, for the messages of the code that needs it: wiredsl installs from its
+    checkout (it is not on PyPI, where `pip install 'wiredsl[plot]'` would look)."""
+    return f"pip install '.[{extra}]' in wiredsl's checkout"
+
+
 _API = ("compile", "simulate", "Simulator", "Batch", "CameraAt", "CompileError", "CompileWarning", "PluginError",
         "Measure", "Effect")
 __all__ = ["load", *_API]

@@ -13,7 +13,7 @@ import sys
 
 import click
 
-from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, __version__
+from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, __version__, install_hint
 from wiredsl.cli_base import (EXIT_INVALID, auto_visibility, diagnostics_option, folder_name, guarded, report,
                               setup_errors)
 from wiredsl.export import export
@@ -732,7 +732,7 @@ def bench(file: str, output: str | None, budget: float, dpi: int, diagnostics: s
     try:
         import matplotlib  # noqa: F401  (checked before the minutes of measuring, not after)
     except ImportError:
-        raise click.UsageError("the bench plot needs matplotlib: pip install 'wiredsl[plot]'") from None
+        raise click.UsageError(f"the bench plot needs matplotlib: {install_hint('plot')}") from None
     tables = bench_mod.run_all(scene, world, budget, progress=lambda m: click.echo(m, err=True))
     click.echo(f"## wiredsl bench {file}\n\nMachine: {platform.machine()}, {os.cpu_count()} cores, "
                f"Python {platform.python_version()}, numpy {__import__('numpy').__version__}.\n")
@@ -747,7 +747,8 @@ def bench(file: str, output: str | None, budget: float, dpi: int, diagnostics: s
               help="Print the TextMate grammar for syntax highlighting (editors/wiredsl.tmLanguage.json) and exit.")
 @guarded
 def lsp(print_grammar: bool) -> None:
-    """Run the language server on stdin/stdout (needs the `lsp` extra: pip install 'wiredsl[lsp]')."""
+    """Run the language server on stdin/stdout (needs the `lsp` extra: pip install '.[lsp]' in wiredsl's
+    checkout)."""
     from wiredsl import lsp as server
 
     if print_grammar:
@@ -756,7 +757,7 @@ def lsp(print_grammar: bool) -> None:
     try:
         import pygls  # noqa: F401
     except ImportError:
-        raise click.UsageError("the language server needs pygls: pip install 'wiredsl[lsp]'") from None
+        raise click.UsageError(f"the language server needs pygls: {install_hint('lsp')}") from None
     server.serve()
 
 
@@ -850,7 +851,7 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
         try:
             import matplotlib  # noqa: F401  (checked before the study runs, not after)
         except ImportError:
-            raise click.UsageError("the study's plots need matplotlib: pip install 'wiredsl[plot]', or give "
+            raise click.UsageError(f"the study's plots need matplotlib: {install_hint('plot')}, or give "
                                    "--no-plots") from None
     out = Path(output) if output else Path("build") / f"{scene.name}-{found.name}"
     table = run_study(scene, found, out, executor=executor, workers=workers, scheduler=scheduler,

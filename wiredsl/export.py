@@ -12,7 +12,7 @@ import sys
 
 import click
 
-from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES
+from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, install_hint
 from wiredsl.cli_base import (EXIT_INVALID, auto_visibility, diagnostics_option, folder_name, guarded, report,
                               setup_errors)
 
@@ -68,7 +68,7 @@ def export(file: str, fmt: str, output: str | None, no_effects: bool, pipeline_n
         raise click.BadParameter("--undistort is for --format colmap", param_hint="--undistort")
     need = {"colmap": None, "rosbag2": "rosbags"}[fmt]
     if need and importlib.util.find_spec(need) is None:
-        raise click.UsageError(f"--format {fmt} needs the {need} library: pip install 'wiredsl[formats]'")
+        raise click.UsageError(f"--format {fmt} needs the {need} library: {install_hint('formats')}")
     if output is not None:
         folder_name(Path(output), (".txt", ".db3", ".yaml", ".json"), "ideal/ or trial_NNNNN/ folders and "
                      "manifest.json are written into it")

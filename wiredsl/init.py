@@ -115,8 +115,8 @@ echo "ci.sh: all checks passed"
 """
 
 WORKFLOW = """\
-# GitHub Actions: the project's checks (ci.sh) on every push. WIREDSL names what pip installs: a version, a
-# path or a git URL of wiredsl (set it as a repository variable).
+# GitHub Actions: the project's checks (ci.sh) on every push. Set the repository variable WIREDSL to what pip
+# installs wiredsl from: a git URL (git+https://...@v{{version}}) or a path; wiredsl is not on PyPI.
 name: wiredsl
 on: [push, pull_request]
 jobs:
@@ -127,7 +127,8 @@ jobs:
       - uses: actions/setup-python@v5
         with:
           python-version: "3.11"
-      - run: pip install "${{ vars.WIREDSL || 'wiredsl=={{version}}' }}"
+      - run: test -n "${{ vars.WIREDSL }}" || { echo "set the repository variable WIREDSL (see above)"; exit 1; }
+      - run: pip install "${{ vars.WIREDSL }}"
       - run: bash ci.sh
 """
 
@@ -144,7 +145,7 @@ wiredsl study scenes/{{package}}.wd shift  # build/{{package}}-shift/: the study
 bash ci.sh                                 # what CI runs (.github/workflows/wiredsl.yml)
 ```
 
-The study's plots need matplotlib (`pip install 'wiredsl[plot]'`); without it, give `--no-plots`.
+The study's plots need matplotlib (`pip install '.[plot]'` in wiredsl's checkout); without it, give `--no-plots`.
 """
 
 # --- the plug-in package ---------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ import dataclasses
 import secrets
 from dataclasses import dataclass
 
+from wiredsl import install_hint
 from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
@@ -142,7 +143,7 @@ def check_engine(engine: str) -> str:
         import importlib.util
 
         if importlib.util.find_spec("numba") is None:
-            raise RunSetupError("the compiled kernel needs numba: pip install 'wiredsl[fast]'", "--engine")
+            raise RunSetupError(f"the compiled kernel needs numba: {install_hint('fast')}", "--engine")
     return engine
 
 

@@ -151,7 +151,7 @@ def main(argv=None) -> int:
         try:
             import matplotlib  # noqa: F401  (checked before the trials run, not after)
         except ImportError:
-            ap.error("the plot needs matplotlib: pip install 'wiredsl[plot]', or give --no-plot")
+            ap.error("the plot needs matplotlib: pip install '.[plot]' in wiredsl's checkout, or give --no-plot")
     try:  # every scene before the first trial: a shift the effect refuses is a usage error, not a traceback
         scenes = [(shift, scene_with_shift(shift)) for shift in a.shifts]
     except wiredsl.CompileError as err:

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wiredsl import install_hint
 from wiredsl.io.camera_file import (
     EQUIDISTANT,
     MIN_FOCAL,
@@ -121,7 +122,7 @@ def _yaml(text: str) -> object:
     try:
         import yaml
     except ImportError:
-        raise CalibrationFileError("reading YAML calibration files needs PyYAML: pip install 'wiredsl[calib]'") \
+        raise CalibrationFileError(f"reading YAML calibration files needs PyYAML: {install_hint('calib')}") \
             from None
 
     # libyaml's composer is fast but recursive in C: only for texts whose nesting is bounded by their

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from wiredsl import install_hint
+
 MAX_MESH_BYTES = 256 * 1024 * 1024  # a mesh file larger than this is refused
 MAX_TRIANGLES = 2_000_000  # triangles a mesh may declare or hold
 FORMATS = {".obj": "obj", ".ply": "ply", ".stl": "stl", ".gltf": "gltf", ".glb": "glb"}
@@ -80,7 +82,7 @@ def read_mesh(path: Path, data: bytes) -> RawMesh:
     try:
         import trimesh
     except ImportError as exc:  # pragma: no cover - the extra is part of `test`
-        raise MeshFileError("reading meshes needs trimesh: pip install 'wiredsl[mesh]'") from exc
+        raise MeshFileError(f"reading meshes needs trimesh: {install_hint('mesh')}") from exc
     log = _Log()
     try:
         with log.capturing():  # trimesh logs a damaged file's problems, tracebacks and all, on stderr

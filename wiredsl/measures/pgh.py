@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wiredsl import install_hint
 from wiredsl.engine import geometry, visibility
 from wiredsl.engine import imageset as im
 from wiredsl.engine.montecarlo import to_imageset
@@ -119,7 +120,7 @@ def raw_histograms(a: np.ndarray, b: np.ndarray, group: np.ndarray, p: PGHParams
     bounds = np.flatnonzero(np.concatenate([[True], g[1:] != g[:-1], [True]]))
     compiled = kernel() if engine != "numpy" else None
     if engine == "numba" and compiled is None:
-        raise ImportError("the numba engine needs numba: pip install 'wiredsl[fast]'")
+        raise ImportError(f"the numba engine needs numba: {install_hint('fast')}")
     if compiled is not None:
         out[order] = compiled.histograms(np.ascontiguousarray(a[order]), np.ascontiguousarray(b[order]), bounds,
                                          p.n_angle, p.directed, p.n_dist, p.d_max, POINT_SPAN)

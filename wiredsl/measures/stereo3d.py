@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from wiredsl import install_hint
 from wiredsl.engine import geometry
 from wiredsl.engine import imageset as im
 from wiredsl.measures.base import Measure, Params, param, source_key
@@ -84,7 +85,7 @@ def _undistort_radtan(xd: np.ndarray, cam, engine: str, limit: float | None) -> 
     limit = geometry.lens_limit(cam) if limit is None else limit
     compiled = kernel() if engine != "numpy" else None
     if engine == "numba" and compiled is None:
-        raise ImportError("the numba engine needs numba: pip install 'wiredsl[fast]'")
+        raise ImportError(f"the numba engine needs numba: {install_hint('fast')}")
     if compiled is not None:
         return compiled.undistort_radtan(np.ascontiguousarray(xd), *lens, NEWTON_STEPS, float(limit))
     xy, res = geometry.undistort_radtan(xd, *lens, steps=NEWTON_STEPS)
@@ -124,7 +125,7 @@ def triangulate(P1: np.ndarray, P2: np.ndarray, x1: np.ndarray, x2: np.ndarray, 
         return np.zeros((0, 3)), np.zeros(0, dtype=bool)
     compiled = kernel() if engine != "numpy" else None
     if engine == "numba" and compiled is None:
-        raise ImportError("the numba engine needs numba: pip install 'wiredsl[fast]'")
+        raise ImportError(f"the numba engine needs numba: {install_hint('fast')}")
     if compiled is not None:
         c = np.ascontiguousarray
         return compiled.triangulate(c(P1, dtype=float), c(P2, dtype=float), c(x1, dtype=float), c(x2, dtype=float))

@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from wiredsl import install_hint
 from wiredsl.study.shards import Job, run_chunk
 
 EXECUTORS = ("processes", "inprocess", "dask")
@@ -112,7 +113,7 @@ def _dask(jobs: Sequence[Job], done: Done, scheduler: str | None) -> None:
     try:
         from distributed import Client, as_completed
     except ImportError as exc:
-        raise RuntimeError("the dask executor needs Dask distributed: pip install 'wiredsl[dask]'") from exc
+        raise RuntimeError(f"the dask executor needs Dask distributed: {install_hint('dask')}") from exc
     if not scheduler:
         raise ValueError("the dask executor needs --scheduler ADDRESS (e.g. tcp://host:8786)")
     with Client(scheduler) as client:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from wiredsl import install_hint
 from wiredsl.io.files import write_atomic
 from wiredsl.scene import Study
 from wiredsl.study.report import StudyTable
@@ -21,7 +22,7 @@ def _pyplot():
     try:
         import matplotlib
     except ImportError as exc:
-        raise RuntimeError("plots need matplotlib: pip install 'wiredsl[plot]', or run with --no-plots") from exc
+        raise RuntimeError(f"plots need matplotlib: {install_hint('plot')}, or run with --no-plots") from exc
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

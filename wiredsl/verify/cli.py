@@ -6,6 +6,7 @@ import math
 
 import click
 
+from wiredsl import install_hint
 from wiredsl.cli_base import diagnostics_option, guarded, report
 
 
@@ -63,11 +64,11 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
     try:
         import cv2  # noqa: F401
     except ImportError:
-        raise click.UsageError("verify needs OpenCV: pip install 'wiredsl[images]'") from None
+        raise click.UsageError(f"verify needs OpenCV: {install_hint('images')}") from None
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        raise click.UsageError("verify's Figure 7 needs matplotlib: pip install 'wiredsl[plot]'") from None
+        raise click.UsageError(f"verify's Figure 7 needs matplotlib: {install_hint('plot')}") from None
     if len(cameras) > len(globs):
         raise click.BadParameter("more --camera than --images", param_hint="--camera")
     if predict and not do_fit:
