@@ -34,15 +34,11 @@ def _add(row, abin, x0, x1, rho, w, nd, d_max):
 
 
 @njit(cache=True)
-def histograms(a, b, starts, n_angle, directed, n_dist, d_max, point_span):
-    """Un-normalised PGHs (n, angle bins, n_dist) of segments a -> b (n, 2), grouped by CSR `starts`."""
+def _columns(a, b):
+    """Per-segment quantities the pair loop reads (each its own column): end points, length, unit direction, angle."""
     n = a.shape[0]
-    na = 2 * n_angle if directed else n_angle + 1
-    out = np.zeros((n, na, n_dist))
-    w = d_max / n_dist
-    step = math.pi / n_angle
     length, ux, uy, phi = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    ax, ay, bx, by = np.empty(n), np.empty(n), np.empty(n), np.empty(n)  # end points as separate columns
+    ax, ay, bx, by = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     for i in range(n):
         ax[i], ay[i], bx[i], by[i] = a[i, 0], a[i, 1], b[i, 0], b[i, 1]
         dx = b[i, 0] - a[i, 0]
@@ -51,47 +47,65 @@ def histograms(a, b, starts, n_angle, directed, n_dist, d_max, point_span):
         ux[i] = dx / length[i]
         uy[i] = dy / length[i]
         phi[i] = math.atan2(dy, dx)
+    return ax, ay, bx, by, length, ux, uy, phi
+
+
+@njit(cache=True, inline="always")
+def _reference(row, i, j0, j1, cols, n_angle, directed, n_dist, d_max, point_span):
+    """Reference segment i's un-normalised PGH (angle bins, n_dist), added into `row` (zeros), from segments
+    j0:j1 (its group)."""
+    ax, ay, bx, by, length, ux, uy, phi = cols
+    w = d_max / n_dist
+    step = math.pi / n_angle
+    nx, ny = -uy[i], ux[i]
+    base = nx * ax[i] + ny * ay[i]
+    pi_ = phi[i]
+    for j in range(j0, j1):
+        da = nx * ax[j] + ny * ay[j] - base
+        db = nx * bx[j] + ny * by[j] - base
+        if da < db:
+            lo, hi = da, db
+        else:
+            lo, hi = db, da
+        if lo > d_max or hi < -d_max:
+            continue
+        theta = phi[j] - pi_
+        if theta > math.pi:
+            theta -= 2 * math.pi
+        elif theta <= -math.pi:
+            theta += 2 * math.pi
+        if directed:
+            abin = (int(math.floor(theta / step + 0.5)) + 2 * n_angle) % (2 * n_angle)
+        else:
+            abin = int(math.floor(abs(theta) / step + 0.5))
+        span = hi - lo
+        L = length[j]
+        if span < point_span:
+            x = abs(0.5 * (lo + hi))
+            if x <= d_max:
+                row[abin, min(int(x / w), n_dist - 1)] += L
+            continue
+        rho = L / span
+        alo, ahi = abs(lo), abs(hi)
+        near_end = min(alo, ahi)
+        far_end = max(alo, ahi)
+        if lo < 0 < hi:
+            _add(row, abin, 0.0, far_end, rho, w, n_dist, d_max)
+            _add(row, abin, 0.0, near_end, rho, w, n_dist, d_max)
+        else:
+            _add(row, abin, near_end, far_end, rho, w, n_dist, d_max)
+
+
+@njit(cache=True)
+def histograms(a, b, starts, n_angle, directed, n_dist, d_max, point_span):
+    """Un-normalised PGHs (n, angle bins, n_dist) of segments a -> b (n, 2), grouped by CSR `starts`."""
+    n = a.shape[0]
+    na = 2 * n_angle if directed else n_angle + 1
+    out = np.zeros((n, na, n_dist))
+    cols = _columns(a, b)
     for g in range(len(starts) - 1):
-        j0, j1 = starts[g], starts[g + 1]
-        for i in range(j0, j1):
-            nx, ny = -uy[i], ux[i]
-            base = nx * ax[i] + ny * ay[i]
-            row = out[i]  # the reference's histogram
-            pi_ = phi[i]
-            for j in range(j0, j1):
-                da = nx * ax[j] + ny * ay[j] - base
-                db = nx * bx[j] + ny * by[j] - base
-                if da < db:
-                    lo, hi = da, db
-                else:
-                    lo, hi = db, da
-                if lo > d_max or hi < -d_max:
-                    continue
-                theta = phi[j] - pi_
-                if theta > math.pi:
-                    theta -= 2 * math.pi
-                elif theta <= -math.pi:
-                    theta += 2 * math.pi
-                if directed:
-                    abin = (int(math.floor(theta / step + 0.5)) + 2 * n_angle) % (2 * n_angle)
-                else:
-                    abin = int(math.floor(abs(theta) / step + 0.5))
-                span = hi - lo
-                L = length[j]
-                if span < point_span:
-                    x = abs(0.5 * (lo + hi))
-                    if x <= d_max:
-                        row[abin, min(int(x / w), n_dist - 1)] += L
-                    continue
-                rho = L / span
-                alo, ahi = abs(lo), abs(hi)
-                near_end = min(alo, ahi)
-                far_end = max(alo, ahi)
-                if lo < 0 < hi:
-                    _add(row, abin, 0.0, far_end, rho, w, n_dist, d_max)
-                    _add(row, abin, 0.0, near_end, rho, w, n_dist, d_max)
-                else:
-                    _add(row, abin, near_end, far_end, rho, w, n_dist, d_max)
+        for i in range(starts[g], starts[g + 1]):
+            _reference(out[i], i, starts[g], starts[g + 1], cols, n_angle, directed, n_dist, d_max, point_span)
     return out
 
 
@@ -162,21 +176,26 @@ def _pairwise_sum(a, lo, n):
 def roots(a, b, starts, order, n_angle, directed, n_dist, d_max, point_span):
     """sqrt of the normalised PGHs as rows (n, bins), row order[i] that of sorted segment i: `histograms`, then
     numpy's `h / where(total > 0, total, 1)` and `sqrt` of `pgh.histograms` without blur, fused (the totals by
-    numpy's pairwise sum, so the roots are the numpy path's to the last bit) and without its (n, bins)
-    temporaries."""
-    h = histograms(a, b, starts, n_angle, directed, n_dist, d_max, point_span)
-    n = h.shape[0]
-    bins = h.shape[1] * h.shape[2]
-    flat = h.reshape(n, bins)
+    numpy's pairwise sum, so the roots are the numpy path's to the last bit). Each reference's histogram is
+    built in one small buffer that stays in cache and is normalised straight into its row: no (n, bins)
+    temporary."""
+    n = a.shape[0]
+    na = 2 * n_angle if directed else n_angle + 1
+    bins = na * n_dist
     out = np.empty((n, bins))
-    for i in range(n):
-        row = flat[i]
-        total = 0.0 + _pairwise_sum(row, 0, bins)
-        if not total > 0:
-            total = 1.0
-        dst = out[order[i]]
-        for k in range(bins):
-            dst[k] = math.sqrt(row[k] / total)
+    cols = _columns(a, b)
+    buf = np.empty((na, n_dist))
+    flat = buf.reshape(bins)
+    for g in range(len(starts) - 1):
+        for i in range(starts[g], starts[g + 1]):
+            flat[:] = 0.0
+            _reference(buf, i, starts[g], starts[g + 1], cols, n_angle, directed, n_dist, d_max, point_span)
+            total = 0.0 + _pairwise_sum(flat, 0, bins)
+            if not total > 0:
+                total = 1.0
+            dst = out[order[i]]
+            for k in range(bins):
+                dst[k] = math.sqrt(flat[k] / total)
     return out
 
 
@@ -192,45 +211,48 @@ def _bounds(owner, k):
 
 
 @njit(cache=True)
-def _best(S, i, bounds, best):
-    """best[k] = the largest S[i, r] over the ideal rows r of owner k, rows bounds[k]:bounds[k + 1] (-inf where k
-    has none): a running maximum over each owner's contiguous rows (max is exact: the order does not matter)."""
-    for k in range(len(bounds) - 1):
-        m = -np.inf
-        for r in range(bounds[k], bounds[k + 1]):
-            v = S[i, r]
-            if v > m:
-                m = v
-        best[k] = m
+def _trial_best(root, idx, ideal_t, rows):
+    """For one trial's disturbed rows `idx`: best[i, k] = the largest score of row idx[i] against owner k's ideal
+    rows (rows[k]:rows[k + 1] of `ideal_t`'s columns; -inf where k has none). One matrix product of the trial's
+    rows alone, so the scores do not depend on which other trials share the call; then a running maximum over
+    each owner's contiguous columns (max is exact: the order does not matter)."""
+    S = np.dot(root[idx], ideal_t)
+    best = np.empty((len(idx), len(rows) - 1), dtype=S.dtype)
+    for i in range(len(idx)):
+        for k in range(len(rows) - 1):
+            m = -np.inf
+            for r in range(rows[k], rows[k + 1]):
+                v = S[i, r]
+                if v > m:
+                    m = v
+            best[i, k] = m
+    return best
 
 
 @njit(cache=True)
 def own_scores(root, key, order, bounds, ideal_t, owner, sources, tie):
-    """`pgh._own_scores` a trial at a time (rows `order[bounds[g]:bounds[g + 1]]` are trial g's): each disturbed
-    row's best score among its own source's ideal rows (0 if none), and whether that is the best among every
-    source (within `tie`). The scores of a trial are one matrix product of its rows alone with the ideal rows
-    (`ideal_t`: (bins, n)), so they do not depend on which other trials share the call."""
+    """`pgh._own_scores` a trial at a time (rows `order[bounds[g]:bounds[g + 1]]` are trial g's, scored by
+    `_trial_best`): each disturbed row's best score among its own source's ideal rows (0 if none), and whether
+    that is the best among every source (within `tie`)."""
     M = root.shape[0]
     K = len(sources)
-    best = np.empty(K)
     rows = _bounds(owner, K)
     own = np.zeros(M)
     recog = np.zeros(M, dtype=np.bool_)
     for g in range(len(bounds) - 1):
         idx = order[bounds[g]:bounds[g + 1]]
-        S = np.dot(root[idx], ideal_t)
+        best = _trial_best(root, idx, ideal_t, rows)
         for i in range(len(idx)):
             m = idx[i]
-            _best(S, i, rows, best)
             col = min(np.searchsorted(sources, key[m]), K - 1)
             if sources[col] != key[m]:
                 continue
             other = -1.0
             for k in range(K):
-                if k != col and best[k] > other:
-                    other = best[k]
-            own[m] = best[col]
-            recog[m] = best[col] >= other - tie
+                if k != col and best[i, k] > other:
+                    other = best[i, k]
+            own[m] = best[i, col]
+            recog[m] = best[i, col] >= other - tie
     return own, recog
 
 
@@ -241,17 +263,15 @@ def located_scores(root, L, trial, order, bounds, n_trials, ideal_t, owner, n):
     (float32 products, as float64); and each trial's length (n_trials,)."""
     score = np.zeros((n_trials, n))
     w = np.zeros(n_trials)
-    best = np.empty(n, dtype=ideal_t.dtype)
     rows = _bounds(owner, n)
     for g in range(len(bounds) - 1):
         idx = order[bounds[g]:bounds[g + 1]]
-        S = np.dot(root[idx], ideal_t)
+        best = _trial_best(root, idx, ideal_t, rows)
         for i in range(len(idx)):
             m = idx[i]
-            _best(S, i, rows, best)
             t = trial[m]
             for c in range(n):
-                if best[c] > -np.inf:
-                    score[t, c] += L[m] * np.float64(best[c])
+                if best[i, c] > -np.inf:
+                    score[t, c] += L[m] * np.float64(best[i, c])
             w[t] += L[m]
     return score, w
