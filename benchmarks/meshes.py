@@ -22,6 +22,9 @@ import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from helpers import EYE_RIG  # noqa: E402  (the tests' stereo pair: one rig, written once)
 
 SIZES = (1, 4, 16, 64)  # a uv sphere of (40 x 40) k: about 6,300 k triangles
 
@@ -34,16 +37,7 @@ model crate {{
 }}
 place ball as ball1 at (2.5m, 0, 0.6m)
 place crate as crate1 at (3.6m, 0, 0)
-camera eye {{
-  focal 4mm
-  pixel 0.008mm
-  size (640px, 480px)
-}}
-rig pair {{
-  left eye at (0, 0.05m, 0.8m) looking (1, 0, -0.15)
-  right eye at (0, -0.05m, 0.8m) looking (1, 0, -0.15)
-}}
-path approach {{
+""" + EYE_RIG.replace("{", "{{").replace("}", "}}") + """path approach {{
   straight from (0, 0) to (1m, 0) step 0.5m
 }}
 """

@@ -209,7 +209,8 @@ def test_installed_package_runs_outside_the_checkout(tmp_path):
     assert json.loads(r.stdout)["$id"] == "urn:wiredsl:schema:scene:1"
 
 
-_IMPORTED = """
+# Runs a `wiredsl` command in the probe's process (a probe prints what it saw after it)
+_RUN = """
 import json, sys
 from wiredsl.cli import main
 try:
@@ -217,8 +218,8 @@ try:
 except SystemExit as e:
     if e.code:
         raise
-print(json.dumps(sorted(sys.modules)))
 """
+_IMPORTED = _RUN + "print(json.dumps(sorted(sys.modules)))\n"
 
 # Never on the lab's check or one-trial build: the optional extras, the readers of files the lab does not have,
 # and the parts of wiredsl other commands use (each costs the cold start its import; see benchmarks/cold_start.py).
@@ -250,17 +251,10 @@ def test_the_labs_check_and_build_import_only_what_they_use(args, absent, tmp_pa
     assert not loaded, f"`wiredsl {' '.join(args)}` imported {loaded}"
 
 
-_VALIDATED = """
-import json, sys
+_VALIDATED = _RUN + """
 from pydantic._internal._mock_val_ser import MockValSer
-from wiredsl.cli import main
 from wiredsl.effects.base import Params
 from wiredsl.scene import Node
-try:
-    main(sys.argv[1:], standalone_mode=False)
-except SystemExit as e:
-    if e.code:
-        raise
 def every(c):
     for s in c.__subclasses__():
         yield s

@@ -14,6 +14,7 @@ from helpers import compile_text, errors_of
 
 from wiredsl.cli import main
 from wiredsl.diagnostics import WiredslError
+from wiredsl.io import sources
 from wiredsl.language import ast
 from wiredsl.language.compile import compile_file
 from wiredsl.language.compile_camera import camera_rotation, rotation
@@ -63,7 +64,7 @@ def test_symlink_loop_is_a_diagnostic(tmp_path):
 
 
 def test_a_file_over_the_size_limit_is_refused_before_it_is_read(tmp_path, monkeypatch):
-    monkeypatch.setattr(ast, "MAX_SOURCE_BYTES", 1000)
+    monkeypatch.setattr(sources, "MAX_SOURCE_BYTES", 1000)
     (tmp_path / "big.wd").write_text("# " + "x" * 2000 + "\n")
     (tmp_path / "s.wd").write_text('wiredsl 1\ninclude "big.wd"\n')
     (d,) = ast.load(tmp_path / "s.wd").errors  # reported with the rest of the file's errors

@@ -278,14 +278,13 @@ def test_a_face_outline_lies_where_opencv_projects_it_under_a_lens(tmp_path, len
 
 
 def test_render_is_its_own_module_that_the_cli_only_registers():
-    """cli.py registers the command; its options and body live in io/render_cli.py (as verify's in verify/cli.py)."""
+    """cli.py registers the command; its options and body live in render_cli.py (as verify's in verify/cli.py)."""
     import inspect
 
-    from wiredsl import cli
-    from wiredsl.io import render_cli
+    from wiredsl import cli, render_cli
 
     assert cli.main.commands["render"] is render_cli.render
-    assert render_cli.render.callback.__module__ == "wiredsl.io.render_cli"
+    assert render_cli.render.callback.__module__ == "wiredsl.render_cli"
     assert "--supersample" not in inspect.getsource(cli)
     r = CliRunner().invoke(cli.main, ["render", "--help"])
     assert r.exit_code == 0 and "--supersample" in r.output and "--corners" in r.output

@@ -31,16 +31,23 @@ def random_rig(rng):
     return out
 
 
+def noisy_views(rng, n: int, noise: float):
+    """A random rig and intrinsics, n points in the cube around (0, 0, 5), and their pixels with Gaussian noise of
+    `noise` px: K, P1, P2, X, x1, x2."""
+    P1, P2 = random_rig(rng)
+    K = np.array([[rng.uniform(300, 900), 0, 320], [0, rng.uniform(300, 900), 240], [0, 0, 1.0]])
+    X = rng.uniform(-1, 1, (n, 3)) + [0, 0, 5]
+    x1 = (K @ P1 @ np.column_stack([X, np.ones(n)]).T).T
+    x2 = (K @ P2 @ np.column_stack([X, np.ones(n)]).T).T
+    x1 = x1[:, :2] / x1[:, 2:] + rng.normal(0, noise, (n, 2))
+    x2 = x2[:, :2] / x2[:, 2:] + rng.normal(0, noise, (n, 2))
+    return K, P1, P2, X, x1, x2
+
+
 def test_triangulation_agrees_with_opencv_on_random_rigs_and_noisy_points():
     rng = np.random.default_rng(0)
     for _ in range(20):
-        P1, P2 = random_rig(rng)
-        K = np.array([[rng.uniform(300, 900), 0, 320], [0, rng.uniform(300, 900), 240], [0, 0, 1.0]])
-        X = rng.uniform(-1, 1, (50, 3)) + [0, 0, 5]
-        x1 = (K @ P1 @ np.column_stack([X, np.ones(50)]).T).T
-        x2 = (K @ P2 @ np.column_stack([X, np.ones(50)]).T).T
-        x1 = x1[:, :2] / x1[:, 2:] + rng.normal(0, 2, (50, 2))  # noise: the least-squares solutions must agree
-        x2 = x2[:, :2] / x2[:, 2:] + rng.normal(0, 2, (50, 2))
+        K, P1, P2, X, x1, x2 = noisy_views(rng, 50, 2)  # noise: the least-squares solutions must agree
         ours, ok = triangulate(K @ P1, K @ P2, x1, x2)
         h = cv2.triangulatePoints(K @ P1, K @ P2, x1.T.copy(), x2.T.copy())
         theirs = (h[:3] / h[3]).T
@@ -65,13 +72,7 @@ def test_compiled_triangulation_is_the_svds_point_to_rounding_against_opencv_and
     mpmath = pytest.importorskip("mpmath")
     rng = np.random.default_rng(7)
     for _ in range(10):
-        P1, P2 = random_rig(rng)
-        K = np.array([[rng.uniform(300, 900), 0, 320], [0, rng.uniform(300, 900), 240], [0, 0, 1.0]])
-        X = rng.uniform(-1, 1, (200, 3)) + [0, 0, 5]
-        x1 = (K @ P1 @ np.column_stack([X, np.ones(200)]).T).T
-        x2 = (K @ P2 @ np.column_stack([X, np.ones(200)]).T).T
-        x1 = x1[:, :2] / x1[:, 2:] + rng.normal(0, noise, (200, 2))
-        x2 = x2[:, :2] / x2[:, 2:] + rng.normal(0, noise, (200, 2))
+        K, P1, P2, X, x1, x2 = noisy_views(rng, 200, noise)
         fast, ok_fast = triangulate(K @ P1, K @ P2, x1, x2, engine="numba")
         ref, ok_ref = triangulate(K @ P1, K @ P2, x1, x2, engine="numpy")
         h = cv2.triangulatePoints(K @ P1, K @ P2, x1.T.copy(), x2.T.copy())

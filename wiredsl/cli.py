@@ -17,7 +17,7 @@ from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, __version__, install_hint
 from wiredsl.cli_base import (EXIT_INVALID, auto_visibility, diagnostics_option, folder_name, guarded, report,
                               setup_errors)
 from wiredsl.export import export
-from wiredsl.io.render_cli import render
+from wiredsl.render_cli import render
 from wiredsl.verify.cli import verify
 
 

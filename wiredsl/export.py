@@ -115,7 +115,7 @@ def write(out, scene, fmt: str, pipeline, n_trials: int, seed: int, period: floa
     from wiredsl.io.files import json_text, output_folder
 
     try:
-        src, each = observations.trials(scene, pipeline, n_trials, seed, only=only_trial, visibility=visibility)
+        src, each = trials(scene, pipeline, n_trials, seed, only=only_trial, visibility=visibility)
         if fmt == "colmap" and not undistort:
             for side in observations.CAMERAS:
                 export_colmap.colmap_camera(src.cameras[side])
@@ -159,6 +159,36 @@ def write(out, scene, fmt: str, pipeline, n_trials: int, seed: int, period: floa
         notes.append(f"{lost} corner observation{'s' * (lost != 1)} whose pixel has no ray in the lens's valid "
                      "region left out (--undistort)")
     return notes
+
+
+def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto", only: int | None = None,
+           visibility: str = "scene") -> tuple:
+    """The shared observations.Source and each trial's views (observations.Trial), trial by trial (a batch of
+    trials in memory at a time). Here, not in io/: it runs the simulation (api, run), which io must not import.
+
+    `pipeline` None: the ideal projection (one trial, numbered 0), whatever the scene's default pipeline.
+    `only`: trial `only` of the run alone (its own draws: what `build --trial K` replays). `visibility`: the
+    projection's mode (scene, exact or all; `wiredsl export` resolves auto as build does)."""
+    from wiredsl import run as runs
+    from wiredsl.api import _batches
+    from wiredsl.engine.simulate import Options
+    from wiredsl.engine.world import build_world
+    from wiredsl.io.observations import CAMERAS, camera_from_world, source, split
+    from wiredsl.scene import Pipeline
+
+    world = build_world(scene)
+    src = source(scene, world)
+    chosen = pipeline if pipeline is not None else Pipeline(name="ideal", stages=[])
+    opts = Options(poses=runs.check_poses(scene, None), visibility=visibility)
+    fid_corner = {int(f): i for i, f in enumerate(world.corner_fid)}
+
+    def each():
+        nominal = {(p, s): camera_from_world(src, p, s) for p in src.poses for s in CAMERAS}
+        for batch in _batches(scene, n_trials if pipeline is not None else 1, seed, chosen, opts, engine, world=world,
+                              only=only if pipeline is not None else None):
+            yield from split(batch, nominal, fid_corner)
+
+    return src, each()
 
 
 def _versions(fmt: str) -> dict:

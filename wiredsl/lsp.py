@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, source_lines
+from wiredsl.io import sources
 from wiredsl.language import ast
 from wiredsl.language.bind import bind
 from wiredsl.language.statements import CONTEXTS, Sig, takes
@@ -77,7 +78,7 @@ def analyse(path: str, text: str) -> Index:
     """Diagnostics and symbols of a document's current text (its includes read from disk)."""
     from wiredsl.language.compile import compile_program
 
-    shown = ast.display_path(Path(path))
+    shown = sources.display_path(Path(path))
     index = Index(shown, text)
     try:
         program = ast.load(path, text=text)
@@ -495,7 +496,7 @@ def serve() -> None:
 
     def where(uri: str, pos: T.Position) -> tuple[Index | None, str, int, int]:
         index = indexes.get(uri)
-        path = index.path if index else ast.display_path(Path(doc_path(uri)))
+        path = index.path if index else sources.display_path(Path(doc_path(uri)))
         return index, path, pos.line + 1, pos.character + 1
 
     @server.feature(T.TEXT_DOCUMENT_COMPLETION, T.CompletionOptions(trigger_characters=[" ", "."]))

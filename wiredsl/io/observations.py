@@ -1,6 +1,7 @@
 """A run's observations view by view, for the exporters (COLMAP, ROS 2 bags): what each trial saw of each pose.
 
-The features come from the public API's batches (`wiredsl.api` over `wiredsl.run`), never re-derived: corners
+The features come from the public API's batches (`wiredsl.api` over `wiredsl.run`; `wiredsl.export.trials` runs
+them and `split` turns each batch into Trials), never re-derived: corners
 (pixels and feature ids) and strokes (polylines in pixels). Each view also carries its *nominal* camera and pose:
 the camera the scene declares and the robot's path pose, which is what a researcher's calibration file and
 ground truth say, whatever calibration_error drew for a trial.
@@ -88,36 +89,9 @@ def camera_from_world(src: Source, pose: int, side: str) -> tuple[np.ndarray, np
     return np.asarray(R, dtype=float), np.asarray(t, dtype=float)
 
 
-def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto", only: int | None = None,
-           visibility: str = "scene") -> tuple[Source, Iterator[Trial]]:
-    """The shared Source and each trial's views, trial by trial (a batch of trials in memory at a time).
-
-    `pipeline` None: the ideal projection (one trial, numbered 0), whatever the scene's default pipeline.
-    `only`: trial `only` of the run alone (its own draws: what `build --trial K` replays). `visibility`: the
-    projection's mode (scene, exact or all; `wiredsl export` resolves auto as build does)."""
-    from wiredsl import run as runs
-    from wiredsl.api import _batches
-    from wiredsl.engine.simulate import Options
-    from wiredsl.engine.world import build_world
-    from wiredsl.scene import Pipeline
-
-    world = build_world(scene)
-    src = source(scene, world)
-    chosen = pipeline if pipeline is not None else Pipeline(name="ideal", stages=[])
-    opts = Options(poses=runs.check_poses(scene, None), visibility=visibility)
-    fid_corner = {int(f): i for i, f in enumerate(world.corner_fid)}
-
-    def each() -> Iterator[Trial]:
-        nominal = {(p, s): camera_from_world(src, p, s) for p in src.poses for s in CAMERAS}
-        for batch in _batches(scene, n_trials if pipeline is not None else 1, seed, chosen, opts, engine, world=world,
-                              only=only if pipeline is not None else None):
-            yield from _split(batch, nominal, fid_corner)
-
-    return src, each()
-
-
-def _split(batch, nominal: dict, fid_corner: dict) -> Iterator[Trial]:
-    """A Batch's arrays as one Trial a trial, views in (pose, camera) order."""
+def split(batch, nominal: dict, fid_corner: dict) -> Iterator[Trial]:
+    """A Batch's arrays as one Trial a trial, views in (pose, camera) order (`nominal`: each (pose, side)'s
+    camera_from_world; `fid_corner`: feature id -> corner row)."""
     corners, crows = batch["corners"], batch["corner_rows"]
     pts, start, strokes = batch["pts"], batch["start"], batch["strokes"]
     views = batch["views"]

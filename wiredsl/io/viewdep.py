@@ -20,7 +20,7 @@ def of_scene(scene: Scene) -> dict[str, list[str]] | None:
 def read(path: Path, scene: Scene) -> dict[str, list[str]]:
     """View-point -> visible feature ids, from a view-dependency file (schema/viewdep.schema.json)."""
     from wiredsl.io.schema import problems
-    from wiredsl.language.ast import decode, display_path, read_bytes
+    from wiredsl.io.sources import decode, display_path, read_bytes
 
     where = Span(display_path(path), 1, 1, 1, 1)
     try:

@@ -18,6 +18,7 @@ import pydantic
 from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, did_you_mean
 from wiredsl.effects import REGISTRY
 from wiredsl.io.files import printable_path
+from wiredsl.io import sources
 from wiredsl.language import ast
 from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
 from wiredsl.language.bind import Bound, bind
@@ -663,13 +664,13 @@ class Compiler(CameraCompiler):
         target = FsPath(sb.stmt.span.file).parent / sb.pos(0)
         where = f"read by path '{b.name}' at {sb.stmt.span}"
         try:
-            text = ast.decode(ast.read_bytes(target, "trajectory file", file_arg.span), target, "trajectory file",
-                              file_arg.span)
+            text = sources.decode(sources.read_bytes(target, "trajectory file", file_arg.span), target,
+                                  "trajectory file", file_arg.span)
             times = None
             if sb.has("times"):
                 t_target = FsPath(sb.stmt.span.file).parent / sb.get("times")
-                t_text = ast.decode(ast.read_bytes(t_target, "times file", sb.span("times")), t_target,
-                                    "times file", sb.span("times"))
+                t_text = sources.decode(sources.read_bytes(t_target, "times file", sb.span("times")), t_target,
+                                        "times file", sb.span("times"))
                 try:
                     times = trajectory.read_times(t_text)
                 except trajectory.TrajectoryError as exc:
@@ -707,7 +708,7 @@ class Compiler(CameraCompiler):
             return self._trajectory_error(exc, target, text, where, sb.span("every") if sb.has("every")
                                           else file_arg.span)
         if len(P) == 0:
-            self.out.error("E145", f"trajectory file {ast.display_path(target)}: no pose in the window",
+            self.out.error("E145", f"trajectory file {sources.display_path(target)}: no pose in the window",
                            sb.span("from") if sb.has("from") else file_arg.span)
             return None
         if len(P) > MAX_POSES:
@@ -716,7 +717,7 @@ class Compiler(CameraCompiler):
             return None
         R_wr, t_wr = trajectory.world_from_robot(P, R, body, (R_sf, t_sf))
         if not np.all(np.abs(t_wr) <= MAX_MAGNITUDE):
-            self.out.error("E110", f"trajectory file {ast.display_path(target)} places the robot beyond "
+            self.out.error("E110", f"trajectory file {sources.display_path(target)} places the robot beyond "
                                    f"{MAX_MAGNITUDE:g} m", file_arg.span)
             return None
         for message, hint in trajectory.implausible(R_wr, t_wr):
@@ -731,7 +732,7 @@ class Compiler(CameraCompiler):
     def _trajectory_error(self, exc, target: FsPath, text: str, where: str, span: Span) -> None:
         """Report a TrajectoryError at its line of the file, else at `span` of the statement."""
         if exc.line is None:
-            self.out.error("E145", f"trajectory file {ast.display_path(target)}: {exc}", span)
+            self.out.error("E145", f"trajectory file {sources.display_path(target)}: {exc}", span)
         else:
             self.out.extend([Diagnostic("error", "E145", str(exc), _line_span(target, text, exc.line),
                                         notes=(where,))])
@@ -766,7 +767,8 @@ class Compiler(CameraCompiler):
         span = sb.span("kalibr")
         target = FsPath(sb.stmt.span.file).parent / sb.get("kalibr")
         try:
-            doc = _yaml(ast.decode(ast.read_bytes(target, "Kalibr camchain", span), target, "Kalibr camchain", span))
+            doc = _yaml(sources.decode(sources.read_bytes(target, "Kalibr camchain", span), target, "Kalibr camchain",
+                                       span))
         except WiredslError as err:
             self.out.extend(err.diagnostics)
             return None
@@ -891,7 +893,7 @@ def board_model(name: str, board: Board) -> Model:
 def _line_span(path: FsPath, text: str, line: int) -> Span:
     """The whole of one line of a file read by a statement."""
     lines = text.splitlines()
-    return Span(ast.display_path(path), line, 1, line, len(lines[line - 1]) + 1 if line <= len(lines) else 2)
+    return Span(sources.display_path(path), line, 1, line, len(lines[line - 1]) + 1 if line <= len(lines) else 2)
 
 
 def _ignore(b: Bound) -> None:
@@ -943,7 +945,7 @@ def read_mesh_features(fb: Bound, units: dict[str, str], out: Collector):
     budget = budget if budget == "auto" else int(budget)
     try:
         target = FsPath(fb.stmt.span.file).parent / path
-        data = ast.read_bytes(target, "mesh file", where, limit=mesh_io.MAX_MESH_BYTES)
+        data = sources.read_bytes(target, "mesh file", where, limit=mesh_io.MAX_MESH_BYTES)
         kind = mesh_io.FORMATS.get(target.suffix.lower(), "")
         key = mesh_io.features_key(data, kind, (scale, up, crease, origin, shortest, budget))
         found = mesh_io.load_features(key)

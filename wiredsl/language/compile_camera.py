@@ -14,7 +14,7 @@ from pathlib import Path as FsPath
 import numpy as np
 
 from wiredsl.diagnostics import Collector, Span, WiredslError, did_you_mean
-from wiredsl.language import ast
+from wiredsl.io import sources
 from wiredsl.language.bind import Bound, bind
 from wiredsl.language.statements import MAX_MAGNITUDE
 from wiredsl.scene import CALIBRATION_PARAMETERS, Calibration, Camera, Mount, Rig, checked, trusted
@@ -118,7 +118,7 @@ class CameraCompiler:
             target = FsPath(sb.stmt.span.file).parent / path
             if (target, fmt) in cache:
                 return cache[target, fmt]
-            ast.read_bytes(target, "calibration file", path_span)  # a regular file, not a FIFO (would block)
+            sources.read_bytes(target, "calibration file", path_span)  # a regular file, not a FIFO (would block)
             cache[target, fmt] = read(target, fmt)
             return cache[target, fmt]
         except WiredslError as err:
@@ -639,12 +639,12 @@ def read_matrix_file(path: FsPath, n: int, span: Span, out: Collector) -> list[l
     """A matrix from a file: plain rows of numbers, or TINA's covariance format
     (n, a label, the n x n matrix, then the n mean parameters)."""
     try:
-        text = ast.read_bytes(path, "calibration file", span).decode("utf-8")
+        text = sources.read_bytes(path, "calibration file", span).decode("utf-8")
     except WiredslError as err:
         out.extend(err.diagnostics)
         return None
     except UnicodeDecodeError as exc:
-        out.error("E010", f"calibration file {ast.display_path(path)} is not UTF-8 text ({exc.reason} at byte "
+        out.error("E010", f"calibration file {sources.display_path(path)} is not UTF-8 text ({exc.reason} at byte "
                           f"{exc.start})", span)
         return None
     words = [w for line in text.splitlines() for w in line.partition("#")[0].split()]
@@ -662,7 +662,7 @@ def read_matrix_file(path: FsPath, n: int, span: Span, out: Collector) -> list[l
                 raise ValueError(f"expected {n} x {n} = {n * n} numbers for the {n} parameters of 'order', "
                                  f"found {len(nums)}")
     except ValueError as exc:
-        out.error("E141", f"{ast.display_path(path)}: {exc}", span)
+        out.error("E141", f"{sources.display_path(path)}: {exc}", span)
         return None
     return [nums[i * size:(i + 1) * size] for i in range(size)]
 
