@@ -283,7 +283,7 @@ def test_render_is_its_own_module_that_the_cli_only_registers():
 
     from wiredsl import cli, render_cli
 
-    assert cli.main.commands["render"] is render_cli.render
+    assert cli.main.get_command(None, "render") is render_cli.render
     assert render_cli.render.callback.__module__ == "wiredsl.render_cli"
     assert "--supersample" not in inspect.getsource(cli)
     r = CliRunner().invoke(cli.main, ["render", "--help"])

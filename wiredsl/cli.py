@@ -16,12 +16,29 @@ import click
 from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, __version__, install_hint
 from wiredsl.cli_base import (EXIT_INVALID, auto_visibility, diagnostics_option, folder_name, guarded, report,
                               setup_errors)
-from wiredsl.export import export
-from wiredsl.render_cli import render
-from wiredsl.verify.cli import verify
+
+# Commands in modules of their own, imported when they run or help is asked for (their options cost the lab's
+# build and check some 3 ms CPU of click's decorators): name -> (module, attribute).
+LAZY_COMMANDS = {"export": ("wiredsl.export", "export"), "render": ("wiredsl.render_cli", "render"),
+                 "verify": ("wiredsl.verify.cli", "verify")}
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class _Group(click.Group):
+    """click's group, with LAZY_COMMANDS listed always and imported on first use."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted({*super().list_commands(ctx), *LAZY_COMMANDS})
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name in LAZY_COMMANDS and name not in self.commands:
+            import importlib
+
+            module, attribute = LAZY_COMMANDS[name]
+            self.add_command(getattr(importlib.import_module(module), attribute), name)
+        return super().get_command(ctx, name)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="wiredsl")
 def main() -> None:
     """Simulate what a stereo robot's vision system sees of a wire-frame world."""
@@ -866,8 +883,3 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
                        "indices (table.csv holds its statistics)", err=True)
     click.echo(f"wrote {out}: " + ", ".join(written), err=True)
 
-
-# Commands in modules of their own (importing nothing heavy), registered here.
-main.add_command(render)
-main.add_command(verify)
-main.add_command(export)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -14,9 +15,12 @@ from wiredsl.engine.simulate import PoseResult, gc_paused
 from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
 from wiredsl.io import layout
-from wiredsl.io.features import Features, SceneRef, StageRecord
+from wiredsl.io.manifest import SceneRef, StageRecord
 from wiredsl.io.files import json_text, printable_path, publish, require_finite
 from wiredsl.scene import SCHEMA_VERSION, Scene, checked, dumped
+
+if TYPE_CHECKING:  # a build writes its dump from arrays: the dump's models are imported where they validate
+    from wiredsl.io.features import Features
 
 DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable across platforms
 
@@ -146,6 +150,8 @@ def _transform(pose: tuple) -> tuple | None:
 def features(scene: Scene, world: World, results: list[PoseResult], *, pipeline: str | None = None,
              stages: list[StageRecord] = (), seed: int | None = None, trial: int | None = None) -> Features:
     """The features dump as its pydantic model (validated): `features_doc` read back."""
+    from wiredsl.io.features import Features
+
     doc = features_doc(scene, world, results, pipeline=pipeline, stages=stages, seed=seed, trial=trial)
     return Features.model_validate_json(_dumps(doc, None))
 
@@ -173,7 +179,7 @@ def to_json(doc, indent: int | None = 1) -> str:
 def manifest_doc(**fields) -> dict:
     """`Manifest(**fields).model_dump(mode="json")`, without validating or dumping through pydantic where the
     values are plain (`scene.checked`, `scene.dumped`)."""
-    from wiredsl.io.features import Manifest, ManifestStage
+    from wiredsl.io.manifest import Manifest, ManifestStage
 
     stages = [checked(ManifestStage, **s) if type(s) is dict else s for s in fields.pop("stages", [])]
     return dumped(checked(Manifest, stages=stages, **fields))

@@ -1,4 +1,6 @@
-"""The feature dump (`features.json`): what `wiredsl build` writes, as pydantic models."""
+"""The feature dump (`features.json`) and the view-dependency file, as pydantic models: their schemas, and the
+readers and `emit.features` that validate. A build writes its dump from arrays (io/emit.py) and does not import
+this module; what it makes as models (the manifest, the scene reference) is in io/manifest.py."""
 
 from __future__ import annotations
 
@@ -6,13 +8,8 @@ from typing import Any, Literal
 
 from pydantic import Field, model_serializer
 
+from wiredsl.io.manifest import Manifest, ManifestStage, Node, SceneRef, StageRecord  # noqa: F401 - re-exported
 from wiredsl.scene import SCHEMA_VERSION, Camera, Mat34, Vec2, Vec3, omitted_when_none
-from wiredsl.scene import Node as SceneNode
-
-
-class Node(SceneNode):
-    """The output documents' base (validators built when first used, as the scene's nodes': a build writes its dump
-    from arrays, io/emit.py, and only makes a manifest)."""
 
 
 class Feature(Node):
@@ -92,17 +89,6 @@ class PoseViews(Node):
     _dump = omitted_when_none("transform")
 
 
-class SceneRef(Node):
-    name: str
-    file: str
-    sha256: str
-
-
-class StageRecord(Node):
-    effect: str
-    params: dict[str, float]
-
-
 class Features(Node):
     """A dump of the (ideal or disturbed) feature sets of every pose."""
 
@@ -127,31 +113,3 @@ class ViewDependency(Node):
     threshold: float = Field(ge=0, le=1, description="fraction of a feature's samples that must be seen")
     eye_height: float = Field(description="metres above the floor the view-points see from")
     viewpoints: dict[str, list[str]]
-
-
-class ManifestStage(Node):
-    effect: str
-    params: dict[str, float]
-    measured: dict[str, Any] = Field(description="each effect's measured statistic beside the declared value")
-
-
-class Manifest(Node):
-    """What a build ran (`manifest.json`, and the `manifest` member of features.npz)."""
-
-    document: Literal["manifest"] = "manifest"
-    schema_version: Literal["1"] = SCHEMA_VERSION
-    tool_version: str
-    scene: SceneRef
-    pipeline: str | None = None
-    seed: int | None = Field(None, description="the seed of every random stream; null for the ideal projection")
-    trials: int = Field(ge=1)
-    first_trial: int = Field(ge=0)
-    visibility: str = Field("scene", description="scene (the nearest view-point's list), exact or all")
-    stages: list[ManifestStage] = []
-    ran: dict[str, int] = Field({}, description="how often each piece of work ran (the run's trace)")
-    engine: Literal["kernel", "numpy"] = Field("numpy", description="the Monte-Carlo engine that ran the trials "
-                                                "(the same draws; a replay is byte-identical with the same one)")
-    engines: dict[str, Literal["kernel", "numpy"]] = Field(
-        {}, description="the engine that ran each stage: a stage that has no compiled kernel (an installed "
-                        "plug-in's, say) and the stages after it run on numpy, those before it compiled")
-    warnings: list[str] = []

@@ -19,8 +19,8 @@ def _model(name: str) -> type[BaseModel]:
     if name in ("study", "study-manifest"):
         from wiredsl.study.report import StudyManifest, StudyTable
         return StudyTable if name == "study" else StudyManifest
-    from wiredsl.io import features
-    return {"features": features.Features, "viewdep": features.ViewDependency, "manifest": features.Manifest}[name]
+    from wiredsl.io import features, manifest
+    return {"features": features.Features, "viewdep": features.ViewDependency, "manifest": manifest.Manifest}[name]
 
 
 def _scene_with_stages() -> type[BaseModel]:

@@ -20,7 +20,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from wiredsl import __version__
-from wiredsl.io.features import SceneRef
+from wiredsl.io.manifest import SceneRef
 from wiredsl.scene import Study
 from wiredsl.study import design
 
