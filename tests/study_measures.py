@@ -50,3 +50,26 @@ class SlowKept(Kept):
 
         time.sleep(0.02)
         return super().measure(params, prepared, pose, disturbed, n_trials)
+
+
+class SignalledKept(Kept):
+    """`kept` whose first call sends SIGTERM to its own process and then acts as compiled code may when the
+    signal's exception lands in it: wraps it in a SystemError ("wrap") or drops it ("swallow")."""
+
+    how: ClassVar[str] = "wrap"
+
+    @classmethod
+    def measure(cls, params, prepared, pose, disturbed, n_trials: int) -> dict[str, np.ndarray]:
+        import os
+        import signal
+        import time
+
+        if not getattr(cls, "sent", False):
+            cls.sent = True
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(30)  # the handler raises in here
+            except SystemExit as exc:
+                if cls.how == "wrap":
+                    raise SystemError("returned a result with an exception set") from exc
+        return super().measure(params, prepared, pose, disturbed, n_trials)

@@ -315,6 +315,38 @@ def test_study_killed_by_sigterm_resumes_to_the_uninterrupted_table(scene, scene
         assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes()
 
 
+SIGNALLED = """import sys
+sys.path.insert(0, "tests")
+import study_measures
+from wiredsl.language import compile_study
+compile_study.measure_registry = lambda: study_measures.REGISTRY
+from wiredsl.language.compile import compile_file
+from wiredsl.study import run_study
+
+study_measures.SignalledKept.how = sys.argv[3]
+scene = compile_file(sys.argv[1])[0]
+run_study(scene, scene.study("shift"), sys.argv[2], executor="inprocess", registry={"kept": study_measures.SignalledKept},
+          shard_trials=2)
+"""
+
+
+@pytest.mark.parametrize(("how", "journalled"), [("wrap", 0), ("swallow", 1)])
+def test_sigterm_landing_in_code_that_wraps_or_drops_it_still_stops_the_study(scene_file, tmp_path, how, journalled):
+    """CI once saw numba's unpickling callback turn the SIGTERM's SystemExit into a SystemError: exit 1 and a
+    traceback. Wrapped, the study stops at once; dropped, after the shard it landed in is journalled."""
+    import signal
+    import subprocess
+    import sys
+
+    script = tmp_path / "signalled.py"
+    script.write_text(SIGNALLED)
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, str(script), str(scene_file), str(out), how], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM and "Traceback" not in proc.stderr, proc.stderr
+    assert len(journal.replay(out)) == journalled and not (out / "table.csv").exists()
+
+
 def test_weighted_statistics_leave_out_views_without_a_value():
     from wiredsl.study import report
 

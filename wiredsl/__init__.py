@@ -19,6 +19,16 @@ def install_hint(extra: str) -> str:
     return f"pip install '.[{extra}]' in wiredsl's checkout"
 
 
+def exception_chain(exc: BaseException | None):
+    """exc and the exceptions it was raised from or during, outermost first: where a signal's exception ended
+    up when compiled code it landed in wrapped it (in a SystemError)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        yield exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+
+
 _API = ("compile", "simulate", "Simulator", "Batch", "CameraAt", "CompileError", "CompileWarning", "PluginError",
         "Measure", "Effect")
 __all__ = ["load", *_API]

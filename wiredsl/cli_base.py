@@ -53,13 +53,9 @@ def _stop(signum: int, frame) -> None:
 
 def _stop_in(exc: BaseException | None) -> BaseException | None:
     """The Stopped or KeyboardInterrupt an exception was raised from or during, if any."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, (Stopped, KeyboardInterrupt)):
-            return exc
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return None
+    from wiredsl import exception_chain
+
+    return next((e for e in exception_chain(exc) if isinstance(e, (Stopped, KeyboardInterrupt))), None)
 
 
 def _exit_stopped(exc: BaseException) -> None:

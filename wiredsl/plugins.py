@@ -215,22 +215,29 @@ def call(kind: str, name: str, registry: Mapping, doing: str, fn, *args, where=N
 
 
 def _plugins_fault(exc: BaseException) -> bool:
-    """Whether an exception out of a plug-in's code is the plug-in's: anything but a signal's unwinding (wiredsl's
-    SIGINT / SIGTERM handler raises a BaseException of its own) and, where Python's own SIGINT handler is installed,
-    a KeyboardInterrupt (which may be the user's Ctrl-C). Under the command line SIGINT is wiredsl's, so a
-    KeyboardInterrupt raised there is the plug-in's."""
+    """Whether an exception out of a plug-in's code is the plug-in's: not if a signal's unwinding is in its chain
+    (wiredsl's SIGINT / SIGTERM handlers raise their own; compiled code the signal landed in may have wrapped it in
+    a SystemError), nor, where Python's own SIGINT handler is installed, a KeyboardInterrupt (which may be the
+    user's Ctrl-C). Under the command line SIGINT is wiredsl's, so a KeyboardInterrupt raised there is the
+    plug-in's."""
+    from wiredsl import exception_chain
+
+    return not any(_unwinding(e) for e in exception_chain(exc))
+
+
+def _unwinding(exc: BaseException) -> bool:
     import signal
 
     if getattr(exc, "signal_unwinding", False):  # a study's SIGTERM handler (study/executors.py)
-        return False
-    if isinstance(exc, (Exception, SystemExit)):
         return True
+    if isinstance(exc, (Exception, SystemExit)):
+        return False
     if isinstance(exc, KeyboardInterrupt):
         try:
-            return signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+            return signal.getsignal(signal.SIGINT) is signal.default_int_handler
         except ValueError:  # (not the main interpreter)
-            return False
-    return False
+            return True
+    return True  # the command line's Stopped
 
 
 def _said(exc: BaseException) -> str:

@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from wiredsl import install_hint
+from wiredsl import exception_chain, install_hint
 from wiredsl.study.shards import Job, run_chunk
 
 EXECUTORS = ("processes", "inprocess", "dask")
@@ -44,29 +44,50 @@ def execute(jobs: Sequence[Job], executor: str, done: Done, workers: int | None 
     """Run every job, calling done(job, arrays) as each finishes."""
     if not jobs:
         return
-    with _terminable():
-        _execute(jobs, executor, done, workers, scheduler)
+    with _terminable() as stopping:
+        def journalled(job: Job, arrays: dict[str, np.ndarray]) -> None:
+            done(job, arrays)
+            stopping()  # a SIGTERM that compiled code swallowed stops the study here, between shards
+
+        _execute(jobs, executor, journalled, workers, scheduler)
+        stopping()
 
 
 @contextlib.contextmanager
 def _terminable():
-    """SIGTERM unwinds like Ctrl-C: workers are shut down and the finished shards stay (exit status 143)."""
+    """SIGTERM unwinds like Ctrl-C: workers are shut down and the finished shards stay (exit status 143).
+
+    The handler raises where the signal lands. Landing inside a callback from compiled code (numba calls back
+    into Python to unpickle), the exit comes out wrapped in a SystemError, or not at all if the callback's
+    caller drops it; so the context re-raises the SystemExit found in the chain, and yields a check that
+    raises it between shards if it went missing."""
     import signal
     import threading
 
+    received: list[SystemExit] = []
+
+    def stopping() -> None:
+        if received:
+            raise received[0]
+
     if threading.current_thread() is not threading.main_thread() or \
             signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
-        yield
+        yield stopping
         return
 
     def stop(signum, frame):
         exc = SystemExit(128 + signum)
         exc.signal_unwinding = True  # not a plug-in's SystemExit (wiredsl.plugins.call lets it through)
+        received.append(exc)
         raise exc
 
     previous = signal.signal(signal.SIGTERM, stop)
     try:
-        yield
+        yield stopping
+    except Exception as exc:  # the SystemExit wrapped by the compiled code it landed in
+        if received and any(e is received[0] for e in exception_chain(exc)):
+            raise received[0] from None
+        raise
     finally:
         signal.signal(signal.SIGTERM, previous)
 
