@@ -28,7 +28,7 @@ LAB, _, _ = compile_file("scenes/lab.wd")
 WORLD = build_world(LAB)
 ZERO = {"edge_loss": {"fraction": 0}, "lateral_shift": {"range": 0}, "approx_error": {"sigma": 0},
         "corner_loss": {"keep": 1}, "corner_mismatch": {"fraction": 0}, "stereo_mismatch": {"band": 0, "fraction": 0},
-        "calibration_error": {"sigma": 0}}
+        "calibration_error": {"sigma": 0}, "corner_error": {"sigma": 0}}
 IMAGE_EFFECTS = [n for n in REGISTRY if n != "calibration_error"]
 
 
@@ -82,7 +82,7 @@ def test_same_seed_same_output_other_seed_other_output(name):
     a = effect.apply(params, s, ctx(seed=11, side="right", trials=3))
     b = effect.apply(params, s, ctx(seed=11, side="right", trials=3))
     assert same(a, b)
-    if name in ("edge_loss", "lateral_shift", "approx_error", "corner_loss"):
+    if name in ("edge_loss", "lateral_shift", "approx_error", "corner_loss", "corner_error"):
         assert not same(a, effect.apply(params, s, ctx(seed=12, side="right", trials=3)))
 
 
@@ -101,7 +101,8 @@ def test_out_of_range_parameters_are_refused_at_their_line(name):
 # ----------------------------------------------------------------------------- statistics
 
 def test_measured_statistics_match_the_declared_values_over_many_trials():
-    run, batches = run_pipeline("edge_loss\nlateral_shift\napprox_error\ncorner_loss\ncorner_mismatch fraction 5%\n"
+    run, batches = run_pipeline("edge_loss\nlateral_shift\napprox_error\ncorner_loss\ncorner_error sigma 0.4px\n"
+                                "corner_mismatch fraction 5%\n"
                                 "stereo_mismatch fraction 5%", trials=300)
     report = {st["effect"]: st["measured"] for st in run.manifest()["stages"]}
     assert report["edge_loss"]["removed_length_fraction"]["measured"] == pytest.approx(0.29, abs=0.01)
@@ -109,10 +110,36 @@ def test_measured_statistics_match_the_declared_values_over_many_trials():
     assert report["lateral_shift"]["max_abs_shift_px"]["measured"] <= 3.0
     assert report["lateral_shift"]["mean_abs_shift_px"]["measured"] == pytest.approx(1.5, abs=0.05)
     assert report["approx_error"]["sigma_px"]["measured"] == pytest.approx(0.15, rel=0.02)
+    assert report["corner_error"]["sigma_px"]["measured"] == pytest.approx(0.4, rel=0.03)
     assert report["corner_mismatch"]["mismatch_rate"]["measured"] == pytest.approx(0.05, abs=0.01)
     assert report["corner_mismatch"]["max_distance_px"]["measured"] <= 10.0
     assert report["stereo_mismatch"]["mismatch_rate"]["measured"] == pytest.approx(0.05, abs=0.01)
     assert report["stereo_mismatch"]["max_shift_px"]["measured"] <= 20.0
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_corner_error_moves_each_corner_by_a_normal_of_its_sigma_per_axis(engine):
+    """Every corner of every trial, both cameras: the moves are N(0, sigma^2) in x and in y (Kolmogorov-Smirnov
+    against scipy's normal), uncorrelated, and a corner's move in one trial is not its move in the next."""
+    from scipy import stats
+
+    _, ideal = run_pipeline("corner_loss keep 1", trials=1, engine=engine)
+    _, moved = run_pipeline("corner_error sigma 0.7px", trials=200, engine=engine)
+    start = {(r.index, side): s.corners for _, out in ideal for r, d, _ in out for side, s in d.items()}
+    moves = np.concatenate([s.corners - _by_trial(start[r.index, side], s)
+                            for _, out in moved for r, d, _ in out for side, s in d.items()])
+    assert len(moves) > 10_000
+    for axis in (0, 1):
+        assert stats.kstest(moves[:, axis], stats.norm(0, 0.7).cdf).pvalue > 1e-3
+    assert abs(np.corrcoef(moves.T)[0, 1]) < 0.03
+    assert not np.allclose(moves[: len(moves) // 2], moves[len(moves) // 2:])
+
+
+def _by_trial(corners: np.ndarray, s: im.ImageSet) -> np.ndarray:
+    """The ideal corners repeated in the order of s's corners (trial by trial, each trial all of them)."""
+    counts = np.bincount(s.corner_trial)
+    assert (counts == len(corners)).all() and (s.corner_fid == np.tile(s.corner_fid[: len(corners)], len(counts))).all()
+    return np.tile(corners, (len(counts), 1))
 
 
 def segments(n: int, trials: int = 1, seed: int = 0) -> im.ImageSet:

@@ -149,6 +149,66 @@ def test_the_fit_recovers_corner_keep_and_mismatch_from_known_draws():
         assert e.lo <= true <= e.hi, (key, e)
 
 
+def test_the_fit_recovers_corner_localisation_and_mismatch_together_from_known_draws():
+    """Every found corner placed by N(0, sigma^2) per axis, a fifth also mismatched over a disc of 8 px: sigma
+    from the ones within the inlier distance less the mismatches landing there, the mismatch fraction and radius
+    from the ones beyond it less the normal's tail. Over 40 settings the estimates are unbiased (means within
+    2% or 0.01) and their 95% intervals cover the truth in 80% or more (measured over 120: sigma 96%, fraction
+    92%, radius 89%, the radius's percentile interval running short as it did before sigma was fitted). Without
+    the located corners, as before corner_error was fitted, the normal's tail counts as mismatches."""
+    keep, frac, R, t = 0.8, 0.2, 8.0, 2.0
+    keys = ("corner_error.sigma", "corner_mismatch.fraction", "corner_mismatch.radius")
+    hits, values, truths, naive = dict.fromkeys(keys, 0), {k: [] for k in keys}, [], []
+    for seed in range(40):
+        rng = np.random.default_rng([11, seed])
+        sigma = rng.uniform(0.3, 1.0)
+        sums = []
+        for _ in range(40):
+            n = 30
+            found = rng.random(n) < keep
+            pos = rng.normal(0, sigma, (n, 2))
+            moved = rng.random(n) < frac
+            r = R * np.sqrt(rng.random(n))
+            phi = 2 * np.pi * rng.random(n)
+            pos[moved] += np.column_stack([r * np.cos(phi), r * np.sin(phi)])[moved]
+            d = np.hypot(*pos.T)
+            far, near = found & (d > t), found & (d <= t)
+            sums.append(F.ImageSums(corners=n, found=float(found.sum()), displaced=float(far.sum()),
+                                    displaced_r=float(d[far].sum()), located=float(near.sum()),
+                                    loc2=float((d[near] ** 2).sum())))
+        f = F.fit(sums, seed=seed, inlier=t)
+        truths.append(sigma)
+        for key, true in zip(keys, (sigma, frac, R), strict=True):
+            e = f.get(key)
+            hits[key] += e.lo <= true <= e.hi
+            values[key].append(e.value)
+        for s in sums:  # the same corners, the localisation error not fitted: its tail counts as mismatches
+            s.located = s.loc2 = 0.0
+        naive.append(F.fit(sums, seed=seed, inlier=t).get("corner_mismatch.fraction").value)
+    assert all(h >= 32 for h in hits.values()), hits
+    assert np.mean(np.array(values[keys[0]]) / truths) == pytest.approx(1, abs=0.02)
+    assert np.mean(values[keys[1]]) == pytest.approx(frac, abs=0.01)
+    assert np.mean(values[keys[2]]) == pytest.approx(R, rel=0.02)
+    assert np.mean(naive) > frac + 0.015  # (measured: 0.227 against 0.200)
+
+
+def test_truncated_sigma_inverts_the_truncated_mean_square_of_an_isotropic_normal():
+    """Against the mean square of a million draws kept within t, and against quadrature of the Rayleigh
+    density (scipy.integrate.quad, not the closed form)."""
+    from scipy import integrate
+
+    rng = np.random.default_rng(4)
+    for sigma, t in ((0.2, 2.0), (1.0, 2.0), (1.5, 2.0), (0.05, 0.5)):
+        r2 = (rng.normal(0, sigma, (1_000_000, 2)) ** 2).sum(1)
+        m2 = r2[r2 <= t * t].mean()
+        assert F.truncated_sigma(np.array([m2]), t)[0] == pytest.approx(sigma, rel=0.01)
+        dens = lambda r, s=sigma: r / s**2 * np.exp(-r * r / (2 * s * s))  # noqa: E731
+        quad = integrate.quad(lambda r: r * r * dens(r), 0, t)[0] / integrate.quad(dens, 0, t)[0]
+        assert F.truncated_sigma(np.array([quad]), t)[0] == pytest.approx(sigma, rel=1e-6)
+    assert np.isnan(F.truncated_sigma(np.array([2.0]), 2.0)[0])  # t^2 / 2: spread as if uniform, not bounded
+    assert F.truncated_sigma(np.array([0.0]), 2.0)[0] == 0.0
+
+
 def test_disc_radius_inverts_the_mean_distance_beyond_the_inlier_radius():
     rng = np.random.default_rng(2)
     for R, t in ((10.0, 2.0), (5.0, 1.0), (20.0, 3.0)):

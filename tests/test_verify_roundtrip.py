@@ -15,13 +15,14 @@ from wiredsl.verify import command
 
 FENCE = "tests/data/verify/fence.wd"
 SETTINGS = 30
-KEYS = ("edge_loss.fraction", "lateral_shift.range", "corner_loss.keep", "corner_mismatch.fraction")
+KEYS = ("edge_loss.fraction", "lateral_shift.range", "corner_loss.keep", "corner_error.sigma",
+        "corner_mismatch.fraction")
 
 
 def _setting(rng):
     truth = {"edge_loss.fraction": rng.uniform(0.1, 0.4), "lateral_shift.range": rng.uniform(0.5, 3.0),
              "corner_loss.keep": rng.uniform(0.6, 0.95), "corner_mismatch.fraction": rng.uniform(0.05, 0.3),
-             "corner_mismatch.radius": rng.uniform(6, 10)}
+             "corner_mismatch.radius": rng.uniform(6, 10), "corner_error.sigma": rng.uniform(0.3, 1.0)}
     return truth, rng.uniform(0.6, 1.5), rng.uniform(0, 4), int(rng.integers(1 << 30))
 
 
@@ -36,6 +37,7 @@ def test_fitted_parameters_recover_the_injected_ones(tmp_path):
             Stage(effect="edge_loss", params={"fraction": truth["edge_loss.fraction"]}),
             Stage(effect="lateral_shift", params={"range": truth["lateral_shift.range"]}),
             Stage(effect="corner_loss", params={"keep": truth["corner_loss.keep"]}),
+            Stage(effect="corner_error", params={"sigma": truth["corner_error.sigma"]}),
             Stage(effect="corner_mismatch", params={"fraction": truth["corner_mismatch.fraction"],
                                                     "radius": truth["corner_mismatch.radius"]})])
         folder = tmp_path / f"s{i}"

@@ -437,7 +437,7 @@ def case_all_stages_at_their_extremes_stay_finite():
     s = _lab_strokes()
     c = _ctx()
     for name, kw in (("edge_loss", {"fraction": 0.999}), ("lateral_shift", {"range": 1000}),
-                     ("approx_error", {"sigma": 100}), ("corner_mismatch", {"fraction": 1, "radius": 10000}),
+                     ("approx_error", {"sigma": 100}), ("corner_error", {"sigma": 100}), ("corner_mismatch", {"fraction": 1, "radius": 10000}),
                      ("stereo_mismatch", {"fraction": 1, "disparity": 10000})):
         s = REGISTRY[name].apply(REGISTRY[name].Params(**kw), s, c)
         assert np.isfinite(s.pts).all() and np.isfinite(s.corners).all()

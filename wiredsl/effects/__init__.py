@@ -7,6 +7,7 @@ from typing import Literal
 from wiredsl.effects.approx_error import ApproxError
 from wiredsl.effects.base import FLOW, Effect, KernelStage, Params
 from wiredsl.effects.calibration_error import CalibrationError
+from wiredsl.effects.corner_error import CornerError
 from wiredsl.effects.corner_loss import CornerLoss
 from wiredsl.effects.corner_mismatch import CornerMismatch
 from wiredsl.effects.edge_loss import EdgeLoss
@@ -16,7 +17,8 @@ from wiredsl.plugins import Registry
 
 BUILTIN: dict[str, type[Effect]] = {
     e.name: e
-    for e in (CalibrationError, EdgeLoss, LateralShift, ApproxError, CornerLoss, CornerMismatch, StereoMismatch)
+    for e in (CalibrationError, EdgeLoss, LateralShift, ApproxError, CornerLoss, CornerError, CornerMismatch,
+              StereoMismatch)
 }
 KINDS = ("length", "angle", "image", "number", "fraction")  # the unit kinds a stage parameter may have
 

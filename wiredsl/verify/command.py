@@ -112,6 +112,8 @@ def sums_of(results: list[ver.ImageResult], cfg: ver.Settings, edge_det: str | N
             s.corners, s.found = float(len(c.fid)), float(c.found.sum())
             far = c.found & (c.error > cfg.inlier)
             s.displaced, s.displaced_r = float(far.sum()), float(c.error[far].sum())
+            near = c.found & (c.error <= cfg.inlier)
+            s.located, s.loc2 = float(near.sum()), float((c.error[near] ** 2).sum())
             if r.stereo is not None:
                 s.matched, s.wrong = float(len(r.stereo[1])), float(r.stereo[1].sum())
     return s

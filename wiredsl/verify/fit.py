@@ -21,8 +21,12 @@ keyed by the seed and the statistic's name (the same seed gives the same interva
   its two ends; the effect moves each end by N(0, sigma^2) in each direction after one shift of the whole
   stroke, so e1 - e0 ~ N(0, 2 sigma^2): sigma = sqrt(mean((e1 - e0)^2) / 2).
 - corner_loss.keep = model corners with a detected corner within the radius / model corners (corner detector).
-- corner_mismatch: a found corner farther than `inlier` px from the model's is displaced. The effect moves a
-  fraction of corners to a uniform point of the disc of `radius`; a move shorter than `inlier` is not seen,
+- corner_error.sigma: the found corners within `inlier` px of the model's are placed by the detector's
+  localisation error, an isotropic 2D Gaussian: their squared distances r^2 have the mean
+  2 sigma^2 - t^2 q / (1 - q), q = exp(-t^2 / (2 sigma^2)), of sigma^2 chi^2_2 truncated at t = inlier, solved for
+  sigma (bisection). The pose's and the calibration's errors at the corners are in r too.
+- corner_mismatch: a found corner farther than `inlier` px from the model's is displaced, less the corners the
+  localisation error alone puts there (its normal's tail beyond `inlier`). The effect moves a fraction of corners to a uniform point of the disc of `radius`; a move shorter than `inlier` is not seen,
   so radius R solves E[r | r > t] = (2/3)(R^3 - t^3)/(R^2 - t^2) at the displaced corners' mean distance and
   fraction = displaced / found / (1 - (t/R)^2). In stereo pairs the matcher's wrong-pair rate is reported too.
 """
@@ -43,7 +47,7 @@ PAPER = {"edge_loss.fraction": 0.29, "lateral_shift.range": 3.0, "approx_error.s
 # widened by this share of the correction either way.
 END_DOUBT = 0.25
 MIN_STROKE_SAMPLES = 5  # verified samples a stroke needs for its mean offset to count
-MIN = {"edges": 20, "strokes": 5, "corners": 10, "displaced": 3}  # below these a statistic is not estimated
+MIN = {"edges": 20, "strokes": 5, "corners": 10, "displaced": 3, "located": 10}  # below these a statistic is not estimated
 
 
 @dataclass
@@ -70,7 +74,8 @@ class ImageSums:
     found: float = 0.0
     displaced: float = 0.0
     displaced_r: float = 0.0  # sum of their distances
-    loc2: float = 0.0  # sum of squared localisation errors of undisplaced found corners
+    located: float = 0.0  # found corners within the inlier distance (not displaced)
+    loc2: float = 0.0  # sum of their squared distances to the model's corners
     matched: float = 0.0  # stereo matcher
     wrong: float = 0.0
 
@@ -231,7 +236,7 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     col = {k: np.array([getattr(s, k) for s in sums], float) for k in
            ("tested", "verified", "length", "lost_middle", "lost_ends", "ends", "gap_ends", "strokes", "d1", "d2",
             "noise", "runs", "run_strokes", "fitted", "fitted2", "corners", "found",
-            "displaced", "displaced_r", "matched", "wrong")}
+            "displaced", "displaced_r", "located", "loc2", "matched", "wrong")}
     out = []
     # edge loss: the gaps themselves (the detector's end loss at each gap end taken off), or everything lost
     if col["tested"].sum() >= MIN["edges"]:
@@ -279,7 +284,7 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
                                                            f"{radius:g} px"))
     else:
         out.append(Estimate("corner_loss.keep", None, note="no corner detector, or too few model corners"))
-    out += _mismatch(col, seed, inlier, radius)
+    out += _corner_estimates(col, seed, inlier)
     fragments = {}
     if col["run_strokes"].sum():
         fragments = {"runs_per_stroke": float(col["runs"].sum() / col["run_strokes"].sum()),
@@ -289,32 +294,110 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     return Fit(out, law, fragments, stereo, n)
 
 
-def _mismatch(col, seed: int, t: float, radius: float) -> list[Estimate]:
-    found, disp, disp_r = col["found"], col["displaced"], col["displaced_r"]
-    if found.sum() < MIN["corners"]:
-        why = "too few found corners"
-        return [Estimate("corner_mismatch.fraction", None, note=why),
-                Estimate("corner_mismatch.radius", None, note=why)]
-    if disp.sum() < MIN["displaced"]:
-        upper = min(1.0, 3.0 / found.sum())
-        return [Estimate("corner_mismatch.fraction", float(disp.sum() / found.sum()), 0.0, upper,
-                         f"{int(disp.sum())} of {int(found.sum())} found corners displaced beyond {t:g} px "
-                         "(interval: rule of three)"),
-                Estimate("corner_mismatch.radius", None, note=f"fewer than {MIN['displaced']} displaced corners")]
-    mean_r = float(disp_r.sum() / disp.sum())
-    R = float(disc_radius(np.array([mean_r]), t)[0])
-    W = _weights(len(found), seed, "corner_mismatch")
+def truncated_sigma(mean_r2: np.ndarray, t: float) -> np.ndarray:
+    """sigma with E[r^2 | r <= t] = mean_r2 for r the length of an isotropic 2D N(0, sigma^2) (bisection,
+    vectorised); NaN where mean_r2 >= t^2 / 2, the limit as sigma grows (the spread is not bounded by the data)."""
+    mean_r2 = np.asarray(mean_r2, float)
+
+    def m(sig):
+        with np.errstate(over="ignore"):  # (a narrow normal: q = 0, exactly)
+            return 2 * sig * sig - t * t / np.expm1(t * t / (2 * sig * sig))  # q / (1 - q) = 1 / (exp(a) - 1)
+
+    lo = np.full(mean_r2.shape, 1e-9 * t)
+    hi = np.full(mean_r2.shape, 1e3 * t)
+    for _ in range(80):
+        mid = np.sqrt(lo * hi)  # geometric: sigma spans decades
+        below = m(mid) < mean_r2
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    with np.errstate(invalid="ignore"):
+        return np.where((mean_r2 > 0) & (mean_r2 < t * t / 2 * (1 - 1e-9)), np.sqrt(lo * hi),
+                        np.where(mean_r2 <= 0, 0.0, np.nan))
+
+
+def _tails(sig, located, t: float):
+    """(count, summed distance) expected beyond t of the corners the localisation error alone places, given the
+    `located` ones within t: located q / (1 - q), q = exp(-t^2 / (2 sigma^2)), each at E[r | r > t] = t + sigma
+    sqrt(pi / 2) erfcx(t / (sigma sqrt 2)) (Rayleigh). Nothing where sigma is not a positive number."""
+    from scipy.special import erfcx
+
+    ok = np.isfinite(sig) & (sig > 0)
+    sig = np.where(ok, sig, 1.0)
+    with np.errstate(over="ignore"):
+        n = np.where(ok, located / np.expm1(t * t / (2 * sig * sig)), 0.0)
+    return n, n * (t + sig * math.sqrt(math.pi / 2) * erfcx(t / (sig * math.sqrt(2))))
+
+
+def corner_model(found, displaced, displaced_r, located, loc2, t: float, mismatch: bool = True, rounds: int = 5):
+    """(sigma, fraction, radius, displaced) of the corner stages from a verification's sums (arrays: the same
+    for every bootstrap replicate). The two laws overlap: the localisation normal's tail beyond t is counted
+    among the displaced corners, and the mismatches that land within t among the located ones (r^2 about
+    uniform over that disc, mean t^2 / 2), and the displaced corners' distances carry the localisation error
+    too (their mean grows by sigma^2 / (R + t)). Each is estimated with the other's share taken off, a few rounds
+    from none (a fixed point, reached in three or four). Without `mismatch` (too few displaced corners) no
+    mismatch share is taken off the located ones."""
+    found, displaced, displaced_r, located, loc2 = (np.asarray(a, float) for a in
+                                                    (found, displaced, displaced_r, located, loc2))
+    inside, blur = np.zeros_like(found), np.zeros_like(found)
     with np.errstate(invalid="ignore", divide="ignore"):
-        Rb = disc_radius((W @ disp_r) / (W @ disp), t)
-        fb = (W @ disp) / (W @ found) / (1 - (t / Rb) ** 2)
-    f = float(disp.sum() / found.sum() / (1 - (t / R) ** 2))
+        for _ in range(rounds):
+            n_loc = np.maximum(located - inside, 1e-12)
+            sig = truncated_sigma(np.maximum(loc2 - inside * t * t / 2, 0.0) / n_loc, t)
+            n_tail, r_tail = _tails(sig, n_loc, t)
+            d = np.maximum(displaced - n_tail, 0.0)
+            mean_r = np.where(d > 0, np.maximum(displaced_r - r_tail, 0.0) / np.maximum(d, 1e-12), t)
+            R = disc_radius(np.maximum(mean_r - blur, t), t)
+            # a mismatched corner is placed by the localisation error too: |p + n| is |p| + sigma^2 / (2 |p|)
+            # on average, and 1 / |p| averages 2 / (R + t) over the disc beyond t
+            blur = np.where(np.isfinite(sig), sig * sig, 0.0) / (R + t)
+            share = np.clip((t / R) ** 2, 0.0, 1.0 - 1e-9)
+            frac = d / found / (1 - share)
+            if not mismatch:
+                break
+            inside = np.minimum(d * share / (1 - share), located)
+    return sig, frac, R, d
+
+
+def _corner_estimates(col, seed: int, t: float) -> list[Estimate]:
+    """corner_error.sigma, corner_mismatch.fraction and .radius, from the one model of both (corner_model)."""
+    found, disp = col["found"], col["displaced"]
+    keys = ("corner_error.sigma", "corner_mismatch.fraction", "corner_mismatch.radius")
+    if found.sum() < MIN["corners"]:
+        return [Estimate(k, None, note="too few found corners") for k in keys]
+    mismatch = disp.sum() >= MIN["displaced"]
+    args = ("found", "displaced", "displaced_r", "located", "loc2")
+    sig, f, R, d = (float(x) for x in corner_model(*(col[a].sum() for a in args), t, mismatch))
+    W = _weights(len(found), seed, "corner_mismatch")
+    sig_b, f_b, R_b, _ = corner_model(*(W @ col[a] for a in args), t, mismatch)
     k = int((found > 0).sum())
-    flo, fhi = _interval(np.minimum(fb, 1.0), min(f, 1.0), k)
-    return [Estimate("corner_mismatch.fraction", min(f, 1.0), flo, None if fhi is None else min(fhi, 1.0),
-                     f"{int(disp.sum())} of {int(found.sum())} found corners displaced beyond {t:g} px, corrected "
-                     f"for the moves shorter than that"),
-            Estimate("corner_mismatch.radius", R, *_interval(Rb, R, k),
-                     f"from their mean distance {mean_r:.3g} px (uniform over the disc)")]
+    rms = math.sqrt(col["loc2"].sum() / col["located"].sum()) if col["located"].sum() else float("nan")
+    if col["located"].sum() < MIN["located"]:
+        out = [Estimate(keys[0], None, note=f"fewer than {MIN['located']} found corners within {t:g} px")]
+    elif not math.isfinite(sig):
+        out = [Estimate(keys[0], None, note=f"the corners within {t:g} px are spread as if uniformly (RMS "
+                                            f"{rms:.3g} px): widen --inlier")]
+    else:
+        out = [Estimate(keys[0], sig, *_interval(sig_b, sig, k),
+                        f"from {int(col['located'].sum())} found corners within {t:g} px of the model's (RMS "
+                        f"{rms:.3g} px), a normal truncated there" + (", less the mismatches landing there"
+                                                                      if mismatch else ""))]
+    tail = disp.sum() - d
+    tail_note = f", {tail:.3g} of them the localisation error's tail" if tail > 0 else ""
+    if not mismatch or d < 1:
+        n = int(disp.sum())
+        out += [Estimate(keys[1], float(d / found.sum()), 0.0, min(1.0, 3.0 / found.sum()),
+                         f"{n} of {int(found.sum())} found corners displaced beyond {t:g} px{tail_note} "
+                         "(interval: rule of three)"),
+                Estimate(keys[2], None, note=f"fewer than {MIN['displaced']} displaced corners" if not mismatch
+                         else "no displaced corners beyond the localisation error's")]
+        return out
+    flo, fhi = _interval(np.minimum(f_b, 1.0), min(f, 1.0), k)
+    mean_r = float(col["displaced_r"].sum() / disp.sum())
+    return out + [
+        Estimate(keys[1], min(f, 1.0), flo, None if fhi is None else min(fhi, 1.0),
+                 f"{int(disp.sum())} of {int(found.sum())} found corners displaced beyond {t:g} px{tail_note}, "
+                 "corrected for the moves shorter than that"),
+        Estimate(keys[2], R, *_interval(R_b, R, k), f"from the displaced corners' distances (mean {mean_r:.3g} "
+                                                    "px; uniform over the disc)")]
 
 
 # --------------------------------------------------------------------------- the pipeline block
@@ -358,6 +441,12 @@ def pipeline_text(f: Fit, name: str, provenance: list[str]) -> str:
     e = f.get("corner_loss.keep")
     lines.append(f"  # corner keep {iv(e, _pct)}")
     lines.append(f"  corner_loss keep {_pct(e.used)}")
+    e = f.get("corner_error.sigma")
+    if e.value is None:
+        lines.append(f"  # corner localisation error not estimated ({e.note}): no corner_error stage")
+    else:
+        lines.append(f"  # corner localisation error sigma {iv(e, lambda x: _num(x) + ' px')}")
+        lines.append(f"  corner_error sigma {_num(e.value)}px")
     ef, er = f.get("corner_mismatch.fraction"), f.get("corner_mismatch.radius")
     lines.append(f"  # corner mismatch fraction {iv(ef, _pct)}")
     lines.append(f"  # corner mismatch radius {iv(er, lambda x: _num(x) + ' px')}")
