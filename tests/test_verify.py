@@ -227,6 +227,23 @@ def test_a_statistic_without_data_keeps_the_papers_value_and_says_so():
         raw.get("edge_loss.fraction").note
 
 
+def test_a_rig_with_a_declared_calibration_uncertainty_gets_it_simulated_first(tmp_path):
+    """The fit measures the detector; the camera's uncertainty is the rig's own (lab.wd declares an information
+    matrix): the pipeline starts with `calibration_error sigma 1`, which draws exactly it, and compiles with the
+    scene without E160 (calibration first) or W161 (out of data-flow order)."""
+    f = F.fit([F.ImageSums(tested=100, verified=80, length=200, lost_middle=40)] * 5, seed=0)
+    assert "calibration_error" not in F.pipeline_text(f, "measured", ["test"])
+    (tmp_path / "measured.wd").write_text(F.pipeline_text(f, "measured", ["test"], "information over 14 parameters"))
+    (tmp_path / "s.wd").write_text(f'wiredsl 1\ninclude "{Path("scenes/lab.wd").resolve().as_posix()}"\n'
+                                   'include "measured.wd"\n')
+    from wiredsl.language.compile import compile_file
+
+    scene, warnings, _ = compile_file(tmp_path / "s.wd")
+    stages = scene.pipeline("measured").stages
+    assert (stages[0].effect, stages[0].params["sigma"]) == ("calibration_error", 1.0)
+    assert not [w for w in warnings if "W161" in str(w)]
+
+
 # --------------------------------------------------------------------------- the command
 
 @pytest.fixture(scope="module")

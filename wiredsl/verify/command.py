@@ -223,7 +223,9 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
                       f"Intervals: 95% bootstrap over images ({fitting.B} resamples, seed {req.seed}; "
                       "percentiles widened by sqrt(n / (n - 1)) t / z for n images).",
                       "Include this file in the scene and build with --pipeline " + req.pipeline_name + "."]
-        text = fitting.pipeline_text(result, req.pipeline_name, provenance)
+        cal = scene.rig.calibration
+        text = fitting.pipeline_text(result, req.pipeline_name, provenance,
+                                     None if cal is None else f"{cal.kind} over {len(cal.order)} parameters")
         write_atomic(out / f"{req.pipeline_name}.wd", text)
         write_atomic(out / "fit.json", json_text({**result.to_json(), "seed": req.seed, "bootstrap": fitting.B},
                                                  indent=1))

@@ -410,8 +410,10 @@ def _pct(x: float) -> str:
     return f"{100 * x:.4g}%"
 
 
-def pipeline_text(f: Fit, name: str, provenance: list[str]) -> str:
-    """The fitted pipeline as a `.wd` file (canonical form), intervals and provenance in comments."""
+def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | None = None) -> str:
+    """The fitted pipeline as a `.wd` file (canonical form), intervals and provenance in comments.
+    `calibration`: how the scene's rig declares its calibration's uncertainty (None: it does not); then the
+    pipeline starts with `calibration_error sigma 1`, which draws the rigs with exactly that uncertainty."""
     from wiredsl.language.fmt import format_text
 
     def iv(e: Estimate, fmt) -> str:
@@ -421,6 +423,11 @@ def pipeline_text(f: Fit, name: str, provenance: list[str]) -> str:
         return f"{fmt(e.value)}{span}: {e.note}"
 
     lines = ["wiredsl 1", *[f"# {p}" for p in provenance], f"pipeline {name} {{"]
+    if calibration is None:
+        lines.append("  # calibration: the rig declares no uncertainty, so none is simulated")
+    else:
+        lines.append(f"  # calibration: the uncertainty the rig declares ({calibration}), not fitted here")
+        lines.append("  calibration_error sigma 1")
     e = f.get("edge_loss.fraction")
     lines.append(f"  # edge loss {iv(e, _pct)}")
     if f.fragments:
