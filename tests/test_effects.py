@@ -135,6 +135,34 @@ def test_corner_error_moves_each_corner_by_a_normal_of_its_sigma_per_axis(engine
     assert not np.allclose(moves[: len(moves) // 2], moves[len(moves) // 2:])
 
 
+@pytest.mark.parametrize("engine", ENGINES)
+def test_corner_error_correlates_the_two_cameras_moves_of_a_corner_by_its_correlation(engine):
+    """The same corner (feature id) in the left and right views of a trial: its moves correlate by
+    `correlation` on each axis (0.6 measured within 0.05 over some 4,000 pairs), not at 0, equal at 1."""
+    _, ideal = run_pipeline("corner_loss keep 1", trials=1, engine=engine)
+    start = {(r.index, side): s.corners for _, out in ideal for r, d, _ in out for side, s in d.items()}
+
+    def moves(rho):
+        _, out = run_pipeline(f"corner_error sigma 0.7px correlation {rho}", trials=150, engine=engine)
+        pairs = []
+        for _, o in out:
+            for r, d, _ in o:
+                left, right = (d[side].corners - _by_trial(start[r.index, side], d[side]) for side in ("left", "right"))
+                fl, fr = d["left"].corner_fid, d["right"].corner_fid
+                tl, tr = d["left"].corner_trial, d["right"].corner_trial
+                both, il, ir = np.intersect1d(tl * 10**6 + fl, tr * 10**6 + fr, return_indices=True)
+                pairs.append(np.stack([left[il], right[ir]], axis=1))
+        return np.concatenate(pairs)  # (n, 2 cameras, 2 axes)
+
+    m = moves(0.6)
+    assert len(m) > 4000  # (the correlation's standard error: about 0.01)
+    for axis in (0, 1):
+        assert np.corrcoef(m[:, 0, axis], m[:, 1, axis])[0, 1] == pytest.approx(0.6, abs=0.05)
+    assert abs(np.corrcoef(moves(0)[:, 0, 0], moves(0)[:, 1, 0])[0, 1]) < 0.05
+    one = moves(1)
+    assert np.allclose(one[:, 0], one[:, 1], rtol=0, atol=1e-9) and one.std() > 0.5  # (pixels differ by rounding)
+
+
 def _by_trial(corners: np.ndarray, s: im.ImageSet) -> np.ndarray:
     """The ideal corners repeated in the order of s's corners (trial by trial, each trial all of them)."""
     counts = np.bincount(s.corner_trial)

@@ -175,7 +175,7 @@ def test_the_fit_recovers_corner_localisation_and_mismatch_together_from_known_d
             far, near = found & (d > t), found & (d <= t)
             sums.append(F.ImageSums(corners=n, found=float(found.sum()), displaced=float(far.sum()),
                                     displaced_r=float(d[far].sum()), located=float(near.sum()),
-                                    loc2=float((d[near] ** 2).sum())))
+                                    loc_dof=float(near.sum()), loc2=float((d[near] ** 2).sum())))
         f = F.fit(sums, seed=seed, inlier=t)
         truths.append(sigma)
         for key, true in zip(keys, (sigma, frac, R), strict=True):
@@ -183,13 +183,35 @@ def test_the_fit_recovers_corner_localisation_and_mismatch_together_from_known_d
             hits[key] += e.lo <= true <= e.hi
             values[key].append(e.value)
         for s in sums:  # the same corners, the localisation error not fitted: its tail counts as mismatches
-            s.located = s.loc2 = 0.0
+            s.located = s.loc_dof = s.loc2 = 0.0
         naive.append(F.fit(sums, seed=seed, inlier=t).get("corner_mismatch.fraction").value)
     assert all(h >= 32 for h in hits.values()), hits
     assert np.mean(np.array(values[keys[0]]) / truths) == pytest.approx(1, abs=0.02)
     assert np.mean(values[keys[1]]) == pytest.approx(frac, abs=0.01)
     assert np.mean(values[keys[2]]) == pytest.approx(R, rel=0.02)
     assert np.mean(naive) > frac + 0.015  # (measured: 0.227 against 0.200)
+
+
+def test_the_fit_recovers_the_cameras_correlation_from_known_pairs():
+    """Pairs of residuals correlated by rho (40 frames of 40 corners): the estimate's 95% interval holds rho in
+    at least 34 of 40 settings, and without stereo pairs no correlation is claimed (the stage gets 0)."""
+    hits = 0
+    for seed in range(40):
+        rng = np.random.default_rng([12, seed])
+        rho = rng.uniform(0, 0.9)
+        sums = []
+        for _ in range(40):
+            shared, own = rng.normal(0, 0.2, (40, 2)), rng.normal(0, 0.2, (2, 40, 2))
+            a, b = (np.sqrt(rho) * shared + np.sqrt(1 - rho) * own[k] for k in (0, 1))
+            sums.append(F.ImageSums(corners=40, found=40, located=40, loc_dof=40, loc2=float((a * a).sum()),
+                                    pairs=40, pair_lr=float((a * b).sum()), pair_ll=float((a * a).sum()),
+                                    pair_rr=float((b * b).sum())))
+        e = F.fit(sums, seed=seed).get("corner_error.correlation")
+        hits += e.lo <= rho <= e.hi
+    assert hits >= 34, hits
+    alone = F.fit([F.ImageSums(corners=40, found=40, located=40, loc_dof=40, loc2=1.6)] * 5, seed=0)
+    assert alone.get("corner_error.correlation").value is None
+    assert "corner_error sigma 0.1414px correlation 0" in F.pipeline_text(alone, "m", ["t"])
 
 
 def test_truncated_sigma_inverts_the_truncated_mean_square_of_an_isotropic_normal():

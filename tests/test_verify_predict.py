@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import wiredsl
 from wiredsl.scene import Pipeline, Stage
-from wiredsl.verify import command
+from wiredsl.verify import command, predict
 
 pytest.importorskip("cv2")
 pytest.importorskip("matplotlib")
@@ -47,7 +47,7 @@ def test_the_fitted_pipeline_predicts_the_rendered_detector(images):
     assert {"prediction.json", "prediction.png"} <= set(out.written)
     doc = json.loads((images / "fitted" / "prediction.json").read_text())
     for key, e in doc["measures"].items():
-        assert len(e["real"]) == (5 if key == "corner_error_3d" else 10), key  # 5 stereo pairs
+        assert len(e["real"]) == (5 if key in predict.PAIR else 10), key  # 5 stereo pairs
         assert len(e["simulated"]) >= 15 * len(e["real"]), key
         assert e["ks"]["p"] > 0.01 and e["mann_whitney"]["p"] > 0.01, (key, e["ks"], e["mann_whitney"])
         assert 0.2 < e["rank_mean"] < 0.8, key  # image by image, the real value is not beyond its trials
@@ -73,7 +73,29 @@ def test_a_wrong_pipeline_is_told_apart(images):
 
 def test_an_ideal_simulation_triangulates_the_model_corners(images):
     e = _run(images, "ideal", predict_pipeline=Pipeline(name="ideal", stages=[])).prediction
-    sim = np.array(e["corner_error_3d"]["simulated"])
-    assert len(sim) == 5 * 20 and sim.max() < 1e-6  # mm: DLT on exact projections recovers the model's corners
+    for key in predict.PAIR:
+        sim = np.array(e[key]["simulated"])
+        assert len(sim) == 5 * 20 and sim.max() < 1e-6, key  # mm: DLT on exact projections recovers the corners
     assert e["verified_fraction"]["simulated_mean"] > 0.99
     assert e["corner_error_3d"]["ks"]["p"] < 1e-6  # the rendered mismatches are not there
+
+
+def test_the_shape_error_ignores_a_rigid_motion_and_sees_a_distortion():
+    """Kabsch's residual: zero for the model moved rigidly (any rotation, any translation), the plain RMS's
+    lower bound, the same under a rigid motion of the noisy points; a scaling (not rigid) is not fitted away."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    T = rng.uniform(-0.2, 0.2, (40, 3))
+    for seed in range(20):
+        rot = Rotation.random(random_state=seed)
+        move = rng.normal(0, 0.5, 3)
+        assert predict.shape_error_mm(rot.apply(T) + move, T) < 1e-9
+        X = T + rng.normal(0, 1e-3, T.shape)
+        shape = predict.shape_error_mm(X, T)
+        assert shape <= predict._rms_mm(X - T) + 1e-12
+        assert predict.shape_error_mm(rot.apply(X) + move, T) == pytest.approx(shape, rel=1e-9)
+    assert predict.shape_error_mm(1.01 * T, T) == pytest.approx(0.01 * predict._rms_mm(T - T.mean(0)), rel=1e-6)
+    assert predict.shape_error_mm(T[:2], T[:2]) is None
+    line = np.outer(np.arange(5.0), [1.0, 2.0, 0.5])
+    assert predict.shape_error_mm(line, line) is None

@@ -40,8 +40,8 @@ def _check(effect: type[Effect]) -> str | None:
             return f"its kernel takes {', '.join(map(repr, unknown))}, not among its parameters"
         if any(len(c) != 2 or c[1] not in ("add", "peak") for c in k.stats):
             return "its kernel's stats columns are not (key, 'add' or 'peak') pairs"
-        if not isinstance(k.epipole, bool) or not isinstance(k.camera, bool):
-            return "its kernel's epipole and camera are not True or False"
+        if not all(isinstance(flag, bool) for flag in (k.epipole, k.camera, k.rig)):
+            return "its kernel's epipole, camera and rig are not True or False"
     for method in ("is_identity", "disturb"):
         if getattr(effect, method).__func__ is getattr(Effect, method).__func__:
             return f"does not define {method}()"

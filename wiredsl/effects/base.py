@@ -139,9 +139,11 @@ class Context:
         fn = keyed_normal if normal else keyed_uniform
         return fn(keys[batch_index][:, None], index).reshape(len(batch_index), per_item)
 
-    def keys(self, stage: str) -> np.ndarray:
-        """The stage's keys, by batch index (`stream_key`)."""
-        return stream_key(stage, self.trials, self.pose, CAMERA_INDEX[self.side], self.seed, self.point)
+    def keys(self, stage: str, rig: bool = False) -> np.ndarray:
+        """The stage's keys, by batch index (`stream_key`); with `rig`, the rig's (camera -1), the same in both
+        views: draws the two cameras share (KernelStage.rig)."""
+        return stream_key(stage, self.trials, self.pose, -1 if rig else CAMERA_INDEX[self.side], self.seed,
+                          self.point)
 
     def add(self, stage: str, batch_index: np.ndarray, **values: np.ndarray) -> None:
         """Add the sums of per-item values (arrays aligned with `batch_index`, sorted) to the stage's statistics:
@@ -176,8 +178,8 @@ class PackedContext(Context):
     view_epipoles: Callable[[], np.ndarray] | None = None  # (views, 3): each view's epipole
     cameras_of_views: list | None = None  # (views,): each view's nominal camera
 
-    def keys(self, stage: str) -> np.ndarray:
-        return stream_key(stage, self.trials, self.poses, self.cameras, self.seed, self.point)
+    def keys(self, stage: str, rig: bool = False) -> np.ndarray:
+        return stream_key(stage, self.trials, self.poses, -1 if rig else self.cameras, self.seed, self.point)
 
     def add(self, stage: str, batch_index: np.ndarray, **values: np.ndarray) -> None:
         views = len(self.trials) // self.per_view
@@ -224,7 +226,10 @@ class KernelStage:
     arguments the stage gets (`camera` as above, whether or not the stage takes it); the stage then takes the
     array it returned as its last argument: what depends on the view only (a table over the image, say) is
     computed once for the batch rather than once a trial. Every trial gets the same array: a stage reads it and
-    must not depend on what an earlier trial wrote into it. An effect without a kernel
+    must not depend on what an earlier trial wrote into it. With `rig=True` the stage's key is the rig's
+    (`stream_key` with camera -1, the numpy code's `ctx.keys(name, rig=True)`), the same in the left and the
+    right view of a trial: draws the two cameras share (correlated errors), told apart by `right`. An effect
+    without a kernel
     (kernel None) runs on the numpy path, and so do the stages after it (`--engine auto` says so on stderr).
     """
 
@@ -233,6 +238,7 @@ class KernelStage:
     stats: tuple[tuple[str, str], ...]
     epipole: bool = False  # the stage needs the view's epipole
     camera: bool = False  # the stage takes the view's camera row (see above)
+    rig: bool = False  # the stage's key is the rig's (camera -1) in both views (see above)
     workspace: str | None = None  # "module:attribute" of the view's workspace function (see above)
 
 

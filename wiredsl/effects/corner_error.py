@@ -1,30 +1,34 @@
-"""Corner localisation error: every detected corner moves by an isotropic 2D Gaussian.
+"""Corner localisation error: every detected corner moves by an isotropic 2D Gaussian, correlated between the
+two cameras.
 
 A corner detector places a corner it finds a fraction of a pixel from where the corner is (Harris's response
-peak, a sub-pixel fit to it, the blur and the noise), independently in each camera. The paper's pipeline has no
-such stage; without it a simulated stereo pair triangulates its corners exactly. `wiredsl verify --fit`
-measures it, from the found corners within the inlier distance of the model's. The default, 0.17 px, is what
-it measured for OpenCV's Harris with sub-pixel refinement on OpenCV's stereo chessboard images
-(docs/scripts/verify_opencv_stereo.py).
+peak, a sub-pixel fit to it, the blur and the noise). The paper's pipeline has no such stage; without it a
+simulated stereo pair triangulates its corners exactly. The two cameras see a corner alike, so their errors
+are alike too: each axis's error is sqrt(rho) s + sqrt(1 - rho) e, s shared by the pair's views of the corner
+and e the camera's own (standard normals, times sigma), so the two cameras' errors correlate by rho. What a
+triangulation suffers is mostly their difference, sigma sqrt(2 (1 - rho)) an axis. `wiredsl verify --fit`
+measures both. The defaults, 0.15 px and 0.43, are what it measured for OpenCV's Harris with sub-pixel
+refinement on OpenCV's stereo chessboard images (docs/scripts/verify_opencv_stereo.py).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
+from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, keyed_normal, param
 from wiredsl.engine import imageset as im
 
 
 class CornerErrorParams(Params):
-    sigma: float = param(0.17, "image", "standard deviation of a corner's position, per axis", ge=0, le=100)
+    sigma: float = param(0.15, "image", "standard deviation of a corner's position, per axis", ge=0, le=100)
+    correlation: float = param(0.43, "fraction", "correlation of the two cameras' errors of a corner", ge=0, le=1)
 
 
 class CornerError(Effect):
     name = "corner_error"
     acts_on = "corner detection"
-    kernel = KernelStage("wiredsl.effects.corner_error_kernel:stage", ("sigma",),
-                         (("count", "add"), ("sum_sq", "add")))
+    kernel = KernelStage("wiredsl.effects.corner_error_kernel:stage", ("sigma", "correlation"),
+                         (("count", "add"), ("sum_sq", "add")), rig=True)
     Params = CornerErrorParams
     doc = __doc__
 
@@ -34,7 +38,15 @@ class CornerError(Effect):
 
     @classmethod
     def disturb(cls, p: CornerErrorParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
-        noise = p.sigma * ctx.draws(cls.name, s.corner_trial, 2, normal=True)
+        # the rig's key, the same in both views; a corner's normals by its feature id: pair 3 f shared,
+        # 3 f + 1 the left camera's own, 3 f + 2 the right's
+        keys = ctx.keys(cls.name, rig=True)[s.corner_trial][:, None]
+        pair = 3 * np.asarray(s.corner_fid, dtype=np.uint64)
+        own = pair + 1 + ctx.right(s.corner_trial).astype(np.uint64)
+        shared = keyed_normal(keys, 2 * pair[:, None] + np.arange(2, dtype=np.uint64))
+        mine = keyed_normal(keys, 2 * own[:, None] + np.arange(2, dtype=np.uint64))
+        a, b = p.sigma * np.sqrt(p.correlation), p.sigma * np.sqrt(1.0 - p.correlation)  # (as the kernel rounds)
+        noise = a * shared + b * mine
         ctx.add(cls.name, s.corner_trial, count=np.full(len(noise), 2), sum_sq=noise**2)
         return im.replace(s, corners=s.corners + noise)
 

@@ -376,7 +376,8 @@ class Run:
         trials = np.asarray(batch, dtype=np.int64)[None, None, :]
         keys = np.empty((len(results), 2, len(stages), len(batch)), dtype=np.uint64)
         for g, (effect, _) in enumerate(stages):
-            keys[:, :, g] = stream_key(effect.name, trials, poses, cameras, self.seed, self.point)
+            keys[:, :, g] = stream_key(effect.name, trials, poses, -1 if _rig_keyed(effect) else cameras, self.seed,
+                                       self.point)
         return keys
 
     def _kernel_view(self, result: PoseResult, side: str, keys: np.ndarray, rig: dict | None, keep: bool = True):
@@ -582,7 +583,8 @@ def kernel_apply(effect, params, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         one = s.take(s.trial == k).take_corners(s.corner_trial == k)
         meta = np.column_stack([one.fid, one.segment, one.fragment, one.kind, one.clipped, one.closed,
                                 one.occluded]).astype(np.int64).reshape(-1, 7)
-        keys = stream_key(effect.name, np.array([t]), ctx.pose, CAMERA_INDEX[ctx.side], ctx.seed, ctx.point)
+        keys = stream_key(effect.name, np.array([t]), ctx.pose, -1 if _rig_keyed(effect) else CAMERA_INDEX[ctx.side],
+                          ctx.seed, ctx.point)
         _, _, stats = stage_rows([(effect, params)])
         z3 = np.zeros((0, 3))
         pts, start, m, _, corners, cfid, _ = kn.run_view(
@@ -907,3 +909,8 @@ class TrialViews:
     def poses(self) -> np.ndarray:
         """(T, 12) float64: each trial's R_cw (row-major) and t_cw."""
         return np.concatenate([self.R_cw.reshape(-1, 9), self.t_cw.reshape(-1, 3)], axis=1)
+
+
+def _rig_keyed(effect) -> bool:
+    """Whether the stage draws with the rig's key in both views (KernelStage.rig)."""
+    return effect.kernel is not None and effect.kernel.rig

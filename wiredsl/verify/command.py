@@ -112,11 +112,21 @@ def sums_of(results: list[ver.ImageResult], cfg: ver.Settings, edge_det: str | N
             s.corners, s.found = float(len(c.fid)), float(c.found.sum())
             far = c.found & (c.error > cfg.inlier)
             s.displaced, s.displaced_r = float(far.sum()), float(c.error[far].sum())
-            near = c.found & (c.error <= cfg.inlier)
-            s.located, s.loc2 = float(near.sum()), float((c.error[near] ** 2).sum())
+            near, e, dof = ver.corner_residuals(c, cfg.inlier)
+            s.located, s.loc_dof, s.loc2 = float(near.sum()), dof, float((e * e).sum())
             if r.stereo is not None:
                 s.matched, s.wrong = float(len(r.stereo[1])), float(r.stereo[1].sum())
     return s
+
+
+def pair_sums(s: fitting.ImageSums, left: ver.CornerMatch, right: ver.CornerMatch, inlier: float) -> None:
+    """A stereo pair's corners located in both images (by feature id): the sums of the products of their two
+    cameras' residuals (`corner_residuals`), for the correlation of the cameras' localisation errors."""
+    (nl, el, _), (nr, er, _) = ver.corner_residuals(left, inlier), ver.corner_residuals(right, inlier)
+    _, il, ir = np.intersect1d(left.fid[nl], right.fid[nr], return_indices=True)
+    a, b = el[il], er[ir]
+    s.pairs, s.pair_lr, s.pair_ll, s.pair_rr = float(len(il)), float((a * b).sum()), float((a * a).sum()), \
+        float((b * b).sum())
 
 
 def run(req: Request, out: Path, progress=None) -> Outcome:
@@ -189,11 +199,14 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
                                                     cfg.radius)
         if req.predict:
             observed.append(_observed(frame, views, per_side, edge_det, corner_det, cfg))
-        for _side, (_, _, results, _) in per_side.items():
+        for side, (_, _, results, _) in per_side.items():
             for r in results:
                 rows.extend(report.rows_of(r))
                 fractions.add(r)
             sums.append(sums_of(results, cfg, edge_det, corner_det))
+            if side == "left" and corner_det is not None and len(per_side) == 2:
+                pair_sums(sums[-1], *(next(r for r in per_side[s][2] if r.detector == corner_det).corners
+                                      for s in ("left", "right")), cfg.inlier)
         if progress is not None:
             progress(i + 1, len(frames))
     out.mkdir(parents=True, exist_ok=True)
@@ -248,8 +261,7 @@ def _observed(frame, views, per_side, edge_det, corner_det, cfg):
         o.values[side] = predict.edge_values(r.stats if r is not None else None)
     if corner_det is not None and len(per_side) == 2:
         found = {s: per_side[s][1][corner_det].corners for s in ("left", "right")}
-        o.corner_error_3d = predict.corner_error_3d(views["left"], views["right"], found["left"], found["right"],
-                                                    cfg.radius)
+        o.pair = predict.corner_errors_3d(views["left"], views["right"], found["left"], found["right"], cfg.radius)
     return o
 
 

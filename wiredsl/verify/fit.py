@@ -22,9 +22,12 @@ keyed by the seed and the statistic's name (the same seed gives the same interva
   stroke, so e1 - e0 ~ N(0, 2 sigma^2): sigma = sqrt(mean((e1 - e0)^2) / 2).
 - corner_loss.keep = model corners with a detected corner within the radius / model corners (corner detector).
 - corner_error.sigma: the found corners within `inlier` px of the model's are placed by the detector's
-  localisation error, an isotropic 2D Gaussian: their squared distances r^2 have the mean
-  2 sigma^2 - t^2 q / (1 - q), q = exp(-t^2 / (2 sigma^2)), of sigma^2 chi^2_2 truncated at t = inlier, solved for
-  sigma (bisection). The pose's and the calibration's errors at the corners are in r too.
+  localisation error, an isotropic 2D Gaussian: their offsets, less each image's affine map of them (what a pose
+  or calibration error moves, to first order; `verification.corner_residuals`), have the mean square
+  2 sigma^2 - t^2 q / (1 - q) a degree of freedom, q = exp(-t^2 / (2 sigma^2)), of sigma^2 chi^2_2 truncated at
+  t = inlier, solved for sigma (bisection).
+- corner_error.correlation: over the corners located in both images of a stereo pair, the sum of the products
+  of their two residuals over the root of the product of their sums of squares.
 - corner_mismatch: a found corner farther than `inlier` px from the model's is displaced, less the corners the
   localisation error alone puts there (its normal's tail beyond `inlier`). The effect moves a fraction of corners to a uniform point of the disc of `radius`; a move shorter than `inlier` is not seen,
   so radius R solves E[r | r > t] = (2/3)(R^3 - t^3)/(R^2 - t^2) at the displaced corners' mean distance and
@@ -75,7 +78,12 @@ class ImageSums:
     displaced: float = 0.0
     displaced_r: float = 0.0  # sum of their distances
     located: float = 0.0  # found corners within the inlier distance (not displaced)
-    loc2: float = 0.0  # sum of their squared distances to the model's corners
+    loc_dof: float = 0.0  # their residuals' degrees of freedom an axis (verification.corner_residuals)
+    loc2: float = 0.0  # sum of their squared residuals (offsets less the image's affine map of them)
+    pairs: float = 0.0  # (stereo pairs, on the left image's sums) corners located in both images
+    pair_lr: float = 0.0  # sum of the products of their left and right residuals, both axes
+    pair_ll: float = 0.0  # sum of their squared left residuals
+    pair_rr: float = 0.0  # sum of their squared right residuals
     matched: float = 0.0  # stereo matcher
     wrong: float = 0.0
 
@@ -236,7 +244,8 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     col = {k: np.array([getattr(s, k) for s in sums], float) for k in
            ("tested", "verified", "length", "lost_middle", "lost_ends", "ends", "gap_ends", "strokes", "d1", "d2",
             "noise", "runs", "run_strokes", "fitted", "fitted2", "corners", "found",
-            "displaced", "displaced_r", "located", "loc2", "matched", "wrong")}
+            "displaced", "displaced_r", "located", "loc_dof", "loc2", "pairs", "pair_lr", "pair_ll", "pair_rr",
+            "matched", "wrong")}
     out = []
     # edge loss: the gaps themselves (the detector's end loss at each gap end taken off), or everything lost
     if col["tested"].sum() >= MIN["edges"]:
@@ -327,7 +336,8 @@ def _tails(sig, located, t: float):
     return n, n * (t + sig * math.sqrt(math.pi / 2) * erfcx(t / (sig * math.sqrt(2))))
 
 
-def corner_model(found, displaced, displaced_r, located, loc2, t: float, mismatch: bool = True, rounds: int = 5):
+def corner_model(found, displaced, displaced_r, located, loc_dof, loc2, t: float, mismatch: bool = True,
+                 rounds: int = 5):
     """(sigma, fraction, radius, displaced) of the corner stages from a verification's sums (arrays: the same
     for every bootstrap replicate). The two laws overlap: the localisation normal's tail beyond t is counted
     among the displaced corners, and the mismatches that land within t among the located ones (r^2 about
@@ -335,13 +345,13 @@ def corner_model(found, displaced, displaced_r, located, loc2, t: float, mismatc
     too (their mean grows by sigma^2 / (R + t)). Each is estimated with the other's share taken off, a few rounds
     from none (a fixed point, reached in three or four). Without `mismatch` (too few displaced corners) no
     mismatch share is taken off the located ones."""
-    found, displaced, displaced_r, located, loc2 = (np.asarray(a, float) for a in
-                                                    (found, displaced, displaced_r, located, loc2))
+    found, displaced, displaced_r, located, loc_dof, loc2 = (np.asarray(a, float) for a in
+                                                             (found, displaced, displaced_r, located, loc_dof, loc2))
     inside, blur = np.zeros_like(found), np.zeros_like(found)
     with np.errstate(invalid="ignore", divide="ignore"):
         for _ in range(rounds):
             n_loc = np.maximum(located - inside, 1e-12)
-            sig = truncated_sigma(np.maximum(loc2 - inside * t * t / 2, 0.0) / n_loc, t)
+            sig = truncated_sigma(np.maximum(loc2 - inside * t * t / 2, 0.0) / np.maximum(loc_dof - inside, 1e-12), t)
             n_tail, r_tail = _tails(sig, n_loc, t)
             d = np.maximum(displaced - n_tail, 0.0)
             mean_r = np.where(d > 0, np.maximum(displaced_r - r_tail, 0.0) / np.maximum(d, 1e-12), t)
@@ -357,19 +367,40 @@ def corner_model(found, displaced, displaced_r, located, loc2, t: float, mismatc
     return sig, frac, R, d
 
 
+def _correlation(col, seed: int) -> Estimate:
+    """corner_error.correlation: sum(l r) / sqrt(sum(l^2) sum(r^2)) of the residuals of the corners located in
+    both images of the stereo pairs, clipped to [0, 1] (the effect's range)."""
+    key = "corner_error.correlation"
+    if col["pairs"].sum() < MIN["located"]:
+        return Estimate(key, None, note=f"fewer than {MIN['located']} corners located in both images of a stereo "
+                                        "pair")
+
+    def value(lr, ll, rr):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.clip(lr / np.sqrt(ll * rr), 0.0, 1.0)
+
+    keys = ("pair_lr", "pair_ll", "pair_rr")
+    v = float(value(*(col[k].sum() for k in keys)))
+    W = _weights(len(col["pairs"]), seed, key)
+    lo, hi = _interval(np.asarray(value(*(W @ col[k] for k in keys)), float), v, int((col["pairs"] > 0).sum()))
+    return Estimate(key, v, lo, None if hi is None else min(hi, 1.0),
+                    f"of the two cameras' residuals at {int(col['pairs'].sum())} corners located in both images")
+
+
 def _corner_estimates(col, seed: int, t: float) -> list[Estimate]:
-    """corner_error.sigma, corner_mismatch.fraction and .radius, from the one model of both (corner_model)."""
+    """corner_error.sigma, corner_mismatch.fraction and .radius, from the one model of both (corner_model), and
+    corner_error.correlation."""
     found, disp = col["found"], col["displaced"]
     keys = ("corner_error.sigma", "corner_mismatch.fraction", "corner_mismatch.radius")
     if found.sum() < MIN["corners"]:
-        return [Estimate(k, None, note="too few found corners") for k in keys]
+        return [Estimate(k, None, note="too few found corners") for k in (*keys, "corner_error.correlation")]
     mismatch = disp.sum() >= MIN["displaced"]
-    args = ("found", "displaced", "displaced_r", "located", "loc2")
+    args = ("found", "displaced", "displaced_r", "located", "loc_dof", "loc2")
     sig, f, R, d = (float(x) for x in corner_model(*(col[a].sum() for a in args), t, mismatch))
     W = _weights(len(found), seed, "corner_mismatch")
     sig_b, f_b, R_b, _ = corner_model(*(W @ col[a] for a in args), t, mismatch)
     k = int((found > 0).sum())
-    rms = math.sqrt(col["loc2"].sum() / col["located"].sum()) if col["located"].sum() else float("nan")
+    rms = math.sqrt(col["loc2"].sum() / col["loc_dof"].sum()) if col["loc_dof"].sum() > 0 else float("nan")
     if col["located"].sum() < MIN["located"]:
         out = [Estimate(keys[0], None, note=f"fewer than {MIN['located']} found corners within {t:g} px")]
     elif not math.isfinite(sig):
@@ -378,8 +409,10 @@ def _corner_estimates(col, seed: int, t: float) -> list[Estimate]:
     else:
         out = [Estimate(keys[0], sig, *_interval(sig_b, sig, k),
                         f"from {int(col['located'].sum())} found corners within {t:g} px of the model's (RMS "
-                        f"{rms:.3g} px), a normal truncated there" + (", less the mismatches landing there"
-                                                                      if mismatch else ""))]
+                        f"{rms:.3g} px; each image's affine map of them taken off where it has 20 or more), a normal "
+                        "truncated there"
+                        + (", less the mismatches landing there" if mismatch else ""))]
+    out.append(_correlation(col, seed))
     tail = disp.sum() - d
     tail_note = f", {tail:.3g} of them the localisation error's tail" if tail > 0 else ""
     if not mismatch or d < 1:
@@ -448,12 +481,17 @@ def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | N
     e = f.get("corner_loss.keep")
     lines.append(f"  # corner keep {iv(e, _pct)}")
     lines.append(f"  corner_loss keep {_pct(e.used)}")
-    e = f.get("corner_error.sigma")
+    e, r = f.get("corner_error.sigma"), f.get("corner_error.correlation")
     if e.value is None:
         lines.append(f"  # corner localisation error not estimated ({e.note}): no corner_error stage")
     else:
         lines.append(f"  # corner localisation error sigma {iv(e, lambda x: _num(x) + ' px')}")
-        lines.append(f"  corner_error sigma {_num(e.value)}px")
+        if r.value is None:
+            lines.append(f"  # its correlation between the cameras not estimated ({r.note}): taken as 0, "
+                         "independent")
+        else:
+            lines.append(f"  # its correlation between the cameras {iv(r, _num)}")
+        lines.append(f"  corner_error sigma {_num(e.value)}px correlation {_num(r.value or 0.0)}")
     ef, er = f.get("corner_mismatch.fraction"), f.get("corner_mismatch.radius")
     lines.append(f"  # corner mismatch fraction {iv(ef, _pct)}")
     lines.append(f"  # corner mismatch radius {iv(er, lambda x: _num(x) + ' px')}")

@@ -1,7 +1,7 @@
 """Does the simulation predict the detector? (`wiredsl verify --fit --predict`, issue 24 item 7.)
 
 The imaged scene is simulated at every frame's pose with a pipeline (the fitted one), `trials` times with a
-fixed seed, and three downstream measures are computed image by image, the same way from the real detector's
+fixed seed, and four downstream measures are computed image by image, the same way from the real detector's
 features and from the simulated ones:
 
 - **verified fraction**: the ideal projection's strokes are sampled as the verification samples them
@@ -16,6 +16,11 @@ features and from the simulated ones:
 - **3D corner error** of the stereo pairs (mm, the scene's unit): each camera's model corners matched to the
   nearest detected (or simulated) corner within the radius, undistorted, triangulated (DLT) with the rig at
   the frame's pose and compared with the model's corner; the RMS (mm) over the corners found in both images.
+- **3D shape error** of the same triangulated corners (mm): the RMS left after the rigid motion that best
+  fits them to the model's corners (Kabsch, `scipy.spatial.transform.Rotation.align_vectors`). The real
+  frames' poses are estimated (`--poses board` fits them to the left image's corners), and an estimated pose
+  takes up part of the corners' error in the real images and none in the simulated ones, where the pose is
+  the truth; this measure does not depend on the pose, so it compares the two alike.
 
 Each measure's real values (one an image, or a pair) and simulated values (one an image and trial) are
 compared with the two-sample Kolmogorov-Smirnov and Mann-Whitney tests (scipy.stats), and per image by where
@@ -32,18 +37,20 @@ from wiredsl.verify import verification as ver
 
 TRIALS = 50
 MEASURES = {"verified_fraction": ("verified fraction", ""), "offset_rms_px": ("RMS lateral offset", "px"),
-            "corner_error_3d": ("triangulated corner error, RMS", "mm")}
+            "corner_error_3d": ("triangulated corner error, RMS", "mm"),
+            "corner_shape_3d": ("3D shape error after a rigid fit", "mm")}
+PAIR = ("corner_error_3d", "corner_shape_3d")  # one value a stereo pair, not an image
 
 
 @dataclass
 class Observed:
-    """One frame's real values: per side, the verified fraction and RMS offset; the stereo 3D corner error."""
+    """One frame's real values: per side, the verified fraction and RMS offset; per stereo pair, the 3D ones."""
 
     frame: str
     pose: tuple
     shape: dict[str, tuple[int, int]] = field(default_factory=dict)
     values: dict[str, dict[str, float | None]] = field(default_factory=dict)  # side -> measure -> value
-    corner_error_3d: float | None = None
+    pair: dict[str, float | None] = field(default_factory=dict)  # PAIR measure -> value
 
 
 def edge_values(stats: ver.StrokeStats | None) -> dict[str, float | None]:
@@ -57,9 +64,13 @@ def edge_values(stats: ver.StrokeStats | None) -> dict[str, float | None]:
             "offset_rms_px": float(np.sqrt(sq / n.sum())) if n.sum() > 0 else None}
 
 
-def corner_error_3d(left, right, det_left: np.ndarray, det_right: np.ndarray, radius: float) -> float | None:
-    """RMS 3D error of the model corners whose nearest detected corner within `radius` is found in both views
-    (left, right: the ideal engine views; det_*: (m, 2) detected corner pixels), triangulated by DLT."""
+def corner_errors_3d(left, right, det_left: np.ndarray, det_right: np.ndarray, radius: float
+                     ) -> dict[str, float | None]:
+    """The PAIR measures (mm) of the model corners whose nearest detected corner within `radius` is found in both
+    views (left, right: the ideal engine views; det_*: (m, 2) detected corner pixels), triangulated by DLT:
+    the RMS 3D error, and the RMS left after the best rigid fit to the model's corners (None with fewer than 3
+    corners, or all on a line)."""
+    none = dict.fromkeys(PAIR)
     from wiredsl.measures.stereo3d import triangulate, undistort
 
     fl, uvl = ver.corners_of(left)
@@ -68,7 +79,7 @@ def corner_error_3d(left, right, det_left: np.ndarray, det_right: np.ndarray, ra
     mr = ver.match_corners(fr, uvr, det_right, radius)
     common, il, ir = np.intersect1d(fl[ml.found], fr[mr.found], return_indices=True)
     if len(common) == 0 or left.corner_world is None:
-        return None
+        return none
     xl, okl = undistort(det_left[ml.nearest[ml.found][il]], left.camera)
     xr, okr = undistort(det_right[mr.nearest[mr.found][ir]], right.camera)
     P = [np.hstack([np.asarray(v.R_cw, float), np.asarray(v.t_cw, float).reshape(3, 1)]) for v in (left, right)]
@@ -76,9 +87,28 @@ def corner_error_3d(left, right, det_left: np.ndarray, det_right: np.ndarray, ra
     truth = dict(zip(np.asarray(left.corner_fid).tolist(), np.asarray(left.corner_world, float), strict=True))
     keep = ok & okl & okr & np.array([int(f) in truth for f in common], bool)
     if not keep.any():
-        return None
+        return none
     T = np.array([truth[int(f)] for f in common[keep]])
-    return 1000.0 * float(np.sqrt(np.mean(np.sum((X[keep] - T) ** 2, axis=1))))  # m (the engine's) to mm
+    return {"corner_error_3d": _rms_mm(X[keep] - T), "corner_shape_3d": shape_error_mm(X[keep], T)}
+
+
+def _rms_mm(d: np.ndarray) -> float:
+    return 1000.0 * float(np.sqrt(np.mean(np.sum(d**2, axis=1))))  # m (the engine's) to mm
+
+
+def shape_error_mm(X: np.ndarray, T: np.ndarray) -> float | None:
+    """RMS (mm) of X (n, 3; m) after the rotation and translation that best fit it to T; None when T has fewer
+    than 3 points or lies on a line (the fit is not unique)."""
+    from scipy.spatial.transform import Rotation
+
+    if len(T) < 3:
+        return None
+    x, t = X - X.mean(axis=0), T - T.mean(axis=0)
+    sv = np.linalg.svd(t, compute_uv=False)
+    if sv[1] <= 1e-9 * max(sv[0], 1e-300):
+        return None
+    rot, _ = Rotation.align_vectors(t, x)  # rot @ x_i ~ t_i, least squares
+    return _rms_mm(rot.apply(x) - t)
 
 
 def search_simulated(sm: ver.Samples, segs: np.ndarray, shape: tuple[int, int], cfg: ver.Settings
@@ -127,7 +157,7 @@ def segments_of(view) -> np.ndarray:
 
 def simulate(scene, world, pipeline, observed: list[Observed], cfg: ver.Settings, trials: int, seed: int
              ) -> list[dict]:
-    """Per frame and trial, the simulated measures: [{frame, trial, side -> {measure}, corner_error_3d}]."""
+    """Per frame and trial, the simulated measures: [{frame, trial, side -> {measure}, PAIR measure -> value}]."""
     from wiredsl import run as runs
     from wiredsl.engine.geometry import floor_pose
     from wiredsl.engine.simulate import Options
@@ -154,10 +184,9 @@ def simulate(scene, world, pipeline, observed: list[Observed], cfg: ver.Settings
                 for side in o.values:
                     row[side] = edge_values(simulated_stats(getattr(ideal[r.index], side), views[side],
                                                             o.shape[side], cfg))
-                if o.corner_error_3d is not None or len(o.values) == 2:
-                    row["corner_error_3d"] = corner_error_3d(ideal[r.index].left, ideal[r.index].right,
-                                                             ver.corners_of(r.left)[1], ver.corners_of(r.right)[1],
-                                                             cfg.radius)
+                if o.pair or len(o.values) == 2:
+                    row.update(corner_errors_3d(ideal[r.index].left, ideal[r.index].right,
+                                                ver.corners_of(r.left)[1], ver.corners_of(r.right)[1], cfg.radius))
                 out.append(row)
     return out
 
@@ -171,10 +200,10 @@ def compare(observed: list[Observed], simulated: list[dict]) -> dict:
     for key in MEASURES:
         real, sim, ranks = [], [], []
         for o in observed:
-            sides = ["pair"] if key == "corner_error_3d" else list(o.values)
+            sides = ["pair"] if key in PAIR else list(o.values)
             for side in sides:
-                r = o.corner_error_3d if side == "pair" else o.values[side][key]
-                s = [row.get("corner_error_3d") if side == "pair" else row[side][key]
+                r = o.pair.get(key) if side == "pair" else o.values[side][key]
+                s = [row.get(key) if side == "pair" else row[side][key]
                      for row in simulated if row["frame"] == o.frame]
                 s = [v for v in s if v is not None]
                 if r is None or not s:
@@ -237,7 +266,7 @@ def plot(comparison: dict, path, caption: str, fmt: str = "png") -> None:
         ax.set_xticklabels([f"{r['frame']}{r['side'][0] if r['side'] != 'pair' else ''}" for r in e["real"]],
                            rotation=90, fontsize=7)
         ax.set_ylabel(e["label"] + unit)
-        ax.set_xlabel("image (frame, l/r camera)" if key != "corner_error_3d" else "stereo pair (frame)")
+        ax.set_xlabel("image (frame, l/r camera)" if key not in PAIR else "stereo pair (frame)")
         ax.legend(fontsize=7, loc="best")
         ax = row[1]
         for vals, colour, name in ((np.array([r["value"] for r in e["real"]]), "tab:blue", "real"),
@@ -261,7 +290,7 @@ def per_image(comparison: dict, observed: list[Observed], simulated: list[dict])
     for key, e in comparison.items():
         lists = []
         for r in e["real"]:
-            vals = [row.get("corner_error_3d") if r["side"] == "pair" else row[r["side"]][key]
+            vals = [row.get(key) if r["side"] == "pair" else row[r["side"]][key]
                     for row in simulated if row["frame"] == r["frame"]]
             lists.append([v for v in vals if v is not None])
         e["_per_image"] = lists
