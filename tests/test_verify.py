@@ -264,6 +264,8 @@ def test_a_rig_with_a_declared_calibration_uncertainty_gets_it_simulated_first(t
     stages = scene.pipeline("measured").stages
     assert (stages[0].effect, stages[0].params["sigma"]) == ("calibration_error", 1.0)
     assert not [w for w in warnings if "W161" in str(w)]
+    left_out = F.pipeline_text(f, "measured", ["test"], "information over 14 parameters", with_calibration=False)
+    assert "calibration_error" not in left_out.replace("--no-calibration-error", "")
 
 
 # --------------------------------------------------------------------------- the command

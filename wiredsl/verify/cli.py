@@ -43,9 +43,14 @@ from wiredsl.cli_base import diagnostics_option, guarded, report
 @click.option("--edge-loss", "edge_loss", type=click.Choice(["gaps", "raw"]), default="gaps", show_default=True,
               help="Fit edge_loss to the gaps (the detector's own loss at each gap's ends taken off), or to all "
                    "that was lost (1 - the verified fraction).")
+@click.option("--calibration-error/--no-calibration-error", "calibration_error", default=True, show_default=True,
+              help="With --fit: start the pipeline with calibration_error sigma 1 when the rig declares its "
+                   "calibration's uncertainty. --no-calibration-error when these images calibrated the rig: "
+                   "their corners already fit it.")
 @click.option("--predict", is_flag=True,
               help="With --fit: simulate the frames with the fitted pipeline and compare the verified fraction, "
-                   "lateral offset and stereo 3D corner error with the real detector's (prediction.json, plot).")
+                   "lateral offset and stereo 3D corner and shape errors with the real detector's "
+                   "(prediction.json, plot).")
 @click.option("--trials", type=click.IntRange(1, 100000), default=50, show_default=True,
               help="Simulated trials a frame for --predict.")
 @click.option("--pipeline-name", default="measured", show_default=True, help="The fitted pipeline's name.")
@@ -56,7 +61,8 @@ from wiredsl.cli_base import diagnostics_option, guarded, report
 @diagnostics_option
 @guarded
 def verify(file, globs, cameras, poses, pose_format, match, detectors, params, step, band, angle, radius, inlier,
-           refine, do_fit, edge_loss, predict, trials, pipeline_name, seed, plot_format, output, diagnostics) -> None:
+           refine, do_fit, edge_loss, calibration_error, predict, trials, pipeline_name, seed, plot_format, output,
+           diagnostics) -> None:
     """Verify the scene's projected model against detected features in images (the paper's Figure 7), and with
     --fit estimate each effect's parameters as a pipeline."""
     from pathlib import Path
@@ -84,7 +90,7 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
     pairs = [(g, cameras[k] if k < len(cameras) else None) for k, g in enumerate(globs)]
     req = command.Request(file, pairs, list(detectors), list(params), poses, pose_format, match,
                           Settings(step, band, math.radians(angle), radius, inlier), do_fit, seed, pipeline_name,
-                          refine, plot_format, edge_loss, predict, trials)
+                          refine, plot_format, edge_loss, predict, trials, calibration_error=calibration_error)
     try:
         outcome = command.run(req, out, command.progress_printer())
     except ValueError as exc:

@@ -37,6 +37,7 @@ class Request:
     predict: bool = False  # simulate the frames with the fitted pipeline and compare (predict.py)
     trials: int = 50
     predict_pipeline: object = None  # a Pipeline to predict with instead of the fitted one (tests)
+    calibration_error: bool = True  # the rig's declared calibration uncertainty simulated (fit.pipeline_text)
 
 
 @dataclass
@@ -238,7 +239,8 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
                       "Include this file in the scene and build with --pipeline " + req.pipeline_name + "."]
         cal = scene.rig.calibration
         text = fitting.pipeline_text(result, req.pipeline_name, provenance,
-                                     None if cal is None else f"{cal.kind} over {len(cal.order)} parameters")
+                                     None if cal is None else f"{cal.kind} over {len(cal.order)} parameters",
+                                     req.calibration_error)
         write_atomic(out / f"{req.pipeline_name}.wd", text)
         write_atomic(out / "fit.json", json_text({**result.to_json(), "seed": req.seed, "bootstrap": fitting.B},
                                                  indent=1))

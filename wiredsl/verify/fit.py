@@ -443,10 +443,12 @@ def _pct(x: float) -> str:
     return f"{100 * x:.4g}%"
 
 
-def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | None = None) -> str:
+def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | None = None,
+                  with_calibration: bool = True) -> str:
     """The fitted pipeline as a `.wd` file (canonical form), intervals and provenance in comments.
     `calibration`: how the scene's rig declares its calibration's uncertainty (None: it does not); then the
-    pipeline starts with `calibration_error sigma 1`, which draws the rigs with exactly that uncertainty."""
+    pipeline starts with `calibration_error sigma 1`, which draws the rigs with exactly that uncertainty, unless
+    not `with_calibration` (the images calibrated the rig: their corners already fit it)."""
     from wiredsl.language.fmt import format_text
 
     def iv(e: Estimate, fmt) -> str:
@@ -458,6 +460,9 @@ def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | N
     lines = ["wiredsl 1", *[f"# {p}" for p in provenance], f"pipeline {name} {{"]
     if calibration is None:
         lines.append("  # calibration: the rig declares no uncertainty, so none is simulated")
+    elif not with_calibration:
+        lines.append(f"  # calibration: the rig declares its uncertainty ({calibration}), left out "
+                     "(--no-calibration-error: these images calibrated the rig)")
     else:
         lines.append(f"  # calibration: the uncertainty the rig declares ({calibration}), not fitted here")
         lines.append("  calibration_error sigma 1")
