@@ -288,3 +288,21 @@ def test_render_is_its_own_module_that_the_cli_only_registers():
     assert "--supersample" not in inspect.getsource(cli)
     r = CliRunner().invoke(cli.main, ["render", "--help"])
     assert r.exit_code == 0 and "--supersample" in r.output and "--corners" in r.output
+
+
+def test_a_scene_compiled_from_text_renders_and_its_digest_is_of_the_compiled_scene(tmp_path, monkeypatch):
+    """`wiredsl.compile(text)` has no file to hash (its source is "<string>"): render.write used to fail reading
+    one; the manifest's digest is now of the compiled scene, the same for the same text."""
+    monkeypatch.chdir(Path("scenes").resolve())  # the lab's includes are found from the current folder
+    text = Path("lab.wd").read_text()
+    digests = []
+    for k in range(2):
+        rd.write(tmp_path / f"img{k}", wiredsl.compile(text), pipeline=None, seed=1)
+        assert (tmp_path / f"img{k}" / "left_000.png").exists()
+        doc = json.loads(next((tmp_path / f"img{k}").glob("*.json")).read_text())
+        assert doc["scene"]["file"] == "<string>"
+        digests.append(doc["scene"]["sha256"])
+    assert digests[0] == digests[1] and len(digests[0]) == 64
+    other = wiredsl.compile(text.replace("step 0.4m", "step 0.5m"))
+    rd.write(tmp_path / "other", other, pipeline=None, seed=1)
+    assert json.loads(next((tmp_path / "other").glob("*.json")).read_text())["scene"]["sha256"] != digests[0]

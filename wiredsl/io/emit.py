@@ -26,7 +26,12 @@ DECIMALS = 6  # pixels: 1e-6 px, far below any effect modelled, and stable acros
 
 
 def scene_ref(scene: Scene) -> SceneRef:
-    digest = hashlib.sha256(Path(scene.source).read_bytes()).hexdigest()
+    """The scene's name, file and sha256 of the file; a scene compiled from text (`wiredsl.compile(text)`, source
+    "<string>") has no file, and its digest is of its compiled form (the canonical JSON of the Scene)."""
+    if scene.source == "<string>":
+        digest = hashlib.sha256(to_json(scene, indent=None).encode()).hexdigest()
+    else:
+        digest = hashlib.sha256(Path(scene.source).read_bytes()).hexdigest()
     return checked(SceneRef, name=scene.name, file=printable_path(scene.source), sha256=digest)
 
 
