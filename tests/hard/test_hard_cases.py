@@ -16,10 +16,10 @@ from wiredsl.effects import calibration_error as calib
 from wiredsl.effects.stereo_mismatch import angle_to_epipolar
 from wiredsl.engine import geometry
 from wiredsl.engine import imageset as im
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options, project_view, simulate
 from wiredsl.engine.visibility import nearest_viewpoint
 from wiredsl.engine.world import World, build_world
+from wiredsl.montecarlo import Run
 from wiredsl.scene import Camera, Pipeline
 
 mp.mp.dps = 50

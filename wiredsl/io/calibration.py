@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl import install_hint
+from wiredsl.files import require_finite
 from wiredsl.io.camera_file import (
     EQUIDISTANT,
     MIN_FOCAL,
@@ -46,7 +47,6 @@ from wiredsl.io.camera_file import (
     _num,
     _with_pose,
 )
-from wiredsl.io.files import require_finite
 
 FORMATS = ("opencv", "ros", "kalibr", "camodocal", "basalt")
 MAX_BYTES = 4 << 20

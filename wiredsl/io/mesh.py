@@ -192,7 +192,7 @@ def _cache_key(data: bytes, kind: str) -> str | None:
 
 def _from_cache(key: str) -> tuple[np.ndarray, np.ndarray] | None:
     """A cached mesh's arrays, or None (not cached, or a cache file that is not one: it is read afresh)."""
-    from wiredsl.io.files import cache_folder
+    from wiredsl.files import cache_folder
 
     folder = cache_folder("meshes")
     path = folder / f"{key}.npz" if folder is not None else None
@@ -213,7 +213,7 @@ def _from_cache(key: str) -> tuple[np.ndarray, np.ndarray] | None:
 def _to_cache(key: str, raw: RawMesh) -> None:
     """Keep a mesh's arrays (written atomically; a cache that cannot be written is no error), and remove the
     least recently used beyond CACHE_FILES."""
-    from wiredsl.io.files import cache_folder, prune_cache, write_atomic
+    from wiredsl.files import cache_folder, prune_cache, write_atomic
 
     folder = cache_folder("meshes")
     if folder is None:
@@ -260,7 +260,7 @@ _ARRAYS = ("lines", "poly_points", "poly_len", "ell", "sil", "corner_at", "corne
 def load_features(key: str):
     """The cached MeshFeatures of `key`, or None (not cached, or a file that is not one)."""
     from wiredsl.engine.mesh import MeshFeatures
-    from wiredsl.io.files import cache_folder
+    from wiredsl.files import cache_folder
 
     folder = cache_folder("meshes")
     path = folder / f"{key}.npz" if folder is not None else None
@@ -290,7 +290,7 @@ def load_features(key: str):
 
 def save_features(key: str, f) -> None:
     """Keep a mesh's features (atomically; a cache that cannot be written is no error)."""
-    from wiredsl.io.files import cache_folder, prune_cache, write_atomic
+    from wiredsl.files import cache_folder, prune_cache, write_atomic
 
     folder = cache_folder("meshes")
     if folder is None:

@@ -21,11 +21,11 @@ import numpy as np
 
 from wiredsl import DEFAULT_VISIBILITY
 from wiredsl.engine import imageset as im
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
-from wiredsl.io.files import write_atomic
+from wiredsl.files import write_atomic
 from wiredsl.measures import BUILTIN, REGISTRY
+from wiredsl.montecarlo import Run
 from wiredsl.plugins import call, failure, params_of
 from wiredsl.run import VisibilityChoice, resolve_visibility, start
 from wiredsl.scene import Scene, Study
