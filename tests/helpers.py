@@ -11,7 +11,6 @@ from wiredsl.engine import conics
 from wiredsl.language.ast import Program, parse_text
 from wiredsl.language.compile import compile_program
 
-
 # The six faces of the 1 m box at the origin, as statements of a model block (hidden lines known by construction).
 BOX_FACES = """
   face south through (0, 0, 0) (1, 0, 0) (1, 0, 1) (0, 0, 1)

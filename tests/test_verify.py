@@ -64,7 +64,8 @@ def test_edges_drawn_at_a_known_offset_are_verified_with_that_offset(offset, nam
     img, view = _square(offset)
     det = D.BUILTIN[name]
     found = D.checked(det.detect(img, det.Params()), img.shape, name)
-    r = V.verify_image(view, found, img.shape, V.Settings(), V.ImageResult("x", "left", "0", name, ["a", "b", "c", "d"]))
+    r = V.verify_image(view, found, img.shape, V.Settings(),
+                       V.ImageResult("x", "left", "0", name, ["a", "b", "c", "d"]))
     s = r.stats
     assert (s.verified / s.tested > 0.95).all()
     # the sides run clockwise in the image (y down), so the outward normal is -n: the offset is -offset

@@ -14,8 +14,15 @@ import sys
 import click
 
 from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, __version__, install_hint
-from wiredsl.cli_base import (EXIT_INVALID, auto_visibility, diagnostics_option, folder_name, guarded, report,
-                              setup_errors)
+from wiredsl.cli_base import (
+    EXIT_INVALID,
+    auto_visibility,
+    diagnostics_option,
+    folder_name,
+    guarded,
+    report,
+    setup_errors,
+)
 
 # Commands in modules of their own, imported when they run or help is asked for (their options cost the lab's
 # build and check some 3 ms CPU of click's decorators): name -> (module, attribute).

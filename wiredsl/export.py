@@ -13,8 +13,15 @@ import sys
 import click
 
 from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, install_hint
-from wiredsl.cli_base import (EXIT_INVALID, auto_visibility, diagnostics_option, folder_name, guarded, report,
-                              setup_errors)
+from wiredsl.cli_base import (
+    EXIT_INVALID,
+    auto_visibility,
+    diagnostics_option,
+    folder_name,
+    guarded,
+    report,
+    setup_errors,
+)
 
 FORMATS = ("colmap", "rosbag2")
 MAX_EXPORT_TRIALS = 100_000  # one folder a trial

@@ -66,7 +66,7 @@ def rows(study: Study, X: np.ndarray, per_point: list[dict[str, np.ndarray]],
     by_size: dict[int, list[int]] = {}
     for i, (_, pooled) in enumerate(found):
         by_size.setdefault(len(pooled), []).append(i)
-    for k, idx in by_size.items():
+    for idx in by_size.values():
         Q = np.quantile(np.stack([found[i][1] for i in idx]), QUANTILES, axis=1).T
         for i, row in zip(idx, Q.tolist(), strict=True):
             q[i] = row
