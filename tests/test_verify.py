@@ -14,11 +14,10 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_plugins import make_dist
+from helpers import make_dist, plugins_on_path
 from verify_drawing import draw, render_records
 
 import wiredsl
-from wiredsl import plugins
 from wiredsl.cli import main
 from wiredsl.scene import Pipeline
 from wiredsl.verify import detectors as D
@@ -371,9 +370,7 @@ class Broken(Detector):
 
 def test_a_plugin_detector_is_loaded_by_name_and_verified_like_canny(tmp_path, monkeypatch, rendered):
     entry = "[wiredsl.detectors]\ngradient_edges = wdetect:Gradient\nbroken_edges = wdetect:Broken\n"
-    monkeypatch.syspath_prepend(str(make_dist(tmp_path / "site", "wdetect", PLUGIN, entry)))
-    plugins.rescan()
-    try:
+    with plugins_on_path(monkeypatch, make_dist(tmp_path / "site", "wdetect", PLUGIN, entry), modules=("wdetect",)):
         r = _verify("--images", rendered / "ideal" / "left_00[01].png", "--detector", "gradient_edges", "--param",
                     "threshold=15", "-o", tmp_path / "out")
         assert r.exit_code == 0, r.output
@@ -385,8 +382,6 @@ def test_a_plugin_detector_is_loaded_by_name_and_verified_like_canny(tmp_path, m
         assert r.exit_code == 1 and "error[E181]" in r.stderr and "wdetect" in r.stderr, r.output
         listed = CliRunner().invoke(main, ["plugins"])
         assert "detector\tgradient_edges\twdetect 0.3\twdetect:Gradient\tok" in listed.output, listed.output
-    finally:
-        plugins.rescan()
 
 
 def test_verifying_one_image_costs_little(rendered):
