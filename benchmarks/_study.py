@@ -49,9 +49,9 @@ def main() -> None:
         wall, cpu = time.perf_counter() - t, time.process_time() - cpu
         children = _children(stop_forkserver=True) - children
     points = (len(study.factors) + 2) * args.points
-    print(json.dumps({"wall": wall, "cpu": cpu, "cpu_workers": children, "points": points, "trials": study.trials, "poses": len(study.poses or []),
-                      "executor": args.executor, "workers": args.workers, "pid": os.getpid(),
-                      "python": sys.executable}))
+    print(json.dumps({"wall": wall, "cpu": cpu, "cpu_workers": children, "points": points, "trials": study.trials,
+                      "poses": len(study.poses or []), "executor": args.executor, "workers": args.workers,
+                      "pid": os.getpid(), "python": sys.executable}))
 
 
 def _children(stop_forkserver: bool = False) -> float:

@@ -119,20 +119,32 @@ def child(args: list[str], where: str):
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def _montecarlo() -> str:
+    """The module of `Run`: wiredsl/montecarlo.py, engine/montecarlo.py in a checkout from before it moved (a
+    --baseline); found without importing wiredsl, since a child times the imports from the first one on."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("wiredsl")
+    folder = os.path.dirname(spec.origin) if spec is not None and spec.origin else ""
+    moved = os.path.exists(os.path.join(folder, "montecarlo.py"))
+    return "wiredsl.montecarlo" if moved else "wiredsl.engine.montecarlo"
+
+
+MONTECARLO = _montecarlo()
 # the phases of a build: (label, module, function or Class.method), each timed without the phases nested in it
 PHASES = (
     ("compile the scene", "wiredsl.language.compile", "compile_file"),
     ("world and run set-up", "wiredsl.engine.world", "build_world"),
     ("world and run set-up", "wiredsl.run", "start"),
-    ("ideal projection", "wiredsl.engine.montecarlo", "Run.ideal"),
+    ("ideal projection", MONTECARLO, "Run.ideal"),
     ("numba's array functions (no BLAS)", "wiredsl.cli", "_numba_without_blas"),
     ("compiled kernel", "wiredsl.engine.kernel", "run_view"),  # its first call: loading the cached kernel
     ("the size estimate's trial (its own part)", "wiredsl.cli", "trial_bytes"),
-    ("Python around the kernel (batches)", "wiredsl.engine.montecarlo", "Run._batch"),
+    ("Python around the kernel (batches)", MONTECARLO, "Run._batch"),
     ("npz writer", "wiredsl.io.emit", "NpzStream.__init__"),
     ("npz writer", "wiredsl.io.emit", "NpzStream.write_batch"),
     ("npz writer", "wiredsl.io.emit", "NpzStream.close"),
-    ("manifest", "wiredsl.engine.montecarlo", "Run.manifest"),
+    ("manifest", MONTECARLO, "Run.manifest"),
 )
 NUMBA_IMPORTS = "numba's imports (with those of the kernel's load)"
 LOAD = "loading the cached kernel (its first call)"
@@ -207,8 +219,9 @@ def phases(trials: int) -> dict[str, float]:
 def split(trials: int) -> tuple[float, float, float]:
     """Microseconds of CPU a lab trial spends in the compiled kernel, in the Python around it and in the npz
     writer, measured in this process (the kernel's calls timed one by one)."""
+    import importlib
+
     from wiredsl.engine import kernel as kn
-    from wiredsl.engine.montecarlo import Run
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world
     from wiredsl.io import emit
@@ -223,6 +236,7 @@ def split(trials: int) -> tuple[float, float, float]:
         inside[0] += time.process_time() - t
         return out
 
+    Run = importlib.import_module(MONTECARLO).Run
     scene, _, _ = compile_file("scenes/lab.wd")
     world = build_world(scene)
     run = Run.create(scene, world, scene.pipeline("paper"), 1, Options())

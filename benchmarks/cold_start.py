@@ -48,14 +48,17 @@ import wiredsl.cli; mark("import wiredsl.cli")
 wiredsl.cli._tune_gc()  # as every command does (a full collection alone would land in some phase: ~25 ms)
 import wiredsl.language.compile; mark("import the compiler, the scene's and the effects' models")
 import wiredsl.engine.simulate; mark("import the engine (simulate, visibility, occlusion, conics)")
-import wiredsl.engine.montecarlo, wiredsl.io.emit, wiredsl.io.svg; mark("import montecarlo, emit, svg")
+try:
+    import wiredsl.montecarlo as montecarlo
+except ImportError:  # a --baseline from before it moved out of engine/
+    import wiredsl.engine.montecarlo as montecarlo
+import wiredsl.io.emit, wiredsl.io.svg; mark("import montecarlo, emit, svg")
 from wiredsl.language.compile import compile_file
 scene, _, _ = compile_file("scenes/lab.wd"); mark("compile scenes/lab.wd")
 from wiredsl.engine.world import build_world
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 world = build_world(scene)
-run = Run.create(scene, world, scene.pipeline(), 1, Options()); run.engine = "numpy"
+run = montecarlo.Run.create(scene, world, scene.pipeline(), 1, Options()); run.engine = "numpy"
 run.ideal(); mark("world, view-point lists, ideal projection")
 (b, out), = list(run.batches([0])); mark("the paper trial (numpy path)")
 from wiredsl.io import emit, svg

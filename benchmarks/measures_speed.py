@@ -19,11 +19,11 @@ import time
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from wiredsl.engine.montecarlo import Run  # noqa: E402
 from wiredsl.engine.simulate import Options  # noqa: E402
 from wiredsl.engine.world import build_world  # noqa: E402
 from wiredsl.language.compile import compile_file  # noqa: E402
 from wiredsl.measures import REGISTRY, pgh  # noqa: E402
+from wiredsl.montecarlo import Run  # noqa: E402
 
 
 def main() -> None:

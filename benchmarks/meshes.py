@@ -94,8 +94,8 @@ def part(name: str, clauses: str, at: str) -> dict:
         (Path(tmp) / name).write_bytes(gzip.open(root / "tests" / "meshes" / f"{name}.gz").read())
         text = SCENE.replace('mesh read "ball.stl"', f'mesh read "{name}" {clauses}').replace(
             "at (2.5m, 0, 0.6m)", f"at {at}").format(root=root.as_posix())
-        text = text.replace('model crate {\n  mesh read "' + root.as_posix() + '/scenes/meshes/crate.obj" scale 0.001 up y\n}\n',
-                            "").replace("place crate as crate1 at (3.6m, 0, 0)\n", "")
+        crate = f'model crate {{\n  mesh read "{root.as_posix()}/scenes/meshes/crate.obj" scale 0.001 up y\n}}\n'
+        text = text.replace(crate, "").replace("place crate as crate1 at (3.6m, 0, 0)\n", "")
         path = Path(tmp) / "s.wd"
         path.write_text(text)
         os.environ["XDG_CACHE_HOME"] = tmp

@@ -111,7 +111,8 @@ def table_difference(a: bytes, b: bytes) -> str:
     if not rows:
         return "equal"
     return (f"{sum(rows.values())} of {len(ra) - 1} rows differ ({', '.join(f'{k} {v}' for k, v in rows.items())}); "
-            f"largest relative difference {worst['mean and quantiles']:.1e} (mean, quantiles), {worst['sem']:.1e} (sem)")
+            f"largest relative difference {worst['mean and quantiles']:.1e} (mean, quantiles), "
+            f"{worst['sem']:.1e} (sem)")
 
 
 def table_agreement(ref: bytes, this: bytes) -> list[str]:
@@ -185,8 +186,8 @@ def side_by_side(ref: str, repeat: int, workers: int) -> None:
                             best[("cpu", name)] = min(cpu, best.get(("cpu", name), float("inf")))
                             (tmp / f"table-{name}.csv").write_bytes((out / "table.csv").read_bytes())
             names = list(cases)
-            print(f"\nstudy: lab sources, {points} points x 2 trials x 3 poses, measures pgh + stereo3d; best of {repeat} "
-                  "interleaved runs (run_study's time, workers' start included)")
+            print(f"\nstudy: lab sources, {points} points x 2 trials x 3 poses, measures pgh + stereo3d; "
+                  f"best of {repeat} interleaved runs (run_study's time, workers' start included)")
             rows = [("in process, per CPU-second of the study's process (BLAS threads included)", "cpu", 1),
                     ("in process, per wall second", "inprocess", 1),
                     (f"processes x{workers}, per wall second / {workers}", f"processes x{workers}", workers)]

@@ -26,10 +26,10 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from wiredsl.engine.montecarlo import Run  # noqa: E402
 from wiredsl.engine.simulate import Options  # noqa: E402
 from wiredsl.engine.world import build_world  # noqa: E402
 from wiredsl.language.compile import compile_file  # noqa: E402
+from wiredsl.montecarlo import Run  # noqa: E402
 from wiredsl.scene import Pipeline  # noqa: E402
 
 

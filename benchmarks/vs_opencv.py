@@ -19,10 +19,10 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from wiredsl.engine.montecarlo import Run  # noqa: E402
 from wiredsl.engine.simulate import Options, simulate  # noqa: E402
 from wiredsl.engine.world import build_world  # noqa: E402
 from wiredsl.language.compile import compile_file  # noqa: E402
+from wiredsl.montecarlo import Run  # noqa: E402
 
 cv2.setNumThreads(1)
 

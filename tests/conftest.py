@@ -53,7 +53,7 @@ def engine(request, monkeypatch):
     if request.param == "kernel":
         pytest.importorskip("numba")
         from wiredsl.effects.base import Effect
-        from wiredsl.engine.montecarlo import kernel_apply
+        from wiredsl.montecarlo import kernel_apply
 
         on_numpy = Effect.apply.__func__
 

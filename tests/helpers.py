@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 
+from wiredsl import plugins
 from wiredsl.diagnostics import WiredslError
 from wiredsl.engine import conics
 from wiredsl.language.ast import Program, parse_text
 from wiredsl.language.compile import compile_program
-
 
 # The six faces of the 1 m box at the origin, as statements of a model block (hidden lines known by construction).
 BOX_FACES = """
@@ -95,3 +98,46 @@ def silhouette_segments(ca, Ua, Va, cb, Ub, Vb, arc_a=None, arc_b=None):
     _, A, B = conics.silhouette_segments_batch(*(np.asarray(x, dtype=float)[None] for x in (ca, Ua, Va, cb, Ub, Vb)),
                                                arcs_a, full_a, arcs_b, full_b)
     return list(zip(A, B, strict=True))
+
+
+# ----------------------------------------------------------------------------- plug-in packages, as pip leaves them
+
+def dist_info(site: Path, name: str, version: str, entry_points: str) -> Path:
+    """A distribution's `.dist-info` folder as pip leaves it in site-packages (METADATA, entry_points.txt), through
+    which importlib.metadata finds the package's entry points; returns the folder."""
+    info = site / f"{name.replace('-', '_')}-{version}.dist-info"
+    info.mkdir(parents=True, exist_ok=True)
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n")
+    (info / "entry_points.txt").write_text(entry_points)
+    return info
+
+
+def entry_points_text(groups: dict[str, dict[str, str]]) -> str:
+    """pyproject.toml's [project.entry-points] tables as the lines of entry_points.txt."""
+    return "".join(f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()) + "\n"
+                   for group, eps in groups.items())
+
+
+def make_dist(site: Path, name: str, module: str, entry_points: str) -> Path:
+    """A package `name` (its __init__.py the text `module`), version 0.3, installed into the folder `site`;
+    returns `site`, the folder to put on sys.path."""
+    (site / name).mkdir(parents=True)
+    (site / name / "__init__.py").write_text(module)
+    dist_info(site, name, "0.3", entry_points)
+    return site
+
+
+@contextlib.contextmanager
+def plugins_on_path(monkeypatch, *folders: Path, modules: tuple[str, ...] = ()):
+    """Plug-in packages installed in `folders` for the block: the folders put first on sys.path (the last named
+    first), the plug-in registries rescanned on entering and on leaving, and the packages' modules (`modules`: their
+    top-level names) taken out of sys.modules after, so that no other test sees them."""
+    for folder in folders:
+        monkeypatch.syspath_prepend(str(folder))
+    plugins.rescan()
+    try:
+        yield
+    finally:
+        plugins.rescan()
+        for m in [m for m in sys.modules if m.split(".")[0] in modules]:
+            del sys.modules[m]

@@ -10,9 +10,9 @@ from click.testing import CliRunner
 
 from wiredsl import bench
 from wiredsl.cli import main
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.world import build_world
 from wiredsl.language.compile import compile_file
+from wiredsl.montecarlo import Run
 
 TINY = Path("scenes/cylinder.wd").read_text().replace("""  silhouette side between top bottom
 """, """  silhouette side between top bottom

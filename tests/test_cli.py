@@ -226,7 +226,7 @@ _IMPORTED = _RUN + "print(json.dumps(sorted(sys.modules)))\n"
 NOT_FOR_THE_LAB = {
     "numba", "llvmlite", "scipy", "matplotlib", "trimesh", "yaml", "dask", "pygls", "jsonschema", "cv2", "numpy.ma",
     "importlib.metadata",  # pydantic's plug-in loader imports it with the first validator (~13 ms with its scan)
-    "socket",  # io/files.py names its temporaries by the host: os.uname() gives it without socket's import (~2 ms)
+    "socket",  # files.py names its temporaries by the host: os.uname() gives it without socket's import (~2 ms)
     "wiredsl.api", "wiredsl.bench", "wiredsl.lsp", "wiredsl.study", "wiredsl.measures", "wiredsl.engine.kernel",
     "wiredsl.engine.mesh", "wiredsl.io.calibration", "wiredsl.io.trajectory", "wiredsl.io.mesh", "wiredsl.io.load",
     "wiredsl.io.schema", "wiredsl.language.compile_study", "wiredsl.language.fmt", "wiredsl.io.render",
@@ -235,8 +235,8 @@ NOT_FOR_THE_LAB = {
     *(f"wiredsl.effects.{e}_kernel" for e in ("approx_error", "corner_loss", "corner_mismatch", "edge_loss",
                                                "lateral_shift", "stereo_mismatch")),
 }
-NOT_FOR_CHECK = {"orjson", "wiredsl.run", "wiredsl.engine.world", "wiredsl.engine.simulate",
-                 "wiredsl.engine.montecarlo", "wiredsl.io.emit", "wiredsl.io.manifest", "wiredsl.io.svg"}
+NOT_FOR_CHECK = {"orjson", "wiredsl.run", "wiredsl.engine.world", "wiredsl.engine.simulate", "wiredsl.engine.trials",
+                 "wiredsl.montecarlo", "wiredsl.io.emit", "wiredsl.io.manifest", "wiredsl.io.svg"}
 
 
 @pytest.mark.parametrize("args, absent", [

@@ -18,10 +18,11 @@ from wiredsl.effects import calibration_error as calib
 from wiredsl.effects.base import Context, Stats
 from wiredsl.effects.stereo_mismatch import angle_to_epipolar
 from wiredsl.engine import imageset as im
-from wiredsl.engine.montecarlo import Run, to_imageset
 from wiredsl.engine.simulate import Options
+from wiredsl.engine.trials import to_imageset
 from wiredsl.engine.world import build_world
 from wiredsl.language.compile import compile_file
+from wiredsl.montecarlo import Run
 from wiredsl.scene import Pipeline
 
 LAB, _, _ = compile_file("scenes/lab.wd")

@@ -17,10 +17,11 @@ from wiredsl.effects.base import Context, Stats
 from wiredsl.effects.stereo_mismatch import epipolar_directions, epipolar_tangents
 from wiredsl.engine import geometry
 from wiredsl.engine import imageset as im
-from wiredsl.engine.montecarlo import Run, camera_row, to_imageset
 from wiredsl.engine.simulate import Options
+from wiredsl.engine.trials import to_imageset
 from wiredsl.engine.world import build_world
 from wiredsl.language.compile import compile_file
+from wiredsl.montecarlo import Run, camera_row
 
 TOLERANCE_DEG = 1e-4  # the band's direction against the sampled curve's tangent, at every sampled pixel
 

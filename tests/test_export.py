@@ -181,7 +181,6 @@ def _bag_messages(bag: Path) -> list[tuple[str, int, object]]:
 
 @pytest.mark.parametrize("lens", ["opencv", "eucm"])
 def test_the_rosbag_reads_back_with_every_message_and_stamp(tmp_path, lens):
-    import wiredsl
     from wiredsl.engine import geometry
 
     path = _scene(tmp_path, lens)
@@ -216,6 +215,7 @@ def test_the_rosbag_reads_back_with_every_message_and_stamp(tmp_path, lens):
         assert np.abs(np.array([v.x, v.y, v.z]) - t).max() < 1e-12
     info = by_topic["/left/camera_info"][0][1]
     assert (info.width, info.height) == (640, 480) and info.k[0] == info.k[4] == 300.0 and info.k[2] == 321.5
+    np.testing.assert_allclose(info.k, [cam.f * cam.ax, 0, cam.cx, 0, cam.f * cam.ay, cam.cy, 0, 0, 1], rtol=1e-15)
     assert info.distortion_model == {"opencv": "plumb_bob", "eucm": "eucm"}[lens]
     # corners: VINS-Mono's layout; (x, y) the true normalised point of the 3D corner, u, v the exported pixel
     rows, uv = batch["corner_rows"], batch["corners"]

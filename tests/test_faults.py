@@ -25,9 +25,9 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from wiredsl.cli import main
+from wiredsl.files import UnwritableValue, json_text, output_folder, write_atomic
 from wiredsl.io import emit
 from wiredsl.io import svg as svg_mod
-from wiredsl.io.files import UnwritableValue, json_text, output_folder, write_atomic
 
 ROOT = Path(__file__).resolve().parent.parent
 LAB = str(ROOT / "scenes/lab.wd")
@@ -269,7 +269,7 @@ def test_writers_refuse_non_finite_values_and_leave_nothing(kind, a):
 
 def test_a_crash_while_writing_the_manifest_leaves_no_temporary(tmp_path, monkeypatch):
     """Whatever fails inside a build (here the manifest), the staged folder goes with it."""
-    from wiredsl.engine.montecarlo import Run
+    from wiredsl.montecarlo import Run
 
     monkeypatch.setattr(Run, "manifest", lambda self: 1 / 0)
     for fmt in ("json", "npz"):
@@ -281,7 +281,7 @@ def test_a_crash_while_writing_the_manifest_leaves_no_temporary(tmp_path, monkey
 
 def test_stale_temporaries_of_dead_local_processes_go_others_stay(tmp_path):
     """Only this host's temporaries whose process is gone are removed; a live or another host's one stays."""
-    from wiredsl.io import files
+    from wiredsl import files
 
     done = subprocess.Popen([sys.executable, "-c", "pass"])
     done.wait()  # reaped: its pid no longer runs

@@ -189,8 +189,8 @@ def test_simulate_without_a_scene_is_a_type_error_that_says_what_it_takes(make):
 def test_a_five_million_digit_token_in_a_trajectory_is_quoted_as_an_excerpt(tmp_path):
     good = "1305031098.6659 1.3563 0.6305 1.6380 0.6132 0.5962 -0.3311 -0.3986\n"
     (tmp_path / "t.tum").write_text(good + "1305031098.7 1e" + "9" * 5_000_000 + " 0.6 1.6 0.6 0.5 -0.3 -0.3\n")
-    (tmp_path / "s.wd").write_text(CAMERA_WORLD + "camera c {\n  focal 600px\n  size (640px, 480px)\n}\n"
-                                   + RIG.replace("path run { pose (0, 0) }", 'path run {\n  read "t.tum" format tum\n}'))
+    path = RIG.replace("path run { pose (0, 0) }", 'path run {\n  read "t.tum" format tum\n}')
+    (tmp_path / "s.wd").write_text(CAMERA_WORLD + "camera c {\n  focal 600px\n  size (640px, 480px)\n}\n" + path)
     r = run("check", str(tmp_path / "s.wd"))
     assert r.exit_code == 1 and "E145" in r.stderr
     assert len(r.stderr) < 2000, len(r.stderr)  # was 15 MB: the token in the message and its line twice

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from helpers import dist_info, entry_points_text
 
 from wiredsl import init
 from wiredsl.cli import main
@@ -87,11 +88,7 @@ def test_the_plugin_template_passes_its_own_tests(tmp_path, monkeypatch):
     site = tmp_path / "site"
     site.mkdir()
     (site / "my_detector").symlink_to(root / "src" / "my_detector")
-    info = site / "my_detector-0.1.0.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: my-detector\nVersion: 0.1.0\n")
-    (info / "entry_points.txt").write_text("".join(
-        f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()) for group, eps in groups.items()))
+    dist_info(site, project["project"]["name"], project["project"]["version"], entry_points_text(groups))
     path = os.pathsep.join([str(site), *(p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p)])
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0",
                            str(root / "tests")], cwd=root, env=env_with_wiredsl(PYTHONPATH=path),

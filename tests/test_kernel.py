@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from test_replay import SCENES, pipelines
 
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import build_world
 from wiredsl.language.compile import compile_file
+from wiredsl.montecarlo import Run
 
 DISCRETE = ("start", "fid", "segment", "fragment", "kind", "clipped", "closed", "occluded", "trial", "corner_fid",
             "corner_trial")
@@ -181,7 +181,7 @@ def test_auto_loads_the_kernel_only_for_runs_large_enough_to_pay_for_it(tmp_path
     from click.testing import CliRunner
 
     from wiredsl.cli import main
-    from wiredsl.engine.montecarlo import KERNEL_PAYS
+    from wiredsl.montecarlo import KERNEL_PAYS
 
     pytest.importorskip("numba")
     scene, _, _ = compile_file("scenes/lab.wd")

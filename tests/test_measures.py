@@ -9,11 +9,11 @@ import pydantic
 import pytest
 from helpers import compile_text, out_of_range
 
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import build_world
 from wiredsl.language.compile import compile_file
 from wiredsl.measures import REGISTRY
+from wiredsl.montecarlo import Run
 
 LAB, _, _ = compile_file("scenes/lab.wd")
 WORLD = build_world(LAB)

@@ -320,7 +320,7 @@ def test_a_mesh_read_again_comes_from_the_cache_bit_for_bit(tmp_path, monkeypatc
     obj = Path("scenes/meshes/crate.obj")
     read_mesh(obj, obj.read_bytes() + b"\n")  # a new file: the cache is cut to the 2 newest
     assert len(list(folder.glob("*.npz"))) == 2
-    monkeypatch.setattr("wiredsl.io.files.cache_folder", lambda kind: None)
+    monkeypatch.setattr("wiredsl.files.cache_folder", lambda kind: None)
     assert np.array_equal(read_mesh(obj, obj.read_bytes() + b"\n\n").triangles, first[files.index(obj)].triangles)
 
 
@@ -351,7 +351,7 @@ def test_a_cache_folder_others_may_write_into_is_not_used(tmp_path, monkeypatch)
     import os
     import tempfile
 
-    from wiredsl.io.files import cache_folder
+    from wiredsl.files import cache_folder
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "home"))
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))

@@ -18,7 +18,6 @@ from wiredsl.engine.world import build_world, surface_triangles
 from wiredsl.language.compile import compile_file
 
 
-
 def eye_at(world, eye):
     """The world's occluders seen from a point (the frame only shifted: the eye at the origin)."""
     return Occluders.of_world(world).seen_from(np.eye(3), -np.asarray(eye, float))

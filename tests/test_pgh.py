@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from wiredsl.engine.montecarlo import Run, to_imageset
 from wiredsl.engine.simulate import Options
+from wiredsl.engine.trials import to_imageset
 from wiredsl.engine.world import build_world
 from wiredsl.language.compile import compile_file
 from wiredsl.measures.base import segments
@@ -26,6 +26,7 @@ from wiredsl.measures.pgh import (
     transfer_angle,
     transfer_dist,
 )
+from wiredsl.montecarlo import Run
 
 LAB, _, _ = compile_file("scenes/lab.wd")
 WORLD = build_world(LAB)

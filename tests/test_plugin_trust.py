@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from helpers import dist_info, make_dist, plugins_on_path
 
 import wiredsl
 from wiredsl import plugins
@@ -174,35 +175,26 @@ zero_weight = wdtrust:ZeroWeight
 '''
 
 
-def make_dist(site: Path, module: str = BASE, name: str = "wdtrust", version: str = "0.3", editable: bool = False,
-              entry: str = ENTRY) -> Path:
-    """A distribution as pip leaves it: its module on sys.path (for `editable`, in a source folder of its own,
-    as an editable install's path file puts it) and a .dist-info with entry points."""
-    src = site.parent / "src" if editable else site
-    (src / name).mkdir(parents=True, exist_ok=True)
-    (src / name / "__init__.py").write_text(module)
+def editable_dist(site: Path) -> Path:
+    """wdtrust 0.3 as an editable install leaves it: its module (and wdexit, which exits on import) in a source
+    folder of its own, which the install's path file puts on sys.path, and a .dist-info in `site` with the entry
+    points and a RECORD naming the path file; returns the source folder."""
+    src = site.parent / "src"
+    (src / "wdtrust").mkdir(parents=True)
+    (src / "wdtrust" / "__init__.py").write_text(BASE)
     (src / "wdexit.py").write_text("raise SystemExit('a plug-in that exits on import')\n")
-    info = site / f"{name}-{version}.dist-info"
-    info.mkdir(parents=True, exist_ok=True)
-    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n")
-    (info / "entry_points.txt").write_text(entry)
-    if editable:
-        (site / f"__editable__.{name}.pth").write_text(str(src) + "\n")
-        (info / "RECORD").write_text(f"__editable__.{name}.pth,,\n{info.name}/METADATA,,\n")
+    info = dist_info(site, "wdtrust", "0.3", ENTRY)
+    (site / "__editable__.wdtrust.pth").write_text(str(src) + "\n")
+    (info / "RECORD").write_text(f"__editable__.wdtrust.pth,,\n{info.name}/METADATA,,\n")
     return src
 
 
 @pytest.fixture
 def site(tmp_path, monkeypatch):
     site = tmp_path / "site"
-    src = make_dist(site, editable=True)
-    monkeypatch.syspath_prepend(str(site))
-    monkeypatch.syspath_prepend(str(src))
-    plugins.rescan()
-    yield src
-    plugins.rescan()
-    for m in [m for m in sys.modules if m.startswith(("wdtrust", "wdexit", "wdweights"))]:
-        del sys.modules[m]
+    src = editable_dist(site)
+    with plugins_on_path(monkeypatch, site, src, modules=("wdtrust", "wdexit", "wdweights")):
+        yield src
 
 
 def scene(tmp_path: Path, stages: str, study: str = "") -> Path:
@@ -380,8 +372,8 @@ def test_a_hostile_measure_is_e181_naming_its_package(site, tmp_path, measure, s
 
 def test_weights_declared_as_a_list_are_e180(site, tmp_path, monkeypatch):
     # a distribution of its own: the tests' measure registry (conftest.py) loads every installed measure
-    other = tmp_path / "other"
-    make_dist(other, name="wdweights", entry="[wiredsl.measures]\nlist_weights = wdweights:ListWeights\n")
+    entry = "[wiredsl.measures]\nlist_weights = wdweights:ListWeights\n"
+    other = make_dist(tmp_path / "other", "wdweights", BASE, entry)
     monkeypatch.syspath_prepend(str(other))
     plugins.rescan()
     r = CliRunner().invoke(main, ["check", str(scene(tmp_path, "good", STUDY % "list_weights"))])
@@ -461,11 +453,9 @@ def stage(pts, start, meta, corners, cfid, key, params, epipole, right, stats, c
 
 def test_a_plugin_kernel_receives_the_cameras_size_and_intrinsics(tmp_path, monkeypatch):
     pytest.importorskip("numba")
-    src = make_dist(tmp_path / "site", CAMERA_EFFECT, "wdcam", entry="[wiredsl.effects]\nmirror = wdcam:Mirror\n")
+    src = make_dist(tmp_path / "site", "wdcam", CAMERA_EFFECT, "[wiredsl.effects]\nmirror = wdcam:Mirror\n")
     (src / "wdcam" / "kernel.py").write_text(CAMERA_KERNEL)
-    monkeypatch.syspath_prepend(str(src))
-    plugins.rescan()
-    try:
+    with plugins_on_path(monkeypatch, src, modules=("wdcam",)):
         f = tmp_path / "m.wd"
         f.write_text(f'wiredsl 1\ninclude "{LAB}"\npipeline p {{\n  calibration_error sigma 0.01\n  mirror\n}}\n')
         s = wiredsl.compile(f)
@@ -481,10 +471,6 @@ def test_a_plugin_kernel_receives_the_cameras_size_and_intrinsics(tmp_path, monk
         ideal = next(wiredsl.simulate(s, trials=1, seed=2, pipeline=s.pipeline("p").model_copy(
             update={"stages": []}), poses=(0,)))
         assert np.all(got["numpy"][0]["corners"][:, 0] > cam.width - ideal["corners"][:, 0].max() - 50)
-    finally:
-        plugins.rescan()
-        for m in [m for m in sys.modules if m.startswith("wdcam")]:
-            del sys.modules[m]
 
 
 def test_a_plugin_params_model_that_raises_is_e181_not_an_internal_error(site, tmp_path):

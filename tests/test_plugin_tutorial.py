@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import json
 import re
-import sys
 import tomllib
 from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from helpers import dist_info, entry_points_text, plugins_on_path
 
-from wiredsl import plugins
 from wiredsl.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -35,20 +34,11 @@ def tutorial(tmp_path, monkeypatch):
             (site / name).write_text(body)
     (site / "wd_tutorial" / "__init__.py").write_text("")
     project = tomllib.loads(files["pyproject.toml"])["project"]
-    info = site / f"{project['name'].replace('-', '_')}-{project['version']}.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {project['name']}\nVersion: {project['version']}\n")
-    (info / "entry_points.txt").write_text("".join(
-        f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()) + "\n"
-        for group, eps in project["entry-points"].items()))
+    dist_info(site, project["name"], project["version"], entry_points_text(project["entry-points"]))
     scene = tmp_path / "tutorial.wd"
     scene.write_text(files["tutorial.wd"].replace('"scenes/lab.wd"', f'"{ROOT / "scenes" / "lab.wd"}"'))
-    monkeypatch.syspath_prepend(str(site))
-    plugins.rescan()
-    yield scene
-    plugins.rescan()
-    for m in [m for m in sys.modules if m.startswith("wd_tutorial")]:
-        del sys.modules[m]
+    with plugins_on_path(monkeypatch, site, modules=("wd_tutorial",)):
+        yield scene
 
 
 def test_the_tutorial_has_a_package_an_effect_a_measure_and_a_scene():

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from helpers import make_dist, plugins_on_path
 
 import wiredsl
 from wiredsl import plugins
@@ -110,25 +111,12 @@ nan_measure = wdplug:NanMeasure
 '''
 
 
-def make_dist(folder: Path, name: str = "wdplug", module: str = MODULE, entry_points: str = ENTRY_POINTS) -> Path:
-    (folder / name).mkdir(parents=True)
-    (folder / name / "__init__.py").write_text(module)
-    info = folder / f"{name}-0.3.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 0.3\n")
-    (info / "entry_points.txt").write_text(entry_points)
-    return folder
-
-
 @pytest.fixture
 def installed(tmp_path, monkeypatch):
     """The wdplug distribution installed (on sys.path) for this test only."""
-    monkeypatch.syspath_prepend(str(make_dist(tmp_path / "site")))
-    plugins.rescan()
-    yield tmp_path / "site"
-    plugins.rescan()
-    for m in [m for m in sys.modules if m == "wdplug" or m.startswith("wdplug.")]:
-        del sys.modules[m]
+    with plugins_on_path(monkeypatch, make_dist(tmp_path / "site", "wdplug", MODULE, ENTRY_POINTS),
+                         modules=("wdplug",)):
+        yield tmp_path / "site"
 
 
 LAB_PLUS = textwrap.dedent('''\
@@ -235,17 +223,13 @@ def test_plugins_lists_packages_and_clashes(installed):
 
 
 def test_two_packages_claiming_a_name_are_both_named(tmp_path, monkeypatch):
-    for pkg in ("wdone", "wdtwo"):
-        make_dist(tmp_path / pkg, pkg, MODULE, "[wiredsl.effects]\ncentre_noise = " + pkg + ":CentreNoise\n")
-        monkeypatch.syspath_prepend(str(tmp_path / pkg))
-    plugins.rescan()
-    try:
+    sites = [make_dist(tmp_path / pkg, pkg, MODULE, f"[wiredsl.effects]\ncentre_noise = {pkg}:CentreNoise\n")
+             for pkg in ("wdone", "wdtwo")]
+    with plugins_on_path(monkeypatch, *sites, modules=("wdone", "wdtwo")):
         f = tmp_path / "s.wd"
         f.write_text(f'wiredsl 1\ninclude "{ROOT / "scenes" / "lab.wd"}"\npipeline p {{\n  centre_noise\n}}\n')
         r = CliRunner().invoke(main, ["check", str(f)])
         assert r.exit_code == 1 and "'wdone'" in r.stderr and "'wdtwo'" in r.stderr, r.stderr
-    finally:
-        plugins.rescan()
 
 
 def test_built_in_names_never_scan_installed_packages(monkeypatch):
@@ -385,9 +369,7 @@ def test_a_plugin_effect_ships_its_own_kernel_and_runs_on_the_kernel_engine(tmp_
     assert (effect != KERNEL_EFFECT) == workspace
     site = make_dist(tmp_path / "site", "wdkern", effect, "[wiredsl.effects]\njitter = wdkern:Jitter\n")
     (site / "wdkern" / "kernel.py").write_text(WORKSPACE_STAGE if workspace else KERNEL_STAGE)
-    monkeypatch.syspath_prepend(str(site))
-    plugins.rescan()
-    try:
+    with plugins_on_path(monkeypatch, site, modules=("wdkern",)):
         f = tmp_path / "k.wd"
         f.write_text(LAB_PLUS.format(lab=ROOT / "scenes" / "lab.wd").replace("centre_noise sigma 4px",
                                                                               "jitter sigma 2px shift 0.5px"))
@@ -412,7 +394,3 @@ def test_a_plugin_effect_ships_its_own_kernel_and_runs_on_the_kernel_engine(tmp_
                     assert np.array_equal(a, b), name
             moved += len(bn["corners"])
         assert moved > 0
-    finally:
-        plugins.rescan()
-        for m in [m for m in sys.modules if m == "wdkern" or m.startswith("wdkern.")]:
-            del sys.modules[m]

@@ -14,10 +14,10 @@ from helpers import compile_text
 
 from wiredsl.effects.base import keyed_bits, keyed_normal, keyed_uniform, stream_key
 from wiredsl.engine import imageset as im
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import build_world
 from wiredsl.language.compile import compile_file
+from wiredsl.montecarlo import Run
 
 ALL_SCENES = sorted(str(p) for p in Path(__file__).resolve().parent.parent.glob("scenes/*.wd"))
 SCENES = [p for p in ALL_SCENES if compile_file(p)[0].path is not None]  # the others cannot be built

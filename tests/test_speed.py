@@ -62,7 +62,7 @@ def test_the_npz_writer_writes_the_same_bytes_as_before(tmp_path):
 
 
 def test_batches_are_sized_to_the_scene_and_trials_do_not_depend_on_them():
-    from wiredsl.engine import montecarlo as mc
+    from wiredsl import montecarlo as mc
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world
     from wiredsl.language.compile import compile_file
@@ -112,7 +112,7 @@ def test_a_dump_on_stdout_is_utf8_whatever_the_terminals_encoding(tmp_path):
 
 def test_npz_fragment_numbers_are_the_dumps_in_either_order():
     """The writer's fragment numbers (adjacent groups: ranks within runs; any other order: a stable sort) against
-    the JSON dump's own numbering (`montecarlo.features_of`, a count a stroke), on random stroke sets whose
+    the JSON dump's own numbering (`engine/trials.features_of`, a count a stroke), on random stroke sets whose
     (trial, feature, segment) groups are adjacent and on the same sets shuffled within each trial."""
     from collections import Counter
 

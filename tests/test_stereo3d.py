@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from wiredsl.engine import geometry
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import build_world
 from wiredsl.language.compile import compile_file
 from wiredsl.measures.stereo3d import Stereo3D, Stereo3DParams, triangulate, undistort
+from wiredsl.montecarlo import Run
 from wiredsl.scene import Camera
 
 LAB, _, _ = compile_file("scenes/lab.wd")

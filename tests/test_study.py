@@ -325,8 +325,8 @@ from wiredsl.study import run_study
 
 study_measures.SignalledKept.how = sys.argv[3]
 scene = compile_file(sys.argv[1])[0]
-run_study(scene, scene.study("shift"), sys.argv[2], executor="inprocess", registry={"kept": study_measures.SignalledKept},
-          shard_trials=2)
+run_study(scene, scene.study("shift"), sys.argv[2], executor="inprocess",
+          registry={"kept": study_measures.SignalledKept}, shard_trials=2)
 """
 
 

@@ -14,11 +14,10 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from test_plugins import make_dist
+from helpers import make_dist, plugins_on_path
 from verify_drawing import draw, render_records
 
 import wiredsl
-from wiredsl import plugins
 from wiredsl.cli import main
 from wiredsl.scene import Pipeline
 from wiredsl.verify import detectors as D
@@ -64,7 +63,8 @@ def test_edges_drawn_at_a_known_offset_are_verified_with_that_offset(offset, nam
     img, view = _square(offset)
     det = D.BUILTIN[name]
     found = D.checked(det.detect(img, det.Params()), img.shape, name)
-    r = V.verify_image(view, found, img.shape, V.Settings(), V.ImageResult("x", "left", "0", name, ["a", "b", "c", "d"]))
+    r = V.verify_image(view, found, img.shape, V.Settings(),
+                       V.ImageResult("x", "left", "0", name, ["a", "b", "c", "d"]))
     s = r.stats
     assert (s.verified / s.tested > 0.95).all()
     # the sides run clockwise in the image (y down), so the outward normal is -n: the offset is -offset
@@ -225,7 +225,7 @@ def test_truncated_sigma_inverts_the_truncated_mean_square_of_an_isotropic_norma
         m2 = r2[r2 <= t * t].mean()
         assert F.truncated_sigma(np.array([m2]), t)[0] == pytest.approx(sigma, rel=0.01)
         dens = lambda r, s=sigma: r / s**2 * np.exp(-r * r / (2 * s * s))  # noqa: E731
-        quad = integrate.quad(lambda r: r * r * dens(r), 0, t)[0] / integrate.quad(dens, 0, t)[0]
+        quad = integrate.quad(lambda r, d=dens: r * r * d(r), 0, t)[0] / integrate.quad(dens, 0, t)[0]
         assert F.truncated_sigma(np.array([quad]), t)[0] == pytest.approx(sigma, rel=1e-6)
     assert np.isnan(F.truncated_sigma(np.array([2.0]), 2.0)[0])  # t^2 / 2: spread as if uniform, not bounded
     assert F.truncated_sigma(np.array([0.0]), 2.0)[0] == 0.0
@@ -471,9 +471,7 @@ class Broken(Detector):
 
 def test_a_plugin_detector_is_loaded_by_name_and_verified_like_canny(tmp_path, monkeypatch, rendered):
     entry = "[wiredsl.detectors]\ngradient_edges = wdetect:Gradient\nbroken_edges = wdetect:Broken\n"
-    monkeypatch.syspath_prepend(str(make_dist(tmp_path / "site", "wdetect", PLUGIN, entry)))
-    plugins.rescan()
-    try:
+    with plugins_on_path(monkeypatch, make_dist(tmp_path / "site", "wdetect", PLUGIN, entry), modules=("wdetect",)):
         r = _verify("--images", rendered / "ideal" / "left_00[01].png", "--detector", "gradient_edges", "--param",
                     "threshold=15", "-o", tmp_path / "out")
         assert r.exit_code == 0, r.output
@@ -485,8 +483,6 @@ def test_a_plugin_detector_is_loaded_by_name_and_verified_like_canny(tmp_path, m
         assert r.exit_code == 1 and "error[E181]" in r.stderr and "wdetect" in r.stderr, r.output
         listed = CliRunner().invoke(main, ["plugins"])
         assert "detector\tgradient_edges\twdetect 0.3\twdetect:Gradient\tok" in listed.output, listed.output
-    finally:
-        plugins.rescan()
 
 
 def test_verifying_one_image_costs_little(rendered):

@@ -11,6 +11,7 @@ import json
 
 import numpy as np
 import pytest
+
 import wiredsl
 from wiredsl.scene import Pipeline, Stage
 from wiredsl.verify import command, predict

@@ -219,7 +219,7 @@ def _batches(scene: Scene, trials: int, seed: int, pipeline, opts, engine: str, 
 
 
 def _ideal_set(run, result, side: str):
-    from wiredsl.engine.montecarlo import to_imageset
+    from wiredsl.engine.trials import to_imageset
 
     return to_imageset(getattr(result, side), run.world)
 
@@ -306,7 +306,7 @@ class Simulator:
             values = {k: float(getattr(cam, k)) for k in geometry.CAMERA_KEYS}
             R, t = geometry.camera_from_world(engine_pose, mount.rotation, mount.position)
         else:
-            from wiredsl.engine.montecarlo import trial_cameras
+            from wiredsl.engine.trials import trial_cameras
 
             rig = self._trial_rig(_integer("trial", trial, 0, MAX_TRIAL))[side]
             cam = rig["camera"]

@@ -20,9 +20,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from wiredsl.engine import geometry, visibility
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options, simulate, visibility_masks
 from wiredsl.engine.world import World, ellipse_points
+from wiredsl.montecarlo import Run
 from wiredsl.run import start
 from wiredsl.scene import Scene
 

@@ -14,8 +14,15 @@ import sys
 import click
 
 from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, __version__, install_hint
-from wiredsl.cli_base import (EXIT_INVALID, auto_visibility, diagnostics_option, folder_name, guarded, report,
-                              setup_errors)
+from wiredsl.cli_base import (
+    EXIT_INVALID,
+    auto_visibility,
+    diagnostics_option,
+    folder_name,
+    guarded,
+    report,
+    setup_errors,
+)
 
 # Commands in modules of their own, imported when they run or help is asked for (their options cost the lab's
 # build and check some 3 ms CPU of click's decorators): name -> (module, attribute).
@@ -128,7 +135,7 @@ def check(files: tuple[str, ...], diagnostics: str) -> None:
 @guarded
 def compile_cmd(file: str, output: str, diagnostics: str) -> None:
     """Compile FILE to the scene JSON (valid against schema/scene.schema.json)."""
-    from wiredsl.io.files import json_text, write_atomic
+    from wiredsl.files import json_text, write_atomic
     from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
@@ -149,7 +156,7 @@ def fmt(files: tuple[str, ...], check_only: bool, diagnostics: str) -> None:
     """Rewrite FILES in canonical form, keeping comments (--check: exit 1 if any would change)."""
     from pathlib import Path
 
-    from wiredsl.io.files import write_atomic
+    from wiredsl.files import write_atomic
     from wiredsl.language.ast import read_source
     from wiredsl.language.fmt import format_text
 
@@ -183,7 +190,7 @@ def schema(name: str) -> None:
 @guarded
 def validate(dumps: tuple[str, ...]) -> None:
     """Validate scenes, feature dumps (JSON, JSON lines, npz) and manifests against the schemas."""
-    from wiredsl.io.files import read_regular, regular_size
+    from wiredsl.files import read_regular, regular_size
     from wiredsl.io.layout import npz_problems
     from wiredsl.io.schema import problems
 
@@ -225,7 +232,7 @@ def _is_zip(path: str) -> bool:
 
 def _documents(path: str, text: str) -> list[tuple[str, object]]:
     """(location, document or error message) for a JSON or JSON-lines file."""
-    from wiredsl.io.files import json_loads
+    from wiredsl.files import json_loads
 
     try:
         return [(path, json_loads(text))]
@@ -327,7 +334,7 @@ def _folder_output(output: str | None, scene_name: str, force: bool):
     """The build's output folder (None: the dump goes to stdout), refused early if it cannot be replaced."""
     from pathlib import Path
 
-    from wiredsl.io.files import check_output_folder
+    from wiredsl.files import check_output_folder
 
     if output == "-":
         return None
@@ -450,8 +457,8 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     from wiredsl import run as runs
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world
+    from wiredsl.files import json_text, output_folder, write_atomic
     from wiredsl.io import emit
-    from wiredsl.io.files import json_text, output_folder, write_atomic
     from wiredsl.language.compile import compile_file
 
     if only_trial is not None and seed is None and study_name is None and not no_effects:
@@ -668,8 +675,8 @@ class _Null:
 def _write_svgs(folder, results, run, *caption) -> None:
     """One SVG a pose of these results, in the chosen layout (disturbed over ideal when the pipeline ran);
     `caption` is the svg.Info's fields (io.svg is imported only when SVGs are written)."""
+    from wiredsl.files import write_atomic
     from wiredsl.io import svg as svg_mod
-    from wiredsl.io.files import write_atomic
 
     info = svg_mod.Info(*caption)
     for name, text in svg_mod.pose_figures(run, results, info.layout, info).items():
@@ -691,9 +698,9 @@ def viewdep(file: str, output: str | None, threshold: float, diagnostics: str) -
     from wiredsl.diagnostics import Diagnostic, WiredslError
     from wiredsl.engine import visibility
     from wiredsl.engine.world import build_world
+    from wiredsl.files import write_atomic
     from wiredsl.io import emit
     from wiredsl.io.features import ViewDependency
-    from wiredsl.io.files import write_atomic
     from wiredsl.language.compile import compile_file
 
     if output is not None:
@@ -736,7 +743,7 @@ def bench(file: str, output: str | None, budget: float, dpi: int, diagnostics: s
     from wiredsl import bench as bench_mod
     from wiredsl.engine.simulate import require_buildable
     from wiredsl.engine.world import build_world
-    from wiredsl.io.files import write_atomic
+    from wiredsl.files import write_atomic
     from wiredsl.language.compile import compile_file
 
     scene, warnings, program = compile_file(file)
@@ -795,8 +802,8 @@ def export_calibration(file: str, output: str | None, trial: int | None, seed: i
     from pathlib import Path
 
     from wiredsl.effects import calibration_error as calib
+    from wiredsl.files import write_atomic
     from wiredsl.io.calibration import rig_files
-    from wiredsl.io.files import write_atomic
     from wiredsl.language.compile import compile_file
 
     if output is not None:

@@ -70,7 +70,7 @@ def guarded(fn: Callable) -> Callable:
     @wraps(fn)
     def wrapper(*args, **kwargs):
         from wiredsl.diagnostics import WiredslError
-        from wiredsl.io.files import OutputFolderError, UnwritableValue
+        from wiredsl.files import OutputFolderError, UnwritableValue
 
         main_thread = threading.current_thread() is threading.main_thread()
         previous = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}

@@ -13,8 +13,15 @@ import sys
 import click
 
 from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, install_hint
-from wiredsl.cli_base import (EXIT_INVALID, auto_visibility, diagnostics_option, folder_name, guarded, report,
-                              setup_errors)
+from wiredsl.cli_base import (
+    EXIT_INVALID,
+    auto_visibility,
+    diagnostics_option,
+    folder_name,
+    guarded,
+    report,
+    setup_errors,
+)
 
 FORMATS = ("colmap", "rosbag2")
 MAX_EXPORT_TRIALS = 100_000  # one folder a trial
@@ -111,8 +118,8 @@ def write(out, scene, fmt: str, pipeline, n_trials: int, seed: int, period: floa
     """Write the export folder `out` whole (atomically); the notes to tell the user (observations left out).
     `only_trial`: trial K of the run alone; `visibility`: the projection's mode (scene, exact or all)."""
     from wiredsl import __version__
+    from wiredsl.files import json_text, output_folder
     from wiredsl.io import export_colmap, observations
-    from wiredsl.io.files import json_text, output_folder
 
     try:
         src, each = trials(scene, pipeline, n_trials, seed, only=only_trial, visibility=visibility)

@@ -30,7 +30,8 @@ def package_name(name: str) -> str:
     return package
 
 
-SCENE = """\
+# The world of both templates' scenes: a crate, the camera and the rig, view-points and a path.
+WORLD = """\
 wiredsl 1
 scene {{package}}
 
@@ -68,6 +69,10 @@ path approach {
   straight from (0.2m, 0) to (1.8m, 0) step 0.4m
 }
 
+"""
+
+# The starter scene: the world, then a pipeline and a study of the built-in effects.
+SCENE = WORLD + """\
 # What your detector does to the ideal image, in data-flow order.
 pipeline detector default {
   edge_loss fraction 29%
@@ -305,22 +310,9 @@ class CornerError(Measure):
         return {"rms_error": rms, "kept": kept}
 '''
 
-PLUGIN_SCENE = SCENE.replace("""# What your detector does to the ideal image, in data-flow order.
-pipeline detector default {
-  edge_loss fraction 29%
-  lateral_shift range 3px
-  corner_loss keep 90%
-}
-
-# How much of the view survives as edges shift further?
-study shift {
-  pipeline detector
-  vary lateral_shift.range values [0, 2px, 4px]
-  trials 8
-  seed 1
-  measure survival
-}
-""", """# The plug-in's effect in a pipeline, and its measure in a study.
+# The plug-in template's scene: the same world, its effect in a pipeline and its measure in a study.
+PLUGIN_SCENE = WORLD + """\
+# The plug-in's effect in a pipeline, and its measure in a study.
 pipeline detector default {
   {{effect}} sigma 0.5px
 }
@@ -332,7 +324,7 @@ study noise {
   seed 1
   measure {{measure}}
 }
-""")
+"""
 
 PLUGIN_TESTS = '''\
 """The plug-in's own tests: wiredsl finds it, a scene uses it, the effect draws what it declares, the kernel

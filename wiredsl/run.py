@@ -2,6 +2,7 @@
 
 Every face starts its runs here: `wiredsl build`, `wiredsl export-calibration`, a study's shards and the
 public Python API (`wiredsl.simulate`, `wiredsl.Simulator`). The faces only parse their options and call.
+(io/render.py, below, draws trial 0 of a given pipeline and seed on numpy: it calls `Run.create` as `start` would.)
 """
 
 from __future__ import annotations
@@ -11,10 +12,10 @@ import secrets
 from dataclasses import dataclass
 
 from wiredsl import install_hint
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
 from wiredsl.io import viewdep
+from wiredsl.montecarlo import Run
 from wiredsl.scene import Pipeline, Scene
 
 ENGINES = ("auto", "kernel", "numpy")
@@ -189,7 +190,7 @@ def numpy_forced_line(effects: list, engine: str) -> str | None:
     kernel (an installed plug-in's) makes it and the stages after it run on numpy; None otherwise."""
     import importlib.util
 
-    from wiredsl.engine.montecarlo import kernel_prefix
+    from wiredsl.montecarlo import kernel_prefix
     from wiredsl.plugins import Registry
 
     image = [e for e in effects if e.name != "calibration_error"]
@@ -212,7 +213,7 @@ def numpy_forced_line(effects: list, engine: str) -> str | None:
 def numpy_forced(run: Run, trials: int) -> str | None:
     """numpy_forced_line for a run of `trials` trials, said only where the kernel would have run (a run as large
     as `--engine auto` gives the kernel)."""
-    from wiredsl.engine.montecarlo import KERNEL_PAYS
+    from wiredsl.montecarlo import KERNEL_PAYS
 
     if run.exact_calibration or not run.stages or trials * run.trial_size()[0] < KERNEL_PAYS:
         return None

@@ -206,8 +206,8 @@ def same_nodes(a, b, where: str = "") -> str | None:
     if isinstance(a, (list, tuple)):
         if len(a) != len(b):
             return f"{where}: {len(a)} items against {len(b)}"
-        return next((p for i, (x, y) in enumerate(zip(a, b, strict=True)) if (p := same_nodes(x, y, f"{where}[{i}]")) is not None),
-                    None)
+        return next((p for i, (x, y) in enumerate(zip(a, b, strict=True))
+                     if (p := same_nodes(x, y, f"{where}[{i}]")) is not None), None)
     if isinstance(a, dict):
         if list(a) != list(b):
             return f"{where}: keys {list(a)} against {list(b)}"

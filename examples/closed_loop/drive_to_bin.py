@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import wiredsl
-from wiredsl.io.files import write_atomic
+from wiredsl.files import write_atomic
 
 HERE = Path(__file__).resolve().parent
 LAB = HERE.parent.parent / "scenes" / "lab.wd"

@@ -16,10 +16,10 @@ from wiredsl.effects import calibration_error as calib
 from wiredsl.effects.stereo_mismatch import angle_to_epipolar
 from wiredsl.engine import geometry
 from wiredsl.engine import imageset as im
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options, project_view, simulate
 from wiredsl.engine.visibility import nearest_viewpoint
 from wiredsl.engine.world import World, build_world
+from wiredsl.montecarlo import Run
 from wiredsl.scene import Camera, Pipeline
 
 mp.mp.dps = 50
@@ -437,7 +437,8 @@ def case_all_stages_at_their_extremes_stay_finite():
     s = _lab_strokes()
     c = _ctx()
     for name, kw in (("edge_loss", {"fraction": 0.999}), ("lateral_shift", {"range": 1000}),
-                     ("approx_error", {"sigma": 100}), ("corner_error", {"sigma": 100}), ("corner_mismatch", {"fraction": 1, "radius": 10000}),
+                     ("approx_error", {"sigma": 100}), ("corner_error", {"sigma": 100}),
+                     ("corner_mismatch", {"fraction": 1, "radius": 10000}),
                      ("stereo_mismatch", {"fraction": 1, "disparity": 10000})):
         s = REGISTRY[name].apply(REGISTRY[name].Params(**kw), s, c)
         assert np.isfinite(s.pts).all() and np.isfinite(s.corners).all()

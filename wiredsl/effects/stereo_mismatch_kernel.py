@@ -8,8 +8,19 @@ import math
 import numpy as np
 from numba import njit
 
-from wiredsl.engine.kernel import (CLOSED, FRAG, _keep, _pieces, _stable_sum, _stroke_arcs, _total_length, _uniform,
-                                   _unroll, distort_radtan, radtan_jacobian)
+from wiredsl.engine.kernel import (
+    CLOSED,
+    FRAG,
+    _keep,
+    _pieces,
+    _stable_sum,
+    _stroke_arcs,
+    _total_length,
+    _uniform,
+    _unroll,
+    distort_radtan,
+    radtan_jacobian,
+)
 
 
 @njit(cache=True)
@@ -258,8 +269,8 @@ def workspace(params, e, right, camera, trials):
             worst = 0.0
             for b in range(3):
                 for a in range(3):
-                    J, I = 2 * j + b, 2 * i + a
-                    good = good and found[J, I]
+                    jj, ii = 2 * j + b, 2 * i + a
+                    good = good and found[jj, ii]
                     if a % 2 == 0 and b % 2 == 0:
                         continue
                     u, v = a / 2, b / 2
@@ -267,9 +278,9 @@ def workspace(params, e, right, camera, trials):
                           + (1 - u) * v * tx[2 * j + 2, 2 * i] + u * v * tx[2 * j + 2, 2 * i + 2])
                     ly = ((1 - u) * (1 - v) * ty[2 * j, 2 * i] + u * (1 - v) * ty[2 * j, 2 * i + 2]
                           + (1 - u) * v * ty[2 * j + 2, 2 * i] + u * v * ty[2 * j + 2, 2 * i + 2])
-                    dot = lx * tx[J, I] + ly * ty[J, I]
+                    dot = lx * tx[jj, ii] + ly * ty[jj, ii]
                     good = good and dot > 0
-                    worst = max(worst, math.atan2(abs(lx * ty[J, I] - ly * tx[J, I]), dot))
+                    worst = max(worst, math.atan2(abs(lx * ty[jj, ii] - ly * tx[jj, ii]), dot))
             d = SAFETY * worst + TINY
             ok = good and band - d > 0 and band + d < math.pi / 2
             gate = gate and ok

@@ -360,7 +360,8 @@ def undistort_radtan(xd: np.ndarray, k1, k2=0.0, p1=0.0, p2=0.0, k3=0.0, k4=0.0,
             j22 = rad + g * y * y + 6.0 * p1 * y + 2.0 * p2 * x
             res = distort(xy, *lens) - xd
             det = j11 * j22 - j12 * j12
-            step = np.column_stack([j22 * res[:, 0] - j12 * res[:, 1], j11 * res[:, 1] - j12 * res[:, 0]]) / det[:, None]
+            step = np.column_stack([j22 * res[:, 0] - j12 * res[:, 1],
+                                    j11 * res[:, 1] - j12 * res[:, 0]]) / det[:, None]
             if tol is not None:
                 done = (np.abs(res) <= tol).all(axis=1)
                 if done.all():

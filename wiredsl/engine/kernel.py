@@ -593,7 +593,7 @@ def _load(functions: tuple[str, ...], cameras: tuple[bool, ...], workspaces: tup
     import time
     from pathlib import Path
 
-    from wiredsl.io.files import cache_folder, write_atomic
+    from wiredsl.files import cache_folder, write_atomic
 
     parts = [f.split(":") for f in functions]
     spaces = {g: w.split(":") for g, w in enumerate(workspaces) if w}
@@ -678,7 +678,7 @@ KEPT_LOOPS = 64  # generated loop modules kept in the cache, the least recently 
 def _prune(folder) -> None:
     """Remove the generated loops beyond the KEPT_LOOPS most recently used (by access time, which `_load` sets
     on each use; the modification time is numba's cache key and is left alone), with numba's cache of each."""
-    from wiredsl.io.files import prune_cache
+    from wiredsl.files import prune_cache
 
     prune_cache(folder, "wiredsl_stages_*.py", KEPT_LOOPS, lambda p: (folder / "__pycache__").glob(f"{p.stem}.*"))
 

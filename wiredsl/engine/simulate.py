@@ -242,8 +242,8 @@ def _project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, mas
     cam = _camera_table(cams)
     masks = np.asarray(masks, dtype=bool).reshape(len(views), -1)
     out = _Emitted(views, frozenset(fid for fid, _ in world.contours))
-    eyes = None if occluders is None else [occluders.seen_from(v.R_cw, v.t_cw, v.camera.f * max(v.camera.ax, v.camera.ay))
-                                           for v in views]  # pixels a radian: what is too small to keep
+    eyes = None if occluders is None else [  # pixels a radian: what is too small to keep
+        occluders.seen_from(v.R_cw, v.t_cw, v.camera.f * max(v.camera.ax, v.camera.ay)) for v in views]
     ellipses = _ellipses_cam(world, views)
     seg = _straight_segments(world, views, cam, masks, eyes, ellipses)
     ell = _ellipse_intervals(world, views, cam, masks, eyes, ellipses)

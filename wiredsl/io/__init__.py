@@ -1,1 +1,2 @@
-"""What goes in and out of files: dumps, figures, schemas, atomic writes."""
+"""What goes in and out of files: dumps, figures, schemas, calibration, meshes, trajectories (atomic writes:
+wiredsl/files.py)."""

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl import install_hint
+from wiredsl.files import require_finite
 from wiredsl.io.camera_file import (
     EQUIDISTANT,
     MIN_FOCAL,
@@ -46,7 +47,6 @@ from wiredsl.io.camera_file import (
     _num,
     _with_pose,
 )
-from wiredsl.io.files import require_finite
 
 FORMATS = ("opencv", "ros", "kalibr", "camodocal", "basalt")
 MAX_BYTES = 4 << 20
@@ -595,16 +595,17 @@ def _opencv_rig_files(rig, lenses, R, T) -> dict[str, str]:
         K = np.array([[c.f * c.ax, 0, c.cx], [0, c.f * c.ay, c.cy], [0, 0, 1.0]])
         mats[side] = {"K": K, "D": distortion_vector(c), "width": c.width, "height": c.height, "model": c.distortion}
     rect: dict = {"left": {}, "right": {}}
-    l, r = mats["left"], mats["right"]
-    rectify = {"radtan": stereo_rectify, "equidistant": fisheye_stereo_rectify}.get(l["model"])
-    if rectify and l["model"] == r["model"] and (l["width"], l["height"]) == (r["width"], r["height"]) \
+    left, right = mats["left"], mats["right"]
+    rectify = {"radtan": stereo_rectify, "equidistant": fisheye_stereo_rectify}.get(left["model"])
+    size = (left["width"], left["height"])
+    if rectify and left["model"] == right["model"] and size == (right["width"], right["height"]) \
             and np.linalg.norm(T) > 0:
         with np.errstate(all="ignore"):  # a wild lens's corners may not undistort: then no rectification
-            R1, R2, P1, P2 = rectify(l["K"], l["D"], r["K"], r["D"], (l["width"], l["height"]), R, T)
+            R1, R2, P1, P2 = rectify(left["K"], left["D"], right["K"], right["D"], size, R, T)
         if all(np.all(np.isfinite(m)) for m in (R1, R2, P1, P2)):
             rect = {"left": {"R": R1, "P": P1}, "right": {"R": R2, "P": P2}}
-    return {"stereo.yaml": opencv_yaml([l, r], R, T),
-            "left.yaml": ros_yaml("left", l, **rect["left"]), "right.yaml": ros_yaml("right", r, **rect["right"])}
+    return {"stereo.yaml": opencv_yaml([left, right], R, T), "left.yaml": ros_yaml("left", left, **rect["left"]),
+            "right.yaml": ros_yaml("right", right, **rect["right"])}
 
 
 def stereo_rectify(K1, D1, K2, D2, size: tuple[int, int], R, T):

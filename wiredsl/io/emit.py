@@ -14,9 +14,9 @@ from wiredsl.engine import geometry
 from wiredsl.engine.simulate import PoseResult, gc_paused
 from wiredsl.engine.simulate import View as SimView
 from wiredsl.engine.world import World
+from wiredsl.files import json_text, printable_path, publish, require_finite
 from wiredsl.io import layout
 from wiredsl.io.manifest import SceneRef, StageRecord
-from wiredsl.io.files import json_text, printable_path, publish, require_finite
 from wiredsl.scene import SCHEMA_VERSION, Scene, checked, dumped
 
 if TYPE_CHECKING:  # a build writes its dump from arrays: the dump's models are imported where they validate
@@ -198,7 +198,7 @@ def stage_records(run) -> list[StageRecord]:
 
 def disturbed_results(batch_out, k: int) -> list[PoseResult]:
     """Batch trial k's disturbed PoseResults (cameras as perturbed for that trial)."""
-    from wiredsl.engine.montecarlo import features_of
+    from wiredsl.engine.trials import features_of
 
     out = []
     for result, disturbed, views in batch_out:
@@ -269,7 +269,7 @@ class NpzStream:
 
     def write_ideal(self, results: list[PoseResult], world: World) -> None:
         """The ideal projection (--no-effects) as trial 0, in the same layout as disturbed trials."""
-        from wiredsl.engine.montecarlo import to_imageset
+        from wiredsl.engine.trials import to_imageset
 
         out = [(r, {side: to_imageset(getattr(r, side), world) for side in ("left", "right")
                     if getattr(r, side) is not None}, None) for r in results]
@@ -313,7 +313,7 @@ def batch_arrays(batch: list[int], batch_out, contour: np.ndarray, renumber: boo
     `contours(world)`. `points`: the type of pts and corners (the npz writer's float32: each view's cast and
     checked by require_finite).
 
-    Whole arrays a batch: trials' cameras and poses come from the batch's arrays (montecarlo.TrialViews), not
+    Whole arrays a batch: trials' cameras and poses come from the batch's arrays (engine/trials.TrialViews), not
     from a camera model a trial; each view's strokes are written into the batch's arrays while they are in the
     cache, without a copy a view."""
     sets, views, vcams, vposes, conics_, krows = ([] for _ in range(6))
@@ -408,7 +408,7 @@ def _rows(parts: list, width: int, dtype: type = np.int64) -> np.ndarray:
 
 
 def _json_fragments(s) -> np.ndarray:
-    """The fragment numbers the JSON dump gives (montecarlo.features_of): within a trial, the strokes of one
+    """The fragment numbers the JSON dump gives (engine/trials.features_of): within a trial, the strokes of one
     (feature, segment) are numbered 0, 1, ... in order when the feature was cut, else -1."""
     n = s.n_strokes
     if n == 0:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wiredsl.io.files import require_finite
+from wiredsl.files import require_finite
 from wiredsl.io.observations import CAMERAS, Source, Trial
 
 HALF_PIXEL = 0.5  # COLMAP's top-left pixel centre is (0.5, 0.5); wiredsl's is (0, 0)

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wiredsl.io.files import require_finite
+from wiredsl.files import require_finite
 from wiredsl.io.observations import CAMERAS, Source, Trial
 
 START_NS = 1_000_000_000  # pose 0's stamp: 1 s (0 is "no time" to tf2)
@@ -49,7 +49,7 @@ TYPES = {"wiredsl_msgs/msg/Stroke": STROKE_MSG, "wiredsl_msgs/msg/Strokes": STRO
 
 def typestore():
     """The ROS 2 Humble types with wiredsl's two messages registered (a reader registers them the same way)."""
-    from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     for name, text in TYPES.items():

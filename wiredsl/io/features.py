@@ -4,7 +4,7 @@ this module; what it makes as models (the manifest, the scene reference) is in i
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import Field, model_serializer
 

@@ -16,8 +16,8 @@ import json
 import zipfile
 from pathlib import Path
 
+from wiredsl.files import UnreadableFile, json_loads, read_regular, regular_size
 from wiredsl.io import layout
-from wiredsl.io.files import UnreadableFile, json_loads, read_regular, regular_size
 
 KIND_ORDER = ("lines", "polylines", "conics", "corners")
 MAX_JSON_BYTES = 1 << 30  # a JSON or JSON-lines dump read whole (as `validate` reads one)

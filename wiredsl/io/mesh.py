@@ -192,7 +192,25 @@ def _cache_key(data: bytes, kind: str) -> str | None:
 
 def _from_cache(key: str) -> tuple[np.ndarray, np.ndarray] | None:
     """A cached mesh's arrays, or None (not cached, or a cache file that is not one: it is read afresh)."""
-    from wiredsl.io.files import cache_folder
+    a = _cache_read(key, ("vertices", "triangles"))
+    if a is None:
+        return None
+    V, F = a["vertices"], a["triangles"]
+    if V.dtype != np.float64 or F.dtype != np.int64 or V.ndim != 2 or F.ndim != 2 or V.shape[1] != 3 \
+            or F.shape[1] != 3:
+        return None
+    return V, F
+
+
+def _to_cache(key: str, raw: RawMesh) -> None:
+    """Keep a mesh's arrays."""
+    _cache_write(key, {"vertices": raw.vertices, "triangles": raw.triangles})
+
+
+def _cache_read(key: str, names) -> dict[str, np.ndarray] | None:
+    """The arrays `names` of the cache file `key` (marked recently used), or None: no cache folder, not cached, or
+    a file that is not one (a damaged or foreign file in the cache only costs reading the mesh afresh)."""
+    from wiredsl.files import cache_folder
 
     folder = cache_folder("meshes")
     path = folder / f"{key}.npz" if folder is not None else None
@@ -200,26 +218,23 @@ def _from_cache(key: str) -> tuple[np.ndarray, np.ndarray] | None:
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
-            V, F = z["vertices"], z["triangles"]
-        if V.dtype != np.float64 or F.dtype != np.int64 or V.ndim != 2 or F.ndim != 2 or V.shape[1] != 3 \
-                or F.shape[1] != 3:
-            return None
+            arrays = {name: z[name] for name in names}
         os.utime(path)  # recently used
-        return V, F
-    except Exception:  # a damaged or foreign file in the cache only costs a fresh read
+        return arrays
+    except Exception:
         return None
 
 
-def _to_cache(key: str, raw: RawMesh) -> None:
-    """Keep a mesh's arrays (written atomically; a cache that cannot be written is no error), and remove the
-    least recently used beyond CACHE_FILES."""
-    from wiredsl.io.files import cache_folder, prune_cache, write_atomic
+def _cache_write(key: str, arrays: dict[str, np.ndarray]) -> None:
+    """Keep `arrays` as the cache file `key` (written atomically; a cache that cannot be written is no error), and
+    remove the least recently used beyond CACHE_FILES."""
+    from wiredsl.files import cache_folder, prune_cache, write_atomic
 
     folder = cache_folder("meshes")
     if folder is None:
         return
     buf = io.BytesIO()
-    np.savez(buf, vertices=raw.vertices, triangles=raw.triangles)
+    np.savez(buf, **arrays)
     try:
         write_atomic(folder / f"{key}.npz", buf.getvalue(), tidy=False)
     except OSError:
@@ -260,15 +275,11 @@ _ARRAYS = ("lines", "poly_points", "poly_len", "ell", "sil", "corner_at", "corne
 def load_features(key: str):
     """The cached MeshFeatures of `key`, or None (not cached, or a file that is not one)."""
     from wiredsl.engine.mesh import MeshFeatures
-    from wiredsl.io.files import cache_folder
 
-    folder = cache_folder("meshes")
-    path = folder / f"{key}.npz" if folder is not None else None
-    if path is None or not path.is_file():
+    a = _cache_read(key, _ARRAYS)
+    if a is None:
         return None
     try:
-        with np.load(path, allow_pickle=False) as z:
-            a = {k: z[k] for k in _ARRAYS}
         split = lambda x, n: np.split(x, np.cumsum(n)[:-1]) if len(n) else []  # noqa: E731
         f = MeshFeatures(lines=[(p[0], p[1]) for p in a["lines"]], polylines=split(a["poly_points"], a["poly_len"]),
                          ellipses=[{"centre": e[0:3], "normal": e[3:6], "axis": e[6:9], "a": float(e[9]),
@@ -282,19 +293,13 @@ def load_features(key: str):
         kinds = ("line", "polyline")
         refs = split(np.column_stack([a["corner_kind"], a["corner_ref"]]), a["corner_len"])
         f.corners = [(p, [(kinds[int(k)], int(j)) for k, j in r]) for p, r in zip(a["corner_at"], refs, strict=True)]
-        os.utime(path)  # recently used
         return f
-    except Exception:  # a damaged or foreign file in the cache only costs a fresh extraction
+    except Exception:  # arrays that do not make features (a foreign file) only cost a fresh extraction
         return None
 
 
 def save_features(key: str, f) -> None:
-    """Keep a mesh's features (atomically; a cache that cannot be written is no error)."""
-    from wiredsl.io.files import cache_folder, prune_cache, write_atomic
-
-    folder = cache_folder("meshes")
-    if folder is None:
-        return
+    """Keep a mesh's features."""
     cat = lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape)  # noqa: E731
     refs = [r for _, rs in f.corners for r in rs]
     arrays = {
@@ -311,10 +316,4 @@ def save_features(key: str, f) -> None:
         "contour": np.asarray(f.contour, bool),
         "counts": np.array([f.degenerate, f.nonmanifold, f.triangles], np.int64),
         "read_as": np.array([f.planar, f.scan, -1 if f.budget is None else f.budget, f.cut], np.float64)}
-    buf = io.BytesIO()
-    np.savez(buf, **arrays)
-    try:
-        write_atomic(folder / f"{key}.npz", buf.getvalue(), tidy=False)
-    except OSError:
-        return
-    prune_cache(folder, "*.npz", CACHE_FILES)
+    _cache_write(key, arrays)

@@ -88,14 +88,16 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
            visibility: str = "exact", world=None) -> Iterator[Image]:
     """Every chosen view of the scene's path, drawn: trial 0 of `pipeline` (a Pipeline, None: the ideal
     projection) with `seed`, which also keys the noise. Images come pose by pose, left then right."""
-    from wiredsl import run as runs
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world, surface_triangles
-    from wiredsl.io import emit
+    from wiredsl.io import emit, viewdep
+    from wiredsl.montecarlo import Run
 
     world = world if world is not None else build_world(scene)
-    opts = Options(tolerance=TOLERANCE, visibility=visibility, poses=poses, right=cameras == "both")
-    run = runs.start(scene, pipeline, seed=seed, options=opts, world=world, engine="numpy")  # one trial
+    opts = Options(tolerance=TOLERANCE, visibility=visibility, poses=poses, right=cameras == "both",
+                   viewdep=viewdep.of_scene(scene))
+    run = Run.create(scene, world, pipeline, seed, opts)  # what wiredsl.run.start makes of these arguments
+    run.engine = "numpy"  # one trial
     if run.stages:
         (_, batch_out), = list(run.batches([0]))
         results = emit.disturbed_results(batch_out, 0)
@@ -437,7 +439,7 @@ def manifest(scene, images: list[Image], *, seed: int, pipeline: str | None, loo
 def write(folder, scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=None, cameras: str = "both",
           visibility: str = "exact", force: bool = False, progress=None) -> list[Image]:
     """Render into `folder` (replaced as a whole: staged, then swapped in): one PNG a view, and render.json."""
-    from wiredsl.io.files import json_text, output_folder, write_atomic
+    from wiredsl.files import json_text, output_folder, write_atomic
 
     written = []
     with output_folder(folder, force) as stage:

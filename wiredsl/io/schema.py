@@ -16,11 +16,9 @@ NAMES = ("scene", "features", "viewdep", "manifest", "study", "study-manifest")
 def _model(name: str) -> type[BaseModel]:
     if name == "scene":
         return _scene_with_stages()
-    if name in ("study", "study-manifest"):
-        from wiredsl.study.report import StudyManifest, StudyTable
-        return StudyTable if name == "study" else StudyManifest
-    from wiredsl.io import features, manifest
-    return {"features": features.Features, "viewdep": features.ViewDependency, "manifest": manifest.Manifest}[name]
+    from wiredsl.io import features, manifest, study_documents
+    return {"features": features.Features, "viewdep": features.ViewDependency, "manifest": manifest.Manifest,
+            "study": study_documents.StudyTable, "study-manifest": study_documents.StudyManifest}[name]
 
 
 def _scene_with_stages() -> type[BaseModel]:

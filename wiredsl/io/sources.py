@@ -28,7 +28,7 @@ def read_bytes(path: Path, what: str, where: Span | None = None, limit: int | No
 
     The stat comes first so that a FIFO or /dev/stdin is never opened (opening one would block).
     """
-    from wiredsl.io.files import read_regular
+    from wiredsl.files import read_regular
 
     limit = MAX_SOURCE_BYTES if limit is None else limit
     shown = display_path(path) if "\0" not in str(path) else repr(str(path))

@@ -22,7 +22,7 @@ import numpy as np
 from wiredsl.engine import geometry
 from wiredsl.engine.simulate import PoseResult, View
 from wiredsl.engine.world import World
-from wiredsl.io.files import printable_path, require_finite
+from wiredsl.files import printable_path, require_finite
 from wiredsl.scene import Scene
 
 LAYOUTS = ("overlay", "side-by-side", "visibility")

@@ -17,11 +17,11 @@ import pydantic
 
 from wiredsl.diagnostics import Collector, Diagnostic, Span, WiredslError, did_you_mean
 from wiredsl.effects import REGISTRY
-from wiredsl.io.files import printable_path
+from wiredsl.files import printable_path
 from wiredsl.io import sources
 from wiredsl.language import ast
-from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
 from wiredsl.language.bind import Bound, bind
+from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
 from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
 from wiredsl.plugins import params_dump, params_of

@@ -41,7 +41,7 @@ class Measure:
     Define, as class methods (`@classmethod`):
 
     - `prepare(params, run) -> object` (optional): the ideal references the measure compares with, from a
-      `wiredsl.engine.montecarlo.Run` of the nominal scene (`run.ideal()`: a PoseResult a pose). Called once per
+      `wiredsl.montecarlo.Run` of the nominal scene (`run.ideal()`: a PoseResult a pose). Called once per
       worker (and per design point when the study varies a camera); it must depend on the scene only.
     - `measure(params, prepared, pose, disturbed, n_trials) -> {statistic: (n_trials,) values}`, called once per
       pose and batch of trials. `pose` is that pose's ideal `wiredsl.engine.simulate.PoseResult`: `index`,
@@ -71,7 +71,7 @@ class Measure:
 
     @classmethod
     def prepare(cls, params: Params, run) -> object:
-        """The ideal references the measure compares with, from a `wiredsl.engine.montecarlo.Run`.
+        """The ideal references the measure compares with, from a `wiredsl.montecarlo.Run`.
 
         A study calls it once per worker with a run of the nominal scene (its design points change only stage
         magnitudes, not the scene), and once per design point when it varies a camera; so it must depend on

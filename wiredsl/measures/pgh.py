@@ -32,8 +32,8 @@ import numpy as np
 from wiredsl import install_hint
 from wiredsl.engine import geometry, visibility
 from wiredsl.engine import imageset as im
-from wiredsl.engine.montecarlo import to_imageset
 from wiredsl.engine.simulate import simulate
+from wiredsl.engine.trials import to_imageset
 from wiredsl.measures.base import Measure, Params, param, segments, source_key
 
 POINT_SPAN = 1e-6  # px: a segment spanning less distance than this (parallel to the reference) is a point mass

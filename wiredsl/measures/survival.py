@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from wiredsl.engine import imageset as im
-from wiredsl.engine.montecarlo import to_imageset
+from wiredsl.engine.trials import to_imageset
 from wiredsl.measures.base import Measure, Params, source_key
 
 

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl import __version__
+from wiredsl.files import write_atomic
 from wiredsl.io.emit import to_json
-from wiredsl.io.files import write_atomic
 from wiredsl.scene import Scene, Study
 from wiredsl.study import design, journal, report, shards
 from wiredsl.study.executors import EXECUTORS, execute
@@ -57,7 +57,7 @@ def plugins_used(scene: Scene, study: Study) -> list[dict]:
 def engines(scene: Scene, study: Study, X: np.ndarray) -> dict[str, str]:
     """The engine each stage of the study's pipeline runs on (a study's runs use `--engine auto`)."""
     from wiredsl.effects import REGISTRY as effects
-    from wiredsl.engine.montecarlo import stage_engines
+    from wiredsl.montecarlo import stage_engines
 
     stages = design.pipeline_at(scene, study, X[0]).stages if len(X) else []
     return stage_engines([effects[s.effect] for s in stages], "auto")

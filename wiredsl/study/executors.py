@@ -115,8 +115,8 @@ def _processes(jobs: Sequence[Job], done: Done, workers: int) -> None:
     ctx = multiprocessing.get_context(method)
     if method == "forkserver":
         # numba and the compiled measures too (skipped without the `fast` extra): imported once, not per worker
-        ctx.set_forkserver_preload(["wiredsl.study.shards", "wiredsl.measures", "threadpoolctl", "numba", "scipy.linalg",
-                                    "wiredsl.engine.kernel", "wiredsl.measures.pgh_kernel",
+        ctx.set_forkserver_preload(["wiredsl.study.shards", "wiredsl.measures", "threadpoolctl", "numba",
+                                    "scipy.linalg", "wiredsl.engine.kernel", "wiredsl.measures.pgh_kernel",
                                     "wiredsl.measures.stereo3d_kernel"])  # missing ones are skipped
     parts = chunks(jobs, workers)
     with ProcessPoolExecutor(max_workers=min(workers, len(parts)), mp_context=ctx) as pool:

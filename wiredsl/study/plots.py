@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from wiredsl import install_hint
-from wiredsl.io.files import write_atomic
+from wiredsl.files import write_atomic
 from wiredsl.scene import Study
 from wiredsl.study.report import StudyTable
 

@@ -1,5 +1,5 @@
-"""A study's tidy table (one row per design point and measure statistic), its JSON and CSV forms,
-the manifest, and Sobol' indices for space-filling designs.
+"""A study's tidy table (one row per design point and measure statistic), its CSV forms, the manifest, and
+Sobol' indices for space-filling designs; the documents' models are in io/study_documents.py.
 
 Statistics of a row pool the study's poses and trials: `mean` and the quantiles are over every
 (trial, pose) value; `sem` is the standard error of the mean over trials (each trial's values
@@ -14,65 +14,16 @@ import csv
 import io
 import math
 import platform
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from wiredsl import __version__
 from wiredsl.io.manifest import SceneRef
+from wiredsl.io.study_documents import PluginUse, Row, SobolIndex, StudyManifest, StudyTable
 from wiredsl.scene import Study
 from wiredsl.study import design
 
 QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
-
-
-class _Node(BaseModel):
-    # allow_inf_nan=False: a non-finite number is refused when a row is made, so that no table carries one
-    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
-
-
-class Row(_Node):
-    point: int = Field(ge=0)
-    values: dict[str, float] = Field(description="the varied parameters at this point, `stage.param` -> SI value")
-    measure: str
-    statistic: str
-    n: int = Field(ge=1, description="trials with a value")
-    n_values: int = Field(ge=1, description="(trial, pose) values pooled")
-    mean: float
-    sem: float | None = Field(description="standard error of the mean over trials (None with one trial)")
-    q05: float
-    q25: float
-    q50: float
-    q75: float
-    q95: float
-
-
-class SobolIndex(_Node):
-    measure: str
-    statistic: str
-    factor: str
-    first_order: float | None = Field(description="None when undefined (see `undefined`)")
-    total_order: float | None = Field(description="None when undefined (see `undefined`)")
-    first_order_ci: tuple[float, float] | None = None
-    total_order_ci: tuple[float, float] | None = None
-    undefined: str | None = Field(None, description="why the indices are undefined (None when they are not)")
-
-
-class StudyTable(_Node):
-    """The result of `wiredsl study`: one row per design point and measure statistic."""
-
-    document: Literal["study"] = "study"
-    schema_version: Literal["1"] = "1"
-    tool_version: str
-    scene: SceneRef
-    study: str
-    design: Literal["grid", "lhs", "sobol"]
-    factors: list[str]
-    seed: int
-    trials: int
-    rows: list[Row]
-    sobol: list[SobolIndex] = []
 
 
 def _f(x: float) -> float:
@@ -115,7 +66,7 @@ def rows(study: Study, X: np.ndarray, per_point: list[dict[str, np.ndarray]],
     by_size: dict[int, list[int]] = {}
     for i, (_, pooled) in enumerate(found):
         by_size.setdefault(len(pooled), []).append(i)
-    for k, idx in by_size.items():
+    for idx in by_size.values():
         Q = np.quantile(np.stack([found[i][1] for i in idx]), QUANTILES, axis=1).T
         for i, row in zip(idx, Q.tolist(), strict=True):
             q[i] = row
@@ -179,38 +130,6 @@ def sobol_csv(table: StudyTable) -> str:
 
 def _cell(x: float | None) -> str:
     return "" if x is None else repr(x)
-
-
-class PluginUse(_Node):
-    """An installed plug-in a study used, as its shards are keyed on it."""
-
-    kind: Literal["effect", "measure"]
-    name: str
-    package: str = Field(description="its distribution's name")
-    version: str
-    sha256: str = Field(description="of its installed files and its packages' source files (an editable install's "
-                                    "too): a change in its code changes it, whatever the version says")
-
-
-class StudyManifest(_Node):
-    """What a study's table was made from: the study, its seeds and design points, the scene, the versions."""
-
-    document: Literal["study-manifest"] = "study-manifest"
-    schema_version: Literal["1"] = "1"
-    study: Study
-    digest: str = Field(description="sha256 of what every shard's key is made from (the scene and the study)")
-    scene: SceneRef
-    seed: int
-    design_seed: int
-    draws: str
-    points: list[list[float]] = Field(description="each design point's factor values (SI units), by index")
-    shard_trials: int = Field(ge=1)
-    versions: dict[str, str]
-    plugins: list[PluginUse] = Field([], description="the installed plug-ins the study ran, each keying its shards")
-    engines: dict[str, str] = Field({}, description="the engine each stage ran on: kernel (compiled) or numpy")
-    visibility: Literal["scene", "exact"] = Field(
-        "scene", description="the hidden lines of every point: scene (the nearest view-point's list) or exact "
-                             "(decided once for the study from what it projects, as `--visibility auto`)")
 
 
 def manifest(scene_ref: SceneRef, study: Study, digest: str, X: np.ndarray, shard_trials: int,

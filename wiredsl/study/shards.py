@@ -21,11 +21,11 @@ import numpy as np
 
 from wiredsl import DEFAULT_VISIBILITY
 from wiredsl.engine import imageset as im
-from wiredsl.engine.montecarlo import Run
 from wiredsl.engine.simulate import Options
 from wiredsl.engine.world import World, build_world
-from wiredsl.io.files import write_atomic
+from wiredsl.files import write_atomic
 from wiredsl.measures import BUILTIN, REGISTRY
+from wiredsl.montecarlo import Run
 from wiredsl.plugins import call, failure, params_of
 from wiredsl.run import VisibilityChoice, resolve_visibility, start
 from wiredsl.scene import Scene, Study
@@ -359,8 +359,9 @@ def read(job: Job) -> dict[str, np.ndarray] | None:
 
 def run_chunk(jobs: list[Job]) -> list[tuple[Shard, dict[str, np.ndarray]]]:
     """Compute a chunk of shards in one worker call (one message each way, the scene and study pickled once; the
-    trials of its consecutive points measured together, `compute_chunk`), with BLAS on one thread: a study's workers take one core each, and a matrix product's sums then do not
-    depend on how many threads the machine offered (a table is the same on every machine)."""
+    trials of its consecutive points measured together, `compute_chunk`), with BLAS on one thread: a study's workers
+    take one core each, and a matrix product's sums then do not depend on how many threads the machine offered (a
+    table is the same on every machine)."""
     with one_blas_thread():
         return list(zip([job.shard for job in jobs], compute_chunk(jobs), strict=True))
 

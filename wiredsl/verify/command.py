@@ -227,7 +227,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         written.append(name)
     result = None
     if req.fit:
-        from wiredsl.io.files import json_text, write_atomic
+        from wiredsl.files import json_text, write_atomic
 
         result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss)
         det_text = "; ".join(f"{n} ({', '.join(f'{k} {v}' for k, v in p.model_dump().items())})" for n, _, p in dets)
@@ -273,7 +273,7 @@ def _predict(req: Request, out: Path, scene, world, observed, cfg, n_images: int
     import os
     import tempfile
 
-    from wiredsl.io.files import json_text, write_atomic
+    from wiredsl.files import json_text, write_atomic
     from wiredsl.language.compile import compile_file
     from wiredsl.verify import predict
 

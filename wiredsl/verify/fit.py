@@ -29,9 +29,12 @@ keyed by the seed and the statistic's name (the same seed gives the same interva
 - corner_error.correlation: over the corners located in both images of a stereo pair, the sum of the products
   of their two residuals over the root of the product of their sums of squares.
 - corner_mismatch: a found corner farther than `inlier` px from the model's is displaced, less the corners the
-  localisation error alone puts there (its normal's tail beyond `inlier`). The effect moves a fraction of corners to a uniform point of the disc of `radius`; a move shorter than `inlier` is not seen,
-  so radius R solves E[r | r > t] = (2/3)(R^3 - t^3)/(R^2 - t^2) at the displaced corners' mean distance and
-  fraction = displaced / found / (1 - (t/R)^2). In stereo pairs the matcher's wrong-pair rate is reported too.
+  localisation error alone puts there (its normal's tail beyond `inlier`). The effect moves a fraction of
+  corners to a uniform point of the disc of `radius`; a move shorter than `inlier` is not seen, so radius R
+  solves E[r | r > t] = (2/3)(R^3 - t^3)/(R^2 - t^2) at the displaced corners' mean distance (less sigma^2 /
+  (R + t), what the localisation error adds) and fraction = displaced / found / (1 - (t/R)^2); the two corner
+  estimates take each other's share off in turn (`corner_model`). In stereo pairs the matcher's wrong-pair rate
+  is reported too.
 """
 
 from __future__ import annotations
@@ -50,7 +53,8 @@ PAPER = {"edge_loss.fraction": 0.29, "lateral_shift.range": 3.0, "approx_error.s
 # widened by this share of the correction either way.
 END_DOUBT = 0.25
 MIN_STROKE_SAMPLES = 5  # verified samples a stroke needs for its mean offset to count
-MIN = {"edges": 20, "strokes": 5, "corners": 10, "displaced": 3, "located": 10}  # below these a statistic is not estimated
+# below these a statistic is not estimated
+MIN = {"edges": 20, "strokes": 5, "corners": 10, "displaced": 3, "located": 10}
 
 
 @dataclass

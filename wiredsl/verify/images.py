@@ -122,8 +122,8 @@ def assign_path(frames: list[Frame], scene) -> None:
 def assign_file(frames: list[Frame], scene, path: str, fmt: str | None, match: str, side: str) -> str:
     """`--poses FILE`: the file's poses are world_from_camera of the `side` camera (OpenCV axes) in the scene's
     world; matched to frames by order, or by the frames' keys as timestamps. Returns the match used."""
+    from wiredsl.files import read_regular
     from wiredsl.io import trajectory
-    from wiredsl.io.files import read_regular
 
     try:
         text = read_regular(path, 64 << 20).decode("utf-8")

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from wiredsl.io.files import json_text, write_atomic
+from wiredsl.files import json_text, write_atomic
 
 COLUMNS = ("image", "camera", "frame", "detector", "kind", "feature", "object", "segment", "part", "length_px",
            "samples", "verified", "verified_fraction", "runs", "offset_mean_px", "offset_std_px", "lost_middle_px",

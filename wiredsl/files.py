@@ -4,7 +4,8 @@ Temporaries are named `.<target>.wiredsl-<host>-<pid>-<token>.tmp` (and `.old` f
 so the next write to the same target can recognise and remove those a killed process left: on this host,
 when its pid no longer runs (another host's, on a shared file system, are left to that host).
 Every writer passes its values through `require_finite` (or `json_text`, built on it): no output can
-hold NaN, infinity or a number its format cannot store.
+hold NaN, infinity or a number its format cannot store. It imports nothing of wiredsl: every layer writes
+through it (the engine's kernel cache, io's dumps and meshes' caches, studies, the commands).
 """
 
 from __future__ import annotations
