@@ -3,7 +3,8 @@ pipeline, measured in the same run (aim: the measures do not dominate a study's 
 
 Per measure: the one-off `prepare` (ideal references; for pgh also the view-point database) and
 `measure` over the same batches the trials produced, as seconds per trial (all poses, both cameras)
-and as a ratio to the trials' own time.
+and as a ratio to the trials' own time (wall); `prepare` also in CPU time. The load average is printed before and
+after (docs/reference/measures.md quotes pgh's prepare).
 
     OMP_NUM_THREADS=1 python benchmarks/measures_speed.py [--trials 256] [--pgh-viewpoints N] [--numpy]
 
@@ -43,20 +44,22 @@ def main() -> None:
     trial_time = (time.perf_counter() - t0) / args.trials
     engine = "numpy" if args.numpy or pgh.kernel() is None else "numba"
     print(f"lab, pipeline 'paper', {args.trials} trials x {len(run.ideal())} poses x 2 cameras; pgh: {engine}")
-    print(f"{'':<10} {'prepare s':>10} {'ms/trial':>10} {'x trial time':>13}")
-    print(f"{'trials':<10} {'':>10} {trial_time * 1e3:>10.2f} {1.0:>13.2f}")
+    print("load average " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
+    print(f"{'':<10} {'prepare s':>10} {'CPU s':>7} {'ms/trial':>10} {'x trial time':>13}")
+    print(f"{'trials':<10} {'':>10} {'':>7} {trial_time * 1e3:>10.2f} {1.0:>13.2f}")
     for name, m in REGISTRY.items():
         extra = {"viewpoints": args.pgh_viewpoints} if name == "pgh" and args.pgh_viewpoints is not None else {}
         p = m.Params(**extra)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         prep = m.prepare(p, run)
-        prepare = time.perf_counter() - t0
+        prepare, prepare_cpu = time.perf_counter() - t0, time.process_time() - c0
         t0 = time.perf_counter()
         for batch, results in batches:
             for result, disturbed, _ in results:
                 m.measure(p, prep, result, disturbed, len(batch))
         per = (time.perf_counter() - t0) / args.trials
-        print(f"{name:<10} {prepare:>10.2f} {per * 1e3:>10.2f} {per / trial_time:>13.2f}")
+        print(f"{name:<10} {prepare:>10.2f} {prepare_cpu:>7.2f} {per * 1e3:>10.2f} {per / trial_time:>13.2f}")
+    print("load average " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
 
 
 if __name__ == "__main__":

@@ -84,7 +84,7 @@ def test_the_plugin_template_passes_its_own_tests(tmp_path, monkeypatch):
     root = tmp_path / "my-detector"
     project = tomllib.loads((root / "pyproject.toml").read_text())
     groups = project["project"]["entry-points"]
-    assert set(groups) == {"wiredsl.effects", "wiredsl.measures"}
+    assert set(groups) == {"wiredsl.effects", "wiredsl.measures", "wiredsl.detectors"}
     site = tmp_path / "site"
     site.mkdir()
     (site / "my_detector").symlink_to(root / "src" / "my_detector")

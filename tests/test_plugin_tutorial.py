@@ -1,11 +1,13 @@
 """docs/tutorials/plugin.md runs as written: its code blocks (each opening with `# file: NAME`) make a package,
 installed here as pip leaves one (its module on sys.path, a .dist-info with the entry points of its
-pyproject.toml), and the page's scene is checked and its study run."""
+pyproject.toml), and the page's scene is checked and its study run; its detector is the one `wiredsl init
+--plugin` writes, and its commands print what the page shows."""
 
 from __future__ import annotations
 
 import json
 import re
+import shlex
 import tomllib
 from pathlib import Path
 
@@ -13,6 +15,7 @@ import pytest
 from click.testing import CliRunner
 from helpers import dist_info, entry_points_text, plugins_on_path
 
+from wiredsl import init
 from wiredsl.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -42,7 +45,36 @@ def tutorial(tmp_path, monkeypatch):
 
 
 def test_the_tutorial_has_a_package_an_effect_a_measure_and_a_scene():
-    assert set(blocks()) == {"pyproject.toml", "wd_tutorial/effects.py", "wd_tutorial/measures.py", "tutorial.wd"}
+    assert set(blocks()) == {"pyproject.toml", "wd_tutorial/effects.py", "wd_tutorial/measures.py",
+                             "wd_tutorial/detect.py", "tutorial.wd"}
+
+
+def test_the_tutorials_detector_is_the_one_wiredsl_init_writes():
+    assert blocks()["wd_tutorial/detect.py"] == init.fill(init.PLUGIN_DETECTOR, {"detector": "sobel_edges"})
+
+
+def section(title: str) -> str:
+    return PAGE.read_text(encoding="utf-8").split(f"## {title}\n", 1)[1].split("\n## ", 1)[0]
+
+
+def test_the_detector_sections_commands_print_what_the_page_shows(tutorial, tmp_path, monkeypatch):
+    """`wiredsl render` then `wiredsl verify --detector sobel_edges`, as the page writes them (run in the scene's
+    folder): the table printed is the page's, and both detectors find nearly every edge of the ideal drawing."""
+    text = section("Your detector")
+    commands = re.search(r"```sh\n(.*?)```", text, re.S).group(1).splitlines()
+    shown = re.search(r"```text\n(.*?)```", text, re.S).group(1)
+    monkeypatch.chdir(tutorial.parent)
+    printed = ""
+    for line in commands:
+        args = shlex.split(line)
+        assert args[0] == "wiredsl", line
+        r = CliRunner().invoke(main, args[1:])
+        assert r.exit_code == 0, (line, r.output)
+        printed = r.stdout
+    assert printed == shown
+    doc = json.loads((tutorial.parent / "build" / "verify" / "verification.json").read_text())
+    assert {o["detector"] for o in doc["objects"]} == {"sobel_edges", "canny"}
+    assert all(o["verified_fraction"] > 0.9 for o in doc["objects"]), doc["objects"]
 
 
 def test_the_tutorial_package_loads_checks_and_runs_its_study(tutorial, tmp_path):

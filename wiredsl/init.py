@@ -1,7 +1,7 @@
 """`wiredsl init`: a starter project (a scene, a study, a CI script) or a plug-in package template.
 
 The templates are strings here, filled by `str.format`-free substitution of `{{name}}`, `{{package}}`,
-`{{effect}}`, `{{measure}}` and `{{version}}`, so braces in the files themselves need no escaping. The project
+`{{effect}}`, `{{measure}}`, `{{detector}}` and `{{version}}`, so braces in the files themselves need no escaping. The project
 is written into a temporary folder beside the target and renamed into place: a failure leaves nothing behind.
 """
 
@@ -163,14 +163,15 @@ build-backend = "hatchling.build"
 [project]
 name = "{{name}}"
 version = "0.1.0"
-description = "wiredsl plug-in: {{effect}} (an uncertainty source) and {{measure}} (a measure)"
+description = "wiredsl plug-in: {{effect}} (an uncertainty source), {{measure}} (a measure), {{detector}} (a detector)"
 requires-python = ">=3.11"
 dependencies = ["wiredsl>={{version}}", "numpy>=1.26"]
 
 [project.optional-dependencies]
 # fast: the effect's compiled kernel (numba), used by wiredsl's kernel engine; without it the numpy code runs.
 fast = ["numba>=0.59"]
-test = ["pytest>=8"]
+# test: wiredsl's images and plot extras too (OpenCV, matplotlib), for `wiredsl verify` with the detector.
+test = ["pytest>=8", "wiredsl[images,plot]"]
 
 # wiredsl finds plug-ins by these groups; the name on the left is the name scenes use, and must equal the
 # class's `name`.
@@ -180,6 +181,9 @@ test = ["pytest>=8"]
 [project.entry-points."wiredsl.measures"]
 {{measure}} = "{{package}}.measure:CornerError"
 
+[project.entry-points."wiredsl.detectors"]
+{{detector}} = "{{package}}.detect:SobelEdges"
+
 [tool.hatch.build.targets.wheel]
 packages = ["src/{{package}}"]
 
@@ -188,8 +192,9 @@ testpaths = ["tests"]
 """
 
 PLUGIN_INIT = '''\
-"""{{name}}: a wiredsl plug-in. The effect `{{effect}}` (effect.py, its numba kernel in kernel.py) and the
-measure `{{measure}}` (measure.py), found by wiredsl through the entry points in pyproject.toml."""
+"""{{name}}: a wiredsl plug-in. The effect `{{effect}}` (effect.py, its numba kernel in kernel.py), the
+measure `{{measure}}` (measure.py) and the detector `{{detector}}` (detect.py), found by wiredsl through the entry
+points in pyproject.toml."""
 '''
 
 PLUGIN_EFFECT = '''\
@@ -326,9 +331,86 @@ study noise {
 }
 """
 
+PLUGIN_DETECTOR = '''\
+"""Sobel edges, in numpy alone: smooth, take the Sobel gradient, keep the pixels whose gradient magnitude is a
+maximum along the gradient's direction (non-maximum suppression) and above a threshold. Your detector goes here.
+
+`wiredsl verify --detector {{detector}}` runs it on your images; the verification wants the edge map and the
+grey-level gradient over the whole image (it finds each edge's sub-pixel position from the magnitudes across it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from wiredsl.verify.detectors import Detection, Detector, DetectorParams
+
+
+class SobelParams(DetectorParams):
+    # every field needs a default; `--param threshold=20` sets one on the command line
+    threshold: float = Field(10.0, ge=0, description="weakest gradient kept (grey levels a pixel)")
+    blur: float = Field(1.0, ge=0, le=20, description="Gaussian smoothing first, its sigma in px (0: none)")
+
+
+def smoothed(image: np.ndarray, sigma: float) -> np.ndarray:
+    """The image convolved with a Gaussian of `sigma` px (rows, then columns; the border pixels repeated)."""
+    out = image.astype(np.float64)
+    if sigma == 0:
+        return out
+    r = int(np.ceil(3 * sigma))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    k /= k.sum()
+    for axis in (0, 1):
+        padded = np.pad(out, [(r, r) if a == axis else (0, 0) for a in (0, 1)], mode="edge")
+        n = out.shape[axis]
+        out = sum(w * padded.take(np.arange(i, i + n), axis=axis) for i, w in enumerate(k))
+    return out
+
+
+def sobel(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Sobel gradient (gx along columns, gy along rows), divided by 8: grey levels a pixel."""
+    p = np.pad(image, 1, mode="edge")
+    dx = p[:, 2:] - p[:, :-2]  # central differences, then smoothed across by (1, 2, 1)
+    dy = p[2:, :] - p[:-2, :]
+    gx = (dx[:-2] + 2 * dx[1:-1] + dx[2:]) / 8
+    gy = (dy[:, :-2] + 2 * dy[:, 1:-1] + dy[:, 2:]) / 8
+    return gx, gy
+
+
+def thinned(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """Non-maximum suppression: a pixel whose magnitude is larger than its neighbour behind it and no smaller
+    than the one ahead, along the gradient rounded to one of four directions (0, 45, 90, 135 deg)."""
+    m = np.hypot(gx, gy)
+    p = np.pad(m, 1)
+    h, w = m.shape
+    ahead = {d: p[1 + d[1]:1 + d[1] + h, 1 + d[0]:1 + d[0] + w] for d in ((1, 0), (1, 1), (0, 1), (-1, 1))}
+    behind = {d: p[1 - d[1]:1 - d[1] + h, 1 - d[0]:1 - d[0] + w] for d in ahead}
+    sector = np.round(np.degrees(np.arctan2(gy, gx)) / 45).astype(int) % 4  # 0: along x, 1: 45 deg, ...
+    keep = np.zeros(m.shape, bool)
+    for s, d in enumerate(ahead):
+        keep |= (sector == s) & (m > behind[d]) & (m >= ahead[d])
+    return keep
+
+
+class SobelEdges(Detector):
+    name = "{{detector}}"  # the entry point's name
+    doc = "Sobel gradient edges thinned along the gradient and thresholded (numpy only)."
+    Params = SobelParams
+    finds = "edges"  # what the verification tests: "edges" or "corners"
+
+    @classmethod
+    def detect(cls, image: np.ndarray, p: SobelParams) -> Detection:
+        # image: (height, width) uint8, grey; pixel (i, j)'s centre is the point x = i, y = j
+        gx, gy = sobel(smoothed(image, p.blur))
+        edges = thinned(gx, gy) & (np.hypot(gx, gy) > p.threshold)
+        return Detection(edges=edges, gx=gx.astype(np.float32), gy=gy.astype(np.float32))
+'''
+
 PLUGIN_TESTS = '''\
 """The plug-in's own tests: wiredsl finds it, a scene uses it, the effect draws what it declares, the kernel
-gives what the numpy code gives, and the measure measures what the effect did."""
+gives what the numpy code gives, the measure measures what the effect did, and the detector finds drawn edges
+where they were drawn, nothing in a flat image, and runs in `wiredsl verify`."""
 
 from __future__ import annotations
 
@@ -349,12 +431,13 @@ def wiredsl_cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "wiredsl", *args], capture_output=True, text=True)
 
 
-def test_wiredsl_finds_both_entry_points():
+def test_wiredsl_finds_the_three_entry_points():
     out = wiredsl_cli("plugins")
     assert out.returncode == 0, out.stderr
     lines = {tuple(line.split("\\t")[:2]): line for line in out.stdout.splitlines()}
     assert lines[("effect", "{{effect}}")].endswith("ok"), out.stdout
     assert lines[("measure", "{{measure}}")].endswith("ok"), out.stdout
+    assert lines[("detector", "{{detector}}")].endswith("ok"), out.stdout
 
 
 def test_the_scene_checks_and_a_bad_parameter_is_a_diagnostic(tmp_path):
@@ -418,6 +501,72 @@ def test_the_measure_reads_the_effects_sigma():
     assert abs(np.sqrt(mean_sq) - 0.5 * np.sqrt(2)) < 0.03, np.sqrt(mean_sq)
 
 
+def step_image(x0: float, angle: float, shape=(48, 64), dark=30.0, light=128.0) -> np.ndarray:
+    """A straight step edge through (x0, rows / 2), `angle` degrees from the vertical, light on the side of its
+    normal (cos angle, sin angle); each pixel's grey is the share of its area on either side (16 x 16 samples a
+    pixel), rounded to 8 bits, as a camera sees an object's boundary."""
+    a = np.radians(angle)
+    sub = (np.arange(16) + 0.5) / 16 - 0.5
+    y, x = np.mgrid[0:shape[0], 0:shape[1]]
+    xs = x[..., None, None] + sub[None, None, None, :]
+    ys = y[..., None, None] + sub[None, None, :, None]
+    light_share = (((xs - x0) * np.cos(a) + (ys - shape[0] / 2) * np.sin(a)) > 0).mean(axis=(2, 3))
+    return np.round(dark + (light - dark) * light_share).astype(np.uint8)
+
+
+@pytest.mark.parametrize("angle", [0.0, 10.0, 30.0, -40.0])
+@pytest.mark.parametrize("x0", [20.0, 20.25, 20.5, 20.8])
+def test_the_detector_finds_a_drawn_step_edge_within_a_pixel(x0, angle):
+    """Every edge pixel (3 px from the border) lies within a pixel of the drawn edge, every row crossing it has
+    one, and its gradient points across the edge, towards the light side."""
+    from {{package}}.detect import SobelEdges
+
+    image = step_image(x0, angle)
+    found = SobelEdges.detect(image, SobelEdges.Params())
+    a = np.radians(angle)
+    y, x = np.nonzero(found.edges[3:-3, 3:-3])
+    y, x = y + 3, x + 3
+    distance = (x - x0) * np.cos(a) + (y - image.shape[0] / 2) * np.sin(a)
+    assert len(x) and np.abs(distance).max() <= 1.0, np.abs(distance).max()
+    assert set(y) == set(range(3, image.shape[0] - 3))  # the edge is whole: one pixel or more a row
+    gx, gy = found.gx[y, x], found.gy[y, x]
+    assert np.all((gx * np.cos(a) + gy * np.sin(a)) > 0.95 * np.hypot(gx, gy))
+
+
+def test_a_flat_image_gives_no_edges_even_with_sensor_noise():
+    from {{package}}.detect import SobelEdges
+
+    flat = np.full((48, 64), 128, np.uint8)
+    assert not SobelEdges.detect(flat, SobelEdges.Params()).edges.any()
+    noisy = np.clip(np.round(128 + np.random.default_rng(1).normal(0, 2, (480, 640))), 0, 255).astype(np.uint8)
+    assert not SobelEdges.detect(noisy, SobelEdges.Params()).edges.any()  # 2 grey levels of noise: under 10
+
+
+def test_wiredsl_verify_runs_the_detector_on_rendered_images(tmp_path):
+    """The demo scene's five left views, drawn by wiredsl.io.render (blur 1 px, noise 2 grey levels) and
+    verified with the detector: nearly every sample of the crate's edges has an edge where the scene puts it.
+    A threshold above every gradient finds none."""
+    from wiredsl.io import render
+
+    scene = wiredsl.compile(SCENE)
+    render.write(tmp_path / "frames", scene, look=render.Look(blur=1.0, noise=2.0), cameras="left", seed=1)
+    images = str(tmp_path / "frames" / "left_*.png")
+    out = wiredsl_cli("verify", str(SCENE), "--images", images, "--detector", "{{detector}}", "-o",
+                      str(tmp_path / "v"))
+    assert out.returncode == 0, out.stderr
+    doc = json.loads((tmp_path / "v" / "verification.json").read_text())
+    assert [d["name"] for d in doc["detectors"]] == ["{{detector}}"]
+    (crate,) = doc["objects"]
+    assert crate["images"] == 5 and crate["verified_fraction"] > 0.95, crate
+    offsets = [r["offset_mean_px"] for r in doc["rows"] if r["kind"] == "edge" and r["offset_mean_px"] is not None]
+    assert len(offsets) >= 20 and np.median(np.abs(offsets)) < 0.5, offsets
+    out = wiredsl_cli("verify", str(SCENE), "--images", images, "--detector", "{{detector}}", "--param",
+                      "threshold=1000", "-o", str(tmp_path / "none"))
+    assert out.returncode == 0, out.stderr
+    (crate,) = json.loads((tmp_path / "none" / "verification.json").read_text())["objects"]
+    assert crate["verified_fraction"] == 0, crate
+
+
 def test_a_study_over_the_effect_reports_the_measure(tmp_path):
     out = wiredsl_cli("study", str(SCENE), "noise", "-o", str(tmp_path / "study"), "--executor", "inprocess",
                       "--no-plots")
@@ -431,15 +580,19 @@ PLUGIN_README = """\
 # {{name}}
 
 A wiredsl plug-in package: the uncertainty source `{{effect}}` (src/{{package}}/effect.py, with an optional
-numba kernel in kernel.py) and the measure `{{measure}}` (src/{{package}}/measure.py), declared as entry points
-in pyproject.toml. Once installed, scenes name them like built-ins: `wiredsl check` validates their parameters,
-`wiredsl reference` lists them, a study can `vary {{effect}}.sigma` and `measure {{measure}}`.
+numba kernel in kernel.py), the measure `{{measure}}` (src/{{package}}/measure.py) and the edge detector
+`{{detector}}` (src/{{package}}/detect.py, numpy only), declared as entry points in pyproject.toml. Once
+installed, scenes name the effect and the measure like built-ins: `wiredsl check` validates their parameters,
+`wiredsl reference` lists them, a study can `vary {{effect}}.sigma` and `measure {{measure}}`; and `wiredsl
+verify --detector {{detector}}` runs the detector on your images.
 
 ```sh
 pip install -e '.[test]'        # add [fast] for the compiled kernel (numba)
-wiredsl plugins                 # both names, "ok"
+wiredsl plugins                 # the three names, "ok"
 pytest                          # the plug-in's own tests
 wiredsl study scenes/demo.wd noise
+wiredsl render scenes/demo.wd -o build/frames --cameras left --blur 1 --noise 2
+wiredsl verify scenes/demo.wd --images 'build/frames/left_*.png' --detector {{detector}} -o build/verify
 ```
 """
 
@@ -448,6 +601,7 @@ STARTER = {"scenes/{{package}}.wd": SCENE, ".gitignore": GITIGNORE, "ci.sh": CI_
 PLUGIN = {"pyproject.toml": PLUGIN_PYPROJECT, "README.md": PLUGIN_README, ".gitignore": GITIGNORE,
           "src/{{package}}/__init__.py": PLUGIN_INIT, "src/{{package}}/effect.py": PLUGIN_EFFECT,
           "src/{{package}}/kernel.py": PLUGIN_KERNEL, "src/{{package}}/measure.py": PLUGIN_MEASURE,
+          "src/{{package}}/detect.py": PLUGIN_DETECTOR,
           "scenes/demo.wd": PLUGIN_SCENE, "tests/test_{{package}}.py": PLUGIN_TESTS}
 
 
@@ -463,7 +617,7 @@ def files(name: str, plugin: bool = False) -> dict[str, str]:
 
     package = package_name(name)
     values = {"name": name, "package": package, "effect": f"{package}_noise", "measure": f"{package}_error",
-              "version": __version__}
+              "detector": f"{package}_edges", "version": __version__}
     return {fill(path, values): fill(text, values) for path, text in (PLUGIN if plugin else STARTER).items()}
 
 
