@@ -55,8 +55,8 @@ def main() -> None:
     ap.add_argument("--cold", action="store_true")
     args = ap.parse_args()
     from wiredsl import run as runs
-    from wiredsl.engine.montecarlo import KERNEL_PAYS
     from wiredsl.language.compile import compile_file
+    from wiredsl.montecarlo import KERNEL_PAYS
 
     scene = compile_file(Path(LAB))[0]
     size = runs.start(scene, scene.pipeline(None), seed=1).trial_size()[0]

@@ -22,8 +22,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np  # noqa: E402
-
 from _cli import best, load  # noqa: E402
+
 
 def tum_text(n: int, seed: int = 1) -> str:
     """n poses at 100 Hz: a smooth random walk in the plane at 1.5 m height, heading along the motion, with a

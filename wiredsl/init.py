@@ -1,8 +1,8 @@
 """`wiredsl init`: a starter project (a scene, a study, a CI script) or a plug-in package template.
 
 The templates are strings here, filled by `str.format`-free substitution of `{{name}}`, `{{package}}`,
-`{{effect}}`, `{{measure}}`, `{{detector}}` and `{{version}}`, so braces in the files themselves need no escaping. The project
-is written into a temporary folder beside the target and renamed into place: a failure leaves nothing behind.
+`{{effect}}`, `{{measure}}`, `{{detector}}` and `{{version}}`, so braces in the files themselves need no
+escaping. The project is written into a temporary folder beside the target and renamed into place: a failure leaves nothing behind.
 """
 
 from __future__ import annotations
