@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from wiredsl import check_stop
+
 _TEMP = re.compile(r"^\.(?P<target>.+)\.wiredsl-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[A-Za-z0-9_]+\.(tmp|old)$")
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
 _HOST = re.sub(r"[^A-Za-z0-9]", "_", os.uname().nodename)[:64] or "host"  # socket.gethostname(), without socket
@@ -202,7 +204,9 @@ def _named(exc: OSError, path: Path) -> OSError:
 
 
 def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
-    """Give a finished temporary file ordinary permissions (mkstemp makes it private) and rename it."""
+    """Give a finished temporary file ordinary permissions (mkstemp makes it private) and rename it, unless a
+    signal came that the code it landed in dropped: then the temporary goes and the output stays as it was."""
+    check_stop()
     os.chmod(tmp, 0o666 & ~_umask())
     os.replace(tmp, path)
 
@@ -298,6 +302,7 @@ def output_folder(target: str | os.PathLike, force: bool = False) -> Iterator[Pa
 def _swap(stage: Path, target: Path) -> None:
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
     try:
+        check_stop()  # a signal dropped where it landed: the run is not swapped in
         os.chmod(stage, 0o777 & ~_umask())
         for name in KEPT:  # files hard-linked (free), folders copied: the old folder's copy goes with it
             old, new = target / name, stage / name
