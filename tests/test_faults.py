@@ -368,12 +368,16 @@ def test_a_study_killed_by_sigkill_resumes_to_the_uninterrupted_table_nothing_lo
     scene.write_text(STUDY.format(lab=Path(LAB).as_posix()))
     script = tmp_path / "run.py"
     script.write_text(STUDY_RUN.format(tests=str(ROOT / "tests")))
+    import study_measures
+
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     out = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, str(script), str(scene), str(out), "slow"], env=env,
+    # held from 10 shards on: still running when it is killed, however loaded the machine
+    proc = subprocess.Popen([sys.executable, str(script), str(scene), str(out), "slow"],
+                            env={**study_measures.SlowKept.hold(out, 10), "PYTHONPATH": str(ROOT)},
                             start_new_session=True, stderr=subprocess.PIPE)
     try:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 300
         while len(journal.replay(out)) < 10 and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.02)
         assert proc.poll() is None, proc.stderr.read()  # still running
