@@ -118,6 +118,7 @@ def json_text(obj, indent: int | None = 1, sort_keys: bool = False, where: str =
 
 
 _NON_FINITE = re.compile(r"-?Infinity|NaN")
+MAX_INT_DIGITS = 4300  # CPython's default limit on int(str)
 
 
 def json_loads(text: str):
@@ -135,6 +136,12 @@ def json_loads(text: str):
             raise json.JSONDecodeError(f"{token} is beyond the range of a double", text, text.find(token))
         return x
 
+    def integer(token: str) -> int:
+        if len(token) > MAX_INT_DIGITS:  # int() refuses it (ValueError, CPython's limit on digits), as should we
+            raise json.JSONDecodeError(f"an integer of {len(token):,} digits is beyond any number a document holds",
+                                       text, text.find(token))
+        return int(token)
+
     import orjson
 
     try:
@@ -142,7 +149,7 @@ def json_loads(text: str):
     except orjson.JSONDecodeError:
         pass  # the reader below says where and why, or reads what orjson does not (integers past 64 bits)
     try:
-        return json.loads(text, parse_constant=refuse, parse_float=number)
+        return json.loads(text, parse_constant=refuse, parse_float=number, parse_int=integer)
     except RecursionError:
         raise json.JSONDecodeError("nested too deeply for this reader", text, 0) from None
 
