@@ -42,12 +42,37 @@ REGISTRY = {"kept": Kept}
 
 
 class SlowKept(Kept):
-    """`kept`, 20 ms slower a call: a study long enough to be killed in the middle."""
+    """`kept`, 20 ms slower a call, and held once the study is far enough along: a study surely still running
+    when a test stops it, however slow the machine (the test waits for shards, not for time).
+
+    `hold(out, n)` gives the environment of a study run into `out` whose calls wait, from the moment its journal
+    holds `n` shards, for as long as the file `release(out)` names is absent (`release` it to let them go)."""
+
+    @staticmethod
+    def hold(out, n: int) -> dict[str, str]:
+        import json
+        import os
+
+        return {**os.environ, "WIREDSL_TEST_HOLD": json.dumps([str(out), n])}
+
+    @staticmethod
+    def release(out):
+        from pathlib import Path
+
+        return Path(f"{out}.released")
 
     @classmethod
     def measure(cls, params, prepared, pose, disturbed, n_trials: int) -> dict[str, np.ndarray]:
+        import json
+        import os
         import time
 
+        if os.environ.get("WIREDSL_TEST_HOLD"):
+            from wiredsl.study import journal
+
+            out, n = json.loads(os.environ["WIREDSL_TEST_HOLD"])
+            while len(journal.replay(out)) >= n and not cls.release(out).exists():
+                time.sleep(0.01)
         time.sleep(0.02)
         return super().measure(params, prepared, pose, disturbed, n_trials)
 

@@ -146,6 +146,24 @@ def test_validate_refuses_nan_and_infinity_in_a_json_dump(tmp_path, token, where
     assert any("is not a finite number" in p for p in schema.problems(doc_nan))
 
 
+def test_validate_and_load_refuse_an_integer_of_too_many_digits_at_its_place(tmp_path):
+    """The fuzz campaign: a manifest whose trial count was 100,000 nines was exit 3 (int() refuses over 4,300
+    digits with a ValueError the reader let through); now a located diagnostic, and load's DumpError."""
+    out = tmp_path / "b"
+    r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "--pose", "0", "--no-svg", "--no-effects", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    text = (out / "manifest.json").read_text()
+    needle = '"trials": 1'
+    assert needle in text
+    (tmp_path / "manifest.json").write_text(text.replace(needle, '"trials": ' + "9" * 100_000, 1))
+    code, msg = validate(tmp_path / "manifest.json")
+    line = text[:text.index(needle)].count("\n") + 1
+    assert code == 1 and f"manifest.json:{line}:" in msg and "integer of 100,000 digits" in msg, msg
+    (tmp_path / "f.json").write_text((out / "features.json").read_text().replace('"seed": ', '"seed": 1' + "0" * 5000, 1))
+    with pytest.raises(ValueError, match="integer of 5,0"):
+        wiredsl.load(tmp_path / "f.json")
+
+
 def test_validate_refuses_json_nested_beyond_the_reader(tmp_path):
     (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
     code, out = validate(tmp_path / "deep.json")

@@ -368,12 +368,16 @@ def test_a_study_killed_by_sigkill_resumes_to_the_uninterrupted_table_nothing_lo
     scene.write_text(STUDY.format(lab=Path(LAB).as_posix()))
     script = tmp_path / "run.py"
     script.write_text(STUDY_RUN.format(tests=str(ROOT / "tests")))
+    import study_measures
+
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     out = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, str(script), str(scene), str(out), "slow"], env=env,
+    # held from 10 shards on: still running when it is killed, however loaded the machine
+    proc = subprocess.Popen([sys.executable, str(script), str(scene), str(out), "slow"],
+                            env={**study_measures.SlowKept.hold(out, 10), "PYTHONPATH": str(ROOT)},
                             start_new_session=True, stderr=subprocess.PIPE)
     try:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 300
         while len(journal.replay(out)) < 10 and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.02)
         assert proc.poll() is None, proc.stderr.read()  # still running
@@ -394,3 +398,81 @@ def test_a_study_killed_by_sigkill_resumes_to_the_uninterrupted_table_nothing_lo
     subprocess.run([sys.executable, str(script), str(scene), str(tmp_path / "whole"), "fast"], env=env, check=True)
     for name in ("table.csv", "table.json", "manifest.json"):
         assert (out / name).read_bytes() == (tmp_path / "whole" / name).read_bytes(), name
+
+
+DROPPED = """import os, signal, sys, time
+sys.path.insert(0, {tests!r})
+command, how = sys.argv[1], sys.argv[2]
+
+
+def landing(real):
+    \"\"\"`real`, whose first call sends SIGINT or SIGTERM to its own process and then acts as compiled code may when
+    the signal's exception lands in it (numba's callbacks, a C library's): wraps it in a SystemError, or drops it.\"\"\"
+    def call(*args, **kwargs):
+        if not landing.sent:
+            landing.sent = True
+            try:
+                os.kill(os.getpid(), int(os.environ["SIGNUM"]))
+                time.sleep(30)  # the handler raises in here
+            except BaseException as exc:
+                if how == "wrap":
+                    raise SystemError("returned a result with an exception set") from exc
+        return real(*args, **kwargs)
+    return call
+
+
+landing.sent = False
+if command == "study":
+    import study_measures
+    from wiredsl.language import compile_study
+
+    class Landing(study_measures.Kept):
+        measure = classmethod(landing(study_measures.Kept.measure.__func__))
+
+    compile_study.measure_registry = lambda: {{"kept": Landing}}
+elif command == "build":
+    from wiredsl.engine import montecarlo
+
+    montecarlo.Run._batch = landing(montecarlo.Run._batch)
+else:
+    from wiredsl.verify import verification
+
+    verification.verify_image = landing(verification.verify_image)
+from wiredsl.cli import entry
+
+sys.argv = ["wiredsl", *sys.argv[3:]]
+entry()
+"""
+
+
+@pytest.mark.parametrize("how", ["wrap", "drop"])
+@pytest.mark.parametrize(("command", "signum"), [("build", signal.SIGTERM), ("study", signal.SIGTERM),
+                                                 ("verify", signal.SIGINT)])
+def test_a_signal_that_compiled_code_wraps_or_drops_still_stops_the_command(tmp_path, command, signum, how):
+    """A signal landing in code that wraps its exception (numba's unpickling callback: a SystemError) or drops it
+    (a C callback that prints "Exception ignored" and returns) still stops the command: exit 128 + signal, one
+    line, no traceback, and the output folder as it was. Dropped, the command once ran on to exit 0 and wrote
+    every output, deaf to a second signal (its handler ignores both while it cleans up)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "manifest.json").write_text("previous")
+    args = {"build": ["build", LAB, "--trials", "40", "--format", "npz", "--no-svg", "--force", "-o", str(out)],
+            "study": ["study", str(tmp_path / "s.wd"), "shift", "--executor", "inprocess", "--no-plots", "-o",
+                      str(out)],
+            "verify": ["verify", "scenes/chessboard.wd", "--images", "tests/data/opencv_stereo/left01.jpg",
+                       "--images", "tests/data/opencv_stereo/right01.jpg", "--poses", "board", "--detector",
+                       "canny", "-o", str(out)]}[command]
+    (tmp_path / "s.wd").write_text(STUDY.format(lab=Path(LAB).as_posix()))
+    script = tmp_path / "dropped.py"
+    script.write_text(DROPPED.format(tests=str(ROOT / "tests")))
+    p = subprocess.run([sys.executable, str(script), command, how, *args], cwd=ROOT, capture_output=True,
+                       text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(ROOT), "SIGNUM": str(int(signum))})
+    assert p.returncode == 128 + signum, p.stderr
+    assert p.stderr.strip().splitlines()[-1] == \
+        f"wiredsl: stopped by {signal.Signals(signum).name}; temporary files removed", p.stderr
+    assert "Traceback" not in p.stderr and "internal error" not in p.stderr
+    left = sorted(p.name for p in out.iterdir())
+    kept = [".plugins.json", "manifest.json", "shards"] if command == "study" else ["manifest.json"]  # (a resume's)
+    assert left == kept, left
+    assert (out / "manifest.json").read_text() == "previous"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dropped.py", "out", "s.wd"]

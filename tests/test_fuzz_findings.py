@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import math
 import os
+import subprocess
+import sys
 from fractions import Fraction
 from pathlib import Path
 
@@ -322,3 +324,34 @@ def test_a_reader_error_logged_by_trimesh_is_e125(tmp_path, monkeypatch):
     r = run("check", str(tmp_path / "s.wd"))
     assert r.exit_code == 1 and "E125]: mesh file m.obj: not a readable OBJ mesh (the reader: corrupt accessor)" \
         in r.stderr, r.stderr
+
+
+# --------------------------------------------------------------------------- long runs of digits or spaces, linear time
+
+def _check_in_a_subprocess(folder: Path) -> subprocess.CompletedProcess:
+    """`wiredsl check` with a limit no sound reader comes near (each input below reads in well under a second
+    of CPU; the quadratic regular expressions they met took minutes)."""
+    return subprocess.run([sys.executable, "-m", "wiredsl", "check", "s.wd"], cwd=folder, capture_output=True,
+                          text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
+def test_a_calibration_file_with_a_long_run_of_digits_reads_in_linear_time(tmp_path):
+    """The fuzz campaign's calibration 'hang': the float resolver for 1e5-style numbers, [0-9]+\\.?[0-9]*[eE]...,
+    split a run of digits without an exponent every possible way before failing (quadratic: 0.24 s of CPU for
+    8,000 digits, so some 150 s for these 200,000). Now there is one way to split it."""
+    text = (ROOT / "tests/data/calibration/ros_ost_narrow_stereo.yaml").read_text()
+    (tmp_path / "c.yaml").write_text(text + "note: " + "1" * 200_000 + " digits, then words\n")
+    (tmp_path / "s.wd").write_text(CAMERA_WORLD + 'camera c {\n  read "c.yaml"\n}\n' + RIG)
+    p = _check_in_a_subprocess(tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+
+
+def test_a_trajectory_header_with_a_long_run_of_spaces_reads_in_linear_time(tmp_path):
+    """A CSV column name was split from its [unit] by a pattern with two ways to place each space (quadratic:
+    0.64 s of CPU for 8,000 spaces, so some 400 s for these 200,000); the pose columns are still found."""
+    header = "#timestamp [ns],p" + " " * 200_000 + "x],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],"
+    (tmp_path / "t.csv").write_text(header + "q_RS_y [],q_RS_z []\n" + "0,0,2,0,1,1,0,0,0\n1000000000,0,2,0,1,1,0,0,0\n")
+    (tmp_path / "s.wd").write_text(CAMERA_WORLD + "camera c {\n  focal 600px\n  size (640px, 480px)\n}\n"
+                                   + RIG.replace("path run { pose (0, 0) }", 'path run {\n  read "t.csv"\n}'))
+    p = _check_in_a_subprocess(tmp_path)
+    assert p.returncode == 0 and "error" not in p.stderr, p.stderr[-2000:]  # the columns found, x included

@@ -36,6 +36,13 @@ def complete(data: bytes) -> bytes:
     return data[:end]
 
 
+def _said(proc, errlog) -> str:
+    """Why the server did not answer, for the failure's message: whether it is still running, and its stderr."""
+    errlog.seek(0)
+    return f"server {'running' if proc.poll() is None else f'exited {proc.returncode}'}; stderr: " + \
+        errlog.read().decode(errors="replace")[-3000:]
+
+
 @pytest.mark.parametrize("frames", FRAMES, ids=[f.stem for f in FRAMES])
 def test_saved_frames_leave_the_server_answering(frames):
     errlog = tempfile.TemporaryFile()
@@ -44,7 +51,7 @@ def test_saved_frames_leave_the_server_answering(frames):
     reader = Reader(proc)
     try:
         init, _ = _ask(proc, reader, 0, "initialize", {"processId": None, "rootUri": None, "capabilities": {}}, 60)
-        assert init is not None and "result" in init
+        assert init is not None and "result" in init, _said(proc, errlog)
         _send(proc, {"jsonrpc": "2.0", "method": "initialized", "params": {}})
         lab = ROOT / "scenes" / "lab.wd"
         _send(proc, {"jsonrpc": "2.0", "method": "textDocument/didOpen", "params": {"textDocument": {
@@ -60,7 +67,7 @@ def test_saved_frames_leave_the_server_answering(frames):
             return
         answer, seen = _ask(proc, reader, 10**9, "textDocument/hover", {
             "textDocument": {"uri": lab.as_uri()}, "position": {"line": 21, "character": 9}}, 90)
-        assert answer is not None, "no answer to a valid request after the saved frames"
+        assert answer is not None, "no answer to a valid request after the saved frames; " + _said(proc, errlog)
         internal = [m for m in seen + [answer] if (m.get("error") or {}).get("code") == -32603]
         assert not internal, internal[:3]
         done, _ = _ask(proc, reader, 10**9 + 1, "shutdown", None, 30)

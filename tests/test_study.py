@@ -296,15 +296,21 @@ def test_study_killed_by_sigterm_resumes_to_the_uninterrupted_table(scene, scene
     import sys
     import time
 
+    import study_measures
+
     out = tmp_path / "killed"
     script = tmp_path / "killable.py"
     script.write_text(KILLABLE)
-    proc = subprocess.Popen([sys.executable, str(script), str(scene_file), str(out), executor])
-    deadline = time.monotonic() + 120
+    # held from 3 shards on until released: still running when the signal comes, however loaded the machine
+    proc = subprocess.Popen([sys.executable, str(script), str(scene_file), str(out), executor],
+                            env=study_measures.SlowKept.hold(out, 3))
+    deadline = time.monotonic() + 300
     while len(journal.replay(out)) < 3 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
+    assert proc.poll() is None
     proc.send_signal(signal.SIGTERM)
-    assert proc.wait(60) == 128 + signal.SIGTERM  # stopped mid-study, its workers shut down
+    study_measures.SlowKept.release(out).touch()  # the workers' running shards may finish
+    assert proc.wait(120) == 128 + signal.SIGTERM  # stopped mid-study, its workers shut down
     finished = len(journal.replay(out))
     assert 3 <= finished < 20 and not (out / "table.csv").exists()
     messages = []

@@ -29,6 +29,33 @@ def exception_chain(exc: BaseException | None):
         exc = exc.__cause__ or exc.__context__
 
 
+# The exception a SIGINT or SIGTERM handler raised (the command line's, a study's), kept until the run ends: code
+# it lands in may drop it (a C callback that prints "Exception ignored" and returns), and the run must not then
+# finish as if no signal came. Commit points (io.files.publish, an output folder's swap) and the loops between
+# batches and shards raise it again.
+_STOPS: list[BaseException] = []
+
+
+def signal_stop(exc: BaseException) -> BaseException:
+    """Note the exception a signal handler is about to raise (and return it)."""
+    _STOPS.append(exc)
+    return exc
+
+
+def check_stop() -> None:
+    """Raise again a signal's exception that the code it landed in dropped; nothing when no signal came."""
+    if _STOPS:
+        raise _STOPS[0]
+
+
+def pending_stop() -> BaseException | None:
+    return _STOPS[0] if _STOPS else None
+
+
+def clear_stops() -> None:
+    _STOPS.clear()
+
+
 _API = ("compile", "simulate", "Simulator", "Batch", "CameraAt", "CompileError", "CompileWarning", "PluginError",
         "Measure", "Effect")
 __all__ = ["load", *_API]

@@ -46,16 +46,20 @@ class Stopped(BaseException):
 
 
 def _stop(signum: int, frame) -> None:
+    from wiredsl import signal_stop
+
     for s in (signal.SIGINT, signal.SIGTERM):  # a second signal must not interrupt the clean-up
         signal.signal(s, signal.SIG_IGN)
-    raise Stopped(signum)
+    raise signal_stop(Stopped(signum))  # kept: raised again at the next batch or write if compiled code drops it
 
 
 def _stop_in(exc: BaseException | None) -> BaseException | None:
-    """The Stopped or KeyboardInterrupt an exception was raised from or during, if any."""
-    from wiredsl import exception_chain
+    """The Stopped or KeyboardInterrupt an exception was raised from or during, if any, or the signal's Stopped
+    that the code it landed in dropped before this exception came."""
+    from wiredsl import exception_chain, pending_stop
 
-    return next((e for e in exception_chain(exc) if isinstance(e, (Stopped, KeyboardInterrupt))), None)
+    found = next((e for e in exception_chain(exc) if isinstance(e, (Stopped, KeyboardInterrupt))), None)
+    return found or pending_stop()
 
 
 def _exit_stopped(exc: BaseException) -> None:
@@ -69,13 +73,18 @@ def guarded(fn: Callable) -> Callable:
 
     @wraps(fn)
     def wrapper(*args, **kwargs):
+        from wiredsl import check_stop, clear_stops, pending_stop
         from wiredsl.diagnostics import WiredslError
         from wiredsl.files import OutputFolderError, UnwritableValue
 
         main_thread = threading.current_thread() is threading.main_thread()
+        if main_thread:
+            clear_stops()  # (a signal an earlier command in this process took is not this one's)
         previous = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
         try:
             out = fn(*args, **kwargs)
+            if main_thread:
+                check_stop()  # a signal dropped where it landed still stops the run: never exit 0 after one
             if not sys.stdout.closed:  # (the language server's client closes it on exit)
                 sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
             return out
@@ -84,6 +93,9 @@ def guarded(fn: Callable) -> Callable:
                 raise  # another pipe (a worker's): not the reader of our output going away
             _quiet_exit()
         except WiredslError as err:
+            stop = pending_stop()
+            if stop is not None:  # a plug-in caught the signal's exception and failed instead
+                _exit_stopped(stop)
             if os.environ.get("WIREDSL_DEBUG") and getattr(err, "detail", None):  # a plug-in's own traceback
                 click.echo(err.detail.rstrip("\n"), err=True)
             report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diagnostics", "text"))
@@ -113,6 +125,8 @@ def guarded(fn: Callable) -> Callable:
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+            if main_thread:
+                clear_stops()
 
     return wrapper
 

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from wiredsl import check_stop
+
 _TEMP = re.compile(r"^\.(?P<target>.+)\.wiredsl-(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[A-Za-z0-9_]+\.(tmp|old)$")
 _SIGNALS = {signal.SIGINT, signal.SIGTERM}
 _HOST = re.sub(r"[^A-Za-z0-9]", "_", os.uname().nodename)[:64] or "host"  # socket.gethostname(), without socket
@@ -117,6 +119,7 @@ def json_text(obj, indent: int | None = 1, sort_keys: bool = False, where: str =
 
 
 _NON_FINITE = re.compile(r"-?Infinity|NaN")
+MAX_INT_DIGITS = 4300  # CPython's default limit on int(str)
 
 
 def json_loads(text: str):
@@ -134,6 +137,12 @@ def json_loads(text: str):
             raise json.JSONDecodeError(f"{token} is beyond the range of a double", text, text.find(token))
         return x
 
+    def integer(token: str) -> int:
+        if len(token) > MAX_INT_DIGITS:  # int() refuses it (ValueError, CPython's limit on digits), as should we
+            raise json.JSONDecodeError(f"an integer of {len(token):,} digits is beyond any number a document holds",
+                                       text, text.find(token))
+        return int(token)
+
     import orjson
 
     try:
@@ -141,7 +150,7 @@ def json_loads(text: str):
     except orjson.JSONDecodeError:
         pass  # the reader below says where and why, or reads what orjson does not (integers past 64 bits)
     try:
-        return json.loads(text, parse_constant=refuse, parse_float=number)
+        return json.loads(text, parse_constant=refuse, parse_float=number, parse_int=integer)
     except RecursionError:
         raise json.JSONDecodeError("nested too deeply for this reader", text, 0) from None
 
@@ -203,7 +212,9 @@ def _named(exc: OSError, path: Path) -> OSError:
 
 
 def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
-    """Give a finished temporary file ordinary permissions (mkstemp makes it private) and rename it."""
+    """Give a finished temporary file ordinary permissions (mkstemp makes it private) and rename it, unless a
+    signal came that the code it landed in dropped: then the temporary goes and the output stays as it was."""
+    check_stop()
     os.chmod(tmp, 0o666 & ~_umask())
     os.replace(tmp, path)
 
@@ -299,6 +310,7 @@ def output_folder(target: str | os.PathLike, force: bool = False) -> Iterator[Pa
 def _swap(stage: Path, target: Path) -> None:
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
     try:
+        check_stop()  # a signal dropped where it landed: the run is not swapped in
         os.chmod(stage, 0o777 & ~_umask())
         for name in KEPT:  # files hard-linked (free), folders copied: the old folder's copy goes with it
             old, new = target / name, stage / name

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from wiredsl import check_stop
 from wiredsl.diagnostics import Diagnostic, WiredslError
 from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.effects import calibration_error as calib
@@ -176,6 +177,7 @@ class Run:
         """
         size = size or self.batch_size()
         for lo in range(0, len(trials), size):
+            check_stop()  # a SIGINT or SIGTERM dropped by the compiled code it landed in stops the run here
             batch = trials[lo:lo + size]
             yield batch, self._batch(batch)
 

@@ -152,7 +152,7 @@ def _yaml(text: str) -> object:
 
     Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", matrix)
     Loader.add_implicit_resolver(  # 1e5, 2E-3: floats to OpenCV and JSON, text to YAML 1.1
-        "tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+$"),
+        "tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)[eE][-+]?[0-9]+$"),
         list("-+0123456789."))
     # OpenCV writes "%YAML:1.0" (YAML's directive is "%YAML 1.0"), may follow it with a comment, and
     # reads "key:value" with no space after the colon ("data:[" in ORB-SLAM's files).

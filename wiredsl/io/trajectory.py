@@ -238,7 +238,7 @@ def _csv(text: str, fmt: str, rate: float | None = None) -> Trajectory:
     line0, names, sep = _header(text)
     cols: dict[str, tuple[int, float]] = {}  # role -> (column, factor to SI)
     for k, name in enumerate(names):
-        m = re.fullmatch(r"([^\[\]]*?)\s*(?:\[([^\]]*)\])?", name)
+        m = re.fullmatch(r"([^\[\]]*)(?:\[([^\]]*)\])?", name)  # (one way to split: linear in the name's length)
         key, unit = (m.group(1).strip().lower(), (m.group(2) or "").strip()) if m else (name.lower(), "")
         role = _COLUMNS.get(key)
         if role is None or role in cols:

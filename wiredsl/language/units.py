@@ -29,4 +29,5 @@ KIND_NAMES = {
     "number": "a plain number",
     "fraction": "a fraction",
     "time": "a time",
+    "integer": "a whole number",
 }

@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from wiredsl import exception_chain, install_hint
+from wiredsl import check_stop, clear_stops, exception_chain, install_hint, pending_stop, signal_stop
 from wiredsl.study.shards import Job, run_chunk
 
 EXECUTORS = ("processes", "inprocess", "dask")
@@ -64,32 +64,28 @@ def _terminable():
     import signal
     import threading
 
-    received: list[SystemExit] = []
-
-    def stopping() -> None:
-        if received:
-            raise received[0]
-
     if threading.current_thread() is not threading.main_thread() or \
             signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
-        yield stopping
+        yield check_stop  # the command line's handler (cli_base) notes its signal the same way
         return
 
     def stop(signum, frame):
         exc = SystemExit(128 + signum)
         exc.signal_unwinding = True  # not a plug-in's SystemExit (wiredsl.plugins.call lets it through)
-        received.append(exc)
-        raise exc
+        raise signal_stop(exc)
 
+    clear_stops()
     previous = signal.signal(signal.SIGTERM, stop)
     try:
-        yield stopping
+        yield check_stop
     except Exception as exc:  # the SystemExit wrapped by the compiled code it landed in
-        if received and any(e is received[0] for e in exception_chain(exc)):
-            raise received[0] from None
+        received = pending_stop()
+        if received is not None and any(e is received for e in exception_chain(exc)):
+            raise received from None
         raise
     finally:
         signal.signal(signal.SIGTERM, previous)
+        clear_stops()
 
 
 def _execute(jobs: Sequence[Job], executor: str, done: Done, workers: int | None, scheduler: str | None) -> None:
