@@ -7,9 +7,9 @@ Sobol' design, 576 points x 2 trials x 3 poses), with their plots, on the defaul
 Each run is a new process (benchmarks/_cli.py) running the command as `python -m wiredsl` does, then stopping
 multiprocessing's fork server (the parent of the workers, which reaps them), so that its CPU time (os.wait4:
 user + system) holds the workers'; its wall time includes that stop. Best of `--repeat` by CPU, each into a new
-folder (a study resumes from its folder). The numba caches are as the machine has them (a first run on a new machine compiles the kernel once: see
-docs/performance.md). The load average is printed before and after: on a shared machine the wall time is the
-figure that moves.
+folder (a study resumes from its folder). The numba caches are as the machine has them (a first run on a new
+machine compiles the kernel once: see docs/performance.md). The load average is printed before and after: on a
+shared machine the wall time is the figure that moves.
 """
 
 from __future__ import annotations

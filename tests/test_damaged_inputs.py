@@ -159,7 +159,8 @@ def test_validate_and_load_refuse_an_integer_of_too_many_digits_at_its_place(tmp
     code, msg = validate(tmp_path / "manifest.json")
     line = text[:text.index(needle)].count("\n") + 1
     assert code == 1 and f"manifest.json:{line}:" in msg and "integer of 100,000 digits" in msg, msg
-    (tmp_path / "f.json").write_text((out / "features.json").read_text().replace('"seed": ', '"seed": 1' + "0" * 5000, 1))
+    text = (out / "features.json").read_text()
+    (tmp_path / "f.json").write_text(text.replace('"seed": ', '"seed": 1' + "0" * 5000, 1))
     with pytest.raises(ValueError, match="integer of 5,0"):
         wiredsl.load(tmp_path / "f.json")
 

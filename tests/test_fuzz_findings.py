@@ -350,7 +350,8 @@ def test_a_trajectory_header_with_a_long_run_of_spaces_reads_in_linear_time(tmp_
     """A CSV column name was split from its [unit] by a pattern with two ways to place each space (quadratic:
     0.64 s of CPU for 8,000 spaces, so some 400 s for these 200,000); the pose columns are still found."""
     header = "#timestamp [ns],p" + " " * 200_000 + "x],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],"
-    (tmp_path / "t.csv").write_text(header + "q_RS_y [],q_RS_z []\n" + "0,0,2,0,1,1,0,0,0\n1000000000,0,2,0,1,1,0,0,0\n")
+    (tmp_path / "t.csv").write_text(header + "q_RS_y [],q_RS_z []\n"
+                                    + "0,0,2,0,1,1,0,0,0\n1000000000,0,2,0,1,1,0,0,0\n")
     (tmp_path / "s.wd").write_text(CAMERA_WORLD + "camera c {\n  focal 600px\n  size (640px, 480px)\n}\n"
                                    + RIG.replace("path run { pose (0, 0) }", 'path run {\n  read "t.csv"\n}'))
     p = _check_in_a_subprocess(tmp_path)

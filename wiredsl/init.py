@@ -2,7 +2,8 @@
 
 The templates are strings here, filled by `str.format`-free substitution of `{{name}}`, `{{package}}`,
 `{{effect}}`, `{{measure}}`, `{{detector}}` and `{{version}}`, so braces in the files themselves need no
-escaping. The project is written into a temporary folder beside the target and renamed into place: a failure leaves nothing behind.
+escaping. The project is written into a temporary folder beside the target and renamed into place: a failure
+leaves nothing behind.
 """
 
 from __future__ import annotations
