@@ -11,6 +11,13 @@ writes, with OpenCV alone (no wiredsl code, so that the scene is an independent 
 - scenes/trajectories/opencv_stereo.tum: the left camera's pose in the scene's world for each pair (TUM
   layout: the image number as the time, the optical centre, the camera-to-world quaternion), from
   `solvePnP` of the left image's corners, the board placed as scenes/chessboard.wd places it.
+- scenes/calib/opencv_stereo.cov: how well the calibration knows its numbers, the covariance of the 18 rig
+  parameters over wiredsl's names (ORDER below: each camera's f, ay, cx, cy, k, k2 and the right mount's t, r),
+  linearised at the solution through both stages that estimate it, with the corner noise the residuals show
+  (see `covariance`). tests/test_calibration_covariance.py checks it against 200 re-calibrations of noisier
+  corners and the names against what wiredsl's `calibration_error` does with them.
+
+OpenCV's threads sum in varying order: a rerun may change the last digits (1e-9 of R and T).
 
 The images do not give the board's square size (OpenCV's sample takes 1.0): it is taken as SQUARE below.
 Every pixel statistic is independent of that choice; lengths (the baseline, 3D errors) scale with it.
@@ -177,7 +184,8 @@ def jacobians(cal: dict, left: list[np.ndarray], right: list[np.ndarray]) -> dic
         uv, Jp, Ji = _projection(obj, rv3, tv3, cal["M2"], cal["D2"])
         rows = slice((V + i) * n2, (V + i + 1) * n2)
         res[rows], J_intr[rows, 6:] = uv - right[i].reshape(-1), Ji
-        J_board[rows, 6 * i:6 * i + 6] = Jp[:, :3] @ np.hstack([dr3dr1, dr3dt1]) + Jp[:, 3:] @ np.hstack([dt3dr1, dt3dt1])
+        J_board[rows, 6 * i:6 * i + 6] = (Jp[:, :3] @ np.hstack([dr3dr1, dr3dt1])
+                                          + Jp[:, 3:] @ np.hstack([dt3dr1, dt3dt1]))
         J_rig[rows] = (Jp[:, :3] @ np.hstack([dr3dr2, dr3dt2]) + Jp[:, 3:] @ np.hstack([dt3dr2, dt3dt2])) @ C
     own = []
     for k, corners_ in ((1, left), (2, right)):
