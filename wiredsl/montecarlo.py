@@ -136,6 +136,7 @@ class Run:
                 self.warnings.append("calibration leaves unconstrained directions (no perturbation there), led by: "
                                      + ", ".join(self._sampler.unconstrained))
             self.stats.samples["calibration_error.covariance"] = [self._sampler.covariance]
+            self.stats.samples["calibration_error.order"] = [c.order]
         return self._sampler
 
     def project(self, scene: Scene) -> list[PoseResult]:

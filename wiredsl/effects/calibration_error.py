@@ -45,8 +45,8 @@ def sampler(p: CalibrationErrorParams, kind: str, matrix, order: list[str]) -> S
         ok = w > p.cutoff * top
         scale = np.zeros_like(w)
         scale[ok] = p.sigma / np.sqrt(w[ok])
-    else:
-        ok = w > p.cutoff * top
+    else:  # a small variance is a well-known direction, not an unknown one: only rounding's negatives are dropped
+        ok = w > 0  # (a real rig's covariance spans px^2 to m^2: 1e-10 of the largest is still a variance)
         scale = np.where(ok, p.sigma * np.sqrt(np.clip(w, 0.0, None)), 0.0)
     loose = [] if kind == "covariance" else [order[int(np.argmax(np.abs(V[:, i])))] for i in np.flatnonzero(~ok)]
     basis = V * scale[None, :]
@@ -226,4 +226,7 @@ class CalibrationError(Effect):
         S = np.atleast_2d((s2 - np.outer(s1, s1) / n) / (n - 1))  # one parameter stays a 1 x 1 matrix
         sd = np.sqrt(np.clip(np.diag(C), 0, None))
         worst = float(np.max(np.abs(np.sqrt(np.clip(np.diag(S), 0, None)) - sd) / np.where(sd > 0, sd, 1)))
-        return {**out, "std_relative_error": {"declared": 0.0, "measured": worst, "trials": int(n)}}
+        order = stats.samples.get(cls.name + ".order")
+        return {**out, "std_relative_error": {"declared": 0.0, "measured": worst, "trials": int(n)},
+                "covariance": {"order": list(order[0]) if order else None, "declared": C.tolist(),
+                               "measured": S.tolist()}}
