@@ -431,7 +431,7 @@ if command == "study":
 
     compile_study.measure_registry = lambda: {{"kept": Landing}}
 elif command == "build":
-    from wiredsl.engine import montecarlo
+    from wiredsl import montecarlo
 
     montecarlo.Run._batch = landing(montecarlo.Run._batch)
 else:
