@@ -31,7 +31,7 @@ def exception_chain(exc: BaseException | None):
 
 # The exception a SIGINT or SIGTERM handler raised (the command line's, a study's), kept until the run ends: code
 # it lands in may drop it (a C callback that prints "Exception ignored" and returns), and the run must not then
-# finish as if no signal came. Commit points (io.files.publish, an output folder's swap) and the loops between
+# finish as if no signal came. Commit points (files.publish, an output folder's swap) and the loops between
 # batches and shards raise it again.
 _STOPS: list[BaseException] = []
 
