@@ -100,3 +100,25 @@ def test_the_shape_error_ignores_a_rigid_motion_and_sees_a_distortion():
     assert predict.shape_error_mm(T[:2], T[:2]) is None
     line = np.outer(np.arange(5.0), [1.0, 2.0, 0.5])
     assert predict.shape_error_mm(line, line) is None
+
+
+def test_the_command_line_predicts_with_a_named_pipeline_and_refuses_an_unknown_one(images):
+    """`--predict-pipeline NAME` simulates the scene's pipeline instead of the fitted one (fence.wd's `injected`:
+    the one the images were drawn with); a name the scene lacks is a usage error before any image is read."""
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+
+    args = ["verify", FENCE, "--images", str(images / "img" / "*.png"), "--detector", "canny", "--fit", "--predict",
+            "--trials", "5"]
+    r = CliRunner().invoke(main, [*args, "--predict-pipeline", "nosuch", "-o", str(images / "named_bad")])
+    assert r.exit_code == 2 and "no pipeline 'nosuch' (it has: injected" in r.output, r.output
+    assert not (images / "named_bad").exists()
+    r = CliRunner().invoke(main, [*args, "--predict-pipeline", "injected", "-o", str(images / "named")])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((images / "named" / "prediction.json").read_text())
+    assert doc["pipeline"] == "injected" and [s["effect"] for s in doc["stages"]] == [
+        "edge_loss", "lateral_shift", "corner_loss", "corner_mismatch"]
+    r = CliRunner().invoke(main, ["verify", FENCE, "--images", "x.png", "--detector", "canny",
+                                  "--predict-pipeline", "injected", "-o", str(images / "no_predict")])
+    assert r.exit_code == 2 and "needs --predict" in r.output

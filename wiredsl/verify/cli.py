@@ -51,6 +51,9 @@ from wiredsl.cli_base import diagnostics_option, guarded, report
               help="With --fit: simulate the frames with the fitted pipeline and compare the verified fraction, "
                    "lateral offset and stereo 3D corner and shape errors with the real detector's "
                    "(prediction.json, plot).")
+@click.option("--predict-pipeline", default=None, metavar="NAME",
+              help="With --predict: simulate the scene's pipeline NAME instead of the fitted one (the paper's "
+                   "magnitudes against your detector, say).")
 @click.option("--trials", type=click.IntRange(1, 100000), default=50, show_default=True,
               help="Simulated trials a frame for --predict.")
 @click.option("--pipeline-name", default="measured", show_default=True, help="The fitted pipeline's name.")
@@ -61,8 +64,8 @@ from wiredsl.cli_base import diagnostics_option, guarded, report
 @diagnostics_option
 @guarded
 def verify(file, globs, cameras, poses, pose_format, match, detectors, params, step, band, angle, radius, inlier,
-           refine, do_fit, edge_loss, calibration_error, predict, trials, pipeline_name, seed, plot_format, output,
-           diagnostics) -> None:
+           refine, do_fit, edge_loss, calibration_error, predict, predict_pipeline, trials, pipeline_name, seed,
+           plot_format, output, diagnostics) -> None:
     """Verify the scene's projected model against detected features in images (the paper's Figure 7), and with
     --fit estimate each effect's parameters as a pipeline."""
     from pathlib import Path
@@ -77,6 +80,8 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
         raise click.UsageError(f"verify's Figure 7 needs matplotlib: {install_hint('plot')}") from None
     if len(cameras) > len(globs):
         raise click.BadParameter("more --camera than --images", param_hint="--camera")
+    if predict_pipeline is not None and not predict:
+        raise click.BadParameter("needs --predict", param_hint="--predict-pipeline")
     if predict and not do_fit:
         raise click.BadParameter("needs --fit (the prediction simulates the fitted pipeline)", param_hint="--predict")
     if not pipeline_name.isidentifier():
@@ -90,7 +95,7 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
     pairs = [(g, cameras[k] if k < len(cameras) else None) for k, g in enumerate(globs)]
     req = command.Request(file, pairs, list(detectors), list(params), poses, pose_format, match,
                           Settings(step, band, math.radians(angle), radius, inlier), do_fit, seed, pipeline_name,
-                          refine, plot_format, edge_loss, predict, trials, calibration_error=calibration_error)
+                          refine, plot_format, edge_loss, predict, trials, predict_pipeline, calibration_error)
     try:
         outcome = command.run(req, out, command.progress_printer())
     except ValueError as exc:

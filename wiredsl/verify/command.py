@@ -4,6 +4,7 @@ with the number of images."""
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,7 +37,7 @@ class Request:
     edge_loss: str = "gaps"  # gaps | raw: see fit.fit
     predict: bool = False  # simulate the frames with the fitted pipeline and compare (predict.py)
     trials: int = 50
-    predict_pipeline: object = None  # a Pipeline to predict with instead of the fitted one (tests)
+    predict_pipeline: object = None  # a Pipeline, or a scene pipeline's name, to predict with instead of the fitted one
     calibration_error: bool = True  # the rig's declared calibration uncertainty simulated (fit.pipeline_text)
 
 
@@ -138,6 +139,12 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
 
     scene, warnings, program = compile_file(req.scene)
     require_buildable(scene, path=req.poses == "path")
+    if isinstance(req.predict_pipeline, str):  # (--predict-pipeline NAME: said before any image is read)
+        named = scene.pipeline(req.predict_pipeline)
+        if named is None:
+            raise ValueError(f"--predict-pipeline: the scene has no pipeline '{req.predict_pipeline}' (it has: "
+                             f"{', '.join(p.name for p in scene.pipelines) or 'none'})")
+        req = dataclasses.replace(req, predict_pipeline=named)
     dets = _detectors(req.detectors, req.params)
     frames = im.frames_of(req.images, scene.rig)
     if req.poses == "path":
