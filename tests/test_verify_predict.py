@@ -122,3 +122,31 @@ def test_the_command_line_predicts_with_a_named_pipeline_and_refuses_an_unknown_
     r = CliRunner().invoke(main, ["verify", FENCE, "--images", "x.png", "--detector", "canny",
                                   "--predict-pipeline", "injected", "-o", str(images / "no_predict")])
     assert r.exit_code == 2 and "needs --predict" in r.output
+
+
+def test_a_run_publishes_its_files_together_and_a_failed_one_leaves_the_folder_as_it_was(images, monkeypatch):
+    """verify writes into a staging folder and moves its files into -o at the end: a failure in the fit leaves an
+    earlier run's files byte for byte (no new table beside an old fit), and a run without --fit or --predict
+    removes the earlier fit and prediction (stale beside its new table); other files in -o are left alone."""
+    from wiredsl.verify import fit as fitting
+
+    out = images / "staged"
+    first = _run(images, "staged")  # --fit --predict
+    (out / "notes.txt").write_text("mine")
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert {"fit.json", "prediction.json", "measured.wd", "verification.csv"} <= set(before)
+
+    def broken(*a, **k):
+        raise RuntimeError("the fit failed")
+
+    monkeypatch.setattr(fitting, "fit", broken)
+    canny = command.Request(FENCE, [(str(images / "img" / "*.png"), None)], ["canny"], fit=True, seed=1)
+    with pytest.raises(RuntimeError, match="the fit failed"):  # (its table, Canny's alone, would differ)
+        command.run(canny, out)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # nothing new, nothing left behind
+    monkeypatch.undo()
+    req = command.Request(FENCE, [(str(images / "img" / "*.png"), None)], ["canny", "harris"], seed=1)
+    again = command.run(req, out)
+    assert set(again.written) == {"verification.csv", "verification.json", "figure7.png"}
+    assert {p.name for p in out.iterdir()} == {*again.written, "notes.txt"}
+    assert first.written and (out / "notes.txt").read_text() == "mine"

@@ -5,7 +5,10 @@ with the number of images."""
 from __future__ import annotations
 
 import dataclasses
+import os
+import shutil
 import sys
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -218,45 +221,71 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         if progress is not None:
             progress(i + 1, len(frames))
     out.mkdir(parents=True, exist_ok=True)
-    summary = fractions.summary()
-    meta = {"scene": str(req.scene), "images": n_images, "frames": len(frames), "poses": pose_note,
-            "detectors": [{"name": n, "params": p.model_dump()} for n, _, p in dets],
-            "settings": {"step_px": cfg.step, "band_px": cfg.band, "angle_deg": float(np.degrees(cfg.angle)),
-                         "corner_radius_px": cfg.radius, "corner_inlier_px": cfg.inlier},
-            "objects": summary, "notes": sorted(notes), "refined": refined}
-    written = report.write_table(out, rows, meta)
-    caption = (f"{Path(req.scene).name}; {n_images} images; detectors {', '.join(n for n, _, _ in dets)}; "
-               f"samples every {cfg.step:g} px, searched +-{cfg.band:g} px, gradient within "
-               f"{np.degrees(cfg.angle):.0f} deg")
-    if summary:
-        name = f"figure7.{req.plot_format}"
-        report.figure7(fractions, out / name, caption, req.plot_format)
-        written.append(name)
-    result = None
-    if req.fit:
-        from wiredsl.files import json_text, write_atomic
+    final, out = out, Path(tempfile.mkdtemp(prefix=".verify-", dir=out))  # staged: published together at the end
+    try:
+        summary = fractions.summary()
+        meta = {"scene": str(req.scene), "images": n_images, "frames": len(frames), "poses": pose_note,
+                "detectors": [{"name": n, "params": p.model_dump()} for n, _, p in dets],
+                "settings": {"step_px": cfg.step, "band_px": cfg.band, "angle_deg": float(np.degrees(cfg.angle)),
+                             "corner_radius_px": cfg.radius, "corner_inlier_px": cfg.inlier},
+                "objects": summary, "notes": sorted(notes), "refined": refined}
+        written = report.write_table(out, rows, meta)
+        caption = (f"{Path(req.scene).name}; {n_images} images; detectors {', '.join(n for n, _, _ in dets)}; "
+                   f"samples every {cfg.step:g} px, searched +-{cfg.band:g} px, gradient within "
+                   f"{np.degrees(cfg.angle):.0f} deg")
+        if summary:
+            name = f"figure7.{req.plot_format}"
+            report.figure7(fractions, out / name, caption, req.plot_format)
+            written.append(name)
+        result = None
+        if req.fit:
+            from wiredsl.files import json_text, write_atomic
 
-        result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss)
-        det_text = "; ".join(f"{n} ({', '.join(f'{k} {v}' for k, v in p.model_dump().items())})" for n, _, p in dets)
-        provenance = [f"Fitted by `wiredsl verify` from {n_images} images of {len(frames)} frames "
-                      f"({', '.join(g for g, _ in req.images)}) against {Path(req.scene).name}.",
-                      f"Detectors: {det_text}.", f"Poses: {pose_note}.",
-                      f"Intervals: 95% bootstrap over images ({fitting.B} resamples, seed {req.seed}; "
-                      "percentiles widened by sqrt(n / (n - 1)) t / z for n images).",
-                      "Include this file in the scene and build with --pipeline " + req.pipeline_name + "."]
-        cal = scene.rig.calibration
-        text = fitting.pipeline_text(result, req.pipeline_name, provenance,
-                                     None if cal is None else f"{cal.kind} over {len(cal.order)} parameters",
-                                     req.calibration_error)
-        write_atomic(out / f"{req.pipeline_name}.wd", text)
-        write_atomic(out / "fit.json", json_text({**result.to_json(), "seed": req.seed, "bootstrap": fitting.B},
-                                                 indent=1))
-        written += [f"{req.pipeline_name}.wd", "fit.json"]
-    prediction = None
-    if req.predict:
-        prediction = _predict(req, out, scene, world, observed, cfg, n_images)
-        written += ["prediction.json", f"prediction.{req.plot_format}"]
+            result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss)
+            det_text = "; ".join(f"{n} ({', '.join(f'{k} {v}' for k, v in p.model_dump().items())})"
+                                 for n, _, p in dets)
+            provenance = [f"Fitted by `wiredsl verify` from {n_images} images of {len(frames)} frames "
+                          f"({', '.join(g for g, _ in req.images)}) against {Path(req.scene).name}.",
+                          f"Detectors: {det_text}.", f"Poses: {pose_note}.",
+                          f"Intervals: 95% bootstrap over images ({fitting.B} resamples, seed {req.seed}; "
+                          "percentiles widened by sqrt(n / (n - 1)) t / z for n images).",
+                          "Include this file in the scene and build with --pipeline " + req.pipeline_name + "."]
+            cal = scene.rig.calibration
+            text = fitting.pipeline_text(result, req.pipeline_name, provenance,
+                                         None if cal is None else f"{cal.kind} over {len(cal.order)} parameters",
+                                         req.calibration_error)
+            write_atomic(out / f"{req.pipeline_name}.wd", text)
+            write_atomic(out / "fit.json", json_text({**result.to_json(), "seed": req.seed, "bootstrap": fitting.B},
+                                                     indent=1))
+            written += [f"{req.pipeline_name}.wd", "fit.json"]
+        prediction = None
+        if req.predict:
+            prediction = _predict(req, out, scene, world, observed, cfg, n_images)
+            written += ["prediction.json", f"prediction.{req.plot_format}"]
+        _publish(out, final, written, req)
+    finally:
+        shutil.rmtree(out, ignore_errors=True)
     return Outcome(written, result, len(frames), n_images, warnings, summary, sorted(notes), refined, prediction)
+
+
+def _published_names(req: Request) -> set[str]:
+    """Every file a verify run may write into its -o folder."""
+    plots = ("png", "svg", "pdf")
+    return {"verification.csv", "verification.json", "fit.json", "prediction.json", f"{req.pipeline_name}.wd",
+            *(f"figure7.{x}" for x in plots), *(f"prediction.{x}" for x in plots)}
+
+
+def _publish(stage: Path, out: Path, written: list[str], req: Request) -> None:
+    """Move the run's files from the staging folder into -o, after a last look for a signal that was dropped,
+    and remove the files of an earlier run that this one did not write (an older fit.json beside a new table
+    would be stale). Other files in -o are left alone. A failure before this point leaves -o as it was."""
+    from wiredsl import check_stop
+
+    check_stop()
+    for name in written:
+        os.replace(stage / name, out / name)
+    for name in sorted(_published_names(req) - set(written)):
+        (out / name).unlink(missing_ok=True)
 
 
 def _observed(frame, views, per_side, edge_det, corner_det, cfg):
