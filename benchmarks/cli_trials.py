@@ -5,8 +5,9 @@ second of one core's CPU time, measured in the same run (target: >= 0.5x the bar
 
 `wiredsl build scenes/lab.wd --trials N --format npz` runs in a new process, as a user runs it: the figure
 covers compiling the scene, loading the kernel, the trials, packing and writing the npz. Every build names
-`--engine kernel`, what `auto` chooses for N (and not for fewer than about 220 trials of the lab, where numpy
-costs less: the N/8 build too runs the kernel, so that the marginal rate and the fixed cost are the kernel's).
+`--engine kernel`, what `auto` chooses for N (and not for fewer than 75 trials of the lab, KERNEL_PAYS over its
+trial size, where numpy costs less: the N/8 build too runs the kernel, so that the marginal rate and the fixed
+cost are the kernel's).
 The marginal rate (the CPU of N trials less that of N/8, over the extra trials) leaves out the fixed cost of a
 run. The bare numpy kernel is benchmarks/throughput.py's: projection of each feature's two end points plus three
 perturbations on (trials, features) arrays, the least any implementation has to do; measured before and after
