@@ -32,7 +32,7 @@ class CalibrationErrorParams(Params):
 class Sampler:
     """phi = basis @ n, n ~ N(0, I): the decomposed calibration uncertainty."""
 
-    basis: np.ndarray  # (m, m): V scaled by sigma / sqrt(w) (or sigma sqrt(l)); zero columns unconstrained
+    basis: np.ndarray  # (m, m): the symmetric root V diag(s) V^T, s = sigma / sqrt(w) (or sigma sqrt(l)), or 0
     unconstrained: list[str]  # the leading parameter of each unconstrained direction
     covariance: np.ndarray  # the covariance the draws have (for the manifest)
 
@@ -49,7 +49,11 @@ def sampler(p: CalibrationErrorParams, kind: str, matrix, order: list[str]) -> S
         ok = w > 0  # (a real rig's covariance spans px^2 to m^2: 1e-10 of the largest is still a variance)
         scale = np.where(ok, p.sigma * np.sqrt(np.clip(w, 0.0, None)), 0.0)
     loose = [] if kind == "covariance" else [order[int(np.argmax(np.abs(V[:, i])))] for i in np.flatnonzero(~ok)]
-    basis = V * scale[None, :]
+    # The symmetric square root V diag(scale) V^T, not V diag(scale): eigh's vectors are defined only up to sign
+    # (and to a rotation within a repeated eigenvalue's space), and LAPACK's kernels for different CPUs choose
+    # differently, so V diag(scale) drew other perturbations from the same seed on another machine. The
+    # symmetric root is the same matrix whichever vectors eigh returns (to rounding), with the same covariance.
+    basis = (V * scale[None, :]) @ V.T
     return Sampler(basis, loose, basis @ basis.T)
 
 

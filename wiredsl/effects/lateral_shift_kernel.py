@@ -8,6 +8,7 @@ import math
 import numpy as np
 from numba import njit
 
+from wiredsl.engine.imageset import STEP_PX
 from wiredsl.engine.kernel import CLOSED, ELLIPSE, FRAG, KIND, _arcs, _keep, _pieces, _uniform, _unroll
 
 
@@ -114,6 +115,8 @@ def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
     pts, start, meta = _split_ellipses(pts, start, meta)
     S = len(start) - 1
     out = pts.copy()
+    tan = np.zeros((len(pts), 2))
+    stepped = np.zeros(len(pts), dtype=np.bool_)
     for k in range(S):
         u = _uniform(key, k)
         d = rng * (2 * u - 1)
@@ -121,21 +124,39 @@ def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
         st[1] += abs(d)
         st[2] = max(st[2], abs(d))
         a, b = start[k], start[k + 1]
-        # each step's unit vector is computed once: the step to vertex i + 1 is the step from vertex i of the next
-        bx, by, back = 0.0, 0.0, False
+        # imageset.vertex_normals: a step of STEP_PX or less has no direction, and a vertex with no real step
+        # (a stroke end's copy of a vertex) takes the tangent of the nearest one that has (next, else previous)
         for i in range(a, b):
-            tx, ty = 0.0, 0.0
-            fx, fy, ahead = 0.0, 0.0, False
+            tx, ty, has = 0.0, 0.0, False
             if i + 1 < b:  # the step to the next vertex
                 dx = pts[i + 1, 0] - pts[i, 0]
                 dy = pts[i + 1, 1] - pts[i, 1]
                 ln = math.sqrt(dx * dx + dy * dy)
-                if ln > 0:
-                    fx, fy, ahead = dx / ln, dy / ln, True
-                    tx, ty = 0.0 + fx, 0.0 + fy
-            if back:  # the step from the previous one
-                tx, ty = tx + bx, ty + by
-            bx, by, back = fx, fy, ahead
+                if ln > STEP_PX:
+                    tx, ty, has = 0.0 + dx / ln, 0.0 + dy / ln, True
+            if i > a:  # the step from the previous one
+                dx = pts[i, 0] - pts[i - 1, 0]
+                dy = pts[i, 1] - pts[i - 1, 1]
+                ln = math.sqrt(dx * dx + dy * dy)
+                if ln > STEP_PX:
+                    tx, ty, has = tx + dx / ln, ty + dy / ln, True
+            tan[i, 0], tan[i, 1], stepped[i] = tx, ty, has
+        for i in range(a, b):
+            j = i
+            if not stepped[i]:
+                j = -1
+                for m in range(i + 1, b):
+                    if stepped[m]:
+                        j = m
+                        break
+                if j < 0:
+                    for m in range(i - 1, a - 1, -1):
+                        if stepped[m]:
+                            j = m
+                            break
+                if j < 0:
+                    j = i
+            tx, ty = tan[j, 0], tan[j, 1]
             nrm = math.sqrt(tx * tx + ty * ty)
             if nrm > 0:
                 tx, ty = tx / nrm, ty / nrm

@@ -298,21 +298,41 @@ def clip_rect(s: ImageSet, width, height) -> ImageSet:
                           closed=whole & s.closed[stroke], cut=~whole, whole=whole)
 
 
+STEP_PX = 1e-9  # a step shorter than this has no direction (a cut's copy of a vertex, rounding apart)
+
+
 def vertex_normals(s: ImageSet) -> np.ndarray:
-    """Unit normal at each vertex (N, 2): the direction of travel turned +90 deg, averaged at joins."""
+    """Unit normal at each vertex (N, 2): the direction of travel turned +90 deg, averaged at joins.
+
+    A step shorter than STEP_PX has no direction: its direction would be that of the rounding between a
+    vertex and its copy (different on different CPUs), so a stroke end's copy of a vertex takes the normal
+    of the nearest vertex of its stroke that has a real step (the next, else the previous)."""
     n = len(s.pts)
     if n == 0:
         return np.zeros((0, 2))
     d = np.diff(s.pts, axis=0)
     length = np.linalg.norm(d, axis=1, keepdims=True)
-    u = np.divide(d, length, out=np.zeros_like(d), where=length > 0)
     last = s.start[1:] - 1
-    valid = np.ones(n - 1, dtype=bool)
+    valid = length[:, 0] > STEP_PX
     valid[last[last < n - 1]] = False  # the step from one stroke's end to the next stroke's start
-    u[~valid] = 0.0
+    u = np.divide(d, length, out=np.zeros_like(d), where=valid[:, None])
     tangent = np.zeros((n, 2))
     tangent[:-1] += u
     tangent[1:] += u
+    stepped = np.zeros(n, dtype=bool)
+    stepped[:-1] |= valid
+    stepped[1:] |= valid
+    if not stepped.all():
+        idx = np.arange(n)
+        stroke = s.vertex_stroke()
+        nxt = np.minimum.accumulate(np.where(stepped, idx, n)[::-1])[::-1]
+        prv = np.maximum.accumulate(np.where(stepped, idx, -1))
+        nxt_ok = nxt < n
+        nxt_ok[nxt_ok] = stroke[nxt[nxt_ok]] == stroke[nxt_ok]
+        prv_ok = prv >= 0
+        prv_ok[prv_ok] = stroke[prv[prv_ok]] == stroke[prv_ok]
+        src = np.where(nxt_ok, nxt, np.where(prv_ok, prv, idx))
+        tangent = np.where(stepped[:, None], tangent, tangent[src])
     norm = np.linalg.norm(tangent, axis=1, keepdims=True)
     tangent = np.divide(tangent, norm, out=np.zeros_like(tangent), where=norm > 0)
     return np.column_stack([-tangent[:, 1], tangent[:, 0]])
