@@ -10,7 +10,9 @@ same resampled trial indices at every point, which keeps the common draws common
 indices of the per-point means from each resample: their standard deviation over the resamples is the
 Monte-Carlo standard error of each index. Printed per statistic: the median over the factors of each mode's
 standard error, and the efficiency ratio (SE_ind^2 x CPU_ind) / (SE_common^2 x CPU_common), how many times
-fewer CPU-seconds common draws need for the same standard error.
+fewer CPU-seconds common draws need for the same standard error. A statistic that only some factors touch
+(corners: corner_loss and corner_mismatch) gets exactly 0 from the others under common draws, whatever the
+resample: its median standard error is 0 ("exact").
 
 What each mode estimates: with independent draws the indices are those of the per-point mean plus its
 Monte-Carlo noise, which inflates the first-order indices' denominator and scatters them; with common draws
@@ -99,8 +101,8 @@ def main() -> None:
             print(f"{name:32s} {'undefined (constant)':>38s}")
             continue
         a, b = float(np.median(se["independent"])), float(np.median(se["common"]))
-        if b < 1e-12:  # the common-draw indices did not move over the resamples: too few trials to tell
-            print(f"{name:32s} {a:15.4f} {b:10.4f} {'-':>9s} {'unmeasured':>11s}")
+        if b < 1e-12:  # the same indices from every resample: the factors that do not touch the statistic
+            print(f"{name:32s} {a:15.4f} {b:10.4f} {'exact':>9s} {'exact':>11s}")  # (most) give exactly 0
             continue
         eff = (a * a * cpu["independent"]) / (b * b * cpu["common"])
         ratios.append(eff)

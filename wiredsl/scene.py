@@ -497,7 +497,7 @@ class Study(Node):
     design_seed: int = 0
     seed: int = 0
     draws: Literal["common", "independent"] = Field(
-        "independent", description="common: every design point draws the same disturbances (keyed by trial, not "
+        "common", description="common: every design point draws the same disturbances (keyed by trial, not "
         "by point); independent: each point its own (its index is one more key component)")
     trials: int = Field(16, ge=1)
     poses: list[int] | None = Field(None, description="pose indices (None: every pose)")

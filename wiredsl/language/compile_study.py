@@ -118,7 +118,7 @@ def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None,
             out.error("E170", f"study '{b.name}' runs no trials", first["trials"].positional[0].span,
                       "give at least 1 trial per design point")
     seed = int(first["seed"].pos(0)) if "seed" in first else 0
-    draws = first["draws"].pos(0) if "draws" in first else "independent"
+    draws = first["draws"].pos(0) if "draws" in first else "common"
     poses = None
     if "poses" in first:
         vals: list[Value] = first["poses"].pos(0)
