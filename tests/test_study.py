@@ -83,19 +83,22 @@ def test_space_filling_design_is_saltelli_within_ranges(scene):
 
 
 def test_points_draw_apart_and_alone(scene):
-    """The same pipeline at two design points draws differently; a point's draws are its own."""
-    study = scene.study("shift")
+    """Under `draws independent` the same pipeline at two design points draws differently; under `draws common`
+    (the default) alike; either way a point's draws are its own."""
     world = build_world(scene)
-    X = design.matrix(study)
+    X = design.matrix(scene.study("shift"))
     kept = REGISTRY["kept"]
     params = kept.Params()
 
-    def values(point):
+    def values(point, draws):
+        study = scene.study("shift").model_copy(update={"draws": draws})
         run = shards.point_run(scene, world, study, point, X[3])
         return shards.measure_batches(run, [(kept, params, kept.prepare(params, run))], list(range(4)))["kept.length"]
 
-    assert not np.array_equal(values(0), values(1))
-    assert np.array_equal(values(2), values(2))
+    assert scene.study("shift").draws == "common"
+    assert not np.array_equal(values(0, "independent"), values(1, "independent"))
+    assert np.array_equal(values(0, "common"), values(1, "common"))
+    assert np.array_equal(values(2, "independent"), values(2, "independent"))
 
 
 def test_sobol_indices_of_ishigami_match_the_analytic_values():

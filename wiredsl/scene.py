@@ -496,6 +496,9 @@ class Study(Node):
     points: int | None = Field(None, ge=1, description="lhs/sobol: base samples n (the design has n (d + 2))")
     design_seed: int = 0
     seed: int = 0
+    draws: Literal["common", "independent"] = Field(
+        "common", description="common: every design point draws the same disturbances (keyed by trial, not "
+        "by point); independent: each point its own (its index is one more key component)")
     trials: int = Field(16, ge=1)
     poses: list[int] | None = Field(None, description="pose indices (None: every pose)")
     measures: list[MeasureUse] = []

@@ -118,6 +118,7 @@ def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None,
             out.error("E170", f"study '{b.name}' runs no trials", first["trials"].positional[0].span,
                       "give at least 1 trial per design point")
     seed = int(first["seed"].pos(0)) if "seed" in first else 0
+    draws = first["draws"].pos(0) if "draws" in first else "common"
     poses = None
     if "poses" in first:
         vals: list[Value] = first["poses"].pos(0)
@@ -150,7 +151,7 @@ def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None,
     if len(out.errors) != n_errors:
         return None
     return Study(name=b.name, pipeline=pipeline, factors=factors, design=kind, points=points,
-                 design_seed=design_seed, seed=seed, trials=trials, poses=poses, measures=measures)
+                 design_seed=design_seed, seed=seed, draws=draws, trials=trials, poses=poses, measures=measures)
 
 
 def _size(kind: str, factors: list[Factor], points: int | None) -> int:

@@ -302,8 +302,12 @@ _STUDY = [
     Sig("trials", "Monte-Carlo trials per design point", (S("integer", "n"),), example="trials 64"),
     Sig("poses", "the poses of the path to run (default: all)", (S("ints", "[pose indices]"),),
         example="poses [0, 3, 6]"),
-    Sig("seed", "seed of every trial's random streams (with the point's index; default 0)",
-        (S("integer", "seed"),), example="seed 1"),
+    Sig("seed", "seed of every trial's random streams (and the point's index under `draws independent`; "
+        "default 0)", (S("integer", "seed"),), example="seed 1"),
+    Sig("draws", "common: every design point draws the same disturbances (keyed by trial, not by point), so "
+        "differences between points and Sobol' indices lose the noise of independent draws; independent: each "
+        "point draws its own (default: common)", (S("word", "mode", "common", "independent"),),
+        example="draws common"),
     Sig("measure", "a measure to compute on every trial, with its parameters",
         (S("ref", "measure"), S("rest", "parameter value ...")), example="measure pgh limit 80px"),
 ]

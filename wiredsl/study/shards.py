@@ -83,7 +83,8 @@ def visibility(study: Study, scene: Scene, world: World) -> VisibilityChoice:
 
 def point_run(scene: Scene, world: World, study: Study, point: int, values, opts: Options | None = None,
               base: Run | None = None) -> Run:
-    """The Run of one design point: its pipeline substituted, every draw keyed by the point's index too.
+    """The Run of one design point: its pipeline substituted, every draw keyed by the point's index too
+    (`draws independent`), or by the trial alone, the same at every point (`draws common`).
 
     `base` (a run of the same scene and options) lends its ideal projection and visibility, which no
     pipeline parameter changes.
@@ -91,7 +92,8 @@ def point_run(scene: Scene, world: World, study: Study, point: int, values, opts
     values = np.asarray(values, dtype=float)
     lend = None if design.varies_scene(study) else base  # a point that varies the cameras projects its own
     return start(design.scene_at(scene, study, values), design.pipeline_at(scene, study, values), seed=study.seed,
-                 options=opts or options(study, scene, world), world=world, point=point, base=lend)
+                 options=opts or options(study, scene, world), world=world,
+                 point=None if study.draws == "common" else point, base=lend)
 
 
 _WORKER: dict = {}  # per process: digest -> (world, base run, prepared); (digest, point) -> (run, prepared)
