@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from wiredsl.engine import geometry
-from wiredsl.engine.world import World, ellipse_points
+from wiredsl.engine.world import World, ellipse_points, side_ellipses
 
 RAY_END = 1e-7  # fraction of the eye-to-point distance treated as touching the point: rounding, not geometry
 SAMPLES = 128  # samples a segment or a full ellipse against the curved surfaces; a section gets its share
@@ -90,8 +90,7 @@ class Occluders:
 
     @classmethod
     def of_world(cls, w: World) -> Occluders:
-        a, b = w.sil_pair[:, 0], w.sil_pair[:, 1]
-        return cls(w.triangles, w.ell_c[a], w.ell_U[a], w.ell_V[a], w.ell_c[b], w.ell_U[b], w.ell_V[b])
+        return cls(w.triangles, *side_ellipses(w))  # b's parameter matched to a's: no hourglass sides
 
     def seen_from(self, R_cw: np.ndarray, t_cw: np.ndarray, px: float = 0.0) -> Eye:
         """The occluders in a camera's frame (P_cam = R P_world + t): the eye at the origin. `px`: the camera's

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from wiredsl.engine.world import World, ellipse_points, surface_triangles
+from wiredsl.engine.world import World, ellipse_points, side_ellipses, surface_triangles
 
 THRESHOLD = 0.3
 RAY_END = 1e-4  # fraction of the eye-to-sample distance treated as touching the sample
@@ -95,10 +95,10 @@ class Occluders:
 def occluders(w: World) -> Occluders:
     """All occluders: faces, the exact sides of cylinders and cones, other silhouette surfaces as triangles."""
     a, b = w.sil_pair[:, 0], w.sil_pair[:, 1]
-    Ua, Va, Ub, Vb = w.ell_U[a], w.ell_V[a], w.ell_U[b], w.ell_V[b]
+    ca, Ua, Va, cb, Ub, Vb = side_ellipses(w)  # b's parameter matched to a's: a cylinder's rims are similar
     nu = (Ua * Ua).sum(axis=1)
     ratio = np.where(nu > 0, (Ub * Ua).sum(axis=1) / np.where(nu > 0, nu, 1.0), 0.0)  # Ub = ratio Ua ?
-    W = w.ell_c[b] - w.ell_c[a]
+    W = cb - ca
     M = np.stack([Ua, Va, W], axis=-1)
     scale = np.maximum(np.abs(M).max(axis=(1, 2), initial=0.0), 1e-300) if len(M) else np.zeros(0)
     similar = ((np.abs(Ub - ratio[:, None] * Ua).max(axis=1) <= 1e-9 * scale)
@@ -112,7 +112,7 @@ def occluders(w: World) -> Occluders:
     surf, owner = surface_triangles(w)
     surf = surf[~similar[owner]] if len(surf) else surf
     tris = np.concatenate([w.triangles, surf]) if len(surf) else w.triangles
-    return Occluders(tris, w.ell_c[a[q]], to_local, ratio[q] - 1.0)
+    return Occluders(tris, ca[q], to_local, ratio[q] - 1.0)
 
 
 def seen(eye: np.ndarray, targets: np.ndarray, occ, cap: int = PAIRS_CAP, chunk: int = 256) -> np.ndarray:

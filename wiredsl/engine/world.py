@@ -147,13 +147,50 @@ def ellipse_points(c: np.ndarray, U: np.ndarray, V: np.ndarray, t: np.ndarray) -
     return c + np.cos(t)[:, None] * U + np.sin(t)[:, None] * V
 
 
+PHASE_TOL = 1e-9  # radians: a side's rims this close to matched are used as they are (their bytes kept)
+
+
+def side_ellipses(w: World) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The two ellipses (c, U, V) of every silhouette's side, (S, 3) each, the second one's parameter matched to
+    the first's by geometry, so that the ruled surface Ea(th) + s (Eb(th) - Ea(th)) is the cylinder or cone it
+    is, not a twisted hyperboloid or an hourglass through the axis.
+
+    Each ellipse is c + U cos th + V sin th; its orientation (U x V) and its start (U) are the declaration's or,
+    for a mesh's rims, the fit's, and a side's two rims often come out with opposite normals or other starts
+    (issue 37: 21 of the counter's 59 sides). The same curve travelled the first's way round (V -> -V when the
+    normals are opposite) and started at the point in the first's start direction about its axis (U projected
+    into the second's plane, as x U + y V: the phase atan2(y, x)) is the same ellipse. Only full ellipses are
+    re-parameterised (an arc's range is in its own parameter)."""
+    a, b = w.sil_pair[:, 0], w.sil_pair[:, 1]
+    ca, Ua, Va, cb = w.ell_c[a], w.ell_U[a], w.ell_V[a], w.ell_c[b]
+    Ub, Vb = w.ell_U[b].copy(), w.ell_V[b].copy()
+    full = w.ell_full[a] & w.ell_full[b]
+    flip = full & ((np.cross(Ua, Va) * np.cross(Ub, Vb)).sum(axis=1) < 0)
+    Vb[flip] = -Vb[flip]
+    nb = np.cross(Ub, Vb)
+    nn = (nb * nb).sum(axis=1)
+    d = Ua - ((Ua * nb).sum(axis=1) / np.where(nn > 0, nn, 1.0))[:, None] * nb  # a's start in b's plane
+    g11, g12, g22 = (Ub * Ub).sum(axis=1), (Ub * Vb).sum(axis=1), (Vb * Vb).sum(axis=1)
+    r1, r2 = (d * Ub).sum(axis=1), (d * Vb).sum(axis=1)
+    det = g11 * g22 - g12 * g12
+    ok = full & (det > 1e-24 * np.maximum(g11 * g22, 1e-300)) & ((d * d).sum(axis=1) > 0)
+    x = np.where(ok, g22 * r1 - g12 * r2, 1.0)
+    y = np.where(ok, g11 * r2 - g12 * r1, 0.0)
+    phi = np.arctan2(y, x)  # (det > 0 scales x and y alike)
+    turn = ok & (np.abs(phi) > PHASE_TOL)
+    cp, sp = np.cos(phi[turn])[:, None], np.sin(phi[turn])[:, None]
+    Ub[turn], Vb[turn] = Ub[turn] * cp + Vb[turn] * sp, Vb[turn] * cp - Ub[turn] * sp
+    return ca, Ua, Va, cb, Ub, Vb
+
+
 def surface_triangles(w: World, segments: int = 48) -> tuple[np.ndarray, np.ndarray]:
     """Triangles of the ruled surfaces between silhouette ellipse pairs (cylinder and cone sides)."""
     tris, owner = [], []
     t = np.linspace(0.0, 2 * math.pi, segments + 1)
-    for k, (a, b) in enumerate(w.sil_pair):
-        ring_a = w.ell_c[a] + np.cos(t)[:, None] * w.ell_U[a] + np.sin(t)[:, None] * w.ell_V[a]
-        ring_b = w.ell_c[b] + np.cos(t)[:, None] * w.ell_U[b] + np.sin(t)[:, None] * w.ell_V[b]
+    ca, Ua, Va, cb, Ub, Vb = side_ellipses(w)
+    for k in range(len(w.sil_pair)):
+        ring_a = ca[k] + np.cos(t)[:, None] * Ua[k] + np.sin(t)[:, None] * Va[k]
+        ring_b = cb[k] + np.cos(t)[:, None] * Ub[k] + np.sin(t)[:, None] * Vb[k]
         for i in range(segments):
             tris.append((ring_a[i], ring_a[i + 1], ring_b[i + 1]))
             tris.append((ring_a[i], ring_b[i + 1], ring_b[i]))
