@@ -159,29 +159,62 @@ def sensor_noise(shape: tuple[int, int], seed: int, pose: int, side: str) -> np.
 
 # ----------------------------------------------------------------------------- faces
 
-def pixel_rays(cam: Camera, ss: int, step: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame ray directions (H ss, W ss, 3) through the sub-pixel sample points, and which exist.
+TILE = 1024  # samples a side of the tiles the faces are ray-cast in: the rays' memory is bounded whatever the size
 
-    Sample (i, j) of pixel (r, c) is at (c + (j + 0.5) / ss - 0.5, r + (i + 0.5) / ss - 0.5). Under distortion
-    the rays are solved on a grid of every `step` px and interpolated by bicubic splines (the lens is smooth:
-    within 1e-6 of the unit plane of each ray, far below a pixel, in the tests' lenses)."""
+
+@dataclass
+class Rays:
+    """Camera-frame ray directions through a camera's sub-pixel sample points, made a tile at a time.
+
+    Sample (i, j) of pixel (r, c) is at (c + (j + 0.5) / ss - 0.5, r + (i + 0.5) / ss - 0.5): the sample grid
+    is (height ss, width ss). Under distortion the rays are solved on a grid of nodes every `step` px and
+    interpolated by bicubic splines (the lens is smooth: within 1e-6 of the unit plane of each ray, far below a
+    pixel, in the tests' lenses); `splines` is None for a pinhole."""
+
+    cam: Camera
+    ss: int
+    u: np.ndarray  # (width ss,) sample columns, px
+    v: np.ndarray  # (height ss,) sample rows, px
+    splines: tuple | None = None  # x, y, z and the nodes' existence
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return len(self.v), len(self.u)
+
+    def tile(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        """Directions (r1 - r0, c1 - c0, 3) of sample rows [r0, r1) and columns [c0, c1), and which exist."""
+        cam, u, v = self.cam, self.u[c0:c1], self.v[r0:r1]
+        if self.splines is None:
+            X = (u - cam.cx) / (cam.f * cam.ax)
+            Y = (v - cam.cy) / (cam.f * cam.ay)
+            D = np.stack(np.broadcast_arrays(X[None, :], Y[:, None], 1.0), axis=-1).astype(float)
+            return D, np.ones((len(v), len(u)), dtype=bool)
+        *xyz, exists = self.splines
+        D = np.stack([sp(v, u) for sp in xyz], axis=-1)
+        near = exists(v, u) > 0.999  # rays all of whose grid neighbours exist
+        return np.where(near[..., None], D, 0.0), near
+
+
+def _nodes(n: int, step: int) -> np.ndarray:
+    """Spline nodes across [-1, n] every `step` px, and n itself; at least 4 (a bicubic spline's minimum)."""
+    nodes = np.unique(np.concatenate([np.arange(-1.0, n + 1, step), [float(n)]]))
+    return nodes if len(nodes) >= 4 else np.linspace(-1.0, float(n), 4)
+
+
+def pixel_rays(cam: Camera, ss: int, step: int = 8) -> Rays:
+    """The rays of `cam` at `ss` x `ss` samples a pixel (see Rays); under distortion the spline nodes solved."""
     from scipy.interpolate import RectBivariateSpline
 
     off = (np.arange(ss) + 0.5) / ss - 0.5
     u = (np.arange(cam.width)[:, None] + off[None, :]).ravel()
     v = (np.arange(cam.height)[:, None] + off[None, :]).ravel()
     if not geometry.is_distorted(cam):
-        X = (u - cam.cx) / (cam.f * cam.ax)
-        Y = (v - cam.cy) / (cam.f * cam.ay)
-        D = np.stack(np.broadcast_arrays(X[None, :], Y[:, None], 1.0), axis=-1).astype(float)
-        return D, np.ones((len(v), len(u)), dtype=bool)
-    gu = np.unique(np.concatenate([np.arange(-1.0, cam.width + 1, step), [float(cam.width)]]))
-    gv = np.unique(np.concatenate([np.arange(-1.0, cam.height + 1, step), [float(cam.height)]]))
+        return Rays(cam, ss, u, v)
+    gu, gv = _nodes(cam.width, step), _nodes(cam.height, step)
     G, ok = _rays_at(cam, np.stack(np.meshgrid(gu, gv), axis=-1).reshape(-1, 2))
     G, ok = G.reshape(len(gv), len(gu), 3), ok.reshape(len(gv), len(gu))
-    D = np.stack([RectBivariateSpline(gv, gu, G[..., k], kx=3, ky=3)(v, u) for k in range(3)], axis=-1)
-    near = RectBivariateSpline(gv, gu, ok.astype(float), kx=1, ky=1)(v, u) > 0.999  # rays all of whose grid
-    return np.where(near[..., None], D, 0.0), near  # neighbours exist
+    splines = tuple(RectBivariateSpline(gv, gu, G[..., k], kx=3, ky=3) for k in range(3))
+    return Rays(cam, ss, u, v, (*splines, RectBivariateSpline(gv, gu, ok.astype(float), kx=1, ky=1)))
 
 
 def _rays_at(cam: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -202,18 +235,41 @@ def _rays_at(cam: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(ok[:, None], D, 0.0), ok
 
 
-def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays, background: float, boards: dict,
+def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays: Rays, background: float, boards: dict,
                 T_world: np.ndarray) -> np.ndarray:
-    """The faces' image (H, W) float: nearest triangle of T (camera frame) along every ray, Lambert-shaded."""
-    D, ok = rays
-    Hs, Ws = ok.shape
-    ss = Hs // cam.height
-    depth = np.full((Hs, Ws), np.inf)
-    grey = np.full((Hs, Ws), float(background))
-    light = np.asarray(LIGHT, float) / np.linalg.norm(LIGHT)
+    """The faces' image (H, W) float: nearest triangle of T (camera frame) along every ray, Lambert-shaded.
+
+    Cast in tiles of at most TILE x TILE samples (whole pixels), each with the triangles whose box meets it."""
+    Hs, Ws = rays.shape
+    ss = rays.ss
     boxes = _pixel_boxes(cam, T, ss)
-    for k in np.flatnonzero((boxes[:, 0] < boxes[:, 1]) & (boxes[:, 2] < boxes[:, 3])).tolist():
-        c0, c1, r0, r1 = boxes[k].tolist()
+    live = np.flatnonzero((boxes[:, 0] < boxes[:, 1]) & (boxes[:, 2] < boxes[:, 3]))
+    out = np.empty((cam.height, cam.width))
+    side = max(1, TILE // ss) * ss
+    for r0 in range(0, Hs, side):
+        r1 = min(r0 + side, Hs)
+        for c0 in range(0, Ws, side):
+            c1 = min(c0 + side, Ws)
+            b = boxes[live]
+            meets = live[(b[:, 0] < c1) & (b[:, 1] > c0) & (b[:, 2] < r1) & (b[:, 3] > r0)]
+            grey = np.full((r1 - r0, c1 - c0), float(background))
+            if len(meets):
+                D, ok = rays.tile(r0, r1, c0, c1)
+                box = np.clip(boxes[meets] - [c0, c0, r0, r0], 0, [c1 - c0, c1 - c0, r1 - r0, r1 - r0])
+                _shade_tile(D, ok, grey, T, meets, box, face_of, boards, T_world)
+            out[r0 // ss:r1 // ss, c0 // ss:c1 // ss] = grey.reshape(
+                (r1 - r0) // ss, ss, (c1 - c0) // ss, ss).mean(axis=(1, 3))
+    return out
+
+
+def _shade_tile(D, ok, grey, T, which, boxes, face_of, boards, T_world) -> None:
+    """Shade one tile's samples `grey` (h, w) in place: triangles `which` of T, `boxes` their [c0, c1, r0, r1)
+    in the tile, along the tile's rays D (h, w, 3) where `ok`."""
+    depth = np.full(grey.shape, np.inf)
+    light = np.asarray(LIGHT, float) / np.linalg.norm(LIGHT)
+    for k, (c0, c1, r0, r1) in zip(which.tolist(), boxes.tolist(), strict=True):
+        if c0 >= c1 or r0 >= r1:
+            continue
         d = D[r0:r1, c0:c1].reshape(-1, 3)
         V0, e1, e2 = T[k, 0], T[k, 1] - T[k, 0], T[k, 2] - T[k, 0]
         # Moller-Trumbore with the ray's direction d factored out: det = d . (e2 x e1), u = d . (e2 x s) / det,
@@ -252,7 +308,6 @@ def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays, backgroun
         g = grey[r0:r1, c0:c1].reshape(-1)
         g[hit] = value
         grey[r0:r1, c0:c1] = g.reshape(r1 - r0, c1 - c0)
-    return grey.reshape(cam.height, ss, cam.width, ss).mean(axis=(1, 3))
 
 
 def _pixel_boxes(cam: Camera, T: np.ndarray, ss: int, samples: int = 8) -> np.ndarray:
