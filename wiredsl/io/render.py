@@ -85,9 +85,12 @@ class Image:
 # ----------------------------------------------------------------------------- the scene's views
 
 def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=None, cameras: str = "both",
-           visibility: str = "exact", world=None) -> Iterator[Image]:
+           visibility: str = "exact", world=None, force: bool = False) -> Iterator[Image]:
     """Every chosen view of the scene's path, drawn: trial 0 of `pipeline` (a Pipeline, None: the ideal
-    projection) with `seed`, which also keys the noise. Images come pose by pose, left then right."""
+    projection) with `seed`, which also keys the noise. Images come pose by pose, left then right.
+
+    Before the first image the work is estimated (`estimate`): beyond CPU_BUDGET or MEMORY_BUDGET the render is
+    refused (RunSetupError naming --force) unless `force`."""
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world, surface_triangles
     from wiredsl.io import emit, viewdep
@@ -109,6 +112,14 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
     face_of = np.concatenate([face_of, np.full(len(sil), -1)])
     names = list(world.face_src)
     boards = {names.index(k): b for k, b in look.boards.items() if k in names}
+    views = [getattr(r, side) for r in results for side in ("left", "right") if getattr(r, side) is not None]
+    cost = estimate(views, tris, look)
+    if not force and (cost.seconds > CPU_BUDGET or cost.bytes > MEMORY_BUDGET):
+        from wiredsl.run import RunSetupError
+
+        raise RunSetupError(f"{cost}, beyond the {CPU_BUDGET:g} s of CPU and {MEMORY_BUDGET / 1e9:g} GB a render may "
+                            "take without --force: fewer poses (--pose), a smaller --supersample or --faces none",
+                            "--force")
     rays: dict = {}
     for r in results:
         for side in ("left", "right"):
@@ -157,10 +168,71 @@ def sensor_noise(shape: tuple[int, int], seed: int, pose: int, side: str) -> np.
     return keyed_normal(key, np.arange(shape[0] * shape[1], dtype=np.uint64)).reshape(shape)
 
 
-# ----------------------------------------------------------------------------- faces
+# ----------------------------------------------------------------------------- cost
 
+# What a render may take without --force, and the rates its estimate is made with (measured by
+# benchmarks/render_cost.py on a loaded 2-core machine; the estimate is for refusing the absurd, not a forecast)
+CPU_BUDGET = 600.0  # s
+MEMORY_BUDGET = 1.5e9  # bytes
+RAY_TESTS_A_SECOND = 1.0e8  # ray-triangle tests (samples in a triangle's box) a second
+PIXELS_A_SECOND = 2.0e6  # pixels a second drawn, blurred, noised and written, per image
+FEATURE_PIXELS_A_SECOND = 2.0e7  # pixels of strokes' boxes (the band's coverage) a second
+TRIANGLE_SECONDS = 3e-5  # the fixed cost of casting one triangle's box in one tile
+BLUR_TAPS_A_SECOND = 3e8  # the Gaussian's taps (2 passes of 8 sigma + 1 each, a pixel) a second
+IMAGE_ARRAYS = 10  # float64 arrays of one image alive at once (the image, ink coverage, blur, noise)
 TILE = 1024  # samples a side of the tiles the faces are ray-cast in: the rays' memory is bounded whatever the size
+TILE_BYTES = TILE * TILE * 200  # the rays and hit tests of one tile
 
+
+@dataclass(frozen=True)
+class Cost:
+    """A render's estimated work: ray-triangle tests, pixels, CPU seconds and peak bytes."""
+
+    views: int
+    ray_tests: float
+    pixels: float
+    seconds: float
+    bytes: float
+
+    def __str__(self) -> str:
+        return (f"{self.views} view{'s' * (self.views != 1)} would take about {self.seconds:,.0f} s of CPU "
+                f"({self.ray_tests:.3g} ray-triangle tests, {self.pixels:.3g} pixels) and "
+                f"{self.bytes / 1e9:.2g} GB of memory")
+
+
+def estimate(views, tris: np.ndarray, look: Look) -> Cost:
+    """The work of drawing `views` (engine Views: camera, pose, features) with faces `tris` (T, 3, 3, world
+    frame): the samples of every triangle's box, and of every stroke segment's, counted as the drawing meets
+    them; the memory of the largest image."""
+    tests = pixels = stroke = boxes = 0.0
+    peak = 0.0
+    for view in views:
+        cam = view.camera
+        n_pix = float(cam.width) * float(cam.height)
+        pixels += n_pix
+        peak = max(peak, IMAGE_ARRAYS * 8 * n_pix + TILE_BYTES)
+        if look.faces == "shaded" and len(tris):
+            R_cw, t_cw = np.asarray(view.R_cw, float), np.asarray(view.t_cw, float)
+            b = _pixel_boxes(cam, tris @ R_cw.T + t_cw, look.supersample).astype(float)
+            area = np.maximum(b[:, 1] - b[:, 0], 0) * np.maximum(b[:, 3] - b[:, 2], 0)
+            tests += float(area.sum())
+            boxes += float(np.ceil(area / TILE**2).sum())  # (at least one tile a triangle that shows)
+        if look.edges != "none":
+            reach = look.width + 2.0
+            for f in view.features:
+                if f.kind in ("line", "polyline") and len(f.points) >= 2:
+                    P = np.asarray(f.points, float)
+                    P = P[np.isfinite(P).all(axis=1)]
+                    lo = np.clip(np.minimum(P[:-1], P[1:]) - reach, 0, [cam.width, cam.height])
+                    hi = np.clip(np.maximum(P[:-1], P[1:]) + reach, 0, [cam.width, cam.height])
+                    stroke += float(np.prod(np.maximum(hi - lo, 0), axis=1).sum())
+    blur = pixels * 2 * (8 * look.blur + 1) if look.blur > 0 else 0.0
+    seconds = (tests / RAY_TESTS_A_SECOND + boxes * TRIANGLE_SECONDS + pixels / PIXELS_A_SECOND
+               + stroke / FEATURE_PIXELS_A_SECOND + blur / BLUR_TAPS_A_SECOND)
+    return Cost(len(views), tests, pixels, seconds, peak)
+
+
+# ----------------------------------------------------------------------------- faces
 
 @dataclass
 class Rays:
@@ -499,7 +571,7 @@ def write(folder, scene, *, pipeline=None, seed: int = 0, look: Look = Look(), p
     written = []
     with output_folder(folder, force) as stage:
         for image in render(scene, pipeline=pipeline, seed=seed, look=look, poses=poses, cameras=cameras,
-                            visibility=visibility):
+                            visibility=visibility, force=force):
             write_atomic(stage / image.name, png_bytes(image.pixels), tidy=False)
             image.pixels = None  # bounded memory: only the manifest's numbers are kept
             written.append(image)

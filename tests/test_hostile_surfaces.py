@@ -1,0 +1,248 @@
+"""Hostile input to the surfaces of the last round (issue 36): render, verify, export, the Gymnasium environment,
+`init`, the wide-angle lenses and `wiredsl.load`. One test (or more) a row of the issue's table, each failing on
+8de0bcd; the row's number is in the test's comment."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from wiredsl.cli import main
+from wiredsl.diagnostics import Diagnostic, Span, read_sources
+from wiredsl.io import render as rd
+from wiredsl.verify import detectors as D
+
+ROOT = Path(__file__).resolve().parent.parent
+FENCE = ROOT / "tests" / "data" / "verify" / "fence.wd"
+
+LENS = """wiredsl 1
+scene lens
+model panel {
+  face plate through (0, -0.3, 0.6) (0, 0.05, 0.6) (0, 0.05, 1.4) (0, -0.3, 1.4)
+}
+place panel as p at (1.5m, 0, 0)
+camera eye {
+  focal {focal}px
+  size ({w}px, {h}px)
+  centre ({cx}px, {cy}px)
+  {lens}
+}
+rig pair {
+  left eye at (0, 0.05m, 1m) looking (1, 0.1, 0.02)
+  right eye at (0, -0.05m, 1m) looking (1, 0.1, 0.02)
+}
+path here { pose (0, 0) heading 0deg }
+"""
+
+
+def lens_scene(tmp_path: Path, w: int, h: int, lens: str = "k1 -0.05", focal: float | None = None) -> Path:
+    path = tmp_path / "lens.wd"
+    text = LENS.replace("{lens}", lens).replace("{w}", str(w)).replace("{h}", str(h))
+    text = text.replace("{cx}", f"{w / 2:g}").replace("{cy}", f"{h / 2:g}")
+    path.write_text(text.replace("{focal}", f"{focal if focal is not None else 0.65 * w:g}"))
+    return path
+
+
+def run_cli(*args: str, timeout: float = 120, limit: int | None = None) -> subprocess.CompletedProcess:
+    """`python -m wiredsl ...` in a child (a segfault or a hang must not take the test run with it), under an
+    address-space `limit` in bytes if given."""
+    pre = None
+    if limit is not None:
+        def pre():
+            import resource
+
+            resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.run([sys.executable, "-m", "wiredsl", *args], capture_output=True, text=True, timeout=timeout,
+                          preexec_fn=pre, env=env, cwd=ROOT)
+
+
+def grey_image(path: Path, h: int = 480, w: int = 640) -> Path:
+    rng = np.random.default_rng(36)
+    cv2.imwrite(str(path), (rng.random((h, w)) * 255).astype(np.uint8))
+    return path
+
+
+# --------------------------------------------------------------------------- detectors (rows 1, 4)
+
+def test_a_huge_min_distance_keeps_one_corner_instead_of_crashing_opencv():
+    """Row 4: min_distance 2147483647 made cv2.goodFeaturesToTrack segfault (a child, so a crash is a failure)."""
+    code = textwrap.dedent("""
+        import numpy as np
+        from wiredsl.verify import detectors as D
+        img = (np.random.default_rng(0).random((120, 160)) * 255).astype(np.uint8)
+        for name in ("harris", "shi-tomasi"):
+            det = D.BUILTIN[name]
+            found = det.detect(img, D.params_of(det, ["min_distance=2147483647"]))
+            print(len(found.corners))
+    """)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["1", "1"]  # as any distance beyond the diagonal gives
+
+
+@pytest.mark.parametrize("value", ["inf", "nan", "-inf", "1e999"])
+def test_a_detector_parameter_that_is_not_finite_is_refused(value):
+    """Row 4 (inf, 1e308's kin) and row 16's rule for every float option."""
+    with pytest.raises(ValueError, match="min_distance"):
+        D.params_of(D.Harris, [f"min_distance={value}"])
+    with pytest.raises(ValueError, match="low"):
+        D.params_of(D.Canny, [f"low={value}"])
+
+
+@pytest.mark.parametrize("size", [(5, 5), (9, 30), (14, 14), (3, 200)])
+@pytest.mark.parametrize("name", ["harris", "shi-tomasi"])
+def test_corners_of_an_image_smaller_than_the_subpixel_window_are_found_without_an_assertion(size, name):
+    """Row 1: cv2.cornerSubPix asserts an image of at least 2 x window + 5 px each way."""
+    h, w = size
+    img = np.zeros((h, w), np.uint8)
+    img[: h // 2, : w // 2] = 200
+    img[h // 2:, w // 2:] = 200
+    det = D.BUILTIN[name]
+    found = D.checked(det.detect(img, det.Params()), img.shape, name)
+    assert np.isfinite(found.corners).all()
+    assert "too small for the sub-pixel window" in found.note or len(found.corners) == 0
+
+
+def test_a_corner_of_a_small_image_is_still_refined_with_a_window_that_fits():
+    """Row 1: a 12 x 12 image gets window 3 (12 >= 2 x 3 + 5) and its saddle at (6, 6) refined to it."""
+    yy, xx = np.mgrid[0:12, 0:12].astype(float)
+    img = np.where((xx - 5.5) * (yy - 5.5) > 0, 200, 40).astype(np.uint8)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    found = D.Harris.detect(img, D.CornerParams(max_corners=1))
+    assert "refined with window 3" in found.note
+    assert np.allclose(found.corners, [[5.5, 5.5]], atol=0.2)
+
+
+# --------------------------------------------------------------------------- the diagnostic reporter (row 5)
+
+def _span(path) -> list[Diagnostic]:
+    return [Diagnostic("error", "E010", "x", Span(str(path), 1, 1, 1, 2))]
+
+
+def test_quoting_a_diagnostic_never_reads_a_device_nor_opens_a_fifo_for_good(tmp_path):
+    """Row 5: /dev/zero was read whole (MemoryError); a FIFO blocked the report for ever (a child: a hang fails)."""
+    os.mkfifo(tmp_path / "pipe")
+    code = textwrap.dedent(f"""
+        from wiredsl.diagnostics import Diagnostic, Span, read_sources
+        d = [Diagnostic("error", "E010", "x", Span(p, 1, 1, 1, 2)) for p in ("/dev/zero", {str(tmp_path / 'pipe')!r})]
+        print(sorted(read_sources(d)))
+    """)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30, env=env,
+                       preexec_fn=lambda: __import__("resource").setrlimit(
+                           __import__("resource").RLIMIT_AS, (2 << 30, 2 << 30)))
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "[]"
+
+
+def test_a_large_source_is_quoted_from_a_bounded_prefix(tmp_path, monkeypatch):
+    import wiredsl.diagnostics as diagnostics
+
+    monkeypatch.setattr(diagnostics, "MAX_QUOTED_BYTES", 100)
+    path = tmp_path / "big.wd"
+    path.write_text("".join(f"line {i}\n" for i in range(1000)))
+    text = read_sources(_span(path))[str(path)]
+    assert text.startswith("line 0\n") and text.endswith("\n") and len(text) <= 100
+
+
+@pytest.mark.parametrize("target", ["/dev/zero", "fifo"])
+def test_verify_with_poses_from_a_device_or_a_fifo_is_refused_at_once(tmp_path, target):
+    """Row 5 end to end: E010, exit 1, within the time limit, under 2 GiB."""
+    if target == "fifo":
+        target = str(tmp_path / "poses.txt")
+        os.mkfifo(target)
+    grey_image(tmp_path / "left_0.png")
+    r = run_cli("verify", str(FENCE), "--detector", "canny", "--images", str(tmp_path / "left_*.png"),
+                "--poses", target, "-o", str(tmp_path / "out"), timeout=60, limit=2 << 30)
+    assert r.returncode == 1, r.stderr
+    assert "error[E010]" in r.stderr and "Traceback" not in r.stderr
+
+
+# --------------------------------------------------------------------------- signals while reporting (row 6)
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_while_a_diagnostic_is_reported_exits_as_the_signal_says(tmp_path, monkeypatch, signum):
+    import wiredsl.cli_base as cli_base
+
+    def stopped(*args, **kwargs):
+        raise cli_base.Stopped(signum) if signum == signal.SIGTERM else KeyboardInterrupt
+
+    monkeypatch.setattr(cli_base, "_sources", stopped)
+    (tmp_path / "bad.wd").write_text("wiredsl 1\nbogus\n")
+    r = CliRunner().invoke(main, ["render", str(tmp_path / "bad.wd"), "-o", str(tmp_path / "r")])
+    assert r.exit_code == 128 + signum, r.output
+    assert "stopped by" in r.stderr and r.exception is None or isinstance(r.exception, SystemExit)
+
+
+# --------------------------------------------------------------------------- render (rows 2, 3; cost)
+
+@pytest.mark.parametrize("size", [(1, 1), (5, 3), (15, 12), (40, 2)])
+@pytest.mark.parametrize("lens", ["k1 -0.05", "distortion equidistant\n  k1 0.02", "distortion unified\n  xi 0.5"])
+def test_a_distorted_camera_under_16_px_renders(tmp_path, size, lens):
+    """Row 2: the ray grid's spline had fewer than 4 nodes a side."""
+    w, h = size
+    scene = lens_scene(tmp_path, w, h, lens)
+    r = CliRunner().invoke(main, ["render", str(scene), "-o", str(tmp_path / "r"), "--no-effects", "--cameras",
+                                  "left"])
+    assert r.exit_code == 0, r.output
+    img = cv2.imread(str(tmp_path / "r" / "left_000.png"), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (h, w)
+
+
+def test_tiles_give_the_same_image_as_one_tile(tmp_path, monkeypatch):
+    """Row 3: the rays are made and cast a tile at a time; the tiles' seams do not show."""
+    import wiredsl
+
+    scene = wiredsl.compile(lens_scene(tmp_path, 97, 61, "k1 -0.2\n  k2 0.05"))
+    look = rd.Look(supersample=3)
+    whole = [im.pixels for im in rd.render(scene, look=look, cameras="left")]
+    monkeypatch.setattr(rd, "TILE", 7)  # rounded down to whole pixels: 6 samples a side
+    tiled = [im.pixels for im in rd.render(scene, look=look, cameras="left")]
+    assert len(whole) == 1 and np.array_equal(whole[0], tiled[0])
+    assert 0 < (whole[0] != 128).mean() < 1  # the plate is seen, and not all of it is the plate
+
+
+def test_a_4000_by_3000_distorted_render_fits_in_2_gib(tmp_path):
+    """Row 3: the default supersampling made a (9000, 12000, 3) float64 ray grid: MemoryError under 2 GiB."""
+    scene = lens_scene(tmp_path, 4000, 3000, "k1 -0.05")
+    r = run_cli("render", str(scene), "-o", str(tmp_path / "r"), "--no-effects", "--cameras", "left",
+                timeout=300, limit=2 << 30)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "r" / "left_000.png").stat().st_size > 0
+
+
+def test_a_render_beyond_its_budget_is_refused_before_it_starts(tmp_path):
+    """`render` estimates its CPU and memory and refuses beyond a budget without --force (as `build` does)."""
+    scene = lens_scene(tmp_path, 40000, 30000)
+    r = CliRunner().invoke(main, ["render", str(scene), "-o", str(tmp_path / "r")])
+    assert r.exit_code == 2, r.output
+    assert "GB of memory" in r.stderr and "--force" in r.stderr
+    assert not (tmp_path / "r").exists()
+
+
+def test_the_estimate_counts_what_the_drawing_does(tmp_path):
+    import wiredsl
+    from wiredsl.engine.simulate import Options
+    from wiredsl.engine.world import build_world
+    from wiredsl.montecarlo import Run
+
+    scene = wiredsl.compile(lens_scene(tmp_path, 200, 150))
+    world = build_world(scene)
+    views = [r.left for r in Run.create(scene, world, None, 0, Options(tolerance=rd.TOLERANCE, right=False)).ideal()]
+    one = rd.estimate(views, world.triangles, rd.Look(supersample=1))
+    three = rd.estimate(views, world.triangles, rd.Look(supersample=3))
+    none = rd.estimate(views, world.triangles, rd.Look(faces="none"))
+    assert none.ray_tests == 0 < one.ray_tests <= 200 * 150 * len(world.triangles)
+    assert 8 * one.ray_tests < three.ray_tests <= 9 * one.ray_tests + 9 * 4 * (200 + 150) * len(world.triangles)
+    assert one.pixels == 200 * 150
