@@ -246,3 +246,73 @@ def test_the_estimate_counts_what_the_drawing_does(tmp_path):
     assert none.ray_tests == 0 < one.ray_tests <= 200 * 150 * len(world.triangles)
     assert 8 * one.ray_tests < three.ray_tests <= 9 * one.ray_tests + 9 * 4 * (200 + 150) * len(world.triangles)
     assert one.pixels == 200 * 150
+
+
+# --------------------------------------------------------------------------- compiled lenses (rows 13, 17)
+
+def test_a_radtan_lens_whose_rational_denominator_vanishes_in_the_image_renders(tmp_path):
+    """Row 13: the compiled undistortion divided by zero (ZeroDivisionError, exit 3) where 1 + k4 r^2 = 0."""
+    scene = lens_scene(tmp_path, 200, 150, "k4 -2", focal=130)
+    r = CliRunner().invoke(main, ["render", str(scene), "-o", str(tmp_path / "r"), "--no-effects"])
+    assert r.exit_code == 0, r.output
+
+
+def test_the_compiled_undistortion_of_a_singular_jacobian_is_a_point_not_converged():
+    pytest.importorskip("numba")
+    from wiredsl.measures.stereo3d_kernel import undistort_radtan
+
+    # k4 -1: the rational denominator 1 - r^2 vanishes on the unit circle, where the Newton step's det is 0
+    xd = np.array([[1.0, 0.0], [0.0, 0.999999], [0.1, 0.1]])
+    out, ok = undistort_radtan(xd, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 20, 1e6)
+    assert np.isfinite(out).all()
+    assert ok[2] and not ok[0]
+
+
+# --------------------------------------------------------------------------- boards (rows 14, 19, 20)
+
+BOARD = "wiredsl 1\nboard target charuco squares ({c}, {r}) square {square} marker {marker} dictionary {d}\n"
+
+
+def _board_errors(tmp_path, **kw) -> list[str]:
+    import json
+
+    values = {"c": 5, "r": 7, "square": "40mm", "marker": "30mm", "d": "DICT_4X4_50", **kw}
+    (tmp_path / "b.wd").write_text(BOARD.format(**values))
+    r = CliRunner().invoke(main, ["check", "--diagnostics", "json", str(tmp_path / "b.wd")])
+    return [d["message"] for d in json.loads(r.stderr)["diagnostics"]] if r.exit_code else []
+
+
+@pytest.mark.parametrize("marker", ["1e-300m", "2mm", "3.7mm", "9.9mm"])
+def test_a_charuco_marker_too_small_for_opencv_is_refused(tmp_path, marker):
+    """Rows 14 (under 6/64 of a square: OpenCV's drawing failed) and 19 (1e-300 m: 0 as a 32-bit float)."""
+    (msg,) = _board_errors(tmp_path, marker=marker)
+    assert "at least 0.25 of a square" in msg
+
+
+@pytest.mark.parametrize(("dictionary", "holds"), [("DICT_APRILTAG_16h5", 30), ("DICT_APRILTAG_25h9", 35),
+                                                   ("DICT_APRILTAG_36h11", 587), ("DICT_APRILTAG_36h10", 2320),
+                                                   ("DICT_ARUCO_ORIGINAL", 1024)])
+def test_a_dictionary_too_small_for_its_board_is_refused_whatever_its_name(tmp_path, dictionary, holds):
+    """Row 20: only names ending in their size were checked; the sizes are OpenCV's own."""
+    cv2_words = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    assert cv2_words.bytesList.shape[0] == holds
+    side = next(n for n in range(3, 201) if n * n // 2 > holds)
+    (msg,) = _board_errors(tmp_path, c=side, r=side, d=dictionary)
+    assert f"dictionary {dictionary} has {holds}" in msg
+    smaller = next(n for n in range(200, 2, -1) if n * n // 2 <= holds)
+    assert _board_errors(tmp_path, c=smaller, r=smaller, d=dictionary) == []
+
+
+def test_every_dictionary_the_language_names_has_its_opencv_size():
+    from wiredsl.language.statements import ARUCO, ARUCO_MARKERS
+
+    assert set(ARUCO) == set(ARUCO_MARKERS)
+    for name, n in ARUCO_MARKERS.items():
+        assert cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).bytesList.shape[0] == n, name
+
+
+def test_the_smallest_marker_the_language_accepts_is_drawn_and_found(tmp_path):
+    """Rows 14 and 19: a board at the bound renders (OpenCV draws it) for the dictionary with the largest markers."""
+    rd._charuco_image.cache_clear()
+    img = rd._charuco_image(5, 7, 0.04, 0.01, "DICT_7X7_50")
+    assert img.shape == (7 * 64, 5 * 64) and 0 < (img == 0).mean() < 1
