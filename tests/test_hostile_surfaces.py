@@ -316,3 +316,19 @@ def test_the_smallest_marker_the_language_accepts_is_drawn_and_found(tmp_path):
     rd._charuco_image.cache_clear()
     img = rd._charuco_image(5, 7, 0.04, 0.01, "DICT_7X7_50")
     assert img.shape == (7 * 64, 5 * 64) and 0 < (img == 0).mean() < 1
+
+
+# --------------------------------------------------------------------------- float options (row 16)
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "NaN"])
+@pytest.mark.parametrize("args", [["export", "scenes/lab.wd", "--format", "rosbag2", "--period"],
+                                  ["verify", "scenes/lab.wd", "--detector", "canny", "--images", "x.png", "--step"],
+                                  ["verify", "scenes/lab.wd", "--detector", "canny", "--images", "x.png", "--band"],
+                                  ["viewdep", "scenes/lab.wd", "--threshold"],
+                                  ["bench", "scenes/lab.wd", "--budget"]],
+                         ids=["period", "step", "band", "threshold", "budget"])
+def test_a_float_option_that_is_not_finite_is_a_usage_error(args, value):
+    """Row 16: click's FloatRange lets NaN through (every comparison with it is false)."""
+    r = CliRunner().invoke(main, [*args, value], catch_exceptions=False)
+    assert r.exit_code == 2, r.output
+    assert "is not a finite number" in r.stderr

@@ -160,6 +160,20 @@ def _sources(diags) -> dict[str, str]:
     return read_sources(diags)
 
 
+class FiniteRange(click.FloatRange):
+    """click.FloatRange that refuses NaN (which every comparison lets through) and the infinities."""
+
+    name = "finite float range"
+
+    def convert(self, value, param, ctx):
+        import math
+
+        number = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return super().convert(number, param, ctx)
+
+
 diagnostics_option = click.option("--diagnostics", type=click.Choice(["text", "json"]), default="text",
                                   show_default=True, help="Form of diagnostics on stderr.")
 

@@ -610,7 +610,8 @@ def _load(functions: tuple[str, ...], cameras: tuple[bool, ...], workspaces: tup
               "from wiredsl.engine.kernel import _pack, _trial_input\n"
               + "".join(f"from {module} import {name} as _s{g}\n" for g, (module, name) in enumerate(parts))
               + "".join(f"from {module} import {name} as _ws{g}\n" for g, (module, name) in spaces.items())
-              + "\n\n@njit(cache=True, error_model=\"numpy\")\n" + template.replace(stages, calls).replace(before, made))
+              + "\n\n@njit(cache=True, error_model=\"numpy\")\n"
+              + template.replace(stages, calls).replace(before, made))
     stamp = hashlib.sha256(source.encode())
     called = _called([getattr(importlib.import_module(module), name)
                       for module, name in [*parts, *spaces.values()]])
