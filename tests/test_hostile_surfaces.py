@@ -332,3 +332,53 @@ def test_a_float_option_that_is_not_finite_is_a_usage_error(args, value):
     r = CliRunner().invoke(main, [*args, value], catch_exceptions=False)
     assert r.exit_code == 2, r.output
     assert "is not a finite number" in r.stderr
+
+
+# --------------------------------------------------------------------------- damaged dumps (rows 21, 23)
+
+@pytest.fixture(scope="module")
+def lab_dump(tmp_path_factory) -> dict:
+    import json
+
+    out = tmp_path_factory.mktemp("dump") / "b"
+    r = CliRunner().invoke(main, ["build", "scenes/lab.wd", "-o", str(out), "--no-svg", "--pose", "0", "--seed", "1",
+                                  "--no-effects"])
+    assert r.exit_code == 0, r.output
+    return json.loads((out / "features.json").read_text())
+
+
+@pytest.mark.parametrize("document", [["features"], {"features": 1}, 3, None])
+def test_a_dump_whose_document_member_is_not_a_name_is_a_dump_error(tmp_path, lab_dump, document):
+    """Row 21: a list or an object as "document" raised TypeError (unhashable), not DumpError."""
+    import json
+
+    import wiredsl
+    from wiredsl.io.load import DumpError
+
+    path = tmp_path / "features.json"
+    path.write_text(json.dumps({**lab_dump, "document": document}))
+    with pytest.raises(DumpError, match="not a wiredsl features document"):
+        wiredsl.load(path)
+    assert CliRunner().invoke(main, ["validate", str(path)]).exit_code == 1
+
+
+@pytest.mark.parametrize("kind", ["lines", "polylines", "conics", "corners"])
+def test_a_view_without_one_of_its_kind_lists_loads_as_validate_takes_it(tmp_path, lab_dump, kind):
+    """Row 23: the features model (and validate) take a missing kind list as empty; load raised KeyError."""
+    import json
+
+    import wiredsl
+
+    whole = tmp_path / "whole.json"
+    whole.write_text(json.dumps(lab_dump))
+    doc = json.loads(json.dumps(lab_dump))
+    for pose in doc["poses"]:
+        for side in ("left", "right"):
+            if pose.get(side):
+                pose[side].pop(kind)
+    path = tmp_path / "features.json"
+    path.write_text(json.dumps(doc))
+    assert CliRunner().invoke(main, ["validate", str(path)]).exit_code == 0
+    records = wiredsl.load(path)
+    expected = [r for r in wiredsl.load(whole) if r["kind"] != kind[:-1]]
+    assert records == expected
