@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -382,3 +383,106 @@ def test_a_view_without_one_of_its_kind_lists_loads_as_validate_takes_it(tmp_pat
     records = wiredsl.load(path)
     expected = [r for r in wiredsl.load(whole) if r["kind"] != kind[:-1]]
     assert records == expected
+
+
+# --------------------------------------------------------------------------- export and verify outputs (11, 24-26)
+
+def _stamped_scene(tmp_path: Path, first_s: int) -> Path:
+    from test_export import _scene
+
+    path = _scene(tmp_path, "opencv")
+    (tmp_path / "gt.tum").write_text("".join(f"{first_s + 0.5 * i:.1f} {0.6 + 0.4 * i} 2.0 0 0 0 0 1\n"
+                                             for i in range(3)))
+    text = path.read_text()
+    a = text.index("path run {")
+    path.write_text(text[:a] + 'path run {\n  read "gt.tum"\n}' + text[text.index("}", a) + 1:])
+    return path
+
+
+@pytest.mark.parametrize("first_s", [2**31, 2**31 - 1, 10**12])
+def test_a_path_stamped_after_2038_is_refused_for_a_bag(tmp_path, first_s):
+    """Row 11: sec >= 2^31 overflowed the header's int32 (exit 3); 2^31 - 1 itself fits (a pose at + 0.5 s too)."""
+    pytest.importorskip("rosbags")
+    path = _stamped_scene(tmp_path, first_s)
+    r = CliRunner().invoke(main, ["export", str(path), "--format", "rosbag2", "--no-effects", "-o",
+                                  str(tmp_path / "bag")])
+    if first_s == 2**31 - 1:  # its later poses are at 2^31 - 0.5 and 2^31 s
+        assert r.exit_code == 1 and "2147483648 s does not fit a ROS 2 Time" in r.stderr, r.output
+    else:
+        assert r.exit_code == 1 and "does not fit a ROS 2 Time" in r.stderr, r.output
+    assert not (tmp_path / "bag").exists()
+
+
+def test_a_bag_on_a_full_disk_says_so(tmp_path, monkeypatch):
+    """Row 24: sqlite3's OperationalError was an internal error (exit 3)."""
+    pytest.importorskip("rosbags")
+    import sqlite3
+
+    from test_export import _scene
+
+    from wiredsl.io import export_rosbag
+
+    def full(*args, **kwargs):
+        raise sqlite3.OperationalError("database or disk is full")
+
+    monkeypatch.setattr(export_rosbag, "_write", full)
+    r = CliRunner().invoke(main, ["export", str(_scene(tmp_path, "opencv")), "--format", "rosbag2", "--no-effects",
+                                  "-o", str(tmp_path / "bag")])
+    assert r.exit_code == 1, r.output
+    assert "No space left on device" in r.stderr and "internal error" not in r.stderr
+    assert not (tmp_path / "bag").exists()
+
+
+def test_a_killed_verify_runs_stage_is_removed_by_the_next_run(tmp_path):
+    """Row 25: a SIGKILLed run's `.verify-*/` stayed inside -o for good."""
+    from wiredsl.files import temporary
+
+    out = tmp_path / "out"
+    out.mkdir()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stage = Path(str(temporary(out / "verify")).replace(f"-{os.getpid()}-", f"-{dead.pid}-"))
+    stage.mkdir()
+    (stage / "verification.csv").write_text("half\n")
+    img = tmp_path / "left_0.png"
+    grey_image(img)
+    r = CliRunner().invoke(main, ["verify", str(FENCE), "--detector", "canny", "--images", str(img), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+    assert (out / "verification.csv").exists()
+
+
+@pytest.mark.parametrize("when", ["before", "after"])
+def test_a_signal_during_the_output_swap_leaves_one_whole_run_and_no_old_folder(tmp_path, monkeypatch, when):
+    """Row 26: the handler ran between the swap's renames (pthread_sigmask blocks the calling thread only, and
+    another thread took the signal): the new run published, the old one left as `.old`, exit 130. Now a signal
+    before the commit keeps the old run and stops; after it, the new run is whole and the signal too late."""
+    import wiredsl
+    import wiredsl.cli_base as cli_base
+    from wiredsl import files
+
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "old.txt").write_text("old")
+    real = os.rename
+
+    def rename(a, b):  # the signal's handler runs here, as it may between any two lines of the swap
+        if when == "before" and Path(a) == target:  # as the old run is moved aside
+            cli_base._stop(signal.SIGINT, None)
+        real(a, b)
+        if when == "after" and Path(b) == target:  # just after the new run is moved in
+            cli_base._stop(signal.SIGINT, None)
+
+    previous = signal.getsignal(signal.SIGINT)
+    monkeypatch.setattr(files.os, "rename", rename)
+    wiredsl.clear_stops()
+    try:
+        with pytest.raises(cli_base.Stopped) if when == "before" else contextlib.nullcontext():
+            with files.output_folder(target, force=True) as stage:
+                (stage / "new.txt").write_text("new")
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        wiredsl.clear_stops()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert sorted(p.name for p in target.iterdir()) == (["old.txt"] if when == "before" else ["new.txt"])

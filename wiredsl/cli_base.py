@@ -46,10 +46,13 @@ class Stopped(BaseException):
 
 
 def _stop(signum: int, frame) -> None:
-    from wiredsl import signal_stop
+    from wiredsl import holding_stops, signal_stop
 
     for s in (signal.SIGINT, signal.SIGTERM):  # a second signal must not interrupt the clean-up
         signal.signal(s, signal.SIG_IGN)
+    if holding_stops():  # an output folder's swap: it decides (files._swap)
+        signal_stop(Stopped(signum))
+        return
     raise signal_stop(Stopped(signum))  # kept: raised again at the next batch or write if compiled code drops it
 
 

@@ -127,9 +127,13 @@ def write(out, scene, fmt: str, pipeline, n_trials: int, seed: int, period: floa
         if fmt == "colmap" and not undistort:
             for side in observations.CAMERAS:
                 export_colmap.colmap_camera(src.cameras[side])
+        period_ns = round(period * 1e9)
+        if fmt == "rosbag2":
+            from wiredsl.io import export_rosbag
+
+            export_rosbag.check_stamps(export_rosbag.stamps(src, period_ns).values())
     except (ValueError, export_colmap.ColmapLensError) as exc:
         raise ExportError(str(exc)) from None
-    period_ns = round(period * 1e9)
     left_out, lost = 0, 0
     folders = []
     with output_folder(out, force) as stage:
