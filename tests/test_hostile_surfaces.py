@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import signal
 import subprocess
@@ -486,3 +487,96 @@ def test_a_signal_during_the_output_swap_leaves_one_whole_run_and_no_old_folder(
         wiredsl.clear_stops()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     assert sorted(p.name for p in target.iterdir()) == (["old.txt"] if when == "before" else ["new.txt"])
+
+
+# --------------------------------------------------------------------------- the Gymnasium environment (7, 8, 18)
+
+@pytest.fixture(scope="module")
+def lab_scene():
+    pytest.importorskip("gymnasium")
+    import wiredsl
+
+    return wiredsl.compile(ROOT / "scenes" / "lab.wd")
+
+
+def _state(env):
+    return (np.array(env._pose, copy=True), env._step)
+
+
+BAD_ACTIONS = [np.float32(0.5), np.array(0.5), None, [0.5], [0.1, 0.2, 0.3], [[0.1, 0.2]], "ab", [np.nan, 0.0],
+               [0.0, np.inf], [1e400, 0.0], [0.1, None], object()]
+
+
+@pytest.mark.parametrize("motion", ["planar", "6dof"])
+def test_a_bad_action_is_refused_and_changes_nothing(lab_scene, motion):
+    """Rows 7 (NaN set the pose before the refusal; every later step was refused) and 8 (IndexError on a wrong
+    shape; three numbers for planar motion accepted, the third ignored)."""
+    import wiredsl.gym as wg
+
+    env = wg.WiredslEnv(lab_scene, wg.Task("reach", "bin1"), motion=motion)
+    env.reset(seed=3)
+    n = env.action_space.shape[0]
+    for bad in BAD_ACTIONS + [np.zeros(n + 1), np.zeros(n - 1)]:
+        before = _state(env)
+        with pytest.raises(ValueError, match="action"):
+            env.step(bad)
+        after = _state(env)
+        assert np.array_equal(before[0], after[0]) and before[1] == after[1], bad
+    obs, reward, *_ = env.step(np.zeros(n, np.float32))  # a good step after them all
+    assert env.observation_space.contains(obs) and math.isfinite(reward)
+
+
+@pytest.mark.parametrize(("start", "noise"), [((30.0, -40.0, 1.0), 0.2), (None, 10.0), ((0.0, 0.0, 9.0), 3.0)])
+def test_every_reset_observation_lies_in_the_observation_space(lab_scene, start, noise):
+    """Row 18: a start outside the view-points' area, or start_noise 10, gave 18 of 20 resets outside the space."""
+    import wiredsl.gym as wg
+
+    env = wg.WiredslEnv(lab_scene, wg.Task("reach", "bin1"), start=start, start_noise=noise)
+    for seed in range(20):
+        obs, _ = env.reset(seed=seed)
+        assert env.observation_space.contains(obs), (seed, obs["pose"])
+
+
+@pytest.mark.parametrize(("kwargs", "says"), [({"start_noise": math.inf}, "start_noise"),
+                                              ({"start_noise": -1.0}, "start_noise"),
+                                              ({"step_length": math.nan}, "step_length"),
+                                              ({"turn": math.inf}, "turn"), ({"margin": math.nan}, "margin"),
+                                              ({"max_steps": 0}, "max_steps"), ({"max_corners": 2.5}, "max_corners"),
+                                              ({"start": (0.0, math.nan, 0.0)}, "not finite")])
+def test_an_argument_out_of_range_is_refused_by_name(lab_scene, kwargs, says):
+    import wiredsl.gym as wg
+
+    with pytest.raises(ValueError, match=says):
+        wg.WiredslEnv(lab_scene, wg.Task("reach", "bin1"), **kwargs)
+
+
+@pytest.mark.parametrize(("field", "value"), [("distance", math.inf), ("distance", 0.0), ("tolerance", math.nan),
+                                              ("heading_tolerance", -0.1), ("patience", 0), ("min_features", -1)])
+def test_a_task_out_of_range_is_refused(field, value):
+    """Row 18: Task(distance=inf) gave a NaN reward."""
+    pytest.importorskip("gymnasium")
+    import wiredsl.gym as wg
+
+    with pytest.raises(ValueError, match=field):
+        wg.Task("reach", "bin1", **{field: value})
+
+
+def test_the_checker_passes_with_hostile_actions_between_good_steps(lab_scene):
+    """check_env, then a random agent that also throws bad actions: the space always holds the observation."""
+    from gymnasium.utils.env_checker import check_env
+
+    import wiredsl.gym as wg
+
+    env = wg.WiredslEnv(lab_scene, wg.Task("reach", "bin1"), start_noise=5.0)
+    check_env(env, skip_render_check=True)
+    rng = np.random.default_rng(36)
+    obs, _ = env.reset(seed=36)
+    for k in range(30):
+        if k % 3 == 0:
+            with pytest.raises(ValueError):
+                env.step(BAD_ACTIONS[k % len(BAD_ACTIONS)])
+        obs, reward, terminated, truncated, _ = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
+        assert env.observation_space.contains(obs) and math.isfinite(reward)
+        if terminated or truncated:
+            obs, _ = env.reset(seed=k)
+            assert env.observation_space.contains(obs)
