@@ -580,3 +580,66 @@ def test_the_checker_passes_with_hostile_actions_between_good_steps(lab_scene):
         if terminated or truncated:
             obs, _ = env.reset(seed=k)
             assert env.observation_space.contains(obs)
+
+
+# --------------------------------------------------------------------------- init (9, 22) and verify --refine (10)
+
+@pytest.mark.parametrize("name", ["lab\n", "lab\n\n", "class", "def", "import", "lambda", "none_\n"])
+@pytest.mark.parametrize("plugin", [False, True])
+def test_init_refuses_a_name_ending_in_a_newline_or_a_python_keyword(tmp_path, monkeypatch, name, plugin):
+    """Rows 9 (`$` matched before a final newline: folders and a package named with it) and 22 (`class`: the
+    plug-in's tests did not compile)."""
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(main, ["init", name, *(["--plugin"] if plugin else [])], catch_exceptions=False)
+    assert r.exit_code == 1, r.output
+    assert "usable name" in r.stderr or "Python keyword" in r.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_verify_refine_without_edges_says_so_instead_of_nan(tmp_path):
+    """Row 10: "median RMS offset nan -> nan px"."""
+    img = tmp_path / "left_0.png"
+    cv2.imwrite(str(img), np.full((480, 640), 128, np.uint8))
+    r = CliRunner().invoke(main, ["verify", str(FENCE), "--detector", "canny", "--images", str(img), "--refine",
+                                  "-o", str(tmp_path / "out")])
+    assert r.exit_code in (0, 1), r.output
+    assert "nan" not in r.output.lower()
+
+
+# --------------------------------------------------------------------------- replay findings
+
+ROS_INFO = """image_width: 640
+image_height: 480
+camera_name: narrow_stereo
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [612.5, 0.0, 318.25, 0.0, 624.75, 241.5, 0.0, 0.0, 1.0]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [-0.21, 0.013, 0.0004, -0.0002, 0.031]
+"""
+ROS_NESTED = """height: 480
+width: 640
+distortion_model: plumb_bob
+D: [-0.21, 0.013, 0.0004, -0.0002, 0.031]
+K: [[612.5, 0.0, 318.25], [0.0, 624.75, 241.5], [0.0, 0.0, 1.0]]
+"""
+
+
+@pytest.mark.parametrize("text", [ROS_INFO, ROS_NESTED], ids=["camera_info", "nested"])
+def test_a_ros_camera_file_read_as_opencv_is_e141(tmp_path, text):
+    """The replay's finding: `format opencv` on a ROS file was accepted (exit 0) where E141 was expected."""
+    import json
+
+    (tmp_path / "info.yaml").write_text(text)
+    scene = tmp_path / "s.wd"
+    scene.write_text('wiredsl 1\ncamera c {\n  read "info.yaml" format opencv\n}\n')
+    r = CliRunner().invoke(main, ["check", "--diagnostics", "json", str(scene)])
+    assert r.exit_code == 1, r.output
+    (d,) = json.loads(r.stderr)["diagnostics"]
+    assert d["code"] == "E141" and "format ros" in d["message"]
+    scene.write_text('wiredsl 1\ncamera c {\n  read "info.yaml" format ros\n}\n')
+    assert CliRunner().invoke(main, ["check", str(scene)]).exit_code == 0
