@@ -164,7 +164,10 @@ class WiredslEnv(gymnasium.Env):
         """The action as (n,) floats, or ValueError saying what is wrong with it (nothing changed yet)."""
         n = self.action_space.shape[0]
         try:
-            a = np.asarray(action, dtype=float)
+            a = np.asarray(action)
+            if a.dtype.kind not in "iuf":  # not bool, complex (its imaginary part dropped), text nor objects
+                raise TypeError
+            a = a.astype(float)
         except (TypeError, ValueError):
             raise ValueError(f"an action is {n} numbers in [-1, 1] ({self.motion} motion), not {action!r}") from None
         if a.shape != (n,):
