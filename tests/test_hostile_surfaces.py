@@ -493,7 +493,8 @@ def _state(env):
 
 
 BAD_ACTIONS = [np.float32(0.5), np.array(0.5), None, [0.5], [0.1, 0.2, 0.3], [[0.1, 0.2]], "ab", [np.nan, 0.0],
-               [0.0, np.inf], [1e400, 0.0], [0.1, None], object()]
+               [0.0, np.inf], [1e400, 0.0], [0.1, None], object(), np.array([0.1 + 2j, 0.2]), np.array([True, False]),
+               ["0.1", "0.2"]]
 
 
 @pytest.mark.parametrize("motion", ["planar", "6dof"])
@@ -632,3 +633,23 @@ def test_a_ros_camera_file_read_as_opencv_is_e141(tmp_path, text):
     assert d["code"] == "E141" and "format ros" in d["message"]
     scene.write_text('wiredsl 1\ncamera c {\n  read "info.yaml" format ros\n}\n')
     assert CliRunner().invoke(main, ["check", str(scene)]).exit_code == 0
+
+
+# --------------------------------------------------------------------------- lens bounds (rows 15, 17)
+
+@pytest.mark.parametrize(("lens", "says"), [("distortion unified\n  xi 1e100", "define no unified lens"),
+                                            ("distortion unified\n  xi 101", "define no unified lens"),
+                                            ("distortion eucm\n  alpha 0.6\n  beta 1e300", "define no eucm lens"),
+                                            ("distortion eucm\n  alpha 0.6\n  beta 100.5", "define no eucm lens")])
+def test_a_unified_xi_or_an_eucm_beta_beyond_any_lens_is_refused(tmp_path, lens, says):
+    """Rows 15 (xi 1e100: a corner 90 deg off-axis exported at the image centre) and 17 (beta 1e300: the compiled
+    kernel divided by zero)."""
+    import json
+
+    scene = lens_scene(tmp_path, 200, 150, lens, focal=130)
+    r = CliRunner().invoke(main, ["check", "--diagnostics", "json", str(scene)])
+    assert r.exit_code == 1, r.output
+    assert any(says in d["message"] for d in json.loads(r.stderr)["diagnostics"])
+    ok = lens_scene(tmp_path, 200, 150, lens.replace("1e100", "100").replace("101", "3").replace("1e300", "100")
+                    .replace("100.5", "1.1"), focal=130)
+    assert CliRunner().invoke(main, ["check", str(ok)]).exit_code == 0
