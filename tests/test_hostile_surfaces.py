@@ -653,3 +653,19 @@ def test_a_unified_xi_or_an_eucm_beta_beyond_any_lens_is_refused(tmp_path, lens,
     ok = lens_scene(tmp_path, 200, 150, lens.replace("1e100", "100").replace("101", "3").replace("1e300", "100")
                     .replace("100.5", "1.1"), focal=130)
     assert CliRunner().invoke(main, ["check", str(ok)]).exit_code == 0
+
+
+@pytest.mark.parametrize("action", [[1, 1, 0, 0, 0, 0], [1, -1, 1, 0, 0, 0], [-1, 1, -1, 0, 0, 0.3]])
+def test_a_6dof_move_across_the_edge_stays_in_the_observation_space(lab_scene, action):
+    """The campaign's finding: a 6dof move is up to step_length along three axes at once (sqrt 3 of it), past
+    the space's margin of one step_length beyond the area."""
+    import wiredsl.gym as wg
+
+    env = wg.WiredslEnv(lab_scene, wg.Task("reach", "bin1"), motion="6dof", step_length=1.0, max_steps=200)
+    for seed in range(4):
+        env.reset(seed=seed)
+        for _ in range(200):
+            obs, _, terminated, truncated, _ = env.step(np.array(action, np.float32))
+            assert env.observation_space.contains(obs), obs["pose"]
+            if terminated or truncated:
+                break

@@ -131,15 +131,17 @@ class WiredslEnv(gymnasium.Env):
         self.goal_xy = self.target_xy + task.distance * away / max(np.linalg.norm(away), 1e-9)
         self.goal_heading = math.atan2(*(self.target_xy - self.goal_xy)[::-1])
         self.cameras = [self.scene.camera(self.scene.rig.left.camera), self.scene.camera(self.scene.rig.right.camera)]
-        blo, bhi = self.bounds[0] - step_length, self.bounds[1] + step_length  # where a last move can take it
+        # where a last move can take it: a 6dof move is up to step_length along each of three axes at once
+        reach = step_length * (1.0 if motion == "planar" else math.sqrt(3.0))
+        blo, bhi = self.bounds[0] - reach, self.bounds[1] + reach
         # and where a reset can put it: the start, outside the area or not, and its jitter
         blo = np.minimum(blo, self.start[:2] - start_noise)
         bhi = np.maximum(bhi, self.start[:2] + start_noise)
         if motion == "planar":
             low, high = [blo[0], blo[1], -math.pi], [bhi[0], bhi[1], math.pi]
         else:
-            low = [-1, -1, -1, blo[0], -1, -1, -1, blo[1], -1, -1, -1, -HEIGHT - step_length]
-            high = [1, 1, 1, bhi[0], 1, 1, 1, bhi[1], 1, 1, 1, HEIGHT + step_length]
+            low = [-1, -1, -1, blo[0], -1, -1, -1, blo[1], -1, -1, -1, -HEIGHT - reach]
+            high = [1, 1, 1, bhi[0], 1, 1, 1, bhi[1], 1, 1, 1, HEIGHT + reach]
         self.observation_space = spaces.Dict({
             "corners": spaces.Box(0.0, 1.0, (2, self.C, 2), np.float32),
             "corner_mask": spaces.MultiBinary((2, self.C)),
