@@ -532,7 +532,9 @@ def test_every_reset_observation_lies_in_the_observation_space(lab_scene, start,
                                               ({"step_length": math.nan}, "step_length"),
                                               ({"turn": math.inf}, "turn"), ({"margin": math.nan}, "margin"),
                                               ({"max_steps": 0}, "max_steps"), ({"max_corners": 2.5}, "max_corners"),
-                                              ({"start": (0.0, math.nan, 0.0)}, "not finite")])
+                                              ({"start": (0.0, math.nan, 0.0)}, "not finite"),
+                                              ({"step_length": 1e308}, "step_length"),
+                                              ({"start_noise": 1e300}, "start_noise")])
 def test_an_argument_out_of_range_is_refused_by_name(lab_scene, kwargs, says):
     import wiredsl.gym as wg
 

@@ -67,15 +67,18 @@ class Task:
         _whole("Task patience", self.patience, 1)
 
 
+LARGEST = 1e9  # a length or angle argument at most this (the language's bound on lengths): 1e308 overflowed
+
+
 def _number(name: str, value, low: float | None = None, open_low: bool = False) -> float:
-    """A finite real number at least `low` (above it if `open_low`), else ValueError naming `name`."""
+    """A finite real number at least `low` (above it if `open_low`) and at most LARGEST, else ValueError."""
     ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
-        and math.isfinite(value)
+        and math.isfinite(value) and abs(value) <= LARGEST
     if ok and low is not None:
         ok = value > low if open_low else value >= low
     if not ok:
         bound = "" if low is None else f" {'>' if open_low else '>='} {low:g}"
-        raise ValueError(f"{name} must be a finite number{bound}, not {value!r}")
+        raise ValueError(f"{name} must be a finite number{bound}, at most {LARGEST:g}, not {value!r}")
     return float(value)
 
 
