@@ -215,11 +215,13 @@ def test_tiles_give_the_same_image_as_one_tile(tmp_path, monkeypatch):
     assert 0 < (whole[0] != 128).mean() < 1  # the plate is seen, and not all of it is the plate
 
 
-def test_a_4000_by_3000_distorted_render_fits_in_2_gib(tmp_path):
-    """Row 3: the default supersampling made a (9000, 12000, 3) float64 ray grid: MemoryError under 2 GiB."""
-    scene = lens_scene(tmp_path, 4000, 3000, "k1 -0.05")
+def test_a_supersampled_distorted_render_fits_in_1_gib(tmp_path):
+    """Row 3: the whole ray grid at once, (480 x 8, 640 x 8, 3) float64 and its kin, exited 3 (MemoryError) under
+    1 GiB; in tiles it peaks at some 350 MB resident. (The issue's 4000 x 3000 camera at --supersample 3 under
+    2 GiB: 525 MB, measured with /usr/bin/time; some 40 s here, too slow for the suite.)"""
+    scene = lens_scene(tmp_path, 640, 480, "k1 -0.05")
     r = run_cli("render", str(scene), "-o", str(tmp_path / "r"), "--no-effects", "--cameras", "left",
-                timeout=300, limit=2 << 30)
+                "--supersample", "8", timeout=300, limit=1 << 30)
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "r" / "left_000.png").stat().st_size > 0
 
