@@ -673,3 +673,12 @@ def test_a_6dof_move_across_the_edge_stays_in_the_observation_space(lab_scene, a
             assert env.observation_space.contains(obs), obs["pose"]
             if terminated or truncated:
                 break
+
+
+@pytest.mark.parametrize("scale", ["1.3338308774328313e-08", "0.001", "0.0499"])
+def test_an_lsd_scale_too_small_to_finish_is_refused(scale):
+    """The campaign's finding: LSD at scale 1.3e-8 (its Gaussian's sigma 0.6 / scale) did not finish in 600 s."""
+    with pytest.raises(ValueError, match="scale"):
+        D.params_of(D.LSD, [f"scale={scale}"])
+    img = (np.random.default_rng(3).random((120, 160)) * 255).astype(np.uint8)
+    assert D.LSD.detect(img, D.params_of(D.LSD, ["scale=0.05"])).segments is not None

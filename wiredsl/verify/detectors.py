@@ -93,7 +93,8 @@ class Canny(Detector):
 
 
 class LSDParams(DetectorParams):
-    scale: float = Field(0.8, gt=0, le=1, description="image scale the segments are found at")
+    # at least 0.05: OpenCV's LSD smooths with sigma 0.6 / scale, and a scale of 1e-8 ran for ever
+    scale: float = Field(0.8, ge=0.05, le=1, description="image scale the segments are found at")
     min_length: float = Field(5.0, ge=0, description="shorter segments are dropped (px)")
 
 
