@@ -56,6 +56,19 @@ def clear_stops() -> None:
     _STOPS.clear()
 
 
+_HOLD: list[int] = [0]  # > 0: a signal's handler notes its exception and returns, for check_stop to raise
+
+
+def hold_stops(on: bool) -> None:
+    """Hold signals off Python code (on) or no longer (off), nested: pthread_sigmask blocks a signal in the calling
+    thread only, and another thread's taking it still runs the handler in this one, between any two lines."""
+    _HOLD[0] += 1 if on else -1
+
+
+def holding_stops() -> bool:
+    return _HOLD[0] > 0
+
+
 _API = ("compile", "simulate", "Simulator", "Batch", "CameraAt", "CompileError", "CompileWarning", "PluginError",
         "Measure", "Effect")
 __all__ = ["load", *_API]

@@ -16,6 +16,7 @@ import click
 from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, __version__, install_hint
 from wiredsl.cli_base import (
     EXIT_INVALID,
+    FiniteRange,
     auto_visibility,
     diagnostics_option,
     folder_name,
@@ -686,7 +687,7 @@ def _write_svgs(folder, results, run, *caption) -> None:
 @main.command()
 @click.argument("file", type=click.Path(dir_okay=False))
 @click.option("-o", "--output", default=None, help="Output file (default build/<scene name>/viewdep.json).")
-@click.option("--threshold", type=click.FloatRange(0, 1), default=0.3, show_default=True,
+@click.option("--threshold", type=FiniteRange(0, 1), default=0.3, show_default=True,
               help="Fraction of a feature's sample points that must be seen for it to count as visible.")
 @diagnostics_option
 @guarded
@@ -729,7 +730,7 @@ def viewdep(file: str, output: str | None, threshold: float, diagnostics: str) -
 @click.option("-o", "--output", default=None,
               help="The plot: .svg, .pdf, or .png for a raster (default build/<scene name>/bench.svg). Needs "
                    "wiredsl[plot].")
-@click.option("--budget", type=click.FloatRange(1, None), default=60.0, show_default=True,
+@click.option("--budget", type=FiniteRange(1, None), default=60.0, show_default=True,
               help="Seconds the Monte-Carlo table may spend; rows beyond it are not run.")
 @click.option("--dpi", type=click.IntRange(20, 1200), default=150, show_default=True,
               help="The plot's resolution in dots per inch (a .png).")

@@ -46,10 +46,13 @@ class Stopped(BaseException):
 
 
 def _stop(signum: int, frame) -> None:
-    from wiredsl import signal_stop
+    from wiredsl import holding_stops, signal_stop
 
     for s in (signal.SIGINT, signal.SIGTERM):  # a second signal must not interrupt the clean-up
         signal.signal(s, signal.SIG_IGN)
+    if holding_stops():  # an output folder's swap: it decides (files._swap)
+        signal_stop(Stopped(signum))
+        return
     raise signal_stop(Stopped(signum))  # kept: raised again at the next batch or write if compiled code drops it
 
 
@@ -82,46 +85,49 @@ def guarded(fn: Callable) -> Callable:
             clear_stops()  # (a signal an earlier command in this process took is not this one's)
         previous = {s: signal.signal(s, _stop) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
         try:
-            out = fn(*args, **kwargs)
-            if main_thread:
-                check_stop()  # a signal dropped where it landed still stops the run: never exit 0 after one
-            if not sys.stdout.closed:  # (the language server's client closes it on exit)
-                sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
-            return out
-        except BrokenPipeError:
-            if not _stdout_closed():
-                raise  # another pipe (a worker's): not the reader of our output going away
-            _quiet_exit()
-        except WiredslError as err:
-            stop = pending_stop()
-            if stop is not None:  # a plug-in caught the signal's exception and failed instead
-                _exit_stopped(stop)
-            if os.environ.get("WIREDSL_DEBUG") and getattr(err, "detail", None):  # a plug-in's own traceback
-                click.echo(err.detail.rstrip("\n"), err=True)
-            report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diagnostics", "text"))
-            sys.exit(EXIT_INVALID)
-        except (Stopped, KeyboardInterrupt) as exc:
-            _exit_stopped(exc)
-        except (click.exceptions.Exit, click.ClickException, SystemExit):
-            raise
-        except OutputFolderError as exc:
-            raise click.BadParameter(str(exc), param_hint="-o") from None
-        except UnwritableValue as exc:  # the input drove a number out of range; nothing was written
-            click.echo(f"wiredsl: error: nothing written: {exc}", err=True)
-            sys.exit(EXIT_INVALID)
-        except OSError as exc:  # the disk, not the input or a bug: say which file and why
-            where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
-            click.echo(f"wiredsl: error: cannot write{where}: {exc.strerror or exc}", err=True)
-            sys.exit(EXIT_INVALID)
-        except Exception as exc:  # a bug: say so plainly, keep the traceback for WIREDSL_DEBUG
-            stop = _stop_in(exc)
-            if stop is not None:  # the signal landed inside compiled code, which wraps it in a SystemError
-                _exit_stopped(stop)
-            if os.environ.get("WIREDSL_DEBUG"):
+            try:
+                out = fn(*args, **kwargs)
+                if main_thread:
+                    check_stop()  # a signal dropped where it landed still stops the run: never exit 0 after one
+                if not sys.stdout.closed:  # (the language server's client closes it on exit)
+                    sys.stdout.flush()  # here, where a closed pipe is caught, not at exit
+                return out
+            except BrokenPipeError:
+                if not _stdout_closed():
+                    raise  # another pipe (a worker's): not the reader of our output going away
+                _quiet_exit()
+            except WiredslError as err:
+                stop = pending_stop()
+                if stop is not None:  # a plug-in caught the signal's exception and failed instead
+                    _exit_stopped(stop)
+                if os.environ.get("WIREDSL_DEBUG") and getattr(err, "detail", None):  # a plug-in's own traceback
+                    click.echo(err.detail.rstrip("\n"), err=True)
+                report(err.diagnostics, _sources(err.diagnostics), kwargs.get("diagnostics", "text"))
+                sys.exit(EXIT_INVALID)
+            except (Stopped, KeyboardInterrupt) as exc:
+                _exit_stopped(exc)
+            except (click.exceptions.Exit, click.ClickException, SystemExit):
                 raise
-            click.echo(f"wiredsl: internal error ({type(exc).__name__}: {exc}); this is a bug, please report it "
-                       "with the input (set WIREDSL_DEBUG=1 for a traceback)", err=True)
-            sys.exit(EXIT_INTERNAL)
+            except OutputFolderError as exc:
+                raise click.BadParameter(str(exc), param_hint="-o") from None
+            except UnwritableValue as exc:  # the input drove a number out of range; nothing was written
+                click.echo(f"wiredsl: error: nothing written: {exc}", err=True)
+                sys.exit(EXIT_INVALID)
+            except OSError as exc:  # the disk, not the input or a bug: say which file and why
+                where = f" {exc.filename}" if getattr(exc, "filename", None) else ""
+                click.echo(f"wiredsl: error: cannot write{where}: {exc.strerror or exc}", err=True)
+                sys.exit(EXIT_INVALID)
+            except Exception as exc:  # a bug: say so plainly, keep the traceback for WIREDSL_DEBUG
+                stop = _stop_in(exc)
+                if stop is not None:  # the signal landed inside compiled code, which wraps it in a SystemError
+                    _exit_stopped(stop)
+                if os.environ.get("WIREDSL_DEBUG"):
+                    raise
+                click.echo(f"wiredsl: internal error ({type(exc).__name__}: {exc}); this is a bug, please report it "
+                           "with the input (set WIREDSL_DEBUG=1 for a traceback)", err=True)
+                sys.exit(EXIT_INTERNAL)
+        except (Stopped, KeyboardInterrupt) as exc:  # the signal came while an error was being reported
+            _exit_stopped(exc)
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
@@ -155,6 +161,20 @@ def _sources(diags) -> dict[str, str]:
     from wiredsl.diagnostics import read_sources
 
     return read_sources(diags)
+
+
+class FiniteRange(click.FloatRange):
+    """click.FloatRange that refuses NaN (which every comparison lets through) and the infinities."""
+
+    name = "finite float range"
+
+    def convert(self, value, param, ctx):
+        import math
+
+        number = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return super().convert(number, param, ctx)
 
 
 diagnostics_option = click.option("--diagnostics", type=click.Choice(["text", "json"]), default="text",

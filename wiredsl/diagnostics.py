@@ -147,17 +147,49 @@ def source_lines(text: str) -> list[str]:
     return lines
 
 
+MAX_QUOTED_BYTES = 16 * 1024 * 1024  # the caret lines quote a source from at most this prefix of it
+
+
 def read_sources(diags: Iterable[Diagnostic]) -> dict[str, str]:
-    """Source text of the files diagnostics point into, for the caret lines (unreadable ones left out)."""
+    """Source text of the files diagnostics point into, for the caret lines (unreadable ones left out).
+
+    Only regular files, and at most their first MAX_QUOTED_BYTES: a diagnostic may point into /dev/zero or a
+    FIFO (E010 refused it), which must neither be read whole nor block the report.
+    """
     out: dict[str, str] = {}
     for d in diags:
         if d.span is not None and d.span.file not in out:
-            try:
-                with open(d.span.file, encoding="utf-8") as fh:
-                    out[d.span.file] = fh.read()
-            except (OSError, UnicodeDecodeError):
-                pass
+            text = _quotable(d.span.file)
+            if text is not None:
+                out[d.span.file] = text
     return out
+
+
+def _quotable(path: str) -> str | None:
+    """A regular file's text from its first MAX_QUOTED_BYTES (cut at its last whole line), else None."""
+    import os
+    import stat
+
+    try:
+        # O_NONBLOCK: opening a FIFO (even one swapped in after a stat) must not wait for a writer
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0))
+    except (OSError, ValueError):  # ValueError: a NUL byte in the path
+        return None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            return None
+        with os.fdopen(fd, "rb", closefd=False) as fh:
+            data = fh.read(MAX_QUOTED_BYTES + 1)
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+    if len(data) > MAX_QUOTED_BYTES:
+        data = data[:data.rfind(b"\n", 0, MAX_QUOTED_BYTES) + 1]
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
 
 
 # the hint for a stage or measure name that is no near-miss of a known one

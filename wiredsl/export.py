@@ -15,6 +15,7 @@ import click
 from wiredsl import DEFAULT_VISIBILITY, VISIBILITIES, install_hint
 from wiredsl.cli_base import (
     EXIT_INVALID,
+    FiniteRange,
     auto_visibility,
     diagnostics_option,
     folder_name,
@@ -42,7 +43,7 @@ MAX_EXPORT_TRIALS = 100_000  # one folder a trial
                    "--trials N, K must be below N.")
 @click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=None,
               help="The run's seed (default: drawn, and recorded in manifest.json).")
-@click.option("--period", type=click.FloatRange(1e-6, 3600), default=0.1, show_default=True,
+@click.option("--period", type=FiniteRange(1e-6, 3600), default=0.1, show_default=True,
               help="rosbag2: seconds between the path's poses (pose i is stamped 1 s + i * period), for a path "
                    "without timestamps (a path read from a trajectory file keeps the file's own).")
 @click.option("--undistort", is_flag=True, help="colmap: a PINHOLE camera and undistorted 2D points, for any lens "
@@ -126,9 +127,13 @@ def write(out, scene, fmt: str, pipeline, n_trials: int, seed: int, period: floa
         if fmt == "colmap" and not undistort:
             for side in observations.CAMERAS:
                 export_colmap.colmap_camera(src.cameras[side])
+        period_ns = round(period * 1e9)
+        if fmt == "rosbag2":
+            from wiredsl.io import export_rosbag
+
+            export_rosbag.check_stamps(export_rosbag.stamps(src, period_ns).values())
     except (ValueError, export_colmap.ColmapLensError) as exc:
         raise ExportError(str(exc)) from None
-    period_ns = round(period * 1e9)
     left_out, lost = 0, 0
     folders = []
     with output_folder(out, force) as stage:

@@ -206,6 +206,12 @@ def _temp_name(target: Path, suffix: str) -> Path:
     return target.parent / f".{target.name}.{_tag()}{secrets.token_hex(4)}{suffix}"
 
 
+def temporary(target: str | os.PathLike, suffix: str = ".tmp") -> Path:
+    """A fresh name for a temporary of `target` beside it, which `remove_stale(target)` removes once its process
+    no longer runs."""
+    return _temp_name(Path(target), suffix)
+
+
 def _named(exc: OSError, path: Path) -> OSError:
     """The same error naming the target, not the temporary the user never asked for."""
     return type(exc)(exc.errno, exc.strerror or str(exc), str(path))
@@ -308,7 +314,13 @@ def output_folder(target: str | os.PathLike, force: bool = False) -> Iterator[Pa
 
 
 def _swap(stage: Path, target: Path) -> None:
+    """Rename `target` aside, `stage` in (the commit), remove the aside; signals held off the whole while. A signal
+    that came before the commit puts the old folder back and stops the run (check_stop); one that came after it
+    came too late to stop a run now whole, and is dropped."""
+    from wiredsl import clear_stops, hold_stops, pending_stop
+
     old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+    hold_stops(True)
     try:
         check_stop()  # a signal dropped where it landed: the run is not swapped in
         os.chmod(stage, 0o777 & ~_umask())
@@ -323,18 +335,29 @@ def _swap(stage: Path, target: Path) -> None:
                     shutil.copytree(old, new, symlinks=True)
         for _ in range(100):  # another run may swap in between our two renames: move it aside too
             aside = _temp_name(target, ".old")
+            moved = False
             with contextlib.suppress(FileNotFoundError):
                 os.rename(target, aside)
+                moved = True
+            if pending_stop() is not None:  # before the commit: the old folder back, and stop
+                if moved:
+                    with contextlib.suppress(OSError):
+                        os.rename(aside, target)
+                check_stop()
             try:
                 os.rename(stage, target)
-                _remove(aside)
-                return
             except OSError:
                 _remove(aside)
                 if not target.is_dir():
                     raise
+                continue
+            _remove(aside)
+            if pending_stop() is not None:  # after the commit: the run is whole and in place
+                clear_stops()
+            return
         raise OSError(f"{target} kept being replaced by other runs")
     finally:
+        hold_stops(False)
         signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
 
 

@@ -61,6 +61,42 @@ class Task:
     def __post_init__(self):
         if self.kind not in ("reach", "track"):
             raise ValueError(f"a task is 'reach' or 'track', not {self.kind!r}")
+        for name in ("distance", "tolerance", "heading_tolerance"):  # inf made the reward NaN
+            _number(f"Task {name}", getattr(self, name), low=0.0, open_low=name == "distance")
+        _whole("Task min_features", self.min_features, 0)
+        _whole("Task patience", self.patience, 1)
+
+
+LARGEST = 1e9  # a length or angle argument at most this (the language's bound on lengths): 1e308 overflowed
+
+
+def _number(name: str, value, low: float | None = None, open_low: bool = False) -> float:
+    """A finite real number at least `low` (above it if `open_low`) and at most LARGEST, else ValueError."""
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) \
+        and math.isfinite(value) and abs(value) <= LARGEST
+    if ok and low is not None:
+        ok = value > low if open_low else value >= low
+    if not ok:
+        bound = "" if low is None else f" {'>' if open_low else '>='} {low:g}"
+        raise ValueError(f"{name} must be a finite number{bound}, at most {LARGEST:g}, not {value!r}")
+    return float(value)
+
+
+def _whole(name: str, value, low: int) -> int:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < low:
+        raise ValueError(f"{name} must be a whole number >= {low}, not {value!r}")
+    return int(value)
+
+
+def _check_arguments(start_noise, max_steps, step_length, turn, max_corners, max_segments, margin) -> None:
+    """The environment's numeric arguments: finite, in range (start_noise inf failed every reset)."""
+    _number("start_noise", start_noise, 0.0)
+    _number("step_length", step_length, 0.0, open_low=True)
+    _number("turn", turn, 0.0)
+    _number("margin", margin, 0.0)
+    _whole("max_steps", max_steps, 1)
+    _whole("max_corners", max_corners, 1)
+    _whole("max_segments", max_segments, 1)
 
 
 class WiredslEnv(gymnasium.Env):
@@ -72,6 +108,7 @@ class WiredslEnv(gymnasium.Env):
                  seed: int = 0, start=None, start_noise: float = 0.2, max_steps: int = 60,
                  step_length: float = 0.25, turn: float = 0.3, max_corners: int = 32, max_segments: int = 128,
                  margin: float = 1.0):
+        _check_arguments(start_noise, max_steps, step_length, turn, max_corners, max_segments, margin)
         self.scene = wiredsl.compile(scene) if isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__") \
             else scene
         if motion not in ("planar", "6dof"):
@@ -97,12 +134,17 @@ class WiredslEnv(gymnasium.Env):
         self.goal_xy = self.target_xy + task.distance * away / max(np.linalg.norm(away), 1e-9)
         self.goal_heading = math.atan2(*(self.target_xy - self.goal_xy)[::-1])
         self.cameras = [self.scene.camera(self.scene.rig.left.camera), self.scene.camera(self.scene.rig.right.camera)]
-        blo, bhi = self.bounds[0] - step_length, self.bounds[1] + step_length  # where a last move can take it
+        # where a last move can take it: a 6dof move is up to step_length along each of three axes at once
+        reach = step_length * (1.0 if motion == "planar" else math.sqrt(3.0))
+        blo, bhi = self.bounds[0] - reach, self.bounds[1] + reach
+        # and where a reset can put it: the start, outside the area or not, and its jitter
+        blo = np.minimum(blo, self.start[:2] - start_noise)
+        bhi = np.maximum(bhi, self.start[:2] + start_noise)
         if motion == "planar":
             low, high = [blo[0], blo[1], -math.pi], [bhi[0], bhi[1], math.pi]
         else:
-            low = [-1, -1, -1, blo[0], -1, -1, -1, blo[1], -1, -1, -1, -HEIGHT - step_length]
-            high = [1, 1, 1, bhi[0], 1, 1, 1, bhi[1], 1, 1, 1, HEIGHT + step_length]
+            low = [-1, -1, -1, blo[0], -1, -1, -1, blo[1], -1, -1, -1, -HEIGHT - reach]
+            high = [1, 1, 1, bhi[0], 1, 1, 1, bhi[1], 1, 1, 1, HEIGHT + reach]
         self.observation_space = spaces.Dict({
             "corners": spaces.Box(0.0, 1.0, (2, self.C, 2), np.float32),
             "corner_mask": spaces.MultiBinary((2, self.C)),
@@ -122,6 +164,22 @@ class WiredslEnv(gymnasium.Env):
             return self._pose.copy()
         R, t = self._pose[:3, :3], self._pose[:3, 3]
         return np.array([t[0], t[1], math.atan2(R[1, 0], R[0, 0])])
+
+    def _action(self, action) -> np.ndarray:
+        """The action as (n,) floats, or ValueError saying what is wrong with it (nothing changed yet)."""
+        n = self.action_space.shape[0]
+        try:
+            a = np.asarray(action)
+            if a.dtype.kind not in "iuf":  # not bool, complex (its imaginary part dropped), text nor objects
+                raise TypeError
+            a = a.astype(float)
+        except (TypeError, ValueError):
+            raise ValueError(f"an action is {n} numbers in [-1, 1] ({self.motion} motion), not {action!r}") from None
+        if a.shape != (n,):
+            raise ValueError(f"an action is {n} numbers in [-1, 1] ({self.motion} motion), got shape {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"an action must be finite, got {a.tolist()}")
+        return a
 
     def _move(self, action: np.ndarray) -> None:
         a = np.clip(np.asarray(action, dtype=float), -1.0, 1.0)
@@ -206,7 +264,7 @@ class WiredslEnv(gymnasium.Env):
     def step(self, action):
         if self._pose is None:
             raise RuntimeError("call reset() before step()")
-        self._move(action)
+        self._move(self._action(action))  # a bad action is refused before the pose changes
         self._step += 1
         batch, obs = self._look()
         info = self._info(batch)

@@ -24,10 +24,14 @@ class InitError(ValueError):
 def package_name(name: str) -> str:
     """The Python package (and scene) name of a project name: lower case, '-' as '_'; refused if not an
     identifier of at most 40 characters."""
+    import keyword
+
     package = name.replace("-", "_")
-    if not NAME.match(package):
-        raise InitError(f"'{name}' is not a usable name: lower-case letters, digits, '_' or '-', starting with a "
+    if not NAME.fullmatch(package):  # (match's `$` also matches before a final newline)
+        raise InitError(f"{name!r} is not a usable name: lower-case letters, digits, '_' or '-', starting with a "
                         "letter, at most 40 characters (it names the scene and the Python package)")
+    if keyword.iskeyword(package):  # `import class` does not compile
+        raise InitError(f"{name!r} is a Python keyword, which cannot name the Python package: choose another name")
     return package
 
 

@@ -47,7 +47,8 @@ def _grey_range(lo: float, hi: float):
 @click.option("--cameras", type=click.Choice(["both", "left"]), default="both", show_default=True)
 @click.option("--visibility", type=click.Choice(["exact", "scene", "all"]), default="exact", show_default=True,
               help="Hidden features: removed by the faces (exact), the view-points' lists (scene), or none.")
-@click.option("--force", is_flag=True, help="Replace an output folder that holds files wiredsl did not write.")
+@click.option("--force", is_flag=True, help="Replace an output folder that holds files wiredsl did not write, and "
+              "render beyond the CPU and memory budget (600 s, 1.5 GB estimated).")
 @diagnostics_option
 @guarded
 def render(file: str, output: str | None, pipeline_name: str | None, no_effects: bool, seed: int | None,

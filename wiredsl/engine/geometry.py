@@ -490,6 +490,13 @@ def lens_limit(cam, *, bounded: bool = True, **values) -> float:
     return min(limit, fov / 2) if fov is not None else limit
 
 
+# Beyond these the unified and EUCM formulas image every direction within a sliver of the centre (xi 1e100: a
+# point 90 deg off the axis lands at the image centre; beta 1e300 overflows): no calibrated lens is near them
+# (Kalibr's and basalt's fisheyes have xi about 1 to 3 and beta about 1)
+MAX_XI = 100.0
+MAX_BETA = 100.0
+
+
 def model_max_angle(model: str, g: dict) -> float:
     """The valid region of a wide-angle model as an angle from the optical axis (the DS paper's regions: Z > -w d
     and its kin); NaN for numbers that define no model (the caller refuses them). The unified model's radtan also
@@ -506,7 +513,7 @@ def model_max_angle(model: str, g: dict) -> float:
         return math.pi / 2 if 0.0 < g["w"] < math.pi else math.nan
     if model == "unified":
         xi = g["xi"]
-        if not xi >= 0.0:
+        if not 0.0 <= xi <= MAX_XI:
             return math.nan
         limit = acos_(min(xi, 1.0 / xi) if xi > 0 else 0.0)
         r_fold = fold_radius(g["k1"], g["k2"])
@@ -517,7 +524,7 @@ def model_max_angle(model: str, g: dict) -> float:
         return limit
     if model == "eucm":
         w, beta = w_of(g["alpha"]), g["beta"]
-        if not beta > 0.0 or math.isnan(w):
+        if not 0.0 < beta <= MAX_BETA or math.isnan(w):
             return math.nan
         return math.pi if w >= 1.0 else math.pi / 2 + math.atan(w * math.sqrt(beta / (1.0 - w * w)))
     if model == "ds":

@@ -48,7 +48,7 @@ _TWO = np.uint64(2)
 
 # ----------------------------------------------------------------------------- keyed draws
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _bits(key, index):
     z = key + (np.uint64(index) + _ONE) * _GOLDEN
     z = (z ^ (z >> _S30)) * _M1
@@ -56,12 +56,12 @@ def _bits(key, index):
     return z ^ (z >> _S31)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _uniform(key, index):
     return np.float64(_bits(key, index) >> _S11) * 2.0**-53
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _normal_pair(key, pair):
     """Normals 2 pair and 2 pair + 1 of a key (base.keyed_normal: Marsaglia's polar method, attempt a at uniforms
     2 (pair + a 2**32) and the next)."""
@@ -79,7 +79,7 @@ def _normal_pair(key, pair):
 
 # ----------------------------------------------------------------------------- packed strokes
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _stroke_arcs(pts, start, k, arc, L):
     """Arc length at each vertex of stroke k from its start, into arc, and its length into L[k]: alone for
     the strokes a cut needs, or for every stroke through _arcs."""
@@ -95,7 +95,7 @@ def _stroke_arcs(pts, start, k, arc, L):
         L[k] = arc[b - 1]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _arcs(pts, start):
     """Arc length at each vertex from its stroke's start, and stroke lengths (as imageset.arc_lengths)."""
     S = len(start) - 1
@@ -106,7 +106,7 @@ def _arcs(pts, start):
     return arc, L
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _total_length(pts, start):
     """The sum of the strokes' lengths, summed as _arcs does each stroke (for the statistics)."""
     total = 0.0
@@ -120,7 +120,7 @@ def _total_length(pts, start):
     return total
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _point_at(pts, arc, first, last, after, target, out, o):
     """The point at arc length target of the stroke [first, last] into out[o]; after is the first vertex of the
     stroke with arc > target (last + 1 if none), which the caller has at hand."""
@@ -134,7 +134,7 @@ def _point_at(pts, arc, first, last, after, target, out, o):
     out[o, 1] = pts[j, 1] + t * (pts[j1, 1] - pts[j, 1])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _keep(pts, start, meta, arc, L, ps, pa, pb, pfrag, pclosed, pcut, pwhole, n):
     """imageset.keep_intervals: parts [a, b] of strokes ps (n parts), whole parts verbatim; arc and L are
     the strokes' arc lengths (_arcs)."""
@@ -205,7 +205,7 @@ def _keep(pts, start, meta, arc, L, ps, pa, pb, pfrag, pclosed, pcut, pwhole, n)
     return out, ostart, ometa
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _unroll(pts, start, meta, which):
     """imageset.unroll_closed for the closed strokes where which[k]: traversed twice, then vertex 0. Where there
     is none, the strokes themselves (not a copy: callers only read them)."""
@@ -238,7 +238,7 @@ def _unroll(pts, start, meta, which):
 
 # ----------------------------------------------------------------------------- cameras and the image
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _within(r2, x, y, limit):
     """hypot(x, y) < limit, with r2 = x * x + y * y: decided on the squares, and by hypot itself only within
     1e-12 of the limit (the squares' rounding is far below that), so the decision is hypot's exactly."""
@@ -250,13 +250,13 @@ def _within(r2, x, y, limit):
     return math.hypot(x, y) < limit
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _stable_sum(p, q, squares):
     """geometry.stable_sum of scalars."""
     return squares / (p - q) if p * q < 0 else p + q
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _project(X, R, t, cam, limit, out, ok):
     """Perturbed camera (R (3, 3), t (3,), cam = geometry.CAMERA_ROW, lens limit) applied to world points:
     geometry.project and geometry.visible, term by term."""
@@ -318,7 +318,7 @@ def _project(X, R, t, cam, limit, out, ok):
         out[i, 1] = f * ay * yd + cy if good else 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _pieces(n):
     """Room for n kept pieces (_keep's arguments): stroke, start and end arc length, fragment, closed, cut, whole
     (0 or 1); the last four zero. Rows of two arrays: two allocations, not seven."""
@@ -327,7 +327,7 @@ def _pieces(n):
     return whole[0], ends[0], ends[1], whole[1], whole[2], whole[3], whole[4]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _keep_vertex_runs(pts, start, meta, ok):
     """imageset.keep_vertex_runs (arc lengths measured only along the strokes that are cut: a whole one is copied)."""
     S = len(start) - 1
@@ -360,7 +360,7 @@ def _keep_vertex_runs(pts, start, meta, ok):
     return _keep(pts, start, meta, arc, L, ps, pa, pb, pf, pc, pcut, pw, q)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _inside(pts, a, b, width, height):
     """Whether vertices a..b-1 are all inside the image."""
     for i in range(a, b):
@@ -369,7 +369,7 @@ def _inside(pts, a, b, width, height):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _liang_barsky(ax, ay, bx, by, width, height):
     dx, dy = bx - ax, by - ay
     t0, t1, keep = 0.0, 1.0, True
@@ -394,7 +394,7 @@ def _liang_barsky(ax, ay, bx, by, width, height):
     return t0, t1, keep and t0 <= t1
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _clip_rect(pts, start, meta, width, height):
     """imageset.clip_rect (arc lengths measured only along the strokes that cross the border: a stroke inside is
     copied whole)."""
@@ -435,14 +435,14 @@ def _clip_rect(pts, start, meta, width, height):
     return _keep(pts, start, meta, arc, L, ps, pa, pb, pf, pc, pcut, pw, q)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _dist(pts, i, j):
     dx = pts[j, 0] - pts[i, 0]
     dy = pts[j, 1] - pts[i, 1]
     return math.sqrt(dx * dx + dy * dy)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _clip_part(pts, arc, a, b, j, t0, e, t1):
     """The run of kept pairs j..e of stroke [a, b) (entering pair j at t0, leaving pair e at t1): its start and end
     arc lengths, and whether it is the whole stroke. (Scalars out, not writes into the pieces: a call that is
@@ -451,7 +451,7 @@ def _clip_part(pts, arc, a, b, j, t0, e, t1):
     return arc[j] + t0 * _dist(pts, j, j + 1), arc[e] + t1 * _dist(pts, e, e + 1), whole
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _part_meta(frag, closed, whole):
     """A clipped run's fragment, closed and cut columns."""
     return (frag, closed, 0) if whole else (max(frag, 0), 0, 1)
@@ -459,7 +459,7 @@ def _part_meta(frag, closed, whole):
 
 # ----------------------------------------------------------------------------- one view of a batch
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated, t):
     """Trial t's view before the image stages: the strokes and corners through its cameras (when calibrated),
     cut at invalid vertices and at the image border, or the template's as they are."""
@@ -481,7 +481,7 @@ def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds,
     return tpts, tstart, tmeta, tcorners, cfid
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _pack(res, cres):
     """The trials' packed strokes res [(pts, start, meta)] and corners cres [(corners, fid)] as one batch:
     (pts, start, meta, trial, corners, fid, trial)."""
@@ -610,7 +610,8 @@ def _load(functions: tuple[str, ...], cameras: tuple[bool, ...], workspaces: tup
               "from wiredsl.engine.kernel import _pack, _trial_input\n"
               + "".join(f"from {module} import {name} as _s{g}\n" for g, (module, name) in enumerate(parts))
               + "".join(f"from {module} import {name} as _ws{g}\n" for g, (module, name) in spaces.items())
-              + "\n\n@njit(cache=True)\n" + template.replace(stages, calls).replace(before, made))
+              + "\n\n@njit(cache=True, error_model=\"numpy\")\n"
+              + template.replace(stages, calls).replace(before, made))
     stamp = hashlib.sha256(source.encode())
     called = _called([getattr(importlib.import_module(module), name)
                       for module, name in [*parts, *spaces.values()]])

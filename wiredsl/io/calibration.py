@@ -94,6 +94,10 @@ def read(path: str | Path, fmt: str | None = None) -> list[CameraFile]:
     if fmt in ("camodocal", "basalt"):
         raise CalibrationFileError(f"the file is not {fmt}'s: " + ("no model_type with projection_parameters"
                                                                     if fmt == "camodocal" else "no value0.intrinsics"))
+    if fmt == "opencv" and _is_ros(doc):  # the format named is not the file's, as for camodocal and basalt
+        raise CalibrationFileError("the file is not OpenCV's: it is a ROS camera_info (camera_name, "
+                                   "distortion_model, K or projection_matrix); write `format ros`, or leave the "
+                                   "format out")
     fmt = fmt or ("kalibr" if _is_kalibr(doc) else "ros" if _is_ros(doc) else "opencv")
     return {"opencv": _opencv, "ros": _ros, "kalibr": _kalibr}[fmt](doc)
 

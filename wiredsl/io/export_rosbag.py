@@ -22,6 +22,8 @@ A corner whose ray does not meet the z = 1 plane (a lens wider than 180 deg) is 
 
 from __future__ import annotations
 
+import os
+import sqlite3
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +32,7 @@ from wiredsl.files import require_finite
 from wiredsl.io.observations import CAMERAS, Source, Trial
 
 START_NS = 1_000_000_000  # pose 0's stamp: 1 s (0 is "no time" to tf2)
+MAX_SEC = 2**31 - 1  # builtin_interfaces/Time's sec is an int32
 STROKE_MSG = """\
 # wiredsl_msgs/msg/Stroke: one feature's image in one view, a polyline in pixels
 string feature      # placement.feature, as the scene names it
@@ -150,7 +153,33 @@ def write(path: Path, src: Source, trial: Trial, period_ns: int) -> int:
     from rosbags.rosbag2 import Writer
 
     store = typestore()
-    stamp = {p: src.stamps_ns[p] if src.stamps_ns is not None else START_NS + p * period_ns for p in src.poses}
+    stamp = stamps(src, period_ns)
+    check_stamps(stamp.values())
+    try:
+        return _write(path, src, trial, stamp, store, Writer)
+    except sqlite3.Error as exc:  # the bag's storage: a full disk, a read-only folder
+        import errno
+
+        full = "full" in str(exc).lower()
+        raise OSError(errno.ENOSPC if full else errno.EIO, os.strerror(errno.ENOSPC) if full else f"sqlite3: {exc}",
+                      str(path)) from None
+
+
+def stamps(src: Source, period_ns: int) -> dict[int, int]:
+    """Each pose's stamp (ns): the trajectory's, or 1 s + pose x period."""
+    return {p: src.stamps_ns[p] if src.stamps_ns is not None else START_NS + p * period_ns for p in src.poses}
+
+
+def check_stamps(stamps) -> None:
+    """ValueError unless every stamp (ns) fits a ROS 2 Time, whose sec is an int32 (up to 2038-01-19 03:14:07)."""
+    secs = [ns // 1_000_000_000 for ns in stamps]
+    bad = [s for s in secs if not -MAX_SEC - 1 <= s <= MAX_SEC]
+    if bad:
+        raise ValueError(f"a pose stamped {bad[0]} s does not fit a ROS 2 Time (its seconds are an int32: at most "
+                         f"{MAX_SEC} s, 2038-01-19 03:14:07 UTC); shift the trajectory's times or shorten --period")
+
+
+def _write(path: Path, src: Source, trial: Trial, stamp: dict, store, Writer) -> int:
     left_out = 0
     with Writer(path, version=9) as writer:
         conns = {}

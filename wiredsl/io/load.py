@@ -76,7 +76,9 @@ def load(path, *, trial=None, pose=None, camera=None, arrays: bool = False):
                 view = p.get(side)
                 if view is None or not pick[2](cam):
                     continue
-                out += [{"trial": t, "pose": p["index"], "camera": side, **f} for k in KIND_ORDER for f in view[k]]
+                # a kind list left out is empty, as the features model (and so `validate`) takes it
+                out += [{"trial": t, "pose": p["index"], "camera": side, **f} for k in KIND_ORDER
+                        for f in view.get(k, [])]
     return out
 
 
@@ -100,7 +102,9 @@ def _json_docs(path: Path) -> list[dict]:
     for doc in docs:
         kind = doc.get("document") if isinstance(doc, dict) else None
         if kind != "features" or not isinstance(doc.get("poses"), list):
-            what = _DOCUMENTS.get(kind, "not a wiredsl features document")
+            # (a damaged "document" may be a list or an object: no key of the table)
+            what = _DOCUMENTS.get(kind, "not a wiredsl features document") if isinstance(kind, str) else \
+                "not a wiredsl features document"
             raise DumpError(f"{path}: this is {what}, not a dump; {_NOT_A_DUMP}")
     _check_features(path, lines if path.suffix == ".jsonl" else [(None, text)])
     return docs

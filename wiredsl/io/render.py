@@ -85,9 +85,12 @@ class Image:
 # ----------------------------------------------------------------------------- the scene's views
 
 def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=None, cameras: str = "both",
-           visibility: str = "exact", world=None) -> Iterator[Image]:
+           visibility: str = "exact", world=None, force: bool = False) -> Iterator[Image]:
     """Every chosen view of the scene's path, drawn: trial 0 of `pipeline` (a Pipeline, None: the ideal
-    projection) with `seed`, which also keys the noise. Images come pose by pose, left then right."""
+    projection) with `seed`, which also keys the noise. Images come pose by pose, left then right.
+
+    Before the first image the work is estimated (`estimate`): beyond CPU_BUDGET or MEMORY_BUDGET the render is
+    refused (RunSetupError naming --force) unless `force`."""
     from wiredsl.engine.simulate import Options
     from wiredsl.engine.world import build_world, surface_triangles
     from wiredsl.io import emit, viewdep
@@ -109,6 +112,14 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
     face_of = np.concatenate([face_of, np.full(len(sil), -1)])
     names = list(world.face_src)
     boards = {names.index(k): b for k, b in look.boards.items() if k in names}
+    views = [getattr(r, side) for r in results for side in ("left", "right") if getattr(r, side) is not None]
+    cost = estimate(views, tris, look)
+    if not force and (cost.seconds > CPU_BUDGET or cost.bytes > MEMORY_BUDGET):
+        from wiredsl.run import RunSetupError
+
+        raise RunSetupError(f"{cost}, beyond the {CPU_BUDGET:g} s of CPU and {MEMORY_BUDGET / 1e9:g} GB a render may "
+                            "take without --force: fewer poses (--pose), a smaller --supersample or --faces none",
+                            "--force")
     rays: dict = {}
     for r in results:
         for side in ("left", "right"):
@@ -157,31 +168,125 @@ def sensor_noise(shape: tuple[int, int], seed: int, pose: int, side: str) -> np.
     return keyed_normal(key, np.arange(shape[0] * shape[1], dtype=np.uint64)).reshape(shape)
 
 
+# ----------------------------------------------------------------------------- cost
+
+# What a render may take without --force, and the rates its estimate is made with (measured by
+# benchmarks/render_cost.py on a loaded 2-core machine; the estimate is for refusing the absurd, not a forecast)
+CPU_BUDGET = 600.0  # s
+MEMORY_BUDGET = 1.5e9  # bytes
+RAY_TESTS_A_SECOND = 1.0e8  # ray-triangle tests (samples in a triangle's box) a second
+PIXELS_A_SECOND = 2.0e6  # pixels a second drawn, blurred, noised and written, per image
+FEATURE_PIXELS_A_SECOND = 2.0e7  # pixels of strokes' boxes (the band's coverage) a second
+TRIANGLE_SECONDS = 3e-5  # the fixed cost of casting one triangle's box in one tile
+BLUR_TAPS_A_SECOND = 3e8  # the Gaussian's taps (2 passes of 8 sigma + 1 each, a pixel) a second
+IMAGE_ARRAYS = 10  # float64 arrays of one image alive at once (the image, ink coverage, blur, noise)
+TILE = 1024  # samples a side of the tiles the faces are ray-cast in: the rays' memory is bounded whatever the size
+TILE_BYTES = TILE * TILE * 200  # the rays and hit tests of one tile
+
+
+@dataclass(frozen=True)
+class Cost:
+    """A render's estimated work: ray-triangle tests, pixels, CPU seconds and peak bytes."""
+
+    views: int
+    ray_tests: float
+    pixels: float
+    seconds: float
+    bytes: float
+
+    def __str__(self) -> str:
+        return (f"{self.views} view{'s' * (self.views != 1)} would take about {self.seconds:,.0f} s of CPU "
+                f"({self.ray_tests:.3g} ray-triangle tests, {self.pixels:.3g} pixels) and "
+                f"{self.bytes / 1e9:.2g} GB of memory")
+
+
+def estimate(views, tris: np.ndarray, look: Look) -> Cost:
+    """The work of drawing `views` (engine Views: camera, pose, features) with faces `tris` (T, 3, 3, world
+    frame): the samples of every triangle's box, and of every stroke segment's, counted as the drawing meets
+    them; the memory of the largest image."""
+    tests = pixels = stroke = boxes = 0.0
+    peak = 0.0
+    for view in views:
+        cam = view.camera
+        n_pix = float(cam.width) * float(cam.height)
+        pixels += n_pix
+        peak = max(peak, IMAGE_ARRAYS * 8 * n_pix + TILE_BYTES)
+        if look.faces == "shaded" and len(tris):
+            R_cw, t_cw = np.asarray(view.R_cw, float), np.asarray(view.t_cw, float)
+            b = _pixel_boxes(cam, tris @ R_cw.T + t_cw, look.supersample).astype(float)
+            area = np.maximum(b[:, 1] - b[:, 0], 0) * np.maximum(b[:, 3] - b[:, 2], 0)
+            tests += float(area.sum())
+            boxes += float(np.ceil(area / TILE**2).sum())  # (at least one tile a triangle that shows)
+        if look.edges != "none":
+            reach = look.width + 2.0
+            for f in view.features:
+                if f.kind in ("line", "polyline") and len(f.points) >= 2:
+                    P = np.asarray(f.points, float)
+                    P = P[np.isfinite(P).all(axis=1)]
+                    lo = np.clip(np.minimum(P[:-1], P[1:]) - reach, 0, [cam.width, cam.height])
+                    hi = np.clip(np.maximum(P[:-1], P[1:]) + reach, 0, [cam.width, cam.height])
+                    stroke += float(np.prod(np.maximum(hi - lo, 0), axis=1).sum())
+    blur = pixels * 2 * (8 * look.blur + 1) if look.blur > 0 else 0.0
+    seconds = (tests / RAY_TESTS_A_SECOND + boxes * TRIANGLE_SECONDS + pixels / PIXELS_A_SECOND
+               + stroke / FEATURE_PIXELS_A_SECOND + blur / BLUR_TAPS_A_SECOND)
+    return Cost(len(views), tests, pixels, seconds, peak)
+
+
 # ----------------------------------------------------------------------------- faces
 
-def pixel_rays(cam: Camera, ss: int, step: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame ray directions (H ss, W ss, 3) through the sub-pixel sample points, and which exist.
+@dataclass
+class Rays:
+    """Camera-frame ray directions through a camera's sub-pixel sample points, made a tile at a time.
 
-    Sample (i, j) of pixel (r, c) is at (c + (j + 0.5) / ss - 0.5, r + (i + 0.5) / ss - 0.5). Under distortion
-    the rays are solved on a grid of every `step` px and interpolated by bicubic splines (the lens is smooth:
-    within 1e-6 of the unit plane of each ray, far below a pixel, in the tests' lenses)."""
+    Sample (i, j) of pixel (r, c) is at (c + (j + 0.5) / ss - 0.5, r + (i + 0.5) / ss - 0.5): the sample grid
+    is (height ss, width ss). Under distortion the rays are solved on a grid of nodes every `step` px and
+    interpolated by bicubic splines (the lens is smooth: within 1e-6 of the unit plane of each ray, far below a
+    pixel, in the tests' lenses); `splines` is None for a pinhole."""
+
+    cam: Camera
+    ss: int
+    u: np.ndarray  # (width ss,) sample columns, px
+    v: np.ndarray  # (height ss,) sample rows, px
+    splines: tuple | None = None  # x, y, z and the nodes' existence
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return len(self.v), len(self.u)
+
+    def tile(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        """Directions (r1 - r0, c1 - c0, 3) of sample rows [r0, r1) and columns [c0, c1), and which exist."""
+        cam, u, v = self.cam, self.u[c0:c1], self.v[r0:r1]
+        if self.splines is None:
+            X = (u - cam.cx) / (cam.f * cam.ax)
+            Y = (v - cam.cy) / (cam.f * cam.ay)
+            D = np.stack(np.broadcast_arrays(X[None, :], Y[:, None], 1.0), axis=-1).astype(float)
+            return D, np.ones((len(v), len(u)), dtype=bool)
+        *xyz, exists = self.splines
+        D = np.stack([sp(v, u) for sp in xyz], axis=-1)
+        near = exists(v, u) > 0.999  # rays all of whose grid neighbours exist
+        return np.where(near[..., None], D, 0.0), near
+
+
+def _nodes(n: int, step: int) -> np.ndarray:
+    """Spline nodes across [-1, n] every `step` px, and n itself; at least 4 (a bicubic spline's minimum)."""
+    nodes = np.unique(np.concatenate([np.arange(-1.0, n + 1, step), [float(n)]]))
+    return nodes if len(nodes) >= 4 else np.linspace(-1.0, float(n), 4)
+
+
+def pixel_rays(cam: Camera, ss: int, step: int = 8) -> Rays:
+    """The rays of `cam` at `ss` x `ss` samples a pixel (see Rays); under distortion the spline nodes solved."""
     from scipy.interpolate import RectBivariateSpline
 
     off = (np.arange(ss) + 0.5) / ss - 0.5
     u = (np.arange(cam.width)[:, None] + off[None, :]).ravel()
     v = (np.arange(cam.height)[:, None] + off[None, :]).ravel()
     if not geometry.is_distorted(cam):
-        X = (u - cam.cx) / (cam.f * cam.ax)
-        Y = (v - cam.cy) / (cam.f * cam.ay)
-        D = np.stack(np.broadcast_arrays(X[None, :], Y[:, None], 1.0), axis=-1).astype(float)
-        return D, np.ones((len(v), len(u)), dtype=bool)
-    gu = np.unique(np.concatenate([np.arange(-1.0, cam.width + 1, step), [float(cam.width)]]))
-    gv = np.unique(np.concatenate([np.arange(-1.0, cam.height + 1, step), [float(cam.height)]]))
+        return Rays(cam, ss, u, v)
+    gu, gv = _nodes(cam.width, step), _nodes(cam.height, step)
     G, ok = _rays_at(cam, np.stack(np.meshgrid(gu, gv), axis=-1).reshape(-1, 2))
     G, ok = G.reshape(len(gv), len(gu), 3), ok.reshape(len(gv), len(gu))
-    D = np.stack([RectBivariateSpline(gv, gu, G[..., k], kx=3, ky=3)(v, u) for k in range(3)], axis=-1)
-    near = RectBivariateSpline(gv, gu, ok.astype(float), kx=1, ky=1)(v, u) > 0.999  # rays all of whose grid
-    return np.where(near[..., None], D, 0.0), near  # neighbours exist
+    splines = tuple(RectBivariateSpline(gv, gu, G[..., k], kx=3, ky=3) for k in range(3))
+    return Rays(cam, ss, u, v, (*splines, RectBivariateSpline(gv, gu, ok.astype(float), kx=1, ky=1)))
 
 
 def _rays_at(cam: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -202,18 +307,41 @@ def _rays_at(cam: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(ok[:, None], D, 0.0), ok
 
 
-def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays, background: float, boards: dict,
+def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays: Rays, background: float, boards: dict,
                 T_world: np.ndarray) -> np.ndarray:
-    """The faces' image (H, W) float: nearest triangle of T (camera frame) along every ray, Lambert-shaded."""
-    D, ok = rays
-    Hs, Ws = ok.shape
-    ss = Hs // cam.height
-    depth = np.full((Hs, Ws), np.inf)
-    grey = np.full((Hs, Ws), float(background))
-    light = np.asarray(LIGHT, float) / np.linalg.norm(LIGHT)
+    """The faces' image (H, W) float: nearest triangle of T (camera frame) along every ray, Lambert-shaded.
+
+    Cast in tiles of at most TILE x TILE samples (whole pixels), each with the triangles whose box meets it."""
+    Hs, Ws = rays.shape
+    ss = rays.ss
     boxes = _pixel_boxes(cam, T, ss)
-    for k in np.flatnonzero((boxes[:, 0] < boxes[:, 1]) & (boxes[:, 2] < boxes[:, 3])).tolist():
-        c0, c1, r0, r1 = boxes[k].tolist()
+    live = np.flatnonzero((boxes[:, 0] < boxes[:, 1]) & (boxes[:, 2] < boxes[:, 3]))
+    out = np.empty((cam.height, cam.width))
+    side = max(1, TILE // ss) * ss
+    for r0 in range(0, Hs, side):
+        r1 = min(r0 + side, Hs)
+        for c0 in range(0, Ws, side):
+            c1 = min(c0 + side, Ws)
+            b = boxes[live]
+            meets = live[(b[:, 0] < c1) & (b[:, 1] > c0) & (b[:, 2] < r1) & (b[:, 3] > r0)]
+            grey = np.full((r1 - r0, c1 - c0), float(background))
+            if len(meets):
+                D, ok = rays.tile(r0, r1, c0, c1)
+                box = np.clip(boxes[meets] - [c0, c0, r0, r0], 0, [c1 - c0, c1 - c0, r1 - r0, r1 - r0])
+                _shade_tile(D, ok, grey, T, meets, box, face_of, boards, T_world)
+            out[r0 // ss:r1 // ss, c0 // ss:c1 // ss] = grey.reshape(
+                (r1 - r0) // ss, ss, (c1 - c0) // ss, ss).mean(axis=(1, 3))
+    return out
+
+
+def _shade_tile(D, ok, grey, T, which, boxes, face_of, boards, T_world) -> None:
+    """Shade one tile's samples `grey` (h, w) in place: triangles `which` of T, `boxes` their [c0, c1, r0, r1)
+    in the tile, along the tile's rays D (h, w, 3) where `ok`."""
+    depth = np.full(grey.shape, np.inf)
+    light = np.asarray(LIGHT, float) / np.linalg.norm(LIGHT)
+    for k, (c0, c1, r0, r1) in zip(which.tolist(), boxes.tolist(), strict=True):
+        if c0 >= c1 or r0 >= r1:
+            continue
         d = D[r0:r1, c0:c1].reshape(-1, 3)
         V0, e1, e2 = T[k, 0], T[k, 1] - T[k, 0], T[k, 2] - T[k, 0]
         # Moller-Trumbore with the ray's direction d factored out: det = d . (e2 x e1), u = d . (e2 x s) / det,
@@ -252,7 +380,6 @@ def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays, backgroun
         g = grey[r0:r1, c0:c1].reshape(-1)
         g[hit] = value
         grey[r0:r1, c0:c1] = g.reshape(r1 - r0, c1 - c0)
-    return grey.reshape(cam.height, ss, cam.width, ss).mean(axis=(1, 3))
 
 
 def _pixel_boxes(cam: Camera, T: np.ndarray, ss: int, samples: int = 8) -> np.ndarray:
@@ -444,7 +571,7 @@ def write(folder, scene, *, pipeline=None, seed: int = 0, look: Look = Look(), p
     written = []
     with output_folder(folder, force) as stage:
         for image in render(scene, pipeline=pipeline, seed=seed, look=look, poses=poses, cameras=cameras,
-                            visibility=visibility):
+                            visibility=visibility, force=force):
             write_atomic(stage / image.name, png_bytes(image.pixels), tidy=False)
             image.pixels = None  # bounded memory: only the manifest's numbers are kept
             written.append(image)

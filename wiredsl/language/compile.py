@@ -22,7 +22,7 @@ from wiredsl.io import sources
 from wiredsl.language import ast
 from wiredsl.language.bind import Bound, bind
 from wiredsl.language.compile_camera import CameraCompiler, _mat, _unit, rotation
-from wiredsl.language.statements import CONTEXTS, MAX_MAGNITUDE
+from wiredsl.language.statements import ARUCO_MARKERS, CONTEXTS, MAX_MAGNITUDE
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
 from wiredsl.plugins import params_dump, params_of
 from wiredsl.scene import (
@@ -388,8 +388,9 @@ class Compiler(CameraCompiler):
         columns, rows = (across + 1, down + 1) if own == "inner" else (across, down)
         side = b.get("square")
         margin = b.get("margin", side)
-        if not 0 < side:
-            self.out.error("E110", f"a square's side must be positive, got {side:g} m", b.span("square"))
+        if not MIN_SQUARE <= side:  # (a marker of 1e-300 m is 0 to OpenCV's 32-bit floats)
+            self.out.error("E110", f"a square's side must be at least {MIN_SQUARE:g} m, got {side:g} m",
+                           b.span("square"))
             return
         if not 0 <= margin:
             self.out.error("E110", f"the margin must not be negative, got {margin:g} m", b.span("margin"))
@@ -397,14 +398,14 @@ class Compiler(CameraCompiler):
         marker = dictionary = None
         if kind == "charuco":
             marker = b.get("marker", 0.75 * side)
-            if not 0 < marker < side:
-                self.out.error("E110", f"a marker must be smaller than a square ({side:g} m), got {marker:g} m",
-                               b.span("marker"))
+            if not MARKER_SHARE * side <= marker < side:  # a smaller one OpenCV neither draws nor finds
+                self.out.error("E110", f"a marker must be at least {MARKER_SHARE:g} of a square and smaller than it "
+                                       f"({MARKER_SHARE * side:g} to {side:g} m), got {marker:g} m", b.span("marker"))
                 return
             dictionary = b.get("dictionary", "DICT_4X4_50")
-            size = int(dictionary.rsplit("_", 1)[1]) if dictionary.rsplit("_", 1)[1].isdigit() else None
+            size = ARUCO_MARKERS[dictionary]
             wanted = (columns * rows) // 2
-            if size is not None and wanted > size:
+            if wanted > size:
                 self.out.error("E110", f"a {columns} x {rows} charuco board needs {wanted} markers; dictionary "
                                        f"{dictionary} has {size}", b.span("dictionary"))
                 return
@@ -861,6 +862,8 @@ class Compiler(CameraCompiler):
 
 
 MAX_BOARD = 200  # squares or inner corners a board has each way at most
+MARKER_SHARE = 0.25  # a ChArUco marker's side at least this share of its square's: OpenCV draws a square in 64 px
+MIN_SQUARE = 1e-6  # m: a board's square at least this
 
 
 def board_model(name: str, board: Board) -> Model:

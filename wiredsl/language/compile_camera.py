@@ -25,7 +25,8 @@ PLAUSIBLE_FOV = 1000  # f over the image's larger side beyond which a focal leng
 MAX_MATRIX_ENTRY = 1e100  # calibration entries: inverses, square roots and products of them stay finite
 LENS = ("distortion", "k", "k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2", "xi", "alpha", "beta", "w")
 ENTRIES = ("first", "second", "third")  # `read ... entry`: these, or camN (Kalibr's name, N from 0)
-LENS_RANGES = {"unified": "xi >= 0", "eucm": "alpha in [0, 1], beta > 0", "ds": "alpha in [0, 1], xi in (-1, 1]",
+LENS_RANGES = {"unified": "xi in [0, 100]", "eucm": "alpha in [0, 1], beta in (0, 100]",
+               "ds": "alpha in [0, 1], xi in (-1, 1]",
                "fov": "w in (0, 180) deg"}
 STEREO_BASELINE = 5.0  # metres: a stereo pair's |T| beyond this is more likely in millimetres
 

@@ -20,6 +20,10 @@ BOARD_KINDS = ("chessboard", "charuco")
 # OpenCV's predefined ArUco dictionaries (cv2.aruco.DICT_<NAME upper>)
 ARUCO = tuple(f"DICT_{n}X{n}_{k}" for n in (4, 5, 6, 7) for k in (50, 100, 250, 1000)) + (
     "DICT_ARUCO_ORIGINAL", "DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h10", "DICT_APRILTAG_36h11")
+# how many markers each holds (cv2.aruco.getPredefinedDictionary(...).bytesList.shape[0]; a name need not end in it)
+ARUCO_MARKERS = {**{f"DICT_{n}X{n}_{k}": k for n in (4, 5, 6, 7) for k in (50, 100, 250, 1000)},
+                 "DICT_ARUCO_ORIGINAL": 1024, "DICT_APRILTAG_16h5": 30, "DICT_APRILTAG_25h9": 35,
+                 "DICT_APRILTAG_36h10": 2320, "DICT_APRILTAG_36h11": 587}
 
 
 @dataclass(frozen=True)

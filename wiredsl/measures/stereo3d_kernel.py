@@ -17,7 +17,7 @@ from numba import njit
 from wiredsl.engine.kernel import distort_radtan, radtan_jacobian
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def undistort_radtan(xd, k1, k2, p1, p2, k3, k4, k5, k6, steps, limit):
     """Undistorted unit-plane points (n, 2) of distorted ones xd (n, 2), and which converged (n,)."""
     n = xd.shape[0]
@@ -41,7 +41,7 @@ def undistort_radtan(xd, k1, k2, p1, p2, k3, k4, k5, k6, steps, limit):
     return out, ok
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _inverse_iteration(A, v):
     """v (4,) := the unit right singular vector of the smallest singular value of A (4, 4) by inverse iteration,
     and True, when it converged in 3 solves; else False (v undefined). A = P L U once (partial pivoting; a pivot
@@ -105,7 +105,7 @@ def _inverse_iteration(A, v):
     return moved < 1e-12
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _jacobi(A, v):
     """v (4,) := the right singular vector of the smallest singular value of A (4, 4), by one-sided Jacobi
     (Hestenes): plane rotations of A's columns until every pair is orthogonal to rounding, accumulated in V; the
@@ -145,7 +145,7 @@ def _jacobi(A, v):
         v[r] = V[r, k]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def triangulate(P1, P2, x1, x2):
     """`stereo3d.triangulate` (linear DLT of two views, as `cv2.triangulatePoints`) point by point: the homogeneous
     point is the right singular vector of the smallest singular value of A (4, 4), the DLT rows, found by inverse

@@ -7,7 +7,7 @@ import math
 import click
 
 from wiredsl import install_hint
-from wiredsl.cli_base import diagnostics_option, guarded, report
+from wiredsl.cli_base import FiniteRange, diagnostics_option, guarded, report
 
 
 @click.command()
@@ -28,15 +28,15 @@ from wiredsl.cli_base import diagnostics_option, guarded, report
               help="canny, lsd, harris, shi-tomasi, or an installed plug-in (entry points wiredsl.detectors); "
                    "repeatable.")
 @click.option("--param", "params", multiple=True, help="A detector parameter, [DETECTOR.]KEY=VALUE (repeatable).")
-@click.option("--step", type=click.FloatRange(0.25, 100), default=2.0, show_default=True,
+@click.option("--step", type=FiniteRange(0.25, 100), default=2.0, show_default=True,
               help="px between samples along a model edge.")
-@click.option("--band", type=click.FloatRange(0.5, 100), default=6.0, show_default=True,
+@click.option("--band", type=FiniteRange(0.5, 100), default=6.0, show_default=True,
               help="px searched either side of a sample, along the edge's normal.")
-@click.option("--angle", type=click.FloatRange(1, 90), default=20.0, show_default=True,
+@click.option("--angle", type=FiniteRange(1, 90), default=20.0, show_default=True,
               help="deg: largest angle between a detected gradient and the model edge's normal.")
-@click.option("--radius", type=click.FloatRange(0.5, 1000), default=10.0, show_default=True,
+@click.option("--radius", type=FiniteRange(0.5, 1000), default=10.0, show_default=True,
               help="px: a model corner is found when a detected corner is this near (the paper's 10 px).")
-@click.option("--inlier", type=click.FloatRange(0.1, 1000), default=2.0, show_default=True,
+@click.option("--inlier", type=FiniteRange(0.1, 1000), default=2.0, show_default=True,
               help="px: a found corner farther than this from the model's is displaced (a corner mismatch).")
 @click.option("--refine", is_flag=True, help="Refine each pose to align the model with the detected edges first.")
 @click.option("--fit", "do_fit", is_flag=True, help="Fit each effect's parameters and write the pipeline (.wd).")
@@ -110,10 +110,10 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
         r = outcome.refined
         before = [m["rms_offset_before_px"] for m in r if m["rms_offset_before_px"] is not None]
         after = [m["rms_offset_after_px"] for m in r if m["rms_offset_after_px"] is not None]
+        offset = (f"median RMS offset {statistics.median(before):.3g} -> {statistics.median(after):.3g} px"
+                  if before and after else "no edge found to measure an offset by")  # (not "nan -> nan")
         click.echo(f"refined {len(r)} poses: median move {statistics.median(m['rotation_deg'] for m in r):.3g} deg, "
-                   f"{statistics.median(m['translation'] for m in r):.3g} (scene units); median RMS offset "
-                   f"{statistics.median(before) if before else float('nan'):.3g} -> "
-                   f"{statistics.median(after) if after else float('nan'):.3g} px", err=True)
+                   f"{statistics.median(m['translation'] for m in r):.3g} (scene units); {offset}", err=True)
     for key, e in (outcome.prediction or {}).items():
         if e["ks"] is not None:
             click.echo(f"predict\t{key}\treal {e['real_mean']:.4g}\tsimulated {e['simulated_mean']:.4g}\t"

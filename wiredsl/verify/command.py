@@ -8,18 +8,20 @@ import dataclasses
 import os
 import shutil
 import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from wiredsl.diagnostics import Diagnostic, WiredslError
+from wiredsl.files import remove_stale, temporary
 from wiredsl.verify import fit as fitting
 from wiredsl.verify import images as im
 from wiredsl.verify import report
 from wiredsl.verify import verification as ver
 from wiredsl.verify.detectors import Detection, checked, params_of, registry
+
+STAGE = "verify"  # the staging folder inside -o is a temporary of -o/verify (files.temporary)
 
 
 @dataclass
@@ -221,7 +223,11 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         if progress is not None:
             progress(i + 1, len(frames))
     out.mkdir(parents=True, exist_ok=True)
-    final, out = out, Path(tempfile.mkdtemp(prefix=".verify-", dir=out))  # staged: published together at the end
+    # staged: published together at the end. Named as every temporary of wiredsl's (host, pid), so that a later
+    # run removes the stage of one that was killed (SIGKILL leaves no chance to clean up)
+    remove_stale(out / STAGE)
+    final, out = out, temporary(out / STAGE, ".tmp")
+    out.mkdir()
     try:
         summary = fractions.summary()
         meta = {"scene": str(req.scene), "images": n_images, "frames": len(frames), "poses": pose_note,

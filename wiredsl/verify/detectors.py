@@ -49,7 +49,8 @@ class Detection:
 
 
 class DetectorParams(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan: a NaN or infinite parameter means nothing to a detector (min_distance=inf crashed OpenCV)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Detector:
@@ -92,7 +93,8 @@ class Canny(Detector):
 
 
 class LSDParams(DetectorParams):
-    scale: float = Field(0.8, gt=0, le=1, description="image scale the segments are found at")
+    # at least 0.05: OpenCV's LSD smooths with sigma 0.6 / scale, and a scale of 1e-8 ran for ever
+    scale: float = Field(0.8, ge=0.05, le=1, description="image scale the segments are found at")
     min_length: float = Field(5.0, ge=0, description="shorter segments are dropped (px)")
 
 
@@ -142,14 +144,26 @@ class Harris(Detector):
     def detect(cls, image, p: CornerParams) -> Detection:
         import cv2
 
-        pts = cv2.goodFeaturesToTrack(image, p.max_corners, p.quality, p.min_distance, blockSize=p.block,
+        h, w = image.shape[:2]
+        # a min_distance beyond the image's diagonal keeps one corner, as the diagonal does; OpenCV's grid of
+        # min_distance cells overflows an int (and segfaults) near 2**31 px
+        min_distance = min(p.min_distance, math.hypot(h, w) + 1.0)
+        pts = cv2.goodFeaturesToTrack(image, p.max_corners, p.quality, min_distance, blockSize=p.block,
                                       useHarrisDetector=cls.harris, k=p.k)
         if pts is None:
             return Detection(corners=np.zeros((0, 2)))
         pts = pts.astype(np.float32)
-        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
-        cv2.cornerSubPix(image, pts, (p.subpix_window, p.subpix_window), (-1, -1), crit)
-        return Detection(corners=pts.reshape(-1, 2).astype(float))
+        # cv2.cornerSubPix asserts an image of at least 2 x window + 5 px each way: a smaller image gets the
+        # largest window that fits, or no refinement at all
+        window = min(p.subpix_window, (min(h, w) - 5) // 2)
+        note = ""
+        if window < p.subpix_window:
+            note = (f"image {w} x {h} px too small for the sub-pixel window {p.subpix_window}: "
+                    + (f"refined with window {window}" if window >= 1 else "corners not refined"))
+        if window >= 1:
+            crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
+            cv2.cornerSubPix(image, pts, (window, window), (-1, -1), crit)
+        return Detection(corners=pts.reshape(-1, 2).astype(float), note=note)
 
 
 class ShiTomasi(Harris):
