@@ -88,6 +88,31 @@ def test_edge_loss_removes_each_views_drawn_fraction_from_the_declared_beta():
     assert np.std(removed) > 0.06  # not the fixed fraction's zero spread
 
 
+def test_edge_loss_draws_each_features_fraction_from_a_beta_about_its_views():
+    scene = _scene(2)
+    pipe = Pipeline(name="v", stages=[Stage(effect="edge_loss", params={"fraction": 0.3, "feature_spread": 0.1})])
+    run = Run.create(scene, build_world(scene), pipe, 5, Options())
+    ideal = {r.index: r for r in run.ideal()}
+    removed = []
+    for _, out in run.batches(range(100), 100):
+        for r, disturbed, _ in out:
+            t0 = run.template(ideal[r.index], "left", raw=False)[0]
+            L0 = dict(zip(t0.fid.tolist(), _lengths(t0), strict=True))
+            s = disturbed["left"]
+            for t in np.unique(s.trial):
+                one = s.take(s.trial == t)
+                kept = np.bincount(one.fid, weights=_lengths(one), minlength=max(L0) + 1)
+                removed += [1 - kept[f] / L for f, L in L0.items()]
+    a, b = var.beta_shapes(0.3, 0.1)
+    assert stats.kstest(np.array(removed), stats.beta(a, b).cdf).pvalue > 1e-3
+
+
+def _lengths(s) -> np.ndarray:
+    from wiredsl.engine import imageset as im
+
+    return im.arc_lengths(s)[1]
+
+
 def _length(s) -> float:
     from wiredsl.engine import imageset as im
 
@@ -120,14 +145,17 @@ def test_a_corners_fate_persists_along_the_path_with_the_ar1_autocorrelation():
 
 
 VARIED = Pipeline(name="v", stages=[
-    Stage(effect="edge_loss", params={"fraction": 0.3, "spread": 0.1, "correlation": 0.2}),
+    Stage(effect="edge_loss", params={"fraction": 0.3, "spread": 0.1, "correlation": 0.2, "feature_spread": 0.1}),
     Stage(effect="lateral_shift", params={"range": 2.0, "spread": 0.5, "correlation": 0.15}),
     Stage(effect="corner_loss", params={"keep": 0.8, "spread": 0.1})])
 
 
-def test_both_engines_give_identical_bytes_with_spreads_and_correlations():
+@pytest.mark.parametrize("pipe", [VARIED, Pipeline(name="w", stages=[
+    Stage(effect="edge_loss", params={"fraction": 0.3, "feature_spread": 0.15}),
+    Stage(effect="lateral_shift", params={"range": 1.0, "spread": 1.5})])], ids=["along the path", "per view"])
+def test_both_engines_give_identical_bytes_with_spreads_and_correlations(pipe):
     scene = _scene(6)
-    outs = {e: _run(VARIED, scene, e, trials=range(30, 62))[1] for e in ("numpy", "kernel")}
+    outs = {e: _run(pipe, scene, e, trials=range(30, 62))[1] for e in ("numpy", "kernel")}
     n = 0
     for bn, bk in zip(outs["numpy"], outs["kernel"], strict=True):
         for (_, dn, _), (_, dk, _) in zip(bn, bk, strict=True):

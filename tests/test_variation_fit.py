@@ -30,7 +30,8 @@ def test_the_spread_interval_holds_the_injected_spread_and_reaches_zero_when_non
     for k in range(40):
         spread = 0.05 if k % 2 == 0 else 0.0
         ex = _corner_images(rng, 30, 0.8, spread, 0.0)
-        s, lo, hi, tau2, n = vf.spread(ex, "corner_loss", seed=k)
+        tau2, (lo, hi), _, _, n, _ = vf.spread_and_correlation(ex, list(range(0, 60, 2)), "corner_loss", seed=k)
+        s, lo, hi = (math.sqrt(max(q, 0)) for q in (tau2, lo, hi))
         assert n == 30 and lo <= s <= hi and hi > lo  # never a zero-width interval
         if spread:
             held += lo <= spread <= hi
@@ -39,17 +40,20 @@ def test_the_spread_interval_holds_the_injected_spread_and_reaches_zero_when_non
     assert held >= 17 and clean >= 17, (held, clean)  # 95% intervals: 19 of 20 expected
 
 
-def test_the_correlation_length_follows_the_lag1_correlation_of_the_sequence():
+def test_the_spread_and_lag1_correlation_of_a_correlated_sequence_are_recovered():
+    frames = 16
+    """An AR(1) sequence of keep (sd 0.08, lag-1 correlation 0.8): the interval holds both in at least 17 of 20
+    sequences, short and long."""
     rng = np.random.default_rng(9)
-    rho = 0.7
-    ex = _corner_images(rng, 200, 0.7, 0.08, rho, corners=2000)
-    frames = list(range(200))
-    steps = np.full(199, 0.05)  # 5 cm between frames
-    tau2 = vf.spread(ex, "corner_loss", 0)[3]
-    length, lo, hi, r, pairs = vf.correlation(ex, frames, steps, "corner_loss", tau2, 0)
-    assert pairs == 199
-    assert r == pytest.approx(rho, abs=0.12)
-    assert lo <= -0.05 / math.log(rho) <= hi
+    held_t = held_r = 0
+    for k in range(20):
+        ex = _corner_images(rng, frames, 0.7, 0.08, 0.8, corners=2000)
+        tau2, (lo, hi), r, (rlo, rhi), n, pairs = vf.spread_and_correlation(ex, list(range(frames)), "corner_loss",
+                                                                            k)
+        assert pairs == frames - 1
+        held_t += lo <= 0.08**2 <= hi
+        held_r += rlo <= 0.8 <= rhi
+    assert held_t >= 17 and held_r >= 17, (held_t, held_r)
 
 
 def test_the_fitted_pipeline_writes_a_spread_only_where_its_interval_excludes_zero():
@@ -59,7 +63,7 @@ def test_the_fitted_pipeline_writes_a_spread_only_where_its_interval_excludes_ze
     for spread, written in ((0.08, True), (0.0, False)):
         ex = _corner_images(rng, 40, 0.8, spread, 0.0, corners=1000)
         f = Fit([Estimate("corner_loss.keep", 0.8, 0.79, 0.81)], None, {}, {}, 40)
-        vf.add(f, ex, list(range(40)), [(0.05 * i, 0.0, 0.0) for i in range(40)], 0)
+        vf.add(f, ex, list(range(0, 80, 2)), [(0.05 * i, 0.0, 0.0) for i in range(80)], 0)  # not a sequence
         notes, more = vf.clauses(f, "corner_loss")
         assert ("spread" in more) == written, (spread, notes, more)
         if written:

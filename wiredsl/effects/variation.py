@@ -47,21 +47,22 @@ SECOND = 2**48  # + MAG: the Beta's second Gamma
 REN = 2**58  # + item: whether pose k renews the item's value
 VAL = 2**59  # + item: the item's value drawn at pose k
 POSE = 2**60  # + k: pose k's key from a persistent stage's key
+FEATURE = 2**57  # + item slot * 2**21: a feature's own magnitude (its Gammas' draws, as MAG's)
 VIEW_ITEM = 2**39  # the view's magnitude as a persistent item
 ITEM_SLOTS = 16  # an item: feature id * 16 + fragment + 1 (the halves of a split ellipse are items of their own)
 
 
-def unchanged_when_fixed():
-    """The Params serializer that leaves out `spread` and `correlation` while 0: a stage that declares neither
-    dumps (scene JSON, manifests) exactly as it did before they existed."""
+def unchanged_when_fixed(*more: str):
+    """The Params serializer that leaves out `spread` and `correlation` (and `more`) while 0: a stage that
+    declares none dumps (scene JSON, manifests) exactly as it did before they existed."""
     from wiredsl.scene import omitted_when_default
 
-    return omitted_when_default(spread=0.0, correlation=0.0)
+    return omitted_when_default(spread=0.0, correlation=0.0, **dict.fromkeys(more, 0.0))
 
 
 def varies(p) -> bool:
     """Whether a stage's parameters declare a spread or a correlation (else it draws exactly as before)."""
-    return getattr(p, "spread", 0.0) > 0 or getattr(p, "correlation", 0.0) > 0
+    return getattr(p, "spread", 0.0) > 0 or getattr(p, "correlation", 0.0) > 0 or getattr(p, "feature_spread", 0) > 0
 
 
 def along_path(p) -> bool:
@@ -116,6 +117,13 @@ def keyed_gamma(keys: np.ndarray, shape, base: int) -> np.ndarray:
     index base + 2 a and the uniform base + GAMMA_U + a; a shape below 1 is drawn at shape + 1 and multiplied by
     u^(1 / shape), u the uniform base + GAMMA_BOOST."""
     keys = np.asarray(keys, dtype=np.uint64).ravel()
+    return keyed_gamma_at(keys, shape, np.full(len(keys), base, dtype=np.uint64))
+
+
+def keyed_gamma_at(keys: np.ndarray, shape, base: np.ndarray) -> np.ndarray:
+    """keyed_gamma with a base index a key."""
+    keys = np.asarray(keys, dtype=np.uint64).ravel()
+    base = np.asarray(base, dtype=np.uint64).ravel()
     a = np.broadcast_to(np.asarray(shape, dtype=np.float64), keys.shape).copy()
     boost = a < 1
     aa = np.where(boost, a + 1, a)
@@ -126,16 +134,16 @@ def keyed_gamma(keys: np.ndarray, shape, base: int) -> np.ndarray:
     attempt = 0
     with np.errstate(divide="ignore", invalid="ignore"):
         while len(todo):
-            kt, dt = keys[todo], d[todo]
-            z = keyed_normal(kt, np.uint64(base + 2 * attempt))
-            u = keyed_uniform(kt, np.uint64(base + GAMMA_U + attempt))
+            kt, dt, bt = keys[todo], d[todo], base[todo]
+            z = keyed_normal(kt, bt + np.uint64(2 * attempt))
+            u = keyed_uniform(kt, bt + np.uint64(GAMMA_U + attempt))
             v = 1.0 + c[todo] * z
             v3 = v * v * v
             ok = (v > 0) & ((u <= 0) | (_log(u) < 0.5 * z * z + dt - dt * v3 + dt * _log(np.where(v > 0, v3, 1))))
             out[todo[ok]] = dt[ok] * v3[ok]
             todo, attempt = todo[~ok], attempt + 1
         if boost.any():
-            u = keyed_uniform(keys[boost], np.uint64(base + GAMMA_BOOST))
+            u = keyed_uniform(keys[boost], base[boost] + np.uint64(GAMMA_BOOST))
             out[boost] = out[boost] * _pow(u, 1.0 / a[boost])
     return out
 
@@ -212,6 +220,33 @@ def item_uniforms(ctx, stage: str, p, batch_index: np.ndarray, items: np.ndarray
     batch_index = np.asarray(batch_index, dtype=np.int64)
     vk = value_keys(keys[batch_index], items, batch_poses(ctx)[batch_index], rho)
     return keyed_uniform(vk, np.asarray(items, dtype=np.int64).astype(np.uint64) + np.uint64(VAL))
+
+
+def feature_magnitudes(ctx, stage: str, p, batch_index: np.ndarray, slots: np.ndarray, items: np.ndarray,
+                       mean: np.ndarray, spread: float) -> np.ndarray:
+    """Each feature's own fraction: a Beta about its view's (`mean`, per item) of sd `spread` (at most 0.95 of
+    the widest a Beta of that mean takes), drawn from the stage's key at FEATURE + slot * 2**21 (slot: the
+    stroke's index in its trial), or, persistent along the path, from the item's value key at FEATURE."""
+    mean = np.asarray(mean, dtype=np.float64)
+    sd = np.minimum(spread, 0.95 * np.sqrt(np.maximum(mean * (1 - mean), 0.0)))
+    out = mean.copy()
+    ok = (sd > 0) & (mean > 0) & (mean < 1)
+    if not ok.any():
+        return out
+    keys = stage_keys(ctx, stage, p)[np.asarray(batch_index, dtype=np.int64)]
+    if along_path(p):
+        rho = persistence(getattr(ctx, "path_s", None), p.correlation)
+        keys = value_keys(keys, items, batch_poses(ctx)[np.asarray(batch_index, dtype=np.int64)], rho)
+        base = np.full(len(keys), FEATURE, dtype=np.uint64)
+    else:
+        base = np.uint64(FEATURE) + np.asarray(slots, dtype=np.uint64) * np.uint64(2**21)
+    m, s = mean[ok], sd[ok]
+    nu = m * (1 - m) / (s * s) - 1
+    ga = keyed_gamma_at(keys[ok], m * nu, base[ok])
+    gb = keyed_gamma_at(keys[ok], (1 - m) * nu, base[ok] + np.uint64(SECOND))
+    total = ga + gb
+    out[ok] = np.where(total > 0, ga / np.where(total > 0, total, 1.0), m)
+    return out
 
 
 def stroke_items(fid: np.ndarray, fragment: np.ndarray) -> np.ndarray:

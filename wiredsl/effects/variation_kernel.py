@@ -11,11 +11,23 @@ import math
 import numpy as np
 from numba import njit
 
-from wiredsl.effects.variation import GAMMA_BOOST, GAMMA_U, ITEM_SLOTS, MAG, POSE, REN, SECOND, VAL, VIEW_ITEM
+from wiredsl.effects.variation import (
+    FEATURE,
+    GAMMA_BOOST,
+    GAMMA_U,
+    ITEM_SLOTS,
+    MAG,
+    POSE,
+    REN,
+    SECOND,
+    VAL,
+    VIEW_ITEM,
+)
 from wiredsl.engine.kernel import _bits, _normal_pair, _uniform
 
 _MAG, _SECOND = np.uint64(MAG), np.uint64(SECOND)
 _GU, _GB = np.uint64(GAMMA_U), np.uint64(GAMMA_BOOST)
+_FEATURE = np.uint64(FEATURE)
 _REN, _VAL, _POSE, _VIEW = np.uint64(REN), np.uint64(VAL), np.uint64(POSE), np.int64(VIEW_ITEM)
 
 
@@ -90,6 +102,24 @@ def view_magnitude(key, value, spread, fraction, pose, rho, persistent):
 def item_uniform(key, item, pose, rho):
     """variation.item_uniforms for one item."""
     return _uniform(value_key(key, item, pose, rho), np.uint64(item) + _VAL)
+
+
+@njit(cache=True)
+def feature_magnitude(key, item, slot, mean, spread, pose, rho, persistent):
+    """variation.feature_magnitudes for one stroke (slot: its index in the trial)."""
+    sd = min(spread, 0.95 * math.sqrt(max(mean * (1 - mean), 0.0)))
+    if not (sd > 0 and mean > 0 and mean < 1):
+        return mean
+    if persistent:
+        key = value_key(key, item, pose, rho)
+        base = _FEATURE
+    else:
+        base = _FEATURE + np.uint64(slot) * np.uint64(2**21)
+    nu = mean * (1 - mean) / (sd * sd) - 1
+    ga = gamma(key, mean * nu, base)
+    gb = gamma(key, (1 - mean) * nu, base + _SECOND)
+    total = ga + gb
+    return ga / total if total > 0 else mean
 
 
 @njit(cache=True)

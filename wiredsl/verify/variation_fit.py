@@ -124,37 +124,100 @@ def per_image(extras: list[ImageExtras], stage: str, raw: bool = False
     return x, v, ok
 
 
-def _tau2(W: np.ndarray, x: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """tau^2 = var(x) - mean(v) under image weights W (B, n) (rows summing to n)."""
-    n = x.shape[0]
-    mean = W @ x / n
-    var = (W @ (x * x) / n - mean * mean) * n / (n - 1)
-    return var - W @ v / n
+def stroke_losses(extras: list[ImageExtras], raw: bool) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per image, its strokes' lost amounts a_k and their sizes L_k (gaps: px less the pooled end loss at each
+    gap end, over px tested; raw: samples lost over samples tested)."""
+    if raw:
+        return [(e.tested - e.verified, e.tested) for e in extras]
+    ends = sum(e.ends for e in extras)
+    end = sum(e.lost_ends for e in extras) / ends if ends > 0 else 0.0
+    return [(e.lost_middle - end * e.gap_ends, e.length) for e in extras]
 
 
-def spread(extras: list[ImageExtras], stage: str, seed: int, raw: bool = False):
-    """(spread, lo, hi, tau2, images) of a stage's magnitude between images, or None with too few images."""
+def feature_spread(extras: list[ImageExtras], seed: int, raw: bool = False):
+    """(spread, lo, hi, strokes) of edge_loss's fraction between the features of an image: the strokes' lost
+    fractions y_k about their image's x_i, weighted as an image's fraction weighs them,
+    sigma^2 = sum_i k_i / (k_i - 1) sum_k L_k^2 (y_k - x_i)^2 / sum_i sum_k L_k^2, so that a simulation drawing
+    each feature's fraction with this sd scatters each image's fraction as the detector's did (the detector's own
+    scatter between strokes is counted in); bootstrap over images. None with too few images."""
     from wiredsl.verify import fit as fitting
 
+    num, den = [], []
+    for a, L in stroke_losses(extras, raw):
+        k = len(a)
+        if k < 3 or L.sum() <= 0:
+            continue
+        x = a.sum() / L.sum()
+        num.append(k / (k - 1) * np.sum((a - x * L) ** 2))
+        den.append(np.sum(L * L))
+    if len(num) < MIN_IMAGES:
+        return None
+    num, den = np.array(num), np.array(den)
+    value = math.sqrt(num.sum() / den.sum())
+    W = fitting._weights(len(num), seed, "edge_loss.feature_spread")
+    lo, hi = fitting._interval(np.sqrt((W @ num) / (W @ den)), value, len(num))
+    return value, lo, hi, len(num)
+
+
+RHO_GRID = np.concatenate([np.linspace(0.0, 0.9, 46), np.linspace(0.91, 0.99, 9)])
+TAU_STEPS = 81  # spreads on the likelihood's grid, from 0 to 3 times the estimates' standard deviation
+CHI2_95 = 3.841458820694124  # chi-squared with one degree of freedom, its 95% point (scipy.stats.chi2.ppf)
+
+
+def sequences(extras: list[ImageExtras], frames: list[int], ok: np.ndarray) -> list[np.ndarray]:
+    """Each camera's images with an estimate, in frame order (index arrays): the sequences along the path."""
+    sides = {}
+    for i in np.flatnonzero(ok):
+        sides.setdefault(extras[i].side, []).append(i)
+    return [np.array(sorted(v, key=lambda i: frames[i])) for v in sides.values() if len(v) >= 2]
+
+
+def loglik(x: np.ndarray, v: np.ndarray, seqs: list[np.ndarray], frames: list[int], tau: np.ndarray,
+           rho: np.ndarray) -> np.ndarray:
+    """The restricted (REML) Gaussian log-likelihood of the per-image estimates x, each sequence (one camera, in
+    frame order) x = mu + tau z + e: z a stationary AR(1) over the frame numbers (correlation rho^|k - l|), e the
+    measurement noise (variances v), mu its own mean; on the grid tau (T,) x rho (R,), (T, R)."""
+    total = np.zeros((len(tau), len(rho)))
+    for q in seqs:
+        f = np.array([frames[i] for i in q], float)
+        lag = np.abs(f[:, None] - f[None, :])
+        R = rho[:, None, None] ** lag[None]  # (R, n, n)
+        S = (tau[:, None, None, None] ** 2) * R[None] + np.diag(v[q])[None, None]  # (T, R, n, n)
+        _, logdet = np.linalg.slogdet(S)
+        rhs = np.broadcast_to(np.stack([np.ones(len(q)), x[q]], axis=-1), (*S.shape[:2], len(q), 2))
+        sol = np.linalg.solve(S, rhs)  # Sigma^-1 [1, x]
+        a = sol[..., 0].sum(axis=-1)  # 1' Sigma^-1 1
+        b = sol[..., 1].sum(axis=-1)  # 1' Sigma^-1 x
+        quad = sol[..., 1] @ x[q] - b * b / a  # (x - mu)' Sigma^-1 (x - mu) at the GLS mean mu = b / a
+        total += -0.5 * (logdet + quad + np.log(a))
+    return total
+
+
+def spread_and_correlation(extras, frames, stage: str, seed: int, raw: bool = False):
+    """(tau2, (lo, hi), rho, (lo, hi), images, pairs) of a stage's magnitude, or None with too few images: the
+    maximum of `loglik` on its grid (tau from 0; rho 0 unless the images have neighbouring frames), with 95%
+    profile-likelihood intervals (where twice the log-likelihood, maximised over the other, is within 3.84 of its
+    maximum). An interval reaching 0 has the width the data leave, never [0, 0]."""
     x, v, ok = per_image(extras, stage, raw)
-    x, v = x[ok], v[ok]
-    n = len(x)
-    if n < MIN_IMAGES:
+    if ok.sum() < MIN_IMAGES:
         return None
-    tau2 = float(_tau2(np.ones((1, n)), x, v)[0])
-    reps = _tau2(fitting._weights(n, seed, f"{stage}.spread"), x, v)
-    lo, hi = fitting._interval(np.asarray(reps, float), tau2, n)
-    if lo is None:
-        return None
-    if tau2 < 0:  # below the boundary: the interval starts at 0 and reaches as far above it as its own width
-        hi = hi - tau2
-    return math.sqrt(max(tau2, 0.0)), math.sqrt(max(lo, 0.0)), math.sqrt(max(hi, 0.0)), tau2, n
-
-
-def neighbours(extras: list[ImageExtras], frames: list[int], ok: np.ndarray) -> list[tuple[int, int]]:
-    """Index pairs (i, j) of images of one camera whose frames follow each other (k, k + 1), both estimated."""
-    at = {(e.side, f): i for i, (e, f) in enumerate(zip(extras, frames, strict=True)) if ok[i]}
-    return [(i, at[(s, f + 1)]) for (s, f), i in at.items() if (s, f + 1) in at]
+    seqs = sequences(extras, frames, ok)
+    pairs = sum(int(np.sum(np.diff(np.array([frames[i] for i in q])) == 1)) for q in seqs)
+    near = pairs >= MIN_PAIRS
+    x0, v0 = np.where(ok, x, 0.0), np.where(ok, np.maximum(v, 1e-12), 1.0)
+    sd = float(np.std(x[ok]))
+    tau = np.linspace(0.0, 3.0 * max(sd, 1e-9), TAU_STEPS)
+    rho = RHO_GRID if near else np.zeros(1)
+    ll = loglik(x0, v0, seqs, frames, tau, rho)
+    t, r = np.unravel_index(np.argmax(ll), ll.shape)
+    keep_t = np.flatnonzero(2 * (ll.max() - ll.max(axis=1)) <= CHI2_95)
+    keep_r = np.flatnonzero(2 * (ll.max() - ll.max(axis=0)) <= CHI2_95)
+    step = tau[1] - tau[0]
+    t_lo, t_hi = tau[keep_t.min()], tau[min(keep_t.max() + 1, len(tau) - 1)] if keep_t.max() + 1 < len(tau) else \
+        tau[-1] + step
+    r_lo, r_hi = rho[keep_r.min()], rho[keep_r.max()]
+    return (float(tau[t] ** 2), (float(t_lo**2), float(t_hi**2)), float(rho[r]), (float(r_lo), float(r_hi)),
+            int(ok.sum()), pairs if near else 0)
 
 
 def frame_distances(poses: list) -> np.ndarray:
@@ -164,30 +227,6 @@ def frame_distances(poses: list) -> np.ndarray:
     return np.sqrt(np.sum(np.diff(xyz, axis=0) ** 2, axis=1)) if len(xyz) > 1 else np.zeros(0)
 
 
-def correlation(extras, frames, steps: np.ndarray, stage: str, tau2: float, seed: int, raw: bool = False):
-    """(length m, lo, hi, rho, pairs) along the sequence, or None (too few neighbours, or no spread)."""
-    from wiredsl.verify import fit as fitting
-
-    x, v, ok = per_image(extras, stage, raw)
-    pairs = neighbours(extras, frames, ok)
-    if len(pairs) < MIN_PAIRS or tau2 <= 0:
-        return None
-    i, j = np.array(pairs).T
-    d = float(np.mean([steps[frames[a]] for a in i if frames[a] < len(steps)] or [0.0]))
-    if d <= 0:
-        return None
-    xs = x[ok]
-    mean = xs.mean()
-    prod = (x[i] - mean) * (x[j] - mean)
-    rho = float(np.clip(prod.mean() / tau2, 1e-6, 1 - 1e-9))
-    W = fitting._weights(len(prod), seed, f"{stage}.correlation")
-    tau_b = np.maximum(_tau2(fitting._weights(len(xs), seed, f"{stage}.spread"), xs, v[ok]), 1e-300)
-    reps = np.clip((W @ prod / len(prod)) / tau_b, 1e-6, 1 - 1e-9)
-    r_lo, r_hi = np.quantile(reps, [0.025, 0.975])
-    length = lambda r: -d / math.log(r)  # noqa: E731
-    return length(rho), length(float(r_lo)), length(float(r_hi)), rho, len(pairs)
-
-
 def add(result, extras: list[ImageExtras], frames: list[int], poses: list, seed: int, edge_loss: str = "gaps"
         ) -> None:
     """Append the spreads (and correlations) of edge_loss, lateral_shift and corner_loss to a fit.Fit (edge_loss:
@@ -195,26 +234,55 @@ def add(result, extras: list[ImageExtras], frames: list[int], poses: list, seed:
     from wiredsl.verify.fit import Estimate
 
     steps = frame_distances(poses)
+    fs = feature_spread(extras, seed, edge_loss == "raw")
+    result.estimates.append(Estimate("edge_loss.feature_spread", None, note=f"fewer than {MIN_IMAGES} images")
+                            if fs is None else
+                            Estimate("edge_loss.feature_spread", fs[0], fs[1], fs[2],
+                                     f"the strokes' lost fractions about their image's, over {fs[3]} images"))
     for stage in KIND:
         raw = stage == "edge_loss" and edge_loss == "raw"
-        got = spread(extras, stage, seed, raw)
+        got = spread_and_correlation(extras, frames, stage, seed, raw)
         if got is None:
             result.estimates.append(Estimate(f"{stage}.spread", None, note=f"fewer than {MIN_IMAGES} images "
                                                                            "with an estimate"))
             result.estimates.append(Estimate(f"{stage}.correlation", None, note="no spread"))
             continue
-        s, lo, hi, tau2, n = got
+        tau2, (lo, hi), rho, (r_lo, r_hi), n, pairs = got
         unit = "" if KIND[stage] == "fraction" else " px^2"
-        result.estimates.append(Estimate(f"{stage}.spread", s, lo, hi, f"between {n} images: the variance of their "
-                                         f"own estimates less their measurement variance, {tau2:.3g}{unit}"))
-        c = correlation(extras, frames, steps, stage, tau2, seed, raw)
-        if c is None:
+        root = lambda q: math.sqrt(max(q, 0.0))  # noqa: E731
+        result.estimates.append(Estimate(
+            f"{stage}.spread", root(tau2), root(lo), root(hi),
+            f"between {n} images: the variance of their own estimates less their measurement variance, "
+            f"{tau2:.3g}{unit}" + (f", as an AR(1) along {pairs} neighbouring frames" if pairs else "")))
+        idx = [i for i in range(len(frames)) if frames[i] + 1 < len(poses)]
+        d = float(np.mean([steps[frames[i]] for i in idx])) if idx else 0.0
+        if not pairs or d <= 0 or tau2 <= 0 or r_lo <= 0:
             result.estimates.append(Estimate(f"{stage}.correlation", None,
                                              note="too few neighbouring frames, or no spread"))
-        else:
-            length, clo, chi, rho, pairs = c
-            result.estimates.append(Estimate(f"{stage}.correlation", length, clo, chi,
-                                             f"lag-1 correlation {rho:.3g} over {pairs} neighbouring frames"))
+            continue
+        result.estimates.append(Estimate(f"{stage}.correlation", _length(rho, d), _length(r_lo, d), _length(r_hi, d),
+                                         f"lag-1 correlation {rho:.3g} [{r_lo:.3g}, {r_hi:.3g}] over {pairs} "
+                                         f"neighbouring frames {d:.3g} m apart"))
+
+
+def _length(rho: float, d: float) -> float:
+    """The correlation length (m) of a lag-1 correlation rho between frames d apart: exp(-d / length) = rho."""
+    return 0.0 if rho <= 0 else -d / math.log(min(rho, 0.999))
+
+
+def _feature_clause(result, stage: str, value, lines: list[str], out: str) -> tuple[list[str], str]:
+    """edge_loss's feature_spread, where estimated with an interval above 0, after its other clauses."""
+    try:
+        e = result.get(f"{stage}.feature_spread")
+    except StopIteration:
+        return lines, out
+    if e.value is None:
+        return [*lines, f"  # {stage} spread between an image's features not estimated ({e.note})"], out
+    line = (f"  # {stage} spread between an image's features {100 * e.value:.4g}%, 95% interval "
+            f"[{100 * e.lo:.4g}%, {100 * e.hi:.4g}%]: {e.note}")
+    if not e.lo or e.lo <= 0:
+        return [*lines, line + " (not written: 0 is inside)"], out
+    return [*lines, line], out + f" feature_spread {100 * e.value:.4g}%"
 
 
 def clauses(result, stage: str) -> tuple[list[str], str]:
@@ -225,18 +293,20 @@ def clauses(result, stage: str) -> tuple[list[str], str]:
     except StopIteration:
         return [], ""
     if s.value is None:
-        return [f"  # {stage} spread between images not estimated ({s.note})"], ""
+        return _feature_clause(result, stage, None, [f"  # {stage} spread between images not estimated "
+                                                     f"({s.note})"], "")
     fmt = (lambda x: f"{100 * x:.4g}%") if KIND[stage] == "fraction" else (lambda x: f"{x:.4g}px")  # noqa: E731
     line = f"  # {stage} spread between images {fmt(s.value)}, 95% interval [{fmt(s.lo)}, {fmt(s.hi)}]: {s.note}"
     if not s.lo or s.lo <= 0:
-        return [line + " (not written: 0 is inside)"], ""
+        return _feature_clause(result, stage, None, [line + " (not written: 0 is inside)"], "")
     value = result.get(f"{stage}.{VALUE[stage]}").used
     top = 0.95 * math.sqrt(max(value * (1 - value), 0.0)) if KIND[stage] == "fraction" else math.inf
     if s.value >= top:  # a Beta of this mean cannot spread more
         line += f" (written as {fmt(top)}, the widest a Beta of mean {fmt(value)} takes here)"
     out = f" spread {fmt(min(s.value, top))}"
     lines = [line]
-    if c.value is not None:
+    lines, out = _feature_clause(result, stage, value, lines, out)
+    if c.value is not None and c.lo and c.lo > 0:
         lines.append(f"  # {stage} correlation along the frames {c.value:.4g}m, 95% interval [{c.lo:.4g}m, "
                      f"{c.hi:.4g}m]: {c.note}")
         out += f" correlation {c.value:.4g}m"
