@@ -60,6 +60,9 @@ from wiredsl.cli_base import diagnostics_option, guarded, report
               help="Fit on some frames and predict the others image by image: odd (fit on the even-numbered "
                    "frames in name order, predict the odd), even, or kfold:K (frame i in fold i mod K). A frame is "
                    "a stereo pair or one image. Writes holdout.json and the plot.")
+@click.option("--spreads/--no-spreads", default=True, show_default=True,
+              help="With --fit or --holdout: fit each magnitude's spread between images (and between an image's "
+                   "features, for the edge loss) and its correlation along the frames; --no-spreads: constants only.")
 @click.option("--pipeline-name", default="measured", show_default=True, help="The fitted pipeline's name.")
 @click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True,
               help="Seed of the fit's bootstrap resamples and of --predict's simulated trials.")
@@ -68,8 +71,8 @@ from wiredsl.cli_base import diagnostics_option, guarded, report
 @diagnostics_option
 @guarded
 def verify(file, globs, cameras, poses, pose_format, match, detectors, params, step, band, angle, radius, inlier,
-           refine, do_fit, edge_loss, calibration_error, predict, predict_pipeline, trials, holdout, pipeline_name,
-           seed, plot_format, output, diagnostics) -> None:
+           refine, do_fit, edge_loss, calibration_error, predict, predict_pipeline, trials, holdout, spreads,
+           pipeline_name, seed, plot_format, output, diagnostics) -> None:
     """Verify the scene's projected model against detected features in images (the paper's Figure 7), and with
     --fit estimate each effect's parameters as a pipeline."""
     from pathlib import Path
@@ -100,7 +103,7 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
     req = command.Request(file, pairs, list(detectors), list(params), poses, pose_format, match,
                           Settings(step, band, math.radians(angle), radius, inlier), do_fit, seed, pipeline_name,
                           refine, plot_format, edge_loss, predict, trials, predict_pipeline, calibration_error,
-                          holdout)
+                          holdout, spreads)
     try:
         outcome = command.run(req, out, command.progress_printer())
     except ValueError as exc:

@@ -43,6 +43,7 @@ class Request:
     predict_pipeline: object = None  # a Pipeline, or a scene pipeline's name, to predict with instead of the fitted one
     calibration_error: bool = True  # the rig's declared calibration uncertainty simulated (fit.pipeline_text)
     holdout: str | None = None  # odd | even | kfold:K: fit on some frames, predict the others (holdout.py)
+    spreads: bool = True  # fit the spreads between images and correlations along them (variation_fit.py)
 
 
 @dataclass
@@ -255,7 +256,8 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
             from wiredsl.files import json_text, write_atomic
 
             result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss)
-            variation_fit.add(result, extras, sums_frame, [f.pose for f in frames], req.seed, req.edge_loss)
+            if req.spreads:
+                variation_fit.add(result, extras, sums_frame, [f.pose for f in frames], req.seed, req.edge_loss)
             det_text = "; ".join(f"{n} ({', '.join(f'{k} {v}' for k, v in p.model_dump().items())})"
                                  for n, _, p in dets)
             provenance = [f"Fitted by `wiredsl verify` from {n_images} images of {len(frames)} frames "
@@ -282,7 +284,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
             cal = scene.rig.calibration
             held_doc, names = holdout.run(req, out, scene, world, held, sums, sums_frame, cfg,
                                    None if cal is None else f"{cal.kind} over {len(cal.order)} parameters",
-                                   corner_det is not None, _objects(world), extras)
+                                   corner_det is not None, _objects(world), extras if req.spreads else None)
             written += names
         _publish(out, final, written, req)
     finally:

@@ -1,29 +1,24 @@
 """Spreads between images and correlation along their sequence, estimated by `verify --fit` (issue 34 item 2).
 
-Each image i gives its own estimate x_i of a magnitude, with a measurement variance v_i from within the image;
-if the magnitude varies between views with variance tau^2 (the effect's `spread` squared), the x_i scatter
-with variance tau^2 + v_i, so
+Each image i gives its own estimate x_i of a magnitude, with a measurement variance v_i from within the image.
+Each camera's images, in frame order, are modelled as x = mu + tau z + e: z a stationary AR(1) over the frame
+numbers (correlation rho^|k - l| between frames k and l), e the measurement noise, mu the camera's mean. tau (the
+effect's `spread`) and rho are the maximum of the restricted (REML) Gaussian likelihood on a grid (`loglik`;
+rho is 0 unless the images have neighbouring frames), with 95% profile-likelihood intervals: an interval that
+reaches 0 keeps the width the data leave (never [0, 0]), and short correlated sequences, whose sample variance
+is biased low, are handled by the likelihood rather than by moments. The effect's `correlation` length is
+-d / ln(rho), d the mean distance between neighbouring frames' poses (metres). Per magnitude:
 
-    tau^2 = var(x_i) - mean(v_i)
-
-(a method-of-moments variance component: unbiased, and as often below 0 as above when nothing varies), and
-spread = sqrt(max(tau^2, 0)). Its 95% interval is the bootstrap over images of tau^2 (fit._interval: the same
-resamples and widening as every other estimate), square-rooted with its negative part at 0; an estimate below 0
-moves the interval up by as much (it starts at 0 and keeps its width: never the zero-width [0, 0] of a clipped
-one). Per magnitude:
-
-- edge_loss: x_i the image's gap fraction (fit's edge-loss estimate on its sums alone, the end loss pooled),
-  v_i from the scatter of its strokes' own (the ratio estimator's variance over strokes);
+- edge_loss: x_i the image's gap fraction (fit's edge-loss estimate on its strokes alone, the end loss pooled;
+  with --edge-loss raw, 1 - its verified fraction), v_i from the scatter of its strokes' own (the ratio
+  estimator's variance over strokes); and the spread between an image's features (`feature_spread`) from that
+  scatter itself (`feature_spread`);
 - lateral_shift: x_i = sqrt(3 m_i), m_i the mean square of the image's fragment offsets about the pooled mean
   less their measurement noise; v_i by the delta method from the scatter of the squared offsets;
-- corner_loss: x_i the image's found fraction, v_i = x_i (1 - x_i) / (n_i - 1) (unbiased binomial).
+- corner_loss: x_i the image's found fraction, v_i = p (1 - p) / n_i at the pooled p (at least 1 / (4 n_i^2)).
 
-Correlation along the sequence (images of one camera with consecutive frame numbers): the lag-1 covariance of
-the x_i (frames k and k + 1; measurement errors are independent between images, so only the magnitude's own
-correlation is left) over tau^2 is the correlation rho between neighbouring poses, and the effect's
-`correlation` length is -d / ln(rho), d the mean distance between neighbouring frames' poses (metres). Its
-interval is the bootstrap over the neighbouring pairs. Written into the fitted pipeline only where the
-spread's interval excludes 0 (else the spread's interval is a comment).
+A spread (and its correlation) is written into the fitted pipeline only where its interval excludes 0; else
+its interval is a comment.
 """
 
 from __future__ import annotations
@@ -116,10 +111,13 @@ def per_image(extras: list[ImageExtras], stage: str, raw: bool = False
                     v[i] = (3 / (2 * x[i])) ** 2 * q.var(ddof=1) / k
                     ok[i] = True
     elif stage == "corner_loss":
+        # the binomial variance at the pooled keep (an image's own x (1 - x) is 0 where it found all or none)
+        n_all = sum(e.corners for e in extras if e.corners >= 5)
+        p = sum(e.found for e in extras if e.corners >= 5) / n_all if n_all else 0.0
         for i, e in enumerate(extras):
             if e.corners >= 5:
                 x[i] = e.found / e.corners
-                v[i] = x[i] * (1 - x[i]) / (e.corners - 1)
+                v[i] = max(p * (1 - p), 0.25 / e.corners) / e.corners
                 ok[i] = True
     return x, v, ok
 
@@ -252,8 +250,8 @@ def add(result, extras: list[ImageExtras], frames: list[int], poses: list, seed:
         root = lambda q: math.sqrt(max(q, 0.0))  # noqa: E731
         result.estimates.append(Estimate(
             f"{stage}.spread", root(tau2), root(lo), root(hi),
-            f"between {n} images: the variance of their own estimates less their measurement variance, "
-            f"{tau2:.3g}{unit}" + (f", as an AR(1) along {pairs} neighbouring frames" if pairs else "")))
+            f"between {n} images (REML, their measurement noise apart: tau^2 {tau2:.3g}{unit}"
+            + (f"; an AR(1) along {pairs} neighbouring frames" if pairs else "") + ")"))
         idx = [i for i in range(len(frames)) if frames[i] + 1 < len(poses)]
         d = float(np.mean([steps[frames[i]] for i in idx])) if idx else 0.0
         if not pairs or d <= 0 or tau2 <= 0 or r_lo <= 0:
