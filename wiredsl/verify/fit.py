@@ -507,7 +507,9 @@ def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | N
                          "independent")
         else:
             lines.append(f"  # its correlation between the cameras {iv(r, _num)}")
-        lines.append(f"  corner_error sigma {_num(e.value)}px correlation {_num(r.value or 0.0)}")
+        notes, more = clauses(f, "corner_error")
+        lines += notes
+        lines.append(f"  corner_error sigma {_num(e.value)}px correlation {_num(r.value or 0.0)}{more}")
     ef, er = f.get("corner_mismatch.fraction"), f.get("corner_mismatch.radius")
     lines.append(f"  # corner mismatch fraction {iv(ef, _pct)}")
     lines.append(f"  # corner mismatch radius {iv(er, lambda x: _num(x) + ' px')}")

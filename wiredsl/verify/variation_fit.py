@@ -31,8 +31,9 @@ import numpy as np
 MIN_IMAGES = 6  # images with an estimate for a spread
 MIN_PAIRS = 5  # neighbouring pairs for a correlation
 MIN_FRAGMENTS = 8  # fragments an image needs for its lateral-shift range
-KIND = {"edge_loss": "fraction", "lateral_shift": "image", "corner_loss": "fraction"}
-VALUE = {"edge_loss": "fraction", "lateral_shift": "range", "corner_loss": "keep"}
+KIND = {"edge_loss": "fraction", "lateral_shift": "image", "corner_loss": "fraction", "corner_error": "image"}
+VALUE = {"edge_loss": "fraction", "lateral_shift": "range", "corner_loss": "keep", "corner_error": "sigma"}
+ALONG = ("edge_loss", "lateral_shift", "corner_loss")  # the stages that take a correlation along the path
 
 
 @dataclass
@@ -51,9 +52,12 @@ class ImageExtras:
     noise: float = 0.0  # their summed measurement variances
     corners: float = 0.0
     found: float = 0.0
+    loc2: float = 0.0  # the located corners' squared residuals (verification.corner_residuals)
+    loc_dof: float = 0.0  # their degrees of freedom an axis
 
 
-def extras_of(results, side: str, edge_det: str | None, corner_det: str | None, min_samples: int) -> ImageExtras:
+def extras_of(results, side: str, edge_det: str | None, corner_det: str | None, min_samples: int,
+              inlier: float = 2.0) -> ImageExtras:
     """One image's extras from its results by detector (the first edge and corner detector, as fit's sums)."""
     x = ImageExtras(side=side)
     for r in results:
@@ -69,6 +73,10 @@ def extras_of(results, side: str, edge_det: str | None, corner_det: str | None, 
             x.noise = float(np.nansum(st.run_noise[ok]))
         if r.detector == corner_det and r.corners is not None:
             x.corners, x.found = float(len(r.corners.fid)), float(r.corners.found.sum())
+            from wiredsl.verify.verification import corner_residuals
+
+            _, e, dof = corner_residuals(r.corners, inlier)
+            x.loc2, x.loc_dof = float(np.sum(e * e)), float(dof)
     return x
 
 
@@ -110,6 +118,13 @@ def per_image(extras: list[ImageExtras], stage: str, raw: bool = False
                     x[i] = math.sqrt(3 * m2)
                     v[i] = (3 / (2 * x[i])) ** 2 * q.var(ddof=1) / k
                     ok[i] = True
+    elif stage == "corner_error":  # a pair's sigma: the same in both cameras, so the left image's stands for it
+        lefts = any(e.side == "left" for e in extras)
+        for i, e in enumerate(extras):
+            if e.loc_dof >= 5 and e.loc2 > 0 and not (lefts and e.side == "right"):
+                x[i] = math.sqrt(e.loc2 / (2 * e.loc_dof))  # two axes
+                v[i] = x[i] * x[i] / (4 * e.loc_dof)  # a normal's sd from 2 dof of squares: var sigma^2 / (2 * 2 dof)
+                ok[i] = True
     elif stage == "corner_loss":
         # the binomial variance at the pooled keep (an image's own x (1 - x) is 0 where it found all or none)
         n_all = sum(e.corners for e in extras if e.corners >= 5)
@@ -243,15 +258,19 @@ def add(result, extras: list[ImageExtras], frames: list[int], poses: list, seed:
         if got is None:
             result.estimates.append(Estimate(f"{stage}.spread", None, note=f"fewer than {MIN_IMAGES} images "
                                                                            "with an estimate"))
-            result.estimates.append(Estimate(f"{stage}.correlation", None, note="no spread"))
+            if stage in ALONG:
+                result.estimates.append(Estimate(f"{stage}.correlation", None, note="no spread"))
             continue
         tau2, (lo, hi), rho, (r_lo, r_hi), n, pairs = got
+
         unit = "" if KIND[stage] == "fraction" else " px^2"
         root = lambda q: math.sqrt(max(q, 0.0))  # noqa: E731
         result.estimates.append(Estimate(
             f"{stage}.spread", root(tau2), root(lo), root(hi),
             f"between {n} images (REML, their measurement noise apart: tau^2 {tau2:.3g}{unit}"
             + (f"; an AR(1) along {pairs} neighbouring frames" if pairs else "") + ")"))
+        if stage not in ALONG:  # (corner_error's correlation is its two cameras', fitted by fit.py)
+            continue
         idx = [i for i in range(len(frames)) if frames[i] + 1 < len(poses)]
         d = float(np.mean([steps[frames[i]] for i in idx])) if idx else 0.0
         if not pairs or d <= 0 or tau2 <= 0 or r_lo <= 0:
@@ -287,7 +306,8 @@ def clauses(result, stage: str) -> tuple[list[str], str]:
     """(comment lines, clauses after the stage's value) of a stage's spread and correlation in the fitted
     pipeline: written only where the spread's interval excludes 0."""
     try:
-        s, c = result.get(f"{stage}.spread"), result.get(f"{stage}.correlation")
+        s = result.get(f"{stage}.spread")
+        c = result.get(f"{stage}.correlation") if stage in ALONG else None
     except StopIteration:
         return [], ""
     if s.value is None:
@@ -304,7 +324,9 @@ def clauses(result, stage: str) -> tuple[list[str], str]:
     out = f" spread {fmt(min(s.value, top))}"
     lines = [line]
     lines, out = _feature_clause(result, stage, value, lines, out)
-    if c.value is not None and c.lo and c.lo > 0:
+    if c is None:
+        pass
+    elif c.value is not None and c.lo and c.lo > 0:
         lines.append(f"  # {stage} correlation along the frames {c.value:.4g}m, 95% interval [{c.lo:.4g}m, "
                      f"{c.hi:.4g}m]: {c.note}")
         out += f" correlation {c.value:.4g}m"
