@@ -72,7 +72,7 @@ def test_the_kernels_lateral_shift_moves_a_copied_end_as_numpy_does():
     key = np.uint64(12345)
     st = np.zeros(NSTAT)
     out = stage(s.pts.copy(), s.start.astype(np.int64), meta, np.zeros((0, 2)), np.zeros(0, dtype=np.int64), key,
-                np.array([3.0]), np.zeros(3), False, st)[0]
+                np.array([3.0, 0.0, 0.0]), np.zeros(3), False, st)[0]
     move = out - s.pts
     assert np.abs(move[:, 1]).max() < 1e-12  # every vertex along x only, by the one draw
     assert np.allclose(move[:, 0], move[2, 0], atol=1e-12) and abs(move[2, 0]) > 0

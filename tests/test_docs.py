@@ -97,8 +97,9 @@ def test_the_effects_and_measures_pages_list_every_parameter_with_its_unit():
     for reg in (EFFECTS, MEASURES):
         for name, cls in reg.items():
             assert f"### `{name}`" in text
+            section = text.split(f"### `{name}`", 1)[1].split("\n### ", 1)[0]  # its own table (spread: several)
             for key, f in cls.Params.model_fields.items():
-                row = next(line for line in text.splitlines() if line.startswith(f"| `{key}` | {f.default} |"))
+                row = next(line for line in section.splitlines() if line.startswith(f"| `{key}` | {f.default} |"))
                 assert f.json_schema_extra["kind"] in row
     assert "| `range` | 3.0 | image (px) |" in text  # lateral_shift: the paper's 3 px
 

@@ -117,6 +117,15 @@ class Run:
             self._templates = base._templates
 
     @property
+    def path_s(self) -> np.ndarray | None:
+        """Distance along the scene's path at each pose (m), for the stages whose draws persist along it."""
+        if "path_s" not in self._kernel_rows:
+            from wiredsl.effects.variation import path_coordinate
+
+            self._kernel_rows["path_s"] = path_coordinate(self.scene.path)
+        return self._kernel_rows["path_s"]
+
+    @property
     def calibration(self):
         return next(((e, p) for e, p in self.stages if e.name == "calibration_error"), None)
 
@@ -314,7 +323,8 @@ class Run:
                     continue
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
-                              point=self.point, camera=getattr(nominal[j], side).camera)  # as the fast path's
+                              point=self.point, camera=getattr(nominal[j], side).camera,  # as the fast path's
+                              path_s=self.path_s)
                 for effect, params in self.image_stages[len(compiled):]:
                     self.trace[effect.name] += 1
                     if effect.name in BUILTIN:
@@ -349,7 +359,7 @@ class Run:
         ctx = PackedContext(pose=-1, side="", trials=np.tile(np.asarray(batch, dtype=np.int64), len(views)),
                             seed=self.seed, stats=self.stats, point=self.point, per_view=T,
                             poses=np.repeat(poses, T), cameras=np.repeat(cameras, T), view_epipoles=view_epipoles,
-                            cameras_of_views=[v[6] for v in views])
+                            cameras_of_views=[v[6] for v in views], path_s=self.path_s)
         sets = im.concat([v[2] for v in views], T)
         if views[0][4] is not None:  # re-projected: cut to each view's image
             sizes = {(v[5].width, v[5].height) for v in views}
@@ -387,9 +397,9 @@ class Run:
         cameras = np.array([CAMERA_INDEX["left"], CAMERA_INDEX["right"]])[None, :, None]
         trials = np.asarray(batch, dtype=np.int64)[None, None, :]
         keys = np.empty((len(results), 2, len(stages), len(batch)), dtype=np.uint64)
-        for g, (effect, _) in enumerate(stages):
-            keys[:, :, g] = stream_key(effect.name, trials, poses, -1 if _rig_keyed(effect) else cameras, self.seed,
-                                       self.point)
+        for g, (effect, params) in enumerate(stages):
+            keys[:, :, g] = stream_key(effect.name, trials, -1 if _path_keyed(effect, params) else poses,
+                                       -1 if _rig_keyed(effect) else cameras, self.seed, self.point)
         return keys
 
     def _kernel_view(self, result: PoseResult, side: str, keys: np.ndarray, rig: dict | None, keep: bool = True):
@@ -409,9 +419,10 @@ class Run:
             R_cw, t_cw, folds = np.zeros((T, 3, 3)), np.zeros((T, 3)), np.zeros(T)
             cam, view_of = view.camera, None
         if "stages" not in self._kernel_rows:  # constant a run
-            self._kernel_rows["stages"] = stage_rows(self.compiled_stages())
+            self._kernel_rows["stages"] = stage_rows(self.compiled_stages(), self.path_s)
             self._kernel_rows["plugins"] = load_plugin_kernels(self.compiled_stages(), self._stage_of)
         functions, params, zero = self._kernel_rows["stages"]
+        params = at_pose(self.compiled_stages(), params, result.index)
         stats = zero.copy()
         meta = self._kernel_rows.get((result.index, side, raw)) if keep else None
         if meta is None:
@@ -569,13 +580,23 @@ def stage_engines(effects: list, engine: str) -> dict[str, str]:
     return {e.name: "kernel" if e.name in compiled else "numpy" for e in effects}
 
 
-def stage_rows(stages) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+def stage_rows(stages, path_s: np.ndarray | None = None) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
     """The compiled kernel's view of image stages [(effect, params)]: their functions (KernelStage.function), a
-    row of parameters each (KernelStage.params in order, zero-padded) and a zeroed statistics row each."""
+    row of parameters each (KernelStage.params in order, zero-padded) and a zeroed statistics row each. A stage
+    keyed along the path (`_path_keyed`) has its row go on with a pose slot (-1; set a view at a time by
+    `at_pose`) and the path's rho table (`variation.persistence` of `path_s`, its distance at each pose)."""
+    from wiredsl.effects import variation
+
     functions = tuple(e.kernel.function for e, _ in stages)
-    params = np.zeros((len(stages), max([3] + [len(e.kernel.params) for e, _ in stages])))
-    for g, (e, p) in enumerate(stages):
-        params[g, :len(e.kernel.params)] = [getattr(p, name) for name in e.kernel.params]
+    rows = []
+    for e, p in stages:
+        row = [float(getattr(p, name)) for name in e.kernel.params]
+        if _path_keyed(e, p):
+            row += [-1.0, *variation.persistence(path_s, p.correlation).tolist()]
+        rows.append(row)
+    params = np.zeros((len(stages), max([3] + [len(r) for r in rows])))
+    for g, row in enumerate(rows):
+        params[g, :len(row)] = row
     return functions, params, np.zeros((len(stages), max([6] + [len(e.kernel.stats) for e, _ in stages])))
 
 
@@ -588,15 +609,16 @@ def kernel_apply(effect, params, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         return s
     if effect.kernel is None:
         raise ValueError(f"effect '{effect.name}' has no compiled kernel")
-    functions, row, _ = stage_rows([(effect, params)])
+    functions, row, _ = stage_rows([(effect, params)], ctx.path_s)
+    row = at_pose([(effect, params)], row, ctx.pose)
     epipole = ctx.epipole() if effect.kernel.epipole and ctx.epipole else np.zeros(3)
     parts = []
     for k, t in enumerate(np.asarray(ctx.trials, dtype=np.int64)):
         one = s.take(s.trial == k).take_corners(s.corner_trial == k)
         meta = np.column_stack([one.fid, one.segment, one.fragment, one.kind, one.clipped, one.closed,
                                 one.occluded]).astype(np.int64).reshape(-1, 7)
-        keys = stream_key(effect.name, np.array([t]), ctx.pose, -1 if _rig_keyed(effect) else CAMERA_INDEX[ctx.side],
-                          ctx.seed, ctx.point)
+        keys = stream_key(effect.name, np.array([t]), -1 if _path_keyed(effect, params) else ctx.pose,
+                          -1 if _rig_keyed(effect) else CAMERA_INDEX[ctx.side], ctx.seed, ctx.point)
         _, _, stats = stage_rows([(effect, params)])
         z3 = np.zeros((0, 3))
         pts, start, m, _, corners, cfid, _ = kn.run_view(
@@ -713,6 +735,26 @@ def imageset_problem(s, n_trials: int) -> str | None:
         if len(t) and (t.min() < 0 or t.max() >= n_trials):
             return f"{name} values outside 0..{n_trials - 1}"
     return None
+
+
+def at_pose(stages, params: np.ndarray, pose: int) -> np.ndarray:
+    """The kernel's parameter rows (`stage_rows`) for a view of pose `pose`: its index in the pose slot of every
+    stage keyed along the path (a copy; the rows themselves when there is none)."""
+    marked = [(g, len(e.kernel.params)) for g, (e, p) in enumerate(stages) if _path_keyed(e, p)]
+    if not marked:
+        return params
+    params = params.copy()
+    for g, slot in marked:
+        params[g, slot] = pose
+    return params
+
+
+def _path_keyed(effect, params) -> bool:
+    """Whether the stage's draws persist along the path (KernelStage.path and a correlation above 0): its key is
+    then made without the pose (wiredsl.effects.variation)."""
+    from wiredsl.effects import variation
+
+    return effect.kernel is not None and effect.kernel.path and variation.along_path(params)
 
 
 def _rig_keyed(effect) -> bool:

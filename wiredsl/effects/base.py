@@ -126,6 +126,7 @@ class Context:
     epipole: Callable[[], np.ndarray] | None = None  # homogeneous epipole in this camera's pixels
     point: int | None = None  # a study's design point: one more key component
     camera: Any = None  # the view's nominal camera (wiredsl.scene.Camera: image size, intrinsics, lens)
+    path_s: np.ndarray | None = None  # distance along the run's path at each pose (m; effects.variation)
 
     def draws(self, stage: str, batch_index: np.ndarray, per_item: int = 1, normal: bool = False) -> np.ndarray:
         """Draws (n, per_item) for items of trials `batch_index` (n,), sorted: item j of a trial gets the
@@ -228,7 +229,10 @@ class KernelStage:
     computed once for the batch rather than once a trial. Every trial gets the same array: a stage reads it and
     must not depend on what an earlier trial wrote into it. With `rig=True` the stage's key is the rig's
     (`stream_key` with camera -1, the numpy code's `ctx.keys(name, rig=True)`), the same in the left and the
-    right view of a trial: draws the two cameras share (correlated errors), told apart by `right`. An effect
+    right view of a trial: draws the two cameras share (correlated errors), told apart by `right`. With
+    `path=True` and parameters whose `correlation` is above 0 (wiredsl.effects.variation), the stage's key is
+    keyed without the pose, and its parameters row ends with the view's pose index and the path's rho table
+    (`variation.persistence`), so that its draws persist along the path. An effect
     without a kernel
     (kernel None) runs on the numpy path, and so do the stages after it (`--engine auto` says so on stderr).
     """
@@ -240,6 +244,7 @@ class KernelStage:
     camera: bool = False  # the stage takes the view's camera row (see above)
     rig: bool = False  # the stage's key is the rig's (camera -1) in both views (see above)
     workspace: str | None = None  # "module:attribute" of the view's workspace function (see above)
+    path: bool = False  # with a `correlation` > 0: key without the pose, and the row ends pose, rho (variation)
 
 
 class Effect:

@@ -8,26 +8,32 @@ are alike too: each axis's error is sqrt(rho) s + sqrt(1 - rho) e, s shared by t
 and e the camera's own (standard normals, times sigma), so the two cameras' errors correlate by rho. What a
 triangulation suffers is mostly their difference, sigma sqrt(2 (1 - rho)) an axis. `wiredsl verify --fit`
 measures both. The defaults, 0.15 px and 0.43, are what it measured for OpenCV's Harris with sub-pixel
-refinement on OpenCV's stereo chessboard images (docs/scripts/verify_opencv_stereo.py).
+refinement on OpenCV's stereo chessboard images (docs/scripts/verify_opencv_stereo.py). With `spread`, each
+stereo pair's sigma is drawn from a Gamma of that mean and standard deviation (wiredsl.effects.variation).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from wiredsl.effects import variation as var
 from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, keyed_normal, param
 from wiredsl.engine import imageset as im
+from wiredsl.scene import omitted_when_default
 
 
 class CornerErrorParams(Params):
     sigma: float = param(0.15, "image", "standard deviation of a corner's position, per axis", ge=0, le=100)
     correlation: float = param(0.43, "fraction", "correlation of the two cameras' errors of a corner", ge=0, le=1)
+    spread: float = param(0.0, "image", "standard deviation of sigma between stereo pairs (a Gamma, the same in "
+                          "both cameras of a pair; 0: fixed)", ge=0, le=100)
+    _dump = omitted_when_default(spread=0.0)  # a stage without it dumps as before it existed
 
 
 class CornerError(Effect):
     name = "corner_error"
     acts_on = "corner detection"
-    kernel = KernelStage("wiredsl.effects.corner_error_kernel:stage", ("sigma", "correlation"),
+    kernel = KernelStage("wiredsl.effects.corner_error_kernel:stage", ("sigma", "correlation", "spread"),
                          (("count", "add"), ("sum_sq", "add")), rig=True)
     Params = CornerErrorParams
     doc = __doc__
@@ -45,7 +51,11 @@ class CornerError(Effect):
         own = pair + 1 + ctx.right(s.corner_trial).astype(np.uint64)
         shared = keyed_normal(keys, 2 * pair[:, None] + np.arange(2, dtype=np.uint64))
         mine = keyed_normal(keys, 2 * own[:, None] + np.arange(2, dtype=np.uint64))
-        a, b = p.sigma * np.sqrt(p.correlation), p.sigma * np.sqrt(1.0 - p.correlation)  # (as the kernel rounds)
+        if p.spread > 0:  # each pair's sigma, from the rig's key: the same in its two views
+            sigma = var.magnitude(ctx.keys(cls.name, rig=True), p.sigma, p.spread, "image")[s.corner_trial][:, None]
+            a, b = sigma * np.sqrt(p.correlation), sigma * np.sqrt(1.0 - p.correlation)
+        else:
+            a, b = p.sigma * np.sqrt(p.correlation), p.sigma * np.sqrt(1.0 - p.correlation)  # (as the kernel rounds)
         noise = a * shared + b * mine
         ctx.add(cls.name, s.corner_trial, count=np.full(len(noise), 2), sum_sq=noise**2)
         return im.replace(s, corners=s.corners + noise)

@@ -9,12 +9,15 @@ import math
 import numpy as np
 from numba import njit
 
+from wiredsl.effects.variation_kernel import magnitude
 from wiredsl.engine.kernel import _normal_pair
 
 
 @njit(cache=True)
 def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
     sigma, rho = params[0], params[1]
+    if params[2] > 0:
+        sigma = magnitude(key, sigma, params[2], False)
     a, b = sigma * math.sqrt(rho), sigma * math.sqrt(1.0 - rho)
     out = np.empty_like(corners)
     count, sq = st[0], st[1]  # (summed in the same order as into st: the statistics are unchanged)

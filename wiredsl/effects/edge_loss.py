@@ -2,26 +2,45 @@
 
 Each feature loses exactly `fraction` of its length as one gap placed uniformly
 at random along it, leaving up to two fragments (`fragment` 0 and 1). A closed
-curve loses one arc and remains one fragment. Corners are untouched.
+curve loses one arc and remains one fragment. Corners are untouched. With
+`spread`, each view's fraction is drawn from a Beta of that mean and standard
+deviation, and with `feature_spread` each feature's from a Beta about its view's;
+with `correlation` (metres along the path), each feature's gap and
+the view's fraction persist from pose to pose (wiredsl.effects.variation).
 """
 
 from __future__ import annotations
 
 import numpy as np
+from pydantic import model_validator
 
+from wiredsl.effects import variation as var
 from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
 from wiredsl.engine import imageset as im
 
 
 class EdgeLossParams(Params):
     fraction: float = param(0.29, "fraction", "fraction of each feature's length removed (Canny finds 71%)", ge=0, le=1)
+    spread: float = param(0.0, "fraction", "standard deviation of the fraction between views (a Beta; 0: fixed)",
+                          ge=0, le=0.5)
+    correlation: float = param(0.0, "length", "distance along the path over which a feature's loss and the "
+                               "view's fraction persist (exp(-d / correlation); 0: independent poses)", ge=0, le=1e6)
+    feature_spread: float = param(0.0, "fraction", "standard deviation of the fraction between a view's features "
+                                  "(a Beta about the view's; 0: every feature loses the same)", ge=0, le=0.5)
+    _dump = var.unchanged_when_fixed("feature_spread")  # a stage without them dumps as before they existed
+
+    @model_validator(mode="after")
+    def _spread_fits(self):
+        var.check_fraction_spread("fraction", self.fraction, self.spread)
+        return self
 
 
 class EdgeLoss(Effect):
     name = "edge_loss"
     acts_on = "edges"
-    kernel = KernelStage("wiredsl.effects.edge_loss_kernel:stage", ("fraction",),
-                         (("total_length", "add"), ("kept_length", "add")))
+    kernel = KernelStage("wiredsl.effects.edge_loss_kernel:stage",
+                         ("fraction", "spread", "correlation", "feature_spread"),
+                         (("total_length", "add"), ("kept_length", "add")), path=True)
     Params = EdgeLossParams
     doc = __doc__
 
@@ -35,8 +54,18 @@ class EdgeLoss(Effect):
         s = im.unroll_closed(s)
         _, L = im.arc_lengths(s)
         L = np.where(closed, L / 2, L)  # an unrolled closed stroke is traversed twice
-        u = ctx.draws(cls.name, s.trial)[:, 0]
-        gap = p.fraction * L
+        if var.varies(p):
+            u = var.item_uniforms(ctx, cls.name, p, s.trial, var.stroke_items(s.fid, s.fragment)) \
+                if var.along_path(p) else ctx.draws(cls.name, s.trial)[:, 0]
+            fraction = var.view_magnitudes(ctx, cls.name, p, p.fraction, "fraction")[s.trial]
+            if p.feature_spread > 0:
+                counts = np.bincount(s.trial, minlength=len(ctx.trials))
+                slot = np.arange(s.n_strokes) - (np.cumsum(counts) - counts)[s.trial]
+                fraction = var.feature_magnitudes(ctx, cls.name, p, s.trial, slot, var.stroke_items(s.fid, s.fragment),
+                                                  fraction, p.feature_spread)
+        else:
+            u, fraction = ctx.draws(cls.name, s.trial)[:, 0], p.fraction
+        gap = fraction * L
         g0 = u * np.where(closed, L, L - gap)  # where the gap starts
         k = np.arange(s.n_strokes)
         # open: [0, g0] and [g0 + gap, L]; closed: the single arc [g0 + gap, g0 + L]

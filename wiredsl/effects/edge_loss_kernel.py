@@ -6,12 +6,17 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from wiredsl.engine.kernel import CLOSED, _arcs, _keep, _pieces, _total_length, _uniform, _unroll
+from wiredsl.effects.variation_kernel import feature_magnitude, item_uniform, stroke_item, view_magnitude
+from wiredsl.engine.kernel import CLOSED, FID, FRAG, _arcs, _keep, _pieces, _total_length, _uniform, _unroll
 
 
 @njit(cache=True)
 def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
-    fraction = params[0]
+    fraction, spread, correlation, fspread = params[0], params[1], params[2], params[3]
+    persistent = correlation > 0
+    pose = int(params[4]) if persistent else -1
+    rho = params[5:] if persistent else params[:0]
+    fraction = view_magnitude(key, fraction, spread, True, pose, rho, persistent)
     S = len(start) - 1
     closed = meta[:, CLOSED] != 0
     upts, ustart, umeta = _unroll(pts, start, meta, np.ones(S, np.bool_))
@@ -23,8 +28,13 @@ def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
     q = 0
     for k in range(S):
         L = Lu[k] / 2 if closed[k] else Lu[k]
-        u = _uniform(key, k)
-        gap = fraction * L
+        u = item_uniform(key, stroke_item(umeta[k, FID], umeta[k, FRAG]), pose, rho) if persistent else \
+            _uniform(key, k)
+        f = fraction
+        if fspread > 0:
+            f = feature_magnitude(key, stroke_item(umeta[k, FID], umeta[k, FRAG]), k, fraction, fspread, pose, rho,
+                                  persistent)
+        gap = f * L
         g0 = u * (L if closed[k] else L - gap)
         st[0] += L
         if closed[k]:

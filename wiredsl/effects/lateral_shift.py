@@ -2,26 +2,35 @@
 
 Each stroke moves along its local normal by one offset drawn uniformly in
 [-range, range]. Ellipses are first split along their major axis (in the image)
-and each half moves independently (fragments 0 and 1 of an ellipse).
+and each half moves independently (fragments 0 and 1 of an ellipse). With
+`spread`, each view's range is drawn from a Gamma of that mean and standard
+deviation; with `correlation` (metres along the path), each feature's offset
+and the view's range persist from pose to pose (wiredsl.effects.variation).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from wiredsl.effects import variation as var
 from wiredsl.effects.base import Context, Effect, KernelStage, Params, Stats, param
 from wiredsl.engine import imageset as im
 
 
 class LateralShiftParams(Params):
     range: float = param(3.0, "image", "largest lateral shift either side", ge=0, le=1000)
+    spread: float = param(0.0, "image", "standard deviation of the range between views (a Gamma; 0: fixed)",
+                          ge=0, le=1000)
+    correlation: float = param(0.0, "length", "distance along the path over which a feature's offset and the "
+                               "view's range persist (exp(-d / correlation); 0: independent poses)", ge=0, le=1e6)
+    _dump = var.unchanged_when_fixed()  # a stage without them dumps as before they existed
 
 
 class LateralShift(Effect):
     name = "lateral_shift"
     acts_on = "edges"
-    kernel = KernelStage("wiredsl.effects.lateral_shift_kernel:stage", ("range",),
-                         (("count", "add"), ("sum_abs", "add"), ("max_abs", "peak")))
+    kernel = KernelStage("wiredsl.effects.lateral_shift_kernel:stage", ("range", "spread", "correlation"),
+                         (("count", "add"), ("sum_abs", "add"), ("max_abs", "peak")), path=True)
     Params = LateralShiftParams
     doc = __doc__
 
@@ -32,7 +41,12 @@ class LateralShift(Effect):
     @classmethod
     def disturb(cls, p: LateralShiftParams, s: im.ImageSet, ctx: Context) -> im.ImageSet:
         s = split_ellipses(s)
-        d = p.range * (2 * ctx.draws(cls.name, s.trial)[:, 0] - 1)
+        if var.varies(p):
+            u = var.item_uniforms(ctx, cls.name, p, s.trial, var.stroke_items(s.fid, s.fragment)) \
+                if var.along_path(p) else ctx.draws(cls.name, s.trial)[:, 0]
+            d = var.view_magnitudes(ctx, cls.name, p, p.range, "image")[s.trial] * (2 * u - 1)
+        else:
+            d = p.range * (2 * ctx.draws(cls.name, s.trial)[:, 0] - 1)
         normals = im.vertex_normals(s)
         pts = s.pts + np.repeat(d, s.counts)[:, None] * normals
         ctx.add(cls.name, s.trial, count=np.ones(len(d), dtype=int), sum_abs=np.abs(d))

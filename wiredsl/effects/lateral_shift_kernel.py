@@ -8,8 +8,9 @@ import math
 import numpy as np
 from numba import njit
 
+from wiredsl.effects.variation_kernel import item_uniform, stroke_item, view_magnitude
 from wiredsl.engine.imageset import STEP_PX
-from wiredsl.engine.kernel import CLOSED, ELLIPSE, FRAG, KIND, _arcs, _keep, _pieces, _uniform, _unroll
+from wiredsl.engine.kernel import CLOSED, ELLIPSE, FID, FRAG, KIND, _arcs, _keep, _pieces, _uniform, _unroll
 
 
 @njit(cache=True)
@@ -111,14 +112,19 @@ def _split_ellipses(pts, start, meta):
 
 @njit(cache=True)
 def stage(pts, start, meta, corners, cfid, key, params, epipole, right, st):
-    rng = params[0]
+    rng, spread, correlation = params[0], params[1], params[2]
+    persistent = correlation > 0
+    pose = int(params[3]) if persistent else -1
+    rho = params[4:] if persistent else params[:0]
+    rng = view_magnitude(key, rng, spread, False, pose, rho, persistent)
     pts, start, meta = _split_ellipses(pts, start, meta)
     S = len(start) - 1
     out = pts.copy()
     tan = np.zeros((len(pts), 2))
     stepped = np.zeros(len(pts), dtype=np.bool_)
     for k in range(S):
-        u = _uniform(key, k)
+        u = item_uniform(key, stroke_item(meta[k, FID], meta[k, FRAG]), pose, rho) if persistent else \
+            _uniform(key, k)
         d = rng * (2 * u - 1)
         st[0] += 1
         st[1] += abs(d)

@@ -56,6 +56,13 @@ from wiredsl.cli_base import FiniteRange, diagnostics_option, guarded, report
                    "magnitudes against your detector, say).")
 @click.option("--trials", type=click.IntRange(1, 100000), default=50, show_default=True,
               help="Simulated trials a frame for --predict.")
+@click.option("--holdout", default=None, metavar="SPLIT",
+              help="Fit on some frames and predict the others image by image: odd (fit on the even-numbered "
+                   "frames in name order, predict the odd), even, or kfold:K (frame i in fold i mod K). A frame is "
+                   "a stereo pair or one image. Writes holdout.json and the plot.")
+@click.option("--spreads/--no-spreads", default=True, show_default=True,
+              help="With --fit or --holdout: fit each magnitude's spread between images (and between an image's "
+                   "features, for the edge loss) and its correlation along the frames; --no-spreads: constants only.")
 @click.option("--pipeline-name", default="measured", show_default=True, help="The fitted pipeline's name.")
 @click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True,
               help="Seed of the fit's bootstrap resamples and of --predict's simulated trials.")
@@ -64,8 +71,8 @@ from wiredsl.cli_base import FiniteRange, diagnostics_option, guarded, report
 @diagnostics_option
 @guarded
 def verify(file, globs, cameras, poses, pose_format, match, detectors, params, step, band, angle, radius, inlier,
-           refine, do_fit, edge_loss, calibration_error, predict, predict_pipeline, trials, pipeline_name, seed,
-           plot_format, output, diagnostics) -> None:
+           refine, do_fit, edge_loss, calibration_error, predict, predict_pipeline, trials, holdout, spreads,
+           pipeline_name, seed, plot_format, output, diagnostics) -> None:
     """Verify the scene's projected model against detected features in images (the paper's Figure 7), and with
     --fit estimate each effect's parameters as a pipeline."""
     from pathlib import Path
@@ -95,7 +102,8 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
     pairs = [(g, cameras[k] if k < len(cameras) else None) for k, g in enumerate(globs)]
     req = command.Request(file, pairs, list(detectors), list(params), poses, pose_format, match,
                           Settings(step, band, math.radians(angle), radius, inlier), do_fit, seed, pipeline_name,
-                          refine, plot_format, edge_loss, predict, trials, predict_pipeline, calibration_error)
+                          refine, plot_format, edge_loss, predict, trials, predict_pipeline, calibration_error,
+                          holdout, spreads)
     try:
         outcome = command.run(req, out, command.progress_printer())
     except ValueError as exc:
@@ -118,6 +126,9 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
         if e["ks"] is not None:
             click.echo(f"predict\t{key}\treal {e['real_mean']:.4g}\tsimulated {e['simulated_mean']:.4g}\t"
                        f"KS p {e['ks']['p']:.3g}\tMann-Whitney p {e['mann_whitney']['p']:.3g}")
+    for key, s in (outcome.holdout or {}).items():
+        click.echo(f"holdout\t{key}\t{s['inside']} of {s['images']} inside their 90% band\t"
+                   f"({100 * s['inside_fraction']:.0f}%)\tmean percentile {s['mean_percentile']:.2f}")
     for note in outcome.notes:
         click.echo(f"note: {note}", err=True)
     click.echo(f"wrote {out}: {', '.join(outcome.written)}", err=True)

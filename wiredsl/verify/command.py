@@ -17,7 +17,7 @@ from wiredsl.diagnostics import Diagnostic, WiredslError
 from wiredsl.files import remove_stale, temporary
 from wiredsl.verify import fit as fitting
 from wiredsl.verify import images as im
-from wiredsl.verify import report
+from wiredsl.verify import report, variation_fit
 from wiredsl.verify import verification as ver
 from wiredsl.verify.detectors import Detection, checked, params_of, registry
 
@@ -44,6 +44,8 @@ class Request:
     trials: int = 50
     predict_pipeline: object = None  # a Pipeline, or a scene pipeline's name, to predict with instead of the fitted one
     calibration_error: bool = True  # the rig's declared calibration uncertainty simulated (fit.pipeline_text)
+    holdout: str | None = None  # odd | even | kfold:K: fit on some frames, predict the others (holdout.py)
+    spreads: bool = True  # fit the spreads between images and correlations along them (variation_fit.py)
 
 
 @dataclass
@@ -57,6 +59,7 @@ class Outcome:
     notes: list[str]
     refined: list[dict] = field(default_factory=list)
     prediction: dict | None = None  # --predict: predict.compare's measures
+    holdout: dict | None = None  # --holdout: per statistic, holdout.summary
 
 
 def _detectors(names: list[str], params: list[str]):
@@ -162,6 +165,10 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         match = im.assign_file(frames, scene, req.poses, req.pose_format, req.match, side)
         pose_note = f"{req.poses} ({req.pose_format or 'format from its content'}, matched by {match}; the poses " \
                     f"of the {side} camera)"
+    if req.holdout:  # a bad split is a usage error before any frame is verified
+        from wiredsl.verify.holdout import parse_split
+
+        parse_split(req.holdout, len(frames))
     world = build_world(scene)
     occluders = occlusion.Occluders.of_world(world)
     opts = Options(visibility="exact")
@@ -171,6 +178,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
     rows: list[tuple] = []
     fractions = report.ObjectFractions()
     sums: list[fitting.ImageSums] = []
+    extras, sums_frame, held = [], [], []  # per image: spreads' extras and frame index; per frame: holdout's
     notes: set[str] = set()
     refined: list[dict] = []
     n_images = 0
@@ -212,11 +220,18 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
                                                     cfg.radius)
         if req.predict:
             observed.append(_observed(frame, views, per_side, edge_det, corner_det, cfg))
+        if req.holdout:
+            from wiredsl.verify import holdout
+
+            held.append(holdout.observe(frame, views, per_side, edge_det, corner_det, cfg, _objects(world)))
         for side, (_, _, results, _) in per_side.items():
             for r in results:
                 rows.extend(report.rows_of(r))
                 fractions.add(r)
             sums.append(sums_of(results, cfg, edge_det, corner_det))
+            extras.append(variation_fit.extras_of(results, side, edge_det, corner_det, fitting.MIN_STROKE_SAMPLES,
+                                                  cfg.inlier))
+            sums_frame.append(i)
             if side == "left" and corner_det is not None and len(per_side) == 2:
                 pair_sums(sums[-1], *(next(r for r in per_side[s][2] if r.detector == corner_det).corners
                                       for s in ("left", "right")), cfg.inlier)
@@ -248,6 +263,8 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
             from wiredsl.files import json_text, write_atomic
 
             result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss)
+            if req.spreads:
+                variation_fit.add(result, extras, sums_frame, [f.pose for f in frames], req.seed, req.edge_loss)
             det_text = "; ".join(f"{n} ({', '.join(f'{k} {v}' for k, v in p.model_dump().items())})"
                                  for n, _, p in dets)
             provenance = [f"Fitted by `wiredsl verify` from {n_images} images of {len(frames)} frames "
@@ -264,21 +281,36 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
             write_atomic(out / "fit.json", json_text({**result.to_json(), "seed": req.seed, "bootstrap": fitting.B},
                                                      indent=1))
             written += [f"{req.pipeline_name}.wd", "fit.json"]
-        prediction = None
+        prediction = held_doc = None
         if req.predict:
             prediction = _predict(req, out, scene, world, observed, cfg, n_images)
             written += ["prediction.json", f"prediction.{req.plot_format}"]
+        if req.holdout:
+            from wiredsl.verify import holdout
+
+            cal = scene.rig.calibration
+            held_doc, names = holdout.run(req, out, scene, world, held, sums, sums_frame, cfg,
+                                   None if cal is None else f"{cal.kind} over {len(cal.order)} parameters",
+                                   corner_det is not None, _objects(world), extras if req.spreads else None)
+            written += names
         _publish(out, final, written, req)
     finally:
         shutil.rmtree(out, ignore_errors=True)
-    return Outcome(written, result, len(frames), n_images, warnings, summary, sorted(notes), refined, prediction)
+    return Outcome(written, result, len(frames), n_images, warnings, summary, sorted(notes), refined, prediction,
+                   held_doc["summary"] if held_doc else None)
 
 
 def _published_names(req: Request) -> set[str]:
     """Every file a verify run may write into its -o folder."""
     plots = ("png", "svg", "pdf")
     return {"verification.csv", "verification.json", "fit.json", "prediction.json", f"{req.pipeline_name}.wd",
-            *(f"figure7.{x}" for x in plots), *(f"prediction.{x}" for x in plots)}
+            "holdout.json", *(f"figure7.{x}" for x in plots), *(f"prediction.{x}" for x in plots),
+            *(f"holdout.{x}" for x in plots)}
+
+
+def _objects(world) -> list[str]:
+    """Each feature's object (the name before the dot of its id), by feature index."""
+    return [str(f).split(".")[0] for f in world.feature_ids]
 
 
 def _publish(stage: Path, out: Path, written: list[str], req: Request) -> None:

@@ -454,6 +454,7 @@ def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | N
     pipeline starts with `calibration_error sigma 1`, which draws the rigs with exactly that uncertainty, unless
     not `with_calibration` (the images calibrated the rig: their corners already fit it)."""
     from wiredsl.language.fmt import format_text
+    from wiredsl.verify.variation_fit import clauses
 
     def iv(e: Estimate, fmt) -> str:
         if e.value is None:
@@ -475,7 +476,9 @@ def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | N
     if f.fragments:
         lines.append(f"  # fragments: {f.fragments['runs_per_stroke']:.3g} verified runs a stroke over "
                      f"{f.fragments['strokes']} strokes (the effect's one gap leaves 2)")
-    lines.append(f"  edge_loss fraction {_pct(e.used)}")
+    notes, more = clauses(f, "edge_loss")  # spread between images, correlation along them (variation_fit)
+    lines += notes
+    lines.append(f"  edge_loss fraction {_pct(e.used)}{more}")
     e = f.get("lateral_shift.range")
     lines.append(f"  # lateral shift range {iv(e, lambda x: _num(x) + ' px')}")
     if f.shift_law and f.shift_law.get("better"):
@@ -483,13 +486,17 @@ def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | N
         lines.append(f"  # law of the shifts: {law['better']} fits better (Kolmogorov-Smirnov D uniform "
                      f"{law['ks_uniform']['D']:.3g} p {law['ks_uniform']['p']:.3g}, normal {law['ks_normal']['D']:.3g} "
                      f"p {law['ks_normal']['p']:.3g}; parameters fitted from the same {law['n']} strokes)")
-    lines.append(f"  lateral_shift range {_num(e.used)}px")
+    notes, more = clauses(f, "lateral_shift")
+    lines += notes
+    lines.append(f"  lateral_shift range {_num(e.used)}px{more}")
     e = f.get("approx_error.sigma")
     lines.append(f"  # approximation error sigma {iv(e, lambda x: _num(x) + ' px')}")
     lines.append(f"  approx_error sigma {_num(e.used)}px")
     e = f.get("corner_loss.keep")
     lines.append(f"  # corner keep {iv(e, _pct)}")
-    lines.append(f"  corner_loss keep {_pct(e.used)}")
+    notes, more = clauses(f, "corner_loss")
+    lines += notes
+    lines.append(f"  corner_loss keep {_pct(e.used)}{more}")
     e, r = f.get("corner_error.sigma"), f.get("corner_error.correlation")
     if e.value is None:
         lines.append(f"  # corner localisation error not estimated ({e.note}): no corner_error stage")
@@ -500,7 +507,9 @@ def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | N
                          "independent")
         else:
             lines.append(f"  # its correlation between the cameras {iv(r, _num)}")
-        lines.append(f"  corner_error sigma {_num(e.value)}px correlation {_num(r.value or 0.0)}")
+        notes, more = clauses(f, "corner_error")
+        lines += notes
+        lines.append(f"  corner_error sigma {_num(e.value)}px correlation {_num(r.value or 0.0)}{more}")
     ef, er = f.get("corner_mismatch.fraction"), f.get("corner_mismatch.radius")
     lines.append(f"  # corner mismatch fraction {iv(ef, _pct)}")
     lines.append(f"  # corner mismatch radius {iv(er, lambda x: _num(x) + ' px')}")

@@ -155,9 +155,14 @@ def segments_of(view) -> np.ndarray:
     return np.concatenate(segs).astype(float) if segs else np.zeros((0, 4))
 
 
-def simulate(scene, world, pipeline, observed: list[Observed], cfg: ver.Settings, trials: int, seed: int
-             ) -> list[dict]:
-    """Per frame and trial, the simulated measures: [{frame, trial, side -> {measure}, PAIR measure -> value}]."""
+def simulate(scene, world, pipeline, observed: list[Observed], cfg: ver.Settings, trials: int, seed: int,
+             side_values=None) -> list[dict]:
+    """Per frame and trial, the simulated measures: [{frame, trial, side -> {measure}, PAIR measure -> value}].
+    `side_values(model_view, simulated_view, shape) -> dict` gives an image's measures (default: `edge_values`
+    of `simulated_stats`; holdout.py's adds fragments and corners)."""
+    if side_values is None:
+        def side_values(model, sim, shape):
+            return edge_values(simulated_stats(model, sim, shape, cfg))
     from wiredsl import run as runs
     from wiredsl.engine.geometry import floor_pose
     from wiredsl.engine.simulate import Options
@@ -182,8 +187,7 @@ def simulate(scene, world, pipeline, observed: list[Observed], cfg: ver.Settings
                 row = {"frame": o.frame, "trial": int(trial)}
                 views = {"left": r.left, "right": r.right}
                 for side in o.values:
-                    row[side] = edge_values(simulated_stats(getattr(ideal[r.index], side), views[side],
-                                                            o.shape[side], cfg))
+                    row[side] = side_values(getattr(ideal[r.index], side), views[side], o.shape[side])
                 if o.pair or len(o.values) == 2:
                     row.update(corner_errors_3d(ideal[r.index].left, ideal[r.index].right,
                                                 ver.corners_of(r.left)[1], ver.corners_of(r.right)[1], cfg.radius))
