@@ -583,3 +583,24 @@ def test_frames_pair_the_cameras_images_by_the_number_in_their_names(tmp_path):
     (tmp_path / "t" / "1305031102.175304.png").write_bytes(b"")
     (frame,) = I.frames_of([(str(tmp_path / "t" / "*.png"), "right")], rig)
     assert str(frame.key) == "1305031102.175304" and list(frame.images) == ["right"]
+
+
+def test_poses_path_pairs_a_subset_of_images_by_their_numbers_and_warns_of_a_wrong_pairing(rendered, tmp_path):
+    """Issue 34 item 6: `--poses path` on `left_00[34].png` verifies each at its own pose (3 and 4), not at the
+    path's first two; an image numbered for another pose (a copy of pose 3's named 4) is W192 naming it; a
+    number beyond the path is E192 at that image."""
+    r = _verify("--images", rendered / "ideal" / "left_00[34].png", "--detector", "canny", "-o", tmp_path / "a")
+    assert r.exit_code == 0, r.output
+    assert "W192" not in r.output
+    doc = json.loads((tmp_path / "a" / "verification.json").read_text())
+    assert doc["images"] == 2 and all(o["verified_fraction"] > 0.95 for o in doc["objects"])
+    wrong = tmp_path / "wrong"
+    wrong.mkdir()
+    (wrong / "left_004.png").write_bytes((rendered / "ideal" / "left_003.png").read_bytes())
+    (wrong / "left_002.png").write_bytes((rendered / "ideal" / "left_002.png").read_bytes())
+    r = _verify("--images", wrong / "*.png", "--detector", "canny", "-o", tmp_path / "b")
+    assert r.exit_code == 0, r.output
+    assert "W192" in r.output and "left_004.png" in r.output and "left_002.png" not in r.output
+    (wrong / "left_009.png").write_bytes((rendered / "ideal" / "left_002.png").read_bytes())
+    r = _verify("--images", wrong / "left_009.png", "--detector", "canny", "-o", tmp_path / "c")
+    assert r.exit_code == 1 and "E192" in r.output and "left_009.png" in r.output and "0 to 4" in r.output

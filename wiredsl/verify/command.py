@@ -152,7 +152,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
     frames = im.frames_of(req.images, scene.rig)
     if req.poses == "path":
         im.assign_path(frames, scene)
-        pose_note = "the scene's path, in name order"
+        pose_note = "the scene's path, by the number in each image's name"
     elif req.poses == "board":
         pose_note, frames = _board_poses(frames, scene, warnings)
     else:
@@ -173,6 +173,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
     refined: list[dict] = []
     n_images = 0
     observed = []
+    unverified: list[tuple[str, float]] = []  # images where most of the model is unverified
     for i, frame in enumerate(frames):
         im.check_finite_pose(frame)
         pose = project_pose(scene, world, frame.pose, i, opts, occluders=occluders)
@@ -198,6 +199,9 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
             results = [ver.verify_image(view, found[name], grey.shape, cfg,
                                         ver.ImageResult(path, side, frame.label, name, world.feature_ids))
                        for name, _, _ in dets]
+            share = _verified_share(results, edge_det, corner_det)
+            if share is not None and share < UNVERIFIED:
+                unverified.append((path, share))
             per_side[side] = (grey if corner_det is not None and len(frame.images) == 2 else None, found, results,
                               grey.shape)
             n_images += 1
@@ -220,6 +224,8 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
                                       for s in ("left", "right")), cfg.inlier)
         if progress is not None:
             progress(i + 1, len(frames))
+    if unverified:
+        warnings.append(_unverified_warning(unverified, n_images, pose_note))
     out.mkdir(parents=True, exist_ok=True)
     final, out = out, Path(tempfile.mkdtemp(prefix=".verify-", dir=out))  # staged: published together at the end
     try:
@@ -266,6 +272,32 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
     finally:
         shutil.rmtree(out, ignore_errors=True)
     return Outcome(written, result, len(frames), n_images, warnings, summary, sorted(notes), refined, prediction)
+
+
+UNVERIFIED = 0.5  # an image whose model is verified less than this is warned of (W192): its pose is likely wrong
+LEAST_TESTED = 20  # edge samples (model corners) an image needs for its share to be judged
+
+
+def _verified_share(results: list[ver.ImageResult], edge_det: str | None, corner_det: str | None) -> float | None:
+    """The share of an image's model the detectors verified: its edge samples (the first edge detector), else its
+    model corners found (the first corner detector); None with too little of the model in view to judge."""
+    for r in results:
+        if r.detector == edge_det and r.stats is not None and r.stats.tested.sum() >= LEAST_TESTED:
+            return float(r.stats.verified.sum() / r.stats.tested.sum())
+    for r in results:
+        if r.detector == corner_det and r.corners is not None and len(r.corners.fid) >= LEAST_TESTED:
+            return float(r.corners.found.mean())
+    return None
+
+
+def _unverified_warning(unverified: list[tuple[str, float]], n_images: int, pose_note: str) -> Diagnostic:
+    """W192 at the first image where most of the model is unverified, naming every such image."""
+    shown = ", ".join(f"{Path(p).name} ({100 * v:.0f}%)" for p, v in unverified[:8])
+    more = f" and {len(unverified) - 8} more" if len(unverified) > 8 else ""
+    return Diagnostic("warning", "W192", f"most of the model is unverified in {len(unverified)} of {n_images} "
+                      f"images: {shown}{more} (verified share; poses: {pose_note})", im.at(unverified[0][0]),
+                      "an image paired with another image's pose verifies little: check that each image's number "
+                      "is its path pose (--poses path), or its line in the pose file")
 
 
 def _published_names(req: Request) -> set[str]:
