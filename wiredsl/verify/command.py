@@ -104,13 +104,14 @@ def sums_of(results: list[ver.ImageResult], cfg: ver.Settings, edge_det: str | N
             s.length, s.lost_middle, s.lost_ends = (float(st.tested_length.sum()), float(st.lost_middle.sum()),
                                                     float(st.lost_ends.sum()))
             s.ends, s.gap_ends = float(st.ends.sum()), float(st.gap_ends.sum())
-            ok = st.run_n >= fitting.MIN_STROKE_SAMPLES
+            ok = (st.run_length >= fitting.MIN_RUN_PX) & (st.run_n >= 4) & np.isfinite(st.run_noise)
             d = st.run_mean[ok]
             s.strokes, s.d1, s.d2, s.offsets = int(ok.sum()), float(d.sum()), float((d * d).sum()), d.tolist()
+            s.offset_noise = st.run_noise[ok].tolist()
             s.noise = float(np.nansum(st.run_noise[ok]))
             tested = st.tested > 0
             s.runs, s.run_strokes = float(st.runs[tested].sum()), int(tested.sum())
-            e = st.run_end_diff[np.isfinite(st.run_end_diff)]
+            e = st.run_end_diff[ok & np.isfinite(st.run_end_diff)]
             s.fitted, s.fitted2 = len(e), float((e * e).sum())
         if r.detector == corner_det and r.corners is not None:
             c = r.corners
@@ -247,7 +248,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         if req.fit:
             from wiredsl.files import json_text, write_atomic
 
-            result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss)
+            result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss, band=cfg.band)
             det_text = "; ".join(f"{n} ({', '.join(f'{k} {v}' for k, v in p.model_dump().items())})"
                                  for n, _, p in dets)
             provenance = [f"Fitted by `wiredsl verify` from {n_images} images of {len(frames)} frames "

@@ -52,7 +52,8 @@ PAPER = {"edge_loss.fraction": 0.29, "lateral_shift.range": 3.0, "approx_error.s
 # (tests/test_verify_roundtrip.py) the two differ by up to about a fifth of the correction, so its interval is
 # widened by this share of the correction either way.
 END_DOUBT = 0.25
-MIN_STROKE_SAMPLES = 5  # verified samples a stroke needs for its mean offset to count
+EDGE_SOFT = 0.1  # the shift mixture's uniform law: its edges softened by this share of its range (shift_mixture)
+MIN_RUN_PX = 10.0  # px of offsets a fragment needs for its mean offset to count (px, not samples: alike at every step)
 # below these a statistic is not estimated
 MIN = {"edges": 20, "strokes": 5, "corners": 10, "displaced": 3, "located": 10}
 
@@ -73,6 +74,7 @@ class ImageSums:
     d2: float = 0.0  # sum of their squared mean offsets
     noise: float = 0.0  # sum of their means' measurement variances
     offsets: list = field(default_factory=list)  # their mean offsets
+    offset_noise: list = field(default_factory=list)  # their measurement variances
     runs: float = 0.0
     run_strokes: int = 0
     fitted: int = 0  # runs with a fitted line
@@ -168,21 +170,80 @@ def _edge_loss(col, seed: int):
     return float(f), lo, None if hi is None else min(hi, 1.0), float(end)
 
 
-def _shift_range(col, seed: int):
-    """(range, lo, hi): sqrt(3 v) with v the fragments' mean offsets' variance about their mean, less their
-    measurement variance (from each fragment's scatter about its fitted line)."""
+def shift_mixture(d: np.ndarray, v: np.ndarray, wts: np.ndarray, band: float, shape: str = "uniform", start=None,
+                  rounds: int = 200, tol: float = 1e-7):
+    """(R, m, w, r, loglik) of the fragments' mean offsets d (F,) with measurement variances v (F,), under weights
+    wts (K, F) (a bootstrap replicate a row): a mixture of the effect's shifts with weight 1 - w, centred on m, of
+    spread R (the range of the uniform law of that variance, R^2 / 3), each fragment's measurement noise N(0, v)
+    added, and a background with weight w, uniform over the search band (+-(band + 0.5) px): a fragment the
+    detector found on an edge the model does not name (another object's, the paper's edge beside a board) is as
+    likely at any offset the search reaches. The uniform's edges are softened by EDGE_SOFT R (a fragment just past
+    the estimate's edge is not given to the background outright, which would shrink the estimate round after
+    round). The shifts' law is `shape`: "uniform" (the effect's: uniform on
+    [-R, R]) or "normal" (N(0, R^2 / 3): the same spread, with tails). Each round the fragments' shares r of the
+    effect (K, F) are taken from the densities, then m and R from their r-weighted first and second moments (the
+    variance less the noise) and w from the shares: a fixed point from the plain moments (or `start`), reached
+    within a few tens of rounds."""
+    from scipy.special import ndtr
 
-    def value(n, d1, d2, noise):
-        with np.errstate(invalid="ignore", divide="ignore"):
-            m = d1 / n
-            return np.sqrt(3 * np.maximum(d2 / n - m * m - noise / n, 0.0))
+    d, v = np.asarray(d, float), np.asarray(v, float)
+    wts = np.atleast_2d(np.asarray(wts, float))
+    tot = np.maximum(wts.sum(axis=1), 1e-300)
+    f_bg = 1.0 / (2.0 * (band + 0.5))
+    if start is None:
+        m = wts @ d / tot
+        R = np.sqrt(3 * np.maximum(wts @ (d * d) / tot - m * m - wts @ v / tot, 0.0))
+        w = np.full(len(wts), 0.05)
+    else:
+        R, m, w = (np.full(len(wts), float(x)) for x in start)  # (R, m, w)
 
-    keys = ("strokes", "d1", "d2", "noise")
-    f = value(*(col[k].sum() for k in keys))
-    W = _weights(len(col["strokes"]), seed, "lateral_shift.range")
-    lo, hi = _interval(np.asarray(value(*(W @ col[k] for k in keys)), float), float(f),
-                       int((col["strokes"] > 0).sum()))
-    return float(f), lo, hi
+    def density(m, R):
+        x = d[None, :] - m[:, None]
+        if shape == "normal":
+            s2 = (R * R / 3)[:, None] + v[None, :] + 1e-12
+            return np.exp(-x * x / (2 * s2)) / np.sqrt(2 * np.pi * s2)
+        Rr = np.maximum(R, 1e-3)[:, None]
+        sd = np.sqrt(v[None, :] + (EDGE_SOFT * Rr) ** 2 + 1e-6)
+        return (ndtr((x + Rr) / sd) - ndtr((x - Rr) / sd)) / (2 * Rr)
+
+    for _ in range(rounds):
+        a = (1 - w)[:, None] * density(m, R)
+        r = a / np.maximum(a + w[:, None] * f_bg, 1e-300)
+        wr = wts * r
+        n = np.maximum(wr.sum(axis=1), 1e-300)
+        m_new = wr @ d / n
+        var = (wr * ((d[None, :] - m_new[:, None]) ** 2 - v[None, :])).sum(axis=1) / n
+        R_new = np.sqrt(3 * np.maximum(var, 0.0))
+        w_new = np.clip(1 - n / tot, 0.0, 1.0)
+        done = np.all(np.abs(R_new - R) < tol) and np.all(np.abs(w_new - w) < tol)
+        m, R, w = m_new, R_new, w_new
+        if done:
+            break
+    a = (1 - w)[:, None] * density(m, R)
+    r = a / np.maximum(a + w[:, None] * f_bg, 1e-300)
+    loglik = (wts * np.log(np.maximum(a + w[:, None] * f_bg, 1e-300))).sum(axis=1)
+    return R, m, w, r, loglik
+
+
+def _shift_range(sums: list, seed: int, band: float):
+    """(range, lo, hi, mean, background share, effect's offsets, law) of the lateral shift, from the fragments'
+    mean offsets by `shift_mixture` with the law (uniform or normal) of the larger likelihood; the interval by the
+    bootstrap over images (each replicate's fixed point from the estimate's, with the same law)."""
+    d = np.concatenate([np.asarray(s.offsets, float) for s in sums])
+    v = np.concatenate([np.asarray(s.offset_noise, float) if len(s.offset_noise) == len(s.offsets) else
+                        np.zeros(len(s.offsets)) for s in sums])  # (no noise given: none)
+    v = np.where(np.isfinite(v), v, 0.0)
+    img = np.repeat(np.arange(len(sums)), [len(s.offsets) for s in sums])
+    one = np.ones((1, len(d)))
+    fits = {shape: [x[0] for x in shift_mixture(d, v, one, band, shape)] for shape in ("uniform", "normal")}
+    shape = max(fits, key=lambda k: fits[k][4])  # the law of the shifts with the larger likelihood
+    R, m, w, r, _ = fits[shape]
+    W = _weights(len(sums), seed, "lateral_shift.range")
+    reps = []
+    for k in range(0, B, 250):  # replicates in blocks: (250, fragments) arrays
+        reps.append(shift_mixture(d, v, W[k:k + 250][:, img], band, shape, start=(R, m, w), rounds=60)[0])
+    lo, hi = _interval(np.concatenate(reps), float(R), int(sum(len(s.offsets) > 0 for s in sums)))
+    return float(R), lo, hi, float(m), float(w), d[r > 0.5], shape
 
 
 def disc_radius(mean_r: np.ndarray, t: float) -> np.ndarray:
@@ -239,8 +300,8 @@ class Fit:
                 "lateral_shift_law": self.shift_law, "fragments": self.fragments, "stereo_matcher": self.stereo}
 
 
-def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 10.0, edge_loss: str = "gaps"
-        ) -> Fit:
+def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 10.0, edge_loss: str = "gaps",
+        band: float = 6.0) -> Fit:
     """Every estimate. `edge_loss`: "gaps" (the default) fits the gaps, the detector's own loss at each gap's
     ends taken off (what a simulation's edge_loss stage injected, as the round trip checks); "raw" everything
     the detector lost (1 - the verified fraction: a simulation with it loses as much as the detector did)."""
@@ -269,14 +330,15 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     else:
         out.append(Estimate("edge_loss.fraction", None, note="no edge detector, or too few edge samples"))
     # lateral shift and its law
-    offsets = np.concatenate([np.asarray(s.offsets, float) for s in sums]) if n else np.zeros(0)
     law = None
     if col["strokes"].sum() >= MIN["strokes"]:
-        v, lo, hi = _shift_range(col, seed)
-        law = law_test(offsets)
-        note = (f"sqrt(3 (var d - noise)) of the mean offsets d of {len(offsets)} fragments (mean {law['mean']:+.3g} "
-                f"px, not part of the effect; their measurement noise "
-                f"{math.sqrt(max(col['noise'].sum() / col['strokes'].sum(), 0)):.3g} px rms)")
+        v, lo, hi, mean, bg, own, shape = _shift_range(sums, seed, band)
+        law = law_test(own)
+        noise = math.sqrt(max(col['noise'].sum() / col['strokes'].sum(), 0))
+        note = (f"sqrt(3 (var d - noise)) of the mean offsets d of {int(col['strokes'].sum())} fragments of at least "
+                f"{MIN_RUN_PX:g} px (mean {mean:+.3g} px, not part of the effect; their measurement noise "
+                f"{noise:.3g} px rms), {100 * bg:.3g}% of them taken as the background (offsets uniform over the "
+                f"+-{band:g} px band: edges the model does not name; the shifts' law in that mixture: {shape})")
         if law["better"] == "normal":
             note += f"; a normal law fits better (KS D {law['ks_normal']['D']:.3g} against uniform's " \
                     f"{law['ks_uniform']['D']:.3g}): this is the uniform range of the same spread"

@@ -29,6 +29,8 @@ ANGLE = math.radians(20.0)  # largest angle between the detected gradient and th
 RADIUS = 10.0  # px: the paper's corner match search radius
 BORDER = 2.0  # px: samples nearer the image's border are not tested (detectors see nothing there)
 GOLDEN = 0.6180339887498949  # the sample grids' phases: (i + 1) * GOLDEN mod 1 for stroke i
+RUN_TRIM = 2.0  # px at each end of a run left out of its offsets
+CORR_PX = 8.0  # px: the longest lag of the residuals' correlation counted in a run mean's noise
 PATCH = 5  # half size of the correlation patches of the stereo corner matcher (11 x 11)
 
 
@@ -213,6 +215,7 @@ class StrokeStats:
     run_mean: np.ndarray
     run_end_diff: np.ndarray
     run_noise: np.ndarray  # variance of the run's mean offset from its samples' scatter about its fitted line
+    run_length: np.ndarray  # px its offsets cover (its samples less RUN_TRIM at each end, times their spacing)
 
 
 def _bins(idx, w, n):
@@ -258,11 +261,17 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0)
     # runs: the fragments the detector found
     run_id = np.cumsum(start) - 1
     R = int(start.sum())
-    # a run's first and last samples are left out of its offsets: there the edge bends round its end
-    nxt = np.concatenate([v[1:] & same[1:], [False]]) if len(v) else v
-    rv = np.flatnonzero(v & prev & nxt)
+    # a run's samples within RUN_TRIM px of its ends are left out of its offsets (there the edge bends round its
+    # end): px, not samples, so that the offsets a run gives do not depend on the sampling step
+    allv = np.flatnonzero(v)
+    arid, a_s = run_id[allv], sm.s[allv]
+    first_s, last_s = np.full(R, np.inf), np.full(R, -np.inf)
+    np.minimum.at(first_s, arid, a_s)
+    np.maximum.at(last_s, arid, a_s)
+    rv = allv[(a_s - first_s[arid] >= RUN_TRIM - 1e-9) & (last_s[arid] - a_s >= RUN_TRIM - 1e-9)]
     rid, ro, rs = run_id[rv], m.offset[rv], sm.s[rv]
     rn = np.bincount(rid, minlength=R).astype(float)
+    run_spacing = spacing[st[np.flatnonzero(start)]] if R else np.zeros(0)
     with np.errstate(invalid="ignore", divide="ignore"):
         rmean = _bins(rid, ro, R) / np.maximum(rn, 1)
         ms = _bins(rid, rs, R) / np.maximum(rn, 1)
@@ -272,14 +281,24 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0)
         vo = _bins(rid, ro * ro, R) / np.maximum(rn, 1) - rmean * rmean
         rss = rn * np.maximum(vo - np.where(np.isfinite(slope), slope * cov, 0.0), 0.0)
         noise = np.where(rn >= 4, rss / np.maximum(rn - 2, 1) / np.maximum(rn, 1), np.nan)
-        # neighbouring samples' noise is correlated (blur, the detector's own smoothing): the variance of a mean
-        # grows by (1 + rho) / (1 - rho), rho the lag-one correlation of the residuals, pooled over the view's runs
+        # neighbouring samples' noise is correlated (blur, the detector's own smoothing, and samples closer than a
+        # pixel read the same pixels): the variance of a mean of n grows by 1 + 2 sum_k (1 - k / n) rho_k, rho_k
+        # the correlation of the residuals k samples apart, pooled over the view's runs, summed over lags up to
+        # CORR_PX px while positive (the initial positive sequence)
         res = ro - rmean[rid] - np.where(np.isfinite(slope), slope, 0.0)[rid] * (rs - ms[rid])
-        pair = (rid[1:] == rid[:-1]) & (rn[rid[1:]] >= 4) if len(rid) > 1 else np.zeros(0, bool)
-        den = float((res[:-1][pair] ** 2).sum()) if len(rid) > 1 else 0.0
-        rho = float((res[:-1][pair] * res[1:][pair]).sum()) / den if den > 0 else 0.0
-        rho = min(max(rho, 0.0), 0.9)
-        noise = noise * (1 + rho) / (1 - rho)
+        usable = rn[rid] >= 4 if len(rid) else np.zeros(0, bool)
+        den = float((res[usable] ** 2).sum())
+        gap = float(np.median(run_spacing)) if R else 1.0
+        grow = np.ones(R)
+        for k in range(1, max(1, int(round(CORR_PX / max(gap, 1e-9)))) + 1):
+            if den <= 0 or len(rid) <= k:
+                break
+            pair = (rid[k:] == rid[:-k]) & usable[k:]
+            rho = float((res[:-k][pair] * res[k:][pair]).sum()) / den
+            if rho <= 0:
+                break
+            grow += 2 * min(rho, 1.0) * np.maximum(1 - k / np.maximum(rn, 1), 0.0)
+        noise = noise * grow
         smin = np.full(R, np.inf)
         smax = np.full(R, -np.inf)
         np.minimum.at(smin, rid, rs)
@@ -287,7 +306,8 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0)
     run_stroke = st[np.flatnonzero(start)]
     return StrokeStats(sm.L, cnt.astype(int), nv.astype(int), runs.astype(int), mean, np.sqrt(np.maximum(var, 0)),
                        cnt * spacing, lost_mid, lost_ends, first_end.astype(int) + last_end.astype(int),
-                       gap_ends.astype(int), run_stroke, rn.astype(int), rmean, slope * (smax - smin), noise)
+                       gap_ends.astype(int), run_stroke, rn.astype(int), rmean, slope * (smax - smin), noise,
+                       rn * run_spacing)
 
 
 @dataclass
