@@ -604,3 +604,46 @@ def test_poses_path_pairs_a_subset_of_images_by_their_numbers_and_warns_of_a_wro
     (wrong / "left_009.png").write_bytes((rendered / "ideal" / "left_002.png").read_bytes())
     r = _verify("--images", wrong / "left_009.png", "--detector", "canny", "-o", tmp_path / "c")
     assert r.exit_code == 1 and "E192" in r.output and "left_009.png" in r.output and "0 to 4" in r.output
+
+
+def test_the_shift_mixture_takes_fragments_on_unnamed_edges_off_and_keeps_the_range():
+    """Issue 34: uniform shifts of range R with 4% of the fragments on another edge 4-6 px away (the paper's edge
+    beside a board): the mixture's interval holds R in most settings, where the plain moments (sqrt(3 var d))
+    are far off; with no background the share taken off is about none."""
+    rng = np.random.default_rng(11)
+    hits, naive = 0, []
+    for k in range(12):
+        R = rng.uniform(0.3, 2.5)
+        d = rng.uniform(-R, R, 480) + rng.normal(0, 0.05, 480)
+        bg = rng.random(480) < 0.04
+        d[bg] = rng.choice([-1, 1], bg.sum()) * rng.uniform(4, 6, bg.sum())
+        sums = _sums_with_shifts(d, per_image=40)
+        for s in sums:
+            s.offset_noise = [0.05 ** 2] * len(s.offsets)
+        e = F.fit(sums, seed=k, band=6.0).get("lateral_shift.range")
+        hits += e.lo <= R <= e.hi
+        naive.append(abs(math.sqrt(3 * d.var()) - R))
+    assert hits >= 10 and min(naive) > 0.3
+    clean = _sums_with_shifts(rng.uniform(-1.5, 1.5, 800))
+    f = F.fit(clean, seed=0)
+    assert "taken as the background" in f.get("lateral_shift.range").note
+    R, m, w, r, _ = (x[0] for x in F.shift_mixture(np.concatenate([s.offsets for s in clean]), np.zeros(800),
+                                                    np.ones((1, 800)), 6.0))
+    assert w < 0.005 and abs(R - 1.5) < 0.1
+
+
+def test_the_chessboards_fitted_shift_does_not_depend_on_the_step_or_the_band(tmp_path):
+    """Issue 34: OpenCV's 13 left chessboard images, Canny, poses from the board: the fitted lateral shift moves by
+    at most 0.1 px between --step 0.25 and 2, and between --band 3 and 6 (it was 0.94 / 1.54 px at steps 2 /
+    0.25, and 0.72 at band 3: border fragments on the paper's edge 4-6 px beside the board)."""
+    from wiredsl.verify import command
+
+    got = {}
+    for step, band in ((2.0, 6.0), (0.25, 6.0), (2.0, 3.0)):
+        req = command.Request("scenes/chessboard.wd", [("tests/data/opencv_stereo/left*.jpg", None)], ["canny"],
+                              poses="board", settings=V.Settings(step=step, band=band), fit=True,
+                              calibration_error=False)
+        got[step, band] = command.run(req, tmp_path / f"{step}_{band}").fit.get("lateral_shift.range").value
+    assert abs(got[0.25, 6.0] - got[2.0, 6.0]) <= 0.1, got
+    assert abs(got[2.0, 3.0] - got[2.0, 6.0]) <= 0.1, got
+    assert 0.2 < got[2.0, 6.0] < 0.8, got

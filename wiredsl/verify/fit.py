@@ -241,7 +241,8 @@ def _shift_range(sums: list, seed: int, band: float):
     W = _weights(len(sums), seed, "lateral_shift.range")
     reps = []
     for k in range(0, B, 250):  # replicates in blocks: (250, fragments) arrays
-        reps.append(shift_mixture(d, v, W[k:k + 250][:, img], band, shape, start=(R, m, w), rounds=60)[0])
+        reps.append(shift_mixture(d, v, W[k:k + 250][:, img], band, shape, start=(R, m, w), rounds=8,
+                                   tol=1e-4)[0])
     lo, hi = _interval(np.concatenate(reps), float(R), int(sum(len(s.offsets) > 0 for s in sums)))
     return float(R), lo, hi, float(m), float(w), d[r > 0.5], shape
 
