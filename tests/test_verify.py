@@ -647,3 +647,23 @@ def test_the_chessboards_fitted_shift_does_not_depend_on_the_step_or_the_band(tm
     assert abs(got[0.25, 6.0] - got[2.0, 6.0]) <= 0.1, got
     assert abs(got[2.0, 3.0] - got[2.0, 6.0]) <= 0.1, got
     assert 0.2 < got[2.0, 6.0] < 0.8, got
+
+
+def test_intervals_of_proportions_at_0_or_1_and_of_a_sigma_at_0_keep_width():
+    """Issue 34: every image finds every corner and verifies every sample: corner keep 1 and edge loss 0, each with
+    an interval of width (exact binomial: at 1 of 400 corners the lower bound is 1 - 0.025^(1/400)); a corner
+    sigma of 0 from residuals of 0 gets no "95%" interval of zero width."""
+    sums = [F.ImageSums(tested=500, verified=500, length=1000, corners=40, found=40, located=40, loc_dof=40,
+                        loc2=0.0) for _ in range(10)]
+    f = F.fit(sums, seed=0, edge_loss="raw")
+    keep = f.get("corner_loss.keep")
+    assert keep.value == 1 and keep.hi == 1 and keep.lo == pytest.approx(0.025 ** (1 / 400), abs=1e-9)
+    assert "exact binomial" in keep.note
+    loss = f.get("edge_loss.fraction")
+    assert loss.value == 0 and loss.lo == 0 and loss.hi == pytest.approx(1 - 0.025 ** (1 / 5000), rel=1e-6)
+    gaps = F.fit(sums, seed=0).get("edge_loss.fraction")
+    assert gaps.value == 0 and gaps.hi > 0
+    sigma = f.get("corner_error.sigma")
+    assert sigma.lo is None or sigma.hi - sigma.lo > 0
+    assert F.exact_binomial(0, 10) == (0.0, pytest.approx(1 - 0.025 ** 0.1))
+    assert all(e.lo is None or e.hi > e.lo for e in f.estimates)

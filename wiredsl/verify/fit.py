@@ -132,7 +132,34 @@ def _interval(reps: np.ndarray, value: float | None = None, n: int | None = None
         widen = math.sqrt(n / (n - 1)) * float(stats.t.ppf(0.975, n - 1)) / float(stats.norm.ppf(0.975))
         reps = value + (reps - value) * widen
     lo, hi = np.quantile(reps, [0.025, 0.975])
-    return max(float(lo), 0.0), float(hi)  # every parameter is >= 0 (fractions are clipped to 1 by callers)
+    lo, hi = max(float(lo), 0.0), float(hi)  # every parameter is >= 0 (fractions are clipped to 1 by callers)
+    if hi - lo <= 1e-12 * max(1.0, abs(hi)):
+        return None, None  # no spread: a "95%" interval of zero width would claim a certainty the images lack
+    return lo, hi
+
+
+def exact_binomial(x: float, n: float) -> tuple[float, float]:
+    """The Clopper-Pearson 95% interval of a proportion of x in n (counts rounded): it has width at 0 and at 1,
+    where a bootstrap over images that all agree has none."""
+    from scipy import stats
+
+    x, n = int(round(x)), max(int(round(n)), 1)
+    lo = 0.0 if x <= 0 else float(stats.beta.ppf(0.025, x, n - x + 1))
+    hi = 1.0 if x >= n else float(stats.beta.ppf(0.975, x + 1, n - x))
+    return lo, hi
+
+
+def _at_bound(value: float | None, lo, hi, x: float, n: float):
+    """(lo, hi, how) of a proportion: where it is 0 or 1, or its bootstrap has no spread, the hull of the bootstrap's
+    interval and the exact binomial one of x in n; `how` says so (empty otherwise)."""
+    if value is None or n <= 0:
+        return lo, hi, ""
+    if lo is not None and 1e-12 < value < 1 - 1e-12:
+        return lo, hi, ""
+    elo, ehi = exact_binomial(x, n)
+    lo, hi = (elo, ehi) if lo is None else (min(lo, elo), max(hi, ehi))
+    return lo, hi, f"; interval: exact binomial of {int(round(x)):,} in {int(round(n)):,} (at {value:.3g} the " \
+                   "bootstrap over images has no spread)"
 
 
 def _ratio(num: np.ndarray, den: np.ndarray, seed: int, name: str, fn=lambda r: r, fraction: bool = True):
@@ -150,6 +177,14 @@ def _ratio(num: np.ndarray, den: np.ndarray, seed: int, name: str, fn=lambda r: 
     return value, lo, hi
 
 
+def _proportion(num: np.ndarray, den: np.ndarray, seed: int, name: str):
+    """(value, lo, hi, how) of the proportion sum num / sum den of counts: the bootstrap over images, and at 0 or 1
+    (or without spread) the exact binomial interval beside it (`_at_bound`)."""
+    value, lo, hi = _ratio(num, den, seed, name)
+    lo, hi, how = _at_bound(value, lo, hi, float(num.sum()), float(den.sum()))
+    return value, lo, hi, how
+
+
 def _edge_loss(col, seed: int):
     """(fraction, lo, hi, end loss px): the lost length in the strokes' middles less the detector's own end loss
     at each gap end, over the tested length."""
@@ -164,10 +199,12 @@ def _edge_loss(col, seed: int):
     W = _weights(len(col["length"]), seed, "edge_loss.fraction")
     reps, _ = value(*(W @ col[k] for k in keys))
     lo, hi = _interval(np.asarray(reps, float), float(f), int((col["length"] > 0).sum()))
+    n = col["tested"].sum()  # at 0 or 1: the exact binomial interval of the samples beside the bootstrap's
+    lo, hi, how = _at_bound(float(f), lo, hi, float(f) * n, n)
     if lo is not None:  # the correction's own assumption, that a gap's end loses what a stroke's end does
         s = END_DOUBT * float(end) * col["gap_ends"].sum() / col["length"].sum()
         lo, hi = max(lo - s, 0.0), hi + s
-    return float(f), lo, None if hi is None else min(hi, 1.0), float(end)
+    return float(f), lo, None if hi is None else min(hi, 1.0), float(end), how
 
 
 def shift_mixture(d: np.ndarray, v: np.ndarray, wts: np.ndarray, band: float, shape: str = "uniform", start=None,
@@ -315,13 +352,13 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     out = []
     # edge loss: the gaps themselves (the detector's end loss at each gap end taken off), or everything lost
     if col["tested"].sum() >= MIN["edges"]:
-        raw, rlo, rhi = _ratio(col["tested"] - col["verified"], col["tested"], seed, "edge_loss.raw")
+        raw, rlo, rhi, rhow = _proportion(col["tested"] - col["verified"], col["tested"], seed, "edge_loss.raw")
         raw_note = (f"1 - verified fraction of {int(col['tested'].sum()):,} samples over "
-                    f"{int((col['tested'] > 0).sum())} images")
-        v, lo, hi, end = _edge_loss(col, seed)
+                    f"{int((col['tested'] > 0).sum())} images{rhow}")
+        v, lo, hi, end, how = _edge_loss(col, seed)
         gaps_note = (f"lost length over {col['length'].sum():,.0f} px of {int((col['tested'] > 0).sum())} images, "
                      f"less the detector's own loss at an edge's end ({end:.3g} px, measured at the model strokes' "
-                     f"ends) at each of {int(col['gap_ends'].sum())} gap ends")
+                     f"ends) at each of {int(col['gap_ends'].sum())} gap ends{how}")
         if edge_loss == "raw":
             out.append(Estimate("edge_loss.fraction", raw, rlo, rhi, raw_note + f" (the gaps alone: {100 * v:.3g}%)"))
         else:
@@ -354,10 +391,10 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
         out.append(Estimate("approx_error.sigma", None, note="too few strokes with a fitted line"))
     # corners
     if col["corners"].sum() >= MIN["corners"]:
-        v, lo, hi = _ratio(col["found"], col["corners"], seed, "corner_loss.keep")
+        v, lo, hi, how = _proportion(col["found"], col["corners"], seed, "corner_loss.keep")
         out.append(Estimate("corner_loss.keep", v, lo, hi, f"{int(col['found'].sum())} of "
                                                            f"{int(col['corners'].sum())} model corners found within "
-                                                           f"{radius:g} px"))
+                                                           f"{radius:g} px{how}"))
     else:
         out.append(Estimate("corner_loss.keep", None, note="no corner detector, or too few model corners"))
     out += _corner_estimates(col, seed, inlier)
@@ -367,6 +404,9 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
                      "strokes": int(col["run_strokes"].sum()), "effect_gives": 2}
     stereo = {"matched": int(col["matched"].sum()), "wrong": int(col["wrong"].sum()),
               "rate": float(col["wrong"].sum() / col["matched"].sum()) if col["matched"].sum() else None}
+    for e in out:
+        if e.value is not None and e.lo is None and "interval" not in e.note:
+            e.note += " (no interval: the bootstrap over images has no spread, every resample gives the same)"
     return Fit(out, law, fragments, stereo, n)
 
 
@@ -484,9 +524,9 @@ def _corner_estimates(col, seed: int, t: float) -> list[Estimate]:
     tail_note = f", {tail:.3g} of them the localisation error's tail" if tail > 0 else ""
     if not mismatch or d < 1:
         n = int(disp.sum())
-        out += [Estimate(keys[1], float(d / found.sum()), 0.0, min(1.0, 3.0 / found.sum()),
+        out += [Estimate(keys[1], float(d / found.sum()), *exact_binomial(d, found.sum()),
                          f"{n} of {int(found.sum())} found corners displaced beyond {t:g} px{tail_note} "
-                         "(interval: rule of three)"),
+                         "(interval: exact binomial)"),
                 Estimate(keys[2], None, note=f"fewer than {MIN['displaced']} displaced corners" if not mismatch
                          else "no displaced corners beyond the localisation error's")]
         return out
