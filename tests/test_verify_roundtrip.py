@@ -56,3 +56,24 @@ def test_fitted_parameters_recover_the_injected_ones(tmp_path):
     print("\n".join(misses))
     print({k: f"{v}/{SETTINGS}" for k, v in hits.items()})
     assert all(v >= 0.9 * SETTINGS for v in hits.values()), (hits, misses)
+
+
+def test_the_coverage_harness_round_trips_ellipses_silhouettes_and_nothing_injected():
+    """Issue 34 item 6, CI-sized: two settings of benchmarks/roundtrip_coverage.py (the fence with corners, and
+    four cylinders: ellipses and silhouettes), each parameter injected or left at 0, rendered with blur and
+    noise, verified and fitted; each setting's 95% intervals hold all but at most one injected value, and the
+    table names every fitted parameter. The full size (40 settings) is the script's."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "roundtrip_coverage.py"
+    spec = importlib.util.spec_from_file_location("roundtrip_coverage", path)
+    rc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rc)
+    results = rc.coverage(2, 2034)
+    assert [r["scene"] for r in results] == ["fence", "cylinders"]
+    for r in results:
+        missed = [k for k, row in r["rows"].items() if not rc.held(row)]
+        assert len(missed) <= 1, (r["scene"], {k: r["rows"][k] for k in missed})
+    text = rc.table(results)
+    assert all(k in text for k in rc.EDGE_KEYS + rc.CORNER_KEYS)

@@ -108,11 +108,17 @@ def sums_of(results: list[ver.ImageResult], cfg: ver.Settings, edge_det: str | N
             d = st.run_mean[ok]
             s.strokes, s.d1, s.d2, s.offsets = int(ok.sum()), float(d.sum()), float((d * d).sum()), d.tolist()
             s.offset_noise = st.run_noise[ok].tolist()
+            s.offset_line = ((np.diff(r.strokes.start) == 2)[st.run_stroke[ok]]).tolist() if ok.any() else []
             s.noise = float(np.nansum(st.run_noise[ok]))
             tested = st.tested > 0
             s.runs, s.run_strokes = float(st.runs[tested].sum()), int(tested.sum())
-            e = st.run_end_diff[ok & np.isfinite(st.run_end_diff)]
+            # approx_error from the lines alone (two vertices: the effect tilts each by its ends' moves); a
+            # polyline's vertices move each on its own, which a line fitted along a run does not see
+            line = (np.diff(r.strokes.start) == 2)[st.run_stroke] if len(st.run_stroke) else np.zeros(0, bool)
+            use = ok & line & np.isfinite(st.run_end_diff) & np.isfinite(st.run_end_noise)
+            e = st.run_end_diff[use]
             s.fitted, s.fitted2 = len(e), float((e * e).sum())
+            s.fitted_noise = float(st.run_end_noise[use].sum())
         if r.detector == corner_det and r.corners is not None:
             c = r.corners
             s.corners, s.found = float(len(c.fid)), float(c.found.sum())

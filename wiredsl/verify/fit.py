@@ -75,10 +75,12 @@ class ImageSums:
     noise: float = 0.0  # sum of their means' measurement variances
     offsets: list = field(default_factory=list)  # their mean offsets
     offset_noise: list = field(default_factory=list)  # their measurement variances
+    offset_line: list = field(default_factory=list)  # whether each is a line's (approx_error moves its mean)
     runs: float = 0.0
     run_strokes: int = 0
     fitted: int = 0  # runs with a fitted line
     fitted2: float = 0.0  # sum of (e1 - e0)^2
+    fitted_noise: float = 0.0  # sum of their measurement variances
     corners: float = 0.0  # model corners tested
     found: float = 0.0
     displaced: float = 0.0
@@ -262,7 +264,7 @@ def shift_mixture(d: np.ndarray, v: np.ndarray, wts: np.ndarray, band: float, sh
     return R, m, w, r, loglik
 
 
-def _shift_range(sums: list, seed: int, band: float):
+def _shift_range(sums: list, seed: int, band: float, approx: float = 0.0):
     """(range, lo, hi, mean, background share, effect's offsets, law) of the lateral shift, from the fragments'
     mean offsets by `shift_mixture` with the law (uniform or normal) of the larger likelihood; the interval by the
     bootstrap over images (each replicate's fixed point from the estimate's, with the same law)."""
@@ -270,6 +272,11 @@ def _shift_range(sums: list, seed: int, band: float):
     v = np.concatenate([np.asarray(s.offset_noise, float) if len(s.offset_noise) == len(s.offsets) else
                         np.zeros(len(s.offsets)) for s in sums])  # (no noise given: none)
     v = np.where(np.isfinite(v), v, 0.0)
+    # approx_error moves a line fragment's two ends by N(0, approx^2) each across it: its mean by N(0, approx^2 / 2),
+    # what the shift does not explain
+    line = np.concatenate([np.asarray(s.offset_line, bool) if len(s.offset_line) == len(s.offsets) else
+                           np.zeros(len(s.offsets), bool) for s in sums])
+    v = v + np.where(line, approx * approx / 2, 0.0)
     img = np.repeat(np.arange(len(sums)), [len(s.offsets) for s in sums])
     one = np.ones((1, len(d)))
     fits = {shape: [x[0] for x in shift_mixture(d, v, one, band, shape)] for shape in ("uniform", "normal")}
@@ -281,6 +288,11 @@ def _shift_range(sums: list, seed: int, band: float):
         reps.append(shift_mixture(d, v, W[k:k + 250][:, img], band, shape, start=(R, m, w), rounds=8,
                                    tol=1e-4)[0])
     lo, hi = _interval(np.concatenate(reps), float(R), int(sum(len(s.offsets) > 0 for s in sums)))
+    if lo is None and R == 0 and len(d):
+        # no spread beyond the noise in any resample: the interval reaches to the range whose variance is 1.96
+        # standard errors of the noise's (sqrt(2 / n) of it over n fragments), the least it could tell from none
+        hi = math.sqrt(3 * 1.96 * math.sqrt(2 / len(d)) * max(float(np.mean(v)), 1e-12))
+        lo = 0.0
     return float(R), lo, hi, float(m), float(w), d[r > 0.5], shape
 
 
@@ -346,7 +358,7 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     n = len(sums)
     col = {k: np.array([getattr(s, k) for s in sums], float) for k in
            ("tested", "verified", "length", "lost_middle", "lost_ends", "ends", "gap_ends", "strokes", "d1", "d2",
-            "noise", "runs", "run_strokes", "fitted", "fitted2", "corners", "found",
+            "noise", "runs", "run_strokes", "fitted", "fitted2", "fitted_noise", "corners", "found",
             "displaced", "displaced_r", "located", "loc_dof", "loc2", "pairs", "pair_lr", "pair_ll", "pair_rr",
             "matched", "wrong")}
     out = []
@@ -368,9 +380,19 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     else:
         out.append(Estimate("edge_loss.fraction", None, note="no edge detector, or too few edge samples"))
     # lateral shift and its law
+    if col["fitted"].sum() >= MIN["strokes"]:
+        v, lo, hi = _ratio(col["fitted2"] - col["fitted_noise"], 2 * col["fitted"], seed, "approx_error.sigma",
+                           lambda x: np.sqrt(np.maximum(x, 0.0)), False)
+        noise = math.sqrt(max(col["fitted_noise"].sum() / col["fitted"].sum(), 0.0))
+        out.append(Estimate("approx_error.sigma", v, lo, hi, f"from the tilts of {int(col['fitted'].sum())} fragments "
+                            "of lines, carried to the fragments' ends (e1 - e0 ~ N(0, 2 sigma^2)), less their "
+                            f"measurement noise ({noise:.3g} px rms)"))
+    else:
+        out.append(Estimate("approx_error.sigma", None, note="too few strokes with a fitted line"))
     law = None
     if col["strokes"].sum() >= MIN["strokes"]:
-        v, lo, hi, mean, bg, own, shape = _shift_range(sums, seed, band)
+        apx = out[-1].value or 0.0  # approx_error's share of the fragments' mean offsets is taken off
+        v, lo, hi, mean, bg, own, shape = _shift_range(sums, seed, band, apx)
         law = law_test(own)
         noise = math.sqrt(max(col['noise'].sum() / col['strokes'].sum(), 0))
         note = (f"sqrt(3 (var d - noise)) of the mean offsets d of {int(col['strokes'].sum())} fragments of at least "
@@ -383,12 +405,6 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
         out.append(Estimate("lateral_shift.range", v, lo, hi, note))
     else:
         out.append(Estimate("lateral_shift.range", None, note="too few strokes with verified samples"))
-    if col["fitted"].sum() >= MIN["strokes"]:
-        v, lo, hi = _ratio(col["fitted2"], 2 * col["fitted"], seed, "approx_error.sigma", np.sqrt, False)
-        out.append(Estimate("approx_error.sigma", v, lo, hi, f"from the fitted ends of {int(col['fitted'].sum())} "
-                                                               "fragments (e1 - e0 ~ N(0, 2 sigma^2))"))
-    else:
-        out.append(Estimate("approx_error.sigma", None, note="too few strokes with a fitted line"))
     # corners
     if col["corners"].sum() >= MIN["corners"]:
         v, lo, hi, how = _proportion(col["found"], col["corners"], seed, "corner_loss.keep")

@@ -197,7 +197,8 @@ class StrokeStats:
     """Per stroke: length, samples tested and verified, runs of verified samples, the offsets' mean and scatter;
     the lost length within `margin` of its ends and in its middle, and the ends of its gaps there. Per run (a
     fragment the detector found: consecutive verified samples): its stroke, samples, mean offset, and the
-    difference of the offsets at its two ends of a line fitted to its offsets along it (NaN under 4 samples)."""
+    difference at its two ends of a line fitted to its offsets along it (NaN under 4 samples), with
+    that difference's measurement variance."""
 
     length: np.ndarray
     tested: np.ndarray
@@ -213,9 +214,10 @@ class StrokeStats:
     run_stroke: np.ndarray
     run_n: np.ndarray
     run_mean: np.ndarray
-    run_end_diff: np.ndarray
+    run_end_diff: np.ndarray  # px: the run's fitted line's offsets at the run's two ends, the second less the first
     run_noise: np.ndarray  # variance of the run's mean offset from its samples' scatter about its fitted line
     run_length: np.ndarray  # px its offsets cover (its samples less RUN_TRIM at each end, times their spacing)
+    run_end_noise: np.ndarray  # px^2: the measurement variance of run_end_diff
 
 
 def _bins(idx, w, n):
@@ -299,15 +301,19 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0)
                 break
             grow += 2 * min(rho, 1.0) * np.maximum(1 - k / np.maximum(rn, 1), 0.0)
         noise = noise * grow
-        smin = np.full(R, np.inf)
-        smax = np.full(R, -np.inf)
-        np.minimum.at(smin, rid, rs)
-        np.maximum.at(smax, rid, rs)
-    run_stroke = st[np.flatnonzero(start)]
+        run_stroke = st[np.flatnonzero(start)]
+        # the line fitted to a run's offsets, carried to the run's own ends (its first and last samples, and half
+        # a spacing beyond each: the fragment it found): the effect moves each fragment's two ends, so the
+        # difference of the fitted offsets there is slope x that length, with the measurement variance of that,
+        # var(slope) length^2 (var(slope) the residuals' variance over n var(s), grown by the residuals'
+        # correlation as the mean's is)
+        Ls = (last_s - first_s + run_spacing) if R else np.zeros(0)
+        sig2 = np.where(rn >= 4, rss / np.maximum(rn - 2, 1), np.nan)
+        end_noise = np.where(np.isfinite(slope), sig2 * grow / np.maximum(rn * vs, 1e-12) * Ls * Ls, np.nan)
     return StrokeStats(sm.L, cnt.astype(int), nv.astype(int), runs.astype(int), mean, np.sqrt(np.maximum(var, 0)),
                        cnt * spacing, lost_mid, lost_ends, first_end.astype(int) + last_end.astype(int),
-                       gap_ends.astype(int), run_stroke, rn.astype(int), rmean, slope * (smax - smin), noise,
-                       rn * run_spacing)
+                       gap_ends.astype(int), run_stroke, rn.astype(int), rmean, slope * Ls, noise,
+                       rn * run_spacing, end_noise)
 
 
 @dataclass
