@@ -667,3 +667,21 @@ def test_intervals_of_proportions_at_0_or_1_and_of_a_sigma_at_0_keep_width():
     assert sigma.lo is None or sigma.hi - sigma.lo > 0
     assert F.exact_binomial(0, 10) == (0.0, pytest.approx(1 - 0.025 ** 0.1))
     assert all(e.lo is None or e.hi > e.lo for e in f.estimates)
+
+
+def test_an_ellipses_runs_are_cut_at_its_major_axis_as_the_shift_cuts_it():
+    """Issue 34: lateral_shift moves an ellipse's two halves (cut at its major axis) each by its own offset; a run
+    verified all round must give two fragments, +1 px and -1 px, not one averaging them to 0."""
+    a = np.linspace(0, 2 * np.pi, 121)
+    pts = np.column_stack([320 + 80 * np.cos(a), 240 + 30 * np.sin(a)])
+    st = V.Strokes(pts, np.array([0, len(pts)]), np.array([0]), np.array([-1]), np.array([-1]), np.array([True]))
+    sm = V.sample_strokes(st, 2.0)
+    half = V.ellipse_halves(st, sm)
+    assert set(half.tolist()) == {0, 1}
+    off = np.where(half == 1, 1.0, -1.0)
+    m = V.EdgeMatch(np.ones(len(off), bool), np.ones(len(off), bool), off)
+    cut = V.stroke_stats(sm, m, 1, 3.0, half)
+    whole = V.stroke_stats(sm, m, 1, 3.0)
+    big = cut.run_length > 50
+    assert sorted(np.round(cut.run_mean[big], 6).tolist()) == [-1.0, 1.0]
+    assert len(whole.run_mean) == 1 and abs(whole.run_mean[0]) < 0.2

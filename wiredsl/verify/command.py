@@ -170,6 +170,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
     world = build_world(scene)
     occluders = occlusion.Occluders.of_world(world)
     opts = Options(visibility="exact")
+    ellipses = set(world.ell_fid.tolist())
     cfg = req.settings
     edge_det = next((n for n, c, _ in dets if c.finds == "edges"), None)
     corner_det = next((n for n, c, _ in dets if c.finds == "corners"), None)
@@ -204,7 +205,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
                 view, moved = refine.refine_view(project, view, found[edge_det], grey.shape, cfg)
                 refined.append({"image": path, **moved})
             results = [ver.verify_image(view, found[name], grey.shape, cfg,
-                                        ver.ImageResult(path, side, frame.label, name, world.feature_ids))
+                                        ver.ImageResult(path, side, frame.label, name, world.feature_ids), ellipses)
                        for name, _, _ in dets]
             share = _verified_share(results, edge_det, corner_det)
             if share is not None and share < UNVERIFIED:

@@ -53,19 +53,48 @@ class Strokes:
     fid: np.ndarray  # (S,) feature index into world.feature_ids
     segment: np.ndarray  # (S,)
     part: np.ndarray  # (S,) occlusion part (fragment), -1 whole
+    ellipse: np.ndarray | None = None  # (S,) bool: the stroke is an ellipse's (whole, or a visible arc of it)
 
     @property
     def n(self) -> int:
         return len(self.fid)
 
 
-def strokes_of(view) -> Strokes:
+def strokes_of(view, ellipses: set | None = None) -> Strokes:
+    """`ellipses`: the world's ellipse feature ids (None: those with a conic in the view, whole ellipses)."""
     feats = [f for f in view.features if f.kind in ("line", "polyline") and len(f.points) >= 2]
     counts = np.array([len(f.points) for f in feats], dtype=int)
     start = np.concatenate([[0], np.cumsum(counts)])
     pts = np.concatenate([f.points for f in feats]).astype(float) if feats else np.zeros((0, 2))
+    conics = ellipses if ellipses is not None else {f.fid for f in view.features if f.kind == "conic"}
     return Strokes(pts, start, np.array([f.fid for f in feats], int), np.array([f.segment for f in feats], int),
-                   np.array([f.fragment for f in feats], int))
+                   np.array([f.fragment for f in feats], int),
+                   np.array([f.kind == "polyline" and f.fid in conics for f in feats], bool))
+
+
+def ellipse_halves(st: Strokes, sm: Samples) -> np.ndarray:
+    """(n,) int: which side of its stroke's own major axis each sample of an ellipse's stroke lies on (0 or 1; 0
+    for other strokes). The lateral shift moves an ellipse's stroke in pieces cut where it crosses its major axis
+    (the principal axis of its chords, weighted by length: effects.lateral_shift.split_ellipses), each piece by
+    its own offset, so the fit's fragments are cut there too: a run across a tip averaged two shifts."""
+    out = np.zeros(len(sm.stroke), int)
+    if st.ellipse is None or not st.ellipse.any():
+        return out
+    for k in np.flatnonzero(st.ellipse).tolist():
+        P = st.pts[st.start[k]:st.start[k + 1]]
+        if len(P) < 3:
+            continue
+        mid, d = (P[:-1] + P[1:]) / 2, np.diff(P, axis=0)
+        w = np.hypot(d[:, 0], d[:, 1])
+        if w.sum() <= 0:
+            continue
+        c = (w[:, None] * mid).sum(0) / w.sum()
+        X = mid - c
+        cov = (w[:, None, None] * X[:, :, None] * X[:, None, :]).sum(0) / w.sum()
+        minor = np.linalg.eigh(cov)[1][:, 0]  # the eigenvector of the smaller eigenvalue: across the major axis
+        at = sm.stroke == k
+        out[at] = ((sm.P[at] - c) @ minor > 0).astype(int)
+    return out
 
 
 def corners_of(view) -> tuple[np.ndarray, np.ndarray]:
@@ -224,13 +253,19 @@ def _bins(idx, w, n):
     return np.bincount(idx, weights=w, minlength=n)
 
 
-def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0) -> StrokeStats:
+def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0,
+                 piece: np.ndarray | None = None) -> StrokeStats:
+    """`piece` (n,): a run also ends where it changes (an ellipse's halves, `ellipse_halves`)."""
     S, st = n_strokes, sm.stroke
     t, v = m.tested, m.verified & m.tested
     cnt = _bins(st, t, S)
     nv = _bins(st, v, S)
     same = np.concatenate([[False], st[1:] == st[:-1]]) if len(st) else np.zeros(0, bool)
-    prev = np.concatenate([[False], v[:-1]]) & same if len(v) else v
+    if piece is not None and len(st):
+        same_piece = same & np.concatenate([[False], piece[1:] == piece[:-1]])
+    else:
+        same_piece = same
+    prev = np.concatenate([[False], v[:-1]]) & same_piece if len(v) else v
     start = v & ~prev
     runs = _bins(st, start, S)
     o = np.where(v, m.offset, 0.0)
@@ -416,13 +451,15 @@ class ImageResult:
     refined: dict = field(default_factory=dict)
 
 
-def verify_image(view, det: Detection, shape, cfg: Settings, result: ImageResult) -> ImageResult:
-    """Edge and corner verification of one image's detection against the engine's view of the model."""
+def verify_image(view, det: Detection, shape, cfg: Settings, result: ImageResult,
+                 ellipses: set | None = None) -> ImageResult:
+    """Edge and corner verification of one image's detection against the engine's view of the model
+    (`ellipses`: the world's ellipse feature ids, whose strokes' runs are cut at their major axes)."""
     if det.has_edges:
-        st = strokes_of(view)
+        st = strokes_of(view, ellipses)
         sm = sample_strokes(st, cfg.step)
         m = search_edges(sm, det, shape, cfg)
-        result.strokes, result.stats = st, stroke_stats(sm, m, st.n, cfg.margin)
+        result.strokes, result.stats = st, stroke_stats(sm, m, st.n, cfg.margin, ellipse_halves(st, sm))
         result.samples = int(m.tested.sum())
     if det.has_corners:
         fid, uv = corners_of(view)
