@@ -381,8 +381,16 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
         out.append(Estimate("edge_loss.fraction", None, note="no edge detector, or too few edge samples"))
     # lateral shift and its law
     if col["fitted"].sum() >= MIN["strokes"]:
-        v, lo, hi = _ratio(col["fitted2"] - col["fitted_noise"], 2 * col["fitted"], seed, "approx_error.sigma",
-                           lambda x: np.sqrt(np.maximum(x, 0.0)), False)
+        # on sigma^2 first: the bootstrap's interval, widened by the noise taken off's own doubt (1.96 standard
+        # errors of a mean of the fragments' noise, each estimated from its residuals: about sqrt(2 / fragments))
+        v2, lo2, hi2 = _ratio(col["fitted2"] - col["fitted_noise"], 2 * col["fitted"], seed, "approx_error.sigma",
+                              fraction=False)
+        doubt = 1.96 * math.sqrt(2 / col["fitted"].sum()) * col["fitted_noise"].sum() / (2 * col["fitted"].sum())
+        v = math.sqrt(max(v2, 0.0))
+        if lo2 is not None:
+            lo, hi = math.sqrt(max(lo2 - doubt, 0.0)), math.sqrt(max(hi2 + doubt, 0.0))
+        else:
+            lo = hi = None
         noise = math.sqrt(max(col["fitted_noise"].sum() / col["fitted"].sum(), 0.0))
         out.append(Estimate("approx_error.sigma", v, lo, hi, f"from the tilts of {int(col['fitted'].sum())} fragments "
                             "of lines, carried to the fragments' ends (e1 - e0 ~ N(0, 2 sigma^2)), less their "

@@ -30,6 +30,8 @@ RADIUS = 10.0  # px: the paper's corner match search radius
 BORDER = 2.0  # px: samples nearer the image's border are not tested (detectors see nothing there)
 GOLDEN = 0.6180339887498949  # the sample grids' phases: (i + 1) * GOLDEN mod 1 for stroke i
 RUN_TRIM = 2.0  # px at each end of a run left out of its offsets
+END_TRIM = 6.0  # px at each end of a model stroke left out of its runs' offsets: there it meets other edges (a
+# junction, a silhouette's tangent to its rim), and the detected edge bends off it
 CORR_PX = 8.0  # px: the longest lag of the residuals' correlation counted in a run mean's noise
 PATCH = 5  # half size of the correlation patches of the stereo corner matcher (11 x 11)
 
@@ -305,7 +307,8 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0,
     first_s, last_s = np.full(R, np.inf), np.full(R, -np.inf)
     np.minimum.at(first_s, arid, a_s)
     np.maximum.at(last_s, arid, a_s)
-    rv = allv[(a_s - first_s[arid] >= RUN_TRIM - 1e-9) & (last_s[arid] - a_s >= RUN_TRIM - 1e-9)]
+    inner = (a_s >= END_TRIM - 1e-9) & (a_s <= sm.L[st[allv]] - END_TRIM + 1e-9) if len(allv) else np.zeros(0, bool)
+    rv = allv[(a_s - first_s[arid] >= RUN_TRIM - 1e-9) & (last_s[arid] - a_s >= RUN_TRIM - 1e-9) & inner]
     rid, ro, rs = run_id[rv], m.offset[rv], sm.s[rv]
     rn = np.bincount(rid, minlength=R).astype(float)
     run_spacing = spacing[st[np.flatnonzero(start)]] if R else np.zeros(0)
