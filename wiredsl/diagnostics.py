@@ -342,11 +342,14 @@ CODES: dict[str, str] = {
              '100,000,000 pixels by its header (refused before decoding), a truncated JPEG, data that does not '
              'decode, pixels neither 8- nor 16-bit'),
     'E191': "an image whose size differs from its camera's (checked on the header, before decoding)",
-    'E192': ('an image without a pose: the pose file (at its last line) or the path has fewer poses than frames, or '
-             "a timestamp outside the pose file's span"),
+    'E192': ('an image without a pose: the pose file (at its last line) has fewer poses than frames, a timestamp '
+             "outside the pose file's span, or (--poses path) the number in an image's name is not a pose index of "
+             "the scene's path"),
     'E193': ("a glob that matches no file, an image whose camera cannot be told from its name, two images of one "
              "camera in a frame, a `--camera` that is not the rig's"),
     'W190': 'a 16-bit image scaled to 8 bits for the detectors',
+    'W192': ('most of the model is unverified in some images (under half of its edge samples, or model corners '
+             'without an edge detector): likely an image paired with the wrong pose; the warning names them'),
     'W196': 'a calibration board is not found in one image (that image has no pose from the board)',
     'E197': 'a calibration board is found in too few of the images to give their poses',
     'E198': "images are named for a camera the scene does not have, or a scene without a board or rig for them",

@@ -7,14 +7,18 @@ noise, all in numpy, deterministic for a seed. What it draws:
   projected to u = 12.0 lies on the centre of column 12 (as `cv2.projectPoints` and every detector say).
 - **Faces** (the models' `face`s, mesh triangles, and the ruled sides between silhouette ellipses) by ray
   casting: every pixel's ray (`SUPERSAMPLE` x `SUPERSAMPLE` rays a pixel, averaged) meets the nearest
-  triangle, whose grey is Lambert's |n . l| for a fixed light `LIGHT` (camera frame). Any lens the engine
+  triangle, whose grey is Lambert's |n . l| for a fixed light `LIGHT` (camera frame), kept `CONTRAST` grey
+  levels off the background's and the ink's on its own side (`face_grey`: faces of both polarities, each with
+  an outline). Any lens the engine
   knows, since rays come from undistorting the pixels. A calibration board's face carries its pattern
   (`board_albedo`).
 - **Features** (after the pipeline's disturbances when one is given, hidden lines removed by the faces with
   the default `visibility exact`) as strokes whose pixel coverage is the exact box-filter integral across
   the stroke: `step` (the default) paints a band of `width` px on the left of the stroke's direction
   (image axes: the side of (dy, -dx)), so the feature itself is a single step edge at sub-pixel
-  accuracy, as an object's boundary is in a photograph; `line` paints a line of `width` px centred on it;
+  accuracy, as an object's boundary is in a photograph; the band stops halfway to the next feature on its
+  side (a thin ellipse's other half, a rim beside a silhouette: it never paints over another edge) and is
+  mitred along a curve's chords (painted whole, not as a comb); `line` paints a line of `width` px centred on it;
   `none` draws no features (the faces alone: a calibration board's squares, say).
 - **Corners** (`corners mark`): a small 2 x 2 checker (a saddle, what Harris and `cornerSubPix` find
   exactly) centred on each corner the pipeline kept, where it moved it.
@@ -46,6 +50,9 @@ FACES = ("shaded", "none")
 CORNERS = ("none", "mark")
 TOLERANCE = 0.02  # px: largest deviation of a drawn polyline from the true image curve
 NOISE_STREAM = "render_noise"
+CONTRAST = 40.0  # grey levels: the least difference of a face's grey from the background's (face_grey)
+PIECE = 3.0  # px: a step's band is clipped (render._clearance) piece by piece, segments cut to at most this long
+MITRE_TURN = 0.5  # rad: a polyline's joins up to this turn are mitred (a curve's chords), sharper ones not (corners)
 BACK = 0.8  # reflectance of a board's back (its pattern is printed on the side its z axis points away from)
 
 
@@ -142,7 +149,8 @@ def render_view(cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, features, tris:
     img = np.full((cam.height, cam.width), float(look.background))
     if look.faces == "shaded" and len(tris):
         rays = rays if rays is not None else pixel_rays(cam, look.supersample)
-        img = shade_faces(cam, tris @ R_cw.T + t_cw, face_of, rays, look.background, boards or {}, tris)
+        img = shade_faces(cam, tris @ R_cw.T + t_cw, face_of, rays, look.background, boards or {}, tris,
+                          look.ink if look.edges != "none" else None)
     if look.edges != "none":
         drawn = [f for f in features if f.kind in ("line", "polyline") and len(f.points) >= 2]
         cover = stroke_coverage(cam.width, cam.height, [f.points for f in drawn], [f.closed for f in drawn],
@@ -308,7 +316,7 @@ def _rays_at(cam: Camera, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays: Rays, background: float, boards: dict,
-                T_world: np.ndarray) -> np.ndarray:
+                T_world: np.ndarray, ink: float | None = None) -> np.ndarray:
     """The faces' image (H, W) float: nearest triangle of T (camera frame) along every ray, Lambert-shaded.
 
     Cast in tiles of at most TILE x TILE samples (whole pixels), each with the triangles whose box meets it."""
@@ -328,13 +336,13 @@ def shade_faces(cam: Camera, T: np.ndarray, face_of: np.ndarray, rays: Rays, bac
             if len(meets):
                 D, ok = rays.tile(r0, r1, c0, c1)
                 box = np.clip(boxes[meets] - [c0, c0, r0, r0], 0, [c1 - c0, c1 - c0, r1 - r0, r1 - r0])
-                _shade_tile(D, ok, grey, T, meets, box, face_of, boards, T_world)
+                _shade_tile(D, ok, grey, T, meets, box, face_of, boards, T_world, background, ink)
             out[r0 // ss:r1 // ss, c0 // ss:c1 // ss] = grey.reshape(
                 (r1 - r0) // ss, ss, (c1 - c0) // ss, ss).mean(axis=(1, 3))
     return out
 
 
-def _shade_tile(D, ok, grey, T, which, boxes, face_of, boards, T_world) -> None:
+def _shade_tile(D, ok, grey, T, which, boxes, face_of, boards, T_world, background, ink) -> None:
     """Shade one tile's samples `grey` (h, w) in place: triangles `which` of T, `boxes` their [c0, c1, r0, r1)
     in the tile, along the tile's rays D (h, w, 3) where `ok`."""
     depth = np.full(grey.shape, np.inf)
@@ -364,7 +372,7 @@ def _shade_tile(D, ok, grey, T, which, boxes, face_of, boards, T_world) -> None:
             continue
         n = np.cross(e1, e2)
         n = n / max(np.linalg.norm(n), 1e-300)
-        lit = 60.0 + 170.0 * abs(float(n @ light))
+        lit = face_grey(abs(float(n @ light)), background, ink)
         value = np.full(int(hit.sum()), lit)
         f = int(face_of[k])
         if f in boards:  # the pattern, at the hit's point on the board (world frame), on its printed side
@@ -380,6 +388,25 @@ def _shade_tile(D, ok, grey, T, which, boxes, face_of, boards, T_world) -> None:
         g = grey[r0:r1, c0:c1].reshape(-1)
         g[hit] = value
         grey[r0:r1, c0:c1] = g.reshape(r1 - r0, c1 - c0)
+
+
+def face_grey(lambert: float, background: float, ink: float | None = None) -> float:
+    """A face's grey, 60 + 170 |n . l|, moved to the nearest grey at least CONTRAST levels from the background's
+    and the features' ink: faces stay darker or lighter than the background as their shading makes them (both
+    polarities), and every face's outline against the background, and every feature's step against a face, is an
+    edge (a face lit to the background's grey had none there, and a silhouette or a rim beside it went
+    undetected)."""
+    lit = 60.0 + 170.0 * lambert
+    avoid = [g for g in (background, ink) if g is not None]
+
+    def ok(g):
+        return 0.0 <= g <= 255.0 and all(abs(g - a) >= CONTRAST - 1e-9 for a in avoid)
+
+    if ok(lit):
+        return lit
+    edges = sorted({a + sgn * CONTRAST for a in avoid for sgn in (-1.0, 1.0)} | {0.0, 255.0},
+                   key=lambda g: abs(g - lit))
+    return next((g for g in edges if ok(g)), lit)
 
 
 def _pixel_boxes(cam: Camera, T: np.ndarray, ss: int, samples: int = 8) -> np.ndarray:
@@ -477,17 +504,31 @@ def stroke_coverage(width: int, height: int, strokes: list, closed: list, style:
         P = np.asarray(pts, float)
         if c and len(P) > 2:
             P = np.vstack([P, P[:1]])
+        if style == "step" and len(P) >= 2:  # long segments cut into pieces, so that a band is clipped locally
+            P = _pieces(P, PIECE)
         segs.append(np.concatenate([P[:-1], P[1:]], axis=1))
     if not segs:
         return cover
+    # each segment's band reaches past its ends where it joins the next segment (`_join_reach`): butt-ended bands
+    # of a curve's short chords covered each pixel in part and left a wedge unpainted at every join on the curve's
+    # outer side, and a curve's band came out hatched, a comb of edges beside its own
+    ext = [_join_reach(np.asarray(seg, float), bool(c) and len(seg) > 1, max(abs(a_n), abs(b_n)))
+           for seg, c in zip(segs, closed, strict=True)]
     S = np.concatenate(segs)
-    S = S[np.isfinite(S).all(axis=1)]
+    E = np.concatenate(ext)
+    fin = np.isfinite(S).all(axis=1)
+    S, E = S[fin], E[fin]
     d = S[:, 2:] - S[:, :2]
     L = np.hypot(d[:, 0], d[:, 1])
-    S, d, L = S[L > 1e-12], d[L > 1e-12], L[L > 1e-12]
+    S, d, L, E = S[L > 1e-12], d[L > 1e-12], L[L > 1e-12], E[L > 1e-12]
     tang = d / L[:, None]
     norm = np.column_stack([tang[:, 1], -tang[:, 0]])  # (dy, -dx): the band's side
-    reach = max(abs(a_n), abs(b_n)) + cap + 1.0
+    # a step's band stops halfway to the next stroke on its side: a band wider than the gap to another feature
+    # (the two halves of a thin ellipse near its tips, a rim beside a silhouette) painted over that feature's
+    # edge and hid it
+    gap = _clearance(S, norm, L) if style == "step" else np.full(len(S), np.inf)
+    B = np.minimum(b_n, np.minimum(gap / 2 + 0.5, gap))  # (half a pixel past halfway: two bands meet whole)
+    reach = max(abs(a_n), abs(b_n)) + cap + float(E.max(initial=0.0)) + 1.0
     lo = np.floor(np.minimum(S[:, :2], S[:, 2:]) - reach).astype(int)
     hi = np.ceil(np.maximum(S[:, :2], S[:, 2:]) + reach).astype(int)
     lo = np.clip(lo, 0, [width, height])
@@ -498,9 +539,77 @@ def stroke_coverage(width: int, height: int, strokes: list, closed: list, style:
         X, Y = np.meshgrid(np.arange(x0, x1, dtype=float) - S[k, 0], np.arange(y0, y1, dtype=float) - S[k, 1])
         t = X * tang[k, 0] + Y * tang[k, 1]
         s = X * norm[k, 0] + Y * norm[k, 1]
-        c = _box(s, a_n, b_n) * _box(t, -cap, L[k] + cap)
+        c = _box(s, a_n, B[k]) * _box(t, -cap - E[k, 0], L[k] + cap + E[k, 1])
         np.maximum(cover[y0:y1, x0:x1], c, out=cover[y0:y1, x0:x1])
     return cover
+
+
+def _pieces(P: np.ndarray, most: float) -> np.ndarray:
+    """The polyline P (k, 2) with points added along each segment longer than `most` px, evenly."""
+    d = np.diff(P, axis=0)
+    L = np.hypot(d[:, 0], d[:, 1])
+    if not np.isfinite(L).all() or (L <= most).all():
+        return P
+    n = np.maximum(1, np.ceil(L / most)).astype(int)
+    f = np.concatenate([np.arange(k) / k for k in n])
+    i = np.repeat(np.arange(len(d)), n)
+    return np.vstack([P[i] + f[:, None] * d[i], P[-1:]])
+
+
+def _clearance(S: np.ndarray, norm: np.ndarray, L: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """(n,) px from each segment (rows x0, y0, x1, y1) along its normal `norm` to the nearest other segment, the
+    least over rays from its two ends and its middle (inf where none is met); a segment it shares an end with is
+    not counted."""
+    n = len(S)
+    out = np.full(n, np.inf)
+    if n < 2:
+        return out
+    A, D = S[:, :2], S[:, 2:] - S[:, :2]
+
+    def cross(u, v):
+        return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+    for k0 in range(0, n, chunk):
+        k = np.arange(k0, min(k0 + chunk, n))
+        nk = norm[k][:, None, :]
+        best = np.full(len(k), np.inf)
+        for frac in (0.0, 0.5, 1.0):
+            M = (A[k] + frac * D[k])[:, None, :]
+            den = cross(nk, D[None, :, :])
+            rel = A[None, :, :] - M
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lam = cross(rel, D[None, :, :]) / den
+                mu = cross(rel, nk) / den
+            hit = (np.abs(den) > 1e-12) & (lam > 1e-6) & (mu >= 0) & (mu <= 1)
+            touch = (np.hypot(*(S[None, :, :2] - S[k][:, None, 2:]).transpose(2, 0, 1)) < 1e-6) | \
+                    (np.hypot(*(S[None, :, 2:] - S[k][:, None, :2]).transpose(2, 0, 1)) < 1e-6)
+            hit &= ~touch
+            hit[np.arange(len(k)), k] = False
+            best = np.minimum(best, np.where(hit, lam, np.inf).min(axis=1))
+        out[k] = best
+    return out
+
+
+def _join_reach(seg: np.ndarray, closed: bool, w: float) -> np.ndarray:
+    """(n, 2) px each of a polyline's n segments (rows x0, y0, x1, y1) reaches past its start and its end: at a
+    join with the next segment, half a pixel (a pixel's coverage along the stroke is its overlap with one segment:
+    a curve's chords shorter than a pixel each covered every pixel in part, never whole) and w tan(theta / 2)
+    for the turn theta there, up to MITRE_TURN (a sharper turn is a
+    corner, not a curve: there a mitre on the band's inner side would paint across the next segment's edge);
+    nothing at an open polyline's two ends."""
+    n = len(seg)
+    out = np.zeros((n, 2))
+    if n < 2:
+        return out
+    d = seg[:, 2:] - seg[:, :2]
+    a = np.arctan2(d[:, 1], d[:, 0])
+    turn = np.abs(np.angle(np.exp(1j * (np.roll(a, -1) - a))))  # at the end of segment k, to segment k + 1
+    reach = np.where(turn <= MITRE_TURN, 0.5 + w * np.tan(turn / 2), 0.0)
+    if not closed:
+        reach[-1] = 0.0  # (the last segment's end is the polyline's)
+    out[:, 1] = reach
+    out[:, 0] = np.roll(reach, 1)
+    return out
 
 
 def _box(s: np.ndarray, a: float, b: float) -> np.ndarray:

@@ -17,8 +17,8 @@ from wiredsl.cli_base import FiniteRange, diagnostics_option, guarded, report
 @click.option("--camera", "cameras", multiple=True,
               help="The camera (left, right, or a rig camera's name) of the --images at the same position.")
 @click.option("--poses", default="path", show_default=True,
-              help="path: the scene's path poses, in name order; FILE: a trajectory file of the camera's poses "
-                   "(world_from_camera, OpenCV axes); board: solvePnP on the scene's calibration board.")
+              help="path: the scene's path pose of the number in each image's name; FILE: a trajectory file of the "
+                   "camera's poses (world_from_camera, OpenCV axes); board: solvePnP on the scene's calibration board.")
 @click.option("--format", "pose_format", type=click.Choice(["tum", "euroc", "kitti", "csv"]), default=None,
               help="The pose file's format (default: from its content).")
 @click.option("--match", type=click.Choice(["auto", "time", "order"]), default="auto", show_default=True,

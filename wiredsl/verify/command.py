@@ -109,14 +109,21 @@ def sums_of(results: list[ver.ImageResult], cfg: ver.Settings, edge_det: str | N
             s.length, s.lost_middle, s.lost_ends = (float(st.tested_length.sum()), float(st.lost_middle.sum()),
                                                     float(st.lost_ends.sum()))
             s.ends, s.gap_ends = float(st.ends.sum()), float(st.gap_ends.sum())
-            ok = st.run_n >= fitting.MIN_STROKE_SAMPLES
+            ok = (st.run_length >= fitting.MIN_RUN_PX) & (st.run_n >= 4) & np.isfinite(st.run_noise)
             d = st.run_mean[ok]
             s.strokes, s.d1, s.d2, s.offsets = int(ok.sum()), float(d.sum()), float((d * d).sum()), d.tolist()
+            s.offset_noise = st.run_noise[ok].tolist()
+            s.offset_line = ((np.diff(r.strokes.start) == 2)[st.run_stroke[ok]]).tolist() if ok.any() else []
             s.noise = float(np.nansum(st.run_noise[ok]))
             tested = st.tested > 0
             s.runs, s.run_strokes = float(st.runs[tested].sum()), int(tested.sum())
-            e = st.run_end_diff[np.isfinite(st.run_end_diff)]
+            # approx_error from the lines alone (two vertices: the effect tilts each by its ends' moves); a
+            # polyline's vertices move each on its own, which a line fitted along a run does not see
+            line = (np.diff(r.strokes.start) == 2)[st.run_stroke] if len(st.run_stroke) else np.zeros(0, bool)
+            use = ok & line & np.isfinite(st.run_end_diff) & np.isfinite(st.run_end_noise)
+            e = st.run_end_diff[use]
             s.fitted, s.fitted2 = len(e), float((e * e).sum())
+            s.fitted_noise = float(st.run_end_noise[use].sum())
         if r.detector == corner_det and r.corners is not None:
             c = r.corners
             s.corners, s.found = float(len(c.fid)), float(c.found.sum())
@@ -157,7 +164,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
     frames = im.frames_of(req.images, scene.rig)
     if req.poses == "path":
         im.assign_path(frames, scene)
-        pose_note = "the scene's path, in name order"
+        pose_note = "the scene's path, by the number in each image's name"
     elif req.poses == "board":
         pose_note, frames = _board_poses(frames, scene, warnings)
     else:
@@ -172,6 +179,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
     world = build_world(scene)
     occluders = occlusion.Occluders.of_world(world)
     opts = Options(visibility="exact")
+    ellipses = set(world.ell_fid.tolist())
     cfg = req.settings
     edge_det = next((n for n, c, _ in dets if c.finds == "edges"), None)
     corner_det = next((n for n, c, _ in dets if c.finds == "corners"), None)
@@ -183,6 +191,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
     refined: list[dict] = []
     n_images = 0
     observed = []
+    unverified: list[tuple[str, float]] = []  # images where most of the model is unverified
     for i, frame in enumerate(frames):
         im.check_finite_pose(frame)
         pose = project_pose(scene, world, frame.pose, i, opts, occluders=occluders)
@@ -206,8 +215,11 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
                 view, moved = refine.refine_view(project, view, found[edge_det], grey.shape, cfg)
                 refined.append({"image": path, **moved})
             results = [ver.verify_image(view, found[name], grey.shape, cfg,
-                                        ver.ImageResult(path, side, frame.label, name, world.feature_ids))
+                                        ver.ImageResult(path, side, frame.label, name, world.feature_ids), ellipses)
                        for name, _, _ in dets]
+            share = _verified_share(results, edge_det, corner_det)
+            if share is not None and share < UNVERIFIED:
+                unverified.append((path, share))
             per_side[side] = (grey if corner_det is not None and len(frame.images) == 2 else None, found, results,
                               grey.shape)
             n_images += 1
@@ -237,6 +249,8 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
                                       for s in ("left", "right")), cfg.inlier)
         if progress is not None:
             progress(i + 1, len(frames))
+    if unverified:
+        warnings.append(_unverified_warning(unverified, n_images, pose_note))
     out.mkdir(parents=True, exist_ok=True)
     # staged: published together at the end. Named as every temporary of wiredsl's (host, pid), so that a later
     # run removes the stage of one that was killed (SIGKILL leaves no chance to clean up)
@@ -262,7 +276,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         if req.fit:
             from wiredsl.files import json_text, write_atomic
 
-            result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss)
+            result = fitting.fit(sums, req.seed, cfg.inlier, cfg.radius, req.edge_loss, band=cfg.band)
             if req.spreads:
                 variation_fit.add(result, extras, sums_frame, [f.pose for f in frames], req.seed, req.edge_loss)
             det_text = "; ".join(f"{n} ({', '.join(f'{k} {v}' for k, v in p.model_dump().items())})"
@@ -298,6 +312,32 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
         shutil.rmtree(out, ignore_errors=True)
     return Outcome(written, result, len(frames), n_images, warnings, summary, sorted(notes), refined, prediction,
                    held_doc["summary"] if held_doc else None)
+
+
+UNVERIFIED = 0.5  # an image whose model is verified less than this is warned of (W192): its pose is likely wrong
+LEAST_TESTED = 20  # edge samples (model corners) an image needs for its share to be judged
+
+
+def _verified_share(results: list[ver.ImageResult], edge_det: str | None, corner_det: str | None) -> float | None:
+    """The share of an image's model the detectors verified: its edge samples (the first edge detector), else its
+    model corners found (the first corner detector); None with too little of the model in view to judge."""
+    for r in results:
+        if r.detector == edge_det and r.stats is not None and r.stats.tested.sum() >= LEAST_TESTED:
+            return float(r.stats.verified.sum() / r.stats.tested.sum())
+    for r in results:
+        if r.detector == corner_det and r.corners is not None and len(r.corners.fid) >= LEAST_TESTED:
+            return float(r.corners.found.mean())
+    return None
+
+
+def _unverified_warning(unverified: list[tuple[str, float]], n_images: int, pose_note: str) -> Diagnostic:
+    """W192 at the first image where most of the model is unverified, naming every such image."""
+    shown = ", ".join(f"{Path(p).name} ({100 * v:.0f}%)" for p, v in unverified[:8])
+    more = f" and {len(unverified) - 8} more" if len(unverified) > 8 else ""
+    return Diagnostic("warning", "W192", f"most of the model is unverified in {len(unverified)} of {n_images} "
+                      f"images: {shown}{more} (verified share; poses: {pose_note})", im.at(unverified[0][0]),
+                      "an image paired with another image's pose verifies little: check that each image's number "
+                      "is its path pose (--poses path), or its line in the pose file")
 
 
 def _published_names(req: Request) -> set[str]:

@@ -52,7 +52,8 @@ PAPER = {"edge_loss.fraction": 0.29, "lateral_shift.range": 3.0, "approx_error.s
 # (tests/test_verify_roundtrip.py) the two differ by up to about a fifth of the correction, so its interval is
 # widened by this share of the correction either way.
 END_DOUBT = 0.25
-MIN_STROKE_SAMPLES = 5  # verified samples a stroke needs for its mean offset to count
+EDGE_SOFT = 0.1  # the shift mixture's uniform law: its edges softened by this share of its range (shift_mixture)
+MIN_RUN_PX = 10.0  # px of offsets a fragment needs for its mean offset to count (px, not samples: alike at every step)
 # below these a statistic is not estimated
 MIN = {"edges": 20, "strokes": 5, "corners": 10, "displaced": 3, "located": 10}
 
@@ -73,10 +74,13 @@ class ImageSums:
     d2: float = 0.0  # sum of their squared mean offsets
     noise: float = 0.0  # sum of their means' measurement variances
     offsets: list = field(default_factory=list)  # their mean offsets
+    offset_noise: list = field(default_factory=list)  # their measurement variances
+    offset_line: list = field(default_factory=list)  # whether each is a line's (approx_error moves its mean)
     runs: float = 0.0
     run_strokes: int = 0
     fitted: int = 0  # runs with a fitted line
     fitted2: float = 0.0  # sum of (e1 - e0)^2
+    fitted_noise: float = 0.0  # sum of their measurement variances
     corners: float = 0.0  # model corners tested
     found: float = 0.0
     displaced: float = 0.0
@@ -130,7 +134,34 @@ def _interval(reps: np.ndarray, value: float | None = None, n: int | None = None
         widen = math.sqrt(n / (n - 1)) * float(stats.t.ppf(0.975, n - 1)) / float(stats.norm.ppf(0.975))
         reps = value + (reps - value) * widen
     lo, hi = np.quantile(reps, [0.025, 0.975])
-    return max(float(lo), 0.0), float(hi)  # every parameter is >= 0 (fractions are clipped to 1 by callers)
+    lo, hi = max(float(lo), 0.0), float(hi)  # every parameter is >= 0 (fractions are clipped to 1 by callers)
+    if hi - lo <= 1e-12 * max(1.0, abs(hi)):
+        return None, None  # no spread: a "95%" interval of zero width would claim a certainty the images lack
+    return lo, hi
+
+
+def exact_binomial(x: float, n: float) -> tuple[float, float]:
+    """The Clopper-Pearson 95% interval of a proportion of x in n (counts rounded): it has width at 0 and at 1,
+    where a bootstrap over images that all agree has none."""
+    from scipy import stats
+
+    x, n = int(round(x)), max(int(round(n)), 1)
+    lo = 0.0 if x <= 0 else float(stats.beta.ppf(0.025, x, n - x + 1))
+    hi = 1.0 if x >= n else float(stats.beta.ppf(0.975, x + 1, n - x))
+    return lo, hi
+
+
+def _at_bound(value: float | None, lo, hi, x: float, n: float):
+    """(lo, hi, how) of a proportion: where it is 0 or 1, or its bootstrap has no spread, the hull of the bootstrap's
+    interval and the exact binomial one of x in n; `how` says so (empty otherwise)."""
+    if value is None or n <= 0:
+        return lo, hi, ""
+    if lo is not None and 1e-12 < value < 1 - 1e-12:
+        return lo, hi, ""
+    elo, ehi = exact_binomial(x, n)
+    lo, hi = (elo, ehi) if lo is None else (min(lo, elo), max(hi, ehi))
+    return lo, hi, f"; interval: exact binomial of {int(round(x)):,} in {int(round(n)):,} (at {value:.3g} the " \
+                   "bootstrap over images has no spread)"
 
 
 def _ratio(num: np.ndarray, den: np.ndarray, seed: int, name: str, fn=lambda r: r, fraction: bool = True):
@@ -148,6 +179,14 @@ def _ratio(num: np.ndarray, den: np.ndarray, seed: int, name: str, fn=lambda r: 
     return value, lo, hi
 
 
+def _proportion(num: np.ndarray, den: np.ndarray, seed: int, name: str):
+    """(value, lo, hi, how) of the proportion sum num / sum den of counts: the bootstrap over images, and at 0 or 1
+    (or without spread) the exact binomial interval beside it (`_at_bound`)."""
+    value, lo, hi = _ratio(num, den, seed, name)
+    lo, hi, how = _at_bound(value, lo, hi, float(num.sum()), float(den.sum()))
+    return value, lo, hi, how
+
+
 def _edge_loss(col, seed: int):
     """(fraction, lo, hi, end loss px): the lost length in the strokes' middles less the detector's own end loss
     at each gap end, over the tested length."""
@@ -162,27 +201,99 @@ def _edge_loss(col, seed: int):
     W = _weights(len(col["length"]), seed, "edge_loss.fraction")
     reps, _ = value(*(W @ col[k] for k in keys))
     lo, hi = _interval(np.asarray(reps, float), float(f), int((col["length"] > 0).sum()))
+    n = col["tested"].sum()  # at 0 or 1: the exact binomial interval of the samples beside the bootstrap's
+    lo, hi, how = _at_bound(float(f), lo, hi, float(f) * n, n)
     if lo is not None:  # the correction's own assumption, that a gap's end loses what a stroke's end does
         s = END_DOUBT * float(end) * col["gap_ends"].sum() / col["length"].sum()
         lo, hi = max(lo - s, 0.0), hi + s
-    return float(f), lo, None if hi is None else min(hi, 1.0), float(end)
+    return float(f), lo, None if hi is None else min(hi, 1.0), float(end), how
 
 
-def _shift_range(col, seed: int):
-    """(range, lo, hi): sqrt(3 v) with v the fragments' mean offsets' variance about their mean, less their
-    measurement variance (from each fragment's scatter about its fitted line)."""
+def shift_mixture(d: np.ndarray, v: np.ndarray, wts: np.ndarray, band: float, shape: str = "uniform", start=None,
+                  rounds: int = 200, tol: float = 1e-7):
+    """(R, m, w, r, loglik) of the fragments' mean offsets d (F,) with measurement variances v (F,), under weights
+    wts (K, F) (a bootstrap replicate a row): a mixture of the effect's shifts with weight 1 - w, centred on m, of
+    spread R (the range of the uniform law of that variance, R^2 / 3), each fragment's measurement noise N(0, v)
+    added, and a background with weight w, uniform over the search band (+-(band + 0.5) px): a fragment the
+    detector found on an edge the model does not name (another object's, the paper's edge beside a board) is as
+    likely at any offset the search reaches. The uniform's edges are softened by EDGE_SOFT R (a fragment just past
+    the estimate's edge is not given to the background outright, which would shrink the estimate round after
+    round). The shifts' law is `shape`: "uniform" (the effect's: uniform on
+    [-R, R]) or "normal" (N(0, R^2 / 3): the same spread, with tails). Each round the fragments' shares r of the
+    effect (K, F) are taken from the densities, then m and R from their r-weighted first and second moments (the
+    variance less the noise) and w from the shares: a fixed point from the plain moments (or `start`), reached
+    within a few tens of rounds."""
+    from scipy.special import ndtr
 
-    def value(n, d1, d2, noise):
-        with np.errstate(invalid="ignore", divide="ignore"):
-            m = d1 / n
-            return np.sqrt(3 * np.maximum(d2 / n - m * m - noise / n, 0.0))
+    d, v = np.asarray(d, float), np.asarray(v, float)
+    wts = np.atleast_2d(np.asarray(wts, float))
+    tot = np.maximum(wts.sum(axis=1), 1e-300)
+    f_bg = 1.0 / (2.0 * (band + 0.5))
+    if start is None:
+        m = wts @ d / tot
+        R = np.sqrt(3 * np.maximum(wts @ (d * d) / tot - m * m - wts @ v / tot, 0.0))
+        w = np.full(len(wts), 0.05)
+    else:
+        R, m, w = (np.full(len(wts), float(x)) for x in start)  # (R, m, w)
 
-    keys = ("strokes", "d1", "d2", "noise")
-    f = value(*(col[k].sum() for k in keys))
-    W = _weights(len(col["strokes"]), seed, "lateral_shift.range")
-    lo, hi = _interval(np.asarray(value(*(W @ col[k] for k in keys)), float), float(f),
-                       int((col["strokes"] > 0).sum()))
-    return float(f), lo, hi
+    def density(m, R):
+        x = d[None, :] - m[:, None]
+        if shape == "normal":
+            s2 = (R * R / 3)[:, None] + v[None, :] + 1e-12
+            return np.exp(-x * x / (2 * s2)) / np.sqrt(2 * np.pi * s2)
+        Rr = np.maximum(R, 1e-3)[:, None]
+        sd = np.sqrt(v[None, :] + (EDGE_SOFT * Rr) ** 2 + 1e-6)
+        return (ndtr((x + Rr) / sd) - ndtr((x - Rr) / sd)) / (2 * Rr)
+
+    for _ in range(rounds):
+        a = (1 - w)[:, None] * density(m, R)
+        r = a / np.maximum(a + w[:, None] * f_bg, 1e-300)
+        wr = wts * r
+        n = np.maximum(wr.sum(axis=1), 1e-300)
+        m_new = wr @ d / n
+        var = (wr * ((d[None, :] - m_new[:, None]) ** 2 - v[None, :])).sum(axis=1) / n
+        R_new = np.sqrt(3 * np.maximum(var, 0.0))
+        w_new = np.clip(1 - n / tot, 0.0, 1.0)
+        done = np.all(np.abs(R_new - R) < tol) and np.all(np.abs(w_new - w) < tol)
+        m, R, w = m_new, R_new, w_new
+        if done:
+            break
+    a = (1 - w)[:, None] * density(m, R)
+    r = a / np.maximum(a + w[:, None] * f_bg, 1e-300)
+    loglik = (wts * np.log(np.maximum(a + w[:, None] * f_bg, 1e-300))).sum(axis=1)
+    return R, m, w, r, loglik
+
+
+def _shift_range(sums: list, seed: int, band: float, approx: float = 0.0):
+    """(range, lo, hi, mean, background share, effect's offsets, law) of the lateral shift, from the fragments'
+    mean offsets by `shift_mixture` with the law (uniform or normal) of the larger likelihood; the interval by the
+    bootstrap over images (each replicate's fixed point from the estimate's, with the same law)."""
+    d = np.concatenate([np.asarray(s.offsets, float) for s in sums])
+    v = np.concatenate([np.asarray(s.offset_noise, float) if len(s.offset_noise) == len(s.offsets) else
+                        np.zeros(len(s.offsets)) for s in sums])  # (no noise given: none)
+    v = np.where(np.isfinite(v), v, 0.0)
+    # approx_error moves a line fragment's two ends by N(0, approx^2) each across it: its mean by N(0, approx^2 / 2),
+    # what the shift does not explain
+    line = np.concatenate([np.asarray(s.offset_line, bool) if len(s.offset_line) == len(s.offsets) else
+                           np.zeros(len(s.offsets), bool) for s in sums])
+    v = v + np.where(line, approx * approx / 2, 0.0)
+    img = np.repeat(np.arange(len(sums)), [len(s.offsets) for s in sums])
+    one = np.ones((1, len(d)))
+    fits = {shape: [x[0] for x in shift_mixture(d, v, one, band, shape)] for shape in ("uniform", "normal")}
+    shape = max(fits, key=lambda k: fits[k][4])  # the law of the shifts with the larger likelihood
+    R, m, w, r, _ = fits[shape]
+    W = _weights(len(sums), seed, "lateral_shift.range")
+    reps = []
+    for k in range(0, B, 250):  # replicates in blocks: (250, fragments) arrays
+        reps.append(shift_mixture(d, v, W[k:k + 250][:, img], band, shape, start=(R, m, w), rounds=8,
+                                   tol=1e-4)[0])
+    lo, hi = _interval(np.concatenate(reps), float(R), int(sum(len(s.offsets) > 0 for s in sums)))
+    if lo is None and R == 0 and len(d):
+        # no spread beyond the noise in any resample: the interval reaches to the range whose variance is 1.96
+        # standard errors of the noise's (sqrt(2 / n) of it over n fragments), the least it could tell from none
+        hi = math.sqrt(3 * 1.96 * math.sqrt(2 / len(d)) * max(float(np.mean(v)), 1e-12))
+        lo = 0.0
+    return float(R), lo, hi, float(m), float(w), d[r > 0.5], shape
 
 
 def disc_radius(mean_r: np.ndarray, t: float) -> np.ndarray:
@@ -239,27 +350,27 @@ class Fit:
                 "lateral_shift_law": self.shift_law, "fragments": self.fragments, "stereo_matcher": self.stereo}
 
 
-def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 10.0, edge_loss: str = "gaps"
-        ) -> Fit:
+def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 10.0, edge_loss: str = "gaps",
+        band: float = 6.0) -> Fit:
     """Every estimate. `edge_loss`: "gaps" (the default) fits the gaps, the detector's own loss at each gap's
     ends taken off (what a simulation's edge_loss stage injected, as the round trip checks); "raw" everything
     the detector lost (1 - the verified fraction: a simulation with it loses as much as the detector did)."""
     n = len(sums)
     col = {k: np.array([getattr(s, k) for s in sums], float) for k in
            ("tested", "verified", "length", "lost_middle", "lost_ends", "ends", "gap_ends", "strokes", "d1", "d2",
-            "noise", "runs", "run_strokes", "fitted", "fitted2", "corners", "found",
+            "noise", "runs", "run_strokes", "fitted", "fitted2", "fitted_noise", "corners", "found",
             "displaced", "displaced_r", "located", "loc_dof", "loc2", "pairs", "pair_lr", "pair_ll", "pair_rr",
             "matched", "wrong")}
     out = []
     # edge loss: the gaps themselves (the detector's end loss at each gap end taken off), or everything lost
     if col["tested"].sum() >= MIN["edges"]:
-        raw, rlo, rhi = _ratio(col["tested"] - col["verified"], col["tested"], seed, "edge_loss.raw")
+        raw, rlo, rhi, rhow = _proportion(col["tested"] - col["verified"], col["tested"], seed, "edge_loss.raw")
         raw_note = (f"1 - verified fraction of {int(col['tested'].sum()):,} samples over "
-                    f"{int((col['tested'] > 0).sum())} images")
-        v, lo, hi, end = _edge_loss(col, seed)
+                    f"{int((col['tested'] > 0).sum())} images{rhow}")
+        v, lo, hi, end, how = _edge_loss(col, seed)
         gaps_note = (f"lost length over {col['length'].sum():,.0f} px of {int((col['tested'] > 0).sum())} images, "
                      f"less the detector's own loss at an edge's end ({end:.3g} px, measured at the model strokes' "
-                     f"ends) at each of {int(col['gap_ends'].sum())} gap ends")
+                     f"ends) at each of {int(col['gap_ends'].sum())} gap ends{how}")
         if edge_loss == "raw":
             out.append(Estimate("edge_loss.fraction", raw, rlo, rhi, raw_note + f" (the gaps alone: {100 * v:.3g}%)"))
         else:
@@ -269,32 +380,45 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     else:
         out.append(Estimate("edge_loss.fraction", None, note="no edge detector, or too few edge samples"))
     # lateral shift and its law
-    offsets = np.concatenate([np.asarray(s.offsets, float) for s in sums]) if n else np.zeros(0)
+    if col["fitted"].sum() >= MIN["strokes"]:
+        # on sigma^2 first: the bootstrap's interval, widened by the noise taken off's own doubt (1.96 standard
+        # errors of a mean of the fragments' noise, each estimated from its residuals: about sqrt(2 / fragments))
+        v2, lo2, hi2 = _ratio(col["fitted2"] - col["fitted_noise"], 2 * col["fitted"], seed, "approx_error.sigma",
+                              fraction=False)
+        doubt = 1.96 * math.sqrt(2 / col["fitted"].sum()) * col["fitted_noise"].sum() / (2 * col["fitted"].sum())
+        v = math.sqrt(max(v2, 0.0))
+        if lo2 is not None:
+            lo, hi = math.sqrt(max(lo2 - doubt, 0.0)), math.sqrt(max(hi2 + doubt, 0.0))
+        else:
+            lo = hi = None
+        noise = math.sqrt(max(col["fitted_noise"].sum() / col["fitted"].sum(), 0.0))
+        out.append(Estimate("approx_error.sigma", v, lo, hi, f"from the tilts of {int(col['fitted'].sum())} fragments "
+                            "of lines, carried to the fragments' ends (e1 - e0 ~ N(0, 2 sigma^2)), less their "
+                            f"measurement noise ({noise:.3g} px rms)"))
+    else:
+        out.append(Estimate("approx_error.sigma", None, note="too few strokes with a fitted line"))
     law = None
     if col["strokes"].sum() >= MIN["strokes"]:
-        v, lo, hi = _shift_range(col, seed)
-        law = law_test(offsets)
-        note = (f"sqrt(3 (var d - noise)) of the mean offsets d of {len(offsets)} fragments (mean {law['mean']:+.3g} "
-                f"px, not part of the effect; their measurement noise "
-                f"{math.sqrt(max(col['noise'].sum() / col['strokes'].sum(), 0)):.3g} px rms)")
+        apx = out[-1].value or 0.0  # approx_error's share of the fragments' mean offsets is taken off
+        v, lo, hi, mean, bg, own, shape = _shift_range(sums, seed, band, apx)
+        law = law_test(own)
+        noise = math.sqrt(max(col['noise'].sum() / col['strokes'].sum(), 0))
+        note = (f"sqrt(3 (var d - noise)) of the mean offsets d of {int(col['strokes'].sum())} fragments of at least "
+                f"{MIN_RUN_PX:g} px (mean {mean:+.3g} px, not part of the effect; their measurement noise "
+                f"{noise:.3g} px rms), {100 * bg:.3g}% of them taken as the background (offsets uniform over the "
+                f"+-{band:g} px band: edges the model does not name; the shifts' law in that mixture: {shape})")
         if law["better"] == "normal":
             note += f"; a normal law fits better (KS D {law['ks_normal']['D']:.3g} against uniform's " \
                     f"{law['ks_uniform']['D']:.3g}): this is the uniform range of the same spread"
         out.append(Estimate("lateral_shift.range", v, lo, hi, note))
     else:
         out.append(Estimate("lateral_shift.range", None, note="too few strokes with verified samples"))
-    if col["fitted"].sum() >= MIN["strokes"]:
-        v, lo, hi = _ratio(col["fitted2"], 2 * col["fitted"], seed, "approx_error.sigma", np.sqrt, False)
-        out.append(Estimate("approx_error.sigma", v, lo, hi, f"from the fitted ends of {int(col['fitted'].sum())} "
-                                                               "fragments (e1 - e0 ~ N(0, 2 sigma^2))"))
-    else:
-        out.append(Estimate("approx_error.sigma", None, note="too few strokes with a fitted line"))
     # corners
     if col["corners"].sum() >= MIN["corners"]:
-        v, lo, hi = _ratio(col["found"], col["corners"], seed, "corner_loss.keep")
+        v, lo, hi, how = _proportion(col["found"], col["corners"], seed, "corner_loss.keep")
         out.append(Estimate("corner_loss.keep", v, lo, hi, f"{int(col['found'].sum())} of "
                                                            f"{int(col['corners'].sum())} model corners found within "
-                                                           f"{radius:g} px"))
+                                                           f"{radius:g} px{how}"))
     else:
         out.append(Estimate("corner_loss.keep", None, note="no corner detector, or too few model corners"))
     out += _corner_estimates(col, seed, inlier)
@@ -304,6 +428,9 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
                      "strokes": int(col["run_strokes"].sum()), "effect_gives": 2}
     stereo = {"matched": int(col["matched"].sum()), "wrong": int(col["wrong"].sum()),
               "rate": float(col["wrong"].sum() / col["matched"].sum()) if col["matched"].sum() else None}
+    for e in out:
+        if e.value is not None and e.lo is None and "interval" not in e.note:
+            e.note += " (no interval: the bootstrap over images has no spread, every resample gives the same)"
     return Fit(out, law, fragments, stereo, n)
 
 
@@ -421,9 +548,9 @@ def _corner_estimates(col, seed: int, t: float) -> list[Estimate]:
     tail_note = f", {tail:.3g} of them the localisation error's tail" if tail > 0 else ""
     if not mismatch or d < 1:
         n = int(disp.sum())
-        out += [Estimate(keys[1], float(d / found.sum()), 0.0, min(1.0, 3.0 / found.sum()),
+        out += [Estimate(keys[1], float(d / found.sum()), *exact_binomial(d, found.sum()),
                          f"{n} of {int(found.sum())} found corners displaced beyond {t:g} px{tail_note} "
-                         "(interval: rule of three)"),
+                         "(interval: exact binomial)"),
                 Estimate(keys[2], None, note=f"fewer than {MIN['displaced']} displaced corners" if not mismatch
                          else "no displaced corners beyond the localisation error's")]
         return out

@@ -108,15 +108,23 @@ def frames_of(patterns: list[tuple[str, str | None]], rig) -> list[Frame]:
 # --------------------------------------------------------------------------- poses
 
 def assign_path(frames: list[Frame], scene) -> None:
-    """`--poses path`: the k-th frame (in name order) takes the scene path's pose k."""
+    """`--poses path`: each frame takes the scene path's pose of the number in its images' names (`left_003.png`
+    -> pose 3, as `wiredsl render` names them), never its position among the images given, so that a subset
+    of the images (`left_00[37].png`) is verified each at its own pose. A number that is not a pose of the path
+    (a timestamp, a fraction, beyond the path's last pose) is E192."""
     n = len(scene.path.poses) if scene.path is not None else 0
-    for k, frame in enumerate(frames):
-        if k >= n:
-            first = next(iter(frame.images.values()))
-            raise error("E192", f"{len(frames)} frames of images but the scene's path has {n} pose"
-                                f"{'s' * (n != 1)}: {Path(first).name} has none", first)
-        frame.pose = scene.path.pose(k)
-        frame.pose_from = f"path pose {k}"
+    for frame in frames:
+        first = next(iter(frame.images.values()))
+        k = frame.key
+        if k != k.to_integral_value() or k < 0 or k >= n:
+            why = (f"its number {k} is not a pose index of the scene's path (0 to {n - 1})" if n else
+                   "the scene's path has no poses")
+            raise error("E192", f"{Path(first).name}: {why}", first,
+                        hint="--poses path pairs each image with the path pose of the number in its name (as "
+                             "`wiredsl render` names them); give images taken elsewhere their poses with "
+                             "--poses FILE")
+        frame.pose = scene.path.pose(int(k))
+        frame.pose_from = f"path pose {int(k)}"
 
 
 def assign_file(frames: list[Frame], scene, path: str, fmt: str | None, match: str, side: str) -> str:

@@ -29,6 +29,10 @@ ANGLE = math.radians(20.0)  # largest angle between the detected gradient and th
 RADIUS = 10.0  # px: the paper's corner match search radius
 BORDER = 2.0  # px: samples nearer the image's border are not tested (detectors see nothing there)
 GOLDEN = 0.6180339887498949  # the sample grids' phases: (i + 1) * GOLDEN mod 1 for stroke i
+RUN_TRIM = 2.0  # px at each end of a run left out of its offsets
+END_TRIM = 6.0  # px at each end of a model stroke left out of its runs' offsets: there it meets other edges (a
+# junction, a silhouette's tangent to its rim), and the detected edge bends off it
+CORR_PX = 8.0  # px: the longest lag of the residuals' correlation counted in a run mean's noise
 PATCH = 5  # half size of the correlation patches of the stereo corner matcher (11 x 11)
 
 
@@ -51,19 +55,48 @@ class Strokes:
     fid: np.ndarray  # (S,) feature index into world.feature_ids
     segment: np.ndarray  # (S,)
     part: np.ndarray  # (S,) occlusion part (fragment), -1 whole
+    ellipse: np.ndarray | None = None  # (S,) bool: the stroke is an ellipse's (whole, or a visible arc of it)
 
     @property
     def n(self) -> int:
         return len(self.fid)
 
 
-def strokes_of(view) -> Strokes:
+def strokes_of(view, ellipses: set | None = None) -> Strokes:
+    """`ellipses`: the world's ellipse feature ids (None: those with a conic in the view, whole ellipses)."""
     feats = [f for f in view.features if f.kind in ("line", "polyline") and len(f.points) >= 2]
     counts = np.array([len(f.points) for f in feats], dtype=int)
     start = np.concatenate([[0], np.cumsum(counts)])
     pts = np.concatenate([f.points for f in feats]).astype(float) if feats else np.zeros((0, 2))
+    conics = ellipses if ellipses is not None else {f.fid for f in view.features if f.kind == "conic"}
     return Strokes(pts, start, np.array([f.fid for f in feats], int), np.array([f.segment for f in feats], int),
-                   np.array([f.fragment for f in feats], int))
+                   np.array([f.fragment for f in feats], int),
+                   np.array([f.kind == "polyline" and f.fid in conics for f in feats], bool))
+
+
+def ellipse_halves(st: Strokes, sm: Samples) -> np.ndarray:
+    """(n,) int: which side of its stroke's own major axis each sample of an ellipse's stroke lies on (0 or 1; 0
+    for other strokes). The lateral shift moves an ellipse's stroke in pieces cut where it crosses its major axis
+    (the principal axis of its chords, weighted by length: effects.lateral_shift.split_ellipses), each piece by
+    its own offset, so the fit's fragments are cut there too: a run across a tip averaged two shifts."""
+    out = np.zeros(len(sm.stroke), int)
+    if st.ellipse is None or not st.ellipse.any():
+        return out
+    for k in np.flatnonzero(st.ellipse).tolist():
+        P = st.pts[st.start[k]:st.start[k + 1]]
+        if len(P) < 3:
+            continue
+        mid, d = (P[:-1] + P[1:]) / 2, np.diff(P, axis=0)
+        w = np.hypot(d[:, 0], d[:, 1])
+        if w.sum() <= 0:
+            continue
+        c = (w[:, None] * mid).sum(0) / w.sum()
+        X = mid - c
+        cov = (w[:, None, None] * X[:, :, None] * X[:, None, :]).sum(0) / w.sum()
+        minor = np.linalg.eigh(cov)[1][:, 0]  # the eigenvector of the smaller eigenvalue: across the major axis
+        at = sm.stroke == k
+        out[at] = ((sm.P[at] - c) @ minor > 0).astype(int)
+    return out
 
 
 def corners_of(view) -> tuple[np.ndarray, np.ndarray]:
@@ -195,7 +228,8 @@ class StrokeStats:
     """Per stroke: length, samples tested and verified, runs of verified samples, the offsets' mean and scatter;
     the lost length within `margin` of its ends and in its middle, and the ends of its gaps there. Per run (a
     fragment the detector found: consecutive verified samples): its stroke, samples, mean offset, and the
-    difference of the offsets at its two ends of a line fitted to its offsets along it (NaN under 4 samples)."""
+    difference at its two ends of a line fitted to its offsets along it (NaN under 4 samples), with
+    that difference's measurement variance."""
 
     length: np.ndarray
     tested: np.ndarray
@@ -211,21 +245,29 @@ class StrokeStats:
     run_stroke: np.ndarray
     run_n: np.ndarray
     run_mean: np.ndarray
-    run_end_diff: np.ndarray
+    run_end_diff: np.ndarray  # px: the run's fitted line's offsets at the run's two ends, the second less the first
     run_noise: np.ndarray  # variance of the run's mean offset from its samples' scatter about its fitted line
+    run_length: np.ndarray  # px its offsets cover (its samples less RUN_TRIM at each end, times their spacing)
+    run_end_noise: np.ndarray  # px^2: the measurement variance of run_end_diff
 
 
 def _bins(idx, w, n):
     return np.bincount(idx, weights=w, minlength=n)
 
 
-def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0) -> StrokeStats:
+def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0,
+                 piece: np.ndarray | None = None) -> StrokeStats:
+    """`piece` (n,): a run also ends where it changes (an ellipse's halves, `ellipse_halves`)."""
     S, st = n_strokes, sm.stroke
     t, v = m.tested, m.verified & m.tested
     cnt = _bins(st, t, S)
     nv = _bins(st, v, S)
     same = np.concatenate([[False], st[1:] == st[:-1]]) if len(st) else np.zeros(0, bool)
-    prev = np.concatenate([[False], v[:-1]]) & same if len(v) else v
+    if piece is not None and len(st):
+        same_piece = same & np.concatenate([[False], piece[1:] == piece[:-1]])
+    else:
+        same_piece = same
+    prev = np.concatenate([[False], v[:-1]]) & same_piece if len(v) else v
     start = v & ~prev
     runs = _bins(st, start, S)
     o = np.where(v, m.offset, 0.0)
@@ -258,11 +300,18 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0)
     # runs: the fragments the detector found
     run_id = np.cumsum(start) - 1
     R = int(start.sum())
-    # a run's first and last samples are left out of its offsets: there the edge bends round its end
-    nxt = np.concatenate([v[1:] & same[1:], [False]]) if len(v) else v
-    rv = np.flatnonzero(v & prev & nxt)
+    # a run's samples within RUN_TRIM px of its ends are left out of its offsets (there the edge bends round its
+    # end): px, not samples, so that the offsets a run gives do not depend on the sampling step
+    allv = np.flatnonzero(v)
+    arid, a_s = run_id[allv], sm.s[allv]
+    first_s, last_s = np.full(R, np.inf), np.full(R, -np.inf)
+    np.minimum.at(first_s, arid, a_s)
+    np.maximum.at(last_s, arid, a_s)
+    inner = (a_s >= END_TRIM - 1e-9) & (a_s <= sm.L[st[allv]] - END_TRIM + 1e-9) if len(allv) else np.zeros(0, bool)
+    rv = allv[(a_s - first_s[arid] >= RUN_TRIM - 1e-9) & (last_s[arid] - a_s >= RUN_TRIM - 1e-9) & inner]
     rid, ro, rs = run_id[rv], m.offset[rv], sm.s[rv]
     rn = np.bincount(rid, minlength=R).astype(float)
+    run_spacing = spacing[st[np.flatnonzero(start)]] if R else np.zeros(0)
     with np.errstate(invalid="ignore", divide="ignore"):
         rmean = _bins(rid, ro, R) / np.maximum(rn, 1)
         ms = _bins(rid, rs, R) / np.maximum(rn, 1)
@@ -272,22 +321,37 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0)
         vo = _bins(rid, ro * ro, R) / np.maximum(rn, 1) - rmean * rmean
         rss = rn * np.maximum(vo - np.where(np.isfinite(slope), slope * cov, 0.0), 0.0)
         noise = np.where(rn >= 4, rss / np.maximum(rn - 2, 1) / np.maximum(rn, 1), np.nan)
-        # neighbouring samples' noise is correlated (blur, the detector's own smoothing): the variance of a mean
-        # grows by (1 + rho) / (1 - rho), rho the lag-one correlation of the residuals, pooled over the view's runs
+        # neighbouring samples' noise is correlated (blur, the detector's own smoothing, and samples closer than a
+        # pixel read the same pixels): the variance of a mean of n grows by 1 + 2 sum_k (1 - k / n) rho_k, rho_k
+        # the correlation of the residuals k samples apart, pooled over the view's runs, summed over lags up to
+        # CORR_PX px while positive (the initial positive sequence)
         res = ro - rmean[rid] - np.where(np.isfinite(slope), slope, 0.0)[rid] * (rs - ms[rid])
-        pair = (rid[1:] == rid[:-1]) & (rn[rid[1:]] >= 4) if len(rid) > 1 else np.zeros(0, bool)
-        den = float((res[:-1][pair] ** 2).sum()) if len(rid) > 1 else 0.0
-        rho = float((res[:-1][pair] * res[1:][pair]).sum()) / den if den > 0 else 0.0
-        rho = min(max(rho, 0.0), 0.9)
-        noise = noise * (1 + rho) / (1 - rho)
-        smin = np.full(R, np.inf)
-        smax = np.full(R, -np.inf)
-        np.minimum.at(smin, rid, rs)
-        np.maximum.at(smax, rid, rs)
-    run_stroke = st[np.flatnonzero(start)]
+        usable = rn[rid] >= 4 if len(rid) else np.zeros(0, bool)
+        den = float((res[usable] ** 2).sum())
+        gap = float(np.median(run_spacing)) if R else 1.0
+        grow = np.ones(R)
+        for k in range(1, max(1, int(round(CORR_PX / max(gap, 1e-9)))) + 1):
+            if den <= 0 or len(rid) <= k:
+                break
+            pair = (rid[k:] == rid[:-k]) & usable[k:]
+            rho = float((res[:-k][pair] * res[k:][pair]).sum()) / den
+            if rho <= 0:
+                break
+            grow += 2 * min(rho, 1.0) * np.maximum(1 - k / np.maximum(rn, 1), 0.0)
+        noise = noise * grow
+        run_stroke = st[np.flatnonzero(start)]
+        # the line fitted to a run's offsets, carried to the run's own ends (its first and last samples, and half
+        # a spacing beyond each: the fragment it found): the effect moves each fragment's two ends, so the
+        # difference of the fitted offsets there is slope x that length, with the measurement variance of that,
+        # var(slope) length^2 (var(slope) the residuals' variance over n var(s), grown by the residuals'
+        # correlation as the mean's is)
+        Ls = (last_s - first_s + run_spacing) if R else np.zeros(0)
+        sig2 = np.where(rn >= 4, rss / np.maximum(rn - 2, 1), np.nan)
+        end_noise = np.where(np.isfinite(slope), sig2 * grow / np.maximum(rn * vs, 1e-12) * Ls * Ls, np.nan)
     return StrokeStats(sm.L, cnt.astype(int), nv.astype(int), runs.astype(int), mean, np.sqrt(np.maximum(var, 0)),
                        cnt * spacing, lost_mid, lost_ends, first_end.astype(int) + last_end.astype(int),
-                       gap_ends.astype(int), run_stroke, rn.astype(int), rmean, slope * (smax - smin), noise)
+                       gap_ends.astype(int), run_stroke, rn.astype(int), rmean, slope * Ls, noise,
+                       rn * run_spacing, end_noise)
 
 
 @dataclass
@@ -390,13 +454,15 @@ class ImageResult:
     refined: dict = field(default_factory=dict)
 
 
-def verify_image(view, det: Detection, shape, cfg: Settings, result: ImageResult) -> ImageResult:
-    """Edge and corner verification of one image's detection against the engine's view of the model."""
+def verify_image(view, det: Detection, shape, cfg: Settings, result: ImageResult,
+                 ellipses: set | None = None) -> ImageResult:
+    """Edge and corner verification of one image's detection against the engine's view of the model
+    (`ellipses`: the world's ellipse feature ids, whose strokes' runs are cut at their major axes)."""
     if det.has_edges:
-        st = strokes_of(view)
+        st = strokes_of(view, ellipses)
         sm = sample_strokes(st, cfg.step)
         m = search_edges(sm, det, shape, cfg)
-        result.strokes, result.stats = st, stroke_stats(sm, m, st.n, cfg.margin)
+        result.strokes, result.stats = st, stroke_stats(sm, m, st.n, cfg.margin, ellipse_halves(st, sm))
         result.samples = int(m.tested.sum())
     if det.has_corners:
         fid, uv = corners_of(view)
