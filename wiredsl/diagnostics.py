@@ -266,9 +266,9 @@ CODES: dict[str, str] = {
     'W126': 'mesh edges shared by more than two triangles (non-manifold), kept as lines',
     'W127': "a mesh's file origin lies far outside the part (place it by its centre or base: `origin centre|base`)",
     'W128': "the mesh reader (trimesh) warned about the file (a damaged or partly read mesh); its words are quoted",
-    'W129': ('`--visibility auto` (the default of `build`) keeps hidden lines of a scene with faces: exact '
-             'visibility would cost more CPU than the default spends (its estimate is given); `--visibility exact` '
-             'changes the answer'),
+    'W129': ('`--visibility auto` (the default of build, study, export, the API and the Gymnasium environment) '
+             'keeps hidden lines of a scene with faces: exact visibility would cost more CPU than the default spends '
+             '(its estimate is given); `--visibility exact` changes the answer'),
     'E130': 'silhouette not between two ellipses of its own model',
     'E140': 'matrix of the wrong shape, not symmetric, not positive semi-definite, or an entry over 1e100',
     'E141': ('calibration file malformed or not usable: a matrix file, or an OpenCV, ROS, Kalibr, ORB-SLAM, '

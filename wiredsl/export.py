@@ -48,8 +48,9 @@ MAX_EXPORT_TRIALS = 100_000  # one folder a trial
 @click.option("--undistort", is_flag=True, help="colmap: a PINHOLE camera and undistorted 2D points, for any lens "
               "(needed for the lenses COLMAP has no model for: ds, unified with distortion).")
 @click.option("--visibility", type=click.Choice(VISIBILITIES), default=DEFAULT_VISIBILITY, show_default=True,
-              help="Hidden lines, as in build: scene (the view-points' lists), exact, all, or auto (exact where a "
-                   "mesh's faces would hide what the lists cannot say and it is affordable, else scene with W129).")
+              help="Hidden lines, as in build: scene (the view-points' lists), exact, all, or auto (where the scene "
+                   "has faces and computed lists, exact unless its estimated CPU is over 60 s, then scene with W129; "
+                   "else scene). The manifest's `visibility` says which was used.")
 @click.option("--force", is_flag=True, help="Replace an output folder that holds files wiredsl did not write.")
 @diagnostics_option
 @guarded

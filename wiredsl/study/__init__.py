@@ -115,11 +115,11 @@ def _stored(all_jobs: list[shards.Job], folder: Path) -> dict[str, dict[str, np.
 
 def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "processes", workers: int | None = None,
               scheduler: str | None = None, registry: dict | None = None, echo: Callable[[str], None] | None = None,
-              shard_trials: int = shards.SHARD_TRIALS, limit: int | None = None, fresh: bool = False
-              ) -> report.StudyTable | None:
+              shard_trials: int = shards.SHARD_TRIALS, limit: int | None = None, fresh: bool = False,
+              program=None) -> report.StudyTable | None:
     """Run what is not yet done of a study into `folder`, then write table.csv, table.json and
     manifest.json there. `limit` stops after that many new shards (no table): an interrupted run. `fresh`
-    recomputes every shard, whatever is there."""
+    recomputes every shard, whatever is there. `program` (the compiled program) places W129 in the file."""
     from wiredsl.io import emit
     from wiredsl.language.compile_study import measure_registry
 
@@ -162,7 +162,9 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
         if todo:  # the one visibility of every point (shards.visibility), when it keeps hidden lines
             choice = chosen()
             if choice.warning is not None:
-                echo(f"warning: W129: {choice.warning}")
+                from wiredsl.run import w129_span
+
+                echo(f"{w129_span(program, scene)}: warning[W129]: {choice.warning}")
     if todo:
         with journal.Writer(folder) as out:
             def finished(job: shards.Job, arrays: dict[str, np.ndarray]) -> None:
