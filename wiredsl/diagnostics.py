@@ -279,6 +279,8 @@ CODES: dict[str, str] = {
             "rescales the file's camera matrix or does not hold its centre, a rotation written with few digits"),
     'W144': ("a rig's extrinsics that are probably wrong: cameras over 5 m apart (a T in millimetres), the right "
             'camera to the left of the left one'),
+    'E146': ("a stereo calibration file's cameras over 5 m apart, read without the unit of its T (OpenCV's is the "
+             "board's, often millimetres): give `relative \"file\" units mm` (or cm, or m)"),
     'W147': ('a lens that does not image its own image: its distortion folds back inside the image, so the part '
             'beyond the fold is never reached (a fisheye bounded by its `fov` or imaging to 180 deg is not '
             "warned), or a radtan lens scales the image corner's radius by over 4x or under 1/4x (a `k1` of 1e6 "

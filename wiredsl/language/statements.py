@@ -218,6 +218,8 @@ _MOUNT = {
     "roll": C("rotation about the viewing direction", S("angle", "angle")),
     "relative": C("instead of at and looking: the pose relative to the other camera, read from a stereo "
                   "calibration file (OpenCV's R, T or Kalibr's T_cn_cnm1)", S("str", "path")),
+    "units": C("with relative: the unit of the file's translation T (OpenCV's is the board's square size's; a "
+               "baseline over 5 m read without it is an error)", S("word", "unit", "m", "cm", "mm")),
 }
 _RIG = [
     Sig("left", "the left camera and its mount", (S("ref", "camera"),), _MOUNT,
