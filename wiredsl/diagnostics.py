@@ -297,6 +297,9 @@ CODES: dict[str, str] = {
     'E151': ('size over a limit (view-points, poses, matrix order, polyline vertices at a tolerance, brackets and '
             'blocks nested over 32 deep, a mesh over 2,000,000 triangles)'),
     'E160': 'a pipeline order that cannot be honoured',
+    'W163': ("calibration_error's sigma far below 1 (under 0.1) on a rig with a declared calibration covariance: "
+             'sigma scales its standard deviations, so the draws simulate that fraction of the calibration\'s '
+             'uncertainty (sigma 1: as measured)'),
     'E170': 'a study design with no points (no values, no steps, no trials, no poses)',
     'E171': ("a factor or option that does not fit the study's design (a list in a space-filling design, a range "
             'without steps in a grid, base samples not a power of 2)'),

@@ -45,7 +45,8 @@ def choose_pipeline(scene: Scene, name: str | None = None, no_effects: bool = Fa
     if name is not None:
         pipeline = scene.pipeline(name)
         if pipeline is None:
-            names = ", ".join(p.name for p in scene.pipelines) or "none"
+            names = ", ".join([p.name for p in scene.pipelines] + ["the built-in paper"] * (
+                not any(p.name == "paper" for p in scene.pipelines)))
             raise RunSetupError(f"no pipeline '{name}' in {scene.source} (it has: {names})", "--pipeline")
         return PipelineChoice(pipeline)
     pipeline = scene.pipeline()
