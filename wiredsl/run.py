@@ -205,9 +205,10 @@ def start(scene: Scene, pipeline: Pipeline | str | None = None, *, seed: int | N
 NUMPY_COST = 1.4
 
 
-def numpy_forced_line(effects: list, engine: str) -> str | None:
+def numpy_forced_line(effects: list, engine: str, remedy: str = ", or --engine numpy to choose numpy") -> str | None:
     """The one line said on stderr when, under `--engine auto` with numba installed, a stage without a compiled
-    kernel (an installed plug-in's) makes it and the stages after it run on numpy; None otherwise."""
+    kernel (an installed plug-in's) makes it and the stages after it run on numpy; None otherwise. `remedy`
+    ends it: what else the command can do (a study has no --engine: "")."""
     import importlib.util
 
     from wiredsl.montecarlo import kernel_prefix
@@ -227,7 +228,7 @@ def numpy_forced_line(effects: list, engine: str) -> str | None:
     after = f"the stages from '{image[k].name}' on run on numpy" if k else "the whole pipeline runs on numpy"
     return (f"wiredsl: {', '.join(names)} {'has' if len(names) == 1 else 'have'} no compiled kernel, so {after}: "
             f"about {NUMPY_COST:g}x the CPU time of the kernel on the lab, up to 7x (the whole pipeline); give the "
-            "effect a KernelStage, or --engine numpy to choose numpy")
+            f"effect a KernelStage{remedy}")
 
 
 def numpy_forced(run: Run, trials: int) -> str | None:

@@ -233,4 +233,4 @@ def numpy_forced(scene: Scene, study: Study, X: np.ndarray) -> str | None:
     from wiredsl.run import numpy_forced_line
 
     stages = design.pipeline_at(scene, study, X[0]).stages if len(X) else []
-    return numpy_forced_line([effects[s.effect] for s in stages], "auto")
+    return numpy_forced_line([effects[s.effect] for s in stages], "auto", "")  # a study has no --engine
