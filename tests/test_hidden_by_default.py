@@ -130,7 +130,7 @@ def test_over_the_budget_w129_is_said_at_the_viewpoints_everywhere(tmp_path, mon
     _, manifest, r = _build(tmp_path)
     assert manifest["visibility"] == "scene"
     line = next(x for x in r.stderr.splitlines() if "W129" in x)
-    assert re.match(r".*table_box_cup\.wd:49:1: warning\[W129\]: hidden lines are not removed: 10 views x 12 "
+    assert re.match(r".*table_box_cup\.wd:56:1: warning\[W129\]: hidden lines are not removed: 10 views x 12 "
                     r"occluding triangles", line), line
     scene = wiredsl.compile(SCENE)
     with pytest.warns(UserWarning, match="W129: hidden lines are not removed"):
@@ -140,5 +140,5 @@ def test_over_the_budget_w129_is_said_at_the_viewpoints_everywhere(tmp_path, mon
                                   "measures": [{"name": "survival"}]})
     _, _, program = __import__("wiredsl.language.compile", fromlist=["x"]).compile_file(SCENE)
     run_study(scene, study, tmp_path / "st", executor="inprocess", echo=said.append, program=program)
-    assert any(re.match(r".*table_box_cup\.wd:49:1: warning\[W129\]", s) for s in said), said
+    assert any(re.match(r".*table_box_cup\.wd:56:1: warning\[W129\]", s) for s in said), said
     assert json.loads((tmp_path / "st" / "manifest.json").read_text())["visibility"] == "scene"

@@ -202,10 +202,15 @@ def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto", only
 def _versions(fmt: str) -> dict:
     from importlib.metadata import PackageNotFoundError, version
 
-    out = {}
-    for pkg in ({"rosbag2": ("rosbags",), "colmap": ()}[fmt]):
+    import wiredsl
+    from wiredsl.io.export_colmap import CHECKED_WITH
+
+    out = {"wiredsl": wiredsl.__version__}  # the writer; and the library it writes through, or the reader checked
+    if fmt == "rosbag2":
         try:
-            out[pkg] = version(pkg)
+            out["rosbags"] = version("rosbags")
         except PackageNotFoundError:
-            out[pkg] = None
+            out["rosbags"] = None
+    else:
+        out["colmap"] = CHECKED_WITH
     return out
