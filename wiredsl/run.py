@@ -47,7 +47,8 @@ def choose_pipeline(scene: Scene, name: str | None = None, no_effects: bool = Fa
         if pipeline is None:
             names = ", ".join([p.name for p in scene.pipelines] + ["the built-in paper"] * (
                 not any(p.name == "paper" for p in scene.pipelines)))
-            raise RunSetupError(f"no pipeline '{name}' in {scene.source} (it has: {names})", "--pipeline")
+            ideal = "; --no-effects draws the ideal projection" if name.lower() in ("none", "ideal") else ""
+            raise RunSetupError(f"no pipeline '{name}' in {scene.source} (it has: {names}){ideal}", "--pipeline")
         return PipelineChoice(pipeline)
     pipeline = scene.pipeline()
     if pipeline is None and scene.pipelines:

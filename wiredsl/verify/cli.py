@@ -111,7 +111,7 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
         before = [m["rms_offset_before_px"] for m in r if m["rms_offset_before_px"] is not None]
         after = [m["rms_offset_after_px"] for m in r if m["rms_offset_after_px"] is not None]
         click.echo(f"refined {len(r)} poses: median move {statistics.median(m['rotation_deg'] for m in r):.3g} deg, "
-                   f"{statistics.median(m['translation'] for m in r):.3g} (scene units); median RMS offset "
+                   f"{statistics.median(m['translation'] for m in r):.3g} m; median RMS offset "
                    f"{statistics.median(before) if before else float('nan'):.3g} -> "
                    f"{statistics.median(after) if after else float('nan'):.3g} px", err=True)
     for key, e in (outcome.prediction or {}).items():
