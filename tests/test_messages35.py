@@ -34,3 +34,30 @@ def test_pipeline_none_on_a_scene_without_pipelines_points_at_no_effects(tmp_pat
         assert r.exit_code == 2, r.output
         assert "no pipeline 'none' in tests/data/table_box_cup.wd (it has: the built-in paper); --no-effects " \
                "draws the ideal projection" in " ".join(r.output.split())
+
+
+def test_a_refused_camera_of_a_stereo_file_is_said_once_where_it_is_read(tmp_path):
+    """Was: one thin-prism E141 printed three times (each read of the file: `read`, `read ... entry second`,
+    `relative`), naming M1 at the `entry second` read. Now once, at the read of that camera; the other camera
+    and the pair's R, T stay usable."""
+    cv2 = __import__("pytest").importorskip("cv2")
+    import numpy as np
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1.0]])
+    fs = cv2.FileStorage(str(tmp_path / "prism.yaml"), cv2.FILE_STORAGE_WRITE)
+    for k, v in dict(image_width=640, image_height=480, M1=K, D1=np.array([[-0.17, 0.02, 0, 0, 0, 0, 0, 0, 0.001, 0,
+                                                                           0, 0]]),
+                     M2=K, D2=np.array([[-0.17, 0.02, 0, 0, 0]]), R=np.eye(3), T=np.array([[-0.12], [0], [0]])).items():
+        fs.write(k, v)
+    fs.release()
+    rig = ('rig r {\n  left c at (0, 0.06, 1) looking (1, 0, 0)\n  right c2 relative "prism.yaml"\n}\n'
+           'camera c2 {\n  read "prism.yaml" entry second\n}\n')
+    f = tmp_path / "p.wd"
+    f.write_text('wiredsl 1\ncamera c {\n  read "prism.yaml"\n}\n' + rig)
+    r = CliRunner().invoke(main, ["check", str(f)])
+    errors = [x for x in r.stderr.splitlines() if "error[" in x]
+    assert r.exit_code == 1 and len(errors) == 1, errors
+    assert "p.wd:3:8: error[E141]: calibration file prism.yaml: M1: thin-prism distortion" in errors[0]
+    f.write_text("wiredsl 1\ncamera c {\n  focal 600px\n  size (640px, 480px)\n}\n" + rig)
+    r = CliRunner().invoke(main, ["check", str(f)])
+    assert r.exit_code == 0, r.output  # M2 and R, T are fine

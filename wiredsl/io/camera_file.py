@@ -43,6 +43,7 @@ class CameraFile:
     model: str = "radtan"  # or "equidistant", "unified", "eucm", "ds", "fov" (geometry.MODELS)
     notes: tuple[str, ...] = ()  # doubts about the file, for a warning
     intrinsics: bool = True  # False for an extrinsics-only file (stereo_calib's extrinsics.yml)
+    error: str | None = None  # why this camera of a stereo file cannot be read (said where it is read, once)
 
 
 def _kind(v) -> str:

@@ -119,6 +119,7 @@ class CameraCompiler:
             target = FsPath(sb.stmt.span.file).parent / path
             if (target, fmt) in cache:
                 return cache[target, fmt]
+            cache[target, fmt] = None  # a file that fails is reported once, where it is first read
             sources.read_bytes(target, "calibration file", path_span)  # a regular file, not a FIFO (would block)
             cache[target, fmt] = read(target, fmt)
             return cache[target, fmt]
@@ -144,6 +145,9 @@ class CameraCompiler:
                                    f"({have}); there is no {entry}", sb.span("entry"))
             return None
         c, span = cams[i], sb.stmt.span
+        if c.error is not None:
+            self.out.error("E141", f"calibration file {path}: {c.error}", path_span)
+            return None
         if not c.intrinsics:
             self.out.error("E141", f"calibration file {path} holds extrinsics only (R, T): no camera to read",
                            path_span, "read the cameras from the intrinsics file (stereo_calib's intrinsics.yml) "
