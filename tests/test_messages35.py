@@ -61,3 +61,63 @@ def test_a_refused_camera_of_a_stereo_file_is_said_once_where_it_is_read(tmp_pat
     f.write_text("wiredsl 1\ncamera c {\n  focal 600px\n  size (640px, 480px)\n}\n" + rig)
     r = CliRunner().invoke(main, ["check", str(f)])
     assert r.exit_code == 0, r.output  # M2 and R, T are fine
+
+
+def _stereo(path, R):
+    import cv2
+    import numpy as np
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1.0]])
+    D = np.array([[-0.17, 0.02, 0, 0, 0]])
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for k, v in dict(image_width=640, image_height=480, M1=K, D1=D, M2=K, D2=D, R=R,
+                     T=np.array([[-0.12], [0], [0]])).items():
+        fs.write(k, v)
+    fs.release()
+
+
+ROUNDED = ('wiredsl 1\ncamera c {\n  read "r.yaml"\n}\ncamera c2 {\n  read "r.yaml" entry second\n}\n'
+           'rig r {\n  left c at (0, 0.06, 1) looking (1, 0, 0)\n  right c2 relative "r.yaml"\n}\n')
+
+
+def test_a_rotation_rounded_to_five_digits_is_mended_quietly_and_fewer_are_w143_at_relative(tmp_path):
+    """Was: W143 labelled `M2:`, at the camera's `read ... entry second`, on every command, for R rounded to 1e-5
+    (OpenVINS' files). Now: 5 digits (R R^T within 1e-4 of I) are mended to the nearest rotation without a word;
+    3 digits are W143 once, at the rig's `relative`, naming the pose."""
+    pytest = __import__("pytest")
+    pytest.importorskip("cv2")
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from wiredsl.language.compile import compile_file
+
+    exact = Rotation.from_rotvec([0.01, 0.02, 0.005]).as_matrix()
+    (tmp_path / "s.wd").write_text(ROUNDED.replace("r.yaml", "r5.yaml"))
+    _stereo(tmp_path / "r5.yaml", np.round(exact, 5))
+    scene, diags, _ = compile_file(tmp_path / "s.wd")
+    assert not [d for d in diags if d.code == "W143"]
+    R = np.array(scene.rig.right.rotation)
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-14)
+    (tmp_path / "s.wd").write_text(ROUNDED.replace("r.yaml", "r3.yaml"))
+    _stereo(tmp_path / "r3.yaml", np.round(exact, 3))
+    _, diags, _ = compile_file(tmp_path / "s.wd")
+    (w,) = [d for d in diags if d.code == "W143"]
+    assert (w.span.line, w.span.col) == (10, 21)  # at `relative "r3.yaml"`
+    assert w.message.startswith("calibration file r3.yaml: R and T (the pose of M2 relative to the camera before")
+
+
+def test_a_compile_warning_through_the_environment_points_at_the_users_line(tmp_path):
+    """Was: raised at a line of wiredsl's own code (wiredsl/gym.py)."""
+    import warnings
+
+    pytest = __import__("pytest")
+    wg = pytest.importorskip("wiredsl.gym")
+    scene = tmp_path / "s.wd"
+    scene.write_text(open("scenes/lab.wd").read().replace("rotate z 15deg", "rotate z 0.2"))  # W111: 0.2 deg?
+    (tmp_path / "models").symlink_to(__import__("pathlib").Path("scenes/models").resolve())
+    (tmp_path / "lab.info").symlink_to(__import__("pathlib").Path("scenes/lab.info").resolve())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        wg.WiredslEnv(scene, wg.Task("reach", "bin1"))
+    mine = [w for w in caught if "W111" in str(w.message)]
+    assert mine and all(w.filename == __file__ for w in mine), [(w.filename, w.lineno) for w in caught]

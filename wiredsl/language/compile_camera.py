@@ -490,6 +490,9 @@ class CameraCompiler:
             step = np.eye(4)
             step[:3, :3], step[:3, 3] = cams[k].R, cams[k].T
             M = step @ M
+        for k in range(lo + 1, hi + 1):  # doubts about the extrinsics: at `relative`, where they are used
+            for note in cams[k].pose_notes:
+                self.out.warning("W143", f"calibration file {path}: {note}", span)
         if a > b:
             M = np.linalg.inv(M)
         R, T = M[:3, :3], M[:3, 3] * FILE_UNITS[sb.get("units", "m")]  # the other camera's frame -> this one's
