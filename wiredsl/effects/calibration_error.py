@@ -22,10 +22,8 @@ from wiredsl.engine import geometry
 
 
 class CalibrationErrorParams(Params):
-    sigma: float = param(0.01, "number", "scale of the calibration's standard deviations (the white noise on each "
-                         "singular direction): 1 draws with the rig's covariance as measured, 0.01 (the paper's, "
-                         "for its chi^2 matrix) with 1% of its standard deviations; W163 under 0.1 with a "
-                         "declared covariance", ge=0, le=1e6)
+    sigma: float = param(0.01, "number", "scale of the calibration's standard deviations (1: as measured; the "
+                         "paper's 0.01 scaled its own matrix)", ge=0, le=1e6)
     cutoff: float = param(1e-9, "number", "singular values below cutoff * largest are treated as unconstrained",
                           gt=0, lt=1)
 
