@@ -1101,11 +1101,17 @@ def mesh_size(found) -> str:
     """A mesh's size and bounds, in metres after scaling and placing, and its features, for `check` and hover."""
     lo, hi = found.vertices.min(axis=0), found.vertices.max(axis=0)
     size = " x ".join(_length(float(x)) for x in hi - lo)
-    box = lambda p: "(" + ", ".join(f"{float(x):.4g}" for x in p) + ")"  # noqa: E731
-    counts = (f"{len(found.lines)} lines, {len(found.polylines)} polylines, {len(found.ellipses)} ellipses, "
-              f"{len(found.silhouettes)} silhouettes, {len(found.corners)} corners, {len(found.faces)} faces, "
-              f"{len(found.occluders)} occluding triangles")
+    tiny = 1e-9 * max(float(np.abs(found.vertices).max(initial=0.0)), 1.0)  # rounding's -1.2e-17 is 0
+    box = lambda p: "(" + ", ".join(f"{0.0 if abs(x) < tiny else float(x):.4g}" for x in p) + ")"  # noqa: E731
+    counts = ", ".join(_count(len(getattr(found, what)), word) for what, word in (
+        ("lines", "line"), ("polylines", "polyline"), ("ellipses", "ellipse"), ("silhouettes", "silhouette"),
+        ("corners", "corner"), ("faces", "face"), ("occluders", "occluding triangle")))
     return f"{size}, from {box(lo)} to {box(hi)} m; {counts}; {read_as(found)}"
+
+
+def _count(n: int, word: str) -> str:
+    """'1 silhouette', '2 silhouettes' (ellipse: 'ellipses')."""
+    return f"{n} {word}" + ("" if n == 1 else "s")
 
 
 def read_as(found) -> str:

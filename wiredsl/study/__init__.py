@@ -84,6 +84,7 @@ class Progress:
         self.started = time.perf_counter()
         self.last = 0.0
         self.trials = 0
+        self.first: tuple[float, int] | None = None  # (time, trials) at the first shard: the rate is from there
 
     def pending(self, job: shards.Job) -> None:
         self.left[job.shard.point] += 1
@@ -95,11 +96,19 @@ class Progress:
         now = time.perf_counter()
         if self.echo is not None and (now - self.last >= 1.0 or self.trials == self.todo_trials):
             self.last = now
-            rate = self.trials / max(now - self.started, 1e-9)
-            eta = (self.todo_trials - self.trials) / rate if rate > 0 else float("inf")
             done = sum(v == 0 for v in self.left.values())
-            self.echo(f"study: {done}/{self.points} points, {self.trials}/{self.todo_trials} trials, "
-                      f"{rate:,.0f} trials/s, ETA {eta:,.0f} s")
+            head = f"study: {done}/{self.points} points, {self.trials}/{self.todo_trials} trials"
+            if self.first is None:  # the first shard carries the start-up (workers, compiling): no rate from it
+                self.first = (now, self.trials)
+                if self.trials < self.todo_trials:
+                    self.echo(f"{head}, measuring the rate")
+                    return
+            t0, n0 = self.first
+            rate = (self.trials - n0) / (now - t0) if now > t0 and self.trials > n0 else \
+                self.trials / max(now - self.started, 1e-9)
+            eta = (self.todo_trials - self.trials) / rate if rate > 0 else float("inf")
+            shown = f"{rate:,.0f}" if rate >= 10 else f"{rate:.2g}"  # a slow study's rate is not "0"
+            self.echo(f"{head}, {shown} trials/s, ETA {eta:,.0f} s")
 
 
 def _stored(all_jobs: list[shards.Job], folder: Path) -> dict[str, dict[str, np.ndarray]]:
