@@ -76,3 +76,27 @@ def test_captions_bounds_and_counts_read_as_numbers_and_words(tmp_path):
     assert notes and not any("e-1" in x for x in notes), notes  # the crate's base at z = 0, not -1.225e-17
     assert any("from (-0.3, -0.2, 0) to (0.3, 0.2, 0.4) m" in x for x in notes)
     assert any("1 silhouette," in x for x in notes) and not any("1 silhouettes" in x for x in notes)
+
+
+def test_fmts_continuations_are_documented_and_the_init_ci_says_how_to_pass_its_check(tmp_path):
+    """Was: `fmt` wrote backslash continuations that the language reference did not describe, and a scene written
+    by hand failed `fmt --check` (and so the `init` project's CI) without saying so."""
+    import subprocess
+    from pathlib import Path
+
+    from wiredsl.language.fmt import format_text
+
+    page = Path("docs/reference/language.md").read_text()
+    assert "a `\\` at the end of a line continues the statement" in page and "wiredsl fmt --check" in page
+    long = "wiredsl 1\nmodel m {\n  polyline p through " + " ".join(f"({i}, 0, 0)" for i in range(14)) + "\n}\n"
+    formatted = format_text(long)
+    assert any(line.endswith("\\") for line in formatted.splitlines())  # what the page now describes
+    from wiredsl import init
+
+    ci = init.fill(init.CI_SCRIPT, {"package": "p"})
+    line = next(x for x in ci.splitlines() if x.startswith("wiredsl fmt --check"))
+    assert "wiredsl fmt scenes/*.wd" in line
+    script = tmp_path / "ci.sh"
+    script.write_text("set -euo pipefail\nwiredsl() { return 1; }\n" + line + "\n")
+    r = subprocess.run(["bash", str(script)], capture_output=True, text=True)
+    assert r.returncode == 1 and "run 'wiredsl fmt scenes/*.wd'" in r.stderr
