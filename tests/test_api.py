@@ -138,7 +138,7 @@ def test_observe_a_6dof_path_pose_under_other_draws_and_as_its_transform(monkeyp
     monkeypatch.chdir(ROOT / "scenes")  # the text's includes
     scene = wiredsl.compile(lab.replace(run, f'path run {{\n  read "{tum}"\n  body camera left\n'
                                              '  world at (2m, 1.5m, 0) rotate z 20deg\n}'))
-    sim = wiredsl.Simulator(scene, seed=4, pipeline=Pipeline(name="none"))
+    sim = wiredsl.Simulator(scene, seed=4, pipeline=Pipeline(name="none"), visibility="scene")  # the lists'
     for i in range(len(scene.path.poses)):
         M = np.vstack([np.array(scene.path.transforms[i], dtype=float), [0, 0, 0, 1]])
         assert abs(M[2, 2] - 1) > 1e-6  # tilted: a handheld camera's roll and pitch
@@ -213,7 +213,9 @@ def test_observe_refuses_a_pose_beyond_the_languages_lengths(lab):
 
 
 def test_observe_follows_the_nearest_viewpoint(lab):
-    sim = wiredsl.Simulator(lab, seed=1, pipeline=lab.pipelines[0].model_copy(update={"stages": []}))
+    """With the view-points' lists (visibility="scene"; the default removes hidden lines exactly, issue 35)."""
+    sim = wiredsl.Simulator(lab, seed=1, pipeline=lab.pipelines[0].model_copy(update={"stages": []}),
+                            visibility="scene")
     vp = lab.viewpoints
     for k, (x, y) in enumerate(vp.points[:3]):
         seen = sim.observe((x, y, 0.0), step=50 + k)

@@ -9,8 +9,10 @@ import textwrap
 import cv2
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from helpers import compile_text
 
+from wiredsl.cli import main
 from wiredsl.diagnostics import WiredslError
 from wiredsl.io import calibration as cf
 
@@ -249,15 +251,26 @@ def test_a_fisheye_labelled_plumb_bob_is_warned(tmp_path):
     assert not [w for w in warnings if w.code == "W143"]
 
 
-def test_a_stereo_translation_in_millimetres_and_swapped_sides_are_warned(tmp_path):
+def test_a_stereo_translation_in_millimetres_is_an_error_unless_its_unit_is_given(tmp_path):
+    """Issue 35: a 120 m baseline read from an OpenCV file was only W144, and every later command went on with
+    it. Now E146 (with the hint) unless the read says its unit: `units mm` scales T to 0.12 m, `units m` keeps
+    it (the author's word). The swapped sides are still W144, and so is a written rig over 5 m wide."""
     R = np.eye(3)
     _fs_write(tmp_path / "mm.yaml", image_width=640, image_height=480, M1=K, D1=D5, M2=K, D2=D5, R=R,
               T=np.array([[-120.0], [0.5], [0.2]]))
     cameras = 'camera c {\n  read "mm.yaml"\n}\ncamera c2 {\n  read "mm.yaml" entry second\n}'
     rig = 'left c at (0, 0.06, 1) looking (1, 0, 0)\nright c2 relative "mm.yaml"'
-    _, warnings = _compile(tmp_path, cameras, rig)
-    (w,) = [w for w in warnings if w.code == "W144"]
-    assert "120 m apart (from mm.yaml): did you mean millimetres?" in w.message and "board" in w.hint
+    (e,) = _error(tmp_path, cameras, rig)
+    assert e.code == "E146" and "120 m apart: did you mean millimetres?" in e.message and "board" in e.hint
+    assert 'units mm' in e.hint and (e.span.line, e.span.col) == (14, 21)  # at `relative`
+    scene, warnings = _compile(tmp_path, cameras, rig + " units mm")
+    _, T = scene.rig.stereo_extrinsics()
+    assert np.allclose(T, [-0.12, 0.0005, 0.0002]) and not [w for w in warnings if w.code == "W144"]
+    scene, warnings = _compile(tmp_path, cameras, rig + " units m")  # said to be metres: taken as written
+    assert np.isclose(np.linalg.norm(scene.rig.stereo_extrinsics()[1]), np.linalg.norm([120, 0.5, 0.2]))
+    assert not [w for w in warnings if w.code == "W144"]
+    (e,) = _error(tmp_path, cameras, 'left c at (0, 0.06, 1) looking (1, 0, 0) units mm\nright c2 relative "mm.yaml"')
+    assert e.code == "E103" and "needs 'relative'" in e.message
     _fs_write(tmp_path / "mm.yaml", image_width=640, image_height=480, M1=K, D1=D5, M2=K, D2=D5, R=R,
               T=np.array([[0.12], [0.0], [0.0]]))
     _, warnings = _compile(tmp_path, cameras, rig)
@@ -266,6 +279,23 @@ def test_a_stereo_translation_in_millimetres_and_swapped_sides_are_warned(tmp_pa
     _, warnings = _compile(tmp_path, 'camera c {\n  focal 500px\n  size (640px, 480px)\n}',
                            'left c at (0, -0.06, 1) looking (1, 0, 0)\nright c at (0, 0.06, 1) looking (1, 0, 0)')
     assert [w.code for w in warnings] == ["W144"]
+
+
+@pytest.mark.parametrize("given, missing", [("D1", "D2"), ("D2", "D1")])
+def test_a_stereo_file_naming_one_cameras_distortion_only_is_an_error(tmp_path, given, missing):
+    """Issue 35: a stereo file without D2 compiled a distortion-free right camera (k1 = 0 where the lens has
+    -0.21) and `check` said `1 file ok`. Naming neither is a distortion-free pair, as OpenCV writes it."""
+    _fs_write(tmp_path / "s.yaml", image_width=640, image_height=480, M1=K, M2=K, R=np.eye(3),
+              T=np.array([[-0.12], [0.0], [0.0]]), **{given: D5})
+    (e,) = _error(tmp_path, 'camera c {\n  read "s.yaml" entry second\n}')
+    assert e.code == "E141" and f"names {given} but not {missing}" in e.message
+    (tmp_path / "a.wd").write_text(_scene('camera c {\n  read "s.yaml" entry second\n}'))
+    r = CliRunner().invoke(main, ["check", str(tmp_path / "a.wd")])
+    assert r.exit_code == 1 and f"but not {missing}" in r.stderr and "Traceback" not in r.output
+    _fs_write(tmp_path / "s.yaml", image_width=640, image_height=480, M1=K, M2=K, R=np.eye(3),
+              T=np.array([[-0.12], [0.0], [0.0]]))
+    scene, _ = _compile(tmp_path, 'camera c {\n  read "s.yaml" entry second\n}')
+    assert scene.cameras[0].k1 == 0.0
 
 
 def test_a_size_beside_read_scales_the_camera_matrix(tmp_path):

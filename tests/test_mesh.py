@@ -235,7 +235,7 @@ def test_hover_on_mesh_names_its_file_and_counts_what_it_found():
     text = Path("scenes/meshes.wd").read_text()
     line = text.splitlines().index('  mesh read "meshes/can.stl" crease 30deg') + 1
     md = hover(None, text, "scenes/meshes.wd", line, 4)
-    assert "`meshes/can.stl`: 192 triangles" in md and "2 ellipses, 1 silhouettes, 0 corners, 2 faces" in md
+    assert "`meshes/can.stl`: 192 triangles" in md and "2 ellipses, 1 silhouette, 0 corners, 2 faces" in md
 
 
 def test_gltf_reads_embedded_buffers_and_refuses_other_files(tmp_path):

@@ -94,3 +94,27 @@ def test_the_tutorial_package_loads_checks_and_runs_its_study(tutorial, tmp_path
     assert CliRunner().invoke(main, ["compile", str(tutorial), "-o", str(out)]).exit_code == 0
     r = CliRunner().invoke(main, ["validate", str(out)])
     assert r.exit_code == 0, r.output
+
+
+def test_the_tutorials_pyproject_builds_with_its_scene_and_a_scenes_folder_beside_it(tmp_path):
+    """Issue 35, item 5: `pip install -e .` stopped with "Multiple top-level packages discovered in a flat-layout:
+    ['scenes', 'wd_tutorial']". The page's pyproject.toml, with the page's files and a scenes/ folder beside the
+    package, builds a wheel of wd_tutorial alone (pip, no network: the venv's hatchling, from the test extra)."""
+    import subprocess
+    import sys
+    import zipfile
+
+    for name, body in blocks().items():
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text(body)
+    (tmp_path / "wd_tutorial" / "__init__.py").write_text("")
+    (tmp_path / "scenes").mkdir()
+    (tmp_path / "scenes" / "mine.wd").write_text("wiredsl 1\n")
+    (tmp_path / "scenes" / "helper.py").write_text("")  # a stray module there too
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-build-isolation", "--no-deps", "-q", "-w",
+                        str(tmp_path / "dist"), str(tmp_path)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (wheel,) = (tmp_path / "dist").glob("wd_tutorial-0.1.0-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    assert {n.split("/")[0] for n in names} == {"wd_tutorial", "wd_tutorial-0.1.0.dist-info"}
+    assert "wd_tutorial/effects.py" in names

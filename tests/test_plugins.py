@@ -168,6 +168,8 @@ def test_a_plugin_measure_ranks_in_a_study(installed, tmp_path):
     assert r.exit_code == 0, r.output
     table = json.loads((tmp_path / "st" / "table.json").read_text())
     assert "corner_count" in json.dumps(table)
+    # the stage without a kernel is said, without suggesting an option `study` does not have (issue 35, item 6)
+    assert "'centre_noise' (wdplug" in r.stderr and "no compiled kernel" in r.stderr and "--engine" not in r.stderr
 
 
 def test_check_reference_and_schema_know_a_plugins_parameters(installed, tmp_path):

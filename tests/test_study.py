@@ -143,7 +143,10 @@ def test_table_rows_and_schema(scene, tmp_path):
     assert len(rows) == 4 * 2  # points x statistics
     r = rows[0]
     assert (r.n, r.n_values, r.values) == (10, 20, {"lateral_shift.range": 0.0, "calibration_error.sigma": 0.0})
-    assert r.q05 <= r.q25 <= r.q50 <= r.q75 <= r.q95 and r.sem > 0
+    assert r.q05 <= r.q25 <= r.q50 <= r.q75 <= r.q95 and r.sem >= 0
+    # the length varies from trial to trial (the stroke count may not: with hidden lines removed, the default
+    # since issue 35, these 10 trials of the left camera all keep 53 and 39 strokes at poses 0 and 4)
+    assert rows[1].statistic == "length" and rows[1].sem > 0
     doc = json.loads((tmp_path / "table.json").read_text())
     assert schema.problems(doc) == []
     csv_lines = (tmp_path / "table.csv").read_text().splitlines()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 import zlib
 from pathlib import Path
@@ -529,6 +530,7 @@ def test_refine_moves_wrong_poses_onto_the_edges_and_says_how_far(rendered, tmp_
              for p in ("plain", "refined")}
     assert shift["refined"] < 0.1 < shift["plain"]
     assert "refined 3 poses" in refined.stderr
+    assert re.search(r"median move [0-9.e-]+ deg, [0-9.e-]+ m; median RMS", refined.stderr)  # metres, named
 
 
 def test_board_poses_verify_a_rendered_chessboard_and_a_missing_board_is_an_error(tmp_path):

@@ -73,8 +73,20 @@ def compile(source: str | os.PathLike) -> Scene:  # noqa: A001 - the stage's nam
     except WiredslError as err:
         raise CompileError(err.diagnostics, {"<string>": text} if text is not None else None) from None
     for d in diags:
-        warnings.warn(CompileWarning(str(CompileError([d], program.sources))), stacklevel=2)
+        warnings.warn(CompileWarning(str(CompileError([d], program.sources))), stacklevel=_user_level())
     return scene
+
+
+def _user_level() -> int:
+    """The stacklevel, for a warning issued by this function's caller, of the first frame outside wiredsl: a
+    warning of a scene compiled through wiredsl.gym is the user's call's, not a line of wiredsl's own code."""
+    import sys
+
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    frame, level = sys._getframe(1), 1  # level 1: the caller, which issues the warning
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 class Batch:
@@ -197,7 +209,7 @@ def _visibility(scene: Scene, visibility: str, views: int):
     choice = runs.resolve_visibility(scene, world, _choice("visibility", visibility, VISIBILITIES), views,
                                      '`visibility="exact"` changes the answer (fewer poses also make it affordable)')
     if choice.warning is not None:
-        warnings.warn(f"W129: {choice.warning}", UserWarning, stacklevel=3)
+        warnings.warn(f"W129: {choice.warning}", UserWarning, stacklevel=_user_level())
     return world, choice.mode
 
 

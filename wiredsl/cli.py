@@ -431,9 +431,10 @@ def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None
               help=f"Largest deviation (px, {TOLERANCE_PX[0]:g} to {TOLERANCE_PX[1]:g}) of an emitted polyline "
                    "from the true image curve.")
 @click.option("--visibility", type=click.Choice(VISIBILITIES), default=DEFAULT_VISIBILITY, show_default=True,
-              help="scene: the nearest view-point's list; exact: computed at each camera; all: no occlusion; auto: "
-                   "exact where faces would hide what the lists cannot say and it is affordable (else scene, with "
-                   "warning W129).")
+              help="scene: the nearest view-point's list; exact: hidden lines removed at each camera; all: no "
+                   "occlusion; auto: where the scene has faces and its view-points' lists are computed (`visibility "
+                   "auto`, or no view-points), exact unless its estimated CPU is over 60 s (then scene, with warning "
+                   "W129); else scene. The manifest's `visibility` says which was used.")
 @click.option("--engine", type=click.Choice(["auto", "kernel", "numpy"]), default="auto", show_default=True,
               help="Monte-Carlo engine: the compiled kernel (needs wiredsl[fast]) or the numpy reference; auto: the "
                    "kernel, when numba is installed, for --trial and for runs large enough to pay for loading it "
@@ -880,7 +881,7 @@ def study(file: str, name: str | None, output: str | None, executor: str, worker
                                    "--no-plots") from None
     out = Path(output) if output else Path("build") / f"{scene.name}-{found.name}"
     table = run_study(scene, found, out, executor=executor, workers=workers, scheduler=scheduler,
-                      echo=lambda m: click.echo(m, err=True), fresh=fresh)
+                      echo=lambda m: click.echo(m, err=True), fresh=fresh, program=program)
     written = ["table.csv", "table.json", "manifest.json"] + (["sobol.csv"] if table.sobol else [])
     if plots:
         from wiredsl.study import plots as plots_mod

@@ -204,14 +204,13 @@ def setup_errors():
 
 def auto_visibility(scene, world, program, poses, cameras: str, repeats: int, fmt: str) -> str:
     """`--visibility auto` of build and export: exact or scene (run.choose_visibility) for `poses` (None: every
-    one) with `cameras` ("both" or "left"), `repeats` times; W129 at the first `mesh read` (or the file's
-    start) when the scene's faces would hide something that this build keeps."""
+    one) with `cameras` ("both" or "left"), `repeats` times; W129 (at run.w129_span) when the scene's faces
+    would hide something that this build keeps."""
     from wiredsl import run as runs
-    from wiredsl.diagnostics import Diagnostic, Span
+    from wiredsl.diagnostics import Diagnostic
 
     n_poses = len(poses) if poses else len(scene.path.poses) if scene.path is not None else 0
     choice = runs.choose_visibility(scene, world, n_poses * (2 if cameras == "both" else 1) * repeats)
     if choice.warning is not None:
-        span = program.mesh_reports[0][0] if program.mesh_reports else Span(scene.source, 1, 1, 1, 1)
-        report([Diagnostic("warning", "W129", choice.warning, span)], program.sources, fmt)
+        report([Diagnostic("warning", "W129", choice.warning, runs.w129_span(program, scene))], program.sources, fmt)
     return choice.mode

@@ -298,9 +298,9 @@ CODES: dict[str, str] = {
     'W126': 'mesh edges shared by more than two triangles (non-manifold), kept as lines',
     'W127': "a mesh's file origin lies far outside the part (place it by its centre or base: `origin centre|base`)",
     'W128': "the mesh reader (trimesh) warned about the file (a damaged or partly read mesh); its words are quoted",
-    'W129': ('`--visibility auto` (the default of `build`) keeps hidden lines of a scene with faces: exact '
-             'visibility would cost more CPU than the default spends (its estimate is given); `--visibility exact` '
-             'changes the answer'),
+    'W129': ('`--visibility auto` (the default of build, study, export, the API and the Gymnasium environment) '
+             'keeps hidden lines of a scene with faces: exact visibility would cost more CPU than the default spends '
+             '(its estimate is given); `--visibility exact` changes the answer'),
     'E130': 'silhouette not between two ellipses of its own model',
     'E140': 'matrix of the wrong shape, not symmetric, not positive semi-definite, or an entry over 1e100',
     'E141': ('calibration file malformed or not usable: a matrix file, or an OpenCV, ROS, Kalibr, ORB-SLAM, '
@@ -311,6 +311,8 @@ CODES: dict[str, str] = {
             "rescales the file's camera matrix or does not hold its centre, a rotation written with few digits"),
     'W144': ("a rig's extrinsics that are probably wrong: cameras over 5 m apart (a T in millimetres), the right "
             'camera to the left of the left one'),
+    'E146': ("a stereo calibration file's cameras over 5 m apart, read without the unit of its T (OpenCV's is the "
+             "board's, often millimetres): give `relative \"file\" units mm` (or cm, or m)"),
     'W147': ('a lens that does not image its own image: its distortion folds back inside the image, so the part '
             'beyond the fold is never reached (a fisheye bounded by its `fov` or imaging to 180 deg is not '
             "warned), or a radtan lens scales the image corner's radius by over 4x or under 1/4x (a `k1` of 1e6 "
@@ -327,6 +329,9 @@ CODES: dict[str, str] = {
     'E151': ('size over a limit (view-points, poses, matrix order, polyline vertices at a tolerance, brackets and '
             'blocks nested over 32 deep, a mesh over 2,000,000 triangles)'),
     'E160': 'a pipeline order that cannot be honoured',
+    'W163': ("calibration_error's sigma far below 1 (under 0.1) on a rig with a declared calibration covariance: "
+             'sigma scales its standard deviations, so the draws simulate that fraction of the calibration\'s '
+             'uncertainty (sigma 1: as measured)'),
     'E170': 'a study design with no points (no values, no steps, no trials, no poses)',
     'E171': ("a factor or option that does not fit the study's design (a list in a space-filling design, a range "
             'without steps in a grid, base samples not a power of 2)'),

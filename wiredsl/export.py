@@ -49,8 +49,9 @@ MAX_EXPORT_TRIALS = 100_000  # one folder a trial
 @click.option("--undistort", is_flag=True, help="colmap: a PINHOLE camera and undistorted 2D points, for any lens "
               "(needed for the lenses COLMAP has no model for: ds, unified with distortion).")
 @click.option("--visibility", type=click.Choice(VISIBILITIES), default=DEFAULT_VISIBILITY, show_default=True,
-              help="Hidden lines, as in build: scene (the view-points' lists), exact, all, or auto (exact where a "
-                   "mesh's faces would hide what the lists cannot say and it is affordable, else scene with W129).")
+              help="Hidden lines, as in build: scene (the view-points' lists), exact, all, or auto (where the scene "
+                   "has faces and computed lists, exact unless its estimated CPU is over 60 s, then scene with W129; "
+                   "else scene). The manifest's `visibility` says which was used.")
 @click.option("--force", is_flag=True, help="Replace an output folder that holds files wiredsl did not write.")
 @diagnostics_option
 @guarded
@@ -206,10 +207,15 @@ def trials(scene, pipeline, n_trials: int, seed: int, engine: str = "auto", only
 def _versions(fmt: str) -> dict:
     from importlib.metadata import PackageNotFoundError, version
 
-    out = {}
-    for pkg in ({"rosbag2": ("rosbags",), "colmap": ()}[fmt]):
+    import wiredsl
+    from wiredsl.io.export_colmap import CHECKED_WITH
+
+    out = {"wiredsl": wiredsl.__version__}  # the writer; and the library it writes through, or the reader checked
+    if fmt == "rosbag2":
         try:
-            out[pkg] = version(pkg)
+            out["rosbags"] = version("rosbags")
         except PackageNotFoundError:
-            out[pkg] = None
+            out["rosbags"] = None
+    else:
+        out["colmap"] = CHECKED_WITH
     return out

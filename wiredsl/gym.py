@@ -32,23 +32,44 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
-import gymnasium
 import numpy as np
-from gymnasium import spaces
 
 import wiredsl
+
+try:
+    import gymnasium
+    from gymnasium import spaces
+except ImportError as _exc:  # as every other extra: name its install
+    raise ImportError(f"wiredsl.gym needs gymnasium: {wiredsl.install_hint('gym')}") from _exc
 from wiredsl.api import robot_pose
 from wiredsl.engine import geometry
 from wiredsl.io import layout
 
 TRIALS = 2**31 - 1  # an episode's trial number is drawn in 0..TRIALS-1 (Simulator's range)
+# gym.make("wiredsl/Scene-v0") with no arguments: the lab's reach task (the lab ships in the wheel as
+# wiredsl/scenes/, and is scenes/ in a checkout)
+_HERE = Path(__file__).resolve().parent
+LAB = next((p for p in (_HERE / "scenes" / "lab.wd", _HERE.parent / "scenes" / "lab.wd") if p.is_file()),
+           _HERE / "scenes" / "lab.wd")
 HEIGHT = 1.0  # 6dof: the robot's frame may rise or sink this far (m) before the episode ends
 
 
 @dataclass(frozen=True)
 class Task:
-    """What the agent is asked to do: `kind` "reach" or "track", about the placement `target`."""
+    """What the agent is asked to do: `kind` "reach" or "track", about the placement `target`.
+
+    Args:
+        kind: "reach" (stand `distance` m from the target, the rig's cameras facing it) or "track" (keep at
+            least `min_features` of its features in both cameras).
+        target: the name of a placement of the scene.
+        distance: reach: stand this far from the target's origin (m).
+        tolerance: reach: within this of that point (m).
+        heading_tolerance: reach: facing the target within this (rad).
+        min_features: track: features of the target each camera must see.
+        patience: track: steps without them before the episode ends.
+    """
 
     kind: str
     target: str
@@ -99,15 +120,45 @@ def _check_arguments(start_noise, max_steps, step_length, turn, max_corners, max
     _whole("max_segments", max_segments, 1)
 
 
+def rig_yaw(rig) -> float:
+    """The yaw (rad, about the robot's z) of the rig's mean viewing direction in the robot frame: 0 for a rig
+    that looks forward (x), pi/2 for one that looks left."""
+    look = sum(np.array(m.rotation, dtype=float)[:, 2] for m in (rig.left, rig.right))  # camera z in robot frame
+    return math.atan2(float(look[1]), float(look[0]))
+
+
 class WiredslEnv(gymnasium.Env):
     """The scene's robot, its rig's disturbed features as observations; see the module's docstring."""
 
     metadata = {"render_modes": []}
 
-    def __init__(self, scene, task: Task, *, pipeline: str | None = None, motion: str = "planar",
-                 seed: int = 0, start=None, start_noise: float = 0.2, max_steps: int = 60,
+    def __init__(self, scene=None, task: Task | None = None, *, pipeline: str | None = None,
+                 motion: str = "planar", seed: int = 0, start=None, start_noise: float = 0.2, max_steps: int = 60,
                  step_length: float = 0.25, turn: float = 0.3, max_corners: int = 32, max_segments: int = 128,
                  margin: float = 1.0):
+        """The environment of `scene` (a path or a compiled Scene) and `task`.
+
+        Args:
+            scene: a scene file or compiled Scene; None (with task None): the lab, scenes/lab.wd.
+            task: what the agent is asked to do; None: Task("reach", "bin1") on the lab (what
+                `gymnasium.make("wiredsl/Scene-v0")` makes with no arguments).
+            pipeline: the pipeline whose disturbances the agent sees (None: the scene's default).
+            motion: "planar" (x, y, heading) or "6dof".
+            seed: the Simulator's seed (an episode's draws are keyed by it, the trial and the step).
+            start: the start pose (x, y, heading) or a 4x4 (None: the path's first pose).
+            start_noise: the start pose's uniform jitter on x, y (m) and heading (rad).
+            max_steps: steps after which an episode is truncated.
+            step_length: m of a full forward action (planar) or move (6dof).
+            turn: rad of a full turn action.
+            max_corners: C, corners a camera's observation holds.
+            max_segments: S, straight pieces a camera's observation holds.
+            margin: m beyond the view-points' area at which an episode ends.
+        """
+        if scene is None:
+            scene = LAB
+            task = task if task is not None else Task("reach", "bin1")
+        if task is None:
+            raise ValueError("give a task, e.g. Task('reach', 'bin1'): the default task is the lab's")
         _check_arguments(start_noise, max_steps, step_length, turn, max_corners, max_segments, margin)
         self.scene = wiredsl.compile(scene) if isinstance(scene, (str, bytes)) or hasattr(scene, "__fspath__") \
             else scene
@@ -132,7 +183,10 @@ class WiredslEnv(gymnasium.Env):
             self.bounds = (np.full(2, -np.inf), np.full(2, np.inf))
         away = self.start[:2] - self.target_xy
         self.goal_xy = self.target_xy + task.distance * away / max(np.linalg.norm(away), 1e-9)
-        self.goal_heading = math.atan2(*(self.target_xy - self.goal_xy)[::-1])
+        # at the goal the rig's cameras face the target: the robot turned by their viewing direction's yaw in
+        # its frame (zero for a rig that looks forward; a side-looking rig stands side-on)
+        self.goal_heading = math.atan2(*(self.target_xy - self.goal_xy)[::-1]) - rig_yaw(self.scene.rig)
+        self.goal_heading = math.atan2(math.sin(self.goal_heading), math.cos(self.goal_heading))
         self.cameras = [self.scene.camera(self.scene.rig.left.camera), self.scene.camera(self.scene.rig.right.camera)]
         # where a last move can take it: a 6dof move is up to step_length along each of three axes at once
         reach = step_length * (1.0 if motion == "planar" else math.sqrt(3.0))

@@ -45,8 +45,10 @@ def choose_pipeline(scene: Scene, name: str | None = None, no_effects: bool = Fa
     if name is not None:
         pipeline = scene.pipeline(name)
         if pipeline is None:
-            names = ", ".join(p.name for p in scene.pipelines) or "none"
-            raise RunSetupError(f"no pipeline '{name}' in {scene.source} (it has: {names})", "--pipeline")
+            names = ", ".join([p.name for p in scene.pipelines] + ["the built-in paper"] * (
+                not any(p.name == "paper" for p in scene.pipelines)))
+            ideal = "; --no-effects draws the ideal projection" if name.lower() in ("none", "ideal") else ""
+            raise RunSetupError(f"no pipeline '{name}' in {scene.source} (it has: {names}){ideal}", "--pipeline")
         return PipelineChoice(pipeline)
     pipeline = scene.pipeline()
     if pipeline is None and scene.pipelines:
@@ -55,11 +57,15 @@ def choose_pipeline(scene: Scene, name: str | None = None, no_effects: bool = Fa
     return PipelineChoice(pipeline)
 
 
-# --visibility auto (the default of `wiredsl build`): exact hidden lines when a view's faces would hide something
-# that the view-points' lists cannot say, if affordable. Cost: CPU seconds a view and occluding triangle on the
-# shared 2-core machine, the slowest part measured (benchmarks/meshes.py, 2026-11-26: the 43k-triangle cycloidal
-# gear, 30,535 occluders, 12.4 s a view; the 84k counter 9.7 s for 78,776; scenes/meshes.wd 0.03 s for 1,422)
+# --visibility auto (the default of `build`, `study`, `export`, the API and the Gymnasium environment): where a
+# scene has faces (hand-written or a mesh's) and the view-points' lists would be computed (`visibility auto`, or no
+# view-points), exact hidden lines when affordable, else the lists with W129. Cost: CPU seconds a view, plus a view
+# and occluding triangle, on the shared 2-core machine, the slowest part measured (benchmarks/meshes.py,
+# 2026-11-26: the 43k-triangle cycloidal gear, 30,535 occluders, 12.4 s a view; the 84k counter 9.7 s for 78,776;
+# and 2026-12-02, loaded: scenes/lab.wd 0.074 s a view for its 12 triangles, bins and 42 features, handheld 0.071,
+# meshes 0.093 for 1,422)
 EXACT_SECONDS_PER_TRIANGLE = 4e-4
+EXACT_SECONDS_PER_VIEW = 0.075
 AUTO_EXACT_SECONDS = 60.0  # the estimated CPU up to which auto removes hidden lines exactly
 
 
@@ -73,26 +79,31 @@ class VisibilityChoice:
 REMEDY_CLI = "`--visibility exact` changes the answer (fewer poses with --pose also make it affordable)"
 
 
+def exact_seconds(world: World, views: int) -> float:
+    """The estimated CPU of exact hidden lines for `views` views of `world`."""
+    return views * (EXACT_SECONDS_PER_VIEW + len(world.triangles) * EXACT_SECONDS_PER_TRIANGLE)
+
+
 def choose_visibility(scene: Scene, world: World, views: int, remedy: str = REMEDY_CLI) -> VisibilityChoice:
     """What `--visibility auto` means for this scene and number of views (poses x cameras, times the trials when
-    each trial projects afresh): exact when the scene has faces and either no view-points (nothing else would
-    hide anything) or view-points whose lists are computed (`visibility auto`) and a mesh's occluding surfaces
-    (whole-feature lists draw a mesh's features through what stands in front), and the estimate is at most
-    AUTO_EXACT_SECONDS; else the view-points' lists (`scene`), with a warning when exact was wanted, ending with
-    `remedy`: what the caller (command line, API or study) can do about it."""
+    each trial projects afresh): exact when the scene has faces (World.triangles: hand-written faces or a mesh's)
+    and either no view-points or view-points whose lists are computed (`visibility auto`: whole-feature lists draw
+    the parts of a feature behind a face), and the estimate is at most AUTO_EXACT_SECONDS; else the view-points'
+    lists (`scene`), with a warning when exact was wanted, ending with `remedy`: what the caller (command line, API
+    or study) can do about it. Authored or read lists (`visibility authored` / `file`) are the author's: kept."""
     triangles = len(world.triangles)
     vp = scene.viewpoints
-    meshes = any(m.surfaces for m in scene.models)
-    wanted = triangles > 0 and (vp is None or (vp.visibility == "auto" and meshes))
-    seconds = views * triangles * EXACT_SECONDS_PER_TRIANGLE
+    wanted = triangles > 0 and (vp is None or vp.visibility == "auto")
+    seconds = exact_seconds(world, views)
     if not wanted:
         return VisibilityChoice("scene")
     if seconds <= AUTO_EXACT_SECONDS:
         return VisibilityChoice("exact", seconds=seconds)
     shown = "every feature whole" if vp is None else "the view-points' lists of whole features"
-    return VisibilityChoice("scene", f"hidden lines are not removed: {views} view{'s' * (views != 1)} x {triangles:,} "
-                            f"occluding triangles would take about {seconds:,.0f} s of CPU with exact visibility "
-                            f"(over {AUTO_EXACT_SECONDS:.0f} s), so {shown} are drawn; {remedy}", seconds)
+    return VisibilityChoice("scene", f"hidden lines are not removed: {views:,} view{'s' * (views != 1)} x "
+                            f"{triangles:,} occluding triangles would take about {seconds:,.0f} s of CPU with exact "
+                            f"visibility (over {AUTO_EXACT_SECONDS:.0f} s), so {shown} are drawn, hidden parts "
+                            f"too; {remedy}", seconds)
 
 
 def resolve_visibility(scene: Scene, world: World, visibility: str, views: int, remedy: str = REMEDY_CLI
@@ -104,22 +115,32 @@ def resolve_visibility(scene: Scene, world: World, visibility: str, views: int, 
     return VisibilityChoice(visibility)
 
 
+def w129_span(program, scene: Scene):
+    """Where W129 points: the first `mesh read` (a mesh's triangles are what make exact costly), else the
+    `viewpoints` statement (whose lists are drawn instead), else the file's start."""
+    from wiredsl.diagnostics import Span
+
+    if getattr(program, "mesh_reports", None):
+        return program.mesh_reports[0][0]
+    stmt = next((s for s in getattr(program, "statements", ()) if s.keyword == "viewpoints"), None)
+    return stmt.keyword_span if stmt is not None else Span(scene.source, 1, 1, 1, 1)
+
+
 def exact_cost_note(scene: Scene, world: World, views: int) -> str | None:
-    """For a scene with meshes: the estimated CPU of exact visibility for `views` views and what
-    `--visibility auto` chooses (`wiredsl check`'s note); None without meshes."""
-    if not any(m.surfaces for m in scene.models):
+    """For a scene with faces: the estimated CPU of exact visibility for `views` views and what
+    `--visibility auto` chooses (`wiredsl check`'s note); None without faces."""
+    if not len(world.triangles):
         return None
     choice = choose_visibility(scene, world, views)
     triangles = len(world.triangles)
-    seconds = views * triangles * EXACT_SECONDS_PER_TRIANGLE
+    seconds = exact_seconds(world, views)
     if choice.mode == "exact":
         why = "exact hidden lines"
     elif choice.warning is not None:
         why = f"the view-points' lists, with warning W129 (over {AUTO_EXACT_SECONDS:.0f} s)"
     else:
-        why = "the view-points' lists (the scene's `visibility` is not auto)" if scene.viewpoints is not None \
-            else "no hidden lines (nothing occludes)"
-    return (f"exact visibility: {views} view{'s' * (views != 1)} x {triangles:,} occluding triangles, about "
+        why = f"the view-points' lists (the scene's `visibility` is {scene.viewpoints.visibility}, not auto)"
+    return (f"exact visibility: {views:,} view{'s' * (views != 1)} x {triangles:,} occluding triangles, about "
             f"{seconds:,.1f} s of CPU; `--visibility auto` (the default) uses {why}")
 
 
@@ -185,9 +206,10 @@ def start(scene: Scene, pipeline: Pipeline | str | None = None, *, seed: int | N
 NUMPY_COST = 1.4
 
 
-def numpy_forced_line(effects: list, engine: str) -> str | None:
+def numpy_forced_line(effects: list, engine: str, remedy: str = ", or --engine numpy to choose numpy") -> str | None:
     """The one line said on stderr when, under `--engine auto` with numba installed, a stage without a compiled
-    kernel (an installed plug-in's) makes it and the stages after it run on numpy; None otherwise."""
+    kernel (an installed plug-in's) makes it and the stages after it run on numpy; None otherwise. `remedy`
+    ends it: what else the command can do (a study has no --engine: "")."""
     import importlib.util
 
     from wiredsl.montecarlo import kernel_prefix
@@ -207,7 +229,7 @@ def numpy_forced_line(effects: list, engine: str) -> str | None:
     after = f"the stages from '{image[k].name}' on run on numpy" if k else "the whole pipeline runs on numpy"
     return (f"wiredsl: {', '.join(names)} {'has' if len(names) == 1 else 'have'} no compiled kernel, so {after}: "
             f"about {NUMPY_COST:g}x the CPU time of the kernel on the lab, up to 7x (the whole pipeline); give the "
-            "effect a KernelStage, or --engine numpy to choose numpy")
+            f"effect a KernelStage{remedy}")
 
 
 def numpy_forced(run: Run, trials: int) -> str | None:

@@ -463,6 +463,34 @@ class Pipeline(Node):
     stages: list[Stage] = []
 
 
+# The built-in `paper` pipeline (Tian, Thacker & Stancu 2015, section 2): the paper's seven sources at its
+# magnitudes, in the data-flow order of a real system; any scene can name it (`--pipeline paper`, a study's
+# `pipeline paper`) or extend it (`pipeline mine like paper { ... }`), and a scene's own `pipeline paper`
+# replaces it. calibration_error runs at sigma 1 -- the draws then have the rig's calibration covariance as
+# measured (the paper's 0.01 scaled its own chi^2 matrix) -- and only when the rig has a calibration.
+PAPER = "paper"
+PAPER_STAGES: tuple[tuple[str, dict], ...] = (
+    ("calibration_error", {"sigma": 1.0}),
+    ("edge_loss", {"fraction": 0.29}),
+    ("lateral_shift", {"range": 3.0}),
+    ("approx_error", {"sigma": 0.15}),
+    ("corner_loss", {"keep": 0.85}),
+    ("corner_mismatch", {"fraction": 0.01, "radius": 10.0}),
+    ("stereo_mismatch", {"band": 0.08726646259971647, "fraction": 0.01, "disparity": 20.0}),  # 5 deg
+)
+
+
+def paper_pipeline(calibrated: bool) -> Pipeline:
+    """The built-in `paper` pipeline (PAPER_STAGES), without calibration_error for a rig without a calibration;
+    every parameter given, as the compiler gives a declared stage's."""
+    from wiredsl.effects import REGISTRY
+    from wiredsl.plugins import params_dump, params_of
+
+    stages = [Stage(effect=name, params=params_dump(params_of("effect", REGISTRY[name], REGISTRY, dict(given))))
+              for name, given in PAPER_STAGES if calibrated or name != "calibration_error"]
+    return Pipeline(name=PAPER, stages=stages)
+
+
 class Factor(Node):
     """One varied parameter of a study: `stage.param` (or `camera.<name>.param`) over a list of values or a
     range."""
@@ -533,9 +561,12 @@ class Scene(Node):
         return next(c for c in self.cameras if c.name == name)
 
     def pipeline(self, name: str | None = None) -> Pipeline | None:
-        """The named pipeline, else the default one, else the only one."""
+        """The named pipeline (`paper`, undeclared: the built-in one), else the default one, else the only one."""
         if name is not None:
-            return next((p for p in self.pipelines if p.name == name), None)
+            found = next((p for p in self.pipelines if p.name == name), None)
+            if found is None and name == PAPER:
+                return paper_pipeline(self.rig is not None and self.rig.calibration is not None)
+            return found
         marked = [p for p in self.pipelines if p.default]
         if marked:
             return marked[0]

@@ -22,8 +22,8 @@ from wiredsl.engine import geometry
 
 
 class CalibrationErrorParams(Params):
-    sigma: float = param(0.01, "number", "standard deviation of the white noise on each singular direction",
-                         ge=0, le=1e6)
+    sigma: float = param(0.01, "number", "scale of the calibration's standard deviations (1: as measured; the "
+                         "paper's 0.01 scaled its own matrix)", ge=0, le=1e6)
     cutoff: float = param(1e-9, "number", "singular values below cutoff * largest are treated as unconstrained",
                           gt=0, lt=1)
 

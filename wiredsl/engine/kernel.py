@@ -688,11 +688,13 @@ _announced = False
 
 
 def announce_compile(batch) -> None:
-    """Say on stderr, once, when a kernel is about to be compiled (not when it is loaded from the cache)."""
+    """Say on stderr, once, when a kernel is about to be compiled (not when it is loaded from the cache); a study's
+    worker processes say nothing (each would say it: the study's own process speaks for them)."""
+    import multiprocessing
     import os
 
     global _announced
-    if _announced or batch.signatures:
+    if _announced or batch.signatures or multiprocessing.parent_process() is not None:
         return
     _announced = True
     try:

@@ -277,11 +277,25 @@ def _opencv(doc: dict) -> list[CameraFile]:
             return [blank, _with_pose(replace(blank, name="second"), doc["R"], doc["T"])]
         raise CalibrationFileError("no camera matrix in the file: expected camera_matrix (or Camera_Matrix, "
                                    "cameraMatrix), M1 and M2 with R and T, or R and T alone")
-    first = _intrinsics("M1", _get(doc, *names[0]), _first(doc, "D1", "distCoeffs1"), size, model)
-    second = _intrinsics("M2", _get(doc, *names[1]), _first(doc, "D2", "distCoeffs2"), size, model)
+    d1, d2 = _first(doc, "D1", "distCoeffs1"), _first(doc, "D2", "distCoeffs2")
+    if (d1 is None) != (d2 is None):  # OpenCV writes both or, for a distortion-free pair, neither
+        given, missing = ("D1", "D2 (distCoeffs2)") if d2 is None else ("D2", "D1 (distCoeffs1)")
+        raise CalibrationFileError(f"the file names {given} but not {missing}: one camera's distortion is "
+                                   "missing (a pair without distortion names neither)")
+    first, second = (_camera_or_error(key, _get(doc, *ns), d, size, model)
+                     for key, ns, d in (("M1", names[0], d1), ("M2", names[1], d2)))
     if "R" in doc and "T" in doc:
         second = _with_pose(second, doc["R"], doc["T"])
     return [first, second]
+
+
+def _camera_or_error(name: str, K, D, size, model: str) -> CameraFile:
+    """One camera of a stereo pair; a camera the reader refuses (thin-prism terms...) is kept as its error, said
+    only where that camera is read (the other camera and the pair's R, T stay usable)."""
+    try:
+        return _intrinsics(name, K, D, size, model)
+    except CalibrationFileError as exc:
+        return CameraFile(name, math.nan, math.nan, math.nan, math.nan, (), None, None, error=str(exc))
 
 
 def _orbslam(doc: dict) -> list[CameraFile]:

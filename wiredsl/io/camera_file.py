@@ -43,6 +43,8 @@ class CameraFile:
     model: str = "radtan"  # or "equidistant", "unified", "eucm", "ds", "fov" (geometry.MODELS)
     notes: tuple[str, ...] = ()  # doubts about the file, for a warning
     intrinsics: bool = True  # False for an extrinsics-only file (stereo_calib's extrinsics.yml)
+    error: str | None = None  # why this camera of a stereo file cannot be read (said where it is read, once)
+    pose_notes: tuple[str, ...] = ()  # doubts about R, T: warned at the rig's `relative`, not at the camera
 
 
 def _kind(v) -> str:
@@ -190,6 +192,9 @@ def _size(name: str, size) -> tuple[int | None, int | None]:
     return int(w), int(h)
 
 
+ROTATION_ROUNDED = 1e-4  # R R^T - I beyond this (R written with under 4 digits) is W143; below, rounding is mended
+
+
 def _with_pose(cam: CameraFile, R, T, what: str = "R and T") -> CameraFile:
     R = _floats(R, f"{cam.name}: the rotation", 9).reshape(3, 3)
     T = _floats(T, f"{cam.name}: the translation", 3)
@@ -197,10 +202,11 @@ def _with_pose(cam: CameraFile, R, T, what: str = "R and T") -> CameraFile:
     if off > 1e-3 or np.linalg.det(R) < 0:
         raise CalibrationFileError(f"{cam.name}: {what}: R is not a rotation matrix (R R^T must be I and "
                                    "det R = 1, to 1e-3)")
-    notes = cam.notes
-    if off > 1e-6:  # values rounded to a few digits (OpenVINS' KAIST file has 5): the nearest rotation
+    notes = cam.pose_notes
+    if off > 1e-12:  # values rounded to a few digits (OpenVINS' KAIST file has 5): the nearest rotation
         U, _, Vt = np.linalg.svd(R)
         R = U @ Vt
-        notes += (f"{cam.name}: {what}: R is a rotation only to {off:.2g} (rounded values); the nearest "
-                  "rotation is used",)
-    return replace(cam, R=R, T=T, notes=notes)
+    if off > ROTATION_ROUNDED:  # fewer than 4 digits: the nearest rotation differs by more than rounding's 1e-4
+        notes += (f"{what} (the pose of {cam.name} relative to the camera before it): R is a rotation only to "
+                  f"{off:.2g} (rounded values); the nearest rotation is used",)
+    return replace(cam, R=R, T=T, pose_notes=notes)

@@ -10,8 +10,9 @@
 - One image a view, IMAGE_ID = 2 pose + camera + 1, named `<side>_<pose:03d>.png` (render's names), posed at
   the nominal camera pose (cam_from_world: the rig's mounts at the path's poses, the ground truth).
 - Points: the scene's corners (POINT3D_ID = corner index + 1, the same in every trial, so tracks can be
-  compared across trials), each with the track of the views that observed it; a corner no view observed is
-  left out. ERROR is the track's mean distance (px) between each observation and the nominal projection.
+  compared across trials), each with the track of the views that observed it; a corner fewer than two views
+  observed is left out (one view's observation stays in images.txt with POINT3D_ID -1). ERROR is the track's
+  mean distance (px) between each observation and the nominal projection.
 - Times: COLMAP's model has none. When the path was read from a trajectory file with timestamps, `times.txt`
   beside the model lists each image's time as TUM RGB-D's `rgb.txt` does, `timestamp filename` a line (seconds
   on the file's clock, to the nanosecond, `observations.stamps_ns`), in IMAGE_ID order.
@@ -44,6 +45,10 @@ class Model:
     files: dict  # name -> text
     behind: int  # observations left out: behind the camera's image plane
     undistorted_out: int  # with undistort: observations whose ray left the lens's valid region
+
+
+MIN_TRACK = 2  # views a 3D point needs (COLMAP's own models, and its bundle adjuster, hold no shorter track)
+CHECKED_WITH = "3.8"  # the COLMAP whose model_analyzer and bundle_adjuster read these models in the tests
 
 
 def colmap_camera(cam) -> tuple[str, list[float]]:
@@ -142,7 +147,15 @@ def model(src: Source, trial: Trial, undistort: bool = False) -> Model:
         body.append(" ".join([str(image_id), *(_num(x) for x in head), str(cams[v.side][0]),
                               f"{v.side}_{v.pose:03d}.png"]))
         flat = require_finite(np.array([(u, w) for u, w, _ in points]).reshape(-1, 2), f"image {image_id}'s points")
-        body.append(" ".join(f"{_num(u)} {_num(w)} {pid}" for (u, w), (_, _, pid) in zip(flat, points, strict=True)))
+        body.append((flat, points))
+    # a corner seen in one view only is no 3D point (COLMAP's models never hold one: bundle_adjuster asserts a
+    # track of at least 2); its observation stays a 2D point with POINT3D_ID -1, so the indexes hold
+    single = {pid for pid, t in tracks.items() if len(t) < MIN_TRACK}
+    for pid in single:
+        del tracks[pid]
+    body = [line if isinstance(line, str) else
+            " ".join(f"{_num(u)} {_num(w)} {-1 if pid in single else pid}"
+                     for (u, w), (_, _, pid) in zip(*line, strict=True)) for line in body]
     n_images = len(body) // 2
     lines_i = ["# Image list with two lines of data per image:",
                "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",

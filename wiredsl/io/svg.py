@@ -485,11 +485,18 @@ def _swatch(x: float, y: float, colour: str, mark: str, label: str) -> str:
             f'stroke-width="2.4"{dash}/>')
 
 
+def _metres(v: float) -> str:
+    """v to the centimetre, without a sign on what rounds to zero ('-0.00')."""
+    text = f"{v:.2f}"
+    return "0.00" if text == "-0.00" else text
+
+
 def _caption(scene: Scene, result: PoseResult, info: Info) -> list[str]:
     x, y, hd = geometry.floor_pose(result.pose)
     n = len(scene.path.poses)
-    z = "" if len(result.pose) == 3 else f", z = {geometry.world_from_robot(result.pose)[1][2]:.2f} m"
-    first = (f"{scene.name} ({scene.source}): pose {result.index} of 0..{n - 1} at x = {x:.2f} m, y = {y:.2f} m{z}, "
+    z = "" if len(result.pose) == 3 else f", z = {_metres(geometry.world_from_robot(result.pose)[1][2])} m"
+    first = (f"{scene.name} ({scene.source}): pose {result.index} of 0..{n - 1} at x = {_metres(x)} m, "
+             f"y = {_metres(y)} m{z}, "
              f"heading {math.degrees(hd):.1f} deg" + (f", nearest view-point {result.viewpoint}"
                                                       if result.viewpoint else ""))
     if info.layout == "visibility":  # Figure 4 compares the ideal world seen two ways

@@ -71,6 +71,7 @@ class Trajectory:
     repeated: tuple[tuple[int, int], ...] = ()  # (line dropped, the earlier line with its timestamp)
     origin: float | None = None  # the file's first timestamp (times[0] unless lines before the window were left)
     start_ns: int | None = None  # the file's first timestamp on its own clock, integer nanoseconds (None: no clock)
+    span: float | None = None  # seconds from the file's first timestamp to its last (before any window)
 
 
 def guess_format(text: str) -> str:
@@ -149,7 +150,8 @@ def judge(traj: Trajectory, window: tuple[float | None, float | None] | None = N
     _check_increasing(t[idx], traj.lines[idx])
     lines = set(traj.lines[idx].tolist())
     return Trajectory(t[idx], traj.positions[idx], traj.rotations[idx], traj.lines[idx],
-                      tuple(n for n in traj.normalised if n[0] in lines), repeated, origin, traj.start_ns)
+                      tuple(n for n in traj.normalised if n[0] in lines), repeated, origin, traj.start_ns,
+                      float(t.max() - origin) if len(t) else 0.0)
 
 
 def _numbers(words: list[str], n: int, what: str, line: int) -> list[float]:
@@ -369,8 +371,10 @@ def _resample(traj: Trajectory, every, start, end, limit, max_poses) -> tuple:
     lo = 0.0 if start is None else max(start, 0.0)  # the window starts at the first pose at the earliest
     hi = t[-1] if end is None else min(end, t[-1])
     if lo > hi:
-        raise TrajectoryError(f"the window from {lo:g} s to {hi:g} s holds no pose (the file spans "
-                              f"{t[-1]:g} s)")
+        span = traj.span if traj.span is not None else float(t[-1])
+        window = f"from {lo:g} s" + ("" if end is None else f" to {end:g} s")
+        raise TrajectoryError(f"the window {window} holds no pose: the file spans 0 s to {span:g} s (from its "
+                              "first pose)")
     if every is None:
         keep = (t >= lo) & (t <= hi)
         return traj.positions[keep][:limit], traj.rotations[keep][:limit], t[keep][:limit]

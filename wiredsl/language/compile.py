@@ -26,6 +26,7 @@ from wiredsl.language.statements import ARUCO_MARKERS, CONTEXTS, MAX_MAGNITUDE
 from wiredsl.language.units import DEFAULT_UNITS, UNITS
 from wiredsl.plugins import params_dump, params_of
 from wiredsl.scene import (
+    PAPER,
     Board,
     Camera,
     Corner,
@@ -42,10 +43,12 @@ from wiredsl.scene import (
     Silhouette,
     Stage,
     Viewpoints,
+    paper_pipeline,
     trusted,
 )
 
 FORMAT_VERSION = 1
+SIGMA_FAR_BELOW = 0.1  # W163: a calibration_error sigma below this scales a declared covariance far below 1
 MAX_VIEWPOINTS = 100_000
 MAX_POSES = 100_000
 COUNTABLE = 1e15  # a count of grid points or poses below this is exact in a float, so it may be computed
@@ -113,6 +116,8 @@ class Compiler(CameraCompiler):
         self.pipelines: dict[str, _Decl] = {}
         self.study_stmts: list[Bound] = []
         self.calibration_stages: list[Span] = []  # where pipelines call calibration_error
+        self.small_sigmas: list[tuple[float, Span]] = []  # calibration_error sigmas far below 1 (W163)
+        self.paper_children: list[str] = []  # pipelines `like` the built-in paper
         self.scene_name: str | None = None
         self.rig_without_calibration = False
 
@@ -135,6 +140,19 @@ class Compiler(CameraCompiler):
         path = self._path(self.singles["path"], rig) if "path" in self.singles else None
         self._check_defaults()
         studies = self._studies(path)
+        if rig is not None and rig.calibration is not None and rig.calibration.kind == "covariance":
+            for sigma, span in self.small_sigmas:
+                self.out.warning("W163", f"calibration_error sigma {sigma:g} scales the calibration covariance of "
+                                         f"rig '{rig.name}': the draws have {sigma:.2g} times its standard "
+                                         "deviations", span,
+                                 "sigma 1 simulates the calibration as measured (the paper's 0.01 scaled its own "
+                                 "chi^2 matrix)")
+        if self.rig_without_calibration or "rig" not in self.singles:  # as the built-in paper itself, for any rig
+            for name in self.paper_children:
+                d = self.pipelines[name]
+                if isinstance(d.value, Pipeline):
+                    d.value = d.value.model_copy(update={"stages": [st for st in d.value.stages
+                                                                    if st.effect != "calibration_error"]})
         if self.rig_without_calibration:
             for span in self.calibration_stages:
                 self.out.error("E162", f"calibration_error needs a calibration, and rig "
@@ -798,9 +816,14 @@ class Compiler(CameraCompiler):
     # ------------------------------------------------------------------ pipelines
     def _pipeline(self, b: Bound) -> None:
         stages = []
+        given: dict[str, dict] = {}  # the parameters each stage of the block gives, for `like`
         seen: dict[str, Span] = {}
         last: tuple[int, str] | None = None
-        for stmt in b.stmt.block:
+        base = self._base_pipeline(b)
+        if base is False:
+            return
+        inherited = {st.effect: st.params for st in base.stages} if base is not None else {}
+        for stmt in b.stmt.block or ():
             sb = bind(stmt, "pipeline", self._units(stmt), self.out)
             if sb is None or not sb.ok:
                 continue
@@ -814,11 +837,11 @@ class Compiler(CameraCompiler):
             if name == "calibration_error":
                 self.calibration_stages.append(stmt.keyword_span)
             rank = effect.flow_rank()
-            if name == "calibration_error" and stages:
+            if name == "calibration_error" and stages and base is None:
                 self.out.error("E160", "calibration_error must be the first stage: it acts on the cameras, "
                                        "before anything is projected", stmt.keyword_span,
                                "move it to the top of the pipeline")
-            elif last is not None and rank < last[0]:
+            elif last is not None and rank < last[0] and base is None:
                 self.out.warning("W161", f"'{name}' ({effect.acts_on}) after '{last[1]}' "
                                          f"({REGISTRY[last[1]].acts_on}) departs from the data flow of a real "
                                          "system", stmt.keyword_span,
@@ -826,15 +849,67 @@ class Compiler(CameraCompiler):
             last = (rank, name) if last is None or rank >= last[0] else last
             params = {k: sb.get(k) for k in sb.clauses}
             try:
-                checked = params_dump(params_of("effect", effect, REGISTRY, params))
+                checked = params_dump(params_of("effect", effect, REGISTRY, {**inherited.get(name, {}), **params}))
                 stages.append(trusted(Stage, effect=name, params=checked))
+                given[name] = params
+                if name == "calibration_error":
+                    self._check_sigma(checked, stmt, sb)
             except pydantic.ValidationError as exc:
                 for err in exc.errors():
                     key = str(err["loc"][0]) if err["loc"] else ""
                     self.out.error("E110", f"{name} {key}: {_range_message(err, params.get(key))}",
                                    sb.span(key) if key in sb.clauses else stmt.span, _percent_hint(sb, key))
+        if base is not None:
+            stages = self._extended(b, base, stages)
+        elif not b.stmt.block:
+            self.out.error("E102", f"pipeline '{b.name}' needs a block of stages, or 'like' another pipeline",
+                           b.stmt.span, "e.g. pipeline mine like paper { lateral_shift range 2px }")
+            return
         pipeline = trusted(Pipeline, name=b.name, default=b.has("default"), stages=stages)
         self._declare(self.pipelines, "pipeline", b.name, b.name_span, pipeline)
+
+    def _base_pipeline(self, b: Bound):
+        """The pipeline `like` names (declared before, or the built-in paper); None without `like`; False after
+        an error."""
+        if not b.has("like"):
+            if b.has("without"):
+                self.out.error("E103", "'without' leaves stages out of the pipeline 'like' names: it needs 'like'",
+                               b.span("without"))
+                return False
+            return None
+        name = b.get("like")
+        if name in self.pipelines:
+            if name in self.paper_children:
+                self.paper_children.append(b.name)
+            return self.pipelines[name].value
+        if name == PAPER:
+            self.paper_children.append(b.name)  # its calibration_error is dropped for a rig without calibration
+            return paper_pipeline(True)
+        self.out.unknown(f"unknown pipeline '{name}' (like names a pipeline declared above, or paper)", b.span("like"),
+                         did_you_mean(name, {**{k: None for k in self.pipelines}, PAPER: None}))
+        return False
+
+    def _extended(self, b: Bound, base: Pipeline, stages: list) -> list:
+        """`like`: the base's stages, less `without`'s, each overridden by the block's, and the block's new
+        stages placed in data-flow order."""
+        without = _names(b.get("without"))
+        for name in without:
+            if name not in {st.effect for st in base.stages}:
+                self.out.error("E104", f"'{name}' is not a stage of pipeline '{base.name}'", b.span("without"),
+                               "its stages: " + ", ".join(st.effect for st in base.stages))
+        own = {st.effect: st for st in stages}
+        merged = [own.pop(st.effect, st) for st in base.stages if st.effect not in without]
+        for st in own.values():  # after every stage that comes before it in a real system's data flow
+            rank = REGISTRY[st.effect].flow_rank()
+            at = next((i for i, m in enumerate(merged) if REGISTRY[m.effect].flow_rank() > rank), len(merged))
+            merged.insert(at, st)
+        return merged
+
+    def _check_sigma(self, params: dict, stmt, sb: Bound) -> None:
+        """W163: calibration_error's sigma scales the standard deviations of a declared covariance; far below 1
+        it simulates a fraction of the calibration's uncertainty (checked once the rig is compiled)."""
+        if params.get("sigma", 1.0) < SIGMA_FAR_BELOW:
+            self.small_sigmas.append((params["sigma"], sb.span("sigma") if sb.has("sigma") else stmt.keyword_span))
 
     def _studies(self, path: Path | None) -> list:
         if not self.study_stmts:
@@ -897,6 +972,11 @@ def _line_span(path: FsPath, text: str, line: int) -> Span:
     """The whole of one line of a file read by a statement."""
     lines = text.splitlines()
     return Span(sources.display_path(path), line, 1, line, len(lines[line - 1]) + 1 if line <= len(lines) else 2)
+
+
+def _names(values) -> list[str]:
+    """The words of a `names` slot ([a, b]), or [] when absent."""
+    return [getattr(v, "value", v) for v in values or ()]
 
 
 def _ignore(b: Bound) -> None:
@@ -1024,11 +1104,17 @@ def mesh_size(found) -> str:
     """A mesh's size and bounds, in metres after scaling and placing, and its features, for `check` and hover."""
     lo, hi = found.vertices.min(axis=0), found.vertices.max(axis=0)
     size = " x ".join(_length(float(x)) for x in hi - lo)
-    box = lambda p: "(" + ", ".join(f"{float(x):.4g}" for x in p) + ")"  # noqa: E731
-    counts = (f"{len(found.lines)} lines, {len(found.polylines)} polylines, {len(found.ellipses)} ellipses, "
-              f"{len(found.silhouettes)} silhouettes, {len(found.corners)} corners, {len(found.faces)} faces, "
-              f"{len(found.occluders)} occluding triangles")
+    tiny = 1e-9 * max(float(np.abs(found.vertices).max(initial=0.0)), 1.0)  # rounding's -1.2e-17 is 0
+    box = lambda p: "(" + ", ".join(f"{0.0 if abs(x) < tiny else float(x):.4g}" for x in p) + ")"  # noqa: E731
+    counts = ", ".join(_count(len(getattr(found, what)), word) for what, word in (
+        ("lines", "line"), ("polylines", "polyline"), ("ellipses", "ellipse"), ("silhouettes", "silhouette"),
+        ("corners", "corner"), ("faces", "face"), ("occluders", "occluding triangle")))
     return f"{size}, from {box(lo)} to {box(hi)} m; {counts}; {read_as(found)}"
+
+
+def _count(n: int, word: str) -> str:
+    """'1 silhouette', '2 silhouettes' (ellipse: 'ellipses')."""
+    return f"{n} {word}" + ("" if n == 1 else "s")
 
 
 def read_as(found) -> str:

@@ -29,6 +29,7 @@ LENS_RANGES = {"unified": "xi in [0, 100]", "eucm": "alpha in [0, 1], beta in (0
                "ds": "alpha in [0, 1], xi in (-1, 1]",
                "fov": "w in (0, 180) deg"}
 STEREO_BASELINE = 5.0  # metres: a stereo pair's |T| beyond this is more likely in millimetres
+FILE_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # `relative "file" units U`: metres per unit of the file's T
 
 
 class CameraCompiler:
@@ -119,6 +120,7 @@ class CameraCompiler:
             target = FsPath(sb.stmt.span.file).parent / path
             if (target, fmt) in cache:
                 return cache[target, fmt]
+            cache[target, fmt] = None  # a file that fails is reported once, where it is first read
             sources.read_bytes(target, "calibration file", path_span)  # a regular file, not a FIFO (would block)
             cache[target, fmt] = read(target, fmt)
             return cache[target, fmt]
@@ -144,6 +146,9 @@ class CameraCompiler:
                                    f"({have}); there is no {entry}", sb.span("entry"))
             return None
         c, span = cams[i], sb.stmt.span
+        if c.error is not None:
+            self.out.error("E141", f"calibration file {path}: {c.error}", path_span)
+            return None
         if not c.intrinsics:
             self.out.error("E141", f"calibration file {path} holds extrinsics only (R, T): no camera to read",
                            path_span, "read the cameras from the intrinsics file (stereo_calib's intrinsics.yml) "
@@ -430,6 +435,10 @@ class CameraCompiler:
         """A mount, or its statement when it is `relative` to the other camera (resolved in `_rig`)."""
         cam = sb.pos(0)
         ok = self._ref(self.camera_stmts, "camera", cam, sb.positional[0].span)
+        if sb.has("units") and not sb.has("relative"):
+            self.out.error("E103", "'units' gives the unit of a 'relative' file's translation: it needs 'relative'",
+                           sb.span("units"))
+            return None
         if sb.has("relative"):
             for key in ("at", "looking", "roll"):
                 if sb.has(key):
@@ -482,9 +491,18 @@ class CameraCompiler:
             step = np.eye(4)
             step[:3, :3], step[:3, 3] = cams[k].R, cams[k].T
             M = step @ M
+        for k in range(lo + 1, hi + 1):  # doubts about the extrinsics: at `relative`, where they are used
+            for note in cams[k].pose_notes:
+                self.out.warning("W143", f"calibration file {path}: {note}", span)
         if a > b:
             M = np.linalg.inv(M)
-        R, T = M[:3, :3], M[:3, 3]  # the other camera's frame -> this one's
+        R, T = M[:3, :3], M[:3, 3] * FILE_UNITS[sb.get("units", "m")]  # the other camera's frame -> this one's
+        if not sb.has("units") and np.linalg.norm(T) > STEREO_BASELINE:
+            self.out.error("E146", f"calibration file {path}: the cameras are {np.linalg.norm(T):.4g} m apart: did "
+                                   "you mean millimetres?", span,
+                           f"T is in the units of the calibration board (OpenCV's square size): say so with "
+                           f"'relative \"{path}\" units mm' (or cm), or 'units m' if the rig is that wide")
+            return None
         R_o, p_o = np.array(other.rotation), np.array(other.position)  # camera -> robot
         R_s = R_o @ R.T
         p_s = p_o - R_s @ T
@@ -492,6 +510,7 @@ class CameraCompiler:
             self.out.error("E141", f"calibration file {path}: the translation T is beyond {MAX_MAGNITUDE:g} m", span)
             return None
         self.relative_file = path
+        self.relative_units = sb.has("units")
         return trusted(Mount, camera=sb.pos(0), position=tuple(float(x) for x in p_s), rotation=_mat(R_s))
 
     def _check_stereo(self, rig: Rig, span: Span) -> None:
@@ -499,7 +518,7 @@ class CameraCompiler:
         _, T = rig.stereo_extrinsics()
         relative = getattr(self, "relative_file", None)
         where = f" (from {relative})" if relative else ""
-        if np.linalg.norm(T) > STEREO_BASELINE:
+        if np.linalg.norm(T) > STEREO_BASELINE and not (relative and getattr(self, "relative_units", False)):
             self.out.warning("W144", f"rig '{rig.name}': the cameras are {np.linalg.norm(T):.4g} m apart{where}: "
                                      "did you mean millimetres?", span,
                              "T is in the units of the calibration board (OpenCV's square size): convert it to "

@@ -67,9 +67,10 @@ def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None,
     if "pipeline" in first:
         pb = first["pipeline"]
         pipeline = pb.pos(0)
-        if pipeline not in pipelines:
+        if pipeline not in pipelines and pipeline != "paper":  # paper: the built-in one (scene.paper_pipeline)
             out.unknown(f"unknown pipeline '{pipeline}' in study '{b.name}'", pb.positional[0].span,
-                        did_you_mean(pipeline, pipelines) or "pipelines: " + (", ".join(pipelines) or "none"))
+                        did_you_mean(pipeline, pipelines)
+                        or "pipelines: " + ", ".join([*pipelines, "the built-in paper"]))
     else:
         defaults = [p.name for p in pipelines.values() if p.default] or (
             list(pipelines) if len(pipelines) == 1 else [])

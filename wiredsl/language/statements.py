@@ -116,8 +116,13 @@ _TOP = [
         block_required=True,
         example="path run { straight from (1, 1) to (5, 1) step 0.5m }"),
     Sig("pipeline", "an ordered list of uncertainty stages", (NAME,),
-        {"default": C("the pipeline a build runs without --pipeline")},
-        block="pipeline", block_required=True, example="pipeline paper default { edge_loss ... }"),
+        {"default": C("the pipeline a build runs without --pipeline"),
+         "like": C("start from another pipeline's stages (one declared before, or the built-in paper): a stage "
+                   "in the block overrides the parameters it gives, a new one joins in data-flow order",
+                   S("ref", "pipeline")),
+         "without": C("with like: leave these stages out", S("names", "stages"))},
+        block="pipeline", block_required=False, example="pipeline paper default { edge_loss ... }  /  "
+        "pipeline mine like paper without [corner_mismatch] { lateral_shift range 2px }"),
     Sig("study", "a sensitivity study: a design over pipeline parameters, trials, measures", (NAME,),
         block="study", block_required=True, example="study shift { vary lateral_shift.range ... }"),
 ]
@@ -222,6 +227,8 @@ _MOUNT = {
     "roll": C("rotation about the viewing direction", S("angle", "angle")),
     "relative": C("instead of at and looking: the pose relative to the other camera, read from a stereo "
                   "calibration file (OpenCV's R, T or Kalibr's T_cn_cnm1)", S("str", "path")),
+    "units": C("with relative: the unit of the file's translation T (OpenCV's is the board's square size's; a "
+               "baseline over 5 m read without it is an error)", S("word", "unit", "m", "cm", "mm")),
 }
 _RIG = [
     Sig("left", "the left camera and its mount", (S("ref", "camera"),), _MOUNT,

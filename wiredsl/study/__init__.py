@@ -84,6 +84,7 @@ class Progress:
         self.started = time.perf_counter()
         self.last = 0.0
         self.trials = 0
+        self.first: tuple[float, int] | None = None  # (time, trials) at the first shard: the rate is from there
 
     def pending(self, job: shards.Job) -> None:
         self.left[job.shard.point] += 1
@@ -95,11 +96,19 @@ class Progress:
         now = time.perf_counter()
         if self.echo is not None and (now - self.last >= 1.0 or self.trials == self.todo_trials):
             self.last = now
-            rate = self.trials / max(now - self.started, 1e-9)
-            eta = (self.todo_trials - self.trials) / rate if rate > 0 else float("inf")
             done = sum(v == 0 for v in self.left.values())
-            self.echo(f"study: {done}/{self.points} points, {self.trials}/{self.todo_trials} trials, "
-                      f"{rate:,.0f} trials/s, ETA {eta:,.0f} s")
+            head = f"study: {done}/{self.points} points, {self.trials}/{self.todo_trials} trials"
+            if self.first is None:  # the first shard carries the start-up (workers, compiling): no rate from it
+                self.first = (now, self.trials)
+                if self.trials < self.todo_trials:
+                    self.echo(f"{head}, measuring the rate")
+                    return
+            t0, n0 = self.first
+            rate = (self.trials - n0) / (now - t0) if now > t0 and self.trials > n0 else \
+                self.trials / max(now - self.started, 1e-9)
+            eta = (self.todo_trials - self.trials) / rate if rate > 0 else float("inf")
+            shown = f"{rate:,.0f}" if rate >= 10 else f"{rate:.2g}"  # a slow study's rate is not "0"
+            self.echo(f"{head}, {shown} trials/s, ETA {eta:,.0f} s")
 
 
 def _stored(all_jobs: list[shards.Job], folder: Path) -> dict[str, dict[str, np.ndarray]]:
@@ -115,11 +124,11 @@ def _stored(all_jobs: list[shards.Job], folder: Path) -> dict[str, dict[str, np.
 
 def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "processes", workers: int | None = None,
               scheduler: str | None = None, registry: dict | None = None, echo: Callable[[str], None] | None = None,
-              shard_trials: int = shards.SHARD_TRIALS, limit: int | None = None, fresh: bool = False
-              ) -> report.StudyTable | None:
+              shard_trials: int = shards.SHARD_TRIALS, limit: int | None = None, fresh: bool = False,
+              program=None) -> report.StudyTable | None:
     """Run what is not yet done of a study into `folder`, then write table.csv, table.json and
     manifest.json there. `limit` stops after that many new shards (no table): an interrupted run. `fresh`
-    recomputes every shard, whatever is there."""
+    recomputes every shard, whatever is there. `program` (the compiled program) places W129 in the file."""
     from wiredsl.io import emit
     from wiredsl.language.compile_study import measure_registry
 
@@ -162,7 +171,9 @@ def run_study(scene: Scene, study: Study, folder: str | Path, executor: str = "p
         if todo:  # the one visibility of every point (shards.visibility), when it keeps hidden lines
             choice = chosen()
             if choice.warning is not None:
-                echo(f"warning: W129: {choice.warning}")
+                from wiredsl.run import w129_span
+
+                echo(f"{w129_span(program, scene)}: warning[W129]: {choice.warning}")
     if todo:
         with journal.Writer(folder) as out:
             def finished(job: shards.Job, arrays: dict[str, np.ndarray]) -> None:
@@ -231,4 +242,4 @@ def numpy_forced(scene: Scene, study: Study, X: np.ndarray) -> str | None:
     from wiredsl.run import numpy_forced_line
 
     stages = design.pipeline_at(scene, study, X[0]).stages if len(X) else []
-    return numpy_forced_line([effects[s.effect] for s in stages], "auto")
+    return numpy_forced_line([effects[s.effect] for s in stages], "auto", "")  # a study has no --engine

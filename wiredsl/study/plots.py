@@ -69,7 +69,8 @@ def write_all(table: StudyTable, study: Study, folder: Path, fmt: str = "png", d
         rows = [r for r in table.rows if (r.measure, r.statistic) == (measure, stat)]
         d = len(table.factors)
         cols = min(d, 4)
-        fig, axes = plt.subplots(-(-d // cols), cols, figsize=(4.2 * cols, 3.3 * -(-d // cols)), squeeze=False)
+        fig, axes = plt.subplots(-(-d // cols), cols, figsize=(4.2 * cols, 3.3 * -(-d // cols)), squeeze=False,
+                                 layout="constrained")  # room for every label and the title, none cut or overlapping
         unit = units.get(f"{measure}.{stat}")
         span = statistic_range(unit, [r.mean for r in rows])
         for ax, f in itertools.zip_longest(axes.ravel(), table.factors):
@@ -82,7 +83,6 @@ def write_all(table: StudyTable, study: Study, folder: Path, fmt: str = "png", d
             ax.grid(alpha=0.3)
         fig.suptitle(f"{_measure_words(measure)}: {_words(stat)}" + (f" ({unit})" if unit else "")
                      + f"\nmean and 95% band, study {table.study} ({measure}.{stat})", fontsize=10)
-        fig.tight_layout()
         name = f"{measure}.{stat}.{fmt}"
         _save(fig, folder / name, fmt, dpi)
         plt.close(fig)
@@ -134,6 +134,9 @@ def _description(factor: str) -> str | None:
     return field.description if field is not None else None
 
 
+LABEL_WIDTH = 56  # characters of an x label's line at fontsize 8 on a 4.2-inch axis
+
+
 def _label(factor: str) -> str:
     """The factor in words (its stage, its parameter's description) with its unit, and its code name below, for
     an axis."""
@@ -142,7 +145,10 @@ def _label(factor: str) -> str:
     what = _description(factor)
     if not what:
         return f"{factor} ({unit})" if unit else factor
-    return f"{_words(stage.replace('camera.', 'camera '))}: {what}" + (f" ({unit})" if unit else "") + f"\n{factor}"
+    import textwrap
+
+    text = f"{_words(stage.replace('camera.', 'camera '))}: {what}" + (f" ({unit})" if unit else "")
+    return textwrap.fill(text, LABEL_WIDTH) + f"\n{factor}"  # wrapped to the 4.2-inch axis
 
 
 def statistic_range(unit: str | None, means) -> tuple[float, float]:
@@ -214,7 +220,7 @@ def sobol_figure(plt, table: StudyTable, stats):
     n = len(stats)
     cols = min(n, 3)
     nrows = -(-n // cols)
-    fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.4 * nrows), squeeze=False)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.4 * nrows), squeeze=False, layout="constrained")
     d = len(table.factors)
     for ax, shown_stat in itertools.zip_longest(axes.ravel(), stats):
         if shown_stat is None:  # a grid cell past the last statistic
@@ -264,5 +270,4 @@ def sobol_figure(plt, table: StudyTable, stats):
         ax.grid(axis="y", alpha=0.3)
     axes.ravel()[0].legend(fontsize=7)
     fig.suptitle(f"{table.study}: Sobol' indices (bootstrap 95%; ▲▼ cut at the axis limit)", fontsize=10)
-    fig.tight_layout()
     return fig

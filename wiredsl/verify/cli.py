@@ -121,7 +121,7 @@ def verify(file, globs, cameras, poses, pose_format, match, detectors, params, s
         offset = (f"median RMS offset {statistics.median(before):.3g} -> {statistics.median(after):.3g} px"
                   if before and after else "no edge found to measure an offset by")  # (not "nan -> nan")
         click.echo(f"refined {len(r)} poses: median move {statistics.median(m['rotation_deg'] for m in r):.3g} deg, "
-                   f"{statistics.median(m['translation'] for m in r):.3g} (scene units); {offset}", err=True)
+                   f"{statistics.median(m['translation'] for m in r):.3g} m; {offset}", err=True)
     for key, e in (outcome.prediction or {}).items():
         if e["ks"] is not None:
             click.echo(f"predict\t{key}\treal {e['real_mean']:.4g}\tsimulated {e['simulated_mean']:.4g}\t"

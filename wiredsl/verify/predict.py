@@ -242,6 +242,7 @@ def plot(comparison: dict, path, caption: str, fmt: str = "png") -> None:
     from wiredsl.study.plots import _pyplot, _save
 
     plt = _pyplot()
+    from matplotlib.ticker import MaxNLocator
 
     keys = [k for k, e in comparison.items() if e["real"] and e["ks"] is not None]
     if not keys:  # no edge detector and no stereo pair with a corner detector: nothing to compare
@@ -280,6 +281,7 @@ def plot(comparison: dict, path, caption: str, fmt: str = "png") -> None:
         ks, mw = e["ks"], e["mann_whitney"]
         ax.set_title(f"KS D={ks['statistic']:.2f} p={ks['p']:.2g}; Mann-Whitney p={mw['p']:.2g}", fontsize=8)
         ax.set_xlabel(e["label"] + unit)
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=4))  # a narrow range's many long ticks ran together
         ax.set_ylabel("cumulative fraction")
         ax.legend(fontsize=7, loc="lower right")
     fig.suptitle("Does the simulation predict the detector? Real against simulated, image by image", fontsize=10)

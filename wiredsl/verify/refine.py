@@ -6,7 +6,7 @@ verified samples (verification.search_edges), takes the derivative of every samp
 normal with respect to the camera's six pose parameters by projecting the view again with each parameter
 moved a little (the engine's projection, hidden lines included), and solves the weighted least-squares step
 (Huber weights at 1 px, a damping of 1e-6 of the normal matrix's trace). The camera is perturbed in its own
-frame: P' = exp([w]) P + tau. Reported: the rotation (deg) and translation (scene units) it moved, and the
+frame: P' = exp([w]) P + tau. Reported: the rotation (deg) and translation (m) it moved, and the
 RMS offset before and after.
 """
 
@@ -20,7 +20,7 @@ from wiredsl.verify import verification as ver
 
 STEPS = 4
 EPS_ROT = 1e-4  # rad
-EPS_T = 1e-4  # scene units (m)
+EPS_T = 1e-4  # m
 HUBER = 1.0  # px
 
 
