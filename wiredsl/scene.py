@@ -82,8 +82,9 @@ def plainly_valid(model: type[BaseModel], values: dict) -> bool:
     within the field's annotated_types bounds (Ge, Gt, Le, Lt), and no validator of the model's own. Anything else
     is left to validation and its messages."""
     decorators = model.__pydantic_decorators__
+    after = getattr(model, "plain_after", None)  # a model validator's check of plain values, without a model
     if decorators.validators or decorators.field_validators or decorators.root_validators \
-            or decorators.model_validators:
+            or (decorators.model_validators and after is None):
         return False
     fields = model.model_fields
     for key, value in values.items():
@@ -96,6 +97,11 @@ def plainly_valid(model: type[BaseModel], values: dict) -> bool:
                 if bound is None or type(c).__module__ != "annotated_types" \
                         or not bound[1](value, getattr(c, bound[0])):
                     return False
+    if after is not None:
+        try:
+            after({**{k: f.default for k, f in fields.items()}, **values})
+        except ValueError:
+            return False  # left to validation and its message
     return True
 
 

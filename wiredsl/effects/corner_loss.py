@@ -28,6 +28,11 @@ class CornerLossParams(Params):
         var.check_fraction_spread("keep", self.keep, self.spread)
         return self
 
+    @classmethod
+    def plain_after(cls, values: dict) -> None:
+        """_spread_fits on plain values (scene.plainly_valid: the compiler then builds no validator)."""
+        var.check_fraction_spread("keep", values["keep"], values["spread"])
+
 
 class CornerLoss(Effect):
     name = "corner_loss"

@@ -34,6 +34,11 @@ class EdgeLossParams(Params):
         var.check_fraction_spread("fraction", self.fraction, self.spread)
         return self
 
+    @classmethod
+    def plain_after(cls, values: dict) -> None:
+        """_spread_fits on plain values (scene.plainly_valid: the compiler then builds no validator)."""
+        var.check_fraction_spread("fraction", values["fraction"], values["spread"])
+
 
 class EdgeLoss(Effect):
     name = "edge_loss"
