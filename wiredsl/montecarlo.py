@@ -79,6 +79,7 @@ class Run:
     _visible: tuple | None = None
     exact_calibration: bool = False  # project each trial's perturbed rig from scratch (slow reference)
     point: int | None = None  # a study's design point: one more component of every draw's key
+    design_point: int | None = None  # the study's design point this run is, for messages (None: as `point`)
     engine: str = "auto"  # "kernel" (compiled, numba), "numpy" (the readable reference), "auto": kernel if installed
     pack: bool = True  # numpy path, built-in stages: all views of a batch in one set (False: a view at a time)
 
@@ -132,6 +133,10 @@ class Run:
     @property
     def image_stages(self):
         return [(e, p) for e, p in self.stages if e.name != "calibration_error"]
+
+    def where_point(self) -> int | None:
+        """The design point messages name: the study's point, whether or not its draws are keyed by it."""
+        return self.design_point if self.design_point is not None else self.point
 
     def sampler(self) -> calib.Sampler | None:
         found = self.calibration
@@ -331,7 +336,7 @@ class Run:
                         sets = effect.apply(params, sets, ctx)
                     else:  # an installed plug-in: what it raises or returns is checked, and blamed on its package
                         sets = plugin_apply(effect, params, sets, ctx, len(self.world.feature_ids),
-                                            self._stage_of(effect))
+                                            self._stage_of(effect), self.where_point())
                 disturbed[side] = sets
             out.append((result, disturbed, views))
         if packed:
@@ -640,7 +645,8 @@ INTEGER_FIELDS = ("start", "fid", "segment", "fragment", "kind", "trial", "corne
 FLAG_FIELDS = ("clipped", "closed", "occluded")
 
 
-def plugin_apply(effect, params, sets: im.ImageSet, ctx: Context, n_features: int, stage: str) -> im.ImageSet:
+def plugin_apply(effect, params, sets: im.ImageSet, ctx: Context, n_features: int, stage: str,
+                 design_point: int | None = None) -> im.ImageSet:
     """An installed effect's stage, its failures and its output's defects reported against its package (E181),
     naming the stage, pose, camera and trials; what it returns is checked and made canonical (float64 points,
     int64 numbers, bool flags) before anything else reads it."""
@@ -648,8 +654,8 @@ def plugin_apply(effect, params, sets: im.ImageSet, ctx: Context, n_features: in
 
     trials = np.asarray(ctx.trials)
     span = f"trials {trials.min()}..{trials.max()}" if len(trials) > 1 else f"trial {trials[0]}" if len(trials) else ""
-    where = f"{stage}, pose {ctx.pose}, camera {ctx.side}, {span}" + (f", design point {ctx.point}"
-                                                                      if ctx.point is not None else "")
+    at = design_point if design_point is not None else ctx.point
+    where = f"{stage}, pose {ctx.pose}, camera {ctx.side}, {span}" + (f", design point {at}" if at is not None else "")
     out = plugin_call(effect, "disturb()", effect.apply, params, sets, ctx, where=where)
     checked, problem, trial = plugin_imageset(out, len(trials), n_features)
     if problem is not None:

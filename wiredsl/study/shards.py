@@ -91,9 +91,11 @@ def point_run(scene: Scene, world: World, study: Study, point: int, values, opts
     """
     values = np.asarray(values, dtype=float)
     lend = None if design.varies_scene(study) else base  # a point that varies the cameras projects its own
-    return start(design.scene_at(scene, study, values), design.pipeline_at(scene, study, values), seed=study.seed,
+    run = start(design.scene_at(scene, study, values), design.pipeline_at(scene, study, values), seed=study.seed,
                  options=opts or options(study, scene, world), world=world,
                  point=None if study.draws == "common" else point, base=lend)
+    run.design_point = point  # (messages name it under common draws too)
+    return run
 
 
 _WORKER: dict = {}  # per process: digest -> (world, base run, prepared); (digest, point) -> (run, prepared)
@@ -148,7 +150,8 @@ def _prepare(study: Study, registry: dict, run: Run) -> list:
         measure = registry[m.name]
         params = params_of("measure", measure, REGISTRY, m.params)
         out.append((measure, params, _guarded(measure, "prepare()", measure.prepare, params, run,
-                                              where=f"design point {run.point}" if run.point is not None else None)))
+                                              where=f"design point {run.where_point()}" if run.where_point() is not None
+                                              else None)))
     return out
 
 
@@ -209,7 +212,7 @@ def _measure_pool(pool: list, parts: list[dict], frozen: dict) -> None:
     prepared = pool[0][2]
     sizes = [len(batch) for _, _, _, batch, _ in pool]
     ends = np.cumsum(sizes)[:-1]
-    points = sorted({run.point for _, run, _, _, _ in pool if run.point is not None})
+    points = sorted({run.where_point() for _, run, _, _, _ in pool if run.where_point() is not None})
     for j in range(len(pool[0][4])):
         result = pool[0][4][j][0]
         if id(result) not in frozen:
@@ -223,7 +226,8 @@ def _measure_pool(pool: list, parts: list[dict], frozen: dict) -> None:
                 calls = [(pooled, sum(sizes), pool[0][3][0], pool[-1][3][-1], points)]
             else:
                 calls = [({side: read_only(v) for side, v in entry[4][j][1].items()}, len(entry[3]), entry[3][0],
-                          entry[3][-1], [entry[1].point] if entry[1].point is not None else []) for entry in pool]
+                          entry[3][-1], [entry[1].where_point()] if entry[1].where_point() is not None else [])
+                         for entry in pool]
             values_of = []
             for sets, n, first, last, at in calls:
                 where = f"pose {result.index}, trials {first}..{last}" + (

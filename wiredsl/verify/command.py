@@ -241,7 +241,7 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
                 rows.extend(report.rows_of(r))
                 fractions.add(r)
             sums.append(sums_of(results, cfg, edge_det, corner_det))
-            extras.append(variation_fit.extras_of(results, side, edge_det, corner_det, fitting.MIN_STROKE_SAMPLES,
+            extras.append(variation_fit.extras_of(results, side, edge_det, corner_det, variation_fit.MIN_STROKE_SAMPLES,
                                                   cfg.inlier))
             sums_frame.append(i)
             if side == "left" and corner_det is not None and len(per_side) == 2:

@@ -56,6 +56,8 @@ class ImageExtras:
     loc_dof: float = 0.0  # their degrees of freedom an axis
 
 
+MIN_STROKE_SAMPLES = 5  # verified samples a stroke needs for its mean offset to count in an image's shift
+
 def extras_of(results, side: str, edge_det: str | None, corner_det: str | None, min_samples: int,
               inlier: float = 2.0) -> ImageExtras:
     """One image's extras from its results by detector (the first edge and corner detector, as fit's sums)."""
