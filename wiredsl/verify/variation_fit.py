@@ -297,8 +297,9 @@ def _feature_clause(result, stage: str, value, lines: list[str], out: str) -> tu
         return lines, out
     if e.value is None:
         return [*lines, f"  # {stage} spread between an image's features not estimated ({e.note})"], out
-    line = (f"  # {stage} spread between an image's features {100 * e.value:.4g}%, 95% interval "
-            f"[{100 * e.lo:.4g}%, {100 * e.hi:.4g}%]: {e.note}")
+    span = f"95% interval [{100 * e.lo:.4g}%, {100 * e.hi:.4g}%]" if e.lo is not None and e.hi is not None \
+        else "no interval"
+    line = f"  # {stage} spread between an image's features {100 * e.value:.4g}%, {span}: {e.note}"
     if not e.lo or e.lo <= 0:
         return [*lines, line + " (not written: 0 is inside)"], out
     return [*lines, line], out + f" feature_spread {100 * e.value:.4g}%"
@@ -316,7 +317,8 @@ def clauses(result, stage: str) -> tuple[list[str], str]:
         return _feature_clause(result, stage, None, [f"  # {stage} spread between images not estimated "
                                                      f"({s.note})"], "")
     fmt = (lambda x: f"{100 * x:.4g}%") if KIND[stage] == "fraction" else (lambda x: f"{x:.4g}px")  # noqa: E731
-    line = f"  # {stage} spread between images {fmt(s.value)}, 95% interval [{fmt(s.lo)}, {fmt(s.hi)}]: {s.note}"
+    span = f"95% interval [{fmt(s.lo)}, {fmt(s.hi)}]" if s.lo is not None and s.hi is not None else "no interval"
+    line = f"  # {stage} spread between images {fmt(s.value)}, {span}: {s.note}"
     if not s.lo or s.lo <= 0:
         return _feature_clause(result, stage, None, [line + " (not written: 0 is inside)"], "")
     value = result.get(f"{stage}.{VALUE[stage]}").used
