@@ -84,12 +84,6 @@ def out_of_range(field) -> list[float]:
     return bad
 
 
-def ellipse_params(Cstar: np.ndarray):
-    """(centre, semi-axes (major, minor), angle of the major axis) of one dual conic, or None (not an ellipse)."""
-    ok, centre, axes, angle = conics.ellipse_params_batch(Cstar[None])
-    return (centre[0], axes[0], float(angle[0])) if ok[0] else None
-
-
 def silhouette_segments(ca, Ua, Va, cb, Ub, Vb, arc_a=None, arc_b=None):
     """Camera-frame 3D segments (start on a, end on b) of the visible sides between two ellipses."""
     full_a, full_b = np.array([arc_a is None]), np.array([arc_b is None])

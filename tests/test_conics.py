@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import math
 
+import mpmath as mp
 import numpy as np
 import pytest
-from helpers import circle, ellipse_params, silhouette_segments
+from helpers import circle, silhouette_segments
 from test_projection import _dist_to_polyline
 
 from wiredsl.engine import conics, geometry
@@ -45,7 +46,8 @@ def random_cylinders(n, seed=3, cone=False):
 def test_conic_parameters_fit_the_projected_ellipse_points():
     for (c, U, V), _ in random_cylinders(50):
         H = K @ conics.homography(c, U, V)
-        centre, axes, angle = ellipse_params(conics.dual_conic(H))
+        ok, centre, axes, angle = (x[0] for x in conics.image_ellipses(H[None]))
+        assert ok
         t = np.linspace(0, 2 * np.pi, 200)
         uv = pixels(c + np.cos(t)[:, None] * U + np.sin(t)[:, None] * V)
         C = conic_matrix(centre, axes, angle)
@@ -53,6 +55,47 @@ def test_conic_parameters_fit_the_projected_ellipse_points():
         residual = np.einsum("ni,ij,nj->n", h, C, h)
         # residual of the normalised conic equation: a point 1e-6 px off gives ~2e-6 / axis
         assert np.abs(residual).max() < 1e-8
+
+
+def _mp_ellipse(H):
+    """(centre, axes, angle) of the unit circle's image under H, from its dual conic in 60-digit arithmetic."""
+    mp.mp.dps = 60
+    Hm = mp.matrix(H.tolist())
+    C = Hm * mp.diag([1, 1, -1]) * Hm.T
+    C = C / -C[2, 2]
+    centre = [-C[0, 2], -C[1, 2]]
+    A = mp.matrix(2, 2)
+    for i in range(2):
+        for j in range(2):
+            A[i, j] = C[i, j] + centre[i] * centre[j]
+    w, Q = mp.eigsy(A)
+    big = 0 if w[0] > w[1] else 1
+    angle = mp.atan(Q[1, big] / Q[0, big])  # a direction, in (-pi/2, pi/2)
+    return [float(x) for x in centre], sorted((float(mp.sqrt(x)) for x in w), reverse=True), float(angle)
+
+
+@pytest.mark.parametrize("tilt", [1e-2, 1e-4, 1e-6, 1e-8])
+def test_ellipses_seen_nearly_edge_on_match_a_60_digit_reference(tilt):
+    """A circle whose plane passes `tilt` rad from the camera's centre: its image is a sliver a few 1e-5 px
+    wide at 1e-6 and under the 1e-6 ratio of an edge-on one at 1e-8. Centre, axes and angle against mpmath's conic at 60 digits, to 1e-9 px and 1e-9 rad."""
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        base = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(3, 8)])
+        along = rng.normal(size=3)
+        u = np.cross(base, along)
+        u /= np.linalg.norm(u)  # normal of a plane through the camera centre and base ...
+        v = base / np.linalg.norm(base)
+        normal = math.cos(tilt) * u + math.sin(tilt) * v  # ... tilted by `tilt` towards the line of sight
+        c, U, V = circle(base, normal, rng.uniform(0.05, 0.5))
+        H = K @ conics.homography(c, U, V)
+        ok, centre, axes, angle = (x[0] for x in conics.image_ellipses(H[None]))
+        want_c, want_ax, want_angle = _mp_ellipse(H)
+        assert ok == (want_ax[1] > 1e-6 * want_ax[0])
+        if not ok:
+            continue
+        assert np.abs(centre - want_c).max() < 1e-9 and np.abs(axes - want_ax).max() < 1e-9
+        d = (angle - want_angle + math.pi / 2) % math.pi - math.pi / 2
+        assert abs(d) < 1e-9 and -math.pi / 2 < angle <= math.pi / 2
 
 
 def _signed_distances(line_pts, curve):

@@ -42,26 +42,48 @@ def dual_conic(H: np.ndarray) -> np.ndarray:
     return (H * np.array([1.0, 1.0, -1.0])) @ np.swapaxes(H, -1, -2)
 
 
-def ellipse_params_batch(Cstar: np.ndarray):
-    """(ok (n,), centre (n, 2), semi-axes (major, minor) (n, 2), angle of the major axis (n,)) of dual conics
-    (n, 3, 3); not ok when a conic is not a real ellipse (a parabola or hyperbola: the ellipse crosses the
-    camera's principal plane) or is degenerate (seen edge-on)."""
-    n = len(Cstar)
-    s = Cstar[:, 2, 2]
-    finite = np.isfinite(Cstar).all(axis=(1, 2))
-    scale = np.where(finite, np.abs(np.where(finite[:, None, None], Cstar, 0.0)).max(axis=(1, 2), initial=0.0), 0.0)
-    ok = finite & (scale != 0) & (np.abs(s) > 1e-12 * scale)
-    C = np.where(ok[:, None, None], Cstar, np.eye(3)) / -np.where(ok, s, -1.0)[:, None, None]  # C[2, 2] = -1
-    centre = -C[:, :2, 2]
-    A_inv = C[:, :2, :2] + centre[:, :, None] * centre[:, None, :]
-    A_inv = (A_inv + np.swapaxes(A_inv, 1, 2)) / 2
-    good = np.isfinite(A_inv).all(axis=(1, 2))
-    ok &= good
-    w, Q = np.linalg.eigh(np.where(ok[:, None, None], A_inv, np.eye(2))) if n else (np.zeros((0, 2)), None)
-    ok &= w[:, 0] > 1e-12 * w[:, 1]
-    axes = np.sqrt(np.where(ok[:, None], w[:, ::-1], 1.0))
-    angle = np.arctan2(Q[:, 1, 1], Q[:, 0, 1]) if n else np.zeros(0)
-    return ok, centre, axes, angle
+def image_ellipses(H: np.ndarray):
+    """(ok (n,), centre (n, 2), semi-axes (major, minor) (n, 2), angle of the major axis in (-pi/2, pi/2] (n,))
+    of the images of the unit circle under stacks H (n, 3, 3) (`homography`, a camera matrix applied); not ok
+    when an image is not a real ellipse (a parabola or hyperbola: the ellipse meets the camera's principal plane)
+    or is degenerate (seen edge-on).
+
+    No conic is formed. A Lorentz boost L (L D L^T = D: it maps the circle onto itself) with H L's third row
+    (0, 0, h) makes the image the affine ellipse centre + M (cos s, sin s), M = (H L)[:2, :2] / h; its axes are
+    M's singular values and the major axis is M's first left singular vector, both in closed form. A conic's
+    entries are squares of the image's size, and its centre term cancels against them: for an ellipse seen
+    nearly edge-on that cancellation, and LAPACK's choice of eigenvector sign, moved the major axis by 5e-4
+    rad between OpenBLAS kernels. Here every step is a few flops of the image's own size.
+    """
+    n = len(H)
+    finite = np.isfinite(H).all(axis=(1, 2))
+    Hs = np.where(finite[:, None, None], H, np.eye(3))
+    r = Hs[:, 2, :]  # the principal plane's row: r . (cos t, sin t, 1) = 0 where the circle meets it
+    rho = np.hypot(r[:, 0], r[:, 1])
+    r3 = np.abs(r[:, 2])
+    q = (r3 - rho) * (r3 + rho)  # > 0: the circle lies wholly on one side of the principal plane
+    ok = finite & (q > 1e-12 * (r3 * r3 + rho * rho))
+    sign = np.where(r[:, 2] < 0, -1.0, 1.0)
+    beta = np.where(ok[:, None], r[:, :2] / np.where(ok, r[:, 2], 1.0)[:, None], 0.0)
+    gamma = np.where(ok, r3 / np.sqrt(np.where(ok, q, 1.0)), 1.0)
+    L = np.zeros((n, 3, 3))
+    L[:, :2, :2] = np.eye(2) + (gamma**2 / (gamma + 1))[:, None, None] * beta[:, :, None] * beta[:, None, :]
+    L[:, :2, 2] = L[:, 2, :2] = -gamma[:, None] * beta
+    L[:, 2, 2] = gamma
+    HL = Hs @ L
+    h = sign * r3 / gamma  # (H L)[2, 2]; the third row's first two entries are zero by construction
+    M = HL[:, :2, :2] / h[:, None, None]
+    centre = HL[:, :2, 2] / h[:, None]
+    # closed-form SVD of 2x2 M: M = R(phi) diag(s1, s2) R(-theta)
+    e, f = (M[:, 0, 0] + M[:, 1, 1]) / 2, (M[:, 0, 0] - M[:, 1, 1]) / 2
+    g, k = (M[:, 1, 0] + M[:, 0, 1]) / 2, (M[:, 1, 0] - M[:, 0, 1]) / 2
+    qq, rr = np.hypot(e, k), np.hypot(f, g)
+    axes = np.stack([qq + rr, np.abs(qq - rr)], axis=1)
+    ok &= axes[:, 1] > 1e-6 * axes[:, 0]
+    angle = (np.arctan2(g, f) + np.arctan2(k, e)) / 2
+    angle = np.pi / 2 - (np.pi / 2 - angle) % np.pi  # a direction: into (-pi/2, pi/2]
+    axes = np.where(ok[:, None], axes, 1.0)
+    return ok, np.where(ok[:, None], centre, 0.0), axes, np.where(ok, angle, 0.0)
 
 
 def parameters_on(H: np.ndarray, P: np.ndarray) -> np.ndarray:

@@ -888,7 +888,7 @@ def _emit_ellipses(ell: _Ellipses, cam: dict, runs, meta, pieces, n_seg: int, wo
     K = np.zeros((len(sel), 3, 3))
     K[:, 0, 0], K[:, 0, 2], K[:, 1, 1], K[:, 1, 2], K[:, 2, 2] = g["f"] * g["ax"], g["cx"], g["f"] * g["ay"], g["cy"], 1
     H = K @ conics.homography(ell.c[sel], ell.U[sel], ell.V[sel])
-    ok, centre, axes, angle = conics.ellipse_params_batch(conics.dual_conic(H))
+    ok, centre, axes, angle = conics.image_ellipses(H)
     for j in np.flatnonzero(ok).tolist():
         e = int(sel[j])
         arc_img = None if ell.full[e] else _image_arc(H[j], centre[j], axes[j], angle[j], tuple(ell.arc[e]))
