@@ -25,6 +25,7 @@ from wiredsl.verify import detectors as D
 from wiredsl.verify import fit as F
 from wiredsl.verify import images as I
 from wiredsl.verify import verification as V
+from wiredsl.verify.measured import pipeline_text
 
 FENCE = Path("tests/data/verify/fence.wd")
 H, W = 480, 640
@@ -212,7 +213,7 @@ def test_the_fit_recovers_the_cameras_correlation_from_known_pairs():
     assert hits >= 34, hits
     alone = F.fit([F.ImageSums(corners=40, found=40, located=40, loc_dof=40, loc2=1.6)] * 5, seed=0)
     assert alone.get("corner_error.correlation").value is None
-    assert "corner_error sigma 0.1414px correlation 0" in F.pipeline_text(alone, "m", ["t"])
+    assert "corner_error sigma 0.1414px correlation 0" in pipeline_text(alone, "m", ["t"])
 
 
 def test_truncated_sigma_inverts_the_truncated_mean_square_of_an_isotropic_normal():
@@ -241,7 +242,7 @@ def test_disc_radius_inverts_the_mean_distance_beyond_the_inlier_radius():
 
 def test_a_statistic_without_data_keeps_the_papers_value_and_says_so():
     f = F.fit([F.ImageSums(tested=100, verified=80, length=200, lost_middle=40)] * 5, seed=0)
-    text = F.pipeline_text(f, "measured", ["test"])
+    text = pipeline_text(f, "measured", ["test"])
     assert "corner_loss keep 85%" in text and "not estimated" in text
     assert "stereo matcher: no stereo pairs" in text
     assert f.get("edge_loss.fraction").value == pytest.approx(0.2)
@@ -255,8 +256,8 @@ def test_a_rig_with_a_declared_calibration_uncertainty_gets_it_simulated_first(t
     matrix): the pipeline starts with `calibration_error sigma 1`, which draws exactly it, and compiles with the
     scene without E160 (calibration first) or W161 (out of data-flow order)."""
     f = F.fit([F.ImageSums(tested=100, verified=80, length=200, lost_middle=40)] * 5, seed=0)
-    assert "calibration_error" not in F.pipeline_text(f, "measured", ["test"])
-    (tmp_path / "measured.wd").write_text(F.pipeline_text(f, "measured", ["test"], "information over 14 parameters"))
+    assert "calibration_error" not in pipeline_text(f, "measured", ["test"])
+    (tmp_path / "measured.wd").write_text(pipeline_text(f, "measured", ["test"], "information over 14 parameters"))
     (tmp_path / "s.wd").write_text(f'wiredsl 1\ninclude "{Path("scenes/lab.wd").resolve().as_posix()}"\n'
                                    'include "measured.wd"\n')
     from wiredsl.language.compile import compile_file
@@ -265,7 +266,7 @@ def test_a_rig_with_a_declared_calibration_uncertainty_gets_it_simulated_first(t
     stages = scene.pipeline("measured").stages
     assert (stages[0].effect, stages[0].params["sigma"]) == ("calibration_error", 1.0)
     assert not [w for w in warnings if "W161" in str(w)]
-    left_out = F.pipeline_text(f, "measured", ["test"], "information over 14 parameters", with_calibration=False)
+    left_out = pipeline_text(f, "measured", ["test"], "information over 14 parameters", with_calibration=False)
     assert "calibration_error" not in left_out.replace("--no-calibration-error", "")
 
 

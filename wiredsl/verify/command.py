@@ -20,6 +20,7 @@ from wiredsl.verify import images as im
 from wiredsl.verify import report, variation_fit
 from wiredsl.verify import verification as ver
 from wiredsl.verify.detectors import Detection, checked, params_of, registry
+from wiredsl.verify.measured import pipeline_text
 
 STAGE = "verify"  # the staging folder inside -o is a temporary of -o/verify (files.temporary)
 
@@ -43,7 +44,7 @@ class Request:
     predict: bool = False  # simulate the frames with the fitted pipeline and compare (predict.py)
     trials: int = 50
     predict_pipeline: object = None  # a Pipeline, or a scene pipeline's name, to predict with instead of the fitted one
-    calibration_error: bool = True  # the rig's declared calibration uncertainty simulated (fit.pipeline_text)
+    calibration_error: bool = True  # the rig's declared calibration uncertainty simulated (measured.pipeline_text)
     holdout: str | None = None  # odd | even | kfold:K: fit on some frames, predict the others (holdout.py)
     spreads: bool = True  # fit the spreads between images and correlations along them (variation_fit.py)
 
@@ -288,9 +289,9 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
                           "percentiles widened by sqrt(n / (n - 1)) t / z for n images).",
                           "Include this file in the scene and build with --pipeline " + req.pipeline_name + "."]
             cal = scene.rig.calibration
-            text = fitting.pipeline_text(result, req.pipeline_name, provenance,
-                                         None if cal is None else f"{cal.kind} over {len(cal.order)} parameters",
-                                         req.calibration_error)
+            text = pipeline_text(result, req.pipeline_name, provenance,
+                                 None if cal is None else f"{cal.kind} over {len(cal.order)} parameters",
+                                 req.calibration_error)
             write_atomic(out / f"{req.pipeline_name}.wd", text)
             write_atomic(out / "fit.json", json_text({**result.to_json(), "seed": req.seed, "bootstrap": fitting.B},
                                                      indent=1))

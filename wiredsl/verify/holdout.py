@@ -224,6 +224,7 @@ def run(req, staging: Path, scene, world, observed: list, sums: list, sums_frame
     from wiredsl.files import json_text, write_atomic
     from wiredsl.verify import fit as fitting
     from wiredsl.verify import variation_fit
+    from wiredsl.verify.measured import pipeline_text
 
     folds = parse_split(req.holdout, len(observed))
     rows, fits = [], []
@@ -235,9 +236,9 @@ def run(req, staging: Path, scene, world, observed: list, sums: list, sums_frame
             keep = [i for i, f in enumerate(sums_frame) if f not in held_set]
             variation_fit.add(result, [extras[i] for i in keep], [sums_frame[i] for i in keep],
                               [o.pose for o in observed], req.seed, req.edge_loss)
-        text = fitting.pipeline_text(result, req.pipeline_name, [f"Fold {k + 1} of {len(folds)} of --holdout "
-                                                                  f"{req.holdout}: fitted on {len(train)} images."],
-                                     calibration, req.calibration_error)
+        text = pipeline_text(result, req.pipeline_name, [f"Fold {k + 1} of {len(folds)} of --holdout "
+                                                         f"{req.holdout}: fitted on {len(train)} images."],
+                             calibration, req.calibration_error)
         pipeline = pipeline_of(req.scene, text, req.pipeline_name, staging)
         frames = [observed[i] for i in held]
         sim = simulate(scene, world, pipeline, frames, cfg, req.trials, req.seed + k, objects, corners)
