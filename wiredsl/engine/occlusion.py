@@ -19,7 +19,7 @@ eye to it meets an occluder at a ray parameter in (RAY_END, 1 - RAY_END).
 - Curves (ellipse arcs) and segments against surfaces are sampled (SAMPLES
   points a feature) with that exact point test, and every change of visibility
   between two samples is refined by bisection to BISECT halvings of the sample
-  step (about 1e-14 of the feature's parameter range).
+  step (about 1e-14 of the feature's parameter range), BISECT_BITS of them a round from one call.
 
 Memory is bounded: every all-pairs array (queries x triangles, points x surfaces, samples of features) is
 made in blocks of consecutive queries whose pairs, counted first from the grids' cells, fit in BUDGET bytes
@@ -46,6 +46,7 @@ from wiredsl.engine.world import World, ellipse_points, side_ellipses
 RAY_END = 1e-7  # fraction of the eye-to-point distance treated as touching the point: rounding, not geometry
 SAMPLES = 128  # samples a segment or a full ellipse against the curved surfaces; a section gets its share
 BISECT = 40  # halvings of a sample step that brackets a change of visibility
+BISECT_BITS = 4  # of them a round: 2**BISECT_BITS - 1 points tested in one call (the calls' overhead dominates)
 SLIVER = 1e-9  # parameter length below which a visible or hidden piece is dropped (rounding, not geometry)
 MIN_PIECE_PX = 0.01  # image length (px) below which a visible piece is dropped and a hidden gap closed (below)
 GRID_NEAR = 1e-2  # metres from the eye's plane within which a triangle is tested against every query
@@ -736,13 +737,19 @@ def _hidden_runs_block(point, hidden, lo: np.ndarray, hi: np.ndarray, count: np.
     change = np.flatnonzero((row[:-1] == row[1:]) & (H[:-1] != H[1:]))
     a, b, ha = u[change], u[change + 1], H[change]
     cr = row[change]
-    for _ in range(BISECT):
+    ways = 2**BISECT_BITS
+    at = np.arange(1, ways) / ways
+    for _ in range(BISECT // BISECT_BITS):  # BISECT_BITS halvings a round, every point of a round in one call
         if not len(cr):
             break
-        mid = (a + b) / 2
-        hm = hidden(point(cr, mid))
-        same = hm == ha
-        a, b = np.where(same, mid, a), np.where(same, b, mid)
+        w = b - a
+        hm = hidden(point(np.repeat(cr, ways - 1), (a[:, None] + w[:, None] * at).ravel())).reshape(-1, ways - 1)
+        lo_i, hi_i = np.zeros(len(cr), dtype=np.int64), np.full(len(cr), ways)
+        for _ in range(BISECT_BITS):  # the halvings bisection would make, read off the round's points
+            mid = (lo_i + hi_i) // 2
+            same = hm[np.arange(len(cr)), mid - 1] == ha
+            lo_i, hi_i = np.where(same, mid, lo_i), np.where(same, hi_i, mid)
+        a, b = a + w * (lo_i / ways), a + w * (hi_i / ways)
     edge = (a + b) / 2
     first = np.concatenate([[True], row[1:] != row[:-1]])
     last = np.concatenate([row[1:] != row[:-1], [True]])
