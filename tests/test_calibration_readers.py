@@ -214,10 +214,11 @@ def test_kalibr_results_of_other_models(tmp_path):
     (tmp_path / "none.txt").write_text(_results("\t", "PinholeCameraGeometry", "[]", "[]"))
     c0, _ = cf.read(tmp_path / "none.txt")
     assert c0.dist == (0,) * 8 and "k" not in c0.sigma
-    for geometry, model in (("DistortedOmniCameraGeometry", "omni"), ("FovDistortedPinholeCameraGeometry", "fov"),
-                            ("DoubleSphereCameraGeometry", "ds")):
+    for geometry, model in (("DistortedOmniCameraGeometry", "an 'omni'"), ("FovDistortedPinholeCameraGeometry",
+                                                                           "a 'fov'"),
+                            ("DoubleSphereCameraGeometry", "a 'ds'"), ("ExtendedUnifiedCameraGeometry", "an 'eucm'")):
         (tmp_path / "x.txt").write_text(_results("\t", geometry))
-        with pytest.raises(cf.CalibrationFileError, match=f"results-cam.txt of a '{model}' camera is not read"):
+        with pytest.raises(cf.CalibrationFileError, match=f"results-cam.txt of {model} camera is not read"):
             cf.read(tmp_path / "x.txt")
     (tmp_path / "five.txt").write_text(_results("\t").replace("401.5 268. ] +- [0.3 0.3", "401.5 268. 1] +- [0.3 0.3"))
     with pytest.raises(cf.CalibrationFileError, match="a pinhole projection has 4 values"):

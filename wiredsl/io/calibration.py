@@ -494,9 +494,10 @@ def _kalibr_results(text: str) -> list[CameraFile]:
 
 def _kalibr_camera(c: dict) -> CameraFile:
     name, kind = c["name"], c.get("type", "")
-    for word, model in (("Omni", "omni"), ("DoubleSphere", "ds"), ("ExtendedUnified", "eucm"), ("Fov", "fov")):
+    for word, model in (("Omni", "an 'omni'"), ("DoubleSphere", "a 'ds'"), ("ExtendedUnified", "an 'eucm'"),
+                        ("Fov", "a 'fov'")):
         if word in kind:
-            raise CalibrationFileError(f"{name}: Kalibr's results-cam.txt of a '{model}' camera is not read (its "
+            raise CalibrationFileError(f"{name}: Kalibr's results-cam.txt of {model} camera is not read (its "
                                        "standard deviations are of other numbers): read the camchain YAML")
     equidistant = "Equidistant" in kind
     if "projection" not in c:
