@@ -48,6 +48,10 @@ SAMPLES = 128  # samples a segment or a full ellipse against the curved surfaces
 BISECT = 40  # halvings of a sample step that brackets a change of visibility
 BISECT_BITS = 4  # of them a round: 2**BISECT_BITS - 1 points tested in one call (the calls' overhead dominates)
 SLIVER = 1e-9  # parameter length below which a visible or hidden piece is dropped (rounding, not geometry)
+# image distance (px) from a face's plane within which a point touches the face and is not hidden by it: an edge on
+# the face it bounds, moved off it by rounding or by merging nearly collinear creases (0.05-0.15 um on a fandisk,
+# some 1e-4 px); half MIN_PIECE_PX: a point moved onto the face by a displacement under a piece too short to keep
+FACE_TOUCH_PX = 0.005
 MIN_PIECE_PX = 0.01  # image length (px) below which a visible piece is dropped and a hidden gap closed (below)
 GRID_NEAR = 1e-2  # metres from the eye's plane within which a triangle is tested against every query
 GRID_REACH = 10.0  # the grid spans image-plane coordinates (x/z, y/z) within this; beyond, its border cells
@@ -188,7 +192,7 @@ class Eye:
             tlo = np.where(boxed[:, None], q.min(axis=1), -np.inf)
             thi = np.where(boxed[:, None], q.max(axis=1), np.inf)
             keep = ((tlo[inv] <= qhi[r]) & (thi[inv] >= qlo[r])).all(axis=1) & (z.max(axis=1) > 0)[inv]
-            G, h = _triangle_conditions(W)
+            G, h = _triangle_conditions(W, FACE_TOUCH_PX / self.px if self.px > 0 else 0.0)
             r, tk = r[keep], inv[keep]
             G, h = G[tk], h[tk]
             if own is not None:
@@ -379,11 +383,13 @@ def _surface_hulls(o: Occluders) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return n, np.where(ok[:, None], c, 0.0), np.where(ok, z.min(axis=1) if S else np.zeros(0), -np.inf)
 
 
-def _triangle_conditions(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _triangle_conditions(W: np.ndarray, touch: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """For triangles (T, 3, 3) seen from the origin: G (T, 4, 3), h (T, 4) with P hidden iff G P + h >= 0.
 
     Rows 0-2: P inside the cone of rays through the triangle; row 3: P beyond the triangle's plane by
-    more than RAY_END of the way. A triangle whose plane holds the eye hides nothing.
+    more than RAY_END of the way, and by more than `touch` times its depth z (FACE_TOUCH_PX over the camera's
+    pixels a radian: nearer the plane than that, P touches the face in image terms, and the face does not hide
+    it). A triangle whose plane holds the eye hides nothing.
     """
     T = len(W)
     if T == 0:
@@ -400,6 +406,7 @@ def _triangle_conditions(W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     N, sE = N * flip[:, None], sE * flip
     scale = np.linalg.norm(N, axis=1) * np.abs(W).max(axis=(1, 2))
     G[:, 3] = -N
+    G[:, 3, 2] -= np.linalg.norm(N, axis=1) * touch
     h[:, 3] = np.where((sE > 1e-12 * scale) & (orient != 0), -sE / (1 - RAY_END), -np.inf)
     return G, h
 
