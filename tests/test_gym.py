@@ -107,6 +107,15 @@ def test_leaving_the_area_ends_the_episode_with_a_penalty(lab):
         if terminated or truncated:
             break
     assert terminated and reward < -9
+    obs, _ = env.reset(seed=0)  # a further step would carry the robot further out, beyond the observation space
+    assert env.observation_space.contains(obs)
+    env._pose[2] += math.pi
+    while not any(env.step(np.array([1.0, 0.0], np.float32))[2:4]):
+        pass
+    with pytest.raises(RuntimeError, match="the episode has ended"):
+        env.step(np.array([1.0, 0.0], np.float32))
+    obs, _ = env.reset(seed=1)
+    assert env.observation_space.contains(obs)
 
 
 def test_keeping_the_target_in_view_pays_and_losing_it_ends_the_episode(lab):

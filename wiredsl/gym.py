@@ -306,7 +306,7 @@ class WiredslEnv(gymnasium.Env):
             self._pose = np.eye(4)
             self._pose[:3, :3] = geometry.rot_z(h)
             self._pose[:3, 3] = (x, y, 0.0)
-        self._step, self._lost = 0, 0
+        self._step, self._lost, self._ended = 0, 0, False
         batch, obs = self._look()
         self._last = self._distance()
         return obs, self._info(batch)
@@ -318,6 +318,8 @@ class WiredslEnv(gymnasium.Env):
     def step(self, action):
         if self._pose is None:
             raise RuntimeError("call reset() before step()")
+        if self._ended:  # a further move could leave the observation space (the robot beyond the area's margin)
+            raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
         self._move(self._action(action))  # a bad action is refused before the pose changes
         self._step += 1
         batch, obs = self._look()
@@ -341,6 +343,7 @@ class WiredslEnv(gymnasium.Env):
         if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and abs(z) <= HEIGHT):
             reward, terminated = reward - 10.0, True
         truncated = not terminated and self._step >= self.max_steps
+        self._ended = terminated or truncated
         return obs, float(reward), terminated, truncated, info
 
 
