@@ -159,7 +159,7 @@ class Eye:
         out = np.zeros(len(P), dtype=bool)
         if len(self.tris_w) == 0 or len(P) == 0:
             return out
-        for rows in _blocks(self.grid.load(P, P), FACE_PAIR_BYTES):
+        for rows in self._row_blocks(self.grid, P, P, len(self.tris_w), FACE_PAIR_BYTES):
             for r, G, h in self._pairs(P[rows], P[rows]):
                 r = r + rows.start
                 lo, hi = _pair_intervals(G, h, P[r], np.zeros((len(r), 3)))
@@ -207,12 +207,20 @@ class Eye:
                                           -np.inf)
             yield r, G, h
 
+    @staticmethod
+    def _row_blocks(grid, A: np.ndarray, B: np.ndarray, items: int, unit_bytes: int) -> list[slice]:
+        """_blocks of the rows A B by their pairs in `grid`, counted only when every row with every one of its
+        `items` could exceed BUDGET (counting costs as much as a small query: the bisection's many)."""
+        if len(A) * items * unit_bytes <= BUDGET:
+            return [slice(0, len(A))] if len(A) else []
+        return _blocks(grid.load(A, B), unit_bytes)
+
     def hidden_by_surfaces(self, P: np.ndarray) -> np.ndarray:
         out = np.zeros(len(P), dtype=bool)
         if len(self.sphere_c) == 0 or len(P) == 0:
             return out
         step = max(1, BUDGET // SURFACE_PAIR_BYTES)
-        for rows in _blocks(self.sgrid.load(P, P), SURFACE_PAIR_BYTES):
+        for rows in self._row_blocks(self.sgrid, P, P, len(self.sphere_c), SURFACE_PAIR_BYTES):
             i_all, k_all = self.sgrid.pairs(P[rows], P[rows])
             for at in range(0, len(i_all), step):
                 i, k = i_all[at:at + step] + rows.start, k_all[at:at + step]
@@ -249,7 +257,7 @@ class Eye:
         if len(self.tris_w) and n:
             D = B - A
             A0, A1 = A + t0[:, None] * D, A + t1[:, None] * D
-            for rows in _blocks(self.grid.load(A0, A1), FACE_PAIR_BYTES):
+            for rows in self._row_blocks(self.grid, A0, A1, len(self.tris_w), FACE_PAIR_BYTES):
                 block = None if own is None else tuple(x[rows] for x in own)
                 for r, G, h in self._pairs(A0[rows], A1[rows], own=block):
                     r = r + rows.start
@@ -348,7 +356,7 @@ class Eye:
         A = np.column_stack([q.min(axis=1) - margin, np.where(ahead, 1.0, -1.0)])  # a segment with that box
         B = np.column_stack([q.max(axis=1) + margin, np.where(ahead, 1.0, -1.0)])
         out_r, out_a, out_b = [np.zeros(0, int)], [np.zeros(0)], [np.zeros(0)]
-        for rows in _blocks(self.grid.load(A, B), ARC_PAIR_BYTES):
+        for rows in self._row_blocks(self.grid, A, B, len(self.tris_w), ARC_PAIR_BYTES):
             for r, G, h in self._pairs(A[rows], B[rows], ARC_PAIR_BYTES):
                 r = r + rows.start
                 i, a, b = _arc_pair_intervals(G, h, C[r], Uo[r], Vo[r], sa[r], sb[r])
