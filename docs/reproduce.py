@@ -1,0 +1,274 @@
+"""The docs' measured numbers and figures, made by the commands the pages show beside them, and checked.
+
+    python docs/reproduce.py --write [--reuse build/ci] [NAME ...]   # regenerate blocks and figures in place
+    python docs/reproduce.py --check [--reuse build/ci] [NAME ...]   # regenerate and compare; exit 1 on a drift
+    python docs/reproduce.py --list                                   # each block: its page, command and figures
+
+A page holds `<!-- numbers: NAME -->` and `<!-- /numbers -->` on lines of their own; between them is what
+BLOCKS[NAME] writes from its command's output: the command itself, then the numbers (a table, or a sentence made
+from them, so a conclusion follows the numbers). `--check` compares a block's words exactly and each number
+within NUMBER_TOL units of the last digit the page prints (a rounded figure may move in its last digit on
+another CPU's floating point), and each figure with matplotlib's `compare_images` at FIGURE_TOL (RMS over
+0-255 grey levels). `--reuse DIR` takes a study's output from DIR (CI's `build/ci`, written by `.ci/run`'s own
+study commands) when its manifest's digest is the study's (the scene with its includes, the study, wiredsl's
+version: `wiredsl.study.digest`), so CI pays only for reading it; without it, or when they differ, the command
+runs in a temporary folder.
+
+Not here yet (their pages still carry hand-copied figures, each with the script that prints them): the CRN
+table (`benchmarks/study_crn.py`, CPU seconds), the detector round-trip counts
+(`tests/test_verify_roundtrip.py`), the chessboard tables (`docs/scripts/verify_opencv_stereo.py`) and the SVG
+renders (README's `lab_pose_003_overlay.png`, `first_pose_004.png`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+NUMBER_TOL = 1  # units of the page's last printed digit
+FIGURE_TOL = 2.0  # compare_images' RMS, grey levels
+BLOCK = re.compile(r"^<!-- numbers: ([\w-]+) -->\n(.*?)^<!-- /numbers -->$", re.M | re.S)
+NUMBER = re.compile(r"(?<![\w.])-?\d+(?:\.\d+)?(?:e[-+]?\d+)?")
+
+
+@dataclass(frozen=True)
+class Block:
+    page: str  # relative to the checkout
+    command: str  # as the page shows it
+    make: Callable[[Context], str]  # the block's Markdown between the markers
+    figures: dict[str, Callable[[Context], Path]] = field(default_factory=dict)  # docs/figures/x.png -> fresh file
+
+
+class Context:
+    """Where the blocks' commands run (or are reused from), each once."""
+
+    def __init__(self, reuse: Path | None, tmp: Path):
+        self.reuse, self.tmp, self.made = reuse, tmp, {}
+
+    def study(self, scene: str, study: str, ci_folder: str) -> Path:
+        """`wiredsl study SCENE STUDY`'s output folder: CI's own (reuse/ci_folder) when it is that study."""
+        if (scene, study) not in self.made:
+            self.made[scene, study] = self._study(scene, study, ci_folder)
+        return self.made[scene, study]
+
+    def _study(self, scene: str, study: str, ci_folder: str) -> Path:
+        if self.reuse is not None:
+            m = self.reuse / ci_folder / "manifest.json"
+            if m.is_file():
+                from wiredsl import api
+                from wiredsl.study import digest
+
+                compiled = api.compile(ROOT / scene)
+                (s,) = [s for s in compiled.studies if s.name == study]
+                if json.loads(m.read_text()).get("digest") == digest(compiled, s):
+                    print(f"numbers: reusing {m.parent} for {scene} {study}", file=sys.stderr)
+                    return m.parent
+                print(f"numbers: {m} is not {scene} {study} as it is now (its digest differs); running it",
+                      file=sys.stderr)
+        out = self.tmp / f"{Path(scene).stem}-{study}"
+        print(f"numbers: wiredsl study {scene} {study}", file=sys.stderr)
+        subprocess.run([sys.executable, "-m", "wiredsl", "study", scene, study, "-o", str(out)], cwd=ROOT, check=True)
+        return out
+
+
+def _rows(folder: Path) -> list[dict]:
+    return json.loads((folder / "table.json").read_text())["rows"]
+
+
+def _f3(x: float) -> str:
+    """Three significant figures, as a table prints them (0.037, 0.555, 1.27)."""
+    return f"{x:.3f}" if abs(x) < 1 else f"{x:.3g}"
+
+
+SHIFT_CAL = ("scenes/studies/lab_study.wd", "shift_calibration", "study")
+SOURCES = ("scenes/studies/lab_study.wd", "sources", "sources")
+SHIFT_ROWS = [(0, 0), (0, 0.04), (2, 0), (4, 0), (6, 0), (6, 0.04)]  # (px, sigma): the excerpt's design points
+
+
+def shift_table(ctx: Context) -> str:
+    rows = _rows(ctx.study(*SHIFT_CAL))
+    lines = [f"`{BLOCKS['study-shift-table'].command}`, excerpt of its `table.csv`:", "",
+             "| lateral_shift.range (px) | calibration_error.sigma | pgh.recognition mean ± se | q05 / q50 / q95 "
+             "| stereo3d.error_median mean ± se (m) | q05 / q50 / q95 |", "|---|---|---|---|---|---|"]
+
+    def at(stat: str, px: float, sigma: float) -> dict:
+        (r,) = [r for r in rows if (r["measure"], r["statistic"]) == stat
+                and abs(r["values"]["lateral_shift.range"] - px) < 1e-9
+                and abs(r["values"]["calibration_error.sigma"] - sigma) < 1e-9]
+        return r
+
+    rec, err = ("pgh", "recognition"), ("stereo3d", "error_median")
+    for px, sigma in SHIFT_ROWS:
+        cells = [f"{px:g}", f"{sigma:g}"]
+        for stat in (rec, err):
+            r = at(stat, px, sigma)
+            cells += [f"{_f3(r['mean'])} ± {_f3(r['sem'])}", " / ".join(_f3(r[q]) for q in ("q05", "q50", "q95"))]
+        lines.append("| " + " | ".join(cells) + " |")
+    # the conclusion, from the same rows: recognition's fall with the shift, and what shift the calibration's
+    # 0.04 alone costs as much 3D error as
+    shifts = sorted({r["values"]["lateral_shift.range"] for r in rows})
+    cal = at(err, 0, 0.04)["mean"]
+    by_shift = [(px, at(err, px, 0)["mean"]) for px in shifts]
+    below = [px for px, e in by_shift if e <= cal]
+    above = [px for px, e in by_shift if e > cal]
+    like = (f"more than a {below[-1]:g} px shift does" if not above else
+            f"as much as a shift between {below[-1]:g} and {above[0]:g} px" if below else
+            f"less than a {above[0]:g} px shift does")
+    lines += ["", f"Recognition goes from {at(rec, 0, 0)['mean']:.0%} to {at(rec, shifts[-1], 0)['mean']:.0%} as the "
+              f"shift range grows to {shifts[-1]:g} px, and is {at(rec, 0, 0.04)['mean']:.0%} with a 0.04 calibration "
+              f"sigma alone. The median 3D error grows with "
+              f"both: a 0.04 calibration sigma alone ({_f3(cal)} m) costs {like} "
+              f"({', '.join(f'{px:g} px: {_f3(e)} m' for px, e in by_shift)})."]
+    return "\n".join(lines) + "\n"
+
+
+SOBOL_SENTENCE = [("pgh", "match", "the PGH match score"), ("pgh", "recognition", "the recognition rate"),
+                  ("stereo3d", "error_median", "the median 3D error"),
+                  ("stereo3d", "corners", "the corners reconstructed")]
+FACTOR_WORDS = {"approx_error": "approximation error", "calibration_error": "calibration"}
+SOBOL_MIN = 0.15  # first-order indices below this are not named
+
+
+def sobol_sentence(ctx: Context) -> str:
+    sobol = json.loads((ctx.study(*SOURCES) / "table.json").read_text())["sobol"]
+    parts = []
+    for measure, stat, words in SOBOL_SENTENCE:
+        got = sorted(((s["first_order"], s["factor"].rsplit(".", 1)[0]) for s in sobol
+                      if (s["measure"], s["statistic"]) == (measure, stat) and s["first_order"] is not None
+                      and s["first_order"] >= SOBOL_MIN), reverse=True)
+        named = [f"{FACTOR_WORDS.get(f, f.replace('_', ' '))} ({v:.2f})" for v, f in got]
+        if not named:
+            parts.append(f"for {words}, no source above {SOBOL_MIN}")
+            continue
+        parts.append(f"for {words}, " + (named[0] if len(named) == 1 else
+                                        ", ".join(named[:-1]) + " then " + named[-1]))
+    return (f"From `{BLOCKS['study-sources-sobol'].command}`'s `table.json`, the sources in order of their "
+            f"first-order index (those of at least {SOBOL_MIN}): " + "; ".join(parts) + ".\n")
+
+
+def _plot(spec: tuple[str, str, str], name: str) -> Callable[[Context], Path]:
+    return lambda ctx: ctx.study(*spec) / "plots" / name
+
+
+BLOCKS: dict[str, Block] = {
+    "study-shift-table": Block(
+        "docs/tutorials/study.md", "wiredsl study scenes/studies/lab_study.wd shift_calibration", shift_table,
+        {"docs/figures/study_shift_recognition.png": _plot(SHIFT_CAL, "pgh.recognition.png"),
+         "docs/figures/study_shift_error.png": _plot(SHIFT_CAL, "stereo3d.error_median.png")}),
+    "study-sources-sobol": Block(
+        "docs/tutorials/study.md", "wiredsl study scenes/studies/lab_study.wd sources", sobol_sentence,
+        {"docs/figures/study_sources_sobol.png": _plot(SOURCES, "sobol.png")}),
+}
+
+
+def numbers_drift(page: str, fresh: str, tol: float = NUMBER_TOL) -> list[str]:
+    """How `fresh` differs from `page`: words exactly, numbers within `tol` units of the page's last digit."""
+    if NUMBER.sub("#", page) != NUMBER.sub("#", fresh):
+        a, b = NUMBER.sub("#", page).splitlines(), NUMBER.sub("#", fresh).splitlines()
+        diff = next(f"page: {x!r}\n      now:  {y!r}" for x, y in itertools.zip_longest(a, b, fillvalue="") if x != y)
+        return [f"the words differ:\n      {diff}"]
+    out = []
+    for x, y in zip(NUMBER.findall(page), NUMBER.findall(fresh), strict=True):
+        digits = len(x.split("e")[0].partition(".")[2])
+        scale = 10.0 ** (int(x.split("e")[1]) if "e" in x else 0)
+        if abs(float(x) - float(y)) > tol * 10.0 ** -digits * scale * (1 + 1e-9):
+            out.append(f"{x} on the page, {y} now")
+    return out
+
+
+def figure_drift(page: Path, fresh: Path, tol: float = FIGURE_TOL) -> str | None:
+    """None when the figures agree within `tol` (RMS grey levels), else why not."""
+    from matplotlib.testing.compare import compare_images
+
+    if not page.is_file():
+        return f"{page} is missing"
+    try:
+        return compare_images(str(page), str(fresh), tol=tol)
+    except Exception as exc:  # different sizes: compare_images raises ImageComparisonFailure
+        return str(exc)
+
+
+def run(root: Path, blocks: dict[str, Block], ctx: Context, write: bool,
+        known: dict[str, Block] | None = None) -> list[str]:
+    """Every block regenerated; written in place (write) or compared: the drifts, each with its page and line.
+
+    `blocks` are those to make, `known` every name a page may hold (default BLOCKS)."""
+    known = BLOCKS if known is None else known
+    problems = []
+    for page in sorted({b.page for b in blocks.values()}):
+        text = (root / page).read_text()
+        found = {m.group(1): m for m in BLOCK.finditer(text)}
+        for name in [n for n, b in blocks.items() if b.page == page and n not in found]:
+            problems.append(f"{page}: no block `<!-- numbers: {name} -->`")
+        for name in found:
+            if name not in known:
+                line = text.count("\n", 0, found[name].start()) + 1
+                problems.append(f"{page}:{line}: unknown numbers block {name!r}: one of {', '.join(known)}")
+
+        def fill(m: re.Match, page: str = page, text: str = text) -> str:
+            name = m.group(1)
+            if name not in blocks:
+                return m.group(0)
+            fresh = blocks[name].make(ctx)
+            line = text.count("\n", 0, m.start()) + 1
+            if not write:
+                problems.extend(f"{page}:{line}: {name}: {p}" for p in numbers_drift(m.group(2), fresh))
+            return f"<!-- numbers: {name} -->\n{fresh}<!-- /numbers -->"
+
+        new = BLOCK.sub(fill, text)
+        if write and new != text:
+            (root / page).write_text(new)
+            print(f"numbers: wrote {page}", file=sys.stderr)
+        for name in [n for n in found if n in blocks]:
+            for fig, make in blocks[name].figures.items():
+                fresh = make(ctx)
+                if write:
+                    shutil.copyfile(fresh, root / fig)
+                    print(f"numbers: wrote {fig}", file=sys.stderr)
+                elif (why := figure_drift(root / fig, fresh)) is not None:
+                    problems.append(f"{fig} ({name}): differs from what `{blocks[name].command}` draws: {why}")
+    return problems
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    mode = ap.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--write", action="store_true", help="regenerate every block and figure in place")
+    mode.add_argument("--check", action="store_true", help="regenerate and compare; exit 1 on a drift")
+    mode.add_argument("--list", action="store_true", help="each block, its page, command and figures")
+    ap.add_argument("--reuse", type=Path, help="a folder of study outputs (CI's build/ci) to read, not rerun")
+    ap.add_argument("names", nargs="*", help="only these blocks (default: all)")
+    a = ap.parse_args(argv)
+    unknown = [n for n in a.names if n not in BLOCKS]
+    if unknown:
+        ap.error(f"unknown block {unknown[0]!r}: one of {', '.join(BLOCKS)}")
+    blocks = {n: b for n, b in BLOCKS.items() if not a.names or n in a.names}
+    if a.list:
+        for n, b in blocks.items():
+            print(f"{n}\t{b.page}\t{b.command}\t{' '.join(b.figures)}")
+        return 0
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            problems = run(ROOT, blocks, Context(a.reuse, Path(tmp)), a.write)
+        except subprocess.CalledProcessError as exc:
+            print(f"numbers: error: {' '.join(exc.cmd[2:])} exited {exc.returncode}", file=sys.stderr)
+            return 1
+    for p in problems:
+        print(f"numbers: drift: {p}", file=sys.stderr)
+    if a.check and not problems:
+        print(f"numbers: {len(blocks)} blocks and their figures hold", file=sys.stderr)
+    return 1 if problems else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
