@@ -16,8 +16,8 @@ runs in a temporary folder.
 
 Not here yet (their pages still carry hand-copied figures, each with the script that prints them): the CRN
 table (`benchmarks/study_crn.py`, CPU seconds), the detector round-trip counts
-(`tests/test_verify_roundtrip.py`), the chessboard tables (`docs/scripts/verify_opencv_stereo.py`) and the SVG
-renders (README's `lab_pose_003_overlay.png`, `first_pose_004.png`).
+(`tests/test_verify_roundtrip.py`), the chessboard tables (`docs/scripts/verify_opencv_stereo.py`) and the
+renders of the box and the meshes (`box_pose_001_visibility.png`, `meshes_pose_001_exact.png`).
 """
 
 from __future__ import annotations
@@ -79,6 +79,26 @@ class Context:
         print(f"numbers: wiredsl study {scene} {study}", file=sys.stderr)
         subprocess.run([sys.executable, "-m", "wiredsl", "study", scene, study, "-o", str(out)], cwd=ROOT, check=True)
         return out
+
+
+    def build(self, scene: str, *args: str, page: str | None = None) -> Path:
+        """`wiredsl build SCENE ARGS`'s output folder; with `page`, SCENE is first written from the page's
+        `<!-- file: SCENE -->` block (as tests/test_docs.py runs a tutorial) and built beside it."""
+        key = (scene, *args, page)
+        if key not in self.made:
+            cwd = ROOT
+            if page is not None:
+                cwd = self.tmp / f"page-{len(self.made)}"
+                cwd.mkdir()
+                m = re.search(rf"^<!-- file: {re.escape(scene)} -->\n```\w*\n(.*?)^```", (ROOT / page).read_text(),
+                              re.S | re.M)
+                (cwd / scene).write_text(m.group(1))
+            out = self.tmp / f"build-{len(self.made)}"
+            print(f"numbers: wiredsl build {scene} {' '.join(args)}", file=sys.stderr)
+            subprocess.run([sys.executable, "-m", "wiredsl", "build", scene, *args, "-o", str(out)], cwd=cwd,
+                           check=True, capture_output=True)
+            self.made[key] = out
+        return self.made[key]
 
 
 def _rows(folder: Path) -> list[dict]:
@@ -160,7 +180,27 @@ def _plot(spec: tuple[str, str, str], name: str) -> Callable[[Context], Path]:
     return lambda ctx: ctx.study(*spec) / "plots" / name
 
 
+def _figure(line: str, command: str, svg: str) -> Callable[[Context], str]:
+    """A figure block's text: the image, then the command that draws it and the file it writes."""
+    return lambda ctx: f"{line}\n\nDrawn by `{command}` (its `{svg}`).\n"
+
+
+LAB_FIGURE = ("![The lab scene seen by both cameras of the rig: disturbed features in colour over the ideal ones in "
+              "grey, and the map]({}figures/lab_pose_003_overlay.svg)")
+
 BLOCKS: dict[str, Block] = {
+    "readme-figure": Block(
+        "README.md", "wiredsl build scenes/lab.wd --seed 1",
+        _figure(LAB_FIGURE.format("docs/"), "wiredsl build scenes/lab.wd --seed 1", "build/lab/pose_003.svg"),
+        {"docs/figures/lab_pose_003_overlay.svg": lambda ctx: ctx.build("scenes/lab.wd", "--seed", "1")
+         / "pose_003.svg"}),
+    "first-figure": Block(
+        "docs/tutorials/first-scene.md", "wiredsl build first.wd --seed 1",
+        _figure("![The crate seen by both cameras at the last pose, and the map of the path]"
+                "(../figures/first_pose_004.svg)", "wiredsl build first.wd --seed 1", "build/first/pose_004.svg"),
+        {"docs/figures/first_pose_004.svg": lambda ctx: ctx.build("first.wd", "--seed", "1",
+                                                                  page="docs/tutorials/first-scene.md")
+         / "pose_004.svg"}),
     "study-shift-table": Block(
         "docs/tutorials/study.md", "wiredsl study scenes/studies/lab_study.wd shift_calibration", shift_table,
         {"docs/figures/study_shift_recognition.png": _plot(SHIFT_CAL, "pgh.recognition.png"),
@@ -187,11 +227,14 @@ def numbers_drift(page: str, fresh: str, tol: float = NUMBER_TOL) -> list[str]:
 
 
 def figure_drift(page: Path, fresh: Path, tol: float = FIGURE_TOL) -> str | None:
-    """None when the figures agree within `tol` (RMS grey levels), else why not."""
+    """None when the figures agree (a PNG within `tol` RMS grey levels, an SVG's numbers within 1 in their last
+    digit and its words exactly), else why not."""
     from matplotlib.testing.compare import compare_images
 
     if not page.is_file():
         return f"{page} is missing"
+    if page.suffix == ".svg":  # the data it draws, as text: coordinates within their last digit
+        return "; ".join(numbers_drift(page.read_text(), fresh.read_text(), NUMBER_TOL)[:3]) or None
     try:
         return compare_images(str(page), str(fresh), tol=tol)
     except Exception as exc:  # different sizes: compare_images raises ImageComparisonFailure

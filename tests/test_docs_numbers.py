@@ -89,3 +89,21 @@ def test_missing_and_unknown_blocks_are_named(tmp_path):
 def test_every_real_block_is_on_its_page():
     for name, b in numbers.BLOCKS.items():
         assert f"<!-- numbers: {name} -->" in (ROOT / b.page).read_text(), name
+
+
+def test_an_svg_figure_is_compared_by_what_it_draws(tmp_path):
+    root = tmp_path / "root"
+    root.mkdir()
+    (root / "page.md").write_text(PAGE)
+    svg = tmp_path / "fresh.svg"
+    blocks = {"t": numbers.Block("page.md", "make t", lambda ctx: "![f](fig.svg)\n", {"fig.svg": lambda ctx: svg})}
+    ctx = numbers.Context(None, tmp_path)
+    svg.write_text('<svg><line x1="10.25" y1="3"/><title>pose 3</title></svg>')
+    assert numbers.run(root, blocks, ctx, write=True, known=blocks) == []
+    svg.write_text('<svg><line x1="10.26" y1="3"/><title>pose 3</title></svg>')  # its last digit: holds
+    assert _check(root, blocks, ctx) == []
+    svg.write_text('<svg><line x1="10.75" y1="3"/><title>pose 3</title></svg>')
+    assert _check(root, blocks, ctx) == ["fig.svg (t): differs from what `make t` draws: 10.25 on the page, 10.75 now"]
+    svg.write_text('<svg><line x1="10.25" y1="3"/><line x1="1" y1="2"/><title>pose 3</title></svg>')  # one more
+    (drift,) = _check(root, blocks, ctx)
+    assert "the words differ" in drift
