@@ -16,8 +16,7 @@ runs in a temporary folder.
 
 Not here yet (their pages still carry hand-copied figures, each with the script that prints them): the CRN
 table (`benchmarks/study_crn.py`, CPU seconds), the detector round-trip counts
-(`tests/test_verify_roundtrip.py`), the chessboard tables (`docs/scripts/verify_opencv_stereo.py`) and the
-renders of the box and the meshes (`box_pose_001_visibility.png`, `meshes_pose_001_exact.png`).
+(`tests/test_verify_roundtrip.py`) and the chessboard tables and figures (`docs/scripts/verify_opencv_stereo.py`).
 """
 
 from __future__ import annotations
@@ -25,6 +24,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -180,27 +180,30 @@ def _plot(spec: tuple[str, str, str], name: str) -> Callable[[Context], Path]:
     return lambda ctx: ctx.study(*spec) / "plots" / name
 
 
-def _figure(line: str, command: str, svg: str) -> Callable[[Context], str]:
-    """A figure block's text: the image, then the command that draws it and the file it writes."""
-    return lambda ctx: f"{line}\n\nDrawn by `{command}` (its `{svg}`).\n"
+def _render(page: str, alt: str, figure: str, command: str, svg: str, from_page: bool = False) -> Block:
+    """A block showing one SVG a `wiredsl build` command writes: the image, then the command and its file."""
+    scene, *args = command.split()[2:]
+    rel = Path(os.path.relpath(ROOT / "docs/figures" / figure, (ROOT / page).parent)).as_posix()
+    return Block(page, command, lambda ctx: f"![{alt}]({rel})\n\nDrawn by `{command}` (its `{svg}`).\n",
+                 {f"docs/figures/{figure}": lambda ctx: ctx.build(scene, *args, page=page if from_page else None)
+                  / Path(svg).name})
 
-
-LAB_FIGURE = ("![The lab scene seen by both cameras of the rig: disturbed features in colour over the ideal ones in "
-              "grey, and the map]({}figures/lab_pose_003_overlay.svg)")
 
 BLOCKS: dict[str, Block] = {
-    "readme-figure": Block(
-        "README.md", "wiredsl build scenes/lab.wd --seed 1",
-        _figure(LAB_FIGURE.format("docs/"), "wiredsl build scenes/lab.wd --seed 1", "build/lab/pose_003.svg"),
-        {"docs/figures/lab_pose_003_overlay.svg": lambda ctx: ctx.build("scenes/lab.wd", "--seed", "1")
-         / "pose_003.svg"}),
-    "first-figure": Block(
-        "docs/tutorials/first-scene.md", "wiredsl build first.wd --seed 1",
-        _figure("![The crate seen by both cameras at the last pose, and the map of the path]"
-                "(../figures/first_pose_004.svg)", "wiredsl build first.wd --seed 1", "build/first/pose_004.svg"),
-        {"docs/figures/first_pose_004.svg": lambda ctx: ctx.build("first.wd", "--seed", "1",
-                                                                  page="docs/tutorials/first-scene.md")
-         / "pose_004.svg"}),
+    "readme-figure": _render(
+        "README.md", "The lab scene seen by both cameras of the rig: disturbed features in colour over the ideal "
+        "ones in grey, and the map", "lab_pose_003_overlay.svg", "wiredsl build scenes/lab.wd --seed 1",
+        "build/lab/pose_003.svg"),
+    "first-figure": _render(
+        "docs/tutorials/first-scene.md", "The crate seen by both cameras at the last pose, and the map of the path",
+        "first_pose_004.svg", "wiredsl build first.wd --seed 1", "build/first/pose_004.svg", from_page=True),
+    "box-figure": _render(
+        "docs/explanation/engine.md", "the box, pose 1, visibility layout", "box_pose_001_visibility.svg",
+        "wiredsl build scenes/box.wd --layout visibility", "build/box/pose_001.svg"),
+    "meshes-figure": _render(
+        "docs/tutorials/mesh.md", "a world read from meshes: crate (OBJ), can (STL) on it, cone (PLY) behind a ball "
+        "(GLB); hidden lines removed", "meshes_pose_001_exact.svg",
+        "wiredsl build scenes/meshes.wd --no-effects --visibility exact --pose 1", "build/meshes/pose_001.svg"),
     "study-shift-table": Block(
         "docs/tutorials/study.md", "wiredsl study scenes/studies/lab_study.wd shift_calibration", shift_table,
         {"docs/figures/study_shift_recognition.png": _plot(SHIFT_CAL, "pgh.recognition.png"),
