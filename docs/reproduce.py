@@ -31,6 +31,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -279,7 +280,7 @@ def run(root: Path, blocks: dict[str, Block], ctx: Context, write: bool,
 
     `blocks` are those to make, `known` every name a page may hold (default BLOCKS)."""
     known = BLOCKS if known is None else known
-    problems = []
+    problems, cost = [], {}
     for page in sorted({b.page for b in blocks.values()}):
         text = (root / page).read_text()
         found = {m.group(1): m for m in BLOCK.finditer(text)}
@@ -294,7 +295,9 @@ def run(root: Path, blocks: dict[str, Block], ctx: Context, write: bool,
             name = m.group(1)
             if name not in blocks:
                 return m.group(0)
+            start = time.perf_counter()
             fresh = blocks[name].make(ctx)
+            cost[name] = cost.get(name, 0.0) + time.perf_counter() - start
             line = text.count("\n", 0, m.start()) + 1
             if not write:
                 problems.extend(f"{page}:{line}: {name}: {p}" for p in numbers_drift(m.group(2), fresh))
@@ -306,12 +309,16 @@ def run(root: Path, blocks: dict[str, Block], ctx: Context, write: bool,
             print(f"numbers: wrote {page}", file=sys.stderr)
         for name in [n for n in found if n in blocks]:
             for fig, make in blocks[name].figures.items():
+                start = time.perf_counter()
                 fresh = make(ctx)
+                cost[name] = cost.get(name, 0.0) + time.perf_counter() - start
                 if write:
                     shutil.copyfile(fresh, root / fig)
                     print(f"numbers: wrote {fig}", file=sys.stderr)
                 elif (why := figure_drift(root / fig, fresh)) is not None:
                     problems.append(f"{fig} ({name}): differs from what `{blocks[name].command}` draws: {why}")
+    for name, s in cost.items():  # a command two blocks share is paid by the first
+        print(f"numbers: {name}: {s:.1f} s", file=sys.stderr)
     return problems
 
 
