@@ -83,10 +83,10 @@ class Context:
         return out
 
 
-    def build(self, scene: str, *args: str, page: str | None = None) -> Path:
-        """`wiredsl build SCENE ARGS`'s output folder; with `page`, SCENE is first written from the page's
-        `<!-- file: SCENE -->` block (as tests/test_docs.py runs a tutorial) and built beside it."""
-        key = (scene, *args, page)
+    def wiredsl(self, command: str, scene: str, *args: str, page: str | None = None) -> Path:
+        """`wiredsl COMMAND SCENE ARGS`'s output folder (build, render); with `page`, SCENE is first written from
+        the page's `<!-- file: SCENE -->` block (as tests/test_docs.py runs a tutorial) and run beside it."""
+        key = (command, scene, *args, page)
         if key not in self.made:
             cwd = ROOT
             if page is not None:
@@ -96,8 +96,8 @@ class Context:
                               re.S | re.M)
                 (cwd / scene).write_text(m.group(1))
             out = self.tmp / f"build-{len(self.made)}"
-            print(f"numbers: wiredsl build {scene} {' '.join(args)}", file=sys.stderr)
-            subprocess.run([sys.executable, "-m", "wiredsl", "build", scene, *args, "-o", str(out)], cwd=cwd,
+            print(f"numbers: wiredsl {command} {scene} {' '.join(args)}", file=sys.stderr)
+            subprocess.run([sys.executable, "-m", "wiredsl", command, scene, *args, "-o", str(out)], cwd=cwd,
                            check=True, capture_output=True)
             self.made[key] = out
         return self.made[key]
@@ -210,11 +210,12 @@ def _plot(spec: tuple[str, str, str], name: str) -> Callable[[Context], Path]:
 
 
 def _render(page: str, alt: str, figure: str, command: str, svg: str, from_page: bool = False) -> Block:
-    """A block showing one SVG a `wiredsl build` command writes: the image, then the command and its file."""
-    scene, *args = command.split()[2:]
+    """A block showing one figure a `wiredsl build` or `render` command writes (an SVG a pose, a PNG a camera and
+    pose): the image, then the command and its file."""
+    sub, scene, *args = command.split()[1:]
     rel = Path(os.path.relpath(ROOT / "docs/figures" / figure, (ROOT / page).parent)).as_posix()
     return Block(page, command, lambda ctx: f"![{alt}]({rel})\n\nDrawn by `{command}` (its `{svg}`).\n",
-                 {f"docs/figures/{figure}": lambda ctx: ctx.build(scene, *args, page=page if from_page else None)
+                 {f"docs/figures/{figure}": lambda ctx: ctx.wiredsl(sub, scene, *args, page=page if from_page else None)
                   / Path(svg).name})
 
 
@@ -233,6 +234,11 @@ BLOCKS: dict[str, Block] = {
         "docs/tutorials/mesh.md", "a world read from meshes: crate (OBJ), can (STL) on it, cone (PLY) behind a ball "
         "(GLB); hidden lines removed", "meshes_pose_001_exact.svg",
         "wiredsl build scenes/meshes.wd --no-effects --visibility exact --pose 1", "build/meshes/pose_001.svg"),
+    "render-figure": _render(
+        "docs/how-to/render.md", "The lab, pose 2, left camera, through the paper pipeline (blur 0.8 px, noise 2 grey "
+        "levels)", "render_lab.png",
+        "wiredsl render scenes/lab.wd --pipeline paper --seed 1 --blur 0.8 --noise 2 --pose 2 --cameras left",
+        "build/lab/render/left_002.png"),
     "roundtrip-counts": Block("docs/tutorials/measure-your-detector.md", ROUNDTRIP, roundtrip_sentence),
     "study-shift-table": Block(
         "docs/tutorials/study.md", "wiredsl study scenes/studies/lab_study.wd shift_calibration", shift_table,
