@@ -8,15 +8,18 @@ A page holds `<!-- numbers: NAME -->` and `<!-- /numbers -->` on lines of their 
 BLOCKS[NAME] writes from its command's output: the command itself, then the numbers (a table, or a sentence made
 from them, so a conclusion follows the numbers). `--check` compares a block's words exactly and each number
 within NUMBER_TOL units of the last digit the page prints (a rounded figure may move in its last digit on
-another CPU's floating point), and each figure with matplotlib's `compare_images` at FIGURE_TOL (RMS over
-0-255 grey levels). `--reuse DIR` takes a study's output from DIR (CI's `build/ci`, written by `.ci/run`'s own
-study commands) when its manifest's digest is the study's (the scene with its includes, the study, wiredsl's
-version: `wiredsl.study.digest`), so CI pays only for reading it; without it, or when they differ, the command
-runs in a temporary folder.
+another CPU's floating point; a count may move by 1), each PNG figure with matplotlib's `compare_images` at
+FIGURE_TOL (RMS over 0-255 grey levels; another seed of the render block is 14 off), and each SVG figure by what
+it draws (its text: words exactly, coordinates as numbers). `--reuse DIR` takes a study's output from DIR
+(CI's `build/ci`, written by `.ci/run`'s own study commands) when its manifest's digest is the study's (the
+scene with its includes, the study, wiredsl's version: `wiredsl.study.digest`), so CI pays only for reading it;
+without it, or when they differ, the command runs in a temporary folder.
 
 Not here yet (their pages still carry hand-copied figures, each with the script that prints them): the CRN
-table (`benchmarks/study_crn.py`, CPU seconds) and the chessboard tables and figures
-(`docs/scripts/verify_opencv_stereo.py`).
+table (`benchmarks/study_crn.py`: its efficiency column is CPU seconds, which no tolerance holds across
+machines) and the chessboard's fitted pipeline, prediction tables and figures
+(`docs/scripts/verify_opencv_stereo.py`, two verify runs of over 3 minutes; they have drifted: its fitted lateral
+shift is now 0.404 px, not 0.94).
 """
 
 from __future__ import annotations
