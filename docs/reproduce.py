@@ -16,8 +16,8 @@ scene with its includes, the study, wiredsl's version: `wiredsl.study.digest`), 
 without it, or when they differ, the command runs in a temporary folder.
 
 Not here yet (their pages still carry hand-copied figures, each with the script that prints them): the CRN
-table (`benchmarks/study_crn.py`: its efficiency column is CPU seconds, which no tolerance holds across
-machines) and the chessboard's fitted pipeline, prediction tables and figures
+benchmark's efficiency column (`benchmarks/study_crn.py`: CPU seconds, which no tolerance holds across
+machines; its standard errors are here) and the chessboard's fitted pipeline, prediction tables and figures
 (`docs/scripts/verify_opencv_stereo.py`, two verify runs of over 3 minutes; they have drifted: its fitted lateral
 shift is now 0.404 px, not 0.94).
 """
@@ -31,6 +31,7 @@ import json
 import os
 import re
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -131,6 +132,35 @@ def roundtrip_sentence(ctx: Context) -> str:
             "edge loss, shift range, corner keep, corner localisation sigma and corner mismatch fraction must each\n"
             "hold the injected value within their 95% interval in at least 90% of them; they hold it in\n"
             f"{', '.join(counts[:-1])} and {counts[-1]} of the {n} (`{ROUNDTRIP}` prints them).\n")
+
+
+CRN = "python benchmarks/study_crn.py --trials 8"
+
+
+def crn_table(ctx: Context) -> str:
+    """The benchmark's standard errors (the seed's, any machine's); its CPU seconds, this machine's, left out."""
+    print(f"numbers: {CRN}", file=sys.stderr)
+    out = subprocess.run([sys.executable, *CRN.split()[1:]], cwd=ROOT, capture_output=True, text=True, check=True)
+    rows, ratios = [], []
+    for line in out.stdout.splitlines():
+        f = line.split()
+        if len(f) == 5 and f[0].count(".") == 1:
+            rows.append(f"| {f[0]} | {f[1]} | {f[2]} | {f[3]} |")
+            if f[3] != "exact":
+                ratios.append((float(f[3]), f[0]))
+        elif len(f) == 3 and f[1:] == ["undefined", "(constant)"]:
+            rows.append(f"| {f[0]} | undefined (constant) | | |")
+    ratios.sort()
+    mid = statistics.median(r for r, _ in ratios)
+    return "\n".join([
+        f"`{CRN}` (each first-order index's standard error, bootstrap over trials with 200 resamples, the median "
+        "over the 7 factors):", "", "| statistic | SE independent | SE common | SE ratio |", "|---|---|---|---|",
+        *rows, "",
+        f"Common draws' standard errors are {ratios[0][0]:.2f} ({ratios[0][1]}) to {ratios[-1][0]:.2f} "
+        f"({ratios[-1][1]}) times smaller (median {mid:.2f}), so the same standard error takes "
+        f"{ratios[0][0] ** 2:.1f} to {ratios[-1][0] ** 2:.0f} times fewer trials (at the 1/sqrt(trials) rate); "
+        "the script also prints the CPU seconds of each run and the efficiency in CPU-seconds (the squared ratio "
+        "times their ratio), which are this machine's and are not shown here."]) + "\n"
 
 
 def _rows(folder: Path) -> list[dict]:
@@ -243,6 +273,7 @@ BLOCKS: dict[str, Block] = {
         "wiredsl render scenes/lab.wd --pipeline paper --seed 1 --blur 0.8 --noise 2 --pose 2 --cameras left",
         "build/lab/render/left_002.png"),
     "roundtrip-counts": Block("docs/tutorials/measure-your-detector.md", ROUNDTRIP, roundtrip_sentence),
+    "crn-table": Block("docs/tutorials/study.md", CRN, crn_table),
     "study-shift-table": Block(
         "docs/tutorials/study.md", "wiredsl study scenes/studies/lab_study.wd shift_calibration", shift_table,
         {"docs/figures/study_shift_recognition.png": _plot(SHIFT_CAL, "pgh.recognition.png"),
