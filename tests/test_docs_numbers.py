@@ -1,0 +1,109 @@
+"""docs/reproduce.py: a documented number or figure that drifts from what its block's command makes fails the check.
+
+The blocks here are cheap stand-ins (a fixed table, a matplotlib line) for the real ones, whose commands are
+studies (CI runs `docs/reproduce.py --check --reuse build/ci` on its own study outputs)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+spec = importlib.util.spec_from_file_location("docs_reproduce", ROOT / "docs" / "reproduce.py")
+numbers = sys.modules["docs_reproduce"] = importlib.util.module_from_spec(spec)  # dataclasses look it up
+spec.loader.exec_module(numbers)
+
+PAGE = "intro\n\n<!-- numbers: t -->\n<!-- /numbers -->\n\nafter\n"
+
+
+def _setup(tmp_path: Path, table: list[str], ys: list[float]):
+    """A page with block `t` (its text `table`, its figure a line through `ys`) in tmp_path/root."""
+    pytest.importorskip("matplotlib")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def figure(ctx) -> Path:
+        fig, ax = plt.subplots(figsize=(3, 2), dpi=60)
+        ax.plot(ys)
+        out = tmp_path / "fresh.png"
+        fig.savefig(out)
+        plt.close(fig)
+        return out
+
+    block = numbers.Block("page.md", "make t", lambda ctx: "\n".join(table) + "\n", {"fig.png": figure})
+    return {"t": block}, numbers.Context(None, tmp_path)
+
+
+def _check(root: Path, blocks, ctx) -> list[str]:
+    return numbers.run(root, blocks, ctx, write=False, known=blocks)
+
+
+def test_written_blocks_hold_and_drifted_ones_fail(tmp_path):
+    root = tmp_path / "root"
+    root.mkdir()
+    (root / "page.md").write_text(PAGE)
+    table = ["`make t`:", "| a | b |", "|---|---|", "| 0.555 ± 0.119 | 27 of 30 |",
+             "lateral shift (0.68) then calibration (0.20)"]
+    blocks, ctx = _setup(tmp_path, table, [0, 1, 2])
+    assert numbers.run(root, blocks, ctx, write=True, known=blocks) == []
+    assert "| 0.555 ± 0.119 | 27 of 30 |" in (root / "page.md").read_text()
+    assert (root / "fig.png").is_file()
+    assert _check(root, blocks, ctx) == []
+
+    page = (root / "page.md").read_text()
+    # the last digit may move by one (another CPU's rounding); more is a drift, reported at the block's line
+    (root / "page.md").write_text(page.replace("0.555", "0.556"))
+    assert _check(root, blocks, ctx) == []
+    (root / "page.md").write_text(page.replace("0.555", "0.447"))
+    (drift,) = _check(root, blocks, ctx)
+    assert drift.startswith("page.md:3: t: 0.447 on the page, 0.555 now")
+    (root / "page.md").write_text(page.replace("27 of 30", "29 of 30"))
+    assert _check(root, blocks, ctx) == ["page.md:3: t: 29 on the page, 27 now"]
+    # a conclusion whose order flipped is a drift of words, numbers aside
+    flipped = page.replace("lateral shift (0.68) then calibration", "calibration (0.68) then lateral shift")
+    (root / "page.md").write_text(flipped)
+    (drift,) = _check(root, blocks, ctx)
+    assert "the words differ" in drift
+
+    # the figure drawn from other data
+    (root / "page.md").write_text(page)
+    blocks, ctx = _setup(tmp_path, table, [0, 2, 1])
+    (drift,) = _check(root, blocks, ctx)
+    assert drift.startswith("fig.png (t): differs from what `make t` draws")
+
+
+def test_missing_and_unknown_blocks_are_named(tmp_path):
+    root = tmp_path / "root"
+    root.mkdir()
+    blocks, ctx = _setup(tmp_path, ["x 1"], [0, 1])
+    (root / "page.md").write_text("no block here\n<!-- numbers: nope -->\n<!-- /numbers -->\n")
+    assert _check(root, blocks, ctx) == ["page.md: no block `<!-- numbers: t -->`",
+                                         "page.md:2: unknown numbers block 'nope': one of t"]
+
+
+def test_every_real_block_is_on_its_page():
+    for name, b in numbers.BLOCKS.items():
+        assert f"<!-- numbers: {name} -->" in (ROOT / b.page).read_text(), name
+
+
+def test_an_svg_figure_is_compared_by_what_it_draws(tmp_path):
+    root = tmp_path / "root"
+    root.mkdir()
+    (root / "page.md").write_text(PAGE)
+    svg = tmp_path / "fresh.svg"
+    blocks = {"t": numbers.Block("page.md", "make t", lambda ctx: "![f](fig.svg)\n", {"fig.svg": lambda ctx: svg})}
+    ctx = numbers.Context(None, tmp_path)
+    svg.write_text('<svg><line x1="10.25" y1="3"/><title>pose 3</title></svg>')
+    assert numbers.run(root, blocks, ctx, write=True, known=blocks) == []
+    svg.write_text('<svg><line x1="10.26" y1="3"/><title>pose 3</title></svg>')  # its last digit: holds
+    assert _check(root, blocks, ctx) == []
+    svg.write_text('<svg><line x1="10.75" y1="3"/><title>pose 3</title></svg>')
+    assert _check(root, blocks, ctx) == ["fig.svg (t): differs from what `make t` draws: 10.25 on the page, 10.75 now"]
+    svg.write_text('<svg><line x1="10.25" y1="3"/><line x1="1" y1="2"/><title>pose 3</title></svg>')  # one more
+    (drift,) = _check(root, blocks, ctx)
+    assert "the words differ" in drift
