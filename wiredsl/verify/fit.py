@@ -7,9 +7,9 @@ replicate costs one matrix product, whatever the number of images. The resamples
 keyed by the seed and the statistic's name (the same seed gives the same intervals).
 
 - edge_loss.fraction = the length lost in the strokes' middles less the detector's own loss at an edge's end
-  (measured at the model strokes' ends) at each end of each gap, over the length tested; its interval is
-  widened by END_DOUBT of that correction. The fragments (verified runs per stroke) are reported beside it:
-  the effect removes one gap a stroke, so it leaves 2 runs.
+  (measured at the model strokes' free ends: verification.junctions) at each end of each gap, over the length
+  tested; its interval is widened by END_DOUBT of that correction. The fragments (verified runs per stroke) are
+  reported beside it: the effect removes one gap a stroke, so it leaves 2 runs.
 - lateral_shift.range: the mean offsets d of the fragments the detector found (runs of verified samples;
   the effect shifts each fragment edge_loss leaves on its own) are taken as the effect's shifts, uniform on
   [-range, range]: range = sqrt(3 (var(d) - noise)), with noise the mean measurement variance of a fragment's
@@ -368,9 +368,14 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
         raw_note = (f"1 - verified fraction of {int(col['tested'].sum()):,} samples over "
                     f"{int((col['tested'] > 0).sum())} images{rhow}")
         v, lo, hi, end, how = _edge_loss(col, seed)
+        from wiredsl.verify import verification as ver
+
         gaps_note = (f"lost length over {col['length'].sum():,.0f} px of {int((col['tested'] > 0).sum())} images, "
-                     f"less the detector's own loss at an edge's end ({end:.3g} px, measured at the model strokes' "
-                     f"ends) at each of {int(col['gap_ends'].sum())} gap ends{how}")
+                     + (f"less the detector's own loss at an edge's end ({end:.3g} px, measured at the model "
+                        f"strokes' {int(col['ends'].sum())} free ends) at each of {int(col['gap_ends'].sum())} gap ends"
+                        if col["ends"].sum() else f"the model strokes have no free end to measure the detector's own "
+                        f"loss at an edge's end: none taken off at the {int(col['gap_ends'].sum())} gap ends")
+                     + f"; samples within {ver.JUNCTION:g} px of another stroke's end inside their own left out{how}")
         if edge_loss == "raw":
             out.append(Estimate("edge_loss.fraction", raw, rlo, rhi, raw_note + f" (the gaps alone: {100 * v:.3g}%)"))
         else:
