@@ -75,6 +75,7 @@ class ImageSums:
     noise: float = 0.0  # sum of their means' measurement variances
     offsets: list = field(default_factory=list)  # their mean offsets
     offset_noise: list = field(default_factory=list)  # their measurement variances
+    offset_length: list = field(default_factory=list)  # px their offsets cover
     offset_line: list = field(default_factory=list)  # whether each is a line's (approx_error moves its mean)
     runs: float = 0.0
     run_strokes: int = 0
@@ -288,12 +289,18 @@ def _shift_range(sums: list, seed: int, band: float, approx: float = 0.0):
         reps.append(shift_mixture(d, v, W[k:k + 250][:, img], band, shape, start=(R, m, w), rounds=8,
                                    tol=1e-4)[0])
     lo, hi = _interval(np.concatenate(reps), float(R), int(sum(len(s.offsets) > 0 for s in sums)))
+    # the background's share by length (what a simulation gives the background, run by run: predict.py), the
+    # fragments' share w by number where their lengths are not given
+    length = np.concatenate([np.asarray(s.offset_length, float) if len(s.offset_length) == len(s.offsets) else
+                             np.full(len(s.offsets), np.nan) for s in sums])
+    w_len = float(((1 - r) * length).sum() / length.sum()) if len(d) and np.isfinite(length).all() and \
+        length.sum() > 0 else float(w)
     if lo is None and R == 0 and len(d):
         # no spread beyond the noise in any resample: the interval reaches to the range whose variance is 1.96
         # standard errors of the noise's (sqrt(2 / n) of it over n fragments), the least it could tell from none
         hi = math.sqrt(3 * 1.96 * math.sqrt(2 / len(d)) * max(float(np.mean(v)), 1e-12))
         lo = 0.0
-    return float(R), lo, hi, float(m), float(w), d[r > 0.5], shape
+    return float(R), lo, hi, float(m), float(w), d[r > 0.5], shape, w_len
 
 
 def disc_radius(mean_r: np.ndarray, t: float) -> np.ndarray:
@@ -341,13 +348,15 @@ class Fit:
     fragments: dict
     stereo: dict
     images: int
+    background: float = 0.0  # the shift mixture's background share of the fragments' length (predict.py's)
 
     def get(self, key: str) -> Estimate:
         return next(e for e in self.estimates if e.key == key)
 
     def to_json(self) -> dict:
         return {"images": self.images, "estimates": [e.to_json() for e in self.estimates],
-                "lateral_shift_law": self.shift_law, "fragments": self.fragments, "stereo_matcher": self.stereo}
+                "lateral_shift_law": self.shift_law, "fragments": self.fragments, "stereo_matcher": self.stereo,
+                "lateral_shift_background": self.background}
 
 
 def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 10.0, edge_loss: str = "gaps",
@@ -402,10 +411,10 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
                             f"measurement noise ({noise:.3g} px rms)"))
     else:
         out.append(Estimate("approx_error.sigma", None, note="too few strokes with a fitted line"))
-    law = None
+    law, bg_len = None, 0.0
     if col["strokes"].sum() >= MIN["strokes"]:
         apx = out[-1].value or 0.0  # approx_error's share of the fragments' mean offsets is taken off
-        v, lo, hi, mean, bg, own, shape = _shift_range(sums, seed, band, apx)
+        v, lo, hi, mean, bg, own, shape, bg_len = _shift_range(sums, seed, band, apx)
         law = law_test(own)
         noise = math.sqrt(max(col['noise'].sum() / col['strokes'].sum(), 0))
         note = (f"sqrt(3 (var d - noise)) of the mean offsets d of {int(col['strokes'].sum())} fragments of at least "
@@ -436,7 +445,7 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     for e in out:
         if e.value is not None and e.lo is None and "interval" not in e.note:
             e.note += " (no interval: the bootstrap over images has no spread, every resample gives the same)"
-    return Fit(out, law, fragments, stereo, n)
+    return Fit(out, law, fragments, stereo, n, bg_len)
 
 
 def truncated_sigma(mean_r2: np.ndarray, t: float) -> np.ndarray:
