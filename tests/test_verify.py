@@ -688,3 +688,26 @@ def test_an_ellipses_runs_are_cut_at_its_major_axis_as_the_shift_cuts_it():
     big = cut.run_length > 50
     assert sorted(np.round(cut.run_mean[big], 6).tolist()) == [-1.0, 1.0]
     assert len(whole.run_mean) == 1 and abs(whole.run_mean[0]) < 0.2
+
+
+def test_a_junction_is_no_loss_and_only_free_ends_measure_the_end_loss():
+    """Issue 34: at a T-junction (a stroke ending on another's middle: a silhouette at its rim's tangent, an
+    occluded edge at its occluder) the detector loses a pixel or two of both that no effect removed. Those
+    samples of the crossed stroke are left out (they were lost middles, read as edge loss with none injected),
+    and the stem's end there is no free end: it does not measure the loss at an edge's end that the fit takes
+    off each gap's ends."""
+    st = V.Strokes(np.array([[100, 200], [300, 200], [200, 100], [200, 199]], float), np.array([0, 2, 4]),
+                   np.array([0, 1]), np.array([-1, -1]), np.array([-1, -1]))
+    sm = V.sample_strokes(st, 1.0)
+    # the detector's response: lost within 2.5 px of the junction (200, 200) on both strokes, nothing else
+    lost = np.hypot(sm.P[:, 0] - 200, sm.P[:, 1] - 200) < 2.5
+    # and the stem's free end loses its first px, as a detector does at an edge's end
+    lost |= (sm.stroke == 1) & (sm.s < 1.0)
+    m = V.EdgeMatch(np.ones(len(lost), bool), ~lost, np.where(lost, np.nan, 0.0))
+    assert sm.free.tolist() == [[True, True], [True, False]]
+    got = V.stroke_stats(sm, m, 2)
+    assert got.lost_middle.tolist() == [0.0, 0.0]
+    assert got.ends.tolist() == [2, 1] and got.lost_ends[1] == pytest.approx(1.0, abs=0.51)
+    assert got.runs.tolist() == [1, 1]  # the crossed stroke's run goes on across the junction
+    plain = V.stroke_stats(V.Samples(sm.P, sm.N, sm.stroke, sm.s, sm.L), m, 2)  # (no junctions known)
+    assert plain.lost_middle[0] > 3.0 and plain.runs[0] == 2

@@ -150,3 +150,27 @@ def test_a_run_publishes_its_files_together_and_a_failed_one_leaves_the_folder_a
     assert set(again.written) == {"verification.csv", "verification.json", "figure7.png"}
     assert {p.name for p in out.iterdir()} == {*again.written, "notes.txt"}
     assert first.written and (out / "notes.txt").read_text() == "mine"
+
+
+def test_the_background_term_gives_whole_runs_offsets_uniform_over_the_band():
+    """Issue 34: the fit's shift mixture takes a share of the fragments as edges the model does not name, offsets
+    uniform over the band; the prediction simulates that share. Oracle: with share 1 each run's offsets are one
+    value, and over many runs their RMS is the uniform's, (band + 0.5) / sqrt(3); share 0 changes nothing; the
+    same key gives the same draws."""
+    from wiredsl.verify import verification as ver
+
+    n_runs, per = 4000, 6
+    stroke = np.repeat(np.arange(n_runs), per)
+    s = np.tile(np.arange(per, dtype=float), n_runs)
+    sm = ver.Samples(np.zeros((len(s), 2)), np.tile([0.0, 1.0], (len(s), 1)), stroke, s, np.full(n_runs, per))
+    verified = np.ones(len(s), bool)
+    m = ver.EdgeMatch(verified, verified, np.zeros(len(s)))
+    got = predict.with_background(sm, m, 1.0, 6.0, np.random.default_rng(1))
+    per_run = got.offset.reshape(n_runs, per)
+    assert np.all(per_run == per_run[:, :1])
+    assert np.sqrt(np.mean(per_run[:, 0] ** 2)) == pytest.approx(6.5 / np.sqrt(3), rel=0.03)
+    assert np.abs(per_run).max() <= 6.5
+    assert np.array_equal(predict.with_background(sm, m, 0.0, 6.0, np.random.default_rng(1)).offset, m.offset)
+    again = predict.with_background(sm, m, 0.3, 6.0, np.random.default_rng(7)).offset
+    assert np.array_equal(again, predict.with_background(sm, m, 0.3, 6.0, np.random.default_rng(7)).offset)
+    assert abs(np.mean(again.reshape(n_runs, per)[:, 0] != 0) - 0.3) < 0.03

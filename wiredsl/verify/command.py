@@ -114,6 +114,7 @@ def sums_of(results: list[ver.ImageResult], cfg: ver.Settings, edge_det: str | N
             d = st.run_mean[ok]
             s.strokes, s.d1, s.d2, s.offsets = int(ok.sum()), float(d.sum()), float((d * d).sum()), d.tolist()
             s.offset_noise = st.run_noise[ok].tolist()
+            s.offset_length = st.run_length[ok].tolist()
             s.offset_line = ((np.diff(r.strokes.start) == 2)[st.run_stroke[ok]]).tolist() if ok.any() else []
             s.noise = float(np.nansum(st.run_noise[ok]))
             tested = st.tested > 0
@@ -298,7 +299,9 @@ def run(req: Request, out: Path, progress=None) -> Outcome:
             written += [f"{req.pipeline_name}.wd", "fit.json"]
         prediction = held_doc = None
         if req.predict:
-            prediction = _predict(req, out, scene, world, observed, cfg, n_images)
+            # the fitted pipeline's shift comes with the fit's background term (edges the model does not name)
+            bg = result.background if result is not None and req.predict_pipeline is None else 0.0
+            prediction = _predict(req, out, scene, world, observed, cfg, n_images, bg)
             written += ["prediction.json", f"prediction.{req.plot_format}"]
         if req.holdout:
             from wiredsl.verify import holdout
@@ -382,7 +385,7 @@ def _observed(frame, views, per_side, edge_det, corner_det, cfg):
     return o
 
 
-def _predict(req: Request, out: Path, scene, world, observed, cfg, n_images: int) -> dict:
+def _predict(req: Request, out: Path, scene, world, observed, cfg, n_images: int, background: float = 0.0) -> dict:
     """--predict: the frames simulated with the fitted pipeline (or req.predict_pipeline), compared image by
     image with the real detector's measures; prediction.json and the prediction plot."""
     import os
@@ -401,7 +404,7 @@ def _predict(req: Request, out: Path, scene, world, observed, cfg, n_images: int
             pipeline = compile_file(f.name)[0].pipeline(req.pipeline_name)
         finally:
             os.unlink(f.name)
-    sim = predict.simulate(scene, world, pipeline, observed, cfg, req.trials, req.seed)
+    sim = predict.simulate(scene, world, pipeline, observed, cfg, req.trials, req.seed, background=background)
     comp = predict.compare(observed, sim)
     predict.per_image(comp, observed, sim)
     stages = ", ".join(f"{s.effect} " + " ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"

@@ -7,9 +7,9 @@ replicate costs one matrix product, whatever the number of images. The resamples
 keyed by the seed and the statistic's name (the same seed gives the same intervals).
 
 - edge_loss.fraction = the length lost in the strokes' middles less the detector's own loss at an edge's end
-  (measured at the model strokes' ends) at each end of each gap, over the length tested; its interval is
-  widened by END_DOUBT of that correction. The fragments (verified runs per stroke) are reported beside it:
-  the effect removes one gap a stroke, so it leaves 2 runs.
+  (measured at the model strokes' free ends: verification.junctions) at each end of each gap, over the length
+  tested; its interval is widened by END_DOUBT of that correction. The fragments (verified runs per stroke) are
+  reported beside it: the effect removes one gap a stroke, so it leaves 2 runs.
 - lateral_shift.range: the mean offsets d of the fragments the detector found (runs of verified samples;
   the effect shifts each fragment edge_loss leaves on its own) are taken as the effect's shifts, uniform on
   [-range, range]: range = sqrt(3 (var(d) - noise)), with noise the mean measurement variance of a fragment's
@@ -75,6 +75,7 @@ class ImageSums:
     noise: float = 0.0  # sum of their means' measurement variances
     offsets: list = field(default_factory=list)  # their mean offsets
     offset_noise: list = field(default_factory=list)  # their measurement variances
+    offset_length: list = field(default_factory=list)  # px their offsets cover
     offset_line: list = field(default_factory=list)  # whether each is a line's (approx_error moves its mean)
     runs: float = 0.0
     run_strokes: int = 0
@@ -288,12 +289,18 @@ def _shift_range(sums: list, seed: int, band: float, approx: float = 0.0):
         reps.append(shift_mixture(d, v, W[k:k + 250][:, img], band, shape, start=(R, m, w), rounds=8,
                                    tol=1e-4)[0])
     lo, hi = _interval(np.concatenate(reps), float(R), int(sum(len(s.offsets) > 0 for s in sums)))
+    # the background's share by length (what a simulation gives the background, run by run: predict.py), the
+    # fragments' share w by number where their lengths are not given
+    length = np.concatenate([np.asarray(s.offset_length, float) if len(s.offset_length) == len(s.offsets) else
+                             np.full(len(s.offsets), np.nan) for s in sums])
+    w_len = float(((1 - r) * length).sum() / length.sum()) if len(d) and np.isfinite(length).all() and \
+        length.sum() > 0 else float(w)
     if lo is None and R == 0 and len(d):
         # no spread beyond the noise in any resample: the interval reaches to the range whose variance is 1.96
         # standard errors of the noise's (sqrt(2 / n) of it over n fragments), the least it could tell from none
         hi = math.sqrt(3 * 1.96 * math.sqrt(2 / len(d)) * max(float(np.mean(v)), 1e-12))
         lo = 0.0
-    return float(R), lo, hi, float(m), float(w), d[r > 0.5], shape
+    return float(R), lo, hi, float(m), float(w), d[r > 0.5], shape, w_len
 
 
 def disc_radius(mean_r: np.ndarray, t: float) -> np.ndarray:
@@ -341,13 +348,15 @@ class Fit:
     fragments: dict
     stereo: dict
     images: int
+    background: float = 0.0  # the shift mixture's background share of the fragments' length (predict.py's)
 
     def get(self, key: str) -> Estimate:
         return next(e for e in self.estimates if e.key == key)
 
     def to_json(self) -> dict:
         return {"images": self.images, "estimates": [e.to_json() for e in self.estimates],
-                "lateral_shift_law": self.shift_law, "fragments": self.fragments, "stereo_matcher": self.stereo}
+                "lateral_shift_law": self.shift_law, "fragments": self.fragments, "stereo_matcher": self.stereo,
+                "lateral_shift_background": self.background}
 
 
 def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 10.0, edge_loss: str = "gaps",
@@ -368,9 +377,14 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
         raw_note = (f"1 - verified fraction of {int(col['tested'].sum()):,} samples over "
                     f"{int((col['tested'] > 0).sum())} images{rhow}")
         v, lo, hi, end, how = _edge_loss(col, seed)
+        from wiredsl.verify import verification as ver
+
         gaps_note = (f"lost length over {col['length'].sum():,.0f} px of {int((col['tested'] > 0).sum())} images, "
-                     f"less the detector's own loss at an edge's end ({end:.3g} px, measured at the model strokes' "
-                     f"ends) at each of {int(col['gap_ends'].sum())} gap ends{how}")
+                     + (f"less the detector's own loss at an edge's end ({end:.3g} px, measured at the model "
+                        f"strokes' {int(col['ends'].sum())} free ends) at each of {int(col['gap_ends'].sum())} gap ends"
+                        if col["ends"].sum() else f"the model strokes have no free end to measure the detector's own "
+                        f"loss at an edge's end: none taken off at the {int(col['gap_ends'].sum())} gap ends")
+                     + f"; samples within {ver.JUNCTION:g} px of another stroke's end inside their own left out{how}")
         if edge_loss == "raw":
             out.append(Estimate("edge_loss.fraction", raw, rlo, rhi, raw_note + f" (the gaps alone: {100 * v:.3g}%)"))
         else:
@@ -397,10 +411,10 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
                             f"measurement noise ({noise:.3g} px rms)"))
     else:
         out.append(Estimate("approx_error.sigma", None, note="too few strokes with a fitted line"))
-    law = None
+    law, bg_len = None, 0.0
     if col["strokes"].sum() >= MIN["strokes"]:
         apx = out[-1].value or 0.0  # approx_error's share of the fragments' mean offsets is taken off
-        v, lo, hi, mean, bg, own, shape = _shift_range(sums, seed, band, apx)
+        v, lo, hi, mean, bg, own, shape, bg_len = _shift_range(sums, seed, band, apx)
         law = law_test(own)
         noise = math.sqrt(max(col['noise'].sum() / col['strokes'].sum(), 0))
         note = (f"sqrt(3 (var d - noise)) of the mean offsets d of {int(col['strokes'].sum())} fragments of at least "
@@ -431,7 +445,7 @@ def fit(sums: list[ImageSums], seed: int, inlier: float = 2.0, radius: float = 1
     for e in out:
         if e.value is not None and e.lo is None and "interval" not in e.note:
             e.note += " (no interval: the bootstrap over images has no spread, every resample gives the same)"
-    return Fit(out, law, fragments, stereo, n)
+    return Fit(out, law, fragments, stereo, n, bg_len)
 
 
 def truncated_sigma(mean_r2: np.ndarray, t: float) -> np.ndarray:

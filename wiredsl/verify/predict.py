@@ -141,11 +141,38 @@ def search_simulated(sm: ver.Samples, segs: np.ndarray, shape: tuple[int, int], 
     return ver.EdgeMatch(tested, verified, offset)
 
 
-def simulated_stats(model_view, sim_view, shape, cfg: ver.Settings) -> ver.StrokeStats:
-    """The verification's stroke statistics of the model's strokes against a simulated view's strokes."""
+def simulated_stats(model_view, sim_view, shape, cfg: ver.Settings, background: float = 0.0,
+                    rng: np.random.Generator | None = None) -> ver.StrokeStats:
+    """The verification's stroke statistics of the model's strokes against a simulated view's strokes; with
+    `background` (and `rng`), that share of the verified runs given the background term (`with_background`)."""
     st = ver.strokes_of(model_view)
     sm = ver.sample_strokes(st, cfg.step)
-    return ver.stroke_stats(sm, search_simulated(sm, segments_of(sim_view), shape, cfg), st.n, cfg.margin)
+    m = search_simulated(sm, segments_of(sim_view), shape, cfg)
+    if background > 0 and rng is not None:
+        m = with_background(sm, m, background, cfg.band, rng)
+    return ver.stroke_stats(sm, m, st.n, cfg.margin)
+
+
+def with_background(sm: ver.Samples, m: ver.EdgeMatch, share: float, band: float, rng: np.random.Generator
+                    ) -> ver.EdgeMatch:
+    """The fit's background term of the lateral shift (fit.shift_mixture) simulated: each verified run (consecutive
+    verified samples of a stroke) is, with probability `share`, a fragment of an edge the model does not name,
+    found instead of the model's: its offsets one value uniform over the search band, +-(band + 0.5) px, as the
+    mixture models it. One uniform a run and one for its offset, drawn in run order from `rng`."""
+    v = m.verified & m.tested
+    if not v.any():
+        return m
+    same = np.concatenate([[False], sm.stroke[1:] == sm.stroke[:-1]])
+    start = v & ~(np.concatenate([[False], v[:-1]]) & same)
+    run = np.cumsum(start) - 1
+    R = int(start.sum())
+    u = rng.random((R, 2))
+    bg = u[:, 0] < share
+    value = (2 * u[:, 1] - 1) * (band + 0.5)
+    hit = v & bg[np.clip(run, 0, R - 1)]
+    offset = m.offset.copy()
+    offset[hit] = value[run[hit]]
+    return ver.EdgeMatch(m.tested, m.verified, offset)
 
 
 def segments_of(view) -> np.ndarray:
@@ -156,13 +183,18 @@ def segments_of(view) -> np.ndarray:
 
 
 def simulate(scene, world, pipeline, observed: list[Observed], cfg: ver.Settings, trials: int, seed: int,
-             side_values=None) -> list[dict]:
+             side_values=None, background: float = 0.0) -> list[dict]:
     """Per frame and trial, the simulated measures: [{frame, trial, side -> {measure}, PAIR measure -> value}].
     `side_values(model_view, simulated_view, shape) -> dict` gives an image's measures (default: `edge_values`
-    of `simulated_stats`; holdout.py's adds fragments and corners)."""
+    of `simulated_stats`, with the fit's `background` share of the runs given the background term, each image's
+    draws keyed by the seed, frame, trial and side; holdout.py's adds fragments and corners)."""
+    import zlib
+
+    key = [seed, zlib.crc32(b"background")]
     if side_values is None:
-        def side_values(model, sim, shape):
-            return edge_values(simulated_stats(model, sim, shape, cfg))
+        def side_values(model, sim, shape, where=()):
+            rng = np.random.default_rng(key + list(where)) if background > 0 else None
+            return edge_values(simulated_stats(model, sim, shape, cfg, background, rng))
     from wiredsl import run as runs
     from wiredsl.engine.geometry import floor_pose
     from wiredsl.engine.simulate import Options
@@ -187,7 +219,9 @@ def simulate(scene, world, pipeline, observed: list[Observed], cfg: ver.Settings
                 row = {"frame": o.frame, "trial": int(trial)}
                 views = {"left": r.left, "right": r.right}
                 for side in o.values:
-                    row[side] = side_values(getattr(ideal[r.index], side), views[side], o.shape[side])
+                    where = (r.index, int(trial), side == "right")
+                    row[side] = side_values(getattr(ideal[r.index], side), views[side], o.shape[side],
+                                            **({"where": where} if background > 0 else {}))
                 if o.pair or len(o.values) == 2:
                     row.update(corner_errors_3d(ideal[r.index].left, ideal[r.index].right,
                                                 ver.corners_of(r.left)[1], ver.corners_of(r.right)[1], cfg.radius))

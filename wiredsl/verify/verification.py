@@ -32,6 +32,11 @@ GOLDEN = 0.6180339887498949  # the sample grids' phases: (i + 1) * GOLDEN mod 1 
 RUN_TRIM = 2.0  # px at each end of a run left out of its offsets
 END_TRIM = 6.0  # px at each end of a model stroke left out of its runs' offsets: there it meets other edges (a
 # junction, a silhouette's tangent to its rim), and the detected edge bends off it
+JUNCTION = 6.0  # px: samples this near another stroke's end are left out of the loss and offset statistics: there
+# (a silhouette's tangent to its rim, a T-junction where an occluded edge meets its occluder, a corner of two
+# lines) the detector's response bends off the model's strokes and loses a pixel or two that no effect removed (on
+# the cylinders with nothing injected, every middle loss lay within 4 px of one); and only a free end (no other's
+# within JUNCTION, not a closed stroke's seam) measures the detector's own loss at an end, what a gap's ends lose
 CORR_PX = 8.0  # px: the longest lag of the residuals' correlation counted in a run mean's noise
 PATCH = 5  # half size of the correlation patches of the stereo corner matcher (11 x 11)
 
@@ -74,28 +79,39 @@ def strokes_of(view, ellipses: set | None = None) -> Strokes:
                    np.array([f.kind == "polyline" and f.fid in conics for f in feats], bool))
 
 
-def ellipse_halves(st: Strokes, sm: Samples) -> np.ndarray:
-    """(n,) int: which side of its stroke's own major axis each sample of an ellipse's stroke lies on (0 or 1; 0
-    for other strokes). The lateral shift moves an ellipse's stroke in pieces cut where it crosses its major axis
-    (the principal axis of its chords, weighted by length: effects.lateral_shift.split_ellipses), each piece by
-    its own offset, so the fit's fragments are cut there too: a run across a tip averaged two shifts."""
+def ellipse_halves(st: Strokes, sm: Samples, m: EdgeMatch | None = None) -> np.ndarray:
+    """(n,) int: which side of a principal axis each sample of an ellipse's stroke lies on (0 or 1; 0 for other
+    strokes, -1 for an ellipse's samples in no fragment). The lateral shift moves an ellipse's stroke in pieces
+    cut where it crosses its own major axis (the principal axis of its chords: effects.lateral_shift.
+    split_ellipses), each piece by its own offset, so the fit's fragments are cut there too: a run across a tip
+    averaged two shifts. The shift cuts what edge_loss left of the stroke, so with the match `m` each fragment
+    (a stretch of verified samples, junction samples counted in, a closed stroke's last and first joined) is cut
+    at its own axis, as the effect cut it; without, the whole stroke at its axis."""
     out = np.zeros(len(sm.stroke), int)
     if st.ellipse is None or not st.ellipse.any():
         return out
+    alive = None if m is None else (m.verified & m.tested) | (sm.junction if sm.junction is not None else False)
     for k in np.flatnonzero(st.ellipse).tolist():
-        P = st.pts[st.start[k]:st.start[k + 1]]
-        if len(P) < 3:
+        at = np.flatnonzero(sm.stroke == k)
+        if len(at) < 3:
             continue
-        mid, d = (P[:-1] + P[1:]) / 2, np.diff(P, axis=0)
-        w = np.hypot(d[:, 0], d[:, 1])
-        if w.sum() <= 0:
-            continue
-        c = (w[:, None] * mid).sum(0) / w.sum()
-        X = mid - c
-        cov = (w[:, None, None] * X[:, :, None] * X[:, None, :]).sum(0) / w.sum()
-        minor = np.linalg.eigh(cov)[1][:, 0]  # the eigenvector of the smaller eigenvalue: across the major axis
-        at = sm.stroke == k
-        out[at] = ((sm.P[at] - c) @ minor > 0).astype(int)
+        if alive is None:
+            groups = [at]
+        else:
+            a = alive[at]
+            label = np.cumsum(a & ~np.concatenate([[False], a[:-1]])) * a  # 1, 2, ... per stretch, 0 lost
+            P0, P1 = st.pts[st.start[k]], st.pts[st.start[k + 1] - 1]
+            if a[0] and a[-1] and label[-1] != 1 and np.hypot(*(P0 - P1)) < 1e-6:
+                label[label == label[-1]] = 1  # a closed stroke's last stretch goes on into its first
+            groups = [at[label == j] for j in range(1, int(label.max(initial=0)) + 1)]
+        if alive is not None:
+            out[at] = -1  # in no fragment (lost): no piece
+        for g in groups:
+            if len(g) < 3:
+                continue
+            X = sm.P[g] - sm.P[g].mean(axis=0)  # equally spaced samples: their mean is the chords' by length
+            minor = np.linalg.eigh(X.T @ X)[1][:, 0]  # the eigenvector of the smaller eigenvalue: across the axis
+            out[g] = (X @ minor > 0).astype(int)
     return out
 
 
@@ -108,13 +124,53 @@ def corners_of(view) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class Samples:
-    """Points along strokes: position P, unit normal N, their stroke, arc position s; per stroke its length L."""
+    """Points along strokes: position P, unit normal N, their stroke, arc position s; per stroke its length L;
+    `junction`: the samples at another stroke's end inside their own (`junctions`), left out of the statistics."""
 
     P: np.ndarray
     N: np.ndarray
     stroke: np.ndarray
     s: np.ndarray
     L: np.ndarray
+    junction: np.ndarray | None = None
+    free: np.ndarray | None = None  # (S, 2) bool: the stroke's start and end are free ends (`junctions`)
+
+
+def junctions(st: Strokes, P: np.ndarray, stroke: np.ndarray, s: np.ndarray, L: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """((n,) bool, (S, 2) bool): the samples at junctions (within JUNCTION px of another stroke's end, END_TRIM px
+    or more from their own stroke's ends), and which
+    strokes' ends are free: meeting no other stroke (no other's end or sample within JUNCTION px), and not the seam
+    of a closed stroke (its first vertex its last)."""
+    from scipy.spatial import cKDTree
+
+    S = st.n
+    ends = np.concatenate([st.pts[st.start[:-1]], st.pts[st.start[1:] - 1]]) if S else np.zeros((0, 2))
+    owner = np.concatenate([np.arange(S), np.arange(S)])
+    closed = np.hypot(*(ends[:S] - ends[S:]).T) < 1e-6 if S else np.zeros(0, bool)
+    free = np.tile(~closed[:, None], (1, 2))
+    out = np.zeros(len(P), bool)
+    if S < 2:
+        return out, free
+    tree = cKDTree(ends)
+    k = min(3, len(ends))  # a stroke has two ends: among the three nearest, one is another's where any is near
+
+    def near_other(X, own):
+        dist, idx = tree.query(X, k=k, distance_upper_bound=JUNCTION)
+        dist, idx = dist.reshape(len(X), k), idx.reshape(len(X), k)
+        return (np.isfinite(dist) & (owner[np.minimum(idx, len(ends) - 1)] != own[:, None])).any(axis=1)
+
+    meets = near_other(ends, owner)
+    if len(P):
+        # at their own stroke's ends the end margins take a junction (there the effect's gaps reach less often:
+        # leaving those samples out would bias the loss up)
+        inside = np.minimum(s, L[stroke] - s) >= END_TRIM - 1e-9
+        out = inside & near_other(P, stroke)
+        # an end meeting another stroke anywhere along it (a silhouette's end at a whole rim's tangent) is not free
+        hits = cKDTree(P).query_ball_point(ends, JUNCTION)
+        meets |= np.array([bool(len(h)) and bool((stroke[h] != o).any()) for h, o in zip(hits, owner, strict=True)])
+    free &= ~meets.reshape(2, S).T
+    return out, free
 
 
 def sample_strokes(st: Strokes, step: float) -> Samples:
@@ -144,7 +200,7 @@ def sample_strokes(st: Strokes, step: float) -> Samples:
     t = d[seg] / np.maximum(seg_len[seg], 1e-300)[:, None]
     P = st.pts[seg] + t * (g - cum[seg])[:, None]
     N = np.column_stack([-t[:, 1], t[:, 0]])
-    return Samples(P, N, stroke, s, L)
+    return Samples(P, N, stroke, s, L, *junctions(st, P, stroke, s, L))
 
 
 @dataclass
@@ -257,7 +313,16 @@ def _bins(idx, w, n):
 
 def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0,
                  piece: np.ndarray | None = None) -> StrokeStats:
-    """`piece` (n,): a run also ends where it changes (an ellipse's halves, `ellipse_halves`)."""
+    """`piece` (n,): a run also ends where it changes (an ellipse's halves, `ellipse_halves`). The samples at
+    junctions (`sm.junction`) are dropped first, as if not sampled, so that a run or a gap goes on across them;
+    the stroke's spacing stays that of all its samples."""
+    spacing = sm.L / np.maximum(np.bincount(sm.stroke, minlength=n_strokes), 1)
+    drop = np.zeros(len(sm.stroke), bool) if sm.junction is None else sm.junction.copy()
+    if drop.any():
+        k = ~drop
+        sm = Samples(sm.P[k], sm.N[k], sm.stroke[k], sm.s[k], sm.L, None, sm.free)
+        m = EdgeMatch(m.tested[k], m.verified[k], m.offset[k])
+        piece = None if piece is None else piece[k]
     S, st = n_strokes, sm.stroke
     t, v = m.tested, m.verified & m.tested
     cnt = _bins(st, t, S)
@@ -275,8 +340,12 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0,
         mean = np.where(nv > 0, _bins(st, o, S) / np.maximum(nv, 1), np.nan)
         var = np.where(nv > 1, (_bins(st, o * o, S) - nv * mean * mean) / np.maximum(nv - 1, 1), np.nan)
     per = np.bincount(st, minlength=S)
-    spacing = sm.L / np.maximum(per, 1)
-    head, tail = sm.s < margin, (sm.s > sm.L[st] - margin) & (sm.s >= margin)
+    # an end that meets another stroke (not free) takes JUNCTION px as its margin: there the detected edge bends off
+    wide = max(margin, JUNCTION)
+    mh, mt = ((np.full(S, margin), np.full(S, margin)) if sm.free is None else
+              (np.where(sm.free[:, 0], margin, wide), np.where(sm.free[:, 1], margin, wide)))
+    head = sm.s < mh[st]
+    tail = (sm.s > sm.L[st] - mt[st]) & ~head
     near = head | tail
     lost = t & ~v
     # an end's own loss counts only where the sample just past its margin was verified; where it was lost too,
@@ -289,10 +358,14 @@ def stroke_stats(sm: Samples, m: EdgeMatch, n_strokes: int, margin: float = 3.0,
     okh = (n_head > 0) & (g0 <= g1) & v[np.minimum(g0, len(v) - 1)] if len(v) else np.zeros(S, bool)
     okt = (n_tail > 0) & (g1 >= g0) & v[np.clip(g1, 0, max(len(v) - 1, 0))] if len(v) else np.zeros(S, bool)
     end_ok = np.where(head, okh[st], okt[st]) & near
-    lost_ends = _bins(st, lost & end_ok, S) * spacing
+    # only a free end measures the detector's own loss at an end (what a gap's ends lose): at one that meets
+    # another stroke (a junction, a silhouette's end at its rim) the detected edge bends off, and loses more
+    fh, ft = (np.ones(S, bool), np.ones(S, bool)) if sm.free is None else (sm.free[:, 0], sm.free[:, 1])
+    free_end = np.where(head, fh[st], ft[st])
+    lost_ends = _bins(st, lost & end_ok & free_end, S) * spacing
     lost_mid = _bins(st, lost & ~end_ok, S) * spacing
-    first_end = (_bins(st, t & head, S) > 0) & okh
-    last_end = (_bins(st, t & tail, S) > 0) & okt
+    first_end = (_bins(st, t & head, S) > 0) & okh & fh
+    last_end = (_bins(st, t & tail, S) > 0) & okt & ft
     mid = t & ~near
     # changes of state between consecutive middle samples of a stroke (each interior gap has two)
     change = np.concatenate([[False], (v[1:] != v[:-1]) & mid[1:] & mid[:-1] & same[1:]]) if len(v) else v
@@ -462,7 +535,7 @@ def verify_image(view, det: Detection, shape, cfg: Settings, result: ImageResult
         st = strokes_of(view, ellipses)
         sm = sample_strokes(st, cfg.step)
         m = search_edges(sm, det, shape, cfg)
-        result.strokes, result.stats = st, stroke_stats(sm, m, st.n, cfg.margin, ellipse_halves(st, sm))
+        result.strokes, result.stats = st, stroke_stats(sm, m, st.n, cfg.margin, ellipse_halves(st, sm, m))
         result.samples = int(m.tested.sum())
     if det.has_corners:
         fid, uv = corners_of(view)
