@@ -313,6 +313,29 @@ def test_a_radtan_lens_whose_denominator_has_a_pole_in_view_images_only_its_imag
         assert np.isfinite(a).all() and (a >= 0).all() and (a[:, 0] <= 640).all() and (a[:, 1] <= 480).all(), k
 
 
+@pytest.mark.parametrize(("w", "h", "focal", "lens"), [
+    (64, 48, 41.6, "k1 -3.5453751720039793e-05\n  p2 1.5969768927886068\n  k3 0.93516346412009943\n  k4 -0.5\n"
+                   "  k2 -0.29037795268858613\n  k6 5.4879331587996667e-06"),
+    (40, 30, 0.001, "k6 -0\n  k4 -0.41703542400203775\n  p1 -1.5840944259708025\n  p2 1007.2429335385347\n"
+                    "  k1 -0.17154168635005362"),
+    (7, 5, 1e6, "p2 -2348658.2775350441\n  k6 -1.273508545578323"),
+    (40, 30, 1200, "p2 1.0415627199194817\n  k2 1.8252204753241204\n  k6 -1.1141218681794096\n  p1 0.5\n"
+                   "  k4 -1.2527651482207616\n  k5 -4.9406564584124654e-324")])
+def test_the_campaigns_rational_lenses_with_a_pole_check_render_and_build(tmp_path, w, h, focal, lens):
+    """tests/fuzz_surfaces.py --budget 32000 (seed 0) on f0cc9ea's parent: five radtan lenses whose denominator
+    vanishes at the lens limit, each exit 3 in check, render and build where RuntimeWarnings are errors (row 12's
+    cause: W147's radius at the limit)."""
+    import warnings
+
+    scene = lens_scene(tmp_path, w, h, lens, focal=focal)
+    for args in (["check"], ["render", "-o", str(tmp_path / "r"), "--supersample", "1"],
+                 ["build", "-o", str(tmp_path / "b"), "--no-svg", "--no-effects"]):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            r = CliRunner().invoke(main, [args[0], str(scene), *args[1:]])
+        assert r.exit_code == 0, (args[0], r.output)
+
+
 # --------------------------------------------------------------------------- boards (rows 14, 19, 20)
 
 BOARD = "wiredsl 1\nboard target charuco squares ({c}, {r}) square {square} marker {marker} dictionary {d}\n"
