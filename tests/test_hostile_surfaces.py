@@ -261,6 +261,81 @@ def test_a_radtan_lens_whose_rational_denominator_vanishes_in_the_image_renders(
     assert r.exit_code == 0, r.output
 
 
+POLE = """wiredsl 1
+scene pole
+model panel {
+  line across from (0, -3, 1) to (0, 3, 1)
+  corner c at (0, 0.05, 1.0)
+  corner near_pole at (0, -0.4243, 1.0)
+}
+place panel as p at (1.5m, 0, 0)
+camera eye {
+  focal 100px
+  size (640px, 480px)
+  centre (320px, 240px)
+  k6 -1000
+}
+rig pair {
+  left eye at (0, 0.05m, 1m) looking (1, 0, 0)
+  right eye at (0, -0.05m, 1m) looking (1, 0, 0)
+}
+path here { pose (0, 0) heading 0deg }
+"""
+
+
+def test_a_radtan_lens_whose_denominator_has_a_pole_in_view_images_only_its_image(tmp_path):
+    """Row 12: k6 -1000, so 1 + k6 r^6 = 0 at r = 1000^(-1/6) (17.5 deg off the axis), where the projection runs
+    to infinity. check divided by that zero (numpy's RuntimeWarning: exit 3 where warnings are errors, as in the
+    campaign); the limit is the pole (a dense scan of the denominator's sign, not the code's root finder), and
+    both engines give the same features, every one inside the image, for a line that crosses the pole's cone."""
+    import warnings
+
+    from wiredsl.engine import geometry
+
+    (tmp_path / "pole.wd").write_text(POLE)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        r = CliRunner().invoke(main, ["check", str(tmp_path / "pole.wd")])
+    assert r.exit_code == 0 and "RuntimeWarning" not in r.output, r.output
+    radius = np.linspace(0.0, 1.0, 2_000_001)
+    first_bad = radius[np.argmax(~(1.0 - 1000.0 * radius**6 > 0))]
+    assert abs(geometry.fold_radius(0, 0, 0, 0, 0, -1000.0) - first_bad) <= 1e-6
+    arrays = {}
+    for engine in ("numpy", "kernel"):
+        r = CliRunner().invoke(main, ["build", str(tmp_path / "pole.wd"), "-o", str(tmp_path / engine), "--no-svg",
+                                      "--format", "npz", "--trials", "2", "--engine", engine])
+        assert r.exit_code == 0, r.output
+        with np.load(tmp_path / engine / "features.npz") as z:
+            arrays[engine] = {k: z[k] for k in z.files if k.endswith(("_pts", "_corners"))}
+    assert arrays["numpy"].keys() == arrays["kernel"].keys() and arrays["numpy"]
+    for k, a in arrays["numpy"].items():
+        assert np.allclose(a, arrays["kernel"][k], atol=1e-6), k
+        assert np.isfinite(a).all() and (a >= 0).all() and (a[:, 0] <= 640).all() and (a[:, 1] <= 480).all(), k
+
+
+@pytest.mark.parametrize(("w", "h", "focal", "lens"), [
+    (64, 48, 41.6, "k1 -3.5453751720039793e-05\n  p2 1.5969768927886068\n  k3 0.93516346412009943\n  k4 -0.5\n"
+                   "  k2 -0.29037795268858613\n  k6 5.4879331587996667e-06"),
+    (40, 30, 0.001, "k6 -0\n  k4 -0.41703542400203775\n  p1 -1.5840944259708025\n  p2 1007.2429335385347\n"
+                    "  k1 -0.17154168635005362"),
+    (7, 5, 1e6, "p2 -2348658.2775350441\n  k6 -1.273508545578323"),
+    (40, 30, 1200, "p2 1.0415627199194817\n  k2 1.8252204753241204\n  k6 -1.1141218681794096\n  p1 0.5\n"
+                   "  k4 -1.2527651482207616\n  k5 -4.9406564584124654e-324")])
+def test_the_campaigns_rational_lenses_with_a_pole_check_render_and_build(tmp_path, w, h, focal, lens):
+    """tests/fuzz_surfaces.py --budget 32000 (seed 0) on f0cc9ea's parent: five radtan lenses whose denominator
+    vanishes at the lens limit, each exit 3 in check, render and build where RuntimeWarnings are errors (row 12's
+    cause: W147's radius at the limit)."""
+    import warnings
+
+    scene = lens_scene(tmp_path, w, h, lens, focal=focal)
+    for args in (["check"], ["render", "-o", str(tmp_path / "r"), "--supersample", "1"],
+                 ["build", "-o", str(tmp_path / "b"), "--no-svg", "--no-effects"]):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            r = CliRunner().invoke(main, [args[0], str(scene), *args[1:]])
+        assert r.exit_code == 0, (args[0], r.output)
+
+
 # --------------------------------------------------------------------------- boards (rows 14, 19, 20)
 
 BOARD = "wiredsl 1\nboard target charuco squares ({c}, {r}) square {square} marker {marker} dictionary {d}\n"
@@ -280,6 +355,21 @@ def test_a_charuco_marker_too_small_for_opencv_is_refused(tmp_path, marker):
     """Rows 14 (under 6/64 of a square: OpenCV's drawing failed) and 19 (1e-300 m: 0 as a 32-bit float)."""
     (msg,) = _board_errors(tmp_path, marker=marker)
     assert "at least 0.25 of a square" in msg
+
+
+def test_verify_with_board_poses_of_a_vanishing_marker_is_a_located_error(tmp_path):
+    """Row 19 as the issue ran it: `verify --poses board` with marker 1e-300 m (0 as a 32-bit float) was
+    OpenCV's SystemError; now the marker's own E110, exit 1, before any image is read."""
+    from test_board import BOARD
+
+    scene = tmp_path / "b.wd"
+    scene.write_text(BOARD.format(board="board target charuco squares (7, 5) square 40mm marker 1e-300m "
+                                        "dictionary DICT_5X5_100"))
+    grey_image(tmp_path / "left_000.png")
+    r = run_cli("verify", str(scene), "--images", str(tmp_path / "*.png"), "--poses", "board", "--detector",
+                "canny", "-o", str(tmp_path / "v"), timeout=60, limit=2 << 30)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    assert "b.wd:3:56: error[E110]: a marker must be at least 0.25 of a square" in r.stderr
 
 
 @pytest.mark.parametrize(("dictionary", "holds"), [("DICT_APRILTAG_16h5", 30), ("DICT_APRILTAG_25h9", 35),
@@ -657,6 +747,60 @@ def test_a_unified_xi_or_an_eucm_beta_beyond_any_lens_is_refused(tmp_path, lens,
     ok = lens_scene(tmp_path, 200, 150, lens.replace("1e100", "100").replace("101", "3").replace("1e300", "100")
                     .replace("100.5", "1.1"), focal=130)
     assert CliRunner().invoke(main, ["check", str(ok)]).exit_code == 0
+
+
+EUCM_PAIR = """wiredsl 1
+scene eucm
+model panel {
+  line edge from (0, -0.3, 0.6) to (0, 0.05, 1.4)
+  line across from (0, -3, 1) to (0, 3, 1)
+  corner c at (0, 0.05, 1.0)
+}
+place panel as p at (1.5m, 0, 0)
+camera left_eye {
+  focal 300px
+  centre (320px, 240px)
+  size (640px, 480px)
+  distortion eucm
+  alpha 0.6
+  beta 100
+}
+camera right_eye like left_eye {
+  centre (322px, 238px)
+}
+rig stereo {
+  left left_eye at (0, 0.1m, 1m) looking (1, 0, 0)
+  right right_eye at (0, -0.1m, 1m) looking (1, 0, 0)
+  calibration covariance order [right.f, right.beta, right.alpha] matrix [[4, 0, 0], [0, VAR, 0], [0, 0, 0.01]]
+}
+path here { pose (0, 0) heading 0deg }
+pipeline calibration_only default {
+  calibration_error sigma 1
+}
+"""
+
+
+@pytest.mark.parametrize("var", ["1e4", "1e100"])
+def test_an_eucm_right_camera_whose_beta_is_drawn_beyond_its_bound_builds_alike_on_both_engines(tmp_path, var):
+    """Row 17's command (an EUCM right camera under calibration_error, the kernel) at beta's bound, with draws
+    of beta far past it and below 0 (a beta of 1e300 itself is refused: the test above): the kernel divided
+    by zero; a trial whose drawn lens is no lens images nothing, on both engines alike."""
+    (tmp_path / "e.wd").write_text(EUCM_PAIR.replace("VAR", var))
+    arrays = {}
+    for engine in ("numpy", "kernel"):
+        r = CliRunner().invoke(main, ["build", str(tmp_path / "e.wd"), "-o", str(tmp_path / engine), "--no-svg",
+                                      "--format", "npz", "--trials", "40", "--seed", "1", "--engine", engine])
+        assert r.exit_code == 0, r.output
+        with np.load(tmp_path / engine / "features.npz") as z:
+            arrays[engine] = {k: z[k] for k in z.files if k != "manifest"}
+    assert arrays["numpy"].keys() == arrays["kernel"].keys() and len(arrays["numpy"]["b00000_pts"]) > 40
+    for k, a in arrays["numpy"].items():
+        b = arrays["kernel"][k]
+        assert a.shape == b.shape, k
+        if a.dtype.kind == "f":
+            assert np.isfinite(a).all() and np.allclose(a, b, atol=1e-6), k
+        else:
+            assert np.array_equal(a, b), k
 
 
 @pytest.mark.parametrize("action", [[1, 1, 0, 0, 0, 0], [1, -1, 1, 0, 0, 0], [-1, 1, -1, 0, 0, 0.3]])

@@ -311,7 +311,8 @@ class CameraCompiler:
             reach, angle = (reach if math.isfinite(reach) else math.inf), stop
         else:
             def radius(r: float) -> float:  # the distorted radius of unit-plane radius r (radial terms; inf on
-                with np.errstate(over="ignore", invalid="ignore"):  # overflow, past any image's corner)
+                # overflow or at the rational denominator's zero, which is where the limit can lie: past any corner)
+                with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
                     x = float(geometry.distort(np.array([r, 0.0]), cam.k1, cam.k2, 0.0, 0.0, *k[2:], cam.k5,
                                                cam.k6)[0])
                 return x if math.isfinite(x) else math.inf
