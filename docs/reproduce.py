@@ -119,6 +119,77 @@ class Context:
         return self.made["roundtrip"]
 
 
+    def verify(self, *args: str) -> Path:
+        """`wiredsl verify` of OpenCV's stereo chessboard (CHESSBOARD, then `args`)'s output folder."""
+        key = ("verify", *args)
+        if key not in self.made:
+            out = self.tmp / f"verify-{len(self.made)}"
+            command = [*CHESSBOARD.split()[1:], *args, "-o", str(out)]
+            print(f"numbers: wiredsl {' '.join(command)}", file=sys.stderr)
+            subprocess.run([sys.executable, "-m", "wiredsl", *[a.strip("'") for a in command]], cwd=ROOT, check=True,
+                           capture_output=True)
+            self.made[key] = out
+        return self.made[key]
+
+
+CHESSBOARD = ("wiredsl verify scenes/chessboard.wd --images 'tests/data/opencv_stereo/*.jpg' --poses board --fit "
+              "--predict --no-calibration-error --trials 50 --seed 0")
+CHESS_GAPS = ("--detector", "canny", "--detector", "lsd", "--detector", "harris")
+CHESS_RAW = ("--detector", "canny", "--detector", "harris", "--edge-loss", "raw")
+
+
+def _pct(x: float, digits: int = 1) -> str:
+    return "0" if x == 0 else f"{100 * x:.{digits}f}%"
+
+
+def chess_fit_table(ctx: Context) -> str:
+    """The chessboard's fitted pipeline (its fit.json), the raw edge-loss reading from the second run beside it."""
+    est = {e["parameter"]: e for e in json.loads((ctx.verify(*CHESS_GAPS) / "fit.json").read_text())["estimates"]}
+    raw = {e["parameter"]: e for e in json.loads((ctx.verify(*CHESS_RAW) / "fit.json").read_text())["estimates"]}
+
+    def row(label: str, e: dict, fmt: Callable[[float], str], paper: str) -> str:
+        if e["value"] is None:
+            return f"| {label} | not estimated ({e['note']}) | | {paper} |"
+        return f"| {label} | {fmt(e['value'])} | {fmt(e['low95'])} - {fmt(e['high95'])} | {paper} |"
+
+    px = lambda x: f"{x:.2f} px"  # noqa: E731
+    mm = est["corner_mismatch.fraction"]
+    found = re.search(r"of (\d+) found corners", mm["note"]).group(1)
+    return "\n".join([
+        f"`{CHESSBOARD} {' '.join(CHESS_GAPS)}` (and `{' '.join(CHESS_RAW)}` for the raw reading), its `fit.json`:",
+        "", "| parameter | fitted | 95% interval | paper |", "|---|---|---|---|",
+        row("edge_loss fraction (gaps)", est["edge_loss.fraction"], _pct, "29%"),
+        row("edge_loss fraction (everything lost, `--edge-loss raw`)", raw["edge_loss.fraction"], _pct, ""),
+        row("lateral_shift range", est["lateral_shift.range"], px, "3 px"),
+        row("approx_error sigma", est["approx_error.sigma"], px, "0.15 px"),
+        row("corner_loss keep (Harris)", est["corner_loss.keep"], _pct, "85%"),
+        row("corner_error sigma (Harris)", est["corner_error.sigma"], px, "(none)"),
+        row("corner_error correlation (left with right)", est["corner_error.correlation"], lambda x: f"{x:.2f}",
+            "(none)"),
+        f"| corner_mismatch fraction | {round(mm['value'] * int(found))} of {int(found):,} | {_pct(mm['low95'])} - "
+        f"{_pct(mm['high95'], 2)} | 1% |"]) + "\n"
+
+
+def chess_predict_table(ctx: Context) -> str:
+    """The chessboard's prediction (prediction.json of both runs): real against simulated, each measure."""
+    gaps = json.loads((ctx.verify(*CHESS_GAPS) / "prediction.json").read_text())["measures"]
+    raw = json.loads((ctx.verify(*CHESS_RAW) / "prediction.json").read_text())["measures"]
+    g = lambda p: f"{p:.2f}" if p >= 0.1 else f"{p:.2g}" if p >= 1e-3 else f"{p:.0e}"  # noqa: E731
+
+    def row(label: str, m: dict, fmt: Callable[[float], str]) -> str:
+        return (f"| {label} | {fmt(m['real_mean'])} | {fmt(m['simulated_mean'])} | {g(m['ks']['p'])} | "
+                f"{g(m['mann_whitney']['p'])} |")
+
+    px, mm = (lambda x: f"{x:.2f} px"), (lambda x: f"{x:.2f} mm")
+    return "\n".join([
+        "| measure | real (mean) | simulated (mean) | KS p | Mann-Whitney p |", "|---|---|---|---|---|",
+        row("verified fraction (`--edge-loss gaps`)", gaps["verified_fraction"], _pct),
+        row("verified fraction (`--edge-loss raw`)", raw["verified_fraction"], _pct),
+        row("RMS lateral offset", gaps["offset_rms_px"], px),
+        row("triangulated corner error, RMS", gaps["corner_error_3d"], mm),
+        row("3D shape error after a rigid fit, RMS", gaps["corner_shape_3d"], mm)]) + "\n"
+
+
 ROUNDTRIP = "python -m pytest -q -s -n 0 -p no:cacheprovider tests/test_verify_roundtrip.py"
 
 
@@ -272,6 +343,14 @@ BLOCKS: dict[str, Block] = {
         "levels)", "render_lab.png",
         "wiredsl render scenes/lab.wd --pipeline paper --seed 1 --blur 0.8 --noise 2 --pose 2 --cameras left",
         "build/lab/render/left_002.png"),
+    "chessboard-fit": Block("docs/tutorials/measure-your-detector.md", CHESSBOARD, chess_fit_table,
+                            {"docs/figures/verify_opencv_stereo_figure7.png": lambda ctx: ctx.verify(*CHESS_GAPS)
+                             / "figure7.png"}),
+    "chessboard-predict": Block("docs/tutorials/measure-your-detector.md", CHESSBOARD, chess_predict_table,
+                                {"docs/figures/verify_opencv_stereo_prediction.png":
+                                 lambda ctx: ctx.verify(*CHESS_GAPS) / "prediction.png",
+                                 "docs/figures/verify_opencv_stereo_prediction_raw.png":
+                                 lambda ctx: ctx.verify(*CHESS_RAW) / "prediction.png"}),
     "roundtrip-counts": Block("docs/tutorials/measure-your-detector.md", ROUNDTRIP, roundtrip_sentence),
     "crn-table": Block("docs/tutorials/study.md", CRN, crn_table),
     "study-shift-table": Block(
