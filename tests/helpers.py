@@ -135,3 +135,35 @@ def plugins_on_path(monkeypatch, *folders: Path, modules: tuple[str, ...] = ()):
         plugins.rescan()
         for m in [m for m in sys.modules if m.split(".")[0] in modules]:
             del sys.modules[m]
+
+
+def fandisk_like(sag: float, at=(0.0, 0.0, 0.0)):
+    """A 0.3 x 0.12 x 0.08 m block whose top bulges by `sag` (m) over its first half and is flat over the second,
+    tessellated in 200 strips: the top-front and top-back creases are curved-then-flat chains of 200 edges that
+    the mesh reader merges (MERGE_LATERAL) into nearly collinear lines; turned off the axes, so vertex merging
+    puts the merged lines a fraction of a micron off their faces (the fandisk's defect). Its vertices in 4 rows of
+    201 (bottom-front, top-front, top-back, bottom-back), then shifted by `at` (m): a trimesh.Trimesh."""
+    import trimesh
+
+    L, W, H, n = 0.3, 0.12, 0.08, 200
+    x = np.linspace(0.0, L, n + 1)
+    u = np.clip(x / (L / 2), 0.0, 1.0)
+    z = H + sag * np.where(x < L / 2, np.sin(np.pi * u) ** 2, 0.0)
+    ring = [np.column_stack([x, np.full_like(x, y), zz]) for y, zz in
+            ((0.0, np.zeros_like(x)), (0.0, z), (W, z), (W, np.zeros_like(x)))]
+    V = np.concatenate(ring)  # 4 rows of n + 1: bottom-front, top-front, top-back, bottom-back
+    m = n + 1
+    F = []
+    for r in range(4):
+        a, b = r * m, ((r + 1) % 4) * m
+        for i in range(n):
+            F += [(a + i, a + i + 1, b + i + 1), (a + i, b + i + 1, b + i)]
+    for i in (0, n):  # the two ends
+        F += [(i, m + i, 2 * m + i), (i, 2 * m + i, 3 * m + i)]
+    mesh = trimesh.Trimesh(V, np.array(F), process=False)
+    c, s = np.cos(0.5), np.sin(0.5)
+    Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    c, s = np.cos(0.2), np.sin(0.2)
+    Rx = np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+    mesh.vertices = mesh.vertices @ (Rx @ Rz).T + np.asarray(at, float)
+    return mesh

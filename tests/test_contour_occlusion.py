@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
-from helpers import EYE_RIG
+from helpers import EYE_RIG, fandisk_like
 from test_mesh import _brute_hidden
 
 from wiredsl.engine.simulate import Options, silhouettes_cam, simulate
@@ -167,3 +167,35 @@ def test_a_far_part_of_the_same_surface_still_hides_the_outline(tmp_path):
     for view in (pose.left, pose.right):
         shown, covered = _check_outline(w, view, "m1.surface", covers)
         assert shown > 300 and covered > 50  # the near sphere does cover part of the far outline
+
+
+def test_merged_creases_of_a_fandisk_like_part_are_not_hidden_by_their_own_faces(tmp_path, monkeypatch):
+    """Issue 37's fandisk defect: a crease merged from 200 nearly collinear edges (a 3 um bulge, the part turned
+    off the axes so vertex merging moves the line a fraction of a micron off its faces). The true creases (the
+    mesh's top rows of vertices, ~0.6 px apart) that a brute-force ray caster over the mesh's own triangles sees
+    are drawn, those it does not see are not, except next to a change of visibility; with FACE_TOUCH_PX 0 the
+    merged lines' own faces hide their middles."""
+    from wiredsl.engine import occlusion
+
+    mesh = fandisk_like(3e-6)
+    mesh.vertices = mesh.vertices + np.array([1.2, 0.0, 0.3]) - mesh.bounds.mean(axis=0)
+    mesh.export(tmp_path / "fan.stl")
+    (tmp_path / "s.wd").write_text('wiredsl 1\nmodel m {\n  mesh read "fan.stl"\n}\nplace m as m1\n' + EYE_RIG
+                                   + "path p {\n  straight from (0, 0) to (1m, 0) step 1m\n}\n")
+    scene = compile_file(tmp_path / "s.wd")[0]
+    w = build_world(scene)
+    P = mesh.vertices[201:603]  # the top-front and top-back rows: the two merged creases
+
+    def wrong() -> float:
+        view = simulate(scene, Options(visibility="exact", poses=(0,), right=False), w)[0].left
+        hidden = _brute_hidden(P, -view.R_cw.T @ view.t_cw, mesh.triangles).reshape(2, -1)
+        drawn = [f.points for f in view.features if f.kind in ("line", "polyline")]
+        gap = _distance_to_segments(_pixels(view, P), np.concatenate([p[:-1] for p in drawn]),
+                                    np.concatenate([p[1:] for p in drawn])).reshape(2, -1)
+        change = np.diff(hidden, axis=1) != 0
+        near = np.pad(change, ((0, 0), (1, 0))) | np.pad(change, ((0, 0), (0, 1)))
+        return float(((gap <= 0.3) == hidden)[~near].mean())
+
+    assert wrong() <= 0.01
+    monkeypatch.setattr(occlusion, "FACE_TOUCH_PX", 0.0)
+    assert wrong() > 0.05
