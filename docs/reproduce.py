@@ -15,11 +15,10 @@ it draws (its text: words exactly, coordinates as numbers). `--reuse DIR` takes 
 scene with its includes, the study, wiredsl's version: `wiredsl.study.digest`), so CI pays only for reading it;
 without it, or when they differ, the command runs in a temporary folder.
 
-Not here yet (their pages still carry hand-copied figures, each with the script that prints them): the CRN
-benchmark's efficiency column (`benchmarks/study_crn.py`: CPU seconds, which no tolerance holds across
-machines; its standard errors are here) and the chessboard's fitted pipeline, prediction tables and figures
-(`docs/scripts/verify_opencv_stereo.py`, two verify runs of over 3 minutes; they have drifted: its fitted lateral
-shift is now 0.404 px, not 0.94).
+Not here: machine-dependent figures (CPU seconds and rates in docs/performance*.md and the CRN benchmark's
+efficiency column, each beside the script that prints it: no tolerance holds them across machines), the fence's
+measured.wd excerpt in the detector tutorial (as wiredsl 0.2.0 wrote it), and the calibration covariance table of
+docs/how-to/calibration-board.md (`docs/scripts/calibrate_opencv_stereo.py`).
 """
 
 from __future__ import annotations
@@ -190,6 +189,16 @@ def chess_predict_table(ctx: Context) -> str:
         row("3D shape error after a rigid fit, RMS", gaps["corner_shape_3d"], mm)]) + "\n"
 
 
+HOLDOUT = "python benchmarks/holdout_chessboard.py"
+
+
+def holdout_table(ctx: Context) -> str:
+    """The held-out table benchmarks/holdout_chessboard.py prints (its four verify --holdout runs)."""
+    print(f"numbers: {HOLDOUT}", file=sys.stderr)
+    out = subprocess.run([sys.executable, *HOLDOUT.split()[1:]], cwd=ROOT, capture_output=True, text=True, check=True)
+    return "\n".join(line for line in out.stdout.splitlines() if line.startswith("|")) + "\n"
+
+
 ROUNDTRIP = "python -m pytest -q -s -n 0 -p no:cacheprovider tests/test_verify_roundtrip.py"
 
 
@@ -351,6 +360,7 @@ BLOCKS: dict[str, Block] = {
                                  lambda ctx: ctx.verify(*CHESS_GAPS) / "prediction.png",
                                  "docs/figures/verify_opencv_stereo_prediction_raw.png":
                                  lambda ctx: ctx.verify(*CHESS_RAW) / "prediction.png"}),
+    "holdout-table": Block("docs/tutorials/measure-your-detector.md", HOLDOUT, holdout_table),
     "roundtrip-counts": Block("docs/tutorials/measure-your-detector.md", ROUNDTRIP, roundtrip_sentence),
     "crn-table": Block("docs/tutorials/study.md", CRN, crn_table),
     "study-shift-table": Block(

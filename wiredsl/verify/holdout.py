@@ -97,19 +97,23 @@ def observe(frame, views, per_side, edge_det, corner_det, cfg, objects):
 
 
 def simulate(scene, world, pipeline, frames: list, cfg: ver.Settings, trials: int, seed: int, objects,
-             corners: bool) -> list[dict]:
-    """Per frame and trial the simulated statistics, [{frame, trial, side -> {statistic}, PAIR -> value}]."""
+             corners: bool, background: float = 0.0) -> list[dict]:
+    """Per frame and trial the simulated statistics, [{frame, trial, side -> {statistic}, PAIR -> value}], with the
+    fit's `background` share of the verified runs given the background term, as `--predict` draws it."""
     from wiredsl.verify import predict
 
-    def values(model, sim, shape):
+    def values(model, sim, shape, where=()):
         st = ver.strokes_of(model)
         sm = ver.sample_strokes(st, cfg.step)
-        stats = ver.stroke_stats(sm, predict.search_simulated(sm, predict.segments_of(sim), shape, cfg), st.n,
-                                 cfg.margin)
+        m = predict.search_simulated(sm, predict.segments_of(sim), shape, cfg)
+        if background > 0:
+            m = predict.with_background(sm, m, background, cfg.band, predict.background_rng(seed, where))
+        stats = ver.stroke_stats(sm, m, st.n, cfg.margin)
         cm = ver.match_corners(*ver.corners_of(model), ver.corners_of(sim)[1], cfg.radius) if corners else None
         return side_values(stats, st, cm, cfg, objects)
 
-    return predict.simulate(scene, world, pipeline, frames, cfg, trials, seed, side_values=values)
+    return predict.simulate(scene, world, pipeline, frames, cfg, trials, seed, side_values=values,
+                            background=background)
 
 
 def place(real: float, sims: list[float]) -> dict:
@@ -241,7 +245,8 @@ def run(req, staging: Path, scene, world, observed: list, sums: list, sums_frame
                              calibration, req.calibration_error)
         pipeline = pipeline_of(req.scene, text, req.pipeline_name, staging)
         frames = [observed[i] for i in held]
-        sim = simulate(scene, world, pipeline, frames, cfg, req.trials, req.seed + k, objects, corners)
+        sim = simulate(scene, world, pipeline, frames, cfg, req.trials, req.seed + k, objects, corners,
+                       result.background)
         rows += compare(frames, sim, k)
         fits.append({"fold": k, "held_out": [observed[i].frame for i in held], "images_fitted": len(train),
                      "pipeline": [s.model_dump() for s in pipeline.stages]})

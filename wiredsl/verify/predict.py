@@ -153,6 +153,13 @@ def simulated_stats(model_view, sim_view, shape, cfg: ver.Settings, background: 
     return ver.stroke_stats(sm, m, st.n, cfg.margin)
 
 
+def background_rng(seed: int, where) -> np.random.Generator:
+    """The background term's draws of one simulated image: keyed by the seed and `where` (frame, trial, right)."""
+    import zlib
+
+    return np.random.default_rng([seed, zlib.crc32(b"background"), *where])
+
+
 def with_background(sm: ver.Samples, m: ver.EdgeMatch, share: float, band: float, rng: np.random.Generator
                     ) -> ver.EdgeMatch:
     """The fit's background term of the lateral shift (fit.shift_mixture) simulated: each verified run (consecutive
@@ -188,12 +195,9 @@ def simulate(scene, world, pipeline, observed: list[Observed], cfg: ver.Settings
     `side_values(model_view, simulated_view, shape) -> dict` gives an image's measures (default: `edge_values`
     of `simulated_stats`, with the fit's `background` share of the runs given the background term, each image's
     draws keyed by the seed, frame, trial and side; holdout.py's adds fragments and corners)."""
-    import zlib
-
-    key = [seed, zlib.crc32(b"background")]
     if side_values is None:
         def side_values(model, sim, shape, where=()):
-            rng = np.random.default_rng(key + list(where)) if background > 0 else None
+            rng = background_rng(seed, where) if background > 0 else None
             return edge_values(simulated_stats(model, sim, shape, cfg, background, rng))
     from wiredsl import run as runs
     from wiredsl.engine.geometry import floor_pose
