@@ -342,7 +342,8 @@ def chess_predict_bullets(ctx: Context) -> str:
         f"{'do' if agree(vr['ks']['p']) else 'do not'} the spreads (KS p {g(vr['ks']['p'])}): the fitted",
         "  `feature_spread` (each stroke's fraction drawn about its image's) gives each image the scatter of its "
         "strokes.",
-        f"- **The lateral offsets agree in the middle and {'not ' if not agree(off['ks']['p']) else ''}in the tails** "
+        f"- **The lateral offsets {'agree' if agree(off['mann_whitney']['p']) else 'differ'} in the middle and "
+        f"{'' if agree(off['ks']['p']) else 'not '}in the tails** "
         f"(RMS {off['simulated_mean']:.2f} px simulated against {off['real_mean']:.2f} px",
         f"  real, Mann-Whitney p {off['mann_whitney']['p']:.2f}, KS p {g(off['ks']['p'])}): with the mixture's "
         "background term simulated (`--predict` draws that",
@@ -353,7 +354,8 @@ def chess_predict_bullets(ctx: Context) -> str:
         "The",
         "  likely cause, not yet measured: the background share is drawn afresh for every trial and uniform over the",
         "  whole band, so some trials get many wide offsets, where a real image's background edges stay put.",
-        "- **The triangulated corners' shape is predicted, frame by frame.** After the rigid fit the real error is",
+        f"- **The triangulated corners' shape is {'' if agree(shape['ks']['p']) else 'not '}predicted, frame by "
+        "frame.** After the rigid fit the real error is",
         f"  {mm(min(f[1] for f in frames))} to {mm(max(f[1] for f in frames))} mm over the pairs (median "
         f"{mm(shape['real_median'])} mm), the simulated one from the fitted `corner_error`",
         f"  ({est['corner_error.sigma']['value']:.2f} px an axis, the cameras correlated by "
