@@ -9,16 +9,25 @@ BLOCKS[NAME] writes from its command's output: the command itself, then the numb
 from them, so a conclusion follows the numbers). `--check` compares a block's words exactly and each number
 within NUMBER_TOL units of the last digit the page prints (a rounded figure may move in its last digit on
 another CPU's floating point; a count may move by 1), each PNG figure with matplotlib's `compare_images` at
-FIGURE_TOL (RMS over 0-255 grey levels; another seed of the render block is 14 off), and each SVG figure by what
-it draws (its text: words exactly, coordinates as numbers). `--reuse DIR` takes a study's output from DIR
-(CI's `build/ci`, written by `.ci/run`'s own study commands) when its manifest's digest is the study's (the
-scene with its includes, the study, wiredsl's version: `wiredsl.study.digest`), so CI pays only for reading it;
-without it, or when they differ, the command runs in a temporary folder.
+FIGURE_TOL (RMS over 0-255 grey levels; another seed of the render block is 14 off), and each SVG figure by what it
+draws (its text: words exactly, coordinates as numbers), and a written .wd file so. `--reuse DIR` takes a study's
+output from DIR (CI's `build/ci`, written by `.ci/run`'s own study commands) when its manifest's digest is the
+study's (the scene with its includes, the study, wiredsl's version: `wiredsl.study.digest`), so CI pays only for
+reading it; without it, or when they differ, the command runs in a temporary folder.
+
+A block's command may be a page's own: `page_runs` runs a page's `<!-- run -->` blocks as tests/test_docs.py does
+(the detector tutorial's fence: its stdout, its measured.wd, its predictions).
 
 Not here: machine-dependent figures (CPU seconds and rates in docs/performance*.md and the CRN benchmark's
-efficiency column, each beside the script that prints it: no tolerance holds them across machines) and the fence's
-measured.wd excerpt in the detector tutorial (as wiredsl 0.2.0 wrote it). The calibration table is checked against
-the covariance file the scene declares, not against a new calibration (OpenCV's threads change its last digits).
+efficiency column, each beside the script that prints it: no tolerance holds them across machines). The
+calibration table is checked against the covariance file the scene declares, not against a new calibration
+(OpenCV's threads change its last digits); `--monte-carlo` re-calibrates to check that covariance.
+
+    python docs/reproduce.py --scan [--write-inventory]   # numbers outside the blocks against INVENTORY
+
+`--scan` lists every measured-looking number (a percentage, a figure with a unit, a decimal) of README.md and
+docs/ that no block makes and fails on one that INVENTORY does not list (as a definition, a machine's figure, or
+measured and not yet reproduced), or on an entry no page holds any more; tests/test_docs_numbers.py runs it.
 """
 
 from __future__ import annotations
@@ -34,6 +43,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import textwrap
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -125,8 +135,9 @@ class Context:
             out = self.tmp / f"verify-{len(self.made)}"
             command = [*CHESSBOARD.split()[1:], *args, "-o", str(out)]
             print(f"numbers: wiredsl {' '.join(command)}", file=sys.stderr)
-            subprocess.run([sys.executable, "-m", "wiredsl", *[a.strip("'") for a in command]], cwd=ROOT, check=True,
-                           capture_output=True)
+            proc = subprocess.run([sys.executable, "-m", "wiredsl", *[a.strip("'") for a in command]], cwd=ROOT,
+                                  check=True, capture_output=True, text=True)
+            (out / "stdout.txt").write_text(proc.stdout)
             self.made[key] = out
         return self.made[key]
 
@@ -187,6 +198,375 @@ def chess_predict_table(ctx: Context) -> str:
         row("RMS lateral offset", gaps["offset_rms_px"], px),
         row("triangulated corner error, RMS", gaps["corner_error_3d"], mm),
         row("3D shape error after a rigid fit, RMS", gaps["corner_shape_3d"], mm)]) + "\n"
+
+
+CHESS_DRAWN = (*CHESS_GAPS, "--calibration-error")  # the calibration's covariance drawn, as by default
+
+
+def _fit(folder: Path) -> dict:
+    return json.loads((folder / "fit.json").read_text())
+
+
+def _para(text: str, indent: str = "") -> str:
+    """A paragraph (or a list item, `indent` its first line's "- ") wrapped as the pages are, at 110 columns."""
+    return textwrap.fill(" ".join(text.split()), 110, initial_indent=indent, subsequent_indent=" " * len(indent),
+                         break_long_words=False, break_on_hyphens=False) + "\n"
+
+
+def _bullets(lines: list[str]) -> str:
+    """List items ("- " starts one, the lines after it continue it), each wrapped."""
+    items = " ".join(lines).split(" - **")
+    return "".join(_para(("**" if i else "") + item.removeprefix("- "), "- ") for i, item in enumerate(items))
+
+
+def _estimates(fit: dict) -> dict[str, dict]:
+    return {e["parameter"]: e for e in fit["estimates"]}
+
+
+def _note(fit: dict, parameter: str, pattern: str) -> str:
+    """A figure the fit's note on `parameter` states (what measured.wd's comment says)."""
+    (e,) = [e for e in fit["estimates"] if e["parameter"] == parameter]
+    return re.search(pattern, e["note"]).group(1)
+
+
+def _corner_rms(folder: Path) -> dict[tuple[str, str], float]:
+    """RMS px of each image's found corners within the inlier distance of the model's, by (frame, camera), and
+    (all, all) over every image; from verification.json."""
+    v = json.loads((folder / "verification.json").read_text())
+    inlier = v["settings"]["corner_inlier_px"]
+    acc: dict[tuple[str, str], list[float]] = {}
+    for r in v["rows"]:
+        if r["kind"] == "corner" and r["corner_error_px"] is not None and r["corner_error_px"] <= inlier:
+            for key in ((r["frame"], r["camera"]), ("all", "all")):
+                acc.setdefault(key, []).append(r["corner_error_px"])
+    return {k: (sum(x * x for x in e) / len(e)) ** 0.5 for k, e in acc.items()}
+
+
+def chess_verified_sentence(ctx: Context) -> str:
+    """Figure 7 as the verification's stdout prints it (a line a detector)."""
+    got = dict(re.findall(r"^(\w+)\tboard\t([\d.]+%) verified", (ctx.verify(*CHESS_GAPS) / "stdout.txt").read_text(),
+                          re.M))
+    return _para(f"Canny verifies {got['canny']} of the board's edges, LSD {got['lsd']} (the lines `wiredsl verify` "
+                 "prints; "
+            "the paper's Canny, on its seven objects: 71%). The\nfitted pipeline "
+            "(`docs/figures/verify_opencv_stereo_measured.wd`):")
+
+
+def chess_fit_prose(ctx: Context) -> str:
+    """What the chessboard's fit says beyond its table: fragments, background, the shifts' law, the matcher and the
+    corners' localisation error (fit.json and verification.json of the same run)."""
+    run = ctx.verify(*CHESS_GAPS)
+    fit, raw = _fit(run), _fit(ctx.verify(*CHESS_RAW))
+    est = _estimates(fit)
+    law, frag, matcher = fit["lateral_shift_law"], fit["fragments"], fit["stereo_matcher"]
+    better = law["better"]
+    other = "uniform" if better == "normal" else "normal"
+    background = _note(fit, "lateral_shift.range", r"([\d.]+%) of them taken as the background")
+    radius = est["corner_mismatch.radius"]
+    rms = _corner_rms(run)["all", "all"]
+    after = float(_note(fit, "corner_error.sigma", r"RMS ([\d.]+) px"))
+    return _para(
+        f"The board's grid lines break at every inner corner ({frag['runs_per_stroke']:.1f} verified runs a stroke), "
+        "and every end of a model\nstroke meets another stroke, so the board has no free end to measure the detector's "
+        "own loss at an edge's end\nand `gaps` (the default) takes none off; it leaves out the samples within 6 px of "
+        "another stroke's end (the\njunctions, where the detector's response is not the edge's), which is why it reads "
+        f"{_pct(est['edge_loss.fraction']['value'])} where\n`raw`, which keeps everything lost, reads "
+        f"{_pct(_estimates(raw)['edge_loss.fraction']['value'])}. "
+        f"Of the fragments' mean offsets, {background} are taken as the background (offsets\nuniform over the search "
+        f"band: edges the model does not name), and the shifts of the rest are closer to {better}\nthan {other} "
+        f"(Kolmogorov-Smirnov D {law[f'ks_{better}']['D']:.3f} against {law[f'ks_{other}']['D']:.3f})"
+        + (", and the mismatch radius is not estimated (no displaced corner): the\npaper's 10 px is kept."
+           if radius["value"] is None else f"; the mismatch radius is {radius['value']:.1f} px.")
+        + f" In the stereo pairs the NCC matcher paired {matcher['wrong']} of {matcher['matched']} corners wrongly.\n"
+        "The corners' localisation error is measured from their offsets after each image's affine map of them is "
+        "taken\noff (a pose or calibration error moves all of an image's corners together: "
+        f"{after:.2f} px RMS is left of the\n{rms:.2f} px), and the two cameras' errors of a corner correlate by "
+        f"{est['corner_error.correlation']['value']:.2f}: they see it alike.")
+
+
+def _frames(m: dict) -> list[tuple[str, float, list[float], float]]:
+    """(frame, real value, its simulated trials, the real value's rank among them) of a pair measure, in order."""
+    n = len(m["simulated"]) // len(m["real"])
+    return [(r["frame"], r["value"], m["simulated"][i * n:(i + 1) * n], rank)
+            for i, (r, rank) in enumerate(zip(m["real"], m["ranks"], strict=True))]
+
+
+def chess_predict_bullets(ctx: Context) -> str:
+    """The prediction's disagreements and agreements, each from prediction.json (and verification.json) of the runs
+    the table shows, and of the same command with the calibration's covariance drawn."""
+    import numpy as np
+
+    g = lambda p: f"{p:.2g}" if p >= 1e-3 else f"{p:.0e}"  # noqa: E731
+    agree = lambda p: p > 0.01  # noqa: E731  # the page's reading of a p-value
+    gaps = json.loads((ctx.verify(*CHESS_GAPS) / "prediction.json").read_text())["measures"]
+    raw = json.loads((ctx.verify(*CHESS_RAW) / "prediction.json").read_text())["measures"]
+    drawn = json.loads((ctx.verify(*CHESS_DRAWN) / "prediction.json").read_text())["measures"]
+    vf, vr, off = gaps["verified_fraction"], raw["verified_fraction"], gaps["offset_rms_px"]
+    points = 100 * (vf["simulated_mean"] - vf["real_mean"])
+    sd_real = float(np.std([r["value"] for r in off["real"]]))
+    sd_sim = float(np.std(off["simulated"]))
+    shape, err = gaps["corner_shape_3d"], gaps["corner_error_3d"]
+    est = _estimates(_fit(ctx.verify(*CHESS_GAPS)))
+    frames = _frames(shape)
+    top = lambda values: sorted(frames, key=values, reverse=True)[:3]  # noqa: E731
+    real_top = top(lambda f: f[1])
+    sim_top = top(lambda f: float(np.median(f[2])))
+    shared = len({f[0] for f in real_top} & {f[0] for f in sim_top})
+    from scipy.stats import spearmanr
+
+    rho = spearmanr([f[1] for f in frames], [float(np.median(f[2])) for f in frames]).statistic
+    inside = [f for f in frames if 0.05 <= f[3] <= 0.95]
+    outside = [f for f in frames if not 0.05 <= f[3] <= 0.95]
+    rms = _corner_rms(ctx.verify(*CHESS_GAPS))
+    right = {fr: v for (fr, cam), v in rms.items() if cam == "right"}
+    worst = max(right, key=right.get)
+    rest = [v for fr, v in right.items() if fr != worst]
+    mm = lambda x: f"{x:.2f}"  # noqa: E731
+    excepts = "; ".join(f"frame {f[0]}: {mm(f[1])} mm real, {mm(np.percentile(f[2], 5))}-{mm(np.percentile(f[2], 95))} "
+                        "simulated" for f in outside)
+    ef = _frames(err)
+    off_by = [(f[0], f[1] - float(np.median(f[2]))) for f in ef if f[1] - float(np.median(f[2])) > 0.1]
+    corners = all(agree(gaps[k]["ks"]["p"]) for k in ("corner_error_3d", "corner_shape_3d"))
+    edges = all(agree(gaps[k]["ks"]["p"]) for k in ("verified_fraction", "offset_rms_px"))
+    head = (f"The corners are {'' if corners else 'not '}predicted; the edges are {'' if edges else 'not'}"
+            f"{', and each disagreement says why:' if not (corners and edges) else '.'}")
+    still = abs(drawn["corner_shape_3d"]["simulated_mean"] - shape["simulated_mean"]) < 0.05
+    lines = [
+        f"- **The verified fraction, as fitted by default, is {abs(points):.1f} points too "
+        f"{'high' if points > 0 else 'low'}** (KS p {g(vf['ks']['p'])}). The `gaps` reading",
+        "  leaves out the junctions' samples and, the board having no free stroke end, takes no end loss off; the",
+        "  simulation's strokes do not break at the inner corners as the real lines do, so what Canny loses there is",
+        "  missing from the prediction. Fitted with `--edge-loss raw` (`verify_opencv_stereo_prediction_raw.png`), the",
+        f"  means {'agree' if agree(vr['mann_whitney']['p']) else 'differ'} ({_pct(vr['simulated_mean'])} against "
+        f"{_pct(vr['real_mean'])}, Mann-Whitney p {vr['mann_whitney']['p']:.2f}) and so "
+        f"{'do' if agree(vr['ks']['p']) else 'do not'} the spreads (KS p {g(vr['ks']['p'])}): the fitted",
+        "  `feature_spread` (each stroke's fraction drawn about its image's) gives each image the scatter of its "
+        "strokes.",
+        f"- **The lateral offsets {'agree' if agree(off['mann_whitney']['p']) else 'differ'} in the middle and "
+        f"{'' if agree(off['ks']['p']) else 'not '}in the tails** "
+        f"(RMS {off['simulated_mean']:.2f} px simulated against {off['real_mean']:.2f} px",
+        f"  real, Mann-Whitney p {off['mann_whitney']['p']:.2f}, KS p {g(off['ks']['p'])}): with the mixture's "
+        "background term simulated (`--predict` draws that",
+        f"  share of each image's verified runs uniform over the band) the means "
+        f"{'meet' if agree(off['mann_whitney']['p']) else 'do not meet'}, but the simulated images spread",
+        f"  {'far wider' if sd_sim > 2 * sd_real else 'wider' if sd_sim > sd_real else 'less'} than the real ones "
+        f"(a standard deviation over images and trials of {sd_sim:.2f} px against the real images' {sd_real:.2f} px). "
+        "The",
+        "  likely cause, not yet measured: the background share is drawn afresh for every trial and uniform over the",
+        "  whole band, so some trials get many wide offsets, where a real image's background edges stay put.",
+        f"- **The triangulated corners' shape is {'' if agree(shape['ks']['p']) else 'not '}predicted, frame by "
+        "frame.** After the rigid fit the real error is",
+        f"  {mm(min(f[1] for f in frames))} to {mm(max(f[1] for f in frames))} mm over the pairs (median "
+        f"{mm(shape['real_median'])} mm), the simulated one from the fitted `corner_error`",
+        f"  ({est['corner_error.sigma']['value']:.2f} px an axis, the cameras correlated by "
+        f"{est['corner_error.correlation']['value']:.2f}) has a median of {mm(shape['simulated_median'])} mm, and the "
+        "simulation follows the frames",
+        f"  (rank correlation of the real values with the trials' medians {rho:.2f}): of the three frames the real "
+        f"corners put highest",
+        f"  ({', '.join(f[0] for f in real_top)}: {mm(min(f[1] for f in real_top))}-{mm(max(f[1] for f in real_top))} "
+        f"mm) and the three it puts highest ({', '.join(f[0] for f in sim_top)}: medians",
+        f"  {mm(min(np.median(f[2]) for f in sim_top))}-{mm(max(np.median(f[2]) for f in sim_top))} mm), {shared} "
+        "are the same, since how far a pixel's error moves a triangulated point depends on the",
+        f"  board's distance and slant. In {len(inside)} of the {len(frames)} pairs the real value lies within its "
+        "frame's 5-95% of trials",
+        f"  ({excepts}). Frame {worst}'s right image's corners lie {right[worst]:.2f} px RMS from the model's, where",
+        f"  the other frames' lie {min(rest):.2f}-{max(rest):.2f} px, an error of the pose or the calibration more "
+        "than of the detector.",
+        f"- **The corner error against the model's corners is {err['real_mean'] - err['simulated_mean']:.2f} mm "
+        f"{'larger' if err['real_mean'] > err['simulated_mean'] else 'smaller'} than predicted** (medians "
+        f"{mm(err['real_median'])} and {mm(err['simulated_median'])}",
+        f"  mm, means {mm(err['real_mean'])} and {mm(err['simulated_mean'])} mm: frames "
+        f"{', '.join(f for f, _ in off_by[:-1])} and {off_by[-1][0]} are above their trials' medians by "
+        f"{min(d for _, d in off_by):.2f}-{max(d for _, d in off_by):.2f} mm). It counts the",
+        "  frame's pose, which for the real images is solvePnP's on the left image's corners and for the simulated "
+        "ones",
+        "  the truth; the simulation has no error of the pose. Nor of the rig (`--no-calibration-error`): with the",
+        f"  calibration's covariance drawn (`{' '.join(CHESS_DRAWN[-1:])}`, as by default), the same command predicts "
+        f"{mm(drawn['corner_error_3d']['simulated_mean'])} mm",
+        f"  against the real {mm(drawn['corner_error_3d']['real_mean'])} (KS p "
+        f"{g(drawn['corner_error_3d']['ks']['p'])})"
+        f" and RMS lateral offsets of {drawn['offset_rms_px']['simulated_mean']:.2f} px against "
+        f"{drawn['offset_rms_px']['real_mean']:.2f}, while the shape",
+        f"  error {'hardly moves' if still else 'moves'} ({mm(drawn['corner_shape_3d']['simulated_mean'])} mm): a rig "
+        "drawn away from the one "
+        "these corners were fitted to moves every",
+        "  projected edge and corner, which on these images it does not."]
+    return _para(head) + "\n" + _bullets(lines)
+
+
+# a page's blocks to run or write, as tests/test_docs.py finds them
+RUNNABLE = re.compile(r"^<!-- (run|file: ([\w./-]+)) -->\n```(\w*)[^\n]*\n(.*?)^```", re.S | re.M)
+
+
+def page_runs(ctx: Context, page: str) -> tuple[Path, list[str]]:
+    """A page's `<!-- run -->` and `<!-- file: -->` blocks run in order in one folder, as tests/test_docs.py runs them
+    (the checkout's scenes/, examples/ and tests/data/ beside them): the folder and each run block's stdout."""
+    if ("page", page) not in ctx.made:
+        cwd = ctx.tmp / f"runs-{len(ctx.made)}"
+        (cwd / "tests").mkdir(parents=True)
+        for name in ("scenes", "examples"):
+            (cwd / name).symlink_to(ROOT / name)
+        (cwd / "tests" / "data").symlink_to(ROOT / "tests" / "data")
+        env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
+               "MPLBACKEND": "Agg", "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+        outs = []
+        for m in RUNNABLE.finditer((ROOT / page).read_text()):
+            if m.group(2):
+                (cwd / m.group(2)).write_text(m.group(4))
+                continue
+            argv = (["bash", "-euo", "pipefail", "-c", m.group(4)] if m.group(3) == "sh"
+                    else [sys.executable, "-c", m.group(4)])
+            print(f"numbers: {page}'s block at line {(ROOT / page).read_text().count(chr(10), 0, m.start()) + 1}",
+                  file=sys.stderr)
+            outs.append(subprocess.run(argv, cwd=cwd, env=env, check=True, capture_output=True, text=True).stdout)
+        ctx.made["page", page] = (cwd, outs)
+    return ctx.made["page", page]
+
+
+DETECTOR_PAGE = "docs/tutorials/measure-your-detector.md"
+BOARD_PAGE = "docs/how-to/calibration-board.md"
+FENCE = "tests/data/verify/fence.wd"
+
+
+def _injected() -> dict[str, float]:
+    """The fence's `injected` pipeline, by parameter (`edge_loss.fraction`: 0.25), as the scene declares it."""
+    from wiredsl import api
+
+    p = api.compile(ROOT / FENCE).pipeline("injected")
+    return {f"{s.effect}.{k}": v for s in p.stages for k, v in s.params.items() if isinstance(v, int | float)}
+
+
+def fence_fit(ctx: Context) -> str:
+    """Section 2's verification of the fence images: its stdout, its measured.wd, and which injected values the
+    fitted intervals hold."""
+    folder, outs = page_runs(ctx, DETECTOR_PAGE)
+    verify = folder / "build/fence/verify"
+    measured = (verify / "measured.wd").read_text()
+    body = measured[measured.index("\npipeline measured {") + 1:]
+    est = _estimates(_fit(verify))
+    injected = _injected()
+    held = [k for k, v in injected.items() if est.get(k, {}).get("low95") is not None
+            and est[k]["low95"] <= v <= est[k]["high95"]]
+    missed = [k for k in injected if k not in held]
+    words = lambda k: k.replace(".", " ").replace("_", " ")  # noqa: E731
+    value = lambda k, v: f"{v:g} px" if k.endswith((".range", ".radius", ".sigma")) else _pct(v, 0)  # noqa: E731
+    ce = est["corner_error.sigma"]
+    rms = float(_note(_fit(verify), "corner_error.sigma", r"RMS ([\d.]+) px"))
+    return ("stdout has one line per edge detector and object (Figure 7 as text; the corner detector's counts are "
+            "in\n`verification.json` and the fit):\n\n```\n" + outs[1].strip() + "\n```\n\n"
+            + _para("and `build/fence/verify` holds `verification.csv` / `.json` (one row per image, feature and "
+                    "detector), `figure7.png`, `fit.json` and `measured.wd`, whose pipeline these commands write as:")
+            + "\n```\n" + body.rstrip() + "\n```\n\n"
+            + _para(f"Injected were {', '.join(f'{words(k)} {value(k, v)}' for k, v in injected.items())}"
+                    + ("" if "corner_error.sigma" in injected else ", and no corner localisation error") + ": "
+                    + (f"all but the {' and the '.join(words(k) for k in missed)} lie in "
+                                               "their intervals" if missed else "all lie in their intervals")
+                    + f" (the {ce['value']:.2f} px of `corner_error` is Harris's own on the marks, most of the "
+                    f"{rms:.2f} px RMS put down to the mismatches that land within 2 px)."
+                    + (" The radius is short because the nearest detected corner is taken, and a checker mark moved "
+                       "by r px has corners of its own (its sides' ends, 8 px from its centre) nearer than r to where "
+                       "the model puts it." if "corner_mismatch.radius" in missed
+                       and est["corner_mismatch.radius"]["high95"] < injected["corner_mismatch.radius"] else "")))
+
+
+def fence_predict(ctx: Context) -> str:
+    """Section 5's two predictions on the fence images: their stdout lines, and what they say."""
+    folder, outs = page_runs(ctx, DETECTOR_PAGE)
+    gaps, raw = (json.loads((folder / f"build/fence/{d}/prediction.json").read_text())["measures"]
+                 for d in ("predict", "predict_raw"))
+    fit_gaps, fit_raw = (_estimates(_fit(folder / f"build/fence/{d}")) for d in ("predict", "predict_raw"))
+    lines = lambda out: [x for x in out.splitlines() if x.startswith("predict\t")]  # noqa: E731
+    both = lines(outs[-1])
+    first, second = both[:len(both) // 2], both[len(both) // 2:]
+    agree = lambda p: p > 0.01  # noqa: E731
+    orw = raw["offset_rms_px"]
+    same = all(abs(gaps[k]["simulated_mean"] - raw[k]["simulated_mean"]) < 1e-9 for k in ("corner_error_3d",
+                                                                                          "corner_shape_3d"))
+    vg, vr = gaps["verified_fraction"], raw["verified_fraction"]
+    end_loss = float(_note(_fit(folder / "build/fence/predict"), "edge_loss.fraction", r"end \(([\d.]+) px"))
+    return ("Each prints a line a measure after the Figure 7 line (the corner errors in mm):\n\n```\n"
+            + "\n".join(first) + "\n```\n\nand, with `--edge-loss raw`,\n\n```\n"
+            + next(x for x in second if "\tverified_fraction\t" in x) + "\n```\n\n"
+            + _para(f"(the offset line nearly the same, simulated {orw['simulated_mean']:.3f} px, KS p "
+                    f"{orw['ks']['p']:.3f}; the corner lines {'the same' if same else 'close'}). The offsets and the "
+                    "triangulated corners are "
+                    + ("predicted either way" if all(agree(m[k]["ks"]["p"]) for m in (gaps, raw)
+                                                      for k in ("offset_rms_px", "corner_error_3d", "corner_shape_3d"))
+                       else "not all predicted")
+                    + f"; the corner errors are large here (about {gaps['corner_error_3d']['real_mean'] / 10:.0f} cm "
+                    "RMS) because the images were drawn with a fifth of the corners moved by up to 8 px, which the "
+                    "fitted `corner_mismatch` simulates too. With the default `--edge-loss gaps` the fitted "
+                    f"{_pct(fit_gaps['edge_loss.fraction']['value'])} is the loss the pipeline injected, but the "
+                    f"simulation verifies {_pct(vg['simulated_mean'])} of the model where Canny verified "
+                    f"{_pct(vg['real_mean'])}: Canny also loses about "
+                    f"{end_loss:.1f}"
+                    " px at each end of each gap, which the simulated strokes do not. `--edge-loss raw` fits "
+                    f"everything Canny lost ({_pct(fit_raw['edge_loss.fraction']['value'])}), and the verified "
+                    f"fractions {'agree' if agree(vr['ks']['p']) else 'still differ'}."))
+
+
+CALIBRATION_CHECK = "python docs/scripts/calibrate_opencv_stereo.py --monte-carlo 800"
+
+
+def _script(ctx: Context, command: str, *extra: str) -> str:
+    """`python SCRIPT ARGS` (the page's command, then `extra`) run in the checkout, once: its stdout."""
+    key = ("script", command, *extra)
+    if key not in ctx.made:
+        print(f"numbers: {command} {' '.join(extra)}", file=sys.stderr)
+        ctx.made[key] = subprocess.run([sys.executable, *command.split()[1:], *extra], cwd=ROOT, capture_output=True,
+                                       text=True, check=True).stdout
+    return ctx.made[key]
+
+
+def calibration_check(ctx: Context) -> str:
+    """The script's calibration and its covariance against re-calibrations of noisier corners (the JSON line
+    `--monte-carlo` prints last)."""
+    got = json.loads(_script(ctx, CALIBRATION_CHECK).splitlines()[-1])
+    ratio, joint = got["ratio"], got["joint_ratio"]
+    off = max(abs(r - 1) for r in ratio.values())
+    f = sorted([joint["left.f"], joint["right.f"]])
+    return _para(
+        f"`{CALIBRATION_CHECK}` (writes nothing): the script's calibration has a stereoCalibrate rms of "
+        f"{got['rms']:.3f} px and a {got['baseline_mm']:.1f} mm baseline at the assumed square, and its corner "
+        f"noise is {got['sigma']:.3f} px (n = {got['n']}, p = {got['p']}). Calibrating the detected corners plus "
+        f"fresh N(0, sigma^2) noise as the script does, {got['runs']} times (seed {got['seed']}), spreads every "
+        f"parameter within {100 * off:.0f}% of the standard deviations above (Monte-Carlo over linearised "
+        f"{min(ratio.values()):.2f} to {max(ratio.values()):.2f}), and the {got['big_correlations']} large "
+        f"correlations (|rho| > 0.5) agree within {got['correlation_difference']:.2f}; "
+        "`tests/test_calibration_covariance.py` does it 200 times (within 20%, and 0.15). Linearising a single "
+        "joint estimate of everything instead would understate what this two-stage calibration delivers, `tz` by "
+        f"{joint['right.tz']:.1f} times, `f` by {f[0]:.1f} and {f[1]:.1f} times and `rx` by {joint['right.rx']:.1f} "
+        "times.")
+
+
+CHESSBOARD_FIGURE = "python docs/scripts/chessboard_figure.py"
+
+
+def chessboard_figure(ctx: Context) -> str:
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("chessboard_figure", ROOT / "docs/scripts/chessboard_figure.py")
+    fig = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fig)
+    return ("![left01.jpg; the scene rendered from its pose (--no-effects --edges none); the same through the paper "
+            "pipeline (--edges step --faces none)](../figures/chessboard_real_and_rendered.png)\n\n"
+            + _para(f"Drawn by `{CHESSBOARD_FIGURE}`: `{fig.REAL}` beside `{fig.RENDERS[0]}` and `{fig.RENDERS[1]}` "
+                    "(each image at half size)."))
+
+
+def _chessboard_png(ctx: Context) -> Path:
+    out = ctx.tmp / "chessboard_real_and_rendered.png"
+    _script(ctx, CHESSBOARD_FIGURE, "-o", str(out))
+    return out
+
+
+def board_poses_sentence(ctx: Context) -> str:
+    """What the calibration board page's `board_poses` example prints (its run block, run as the page shows it)."""
+    _, outs = page_runs(ctx, BOARD_PAGE)
+    found = [line.split() for line in outs[0].splitlines()]
+    rms = [f[-2] for f in found]
+    return _para(f"It prints a line an image: {'both are' if all(f[1] == 'True' for f in found) else 'not all are'} "
+                 f"found, with an RMS of {' and '.join(rms)} px.")
 
 
 HOLDOUT = "python benchmarks/holdout_chessboard.py"
@@ -413,9 +793,20 @@ BLOCKS: dict[str, Block] = {
         "levels)", "render_lab.png",
         "wiredsl render scenes/lab.wd --pipeline paper --seed 1 --blur 0.8 --noise 2 --pose 2 --cameras left",
         "build/lab/render/left_002.png"),
-    "chessboard-fit": Block("docs/tutorials/measure-your-detector.md", CHESSBOARD, chess_fit_table,
-                            {"docs/figures/verify_opencv_stereo_figure7.png": lambda ctx: ctx.verify(*CHESS_GAPS)
-                             / "figure7.png"}),
+    "chessboard-verified": Block(DETECTOR_PAGE, CHESSBOARD, chess_verified_sentence,
+                                 {"docs/figures/verify_opencv_stereo_figure7.png": lambda ctx: ctx.verify(*CHESS_GAPS)
+                                  / "figure7.png"}),
+    "chessboard-fit": Block(DETECTOR_PAGE, CHESSBOARD, chess_fit_table,
+                            {"docs/figures/verify_opencv_stereo_measured.wd": lambda ctx: ctx.verify(*CHESS_GAPS)
+                             / "measured.wd"}),
+    "chessboard-fit-prose": Block(DETECTOR_PAGE, CHESSBOARD, chess_fit_prose),
+    "chessboard-predict-bullets": Block(DETECTOR_PAGE, CHESSBOARD, chess_predict_bullets),
+    "fence-fit": Block(DETECTOR_PAGE, "the page's own commands (section 2)", fence_fit),
+    "fence-predict": Block(DETECTOR_PAGE, "the page's own commands (section 5)", fence_predict),
+    "board-poses": Block(BOARD_PAGE, "the page's own example", board_poses_sentence),
+    "calibration-check": Block("docs/how-to/calibration-board.md", CALIBRATION_CHECK, calibration_check),
+    "chessboard-figure": Block("docs/how-to/calibration-board.md", CHESSBOARD_FIGURE, chessboard_figure,
+                               {"docs/figures/chessboard_real_and_rendered.png": _chessboard_png}),
     "chessboard-predict": Block("docs/tutorials/measure-your-detector.md", CHESSBOARD, chess_predict_table,
                                 {"docs/figures/verify_opencv_stereo_prediction.png":
                                  lambda ctx: ctx.verify(*CHESS_GAPS) / "prediction.png",
@@ -440,7 +831,7 @@ BLOCKS: dict[str, Block] = {
 
 def numbers_drift(page: str, fresh: str, tol: float = NUMBER_TOL) -> list[str]:
     """How `fresh` differs from `page`: words exactly, numbers within `tol` units of the page's last digit."""
-    if NUMBER.sub("#", page) != NUMBER.sub("#", fresh):
+    if NUMBER.sub("#", " ".join(page.split())) != NUMBER.sub("#", " ".join(fresh.split())):  # a rewrap is no drift
         a, b = NUMBER.sub("#", page).splitlines(), NUMBER.sub("#", fresh).splitlines()
         diff = next(f"page: {x!r}\n      now:  {y!r}" for x, y in itertools.zip_longest(a, b, fillvalue="") if x != y)
         return [f"the words differ:\n      {diff}"]
@@ -460,7 +851,7 @@ def figure_drift(page: Path, fresh: Path, tol: float = FIGURE_TOL) -> str | None
 
     if not page.is_file():
         return f"{page} is missing"
-    if page.suffix == ".svg":  # the data it draws, as text: coordinates within their last digit
+    if page.suffix in (".svg", ".wd"):  # the data it draws (a file it writes), as text: numbers within their last digit
         return "; ".join(numbers_drift(page.read_text(), fresh.read_text(), NUMBER_TOL)[:3]) or None
     try:
         return compare_images(str(page), str(fresh), tol=tol)
@@ -516,12 +907,78 @@ def run(root: Path, blocks: dict[str, Block], ctx: Context, write: bool,
     return problems
 
 
+# ------------------------------------------------------------------ numbers outside the blocks
+
+INVENTORY = "docs/numbers-outside-blocks.tsv"
+MEASURED = re.compile(r"(?<![\w.])(?<![A-Za-z]-)\d[\d,]*(?:\.\d+)?(?![\d.]*\.\d)"
+                      r"(?:\s?(?:%|px\b|mm\b|cm\b|ms\b|s\b|m\b|deg\b|mrad\b|x\b|times\b))"
+                      r"|(?<![\w.])(?<![A-Za-z]-)\d+\.\d+(?![\d.]*\.\d)")
+HIDDEN = [BLOCK, re.compile(r"^<!-- generated: [\w-]+ -->\n.*?^<!-- /generated -->$", re.M | re.S),
+          re.compile(r"^ *```.*?^ *```", re.M | re.S), re.compile(r"<!--.*?-->", re.S), re.compile(r"`[^`\n]*`"),
+          re.compile(r"\]\([^)]*\)")]  # blocks, generated reference, fences, comments, code spans, link targets
+
+
+def outside_blocks(root: Path) -> list[tuple[str, int, str, str]]:
+    """Every measured-looking number (a percentage, a figure with a unit, a decimal) of README.md and docs/*.md that
+    no block makes: (page, line, the number, the words before it on its line)."""
+    found = []
+    for path in sorted([root / "README.md", *(root / "docs").rglob("*.md")]):
+        if not path.is_file():
+            continue
+        text = path.read_text()
+        for rx in HIDDEN:  # blanked, its lines kept
+            text = rx.sub(lambda m: re.sub(r"[^\n]", " ", m.group(0)), text)
+        for i, line in enumerate(text.splitlines(), 1):
+            for m in MEASURED.finditer(line):
+                before = " ".join(line[:m.start()].split()[-5:])
+                found.append((path.relative_to(root).as_posix(), i, m.group(0), before))
+    return found
+
+
+def inventory_key(page: str, number: str, before: str) -> str:
+    return f"{page}\t{number}\t{before}"
+
+
+def scan(root: Path, write: bool = False) -> list[str]:
+    """The numbers outside the blocks against the inventory (INVENTORY: each one a reader has been told is a
+    definition, a machine's figure beside its script, or not yet reproduced): what is in neither, and what the
+    inventory lists that the pages no longer hold. `write` rewrites the inventory to what the pages hold, keeping
+    each kept entry's class and giving a new one `unreviewed`."""
+    path = root / INVENTORY
+    listed = {}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            if line and not line.startswith("#"):
+                cls, key = line.split("\t", 1)
+                listed[key] = cls
+    found = outside_blocks(root)
+    keys = {inventory_key(p, n, b): (p, i, n) for p, i, n, b in found}
+    if write:
+        rows = [f"{listed.get(k, 'unreviewed')}\t{k}" for k in sorted(keys)]
+        head = ["# Measured-looking numbers in README.md and docs/ that no docs/reproduce.py block makes, one a line:",
+                "# class, page, number, the words before it. Classes: definition (a default, a unit, a version, an",
+                "# input, the paper's value), machine (a CPU figure beside the script that prints it), unreviewed",
+                "# (measured, not yet reproduced: make it a block, cite a block, or remove it).",
+                "# `python docs/reproduce.py --scan` checks it; `--scan --write` rewrites it."]
+        from wiredsl.files import write_atomic
+
+        write_atomic(path, "\n".join(head + rows) + "\n")
+        return []
+    out = [f"{p}:{i}: {n!r} is outside any numbers block and not in {INVENTORY}: make it a block, cite a block's "
+           "number, or list it (a definition)" for k, (p, i, n) in keys.items() if k not in listed]
+    out += [f"{INVENTORY}: {k!r} is no longer on its page (remove it)" for k in listed if k not in keys]
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     mode = ap.add_mutually_exclusive_group(required=True)
     mode.add_argument("--write", action="store_true", help="regenerate every block and figure in place")
     mode.add_argument("--check", action="store_true", help="regenerate and compare; exit 1 on a drift")
     mode.add_argument("--list", action="store_true", help="each block, its page, command and figures")
+    mode.add_argument("--scan", action="store_true", help=f"numbers outside the blocks against {INVENTORY} (with "
+                      "--write-inventory: rewrite it)")
+    ap.add_argument("--write-inventory", action="store_true", help="with --scan: rewrite the inventory")
     ap.add_argument("--reuse", type=Path, help="a folder of study outputs (CI's build/ci) to read, not rerun")
     ap.add_argument("names", nargs="*", help="only these blocks (default: all)")
     a = ap.parse_args(argv)
@@ -529,6 +986,11 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         ap.error(f"unknown block {unknown[0]!r}: one of {', '.join(BLOCKS)}")
     blocks = {n: b for n, b in BLOCKS.items() if not a.names or n in a.names}
+    if a.scan:
+        problems = scan(ROOT, write=a.write_inventory)
+        for p in problems:
+            print(f"numbers: {p}", file=sys.stderr)
+        return 1 if problems else 0
     if a.list:
         for n, b in blocks.items():
             print(f"{n}\t{b.page}\t{b.command}\t{' '.join(b.figures)}")

@@ -107,3 +107,27 @@ def test_an_svg_figure_is_compared_by_what_it_draws(tmp_path):
     svg.write_text('<svg><line x1="10.25" y1="3"/><line x1="1" y1="2"/><title>pose 3</title></svg>')  # one more
     (drift,) = _check(root, blocks, ctx)
     assert "the words differ" in drift
+
+
+def test_a_number_outside_a_block_fails_the_scan_until_listed(tmp_path):
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "README.md").write_text("wiredsl 0.2.0: the paper's pipeline.\n")
+    page = ("Canny verifies 87.3% of the edges, 0.21 px RMS.\n\n<!-- numbers: t -->\nLSD 90.0%\n<!-- /numbers -->\n\n"
+            "```\nmeasured 12.5%\n```\n\nIn code, `--band 6px` or `0.5`; a [link](a-1.5.md). Apache-2.0.\n")
+    (tmp_path / "docs" / "page.md").write_text(page)
+    assert [(p, i, n) for p, i, n, _ in numbers.outside_blocks(tmp_path)] == [
+        ("docs/page.md", 1, "87.3%"), ("docs/page.md", 1, "0.21 px")]
+    (first, second) = numbers.scan(tmp_path)
+    assert first.startswith("docs/page.md:1: '87.3%' is outside any numbers block") and "'0.21 px'" in second
+    assert numbers.scan(tmp_path, write=True) == [] and numbers.scan(tmp_path) == []
+    assert "unreviewed\tdocs/page.md\t87.3%\tCanny verifies" in (tmp_path / numbers.INVENTORY).read_text()
+    # a figure hand-edited on the page is a new number, and its old entry is stale
+    (tmp_path / "docs" / "page.md").write_text(page.replace("0.21 px", "0.23 px"))
+    new, stale = numbers.scan(tmp_path)
+    assert "'0.23 px' is outside" in new and "'docs/page.md\\t0.21 px\\t" in stale and "no longer" in stale
+
+
+def test_every_number_outside_a_block_is_listed():
+    """README.md's and docs/'s measured-looking numbers are made by blocks, or listed in the inventory with their
+    class (`python docs/reproduce.py --scan`)."""
+    assert numbers.scan(ROOT) == []

@@ -1,6 +1,7 @@
 """Regenerate the stereo camera and the board poses of scenes/chessboard.wd from OpenCV's sample images.
 
     python docs/scripts/calibrate_opencv_stereo.py
+    python docs/scripts/calibrate_opencv_stereo.py --monte-carlo 800 [SEED]   # check the covariance; writes nothing
 
 Reads tests/data/opencv_stereo/left*.jpg and right*.jpg (13 pairs, a 9 x 6 inner-corner chessboard), and
 writes, with OpenCV alone (no wiredsl code, so that the scene is an independent description of the images):
@@ -26,6 +27,7 @@ Prints the reprojection errors.
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -78,7 +80,8 @@ def board_points() -> np.ndarray:
 def calibrate(left: list[np.ndarray], right: list[np.ndarray], quiet: bool = False) -> dict:
     """The stereo calibration of the corners: each camera's `calibrateCamera`, then `stereoCalibrate` of the
     pair with those intrinsics fixed. Returns M1, D1, M2, D2, R, T (x_r = R x_l + T), each camera's own board
-    poses (rvecs1, tvecs1, rvecs2, tvecs2: board to camera) and the stereo stage's left board poses (rvecs, tvecs)."""
+    poses (rvecs1, tvecs1, rvecs2, tvecs2: board to camera), the stereo stage's left board poses (rvecs, tvecs) and
+    its rms (px)."""
     objs = [board_points()] * len(left)
     rms1, M1, D1, rv1, tv1 = cv2.calibrateCamera(objs, left, SIZE, None, None, flags=FLAGS)
     rms2, M2, D2, rv2, tv2 = cv2.calibrateCamera(objs, right, SIZE, None, None, flags=FLAGS)
@@ -88,8 +91,8 @@ def calibrate(left: list[np.ndarray], right: list[np.ndarray], quiet: bool = Fal
     if not quiet:
         print(f"calibrateCamera rms: left {rms1:.3f} px, right {rms2:.3f} px; stereoCalibrate rms {rms:.3f} px; "
               f"baseline {np.linalg.norm(T) * 1000:.1f} mm (square {SQUARE * 1000:g} mm assumed)")
-    return {"M1": M1, "D1": D1, "M2": M2, "D2": D2, "R": R, "T": T.reshape(3), "rvecs1": rv1, "tvecs1": tv1,
-            "rvecs2": rv2, "tvecs2": tv2, "rvecs": rv, "tvecs": tv}
+    return {"rms": float(rms), "M1": M1, "D1": D1, "M2": M2, "D2": D2, "R": R, "T": T.reshape(3), "rvecs1": rv1,
+            "tvecs1": tv1, "rvecs2": rv2, "tvecs2": tv2, "rvecs": rv, "tvecs": tv}
 
 
 # ---------------------------------------------------------------- the calibration's uncertainty, over wiredsl's names
@@ -245,7 +248,50 @@ def write_covariance(path: Path, cov: dict) -> None:
     tmp.replace(path)
 
 
+def monte_carlo(left: list[np.ndarray], right: list[np.ndarray], ref: dict, sigma: float, runs: int,
+                rng: np.random.Generator) -> np.ndarray:
+    """`runs` calibrations (as `calibrate`) of the detected corners plus fresh N(0, sigma^2) noise: their parameters
+    over ORDER less the reference's (runs, 18), converted exactly (`offsets`), not linearised."""
+    out = []
+    for _ in range(runs):
+        noisy = [[c + rng.normal(0.0, sigma, c.shape).astype(np.float32) for c in side] for side in (left, right)]
+        out.append(offsets(calibrate(*noisy, quiet=True), ref))
+    return np.array(out)
+
+
+def check(runs: int, seed: int) -> dict:
+    """The calibration, its linearised covariance and `runs` re-calibrations of noisier corners against it: each
+    standard deviation's ratio (Monte-Carlo / linearised), the large correlations' largest difference, and how much
+    less one joint estimate of everything would claim. Writes nothing."""
+    pairs = detected()
+    left, right = [a for _, a, _ in pairs], [b for _, _, b in pairs]
+    ref = calibrate(left, right, quiet=True)
+    cov = covariance(ref, left, right)
+    X = monte_carlo(left, right, ref, cov["sigma"], runs, np.random.default_rng(seed))
+    sd, mc = np.sqrt(np.diag(cov["covariance"])), X.std(axis=0, ddof=1)
+    rho, rho_mc = cov["covariance"] / np.outer(sd, sd), np.corrcoef(X.T)
+    big = np.abs(rho) > 0.5
+    np.fill_diagonal(big, False)
+    joint = mc / np.sqrt(np.diag(cov["joint"]))
+    return {"pairs": len(pairs), "rms": ref["rms"], "baseline_mm": float(np.linalg.norm(ref["T"]) * 1000),
+            "sigma": cov["sigma"], "n": cov["n"], "p": cov["p"], "runs": runs, "seed": seed,
+            "ratio": dict(zip(ORDER, (mc / sd).tolist(), strict=True)), "big_correlations": int(big.sum() // 2),
+            "correlation_difference": float(np.abs(rho - rho_mc)[big].max()),
+            "joint_ratio": dict(zip(ORDER, joint.tolist(), strict=True))}
+
+
 def main() -> int:
+    if sys.argv[1:2] == ["--monte-carlo"]:  # --monte-carlo RUNS [SEED]: check the covariance, write nothing
+        got = check(int(sys.argv[2]), int(sys.argv[3]) if len(sys.argv) > 3 else 0)
+        print(f"stereoCalibrate rms {got['rms']:.3f} px, baseline {got['baseline_mm']:.1f} mm, corner noise sigma "
+              f"{got['sigma']:.4f} px (n {got['n']}, p {got['p']}); {got['runs']} re-calibrations, seed {got['seed']}:")
+        for name in ORDER:
+            print(f"  {name:9s} Monte-Carlo / linearised {got['ratio'][name]:.3f}, / one joint estimate "
+                  f"{got['joint_ratio'][name]:.2f}")
+        print(f"the {got['big_correlations']} correlations beyond 0.5: largest difference "
+              f"{got['correlation_difference']:.3f}")
+        print(json.dumps(got))
+        return 0
     pairs = detected()
     obj = board_points()
     cal = calibrate([a for _, a, _ in pairs], [b for _, _, b in pairs])
