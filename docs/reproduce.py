@@ -579,6 +579,33 @@ def holdout_table(ctx: Context) -> str:
     return "\n".join(line for line in out.stdout.splitlines() if line.startswith("|")) + "\n"
 
 
+CIRCLES = "python benchmarks/circle_grids.py --figure docs/figures/verify_by_kind.png"
+
+
+def _circle_grids(ctx: Context) -> tuple[str, Path]:
+    """benchmarks/circle_grids.py's tables and figure, run once."""
+    if "circle-grids" not in ctx.made:
+        print(f"numbers: {CIRCLES}", file=sys.stderr)
+        fig = ctx.tmp / "verify_by_kind.png"
+        out = subprocess.run([sys.executable, "benchmarks/circle_grids.py", "--figure", str(fig)], cwd=ROOT,
+                             capture_output=True, text=True, check=True)
+        ctx.made["circle-grids"] = (out.stdout, fig)
+    return ctx.made["circle-grids"]
+
+
+def circle_grids(ctx: Context) -> str:
+    """The circle grids' tables, and how many held-out statistics have at least 80% of their images inside."""
+    text, _ = _circle_grids(ctx)
+    tables = "\n".join(line if line.startswith("|") else "" for line in text.splitlines()).strip() + "\n"
+    held = [t for t in tables.split("\n\n") if t.startswith("| held out")][0].splitlines()[2:]
+    cells = [c for line in held for c in line.split("|")[2:-1]]
+    fractions = [int(c.split("/")[0]) / int(c.split("/")[1].split()[0]) for c in cells if "/" in c]
+    good = sum(f >= 0.8 for f in fractions)
+    return (f"`{CIRCLES}` (a `wiredsl verify --fit --holdout odd` run a set, 50 trials an image, seed 0):\n\n"
+            f"{tables}\nHeld out, {good} of the {len(fractions)} statistics of the two sets have at least 80% of "
+            f"their images inside the simulated central 90% band.\n")
+
+
 CALIBRATION = "scenes/chessboard.wd"  # its rig's declared covariance (scenes/calib/opencv_stereo.cov) and T
 
 
@@ -794,6 +821,8 @@ BLOCKS: dict[str, Block] = {
         "docs/tutorials/study.md", "wiredsl study scenes/studies/lab_study.wd shift_calibration", shift_table,
         {"docs/figures/study_shift_recognition.png": _plot(SHIFT_CAL, "pgh.recognition.png"),
          "docs/figures/study_shift_error.png": _plot(SHIFT_CAL, "stereo3d.error_median.png")}),
+    "circle-grids": Block("docs/how-to/calibration-board.md", CIRCLES, circle_grids,
+                          {"docs/figures/verify_by_kind.png": lambda ctx: _circle_grids(ctx)[1]}),
     "study-sources-sobol": Block(
         "docs/tutorials/study.md", "wiredsl study scenes/studies/lab_study.wd sources", sobol_sentence,
         {"docs/figures/study_sources_sobol.png": _plot(SOURCES, "sobol.png")}),

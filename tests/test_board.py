@@ -39,6 +39,8 @@ path here {{
 """
 CHESS = "board target chessboard inner (9, 6) square 30mm"
 CHARUCO = "board target charuco squares (7, 5) square 40mm marker 30mm dictionary DICT_5X5_100"
+ACIRCLES = "board target acircles dots (4, 5) spacing 30mm diameter 20mm"
+CIRCLES = "board target circles dots (7, 5) spacing 35mm diameter 18mm"
 
 
 def _scene(tmp_path: Path, board: str) -> Path:
@@ -71,7 +73,8 @@ def test_a_chessboard_is_a_model_of_corners_lines_and_a_face():
     assert "board" not in scene.model_dump(mode="json")["models"][0] or scene.models[0].board is not None
 
 
-@pytest.mark.parametrize("board", [CHESS, CHARUCO], ids=["chessboard", "charuco"])
+@pytest.mark.parametrize("board", [CHESS, CHARUCO, ACIRCLES, CIRCLES],
+                         ids=["chessboard", "charuco", "acircles", "circles"])
 def test_rendered_boards_give_back_the_poses_they_were_rendered_from(tmp_path, board):
     path = _scene(tmp_path, board)
     r = CliRunner().invoke(main, ["render", str(path), "-o", str(tmp_path / "r"), "--edges", "none", "--blur", "0.7",
@@ -81,7 +84,8 @@ def test_rendered_boards_give_back_the_poses_they_were_rendered_from(tmp_path, b
     scene = wiredsl.compile(path)
     model = scene.model("target")
     place = scene.placements[0]
-    X = np.array([c.at for c in model.corners]) @ np.array(place.rotation).T + np.array(place.position)
+    points = model.board.centres() if model.board.circles else np.array([c.at for c in model.corners])
+    X = points @ np.array(place.rotation).T + np.array(place.position)
     for side in ("left", "right"):
         files = [tmp_path / "r" / f"{side}_{k:03d}.png" for k in range(3)]
         found = board_poses(scene, files, side)
@@ -93,16 +97,34 @@ def test_rendered_boards_give_back_the_poses_they_were_rendered_from(tmp_path, b
             cam = doc["cameras"][side]
             uv, _ = cv2.projectPoints(X[p.ids], cv2.Rodrigues(R)[0], t, np.array(cam["K"]),
                                       np.array([cam["coefficients"][c] for c in ("k1", "k2", "p1", "p2", "k3")]))
-            err = np.linalg.norm(uv.reshape(-1, 2) - p.corners, axis=1)
+            uv = uv.reshape(-1, 2)
+            if "circles dots (7, 5)" in board and (uv[-1, 0], uv[-1, 1]) < (uv[0, 0], uv[0, 1]):
+                R, t = _half_turn(R, t, X)  # a symmetric grid's pose is the one whose first dot is leftmost
+                uv = uv[::-1]
+            err = np.linalg.norm(uv - p.corners, axis=1)
+            # (a dot's centroid is off the projection of its centre by a few hundredths of a pixel here)
             assert np.sqrt(np.mean(err ** 2)) < 0.25 and p.rms < 0.25, (err.max(), p.rms)
-            assert len(p.ids) >= (54 if "chessboard" in board else 12)
+            assert len(p.ids) == {"chessboard": 54, "charuco": 24, "acircles": 20, "circles": 35}[model.board.kind] \
+                or "charuco" in board and len(p.ids) >= 12
             # a board 30 cm wide at 1.1 m, its corners found to 0.15 px: its tilt is known to a few tenths of a degree
             angle = np.degrees(np.arccos(np.clip((np.trace(p.R_cw @ R.T) - 1) / 2, -1, 1)))
             assert angle < 0.8 and np.linalg.norm(p.t_cw - t) < 0.015, (angle, p.t_cw - t)
             # the robot pose the engine takes, through the mount, is the path's pose
-            Rw, tw = geometry.world_from_robot(p.robot_pose)
-            Rp, tp = geometry.world_from_robot(scene.path.pose(k))
-            assert np.linalg.norm(tw - tp) < 0.03 and np.abs(Rw - Rp).max() < 0.015
+            if np.allclose(R, np.array(view["R_cw"])):  # (not for a symmetric grid seen turned: the other pose)
+                Rw, tw = geometry.world_from_robot(p.robot_pose)
+                Rp, tp = geometry.world_from_robot(scene.path.pose(k))
+                assert np.linalg.norm(tw - tp) < 0.03 and np.abs(Rw - Rp).max() < 0.015
+
+
+def _half_turn(R_cw, t_cw, X):
+    """The camera pose that sees the board points X (n, 3, world) turned half a turn about their centre's normal:
+    the pose from which dot k is where dot n - 1 - k was."""
+    c = X.mean(axis=0)
+    _, _, vt = np.linalg.svd(X - c)
+    n = vt[2]
+    H = 2 * np.outer(n, n) - np.eye(3)  # a half turn about n: v -> 2 (v.n) n - v
+    # X_cam = R (H (X - c) + c) + t: the world turned, seen from the same camera
+    return R_cw @ H, R_cw @ (c - H @ c) + t_cw
 
 
 def test_a_board_missing_from_images_is_located_and_too_few_is_an_error(tmp_path):
@@ -131,6 +153,44 @@ def test_a_board_missing_from_images_is_located_and_too_few_is_an_error(tmp_path
     with pytest.raises(WiredslError) as err:
         board_poses(scene, good, "nosuchcamera")
     assert err.value.diagnostics[0].code == "E198"
+
+
+def test_a_circle_grid_is_a_model_of_dots_in_opencvs_order():
+    """OpenCV's object points (its calibration sample's): a symmetric grid's dot (row j, column i) at (i, j) s, an
+    asymmetric one's at (2 i + j % 2, j) s; each dot an ellipse (a circle) of the declared diameter."""
+    for decl, want in ((ACIRCLES, [((2 * i + j % 2) * 0.03, j * 0.03) for j in range(5) for i in range(4)]),
+                       (CIRCLES, [(i * 0.035, j * 0.035) for j in range(5) for i in range(7)])):
+        m = wiredsl.compile(BOARD.format(board=decl)).model("target")
+        assert m.lines == [] and m.corners == [] and len(m.ellipses) == len(want)
+        assert np.allclose([e.centre[:2] for e in m.ellipses], want) and not np.any([e.centre[2] for e in m.ellipses])
+        assert np.allclose(m.board.centres()[:, :2], want)
+        r = 0.01 if m.board.kind == "acircles" else 0.009
+        assert all(e.a == e.b == pytest.approx(r) for e in m.ellipses)
+        assert m.ellipses[5].name == ("o1_1" if m.board.kind == "acircles" else "o0_5")
+        # the face spans the dots and a margin (one spacing) beyond their edges
+        (face,) = m.faces
+        lo, hi = np.min(face.vertices, axis=0), np.max(face.vertices, axis=0)
+        s = m.board.square
+        assert np.allclose(lo[:2], np.min(want, axis=0) - r - s) and np.allclose(hi[:2], np.max(want, axis=0) + r + s)
+
+
+@pytest.mark.parametrize(("decl", "code", "says"), [
+    ("board target circles dots (7, 5) spacing 35mm", "E102", "needs 'diameter'"),
+    ("board target acircles dots (4, 5) diameter 20mm", "E102", "needs 'spacing'"),
+    ("board target circles inner (7, 5) spacing 35mm diameter 10mm", "E103", "takes 'dots', not 'inner'"),
+    ("board target circles dots (7, 5) square 35mm spacing 35mm diameter 10mm", "E103", "'square' is a"),
+    ("board target chessboard inner (9, 6) square 30mm diameter 10mm", "E103", "'diameter' is a"),
+    ("board target circles dots (7, 5) spacing 35mm diameter 35mm", "E110", "smaller than it"),
+    ("board target acircles dots (4, 5) spacing 30mm diameter 43mm", "E110", "smaller than it"),  # > 30 sqrt 2
+    ("board target circles dots (7, 5) spacing 35mm diameter 0.1mm", "E110", "at least 0.05"),
+    ("board target circles dots (2, 5) spacing 35mm diameter 10mm", "E110", "dots must be 3.."),
+])
+def test_a_bad_circle_grid_is_a_located_error(decl, code, says):
+    with pytest.raises(WiredslError) as err:
+        wiredsl.compile(BOARD.format(board=decl))
+    d = next(d for d in err.value.diagnostics if d.severity == "error")  # (then the placement of no model)
+    assert d.code == code and says in d.message, d.message
+    assert d.span is not None and d.span.line == 3
 
 
 def test_a_scene_without_a_board_is_an_error():

@@ -304,28 +304,46 @@ class Surface(Node):
 
 
 class Board(Node):
-    """The pattern of a calibration board (`board` statement), in its model's frame: squares of side `square`,
-    `columns` x `rows` of them, the outer corner of the first (dark) square at (-square, -square, 0), the
-    inner corners at (i square, j square, 0); a ChArUco board's markers sit in its light squares."""
+    """The pattern of a calibration board (`board` statement), in its model's frame.
 
-    kind: Literal["chessboard", "charuco"]
-    columns: int = Field(ge=3, description="squares across")
-    rows: int = Field(ge=3, description="squares down")
-    square: float = Field(gt=0)
+    A chessboard or ChArUco board: squares of side `square`, `columns` x `rows` of them, the outer corner of the
+    first (dark) square at (-square, -square, 0), the inner corners at (i square, j square, 0); a ChArUco
+    board's markers sit in its light squares. A circle grid (`circles`, `acircles`): `columns` x `rows` dark
+    dots of diameter `diameter` (OpenCV's patternSize: dots in a row, rows), centre (i, j) at (i square, j square,
+    0) on a symmetric grid and at ((2 i + j % 2) square, j square, 0) on an asymmetric one (OpenCV's object
+    points), the margin measured from the outermost dots' edges."""
+
+    kind: Literal["chessboard", "charuco", "circles", "acircles"]
+    columns: int = Field(ge=3, description="squares across (a circle grid: dots in a row)")
+    rows: int = Field(ge=3, description="squares down (a circle grid: rows of dots)")
+    square: float = Field(gt=0, description="a square's side (a circle grid: the spacing of its rows)")
     margin: float = Field(ge=0, description="white border around the squares")
     marker: float | None = Field(None, gt=0, description="charuco: side of a marker")
     dictionary: str | None = Field(None, description="charuco: OpenCV's ArUco dictionary, e.g. DICT_4X4_50")
+    diameter: float | None = Field(None, gt=0, description="circle grids: a dot's diameter")
     face: str = Field("plane", description="the model's face that carries the pattern")
-    _dump = omitted_when_none("marker", "dictionary")
+    _dump = omitted_when_none("marker", "dictionary", "diameter")
+
+    @property
+    def circles(self) -> bool:
+        return self.kind in ("circles", "acircles")
 
     @property
     def origin(self) -> Vec3:
-        return (-self.square, -self.square, 0.0)
+        return (0.0, 0.0, 0.0) if self.circles else (-self.square, -self.square, 0.0)
 
     @property
     def inner(self) -> tuple[int, int]:
-        """Inner corners across and down (OpenCV's patternSize)."""
-        return self.columns - 1, self.rows - 1
+        """OpenCV's patternSize: inner corners across and down, or a circle grid's dots in a row and rows."""
+        return (self.columns, self.rows) if self.circles else (self.columns - 1, self.rows - 1)
+
+    def centres(self):
+        """A circle grid's dot centres (n, 3) in the model's frame, in OpenCV's order (row by row)."""
+        import numpy as np
+
+        j, i = np.divmod(np.arange(self.columns * self.rows), self.columns)
+        x = (2 * i + j % 2) if self.kind == "acircles" else i
+        return np.stack([x * self.square, j * self.square, np.zeros(len(i))], axis=1).astype(float)
 
 
 class Model(Node):

@@ -464,10 +464,20 @@ def _axis_hits(T: np.ndarray) -> np.ndarray:
 def board_albedo(board, X: np.ndarray) -> np.ndarray:
     """Reflectance (n,) in [0.1, 1] of board points X (n, 3, world frame). `board` is (origin (3,), its x, y and
     z axes (3,) each, scene.Board): the outer corner of square (0, 0), which is dark, and the pattern; the
-    margin is white. A ChArUco board's pattern is OpenCV's own drawing of it (cv2.aruco, 64 px a square)."""
+    margin is white. A circle grid's origin is its first dot's centre; its dots are dark. A ChArUco board's
+    pattern is OpenCV's own drawing of it (cv2.aruco, 64 px a square)."""
     origin, ex, ey, _, b = board
     rel = X - np.asarray(origin)
-    x, y = rel @ np.asarray(ex) / b.square, rel @ np.asarray(ey) / b.square  # in squares
+    x, y = rel @ np.asarray(ex) / b.square, rel @ np.asarray(ey) / b.square  # in squares (a circle grid: spacings)
+    if b.circles:  # dark dots: a point within a dot's radius of the nearest centre in the row above or below
+        r2 = (b.diameter / 2 / b.square) ** 2  # (a dot may reach past the middle between rows: acircles)
+        dot = np.zeros(len(x), bool)
+        for j in (np.floor(y), np.floor(y) + 1):
+            i = np.round((x - j % 2) / 2) if b.kind == "acircles" else np.round(x)
+            cx = 2 * i + j % 2 if b.kind == "acircles" else i
+            on = (i >= 0) & (i < b.columns) & (j >= 0) & (j < b.rows)
+            dot |= on & ((x - cx) ** 2 + (y - j) ** 2 <= r2)
+        return np.where(dot, 0.1, 1.0)
     inside = (x >= 0) & (x < b.columns) & (y >= 0) & (y < b.rows)
     if b.kind == "charuco":
         img = _charuco_image(b.columns, b.rows, b.square, b.marker, b.dictionary)

@@ -382,38 +382,46 @@ class Compiler(CameraCompiler):
         return trusted(Face, name=fb.name, vertices=pts)
 
     def _board(self, b: Bound) -> None:
-        """`board`: a model whose corners, lines and face are a calibration board's (scene.Board's frame)."""
+        """`board`: a model whose corners, lines (or ellipses) and face are a calibration board's (scene.Board's
+        frame)."""
         kind = b.pos(1)
-        label = "chessboard" if kind == "chessboard" else "charuco board"
-        own, other = ("inner", "squares") if kind == "chessboard" else ("squares", "inner")
-        if b.has(other):
-            self.out.error("E103", f"a {label} takes '{own}', not '{other}'", b.clause_spans[other][0],
-                           f"write {own} (columns, rows)")
-            return
-        if not b.has(own):
-            self.out.error("E102", f"a {label} needs '{own} (columns, rows)'", b.stmt.keyword_span)
-            return
-        for key in ("marker", "dictionary"):
-            if kind == "chessboard" and b.has(key):
-                self.out.error("E103", f"'{key}' is a charuco board's, not a chessboard's", b.span(key))
+        label = {"chessboard": "chessboard", "charuco": "charuco board", "circles": "circle grid",
+                 "acircles": "asymmetric circle grid"}[kind]
+        own = {"chessboard": "inner", "charuco": "squares"}.get(kind, "dots")
+        side_key = "spacing" if own == "dots" else "square"
+        for other in ("inner", "squares", "dots"):
+            if other != own and b.has(other):
+                self.out.error("E103", f"a {label} takes '{own}', not '{other}'", b.clause_spans[other][0],
+                               f"write {own} (columns, rows)")
+                return
+        for need in (own, side_key, *(("diameter",) if own == "dots" else ())):
+            if not b.has(need):
+                what = f"{need} (columns, rows)" if need == own else need
+                self.out.error("E102", f"a {label} needs '{what}'", b.stmt.keyword_span)
+                return
+        theirs = {"marker": ("charuco",), "dictionary": ("charuco",), "square": ("chessboard", "charuco"),
+                  "spacing": ("circles", "acircles"), "diameter": ("circles", "acircles")}
+        for key, kinds in theirs.items():
+            if kind not in kinds and b.has(key):
+                self.out.error("E103", f"'{key}' is a {' or '.join(kinds)} board's, not a {label}'s", b.span(key))
                 return
         across, down = (int(v) for v in b.get(own))
         if not (3 <= across <= MAX_BOARD and 3 <= down <= MAX_BOARD):  # OpenCV's detectors need 3 at least
-            what = "inner corners" if own == "inner" else "squares"
+            what = {"inner": "inner corners", "squares": "squares", "dots": "dots"}[own]
             self.out.error("E110", f"a board's {what} must be 3..{MAX_BOARD} each way, got ({across}, {down})",
                            b.span(own))
             return
         columns, rows = (across + 1, down + 1) if own == "inner" else (across, down)
-        side = b.get("square")
+        side = b.get(side_key)
         margin = b.get("margin", side)
         if not MIN_SQUARE <= side:  # (a marker of 1e-300 m is 0 to OpenCV's 32-bit floats)
-            self.out.error("E110", f"a square's side must be at least {MIN_SQUARE:g} m, got {side:g} m",
-                           b.span("square"))
+            what = "a square's side" if side_key == "square" else "the spacing"
+            self.out.error("E110", f"{what} must be at least {MIN_SQUARE:g} m, got {side:g} m", b.span(side_key))
             return
         if not 0 <= margin:
             self.out.error("E110", f"the margin must not be negative, got {margin:g} m", b.span("margin"))
             return
-        marker = dictionary = None
+        marker = dictionary = diameter = None
         if kind == "charuco":
             marker = b.get("marker", 0.75 * side)
             if not MARKER_SHARE * side <= marker < side:  # a smaller one OpenCV neither draws nor finds
@@ -427,11 +435,20 @@ class Compiler(CameraCompiler):
                 self.out.error("E110", f"a {columns} x {rows} charuco board needs {wanted} markers; dictionary "
                                        f"{dictionary} has {size}", b.span("dictionary"))
                 return
+        if own == "dots":
+            diameter = b.get("diameter")
+            gap = side * (math.sqrt(2) if kind == "acircles" else 1.0)  # nearest centres: diagonal on acircles
+            if not DOT_SHARE * gap <= diameter < gap:  # touching dots are one blob to a detector
+                self.out.error("E110", f"a dot's diameter must be at least {DOT_SHARE:g} of the nearest centres' "
+                                       f"distance ({gap:g} m) and smaller than it, got {diameter:g} m",
+                               b.span("diameter"))
+                return
         board = trusted(Board, kind=kind, columns=columns, rows=rows, square=side, margin=margin, marker=marker,
-                        dictionary=dictionary)
+                        dictionary=dictionary, diameter=diameter)
         model = board_model(b.name, board)
         if self._declare(self.models, "model", b.name, b.name_span, model):
-            kinds = {f.name: "line" for f in model.lines} | {c.name: "corner" for c in model.corners}
+            kinds = ({f.name: "line" for f in model.lines} | {c.name: "corner" for c in model.corners}
+                     | {e.name: "ellipse" for e in model.ellipses})
             self.features[b.name] = kinds | {board.face: "face"}
 
     # ------------------------------------------------------------------ placements
@@ -939,13 +956,17 @@ class Compiler(CameraCompiler):
 MAX_BOARD = 200  # squares or inner corners a board has each way at most
 MARKER_SHARE = 0.25  # a ChArUco marker's side at least this share of its square's: OpenCV draws a square in 64 px
 MIN_SQUARE = 1e-6  # m: a board's square at least this
+DOT_SHARE = 0.05  # a circle grid's dot at least this share of the nearest centres' distance (a few pixels at least)
 
 
 def board_model(name: str, board: Board) -> Model:
     """The model of a calibration board: inner corners `c<row>_<column>` (OpenCV's order: row by row) joining
     the grid lines `v<column>` (x = column squares) and `h<row>` (y = row squares), which span the squares;
     the outer edges of the dark border squares (`top<k>`, `bottom<k>`, `left<k>`, `right<k>`: a dark square
-    against the white margin); the face `plane` over squares and margin."""
+    against the white margin); the face `plane` over squares and margin. A circle grid: its dots `o<row>_<column>`
+    (ellipses, OpenCV's order), the face over the dots and margin."""
+    if board.circles:
+        return _circle_grid_model(name, board)
     s, m = board.square, board.margin
     nx, ny = board.inner
     x0, x1, y0, y1 = -s, nx * s, -s, ny * s
@@ -966,6 +987,16 @@ def board_model(name: str, board: Board) -> Model:
     face = trusted(Face, name=board.face, vertices=[(x0 - m, y0 - m, 0.0), (x1 + m, y0 - m, 0.0),
                                                     (x1 + m, y1 + m, 0.0), (x0 - m, y1 + m, 0.0)])
     return trusted(Model, name=name, lines=lines, corners=corners, faces=[face], board=board)
+
+
+def _circle_grid_model(name: str, board: Board) -> Model:
+    r, m = board.diameter / 2, board.margin
+    centres = board.centres()
+    ellipses = [trusted(Ellipse, name=f"o{k // board.columns}_{k % board.columns}", centre=tuple(c.tolist()),
+                        normal=(0.0, 0.0, 1.0), axis=(1.0, 0.0, 0.0), a=r, b=r) for k, c in enumerate(centres)]
+    (x0, y0, _), (x1, y1, _) = (centres.min(axis=0) - r - m).tolist(), (centres.max(axis=0) + r + m).tolist()
+    face = trusted(Face, name=board.face, vertices=[(x0, y0, 0.0), (x1, y0, 0.0), (x1, y1, 0.0), (x0, y1, 0.0)])
+    return trusted(Model, name=name, ellipses=ellipses, faces=[face], board=board)
 
 
 def _line_span(path: FsPath, text: str, line: int) -> Span:

@@ -16,7 +16,7 @@ from wiredsl.plugins import lookup
 
 SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "number|length", "integer", "time")
 MAX_MAGNITUDE = 1e9  # metres or pixels: squares and products of a few stay far from float overflow
-BOARD_KINDS = ("chessboard", "charuco")
+BOARD_KINDS = ("chessboard", "charuco", "circles", "acircles")
 # OpenCV's predefined ArUco dictionaries (cv2.aruco.DICT_<NAME upper>)
 ARUCO = tuple(f"DICT_{n}X{n}_{k}" for n in (4, 5, 6, 7) for k in (50, 100, 250, 1000)) + (
     "DICT_ARUCO_ORIGINAL", "DICT_APRILTAG_16h5", "DICT_APRILTAG_25h9", "DICT_APRILTAG_36h10", "DICT_APRILTAG_36h11")
@@ -93,18 +93,26 @@ _TOP = [
          "at": C("position of the model's origin", P3),
          **_ROTATE},
         example="place bin as bin1 at (2m, 1m, 0) rotate z 30deg"),
-    Sig("board", "a calibration board as a model: its inner corners are corners, its squares' edges lines, its "
-        "face a plane (model frame: x along a row, y down a column, z out of its back; the first inner corner at "
-        "the origin, as OpenCV's object points)", (NAME, S("word", "kind", *BOARD_KINDS)),
+    Sig("board", "a calibration board as a model: a chessboard's or ChArUco board's inner corners are corners, "
+        "its squares' edges lines; a circle grid's dots (circles: symmetric, acircles: asymmetric) are ellipses; "
+        "its face a plane (model frame: x along a row, y down a column, z out of its back; the first inner corner "
+        "or dot centre at the origin, as OpenCV's object points)", (NAME, S("word", "kind", *BOARD_KINDS)),
         {"inner": C("chessboard: inner corners across and down (OpenCV's patternSize)",
                     S("vec2:integer", "(columns, rows)")),
          "squares": C("charuco: squares across and down (OpenCV's squaresX, squaresY)",
                       S("vec2:integer", "(columns, rows)")),
-         "square": C("side of a square", S("length", "side"), required=True),
+         "dots": C("circles, acircles: dots in a row and rows (OpenCV's patternSize)",
+                   S("vec2:integer", "(columns, rows)")),
+         "square": C("chessboard, charuco: side of a square", S("length", "side")),
+         "spacing": C("circles: the dots' pitch; acircles: the rows' spacing (OpenCV's squareSize: dots in a row "
+                      "are 2 spacings apart)", S("length", "spacing")),
+         "diameter": C("circles, acircles: a dot's diameter", S("length", "diameter")),
          "marker": C("charuco: side of a marker", S("length", "side")),
          "dictionary": C("charuco: OpenCV's ArUco dictionary (default DICT_4X4_50)", S("word", "dictionary", *ARUCO)),
-         "margin": C("white border around the squares (default one square)", S("length", "margin"))},
-        example="board target chessboard inner (9, 6) square 25mm"),
+         "margin": C("white border around the squares, or beyond the outermost dots' edges (default one square "
+                     "or spacing)", S("length", "margin"))},
+        example="board target chessboard inner (9, 6) square 25mm  /  board grid acircles dots (4, 5) spacing 30mm "
+                "diameter 20mm"),
     Sig("camera", "a camera model C = F(f, ax, ay, ox, oy, k, R, T)", (NAME,),
         {"like": C("start from another camera's parameters", S("ref", "camera"))},
         block="camera", example="camera left { focal 6mm ... }  /  camera right like left { k 0.02 }"),

@@ -1,7 +1,8 @@
 """Where the camera was for each image, from the calibration board the scene declares (`--poses board`).
 
 The board (a `board` statement, placed once) is found in every image by OpenCV: a chessboard by
-`cv2.findChessboardCorners` refined by `cv2.cornerSubPix`, a ChArUco board by `cv2.aruco.CharucoDetector`.
+`cv2.findChessboardCorners` refined by `cv2.cornerSubPix`, a ChArUco board by `cv2.aruco.CharucoDetector`, a
+circle grid by `cv2.findCirclesGrid` (its dots' centroids).
 A chessboard's corners come back in one of two orders (its two 180-degree turns look alike to the detector);
 the one whose first outer square is dark, as the model's is (scene.Board), is kept. The pose is
 `cv2.solvePnP` with the scene's camera (its intrinsics and lens: radtan directly, an equidistant lens on the
@@ -61,7 +62,8 @@ def board_poses(scene: Scene, images: Sequence, camera: str = "left", *, placeme
 
     place, board, model = _the_board(scene, placement)
     cam, side = _camera(scene, camera)
-    obj_model = np.array([c.at for c in model.corners], dtype=float)  # model frame, OpenCV's order
+    # model frame, OpenCV's order: a chessboard's inner corners, a circle grid's dot centres
+    obj_model = board.centres() if board.circles else np.array([c.at for c in model.corners], dtype=float)
     R_p, t_p = np.array(place.rotation), np.array(place.position)
     poses, diags = [], []
     for item in images:
@@ -71,7 +73,8 @@ def board_poses(scene: Scene, images: Sequence, camera: str = "left", *, placeme
             diags.append(img)
             poses.append(BoardPose(name, False))
             continue
-        ids, pts = (_chessboard(cv2, img, board) if board.kind == "chessboard" else _charuco(cv2, img, board))
+        find = {"chessboard": _chessboard, "charuco": _charuco}.get(board.kind, _circles)
+        ids, pts = find(cv2, img, board)
         if ids is None or len(ids) < 4:
             diags.append(Diagnostic("warning", "W196", f"the {board.kind} '{place.name}' ({_size(board)}) is not "
                                     "found in this image", where, "its pose is left out"))
@@ -97,6 +100,8 @@ def board_poses(scene: Scene, images: Sequence, camera: str = "left", *, placeme
 
 def _size(board: Board) -> str:
     nx, ny = board.inner
+    if board.circles:
+        return f"{nx} x {ny} dots"
     return f"{nx} x {ny} inner corners" if board.kind == "chessboard" else f"{board.columns} x {board.rows} squares"
 
 
@@ -213,6 +218,33 @@ def _first_square_dark(img: np.ndarray, pts: np.ndarray, nx: int) -> bool:
         beside = (grey(p0, p_row, p_col, (0.5, -0.5)) + grey(p0, p_row, p_col, (-0.5, 0.5))) / 2
         ends.append(beside - grey(p0, p_row, p_col, (-0.5, -0.5)))  # the other colour's grey less the corner's
     return ends[0] >= ends[1]
+
+
+def _circles(cv2, img: np.ndarray, board: Board):
+    """(model dot indices, dot centres (n, 2)) of a circle grid by `cv2.findCirclesGrid` (dark dots; its default
+    search first, then with CALIB_CB_CLUSTERING, which finds grids the default misses in tilted views), or
+    (None, None). The centres are the blobs' centroids (a few tenths of a pixel off the projected centre at
+    strong tilts): the pose they give is what an OpenCV calibration from the same images would use."""
+    grid = cv2.CALIB_CB_ASYMMETRIC_GRID if board.kind == "acircles" else cv2.CALIB_CB_SYMMETRIC_GRID
+    for extra in (0, cv2.CALIB_CB_CLUSTERING):
+        try:
+            ok, found = cv2.findCirclesGrid(img, board.inner, flags=grid | extra)
+        except cv2.error:  # (OpenCV refuses some degenerate blob layouts outright)
+            ok = False
+        if ok:
+            pts = found.reshape(-1, 2).astype(np.float64)
+            if _half_turn_symmetric(board) and (pts[-1, 0], pts[-1, 1]) < (pts[0, 0], pts[0, 1]):
+                pts = pts[::-1].copy()  # the grid looks the same turned half a turn: the first dot leftmost
+            return np.arange(board.columns * board.rows), pts
+    return None, None
+
+
+def _half_turn_symmetric(board: Board) -> bool:
+    """Whether a circle grid maps onto itself turned half a turn in its plane (dot k onto dot n - 1 - k): every
+    symmetric grid, and an asymmetric one with an even number of rows. Its images then give two poses a half
+    turn apart, the dots alike in both; `_circles` keeps the order whose first dot is left of its last in the
+    image (then above it), so that the same view always gives the same pose."""
+    return board.kind == "circles" or board.rows % 2 == 0
 
 
 def _charuco(cv2, img: np.ndarray, board: Board):

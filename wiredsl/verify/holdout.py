@@ -102,13 +102,11 @@ def simulate(scene, world, pipeline, frames: list, cfg: ver.Settings, trials: in
     fit's `background` share of the verified runs given the background term, as `--predict` draws it."""
     from wiredsl.verify import predict
 
+    ellipses = set(world.ell_fid.tolist())
+
     def values(model, sim, shape, where=()):
-        st = ver.strokes_of(model)
-        sm = ver.sample_strokes(st, cfg.step)
-        m = predict.search_simulated(sm, predict.segments_of(sim), shape, cfg)
-        if background > 0:
-            m = predict.with_background(sm, m, background, cfg.band, predict.background_rng(seed, where))
-        stats = ver.stroke_stats(sm, m, st.n, cfg.margin)
+        rng = predict.background_rng(seed, where) if background > 0 else None
+        st, stats = predict.simulated_stats(model, sim, shape, cfg, background, rng, ellipses)
         cm = ver.match_corners(*ver.corners_of(model), ver.corners_of(sim)[1], cfg.radius) if corners else None
         return side_values(stats, st, cm, cfg, objects)
 

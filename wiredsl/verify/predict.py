@@ -142,15 +142,18 @@ def search_simulated(sm: ver.Samples, segs: np.ndarray, shape: tuple[int, int], 
 
 
 def simulated_stats(model_view, sim_view, shape, cfg: ver.Settings, background: float = 0.0,
-                    rng: np.random.Generator | None = None) -> ver.StrokeStats:
-    """The verification's stroke statistics of the model's strokes against a simulated view's strokes; with
-    `background` (and `rng`), that share of the verified runs given the background term (`with_background`)."""
-    st = ver.strokes_of(model_view)
+                    rng: np.random.Generator | None = None, ellipses: set | None = None
+                    ) -> tuple[ver.Strokes, ver.StrokeStats]:
+    """The model's strokes and the verification's statistics of them against a simulated view's strokes, as a
+    real image's are taken (`verification.verify_image`: `ellipses`, the world's ellipse feature ids, have their
+    runs cut at their major axes); with `background` (and `rng`), that share of the verified runs given the
+    background term (`with_background`)."""
+    st = ver.strokes_of(model_view, ellipses)
     sm = ver.sample_strokes(st, cfg.step)
     m = search_simulated(sm, segments_of(sim_view), shape, cfg)
     if background > 0 and rng is not None:
         m = with_background(sm, m, background, cfg.band, rng)
-    return ver.stroke_stats(sm, m, st.n, cfg.margin)
+    return st, ver.stroke_stats(sm, m, st.n, cfg.margin, ver.ellipse_halves(st, sm, m))
 
 
 def background_rng(seed: int, where) -> np.random.Generator:
@@ -196,9 +199,11 @@ def simulate(scene, world, pipeline, observed: list[Observed], cfg: ver.Settings
     of `simulated_stats`, with the fit's `background` share of the runs given the background term, each image's
     draws keyed by the seed, frame, trial and side; holdout.py's adds fragments and corners)."""
     if side_values is None:
+        ellipses = set(world.ell_fid.tolist())
+
         def side_values(model, sim, shape, where=()):
             rng = background_rng(seed, where) if background > 0 else None
-            return edge_values(simulated_stats(model, sim, shape, cfg, background, rng))
+            return edge_values(simulated_stats(model, sim, shape, cfg, background, rng, ellipses)[1])
     from wiredsl import run as runs
     from wiredsl.engine.geometry import floor_pose
     from wiredsl.engine.simulate import Options
