@@ -369,15 +369,24 @@ def test_a_readout_without_times_and_a_bad_sync_are_located(tmp_path):
          "error[E110]: a sync offset must be within 1000 ms, got 3000 ms")
 
 
+def wiredsl(*args: str):
+    """The command line, in this process (click's runner): exit code and stderr."""
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+
+    r = CliRunner().invoke(main, list(args))
+    return r.exit_code, r.stderr
+
+
 def _bad(tmp_path, text: str, token: str, message: str):
     p = tmp_path / "bad.wd"
     p.write_text(text)
-    out = subprocess.run([sys.executable, "-m", "wiredsl", "check", str(p)], cwd=ROOT, capture_output=True,
-                         text=True)
-    assert out.returncode == 1 and "Traceback" not in out.stderr
+    code, err = wiredsl("check", str(p))
+    assert code == 1 and "Traceback" not in err
     line_no = next(i for i, t in enumerate(text.splitlines(), 1) if token in t)
     col = text.splitlines()[line_no - 1].index(token.split()[-1]) + 1
-    assert f"{p}:{line_no}:{col}: {message}" in out.stderr, out.stderr
+    assert f"{p}:{line_no}:{col}: {message}" in err, err
 
 
 def test_check_reports_the_speeds(tmp_path):
@@ -400,10 +409,9 @@ def test_a_study_over_the_robots_speed_runs_on_the_lab(tmp_path):
     (tmp_path / "study.wd").write_text('wiredsl 1\ninclude "lab.wd"\npipeline still {\n  lateral_shift range 0px\n}\n'
                                        "study speed {\n  pipeline still\n  vary path.speed values [0.5m/s, 1m/s, "
                                        "2m/s]\n  trials 1\n  poses [0, 3]\n  measure stereo3d\n}\n")
-    out = subprocess.run([sys.executable, "-m", "wiredsl", "study", str(tmp_path / "study.wd"), "speed", "-o",
-                          str(tmp_path / "out"), "--executor", "inprocess", "--no-plots"], cwd=ROOT,
-                         capture_output=True, text=True)
-    assert out.returncode == 0, out.stderr
+    code, err = wiredsl("study", str(tmp_path / "study.wd"), "speed", "-o", str(tmp_path / "out"), "--executor",
+                        "inprocess", "--no-plots")
+    assert code == 0, err
     table = json.loads((tmp_path / "out" / "table.json").read_text())
     errors = [row["mean"] for row in sorted(table["rows"], key=lambda r: r["point"])
               if row["statistic"] == "corner_error"]
