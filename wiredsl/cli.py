@@ -115,7 +115,7 @@ def check(files: tuple[str, ...], diagnostics: str) -> None:
             scene, warnings, program = compile_file(f)
             all_diags += warnings
             if diagnostics == "text":  # each mesh's size and bounds, as scaled and placed
-                for span, text in program.mesh_reports:
+                for span, text in program.mesh_reports + program.motion_reports:
                     click.echo(f"{span}: note: {text}", err=True)
                 if program.mesh_reports:  # and what exact visibility would cost a build of every pose
                     _exact_cost_note(scene, program)

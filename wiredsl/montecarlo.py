@@ -41,6 +41,7 @@ from wiredsl.engine.trials import (
     projected,
     raw_template,
     reproject,
+    robot_pose,
     to_imageset,
     trial_cameras,
     view_maker,
@@ -417,7 +418,7 @@ class Run:
         raw = rig is not None
         template, W, CW = self.template(result, side, raw=raw, keep=keep)
         if raw:
-            R_cw, t_cw, cams, folds = trial_cameras(rig, result.pose)
+            R_cw, t_cw, cams, folds = trial_cameras(rig, robot_pose(view, result.pose))
             cam, view_of = rig["camera"], view_maker(rig, R_cw, t_cw, side)
         else:
             cams = np.zeros((T, len(geometry.CAMERA_ROW)))
@@ -440,7 +441,7 @@ class Run:
         args = (template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams,
                 folds, cam.width, cam.height, raw, functions, params, keys, epipole, side == "right", stats,
                 tuple(e.kernel.camera for e, _ in stages), self._camera_row(result, side, keep),
-                tuple(e.kernel.workspace for e, _ in stages))
+                tuple(e.kernel.workspace for e, _ in stages), view.rolling if raw else None)
         plugins = self._kernel_rows["plugins"]
         if not plugins:
             pts, start, m, trial, corners, cfid, ctrial = kn.run_view(*args)

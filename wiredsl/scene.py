@@ -403,8 +403,10 @@ class Camera(Node):
     alpha: float = Field(0.0, description="eucm and ds: alpha, in [0, 1]")
     beta: float = Field(1.0, description="eucm: beta (> 0)")
     w: float = Field(0.0, description="fov: Devernay and Faugeras's w (rad), in (0, pi)")
+    readout: float = Field(0.0, ge=0, le=1, description="rolling shutter: seconds from the first row's exposure "
+                           "to the last's, rows top to bottom (0: a global shutter)")
 
-    _dump = omitted_when_default(xi=0.0, alpha=0.0, beta=1.0, w=0.0)
+    _dump = omitted_when_default(xi=0.0, alpha=0.0, beta=1.0, w=0.0, readout=0.0)
 
 
 class Mount(Node):
@@ -426,6 +428,9 @@ class Rig(Node):
     left: Mount
     right: Mount
     calibration: Calibration | None = None
+    sync: float = Field(0.0, ge=-1, le=1, description="the right camera's exposure time minus the left's (s)")
+
+    _dump = omitted_when_default(sync=0.0)
 
     def stereo_extrinsics(self):
         """(R, T) numpy arrays from the left camera's frame to the right's, X_r = R X_l + T, from the mounts."""
@@ -457,10 +462,12 @@ class Path(Node):
     transforms: list[Mat34] | None = Field(None, description="of a path read from a trajectory file: every "
                                            "pose's world_from_robot [R | t] (rows), in full 6-DoF")
     times: list[float] | None = Field(None, description="of a path read from a trajectory file with timestamps: "
-                                      "each pose's time, seconds from the file's first timestamp")
+                                      "each pose's time, seconds from the file's first timestamp; of written "
+                                      "poses with a speed: each pose's distance along the path over the speed")
+    speed: float | None = Field(None, gt=0, description="written poses: the declared speed (m/s)")
     start_ns: int | None = Field(None, description="with times: the file's first timestamp on its own clock, "
                                  "integer nanoseconds (None: the file has no clock, as KITTI poses with a rate)")
-    _dump = omitted_when_none("transforms", "times", "start_ns")
+    _dump = omitted_when_none("transforms", "times", "start_ns", "speed")
 
     def pose(self, i: int) -> tuple[float, ...]:
         """Pose i as the engine takes it (geometry.world_from_robot): (x, y, heading), or [R | t] row-major."""

@@ -318,6 +318,55 @@ def _project(X, R, t, cam, limit, out, ok):
         out[i, 1] = f * ay * yd + cy if good else 0.0
 
 
+ROW_TOL = 1e-9  # motion.ROW_TOL and motion.MAX_ITERATIONS: the rolling-shutter fixed point's stopping rule
+MAX_ITERATIONS = 100
+
+
+@njit(cache=True, error_model="numpy")
+def _project_rolling(X, R, t, cam, limit, rolling, out, ok):
+    """_project under a rolling shutter, `rolling` = (readout, height, robot origin (3), v (3), w (3)): each point
+    imaged from the camera's pose at its row's time, motion.rolling_pixels term by term (a point the moved camera
+    does not image is invalid; one whose row does not settle raises)."""
+    _project(X, R, t, cam, limit, out, ok)  # the camera at time 0: which points are valid, and the first rows
+    readout, height = rolling[0], rolling[1]
+    speed = math.sqrt(rolling[8] * rolling[8] + rolling[9] * rolling[9] + rolling[10] * rolling[10])
+    k0, k1, k2 = (rolling[8] / speed, rolling[9] / speed, rolling[10] / speed) if speed > 0 else (0.0, 0.0, 0.0)
+    one = np.empty((1, 3))
+    uv = np.empty((1, 2))
+    good = np.empty(1, np.bool_)
+    for i in range(len(X)):
+        if not ok[i]:
+            continue
+        row = out[i, 1]
+        settled = False
+        for _ in range(MAX_ITERATIONS):
+            tau = readout * min(max(row, 0.0), height) / height
+            d0 = X[i, 0] - rolling[2] - rolling[5] * tau  # motion.moved: exp([w] tau)^T (X - robot - v tau) + robot
+            d1 = X[i, 1] - rolling[3] - rolling[6] * tau
+            d2 = X[i, 2] - rolling[4] - rolling[7] * tau
+            if speed > 0:
+                theta = -speed * tau
+                c, s = math.cos(theta), math.sin(theta)
+                dk = (d0 * k0 + d1 * k1 + d2 * k2) * (1.0 - c)
+                d0, d1, d2 = (d0 * c + (k1 * d2 - k2 * d1) * s + k0 * dk, d1 * c + (k2 * d0 - k0 * d2) * s + k1 * dk,
+                              d2 * c + (k0 * d1 - k1 * d0) * s + k2 * dk)
+            one[0, 0], one[0, 1], one[0, 2] = d0 + rolling[2], d1 + rolling[3], d2 + rolling[4]
+            _project(one, R, t, cam, limit, uv, good)
+            if not good[0]:
+                ok[i] = False
+                break
+            step = abs(min(max(uv[0, 1], 0.0), height) - min(max(row, 0.0), height))
+            out[i, 0], out[i, 1] = uv[0, 0], uv[0, 1]
+            row = uv[0, 1]
+            if step <= ROW_TOL:
+                settled = True
+                break
+        if not ok[i]:
+            out[i, 0], out[i, 1] = 0.0, 0.0
+        elif not settled:
+            raise ValueError("rolling shutter: a point's row time did not converge")
+
+
 @njit(cache=True, error_model="numpy")
 def _pieces(n):
     """Room for n kept pieces (_keep's arguments): stroke, start and end arc length, fragment, closed, cut, whole
@@ -460,13 +509,18 @@ def _part_meta(frag, closed, whole):
 # ----------------------------------------------------------------------------- one view of a batch
 
 @njit(cache=True, error_model="numpy")
-def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated, t):
-    """Trial t's view before the image stages: the strokes and corners through its cameras (when calibrated),
-    cut at invalid vertices and at the image border, or the template's as they are."""
+def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated, t,
+                 rolling):
+    """Trial t's view before the image stages: the strokes and corners through its cameras (when calibrated; under
+    the view's rolling shutter when rolling[0], its readout, is > 0), cut at invalid vertices and at the image
+    border, or the template's as they are."""
     if calibrated:
         pts = np.empty((len(W), 2))
         ok = np.empty(len(W), np.bool_)
-        _project(W, R[t], tv[t], cams[t], folds[t], pts, ok)
+        if rolling[0] > 0:
+            _project_rolling(W, R[t], tv[t], cams[t], folds[t], rolling, pts, ok)
+        else:
+            _project(W, R[t], tv[t], cams[t], folds[t], pts, ok)
         start, meta = tstart, tmeta
         if not ok.all():  # (when all are valid, the cut keeps every stroke verbatim: skip it)
             pts, start, meta = _keep_vertex_runs(pts, tstart, tmeta, ok)
@@ -474,7 +528,10 @@ def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds,
             pts, start, meta = _clip_rect(pts, start, meta, width, height)
         cp = np.empty((len(CW), 2))
         cok = np.empty(len(CW), np.bool_)
-        _project(CW, R[t], tv[t], cams[t], folds[t], cp, cok)
+        if rolling[0] > 0:
+            _project_rolling(CW, R[t], tv[t], cams[t], folds[t], rolling, cp, cok)
+        else:
+            _project(CW, R[t], tv[t], cams[t], folds[t], cp, cok)
         for c in range(len(CW)):
             cok[c] = cok[c] and cp[c, 0] >= 0 and cp[c, 0] <= width and cp[c, 1] >= 0 and cp[c, 1] <= height
         return pts, start, meta, cp[cok], cfid[cok]
@@ -520,7 +577,7 @@ def _pack(res, cres):
 
 
 def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated,
-               params, keys, epipole, right, stats, camera):
+               params, keys, epipole, right, stats, camera, rolling):
     """Every trial of a batch for one view. Returns packed strokes (pts, start, meta, trial) and corners
     (corners, fid, trial), strokes and corners ordered by trial.
 
@@ -533,7 +590,7 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
     _workspaces(params, epipole, right, camera, keys.shape[1])  # noqa: F821
     for t in range(keys.shape[1]):
         pts, start, meta, corners, cf = _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds,
-                                                     width, height, calibrated, t)
+                                                     width, height, calibrated, t, rolling)
         pts, start, meta, corners, cf = _stages(pts, start, meta, corners, cf, keys, t, params, epipole,  # noqa: F821
                                                 right, stats, camera)
         res.append((pts, start, meta))
@@ -542,11 +599,12 @@ def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, w
 
 
 def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds, width, height, calibrated,
-             functions, params, keys, epipole, right, stats, cameras=(), camera=None, workspaces=()):
+             functions, params, keys, epipole, right, stats, cameras=(), camera=None, workspaces=(), rolling=None):
     """The compiled view_batch of the stage functions `functions` (KernelStage.function, in order), with every
     argument in the one layout it is compiled for (no second compile). `cameras`: per function, whether it takes
     the view's `camera` row (KernelStage.camera), float64 (20,): width, height, then the nominal CAMERA_ROW.
-    `workspaces`: per function, its workspace function (KernelStage.workspace) or None."""
+    `workspaces`: per function, its workspace function (KernelStage.workspace) or None. `rolling`: the view's
+    rolling shutter (View.rolling: readout, height, robot origin, v, w) or None."""
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
     batch = compose(tuple(functions), tuple(bool(c) for c in cameras) or (False,) * len(functions),
@@ -561,7 +619,9 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
                       np.ascontiguousarray(folds, dtype=np.float64).reshape(-1), float(width), float(height),
                       bool(calibrated), f2(params, params.shape[-1]),
                       np.ascontiguousarray(keys, dtype=np.uint64).reshape(len(functions), len(folds)),
-                      np.ascontiguousarray(epipole, dtype=np.float64).reshape(3), bool(right), stats, camera)
+                      np.ascontiguousarray(epipole, dtype=np.float64).reshape(3), bool(right), stats, camera,
+                      np.zeros(11) if rolling is None else np.array([rolling[0], rolling[1], *rolling[2], *rolling[3],
+                                                                     *rolling[4]], dtype=np.float64))
 
 
 _composed: dict[tuple[str, ...], object] = {}

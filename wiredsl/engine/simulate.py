@@ -73,6 +73,10 @@ class View:
     raw: Sequence[Raw] = field(default_factory=list)
     corner_world: np.ndarray | None = None  # (C, 3) the corners in front of the camera, before image clipping
     corner_fid: np.ndarray | None = None
+    # a moving robot's camera (engine/motion.py): the robot's pose at the camera's own time (None: the pose's),
+    # and its rolling shutter (readout, height, robot origin, v, w), or None
+    robot: tuple | None = None
+    rolling: tuple | None = None
 
 
 @dataclass
@@ -98,16 +102,25 @@ def simulate(scene: Scene, options: Options = Options(), world: World | None = N
     occluders = occlusion.Occluders.of_world(world) if options.visibility == "exact" else None
     sides = ("left", "right") if options.right else ("left",)
     specs = []  # (pose index, side, camera, R_cw, t_cw, mask) of every view, projected together
+    motions = []  # each view's (robot pose at its time, rolling shutter), or None (engine/motion.py)
+    moves = scene.path.times is not None and (scene.rig.sync != 0 or any(
+        scene.camera(getattr(scene.rig, side).camera).readout > 0 for side in sides))
+    if moves:
+        from wiredsl.engine import motion
     for i in chosen:
         pose = scene.path.pose(i)
+        sees = motion.view_motions(scene, i) if moves else {}
         for side in sides:
             mount = getattr(scene.rig, side)
-            R_cw, t_cw = geometry.camera_from_world(pose, mount.rotation, mount.position)
+            m = sees.get(side)
+            R_cw, t_cw = geometry.camera_from_world(pose if m is None else m[0], mount.rotation, mount.position)
             specs.append((i, side, scene.camera(mount.camera), R_cw, t_cw, masks[(i, side)]))
+            motions.append(m)
     views = []
     if specs:
         _, _, cams, Rs, ts, ms = zip(*specs, strict=True)
-        views = project_views(world, list(cams), list(Rs), list(ts), list(ms), options.tolerance, occluders)
+        views = project_views(world, list(cams), list(Rs), list(ts), list(ms), options.tolerance, occluders,
+                              motions if moves else None)
     by_key = {(i, side): v for (i, side, *_), v in zip(specs, views, strict=True)}
     return [PoseResult(i, scene.path.pose(i), vp_names.get(i), by_key[(i, "left")],
                        by_key.get((i, "right"))) for i in chosen]
@@ -211,13 +224,16 @@ def project_view(world: World, cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, 
 
 
 def project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, masks: list,
-                  tol: float = DEFAULT_TOLERANCE, occluders: occlusion.Occluders | None = None) -> list[View]:
+                  tol: float = DEFAULT_TOLERANCE, occluders: occlusion.Occluders | None = None,
+                  motions: list | None = None) -> list[View]:
     """What each camera sees of the features in its mask, for many views (camera, pose) at once.
 
-    With occluders (--visibility exact), each view keeps only the unoccluded parts (occlusion.py).
+    With occluders (--visibility exact), each view keeps only the unoccluded parts (occlusion.py). `motions`:
+    each view's (robot pose at the camera's time, rolling shutter or None) or None (`motion.view_motions`); a
+    rolling shutter's view images every point from the camera's pose at its row's time, its lines as curves.
     """
     with gc_paused():
-        return _project_views(world, cams, R_cw, t_cw, masks, tol, occluders)
+        return _project_views(world, cams, R_cw, t_cw, masks, tol, occluders, motions)
 
 
 @contextlib.contextmanager
@@ -235,11 +251,19 @@ def gc_paused():
 
 
 def _project_views(world: World, cams: list[Camera], R_cw: list, t_cw: list, masks: list, tol: float,
-                   occluders: occlusion.Occluders | None) -> list[View]:
+                   occluders: occlusion.Occluders | None, motions: list | None = None) -> list[View]:
     views = [View(c, np.asarray(R, float), np.asarray(t, float)) for c, R, t in zip(cams, R_cw, t_cw, strict=True)]
     if not views:
         return views
     cam = _camera_table(cams)
+    if motions is not None:
+        for v, m in zip(views, motions, strict=True):
+            if m is not None:
+                v.robot, v.rolling = m
+        rolling = np.array([v.rolling is not None for v in views])
+        if rolling.any():  # its lines are curves, sampled and cut on the rolling-shutter image
+            cam["rolling"], cam["views"] = rolling, views
+            cam["distorted"] = cam["distorted"] | rolling
     masks = np.asarray(masks, dtype=bool).reshape(len(views), -1)
     out = _Emitted(views, frozenset(fid for fid, _ in world.contours))
     eyes = None if occluders is None else [  # pixels a radian: what is too small to keep
@@ -411,13 +435,31 @@ def _pixels(P: np.ndarray, cam: dict, v: np.ndarray) -> np.ndarray:
     """
     cameras = cam["cameras"]
     if len(cameras) == 1:
-        return geometry.project(P, cameras[0])
-    which = cam["camera"][v]
-    out = np.empty((len(P), 2))
-    for k in np.flatnonzero(np.bincount(which, minlength=len(cameras))).tolist():
-        rows = np.flatnonzero(which == k)
-        out[rows] = geometry.project(P[rows], cameras[k])
+        out = geometry.project(P, cameras[0])
+    else:
+        which = cam["camera"][v]
+        out = np.empty((len(P), 2))
+        for k in np.flatnonzero(np.bincount(which, minlength=len(cameras))).tolist():
+            rows = np.flatnonzero(which == k)
+            out[rows] = geometry.project(P[rows], cameras[k])
+    if "rolling" in cam:
+        _rolling(P, cam, v, out)
     return out
+
+
+def _rolling(P: np.ndarray, cam: dict, v: np.ndarray, out: np.ndarray) -> None:
+    """The pixels `out` (m, 2) of camera-frame points P (m, 3) of views v (m,) re-made where the view has a rolling
+    shutter: each point imaged from the camera's pose at its row's time (`motion.rolling_pixels`)."""
+    from wiredsl.engine import motion
+
+    for k in np.unique(v[cam["rolling"][v]]).tolist():
+        rows = np.flatnonzero(v == k)
+        view = cam["views"][k]
+        R, t = view.R_cw, view.t_cw
+        g = cam["cameras"][int(cam["camera"][k])]
+        readout, height, robot, vel, w = view.rolling
+        out[rows] = motion.rolling_pixels((P[rows] - t) @ R, lambda X, R=R, t=t, g=g: geometry.project(X @ R.T + t, g),
+                                          readout, height, robot, vel, w)
 
 
 def _ellipses_cam(world: World, views: list[View]):
@@ -632,6 +674,12 @@ class _Curves:
             X, Y, Z = self._xyz(cc, tt, bool(k & 1))
             at = slice(None) if rows is None else rows
             out[at, 0], out[at, 1] = geometry.project_xyz(X, Y, Z, self.cam["cameras"][k >> 1])
+        if "rolling" in self.cam:
+            rows = np.flatnonzero(self.cam["rolling"][self.view[c]])
+            if len(rows):
+                sub = np.empty((len(rows), 2))
+                _rolling(self.points(c[rows], t[rows]), self.cam, self.view[c[rows]], sub)
+                out[rows] = sub
         return out
 
     def sample(self, t0: np.ndarray, t1: np.ndarray, tol: float, start):

@@ -133,23 +133,43 @@ def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.nd
     return R_cw, t_cw, rig["cams"], rig["folds"]
 
 
-def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.ndarray, folds: np.ndarray):
+def project_trials(X: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, cams: np.ndarray, folds: np.ndarray,
+                   rolling: tuple | None = None):
     """World points X (N, 3) seen by every trial's camera (rows of geometry.CAMERA_ROW, lens limits folds):
     pixels (T * N, 2) trial-major and whether each is valid (imaged by the near rule); invalid ones are 0.
+    `rolling`: the view's rolling shutter (View.rolling), each point imaged from the camera's pose at its row's
+    time (`motion.rolling_pixels`; valid as imaged at the camera's time 0).
 
     The arithmetic is the kernel's, term by term, without gathering a matrix per vertex."""
-    def cam(i):
-        return R_cw[:, i, 0, None] * X[None, :, 0] + R_cw[:, i, 1, None] * X[None, :, 1] \
-            + R_cw[:, i, 2, None] * X[None, :, 2] + t_cw[:, i, None]
+    def cam(X, i):
+        return R_cw[:, i, 0, None] * X[..., 0] + R_cw[:, i, 1, None] * X[..., 1] \
+            + R_cw[:, i, 2, None] * X[..., 2] + t_cw[:, i, None]
 
-    P = np.stack([cam(0), cam(1), cam(2)], axis=-1)
+    P = np.stack([cam(X[None], 0), cam(X[None], 1), cam(X[None], 2)], axis=-1)
     g = {k: cams[:, i, None] for i, k in enumerate(geometry.CAMERA_ROW)}
     ok = geometry.visible(P, g["model"], folds[:, None])
     with np.errstate(over="ignore", invalid="ignore"):  # a huge k1 > 0 (no fold): pixels beyond any image
-        uv = geometry.project(np.where(ok[..., None], P, np.array([0.0, 0.0, 1.0])), g)
+        if rolling is None:
+            uv = geometry.project(np.where(ok[..., None], P, np.array([0.0, 0.0, 1.0])), g)
+        else:
+            from wiredsl.engine import motion
+
+            def pixels(Xm):  # a point the moved camera does not image is not finite: invalid, as the kernel's
+                Pm = np.stack([cam(Xm, 0), cam(Xm, 1), cam(Xm, 2)], axis=-1)
+                seen = ok & geometry.visible(Pm, g["model"], folds[:, None])
+                uv = geometry.project(np.where(seen[..., None], Pm, np.array([0.0, 0.0, 1.0])), g)
+                return np.where(seen[..., None] | ~ok[..., None], uv, np.nan)
+
+            uv = motion.rolling_pixels(np.broadcast_to(X[None], P.shape), pixels, *rolling)
     ok &= np.isfinite(uv).all(axis=-1)  # checked here: what overflowed is invalid, like a folded point
     uv = np.where(ok[..., None], uv, 0.0)
     return uv.reshape(-1, 2), ok.ravel()
+
+
+def robot_pose(view: View, pose: tuple) -> tuple:
+    """The robot's pose at the view's camera's own time (a stereo pair's sync, engine/motion.py): `pose`, the
+    path pose's, unless the robot moved."""
+    return pose if view.robot is None else view.robot
 
 
 def reproject(view: View, world: World, rig: dict, pose: tuple, side: str, template: tuple | None = None):
@@ -169,11 +189,11 @@ def projected(view: View, world: World, rig: dict, pose: tuple, side: str, templ
     """`reproject` before its cuts: every trial's strokes projected (ImageSet), whether each vertex is imaged (N,),
     and the trials' views; the corners are already those within the image."""
     template, W, CW = template if template is not None else raw_template(view, world)
-    R_cw, t_cw, cams, folds = trial_cameras(rig, pose)
+    R_cw, t_cw, cams, folds = trial_cameras(rig, robot_pose(view, pose))
     T = len(cams)
-    uv, ok = project_trials(W, R_cw, t_cw, cams, folds)
+    uv, ok = project_trials(W, R_cw, t_cw, cams, folds, view.rolling)
     cam = rig["camera"]
-    cuv, cok = project_trials(CW, R_cw, t_cw, cams, folds)
+    cuv, cok = project_trials(CW, R_cw, t_cw, cams, folds, view.rolling)
     cok &= (cuv[:, 0] >= 0) & (cuv[:, 0] <= cam.width) & (cuv[:, 1] >= 0) & (cuv[:, 1] <= cam.height)
     rep = im.replace(template.repeat_trials(T), pts=uv, corners=cuv).take_corners(cok)
     return rep, ok, view_maker(rig, R_cw, t_cw, side)

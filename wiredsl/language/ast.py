@@ -104,6 +104,7 @@ class Program:
     errors: list[Diagnostic] = field(default_factory=list)
     partial: set[str] = field(default_factory=set)  # files with statements set aside
     mesh_reports: list = field(default_factory=list)  # (span, text): each `mesh read`'s size and bounds, compiled
+    motion_reports: list = field(default_factory=list)  # (span, text): the path's times and speeds, compiled
 
     @property
     def sources(self) -> dict[str, str]:
@@ -132,7 +133,7 @@ class ToAst(lark.Transformer):
         (tok,) = children
         text = str(tok)
         i = len(text)
-        while i and (text[i - 1].isalpha() or text[i - 1] == "%"):
+        while i and (text[i - 1].isalpha() or text[i - 1] in "%/"):  # 30deg, 29%, 0.5m/s
             i -= 1
         unit = text[i:] or None
         return Number(text, float(text[:i]), unit, _span(self.path, tok))

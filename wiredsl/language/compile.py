@@ -51,9 +51,22 @@ FORMAT_VERSION = 1
 SIGMA_FAR_BELOW = 0.1  # W163: a calibration_error sigma below this scales a declared covariance far below 1
 MAX_VIEWPOINTS = 100_000
 MAX_POSES = 100_000
+MAX_SPEED = 100.0  # m/s: faster than any ground robot (360 km/h); a larger speed is a unit written wrong
 COUNTABLE = 1e15  # a count of grid points or poses below this is exact in a float, so it may be computed
 GEOM_EPS = 1e-9  # metres: shorter is degenerate
 PERP_TOL = 1e-6  # |cos| between an ellipse's axis and normal
+
+
+def _speeds(path: Path) -> str:
+    """What `check` says of a timed path: its duration and the robot's speeds (engine/motion.py's velocities)."""
+    from wiredsl.engine import motion
+
+    v, w = motion.velocities(path)
+    speed, turn = np.linalg.norm(v, axis=1), np.abs(w).max(axis=1)
+    fast = int(np.argmax(speed))
+    return (f"path '{path.name}': {len(path.times)} poses over {path.times[-1] - path.times[0]:.4g} s; speed "
+            f"{speed.min():.3g} to {speed.max():.3g} m/s (fastest at pose {fast}), turning at most "
+            f"{math.degrees(turn.max()):.3g} deg/s")
 
 
 def compile_file(path: str | os.PathLike) -> tuple[Scene, list[Diagnostic], ast.Program]:
@@ -75,6 +88,7 @@ def compile_program(program: ast.Program) -> tuple[Scene, list[Diagnostic]]:
     compiler = Compiler(program, out)
     scene = compiler.run()
     program.mesh_reports = compiler.mesh_reports
+    program.motion_reports = compiler.motion_reports
     if out.unknown_held:  # noted at the first include that failed, else at the first syntax error
         i = next((i for i, d in enumerate(program.errors) if d.code in ("E010", "E011")), 0)
         n = out.unknown_held
@@ -107,6 +121,7 @@ class Compiler(CameraCompiler):
         self.out = out
         self.units: dict[str, dict[str, str]] = {}
         self.mesh_reports: list[tuple] = []  # (span, size and bounds) of each mesh read, for `check`
+        self.motion_reports: list[tuple] = []  # (span, the path's times and speeds), for `check`
         self.models: dict[str, _Decl] = {}
         self.features: dict[str, dict[str, str]] = {}  # model -> feature -> kind
         self.placements: dict[str, _Decl] = {}
@@ -120,6 +135,7 @@ class Compiler(CameraCompiler):
         self.paper_children: list[str] = []  # pipelines `like` the built-in paper
         self.scene_name: str | None = None
         self.rig_without_calibration = False
+        self.motion_spans: list[tuple[str, Span]] = []  # (what, where) of readouts and syncs: they need times
 
     # ------------------------------------------------------------------ driver
     def run(self) -> Scene:
@@ -139,6 +155,13 @@ class Compiler(CameraCompiler):
         viewpoints = self._viewpoints(self.singles["viewpoints"]) if "viewpoints" in self.singles else None
         path = self._path(self.singles["path"], rig) if "path" in self.singles else None
         self._check_defaults()
+        if path is not None and path.times is not None and len(path.times) > 1:
+            self.motion_reports.append((self.singles["path"].name_span, _speeds(path)))
+        if path is not None and path.times is None:
+            for what, span in self.motion_spans:
+                self.out.error("E102", f"{what} needs the robot's motion, and path '{path.name}' has no times",
+                               span, "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with "
+                                     "timestamps")
         studies = self._studies(path)
         if rig is not None and rig.calibration is not None and rig.calibration.kind == "covariance":
             for sigma, span in self.small_sigmas:
@@ -629,9 +652,18 @@ class Compiler(CameraCompiler):
         poses: list[tuple[float, float, float]] = []
         n0 = self.out.n_errors
         reads: dict[str, Bound] = {}  # read, body, world
+        speed: Bound | None = None
         for stmt in b.stmt.block:
             sb = bind(stmt, "path", self._units(stmt), self.out)
             if sb is None or not sb.ok:
+                continue
+            if stmt.keyword == "speed":
+                if speed is not None:
+                    self.out.error("E103", "a path takes one 'speed'", stmt.keyword_span)
+                elif not 0 < sb.pos(0) <= MAX_SPEED:  # also NaN
+                    self.out.error("E110", f"a speed must be in (0, {MAX_SPEED:g}] m/s, got {sb.pos(0):g} m/s",
+                                   sb.positional[0].span)
+                speed = sb
                 continue
             if stmt.keyword in ("read", "body", "world"):
                 if stmt.keyword in reads:
@@ -673,16 +705,34 @@ class Compiler(CameraCompiler):
                 self.out.error("E102", f"'{sb.stmt.keyword}' places the poses of a trajectory file: the path has "
                                        "no 'read'", sb.stmt.keyword_span, f"e.g. {CONTEXTS['path']['read'].example}")
                 return None
-            if poses:
-                self.out.error("E103", "a path read from a trajectory file takes no 'pose' or 'straight'",
-                               reads["read"].stmt.keyword_span)
+            if poses or speed is not None:
+                self.out.error("E103", "a path read from a trajectory file takes no 'pose', 'straight' or 'speed' "
+                                       "(its times are the file's)", reads["read"].stmt.keyword_span)
                 return None
             return self._trajectory(b, reads, rig) if self.out.n_errors == n0 else None
         if not poses:
             if self.out.n_errors == n0:  # else the statements that failed are the reason, reported already
                 self.out.error("E102", f"path '{b.name}' has no poses", b.name_span)
             return None
+        if speed is not None:
+            if self.out.n_errors != n0:
+                return None
+            return self._timed(b, poses, speed)
         return trusted(Path, name=b.name, poses=poses)
+
+    def _timed(self, b: Bound, poses: list, speed: Bound) -> Path | None:
+        """Written poses timed by a speed: each pose's time is its distance along the path over the speed."""
+        v = float(speed.pos(0))
+        xy = np.array([p[:2] for p in poses], dtype=float)
+        steps = np.hypot(*np.diff(xy, axis=0).T) if len(xy) > 1 else np.zeros(0)
+        still = np.flatnonzero(steps <= GEOM_EPS)
+        if len(still):
+            self.out.error("E120", f"path '{b.name}': poses {still[0]} and {still[0] + 1} are at one place, so a "
+                                   "speed cannot time them", speed.stmt.keyword_span,
+                           "a robot that turns on the spot needs times per pose")
+            return None
+        times = [0.0, *(float(t) for t in np.cumsum(steps) / v)]
+        return trusted(Path, name=b.name, poses=poses, times=times, speed=v)
 
     def _trajectory(self, b: Bound, reads: dict[str, Bound], rig: Rig | None) -> Path | None:
         """A 6-DoF path from a trajectory file: world_from_robot = world_from_file . file_from_body .
@@ -941,7 +991,7 @@ class Compiler(CameraCompiler):
                 if (stmt.keyword == "vary" and stmt.args and isinstance(stmt.args[0], ast.Ref)
                         and stmt.args[0].parts[0] == "calibration_error"):
                     self.calibration_stages.append(stmt.args[0].span)
-            study = compile_study(b, pipelines, n_poses, self._units, self.out, dict(self.cameras))
+            study = compile_study(b, pipelines, n_poses, self._units, self.out, dict(self.cameras), path)
             if study is not None:
                 self._declare(studies, "study", b.name, b.name_span, study)
         return [d.value for d in studies.values()]

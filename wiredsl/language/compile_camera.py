@@ -29,6 +29,7 @@ LENS_RANGES = {"unified": "xi in [0, 100]", "eucm": "alpha in [0, 1], beta in (0
                "ds": "alpha in [0, 1], xi in (-1, 1]",
                "fov": "w in (0, 180) deg"}
 STEREO_BASELINE = 5.0  # metres: a stereo pair's |T| beyond this is more likely in millimetres
+MAX_READOUT = 1.0  # s: a rolling shutter's readout, and a stereo pair's sync offset, beyond a second is no camera's
 FILE_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # `relative "file" units U`: metres per unit of the file's T
 
 
@@ -257,7 +258,18 @@ class CameraCompiler:
         lens = self._lens(b, s)
         if self.out.n_errors != n0 or lens is None:
             return None
-        cam = checked(Camera, name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, width=int(w), height=int(h), **lens)
+        motion = {}
+        if "readout" in s:
+            (readout, rspan) = s["readout"]
+            if not 0 <= readout <= MAX_READOUT:  # also NaN
+                self.out.error("E110", f"a readout time must be in [0, {MAX_READOUT * 1e3:g}] ms, got "
+                                       f"{readout * 1e3:g} ms", rspan)
+                return None
+            if readout > 0:
+                motion["readout"] = float(readout)
+                self.motion_spans.append((f"the readout of camera '{b.name}'", rspan))
+        cam = checked(Camera, name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, width=int(w), height=int(h),
+                      **lens, **motion)
         span = next((s[k][1] for k in ("distortion", *LENS) if k in s), where)
         self._lens_reach(cam, span, s)
         return cam
@@ -387,6 +399,7 @@ class CameraCompiler:
     def _rig(self, b: Bound) -> Rig | None:
         mounts: dict[str, Mount] = {}
         calibration = None
+        extra: dict[str, float] = {}  # sync, when declared
         seen: dict[str, Span] = {}
         for stmt in b.stmt.block:
             sb = bind(stmt, "rig", self._units(stmt), self.out)
@@ -398,6 +411,15 @@ class CameraCompiler:
             seen[stmt.keyword] = stmt.keyword_span
             if stmt.keyword == "calibration":
                 calibration = self._calibration(sb)
+            elif stmt.keyword == "sync":
+                sync = sb.pos(0)
+                if not abs(sync) <= MAX_READOUT:  # also NaN
+                    self.out.error("E110", f"a sync offset must be within {MAX_READOUT * 1e3:g} ms, got "
+                                           f"{sync * 1e3:g} ms", sb.positional[0].span)
+                    return None
+                if sync != 0:
+                    extra["sync"] = float(sync)
+                    self.motion_spans.append((f"the sync of rig '{b.name}'", sb.positional[0].span))
             else:
                 mount = self._mount(sb)
                 if mount is not None:
@@ -414,7 +436,7 @@ class CameraCompiler:
             return None
         if calibration is not None and not self._calibration_fits_lenses(calibration, mounts, seen["calibration"]):
             return None
-        rig = trusted(Rig, name=b.name, left=mounts["left"], right=mounts["right"], calibration=calibration)
+        rig = trusted(Rig, name=b.name, left=mounts["left"], right=mounts["right"], calibration=calibration, **extra)
         self._check_stereo(rig, seen["right"])
         return rig
 

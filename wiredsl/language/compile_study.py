@@ -33,6 +33,13 @@ CAMERA_FACTORS = {
     "k5": ("number", None, "OpenCV's rational k5"), "k6": ("number", None, "OpenCV's rational k6"),
     "xi": ("number", None, "xi (unified, ds)"), "alpha": ("number", None, "alpha (eucm, ds)"),
     "beta": ("number", 0.0, "beta (eucm)"), "w": ("number", 0.0, "w (fov, rad)"),
+    "readout": ("time", None, "rolling shutter: the first row's exposure to the last's (s), on a path with times"),
+}
+MAX_SPEED = 100.0  # m/s: as the compiler's `speed` (language/compile.py)
+# Factors of the robot's motion a study may vary, `path.speed` and `rig.sync`: (unit kind, doc).
+MOTION_FACTORS = {
+    "path.speed": ("speed", "the robot's speed along the written poses (their times scale with it)"),
+    "rig.sync": ("time", "the right camera's exposure time minus the left's"),
 }
 MAX_TRIALS = 10**9  # design points x trials
 
@@ -45,8 +52,9 @@ def measure_registry() -> Mapping:
 
 
 def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None, units_of, out: Collector,
-                  cameras: dict | tuple[str, ...] = ()) -> Study | None:
-    """One `study NAME { ... }` block as a Study; None after reporting its errors."""
+                  cameras: dict | tuple[str, ...] = (), path=None) -> Study | None:
+    """One `study NAME { ... }` block as a Study; None after reporting its errors (`path`: the scene's compiled
+    path, for factors of its motion)."""
     n_errors = len(out.errors)
     seen: dict[str, Span] = {}
     bounds: list[Bound] = []
@@ -81,7 +89,7 @@ def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None,
     labels: dict[str, Span] = {}
     for sb in bounds:
         if sb.stmt.keyword == "vary":
-            f = _factor(sb, kind, units_of(sb.stmt), out, cameras)
+            f = _factor(sb, kind, units_of(sb.stmt), out, cameras, path)
             if f is not None:
                 if f.label in labels:
                     out.error("E103", f"'{f.label}' varied twice in study '{b.name}'", sb.positional[0].span,
@@ -161,14 +169,20 @@ def _size(kind: str, factors: list[Factor], points: int | None) -> int:
     return points * (len(factors) + 2)
 
 
-def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras: dict | tuple[str, ...] = ()
-            ) -> Factor | None:
-    """A `vary stage.param ...` (or `camera.<name>.<param>`) statement: the target and parameter known,
-    the values in range."""
+def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras: dict | tuple[str, ...] = (),
+            path=None) -> Factor | None:
+    """A `vary stage.param ...` (or `camera.<name>.<param>`, `path.speed`, `rig.sync`) statement: the target and
+    parameter known, the values in range."""
     ref = sb.stmt.args[0]
     span = sb.positional[0].span
     if isinstance(ref, ast.Ref) and len(ref.parts) == 3 and ref.parts[0] == "camera":
+        if ref.parts[2] == "readout" and (path is None or path.times is None):
+            out.error("E102", "varying a readout needs the robot's motion, and the scene's path has no times", span,
+                      "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with timestamps")
+            return None
         return _camera_factor(sb, ref, kind, units, out, cameras)
+    if isinstance(ref, ast.Ref) and ref.parts in (("path", "speed"), ("rig", "sync")):
+        return _motion_factor(sb, ref, kind, units, out, path)
     if not isinstance(ref, ast.Ref) or len(ref.parts) != 2 or "*" in ref.parts:
         out.error("E106", f"expected 'stage.param' or 'camera.<name>.<param>', got '{sb.pos(0)}'", span,
                   "e.g. lateral_shift.range")
@@ -202,6 +216,24 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras
     return _values(sb, stage, param, value_kind, check, kind, units, out)
 
 
+def _motion_factor(sb: Bound, ref: ast.Ref, kind: str, units: dict[str, str], out: Collector, path
+                   ) -> Factor | None:
+    """`path.speed` (the written poses' speed: their times scale with it) or `rig.sync` (the stereo pair's offset)."""
+    span = sb.positional[0].span
+    if ref.parts == ("path", "speed"):
+        if path is None or path.speed is None:
+            out.error("E102", "varying path.speed needs a path of written poses with a 'speed'", span,
+                      "e.g. speed 0.5m/s in the path's block (a trajectory file's times are its own)")
+            return None
+        return _values(sb, "path", "speed", "speed", lambda v: None if 0 < v <= MAX_SPEED else
+                       f"in (0, {MAX_SPEED:g}] m/s", kind, units, out)
+    if path is None or path.times is None:
+        out.error("E102", "varying rig.sync needs the robot's motion, and the scene's path has no times", span,
+                  "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with timestamps")
+        return None
+    return _values(sb, "rig", "sync", "time", lambda v: None if abs(v) <= 1.0 else "within 1 s", kind, units, out)
+
+
 def _camera_factor(sb: Bound, ref: ast.Ref, kind: str, units: dict[str, str], out: Collector,
                    cameras: dict | tuple[str, ...]) -> Factor | None:
     """`camera.<name>.<param>`: a camera's own parameter (what the robot has and believes), not an error."""
@@ -219,13 +251,16 @@ def _camera_factor(sb: Bound, ref: ast.Ref, kind: str, units: dict[str, str], ou
     from wiredsl.engine.geometry import MODEL_KEYS
 
     model = getattr(cam, "distortion", None)
-    if model is not None and param not in ("f", "ax", "ay", "cx", "cy") and not (
+    if model is not None and param not in ("f", "ax", "ay", "cx", "cy", "readout") and not (
             param in MODEL_KEYS[model] or (param == "k" and "k1" in MODEL_KEYS[model])):
         out.error("E104", f"camera '{name}' has the {model} lens model, which has no '{param}'", span,
                   f"its numbers are {', '.join(MODEL_KEYS[model])}" + (" (and k, which is -k1)"
                                                                          if "k1" in MODEL_KEYS[model] else ""))
         return None
     value_kind, low, _ = CAMERA_FACTORS[param]
+    if param == "readout":
+        return _values(sb, f"camera.{name}", param, value_kind, lambda v: None if 0 <= v <= 1.0 else "in [0, 1] s",
+                       kind, units, out)
     return _values(sb, f"camera.{name}", param, value_kind,
                    lambda v: f"> {low:g}" if low is not None and not v > low else None, kind, units, out)
 

@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 from wiredsl.effects import BUILTIN, REGISTRY
 from wiredsl.plugins import lookup
 
-SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "number|length", "integer", "time")
+SCALARS = ("length", "angle", "image", "number", "fraction", "length|image", "number|length", "integer", "time",
+           "speed")
 MAX_MAGNITUDE = 1e9  # metres or pixels: squares and products of a few stay far from float overflow
 BOARD_KINDS = ("chessboard", "charuco", "circles", "acircles")
 # OpenCV's predefined ArUco dictionaries (cv2.aruco.DICT_<NAME upper>)
@@ -218,6 +219,9 @@ _CAMERA = [
     Sig("fov", "every lens model but radtan: the lens's full field of view; nothing farther than half of it from "
         "the optical axis is imaged (default: the model's own valid region; equidistant: where theta_d stops "
         "increasing, at most 360 deg)", (S("angle", "field of view"),), example="fov 190deg"),
+    Sig("readout", "rolling shutter: the time from the first image row's exposure to the last's, rows top to "
+        "bottom; each feature point is imaged from the camera's pose at its row's time (default 0: a global "
+        "shutter, every row at the pose's time)", (S("time", "readout time"),), example="readout 30ms"),
     Sig("read", "take the camera's parameters from a calibration file (OpenCV, ROS, Kalibr, ORB-SLAM, camodocal / "
         "VINS or basalt); "
         "statements beside it override them", (S("str", "path"),),
@@ -243,6 +247,9 @@ _RIG = [
         example="left cam_l at (0.1, 0.06, 1.2) looking (1, 0, -0.2)"),
     Sig("right", "the right camera and its mount", (S("ref", "camera"),), _MOUNT,
         example="right cam_r at (0.1, -0.06, 1.2) looking (1, 0, -0.2)"),
+    Sig("sync", "stereo synchronisation: the right camera's exposure time minus the left's; each camera images "
+        "the world from the robot's pose at its own time (default 0: both at the pose's time)",
+        (S("time", "offset"),), example="sync 10ms"),
     Sig("calibration", "calibration uncertainty: information matrix (J^T J) or covariance",
         (S("word", "kind", "information", "covariance"),),
         {"order": C("the parameter of each row, e.g. [left.f, left.cx, right.tx]", S("names", "parameters")),
@@ -277,6 +284,8 @@ _PATH = [
         {"from": C("start", P2, required=True), "to": C("end", P2, required=True),
          "step": C("distance between poses", S("length", "step"), required=True)},
         example="straight from (1, 1) to (5, 1) step 0.5m"),
+    Sig("speed", "the robot's speed along the written poses: each pose's time is its distance along the path "
+        "over the speed (default: the robot stands at each pose)", (S("speed", "speed"),), example="speed 0.5m/s"),
     Sig("read", "6-DoF poses from a trajectory file (TUM, EuRoC ground truth, KITTI poses, CSV with a header), "
         "resampled by time", (S("str", "path"),),
         {"format": C("the file's format (default: recognised from its content)",

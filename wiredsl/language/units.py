@@ -17,10 +17,14 @@ UNITS: dict[str, tuple[str, float]] = {
     "%": ("fraction", 0.01),
     "s": ("time", 1.0),
     "ms": ("time", 1e-3),
+    "m/s": ("speed", 1.0),
+    "cm/s": ("speed", 1e-2),
+    "mm/s": ("speed", 1e-3),
+    "km/h": ("speed", 1 / 3.6),
 }
 
 # What a bare number means for each kind when the file sets no `units`.
-DEFAULT_UNITS: dict[str, str] = {"length": "m", "angle": "deg", "image": "px", "time": "s"}
+DEFAULT_UNITS: dict[str, str] = {"length": "m", "angle": "deg", "image": "px", "time": "s", "speed": "m/s"}
 
 KIND_NAMES = {
     "length": "a length",
@@ -29,5 +33,6 @@ KIND_NAMES = {
     "number": "a plain number",
     "fraction": "a fraction",
     "time": "a time",
+    "speed": "a speed",
     "integer": "a whole number",
 }

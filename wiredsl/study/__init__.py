@@ -48,7 +48,8 @@ def plugins_used(scene: Scene, study: Study) -> list[dict]:
 
     base = scene.pipeline(study.pipeline) if study.pipeline else None
     names = [s.effect for s in (base.stages if base else [])] + [f.stage for f in study.factors
-                                                                 if not f.stage.startswith("camera.")]
+                                                                 if not f.stage.startswith("camera.")
+                                                                 and f.stage not in design.SCENE_FACTORS]
     used = [fingerprint("effect", n, effects) for n in dict.fromkeys(names) if n not in EFFECTS]
     return used + [fingerprint("measure", m.name, measures)
                    for m in {m.name: m for m in study.measures}.values() if m.name not in MEASURES]

@@ -48,7 +48,7 @@ def pipeline_at(scene: Scene, study: Study, values: np.ndarray) -> Pipeline:
     stages = {s.effect: dict(s.params) for s in (base.stages if base else [])}
     order = [s.effect for s in (base.stages if base else [])]
     for f, v in zip(study.factors, values, strict=True):
-        if f.stage.startswith("camera."):
+        if f.stage.startswith("camera.") or f.stage in SCENE_FACTORS:
             continue
         if f.stage not in stages:
             stages[f.stage] = {}
@@ -97,20 +97,34 @@ def sobol_indices(y: np.ndarray, n: int, d: int, seed: int = 0,
     return out
 
 
+SCENE_FACTORS = ("path", "rig")  # `path.speed`, `rig.sync`: factors of the robot's motion, in the scene
+
+
 def varies_scene(study: Study) -> bool:
-    """True when a factor changes the scene itself (a camera), not only the pipeline."""
-    return any(f.stage.startswith("camera.") for f in study.factors)
+    """True when a factor changes the scene itself (a camera, the path's speed, the rig's sync), not only the
+    pipeline."""
+    return any(f.stage.startswith("camera.") or f.stage in SCENE_FACTORS for f in study.factors)
 
 
 def scene_at(scene: Scene, study: Study, values: np.ndarray) -> Scene:
-    """The scene with one design point's camera factors substituted (`k` is TINA's: k1 = -k)."""
+    """The scene with one design point's camera factors substituted (`k` is TINA's: k1 = -k), and its motion's:
+    `path.speed` scales the written poses' times (each pose's distance over the speed), `rig.sync` sets the
+    offset."""
     updates: dict[str, dict[str, float]] = {}
+    scene_updates: dict = {}
     for f, v in zip(study.factors, values, strict=True):
         if f.stage.startswith("camera."):
             name = f.stage.split(".", 1)[1]
             key, value = ("k1", -float(v)) if f.param == "k" else (f.param, float(v))
             updates.setdefault(name, {})[key] = value
-    if not updates:
-        return scene
-    cameras = [c.model_copy(update=updates[c.name]) if c.name in updates else c for c in scene.cameras]
-    return scene.model_copy(update={"cameras": cameras})
+        elif f.stage == "path":
+            path = scene.path
+            scale = path.speed / float(v)
+            scene_updates["path"] = path.model_copy(update={"speed": float(v),
+                                                            "times": [t * scale for t in path.times]})
+        elif f.stage == "rig":
+            scene_updates["rig"] = scene.rig.model_copy(update={"sync": float(v)})
+    if updates:
+        scene_updates["cameras"] = [c.model_copy(update=updates[c.name]) if c.name in updates else c
+                                    for c in scene.cameras]
+    return scene.model_copy(update=scene_updates) if scene_updates else scene

@@ -95,15 +95,16 @@ def write_all(table: StudyTable, study: Study, folder: Path, fmt: str = "png", d
 def _unit(factor: str) -> str:
     """The SI unit of the factor's kind (the unit the table's values are in), or "" for a plain number."""
     from wiredsl.effects import REGISTRY
+    from wiredsl.language.compile_study import CAMERA_FACTORS, MOTION_FACTORS
 
     stage, param = factor.rsplit(".", 1)
     if stage.startswith("camera."):
-        from wiredsl.language.compile_study import CAMERA_FACTORS
-
         kind = CAMERA_FACTORS[param][0]
+    elif factor in MOTION_FACTORS:
+        kind = MOTION_FACTORS[factor][0]
     else:
         kind = (REGISTRY[stage].Params.model_fields[param].json_schema_extra or {}).get("kind")
-    return {"image": "px", "angle": "rad", "length": "m"}.get(kind, "")
+    return {"image": "px", "angle": "rad", "length": "m", "time": "s", "speed": "m/s"}.get(kind, "")
 
 
 def _words(name: str) -> str:
@@ -124,12 +125,13 @@ def _measure_words(measure: str) -> str:
 def _description(factor: str) -> str | None:
     """A factor's parameter as its declaration describes it (an effect's Params field, a camera factor)."""
     from wiredsl.effects import REGISTRY
+    from wiredsl.language.compile_study import CAMERA_FACTORS, MOTION_FACTORS
 
     stage, param = factor.rsplit(".", 1)
     if stage.startswith("camera."):
-        from wiredsl.language.compile_study import CAMERA_FACTORS
-
         return CAMERA_FACTORS[param][2] if param in CAMERA_FACTORS else None
+    if factor in MOTION_FACTORS:
+        return MOTION_FACTORS[factor][1]
     field = REGISTRY[stage].Params.model_fields.get(param)
     return field.description if field is not None else None
 

@@ -1,0 +1,452 @@
+"""A robot that moves (issue 39): path speeds and velocities, the rolling shutter against a brute-force per-row
+projection (OpenCV's own projection, scipy's rotations), on both engines, and a stereo pair's sync offset against
+its closed form."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.optimize import brentq
+from scipy.spatial.transform import Rotation
+
+from wiredsl.engine import geometry, motion
+from wiredsl.engine.simulate import Options, simulate
+from wiredsl.engine.world import build_world
+from wiredsl.language.compile import compile_file
+from wiredsl.montecarlo import Run
+
+ROOT = Path(__file__).resolve().parents[1]
+
+LENSES = {
+    "pinhole": "focal 600px\n  size (640px, 480px)\n  centre (321.5px, 238.2px)\n  k1 -0.02\n  k2 0.001",
+    "fisheye": "focal 230px\n  size (1024px, 768px)\n  centre (514.2px, 381.7px)\n  distortion equidistant\n"
+               "  k1 -0.0049\n  k2 0.0011\n  k3 -0.0002\n  k4 0.00001\n  fov 190deg",
+}
+
+
+def scene_text(lens: str, speed: str, readout: str = "30ms", sync: str | None = None) -> str:
+    sync_line = f"\n  sync {sync}" if sync else ""
+    return textwrap.dedent("""\
+        wiredsl 1
+        scene moving
+        model bar {{
+          line slant from (0, -0.6, 0.3) to (0.3, 0.5, 1.9)
+          line across from (0, -1.5, 1.0) to (0, 1.5, 1.1)
+        }}
+        place bar as b at (2.5m, 0, 0)
+        camera cam {{
+          {lens}
+          readout {readout}
+        }}
+        rig head {{
+          left cam at (0.1m, 0.06m, 1.0m) looking (1, 0, -0.1){sync}
+          right cam at (0.1m, -0.06m, 1.0m) looking (1, 0, -0.1)
+          calibration covariance order [left.f] matrix [[1e-24]]
+        }}
+        path run {{
+          pose (0, 0) heading 0
+          pose (0.3m, 0.05m) heading 12deg
+          pose (0.6m, 0.2m) heading 30deg
+          speed {speed}
+        }}
+        pipeline reproject {{
+          calibration_error sigma 1
+        }}
+        """).format(lens=lens.replace("\n", "\n  "), sync=sync_line, readout=readout, speed=speed)
+
+
+def compiled(tmp_path, text: str, name: str = "moving.wd"):
+    p = tmp_path / name
+    p.write_text(text)
+    scene, _, _ = compile_file(p)
+    return scene
+
+
+def camera_at(scene, index: int, side: str, tau: float):
+    """The camera's (R_cw, t_cw) at `tau` after its pose, from the velocities by scipy's rotation exponential."""
+    v, w = motion.velocities(scene.path)
+    R, t = geometry.world_from_robot(scene.path.pose(index))
+    R = Rotation.from_rotvec(w[index] * tau).as_matrix() @ R
+    t = t + v[index] * tau
+    mount = getattr(scene.rig, side)
+    R_wc = R @ np.array(mount.rotation)
+    t_wc = R @ np.array(mount.position) + t
+    return R_wc.T, -R_wc.T @ t_wc
+
+
+def opencv_pixels(cam, R_cw, t_cw, X):
+    """OpenCV's projection of world points X (n, 3): cv2.projectPoints, or cv2.fisheye.projectPoints."""
+    K = np.array([[cam.f * cam.ax, 0, cam.cx], [0, cam.f * cam.ay, cam.cy], [0, 0, 1.0]])
+    rvec = cv2.Rodrigues(R_cw)[0]
+    X = np.asarray(X, float).reshape(-1, 1, 3)
+    if cam.distortion == "equidistant":
+        uv, _ = cv2.fisheye.projectPoints(X, rvec, t_cw.reshape(3, 1), K, np.array([cam.k1, cam.k2, cam.k3, cam.k4]))
+    else:
+        uv, _ = cv2.projectPoints(X, rvec, t_cw, K, np.array([cam.k1, cam.k2, cam.p1, cam.p2, cam.k3]))
+    return uv.reshape(-1, 2)
+
+
+def brute_force_u(scene, index, side, A, B, row, near_u):
+    """Where the 3D segment AB crosses image row `row` as the camera at that row's own time sees it: the row's
+    time, that camera's pose, the segment sampled densely and the crossing nearest `near_u` refined by brentq."""
+    cam = scene.camera(getattr(scene.rig, side).camera)
+    R_cw, t_cw = camera_at(scene, index, side, (scene.rig.sync if side == "right" else 0.0)
+                           + cam.readout * row / cam.height)
+
+    def at(s):
+        return opencv_pixels(cam, R_cw, t_cw, A + np.outer(s, B - A))
+
+    s = np.linspace(-1e-3, 1 + 1e-3, 4001)  # the line a little beyond its ends: a vertex at an end is on it
+    uv = at(s)
+    d = uv[:, 1] - row
+    flips = np.flatnonzero(np.sign(d[:-1]) != np.sign(d[1:]))
+    best = None
+    for j in flips:
+        root = brentq(lambda x: at(np.array([x]))[0, 1] - row, s[j], s[j + 1], xtol=1e-15, rtol=1e-15)
+        u = at(np.array([root]))[0, 0]
+        if best is None or abs(u - near_u) < abs(best - near_u):
+            best = u
+    return best
+
+
+def line_vertices(scene, features, fid_of):
+    """[(segment ends A, B, vertices (k, 2))] of the two lines' image polylines."""
+    out = []
+    for f in features:
+        name = fid_of[f.fid]
+        if f.kind in ("line", "polyline") and name.startswith("b."):
+            line = scene.model("bar").lines[0 if name == "b.slant" else 1]
+            P = np.array(scene.placements[0].position)
+            out.append((np.array(line.start) + P, np.array(line.end) + P, f.points))
+    return out
+
+
+def worst_against_brute_force(scene, results, world):
+    worst, n = 0.0, 0
+    for r in results:
+        for side in ("left", "right"):
+            view = getattr(r, side)
+            for A, B, pts in line_vertices(scene, view.features if not hasattr(view, "pts") else view, world):
+                for u, v in pts:
+                    bf = brute_force_u(scene, r.index, side, A, B, v, u)  # None: the line misses the row
+                    worst, n = max(worst, math.inf if bf is None else abs(bf - u)), n + 1
+    return worst, n
+
+
+@pytest.mark.parametrize("lens", sorted(LENSES))
+@pytest.mark.parametrize("speed", ["0.5m/s", "3m/s"])
+def test_rolling_shutter_lines_agree_with_a_brute_force_projection_row_by_row(tmp_path, lens, speed):
+    scene = compiled(tmp_path, scene_text(LENSES[lens], speed))
+    world = build_world(scene)
+    results = simulate(scene, Options(), world)
+    fid_of = dict(enumerate(world.feature_ids))
+    worst, n = worst_against_brute_force(scene, results, fid_of)
+    assert n > 30 and worst < 1e-6, (n, worst)
+    # the same scene with a global shutter images the lines elsewhere: the test can fail
+    still = compiled(tmp_path, scene_text(LENSES[lens], speed, readout="0ms"), "still.wd")
+    moved = max(np.abs(a.points[[0, -1]] - b.points[[0, -1]]).max() for a, b in
+                zip(results[1].left.features, simulate(still, Options())[1].left.features, strict=True)
+                if a.kind != "corner")
+    assert moved > 0.5
+
+
+def test_a_turning_robots_sync_and_rolling_shutter_agree_with_the_brute_force(tmp_path):
+    """The right camera 7 ms late on a path that turns: its rows from the robot's pose 7 ms + its row's time on."""
+    scene = compiled(tmp_path, scene_text(LENSES["pinhole"], "3m/s", sync="7ms"))
+    assert scene.rig.sync == 0.007 and np.abs(motion.velocities(scene.path)[1][:, 2]).max() > 0.5
+    world = build_world(scene)
+    worst, n = worst_against_brute_force(scene, simulate(scene, Options(), world), dict(enumerate(world.feature_ids)))
+    assert n > 40 and worst < 1e-6, (n, worst)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "kernel"])
+@pytest.mark.parametrize("lens", sorted(LENSES))
+def test_rolling_shutter_reprojected_by_both_engines_agrees_with_the_brute_force(tmp_path, engine, lens):
+    scene = compiled(tmp_path, scene_text(LENSES[lens], "3m/s"))
+    world = build_world(scene)
+    run = Run.create(scene, world, scene.pipeline("reproject"), 5, Options())
+    run.engine = engine
+    assert run.uses_kernel() == (engine == "kernel")
+    (_, out), = list(run.batches([0, 1], 2))
+    fid_of = dict(enumerate(world.feature_ids))
+    worst, n = 0.0, 0
+    for r, sets, _ in out:
+        for side, s in sets.items():
+            for i in np.flatnonzero(s.trial == 0):
+                name = fid_of[int(s.fid[i])]
+                if not name.startswith("b."):
+                    continue
+                line = scene.model("bar").lines[0 if name == "b.slant" else 1]
+                P = np.array(scene.placements[0].position)
+                cam = scene.camera("cam")
+                for u, v in s.pts[s.start[i]:s.start[i + 1]]:
+                    if min(u, v, cam.width - u, cam.height - v) < 1e-6:
+                        continue  # a cut at the image border: on the chord between two re-projected vertices
+                    bf = brute_force_u(scene, r.index, side, np.array(line.start) + P, np.array(line.end) + P, v, u)
+                    worst, n = max(worst, abs(bf - u)), n + 1
+    # the draws' covariance of 1e-24 px^2 moves nothing by more than 1e-11 px
+    assert n > 30 and worst < 1e-6, (n, worst)
+
+
+def test_both_engines_agree_under_a_rolling_shutter_and_sync(tmp_path):
+    scene = compiled(tmp_path, scene_text(LENSES["pinhole"], "2m/s", sync="7ms").replace("1e-24", "4"))
+    world = build_world(scene)
+    got = {}
+    for engine in ("numpy", "kernel"):
+        run = Run.create(scene, world, scene.pipeline("reproject"), 11, Options())
+        run.engine = engine
+        got[engine] = [out for _, out in run.batches(range(8), 8)]
+    for (rn, dn, _), (_, dk, _) in zip(got["numpy"][0], got["kernel"][0], strict=True):
+        for side in dn:
+            a, b = dn[side], dk[side]
+            for name in ("start", "fid", "segment", "fragment", "kind", "clipped", "trial", "corner_fid"):
+                assert np.array_equal(getattr(a, name), getattr(b, name)), (rn.index, side, name)
+            assert np.abs(a.pts - b.pts).max(initial=0) < 1e-9
+
+
+def test_the_row_time_fixed_point_converges_as_stated():
+    """r = row(t(r)) for a point moving across rows at a known speed: the error shrinks by q = readout |dr/dt| /
+    height an iteration, and a point whose image crosses more rows in a readout than the image has (q > 1) is
+    refused with a diagnostic, not left unsettled."""
+    from wiredsl.diagnostics import WiredslError
+
+    height, readout = 480.0, 0.03
+
+    def run(rate):  # the image row of a point that moves `rate` px/s down the image: row = 100 + rate * t
+        calls = []
+
+        def pixels(X):
+            calls.append(1)
+            return np.stack([X[..., 0], X[..., 1]], axis=-1)
+        X = np.array([[5.0, 100.0, 0.0]])
+        # v moves the world point against the robot: a robot moving by -v makes its row grow by `rate` a second
+        uv = motion.rolling_pixels(X, pixels, readout, height, np.zeros(3), np.array([0.0, -rate, 0.0]),
+                                   np.zeros(3))
+        return uv, len(calls)
+
+    uv, calls = run(1000.0)  # q = 0.03 * 1000 / 480 = 0.0625: the exact row solves r = 100 + 1000 * 0.03 r / 480
+    exact = 100.0 / (1 - 1000.0 * readout / height)
+    assert abs(uv[0, 1] - exact) < 1e-9
+    # each iteration gains log10(1 / q) = 1.2 digits from an error of 6.7 px: 1e-9 px needs about 9
+    assert calls - 1 <= math.ceil(math.log(6.7 / 1e-9) / math.log(1 / 0.0625)) + 1
+    with pytest.raises(WiredslError, match="E152"):
+        run(-20000.0)  # q = 1.25, the row oscillates away
+
+
+def test_velocities_of_a_straight_run_and_of_an_arc(tmp_path):
+    text = scene_text(LENSES["pinhole"], "2m/s").replace(
+        "pose (0, 0) heading 0\n  pose (0.3m, 0.05m) heading 12deg\n  pose (0.6m, 0.2m) heading 30deg",
+        "straight from (0, 0) to (1m, 1m) step 0.1m")
+    scene = compiled(tmp_path, text)
+    v, w = motion.velocities(scene.path)
+    assert np.allclose(v, [2 / math.sqrt(2), 2 / math.sqrt(2), 0], atol=1e-12) and np.allclose(w, 0, atol=1e-12)
+    # poses on a circle of radius 2 m, 5 deg apart, facing along it: speed 2 m/s turns at 1 rad/s
+    arc = "\n  ".join(f"pose ({2 * math.sin(a):.12f}m, {2 - 2 * math.cos(a):.12f}m) heading {math.degrees(a):.12f}deg"
+                      for a in np.radians(np.arange(0, 60, 5)))
+    scene = compiled(tmp_path, scene_text(LENSES["pinhole"], "2m/s").replace(
+        "pose (0, 0) heading 0\n  pose (0.3m, 0.05m) heading 12deg\n  pose (0.6m, 0.2m) heading 30deg", arc))
+    v, w = motion.velocities(scene.path)
+    speed = np.linalg.norm(v, axis=1)
+    # the poses are timed by their chords (2 sin 2.5 deg * 2 = 0.9997 of the arc): the interior tangents are
+    # the circle's to the chords' O(h^2)
+    assert np.allclose(speed[1:-1], 2 * (2 * math.sin(math.radians(2.5))) / math.radians(5) * 1, rtol=1e-3)
+    assert np.allclose(w[1:-1, 2], 2 / 2 * (2 * math.sin(math.radians(2.5))) / math.radians(5), rtol=1e-3)
+
+
+def lab(tmp_path, sync: str, speed: str = "1m/s"):
+    """scenes/lab.wd driven at `speed`, its right camera exposed `sync` after the left."""
+    text = (ROOT / "scenes/lab.wd").read_text().replace('include "', f'include "{ROOT}/scenes/').replace(
+        'file "lab.info"', f'file "{ROOT}/scenes/lab.info"')
+    text = text.replace("step 0.4m", f"step 0.4m\n  speed {speed}").replace("  right cam_r at",
+                                                                          f"  sync {sync}\n  right cam_r at")
+    return compiled(tmp_path, text, "lab.wd")
+
+
+def closed_form_errors(scene, world, result, offset: float, speed: float) -> dict[int, float]:
+    """Each corner's 3D error when the right camera is exposed `offset` late on a robot driving straight at
+    `speed`: that camera has moved d = speed offset along the heading, so it sees the corner at X_r - d (its own
+    frame; the lab's two cameras share their axes, baseline b along x), and the depth that the horizontal disparity
+    gives, Z' = b / (x_l - x_r'), puts the corner at Z' (x_l, y_l, 1) on the left camera's ray."""
+    R, T = scene.rig.stereo_extrinsics()
+    assert np.allclose(R, np.eye(3)) and np.allclose(T[1:], 0)
+    b = -T[0]
+    heading = result.pose[2]
+    d = speed * offset * np.array([math.cos(heading), math.sin(heading), 0.0])
+    out = {}
+    for fid, X in zip(world.corner_fid.tolist(), world.corners, strict=True):
+        Xl = result.left.R_cw @ X + result.left.t_cw
+        Xr = Xl + T - result.left.R_cw @ d
+        Z = b / (Xl[0] / Xl[2] - Xr[0] / Xr[2])
+        out[fid] = float(np.linalg.norm(Z * np.array([Xl[0] / Xl[2], Xl[1] / Xl[2], 1.0]) - Xl))
+    return out
+
+
+def test_a_stereo_sync_offset_of_10ms_on_the_lab_at_1mps_gives_the_closed_form_3d_error(tmp_path):
+    """stereo3d's corner error (DLT with the nominal rig, the robot's belief) against the closed form: every pose's
+    mean, and each corner, within 7% (measured: 5.7% at most; the closed form triangulates with the horizontal
+    disparity alone, the DLT also weighs the vertical disparity the forward step adds). An offset 30% off would
+    miss by 30%: the check can fail."""
+    from wiredsl.measures.stereo3d import Stereo3D, Stereo3DParams, triangulate, undistort
+
+    scene = lab(tmp_path, "10ms")
+    world = build_world(scene)
+    run = Run.create(scene, world, None, 0, Options())
+    p = Stereo3DParams()
+    prep = Stereo3D.prepare(p, run)
+    (_, results), = list(run.batches([0]))
+    checked = 0
+    for result, disturbed, _ in results:
+        predicted = closed_form_errors(scene, world, result, 0.010, 1.0)
+        both = np.intersect1d(disturbed["left"].corner_fid, disturbed["right"].corner_fid)
+        if len(both) == 0:
+            continue
+        got = Stereo3D.measure(p, prep, result, disturbed, 1)
+        expected = np.mean([predicted[f] for f in both.tolist()])
+        assert got["corners"][0] == len(both)
+        assert abs(got["corner_error"][0] - expected) < 0.07 * expected, (result.index, got["corner_error"], expected)
+        assert expected > 0.015  # centimetres: the effect is there to be predicted
+        for f in both.tolist():  # and each corner on its own, triangulated as stereo3d does
+            uv = {side: disturbed[side].corners[disturbed[side].corner_fid == f] for side in ("left", "right")}
+            x = {side: undistort(uv[side], prep.cameras[(result.index, side)].model)[0] for side in uv}
+            X, _ = triangulate(prep.cameras[(result.index, "left")].P, prep.cameras[(result.index, "right")].P,
+                               x["left"], x["right"])
+            err = float(np.linalg.norm(X[0] - world.corners[list(world.corner_fid).index(f)]))
+            assert abs(err - predicted[f]) < 0.07 * predicted[f], (result.index, f, err, predicted[f])
+            checked += 1
+    assert checked >= 20
+    # without the offset the same corners are exact: the error is the offset's
+    still = Run.create(compile_file(ROOT / "scenes/lab.wd")[0], world, None, 0, Options())
+    (_, results), = list(still.batches([0]))
+    prep = Stereo3D.prepare(p, still)
+    assert max(Stereo3D.measure(p, prep, r, d, 1)["corner_error"][0] for r, d, _ in results) < 1e-6
+
+
+def test_a_speed_alone_changes_no_image(tmp_path):
+    """Times without a readout or a sync: every feature of the lab bit for bit as without them."""
+    text = (ROOT / "scenes/lab.wd").read_text().replace('include "', f'include "{ROOT}/scenes/').replace(
+        'file "lab.info"', f'file "{ROOT}/scenes/lab.info"').replace("step 0.4m", "step 0.4m\n  speed 1m/s")
+    moving, still = compiled(tmp_path, text, "lab.wd"), compile_file(ROOT / "scenes/lab.wd")[0]
+    assert moving.path.times is not None
+    for a, b in zip(simulate(moving), simulate(still), strict=True):
+        for side in ("left", "right"):
+            fa, fb = getattr(a, side).features, getattr(b, side).features
+            assert len(fa) == len(fb) > 0
+            assert all(x.fid == y.fid and x.kind == y.kind and x.points.tobytes() == y.points.tobytes()
+                       for x, y in zip(fa, fb, strict=True))
+
+
+def test_a_scene_without_motion_builds_as_before_and_imports_nothing_new():
+    code = ("import sys; from wiredsl.language.compile import compile_file; from wiredsl.engine.simulate import "
+            "simulate; s = compile_file('scenes/lab.wd')[0]; simulate(s); "
+            "print('wiredsl.engine.motion' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize(("line", "message"), [
+    ("readout -5ms", "error[E110]: a readout time must be in [0, 1000] ms, got -5 ms"),
+    ("readout 2s", "error[E110]: a readout time must be in [0, 1000] ms, got 2000 ms"),
+    ("readout 30px", "error[E107]: expected a time, got an image distance '30px'"),
+])
+def test_bad_readouts_are_located(tmp_path, line, message):
+    _bad(tmp_path, scene_text(LENSES["pinhole"], "1m/s").replace("readout 30ms", line), line, message)
+
+
+@pytest.mark.parametrize(("line", "message"), [
+    ("speed 0m/s", "error[E110]: a speed must be in (0, 100] m/s, got 0 m/s"),
+    ("speed 1000km/h", "error[E110]: a speed must be in (0, 100] m/s, got 277.778 m/s"),
+    ("speed -1m/s", "error[E110]: a speed must be in (0, 100] m/s, got -1 m/s"),
+    ("speed 1e999m/s", "error[E109]: number '1e999m/s' is too large to represent"),
+    ("speed 5m", "error[E107]: expected a speed, got a length '5m'"),
+])
+def test_bad_speeds_are_located(tmp_path, line, message):
+    _bad(tmp_path, scene_text(LENSES["pinhole"], "1m/s").replace("speed 1m/s", line), line, message)
+
+
+def test_a_readout_without_times_and_a_bad_sync_are_located(tmp_path):
+    text = scene_text(LENSES["pinhole"], "1m/s").replace("  speed 1m/s\n", "")
+    _bad(tmp_path, text, "30ms", "error[E102]: the readout of camera 'cam' needs the robot's motion, and path "
+                                 "'run' has no times")
+    _bad(tmp_path, scene_text(LENSES["pinhole"], "1m/s", sync="3s"), "3s",
+         "error[E110]: a sync offset must be within 1000 ms, got 3000 ms")
+
+
+def wiredsl(*args: str):
+    """The command line, in this process (click's runner): exit code and stderr."""
+    from click.testing import CliRunner
+
+    from wiredsl.cli import main
+
+    r = CliRunner().invoke(main, list(args))
+    return r.exit_code, r.stderr
+
+
+def _bad(tmp_path, text: str, token: str, message: str):
+    p = tmp_path / "bad.wd"
+    p.write_text(text)
+    code, err = wiredsl("check", str(p))
+    assert code == 1 and "Traceback" not in err
+    line_no = next(i for i, t in enumerate(text.splitlines(), 1) if token in t)
+    col = text.splitlines()[line_no - 1].index(token.split()[-1]) + 1
+    assert f"{p}:{line_no}:{col}: {message}" in err, err
+
+
+def test_check_reports_the_speeds(tmp_path):
+    p = tmp_path / "moving.wd"
+    p.write_text(scene_text(LENSES["pinhole"], "0.5m/s"))
+    out = subprocess.run([sys.executable, "-m", "wiredsl", "check", str(p)], cwd=ROOT, capture_output=True,
+                         text=True)
+    assert out.returncode == 0
+    # the middle pose's speed is the parabola's through the three chord-timed poses: below the declared 0.5 m/s
+    assert f"{p}:21:6: note: path 'run': 3 poses over 1.279 s; speed 0.494 to 0.5 m/s (fastest at pose 0), " \
+           "turning at most 26.8 deg/s" in out.stderr
+
+
+def test_a_study_over_the_robots_speed_runs_on_the_lab(tmp_path):
+    """`vary path.speed`: each design point's poses timed by its speed, so the 10 ms sync's 3D error grows with it
+    (to first order in proportion: the right camera's step is speed x offset)."""
+    import json
+
+    lab(tmp_path, "10ms")  # writes tmp_path/lab.wd
+    (tmp_path / "study.wd").write_text('wiredsl 1\ninclude "lab.wd"\npipeline still {\n  lateral_shift range 0px\n}\n'
+                                       "study speed {\n  pipeline still\n  vary path.speed values [0.5m/s, 1m/s, "
+                                       "2m/s]\n  trials 1\n  poses [0, 3]\n  measure stereo3d\n}\n")
+    code, err = wiredsl("study", str(tmp_path / "study.wd"), "speed", "-o", str(tmp_path / "out"), "--executor",
+                        "inprocess", "--no-plots")
+    assert code == 0, err
+    table = json.loads((tmp_path / "out" / "table.json").read_text())
+    errors = [row["mean"] for row in sorted(table["rows"], key=lambda r: r["point"])
+              if row["statistic"] == "corner_error"]
+    assert [row["values"]["path.speed"] for row in table["rows"] if row["statistic"] == "corner_error"] == [0.5, 1, 2]
+    # measured 0.030, 0.060, 0.104 m: twice the step gives twice the error, then 1.7 times (the error is linear in
+    # the step only to first order)
+    assert len(errors) == 3 and errors[0] > 0.005 and 1.8 < errors[1] / errors[0] < 2.2 \
+        and 1.5 < errors[2] / errors[1] < 2.0, errors
+
+
+@pytest.mark.parametrize(("vary", "token", "message"), [
+    ("vary camera.cam.readout values [-1ms]", "-1ms", "error[E110]: camera.cam readout: must be in [0, 1] s, got -1ms"),
+    ("vary path.speed values [0.5m/s, 200m/s]", "200m/s",
+     "error[E110]: path speed: must be in (0, 100] m/s, got 200m/s"),
+    ("vary rig.sync values [2s]", "2s", "error[E110]: rig sync: must be within 1 s, got 2s"),
+    ("vary path.speed values [3km]", "3km", "error[E108]: unknown unit 'km' in '3km'"),
+])
+def test_bad_motion_factors_are_located(tmp_path, vary, token, message):
+    text = scene_text(LENSES["pinhole"], "1m/s") + f"study s {{\n  {vary}\n  measure stereo3d\n}}\n"
+    _bad(tmp_path, text, token, message)
+
+
+def test_motion_factors_need_a_moving_robot(tmp_path):
+    text = scene_text(LENSES["pinhole"], "1m/s").replace("  speed 1m/s\n", "").replace("  readout 30ms\n", "")
+    _bad(tmp_path, text + "study s {\n  vary path.speed values [1m/s]\n  measure stereo3d\n}\n", "path.speed",
+         "error[E102]: varying path.speed needs a path of written poses with a 'speed'")
+    _bad(tmp_path, text + "study s {\n  vary camera.cam.readout values [1ms]\n  measure stereo3d\n}\n",
+         "camera.cam.readout", "error[E102]: varying a readout needs the robot's motion, and the scene's path has "
+                               "no times")
