@@ -5,6 +5,9 @@ own pipelines and for every stage at the paper's values."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 from test_replay import SCENES, pipelines
@@ -265,3 +268,57 @@ def test_the_generated_loop_is_keyed_on_the_contents_of_every_file_its_stages_ca
         key, got = loop()
         assert key not in keys and got == value
         keys.add(key)
+
+
+VARIED = {"edge_loss": "fraction from 10% to 40%", "lateral_shift": "range from 0 to 4px",
+          "approx_error": "sigma from 0 to 0.3px", "corner_loss": "keep from 0.5 to 1",
+          "corner_error": "sigma from 0 to 2px", "corner_mismatch": "fraction from 0 to 50%",
+          "stereo_mismatch": "disparity from 0 to 20px"}
+
+
+def test_every_built_in_stage_list_runs_the_one_loop_compiled_once(tmp_path):
+    """Was (issue 36's replay): a random valid study, 6 points x 2 trials in process, ran over 60 s: the first
+    compile of its stage list's own loop. Every pipeline of built-in stages (any subset, order the language allows
+    and parameters) now runs the one loop of the built-in table, compiled once (by the suite's warm-up,
+    tests/conftest.py): random stage lists' studies compile no numba code of wiredsl's, and complete."""
+    from click.testing import CliRunner
+    from numba.core import event
+
+    from wiredsl.cli import main
+    from wiredsl.effects import BUILTIN
+    from wiredsl.engine import kernel as kn
+
+    staged = [name for name, e in BUILTIN.items() if e.kernel is not None]
+    assert set(staged) == set(VARIED)
+    table = kn.builtin_table()
+    rng = np.random.default_rng(36)
+    compiled = []
+
+    class Compiles(event.Listener):
+        def on_start(self, e):
+            compiled.append(e.data["dispatcher"].py_func)
+
+        def on_end(self, e):
+            pass
+
+    for case in range(3):
+        chosen = sorted(rng.choice(len(staged), size=rng.integers(1, 5), replace=False))
+        names = [staged[i] for i in chosen]
+        assert kn.stage_table(tuple(t for t in table if t[0] in {f"wiredsl.effects.{n}_kernel:stage" for n in names})) \
+            == table
+        varied = names[rng.integers(len(names))]
+        scene = tmp_path / f"s{case}.wd"
+        scene.write_text(f'wiredsl 1\ninclude "{Path("scenes/lab.wd").resolve().as_posix()}"\n\n'
+                         "pipeline random {\n" + "".join(f"  {n}\n" for n in names) + "}\n\n"
+                         "study s {\n  pipeline random\n"
+                         f"  vary {varied}.{VARIED[varied]} steps 6\n"
+                         f"  trials 2\n  poses [0, 3]\n  seed {case}\n  measure kept\n}}\n")
+        out = tmp_path / f"st{case}"
+        with event.install_listener("numba:compile", Compiles()):
+            r = CliRunner().invoke(main, ["study", str(scene), "s", "-o", str(out), "--executor", "inprocess",
+                                          "--no-plots"])
+        assert r.exit_code == 0, (names, r.output)
+        manifest = json.loads((out / "manifest.json").read_text())
+        assert manifest["engines"] == {n: "kernel" for n in names}, manifest["engines"]
+        ours = [f"{f.__module__}.{f.__qualname__}" for f in compiled if f.__module__.startswith("wiredsl")]
+        assert ours == [], (names, ours)

@@ -712,3 +712,26 @@ def test_a_workers_blas_libraries_all_run_on_one_thread_numbas_too():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     libraries = eval(out)  # noqa: S307 (our own printed list)
     assert any("scipy" in path for path, _ in libraries) and all(n == 1 for _, n in libraries), libraries
+
+
+def test_the_study_process_compiles_the_kernel_before_its_workers_start(scene, tmp_path, monkeypatch):
+    """Was (issue 38): each worker of a study compiled the kernel's loop on its own, every core compiling the same
+    code at once, and the study said nothing of it. The study's own process loads (or compiles, saying so once)
+    the built-in stages' loop before the pool starts, so that the workers load it from numba's cache; the
+    processes executor calls it before its first worker."""
+    pytest.importorskip("numba")
+    from wiredsl.engine import kernel
+    from wiredsl.study import executors
+
+    monkeypatch.setattr(kernel, "_composed", {})
+    _, js = jobs(scene, scene.study("shift"), tmp_path, REGISTRY)
+    shards.warm_kernel(js[0])
+    assert list(kernel._composed) == [kernel.builtin_table()]
+    assert kernel._composed[kernel.builtin_table()].signatures  # compiled or loaded here, in this process
+
+    order = []
+    monkeypatch.setattr(executors, "warm_kernel", lambda job: order.append(("warm", job)))
+    monkeypatch.setattr(executors, "chunks", lambda jobs, workers: order.append("pool") or [])
+    with pytest.raises(ValueError):  # (no chunk: the pool refuses max_workers 0, after the warm-up)
+        executors._processes(js, lambda job, arrays: None, 2)
+    assert order == [("warm", js[0]), "pool"]

@@ -18,9 +18,11 @@ alpha, beta, w, model code; a stage whose KernelStage names a `workspace` functi
 float64 array that function, `workspace(params, epipole, right, camera, trials) -> array`, made for the view
 before the batch's trials, for what depends on the view and not on the trial), and may call the shared parts
 here (keyed draws `_bits`/`_uniform`/`_normal_pair`, `_arcs`, `_total_length`, `_keep`, `_unroll`, the metadata
-columns FID..OCC). `compose` builds the loop over a stage list from those names, so this module names no effect.
-numba is imported only here and by those functions' modules, and they only when a run uses the kernel; compiled
-code is cached on disk, and a compile is announced on stderr.
+columns FID..OCC). `compose` builds the loop over a table of stage functions from those names, so this module
+names no effect: the stage list is an array of codes into the table, so every pipeline of built-in stages (any
+subset, order and parameters) runs the one loop of the built-in table (`builtin_table`), compiled once, and a
+plug-in's pipeline the loop of its own table. numba is imported only here and by those functions' modules, and
+they only when a run uses the kernel; compiled code is cached on disk, and a compile is announced on stderr.
 """
 
 from __future__ import annotations
@@ -577,22 +579,26 @@ def _pack(res, cres):
 
 
 def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated,
-               params, keys, epipole, right, stats, camera, rolling):
-    """Every trial of a batch for one view. Returns packed strokes (pts, start, meta, trial) and corners
-    (corners, fid, trial), strokes and corners ordered by trial.
+               params, keys, epipole, right, stats, camera, rolling, codes):
+    """Every trial of a batch for one view, the image stages `codes` (indices into the loop's table of stage
+    functions, in order), the view's rolling shutter `rolling` (run_view's row; readout 0: none). Returns packed
+    strokes (pts, start, meta, trial) and corners (corners, fid, trial), strokes and corners ordered by trial.
 
-    The template of the compiled loop: `compose` compiles it once per stage list, in a module of its own, with
-    the line that calls `_stages` replaced by a call of each stage's function in order, and the line that calls
-    `_workspaces` by a call of each stage's workspace function, once for the batch (so that the kernel names no
-    effect, and a plug-in's function is composed as a built-in's is)."""
+    The template of the compiled loop: `compose` compiles it once per table of stage functions, in a module of its
+    own, with the line that calls `_stages` replaced by a dispatch on each stage's code to its function, and the
+    line that calls `_workspaces` by a call of each workspace function of the table where a stage's code names it,
+    once for the batch (so that the kernel names no effect, and a plug-in's function is composed as a built-in's
+    is). The stage list is data: every pipeline of the table's stages (any subset, order and parameters) runs the
+    one compiled loop."""
     res = []
     cres = []
-    _workspaces(params, epipole, right, camera, keys.shape[1])  # noqa: F821
+    spaces = _workspaces(params, epipole, right, camera, keys.shape[1], codes)  # noqa: F821
     for t in range(keys.shape[1]):
         pts, start, meta, corners, cf = _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds,
                                                      width, height, calibrated, t, rolling)
-        pts, start, meta, corners, cf = _stages(pts, start, meta, corners, cf, keys, t, params, epipole,  # noqa: F821
-                                                right, stats, camera)
+        for g in range(len(codes)):
+            pts, start, meta, corners, cf = _stages(pts, start, meta, corners, cf, keys, t, params, epipole,  # noqa: F821
+                                                    right, stats, camera, spaces, codes, g)
         res.append((pts, start, meta))
         cres.append((corners, cf))
     return _pack(res, cres)
@@ -607,8 +613,10 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
     rolling shutter (View.rolling: readout, height, robot origin, v, w) or None."""
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
-    batch = compose(tuple(functions), tuple(bool(c) for c in cameras) or (False,) * len(functions),
-                    tuple(workspaces) or (None,) * len(functions))
+    stages = tuple(zip(functions, tuple(bool(c) for c in cameras) or (False,) * len(functions),
+                       tuple(workspaces) or (None,) * len(functions), strict=True))
+    table = stage_table(stages)
+    batch = _compose(table)
     n_camera = 2 + len(CAMERA_ROW)  # the image's width and height, then the camera row
     camera = np.zeros(n_camera) if camera is None else np.ascontiguousarray(camera, dtype=np.float64).reshape(n_camera)
     announce_compile(batch)
@@ -621,28 +629,58 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
                       np.ascontiguousarray(keys, dtype=np.uint64).reshape(len(functions), len(folds)),
                       np.ascontiguousarray(epipole, dtype=np.float64).reshape(3), bool(right), stats, camera,
                       np.zeros(11) if rolling is None else np.array([rolling[0], rolling[1], *rolling[2], *rolling[3],
-                                                                     *rolling[4]], dtype=np.float64))
+                                                                     *rolling[4]], dtype=np.float64),
+                      np.array([table.index(s) for s in stages], dtype=np.int64))
 
 
-_composed: dict[tuple[str, ...], object] = {}
+Stage = tuple[str, bool, "str | None"]  # a stage function ("module:attribute"), whether it takes the camera row,
+# its workspace function (KernelStage.function, .camera, .workspace)
+
+
+def builtin_table() -> tuple[Stage, ...]:
+    """Every built-in effect's stage function, in the registry's order: the table of the one loop that runs every
+    pipeline of built-in stages."""
+    from wiredsl.effects import BUILTIN
+
+    return tuple((e.kernel.function, e.kernel.camera, e.kernel.workspace) for e in BUILTIN.values()
+                 if e.kernel is not None)
+
+
+def stage_table(stages: tuple[Stage, ...]) -> tuple[Stage, ...]:
+    """The table of stage functions the loop that runs `stages` is compiled for: the built-ins' (`builtin_table`)
+    when every stage is a built-in's, so that no pipeline of built-in stages compiles a loop of its own; else these
+    stages' functions, each once (a plug-in's pipeline compiles its loop once)."""
+    table = _tables.get(stages)
+    if table is None:
+        builtin = builtin_table()
+        table = _tables[stages] = builtin if set(stages) <= set(builtin) else tuple(dict.fromkeys(stages))
+    return table
+
+
+_tables: dict[tuple[Stage, ...], tuple[Stage, ...]] = {}
+_composed: dict[tuple[Stage, ...], object] = {}
 
 
 def compose(functions: tuple[str, ...], cameras: tuple[bool, ...] = (), workspaces: tuple[str | None, ...] = ()):
-    """view_batch compiled for the stage functions `functions` ("module:attribute" each), in order: a module
-    written once per stage list (and per text of the source files involved, `_called`, since numba's cache
-    does not follow a change in a called function's file) into the user's cache folder, whose `_stages` calls each
-    stage's function with its own row of keys, parameters and statistics (and its view's camera row where
-    `cameras` says so, and the workspace its workspace function, `workspaces`, made for the view's batch).
-    Compiled code is cached on disk by numba."""
-    cameras = cameras or (False,) * len(functions)
-    workspaces = workspaces or (None,) * len(functions)
-    batch = _composed.get((functions, cameras, workspaces))
+    """view_batch compiled for a table of stage functions that holds `functions` ("module:attribute" each; with
+    their view's camera row where `cameras` says so, and the workspace their workspace function, `workspaces`,
+    makes for the view's batch): `stage_table`'s."""
+    return _compose(stage_table(tuple(zip(functions, cameras or (False,) * len(functions),
+                                          workspaces or (None,) * len(functions), strict=True))))
+
+
+def _compose(table: tuple[Stage, ...]):
+    """view_batch compiled for the table of stage functions `table`: a module written once per table (and per text
+    of the source files involved, `_called`, since numba's cache does not follow a change in a called function's
+    file) into the user's cache folder, whose `_stages` dispatches on a stage's code to its function with its own
+    row of keys, parameters and statistics. Compiled code is cached on disk by numba."""
+    batch = _composed.get(table)
     if batch is None:
-        batch = _composed[(functions, cameras, workspaces)] = _load(functions, cameras, workspaces)
+        batch = _composed[table] = _load(table)
     return batch
 
 
-def _load(functions: tuple[str, ...], cameras: tuple[bool, ...], workspaces: tuple[str | None, ...]):
+def _load(table: tuple[Stage, ...]):
     import hashlib
     import importlib
     import importlib.util
@@ -655,23 +693,30 @@ def _load(functions: tuple[str, ...], cameras: tuple[bool, ...], workspaces: tup
 
     from wiredsl.files import cache_folder, write_atomic
 
+    functions = [f for f, _, _ in table]
     parts = [f.split(":") for f in functions]
-    spaces = {g: w.split(":") for g, w in enumerate(workspaces) if w}
-    calls = "".join(f"        pts, start, meta, corners, cf = _s{g}(pts, start, meta, corners, cf, keys[{g}, t], "
-                    f"params[{g}], epipole, right, stats[{g}]{', camera' if cameras[g] else ''}"
-                    f"{f', _w{g}' if g in spaces else ''})\n"
-                    for g in range(len(functions)))
-    made = "".join(f"    _w{g} = _ws{g}(params[{g}], epipole, right, camera, keys.shape[1])\n" for g in spaces)
+    spaces = {c: w.split(":") for c, (_, _, w) in enumerate(table) if w}
     template = inspect.getsource(view_batch)
-    stages = re.search(r"^ *pts, start, meta, corners, cf = _stages\(.*?stats, camera\)\n", template,
-                       re.M | re.S).group()
-    before = re.search(r"^ *_workspaces\(.*\n", template, re.M).group()
-    source = ("from numba import njit\n\n"
+    stages = re.search(r"^( *)pts, start, meta, corners, cf = _stages\(.*?codes, g\)\n", template, re.M | re.S)
+    pad = stages.group(1)
+    calls = "".join(f"{pad}{'if' if c == 0 else 'elif'} codes[g] == {c}:\n"
+                    f"{pad}    pts, start, meta, corners, cf = _s{c}(pts, start, meta, corners, cf, keys[g, t], "
+                    f"params[g], epipole, right, stats[g]{', camera' if cam else ''}"
+                    f"{', spaces[g]' if c in spaces else ''})\n"
+                    for c, (_, cam, _) in enumerate(table))
+    before = re.search(r"^( *)spaces = _workspaces\(.*\n", template, re.M)
+    pad = before.group(1)
+    made = (f"{pad}spaces = [np.zeros(0) for _ in range(len(codes))]  # the workspace of each stage that has one\n"
+            + (f"{pad}for g in range(len(codes)):\n" if spaces else "")
+            + "".join(f"{pad}    {'if' if i == 0 else 'elif'} codes[g] == {c}:\n"
+                      f"{pad}        spaces[g] = _ws{c}(params[g], epipole, right, camera, keys.shape[1])\n"
+                      for i, c in enumerate(spaces)))
+    source = ("import numpy as np\nfrom numba import njit\n\n"
               "from wiredsl.engine.kernel import _pack, _trial_input\n"
-              + "".join(f"from {module} import {name} as _s{g}\n" for g, (module, name) in enumerate(parts))
-              + "".join(f"from {module} import {name} as _ws{g}\n" for g, (module, name) in spaces.items())
+              + "".join(f"from {module} import {name} as _s{c}\n" for c, (module, name) in enumerate(parts))
+              + "".join(f"from {module} import {name} as _ws{c}\n" for c, (module, name) in spaces.items())
               + "\n\n@njit(cache=True, error_model=\"numpy\")\n"
-              + template.replace(stages, calls).replace(before, made))
+              + template.replace(stages.group(), calls).replace(before.group(), made))
     stamp = hashlib.sha256(source.encode())
     called = _called([getattr(importlib.import_module(module), name)
                       for module, name in [*parts, *spaces.values()]])

@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from wiredsl import check_stop, clear_stops, exception_chain, install_hint, pending_stop, signal_stop
-from wiredsl.study.shards import Job, run_chunk
+from wiredsl.study.shards import Job, run_chunk, warm_kernel
 
 EXECUTORS = ("processes", "inprocess", "dask")
 Done = Callable[[Job, dict[str, np.ndarray]], None]
@@ -114,6 +114,7 @@ def _processes(jobs: Sequence[Job], done: Done, workers: int) -> None:
         ctx.set_forkserver_preload(["wiredsl.study.shards", "wiredsl.measures", "threadpoolctl", "numba",
                                     "scipy.linalg", "wiredsl.engine.kernel", "wiredsl.measures.pgh_kernel",
                                     "wiredsl.measures.stereo3d_kernel"])  # missing ones are skipped
+    warm_kernel(jobs[0])
     parts = chunks(jobs, workers)
     with ProcessPoolExecutor(max_workers=min(workers, len(parts)), mp_context=ctx) as pool:
         futures = {pool.submit(run_chunk, chunk): chunk for chunk in parts}

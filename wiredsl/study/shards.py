@@ -98,6 +98,22 @@ def point_run(scene: Scene, world: World, study: Study, point: int, values, opts
     return run
 
 
+def warm_kernel(job: Job) -> None:
+    """Compile the compiled kernel's loop of the built-in stages in this process, once, if the study's points run
+    it (or load it from numba's cache): its worker processes then load it from the cache instead of each compiling
+    it at once, and "compiling" is said once, by the study's own process. (A plug-in's loop is compiled where its
+    failure is reported as the plug-in's: in the workers.)"""
+    scene = job.scene
+    run = point_run(scene, build_world(scene), job.study, job.shard.point, job.values)
+    if not run.uses_kernel():
+        return
+    from wiredsl.engine import kernel
+
+    stages = tuple((e.kernel.function, e.kernel.camera, e.kernel.workspace) for e, _ in run.compiled_stages())
+    if kernel.stage_table(stages) == kernel.builtin_table():
+        kernel.warm()
+
+
 _WORKER: dict = {}  # per process: digest -> (world, base run, prepared); (digest, point) -> (run, prepared)
 
 
