@@ -11,7 +11,8 @@ other stage list right after it, (5) the lab build warm with --engine numpy and 
 warm. The compile is each run's CPU less its warm run's on the same engine (target: at most 5 s for (1), at most
 1 s for (2) and (4)); the manifests say which engine ran.
 
---where: instead, where the first build's compile spends its CPU: the build in a child process with empty caches,
+--where: instead, where the kernel's first compile spends its CPU: the build with --engine kernel (auto compiles
+nothing there) in a child process with empty caches,
 numba's events recorded (`numba.core.event`): each event's CPU less that of the events nested in it, by kind (LLVM,
 numba's compiler passes) and by the function compiled, and how many functions numba compiled.
 """
@@ -61,7 +62,8 @@ def main() -> None:
 
         if args.where:
             subprocess.run([sys.executable, __file__, "--child", "build", "scenes/lab.wd", "--trials", str(args.trials),
-                            "--format", "npz", "--seed", "1", "--no-svg", "-o", f"{tmp}/first", "--force"],
+                            "--format", "npz", "--seed", "1", "--no-svg", "-o", f"{tmp}/first", "--force",
+                            "--engine", "kernel"],
                            env={**ENV, **env}, cwd=str(HERE), check=True)
             return print(load())
         first = build("scenes/lab.wd", "first")
