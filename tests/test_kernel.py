@@ -322,3 +322,75 @@ def test_every_built_in_stage_list_runs_the_one_loop_compiled_once(tmp_path):
         assert manifest["engines"] == {n: "kernel" for n in names}, manifest["engines"]
         ours = [f"{f.__module__}.{f.__qualname__}" for f in compiled if f.__module__.startswith("wiredsl")]
         assert ours == [], (names, ours)
+
+
+COLD_BUILD = """
+import json, sys
+from numba.core import event
+compiled = []
+class Compiles(event.Listener):
+    def on_start(self, e):
+        compiled.append(e.data["dispatcher"].py_func.__qualname__)
+    def on_end(self, e):
+        pass
+event.register("numba:compile", Compiles())
+from wiredsl.cli import main
+try:
+    main(sys.argv[1:], standalone_mode=False)
+finally:
+    print(json.dumps(compiled), file=sys.__stdout__)
+"""
+
+
+def test_auto_on_an_empty_cache_runs_a_small_run_on_numpy_compiling_nothing(tmp_path):
+    """With numba's and wiredsl's caches empty (a fresh install), `build --engine auto` of a run too small for the
+    compile to pay for itself (run.COLD_KERNEL_PAYS) runs numpy, compiles nothing, says so in one line, records
+    numpy in the manifest, and writes the kernel's bytes; with the loop cached (the suite's warm-up) auto loads it."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from click.testing import CliRunner
+
+    from wiredsl import run as runs
+    from wiredsl.cli import main
+    from wiredsl.engine import kernel as kn
+
+    pytest.importorskip("numba")
+    args = ["build", "scenes/lab.wd", "--format", "npz", "--no-svg", "--seed", "4", "--trials", "120"]  # > KERNEL_PAYS
+    script = tmp_path / "cold.py"
+    script.write_text(COLD_BUILD)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "XDG_CACHE_HOME": str(tmp_path / "cache"),
+           "PYTHONPATH": str(Path.cwd())}
+    p = subprocess.run([sys.executable, str(script), *args, "-o", str(tmp_path / "cold")], env=env,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert json.loads(p.stdout.splitlines()[-1]) == []  # not one function compiled
+    notes = [line for line in p.stderr.splitlines() if "numpy engine for this run" in line]
+    assert len(notes) == 1 and "compiling" not in p.stderr, p.stderr
+    assert json.loads((tmp_path / "cold" / "manifest.json").read_text())["engine"] == "numpy"
+    r = CliRunner().invoke(main, [*args, "-o", str(tmp_path / "warm")])  # this process: the loop is cached
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "warm" / "manifest.json").read_text())["engine"] == "kernel"
+    cold, warm = np.load(tmp_path / "cold" / "features.npz"), np.load(tmp_path / "warm" / "features.npz")
+    assert cold.files == warm.files
+    for k in cold.files:
+        if k != "manifest":  # it names the engine
+            assert cold[k].dtype == warm[k].dtype and cold[k].tobytes() == warm[k].tobytes(), k
+    # the rule: a cached loop, or a run large enough, keeps the kernel
+    scene, _, _ = compile_file("scenes/lab.wd")
+    run = Run.create(scene, build_world(scene), scene.pipeline("paper"), 1, Options())
+    assert kn.loop_cached(tuple((e.kernel.function, e.kernel.camera, e.kernel.workspace)
+                                for e, _ in run.compiled_stages()))
+    assert runs.cold_kernel_line(run, 3) is None and run.uses_kernel()
+    big = int(runs.COLD_KERNEL_PAYS // run.trial_size()[0]) + 1
+    assert 2_000 < big < 50_000
+    run.uses_kernel = lambda: True
+    kn_cached, kn.loop_cached = kn.loop_cached, lambda stages: False
+    try:
+        assert runs.cold_kernel_line(run, big) is None  # large: compiles, as before
+        line = runs.cold_kernel_line(run, big - 1)
+        assert line is not None and f"{big:,} trials" in line and run.engine == "numpy"
+    finally:
+        kn.loop_cached = kn_cached

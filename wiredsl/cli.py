@@ -438,7 +438,10 @@ def _check_size(out_format: str, n_trials: int, per_trial: int, out_dir) -> None
 @click.option("--engine", type=click.Choice(["auto", "kernel", "numpy"]), default="auto", show_default=True,
               help="Monte-Carlo engine: the compiled kernel (needs wiredsl[fast]) or the numpy reference; auto: the "
                    "kernel, when numba is installed, for --trial and for runs large enough to pay for loading it "
-                   "(some 75 trials of scenes/lab.wd). Both draw the same numbers.")
+                   "(some 75 trials of scenes/lab.wd), unless its compiled loop is not in numba's cache yet and "
+                   "compiling it (about 43 s of CPU once) would not pay in this run (under some 10,000 trials of "
+                   "scenes/lab.wd): then numpy, said on stderr. Both draw the same numbers; the manifest's `engine` "
+                   "says which ran.")
 @click.option("--exact-calibration", is_flag=True,
               help="Project each trial's perturbed rig from scratch (slow) instead of re-projecting the ideal "
                    "strokes with every trial's cameras at once.")
@@ -512,6 +515,9 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     if engine == "auto" and not replaying_alone and not run.kernel_pays(trials if only_trial is not None
                                                                         else len(trial_list)):
         run.engine = "numpy"  # a small run (or --trial K of one, given its --trials N): the kernel would not pay
+    if engine == "auto" and not replaying_alone and (cold := runs.cold_kernel_line(
+            run, trials if only_trial is not None else len(trial_list))):  # a replay: as its run of --trials N
+        click.echo(cold, err=True)  # the kernel is not compiled yet and would not pay for compiling in this run
     shown = only_trial if only_trial is not None else trial_list[0]  # the trial the SVGs show
     if run.uses_kernel():
         _numba_without_blas()

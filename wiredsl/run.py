@@ -240,3 +240,36 @@ def numpy_forced(run: Run, trials: int) -> str | None:
     if run.exact_calibration or not run.stages or trials * run.trial_size()[0] < KERNEL_PAYS:
         return None
     return numpy_forced_line([e for e, _ in run.stages], run.engine)
+
+
+# `--engine auto` when the compiled loop is not in numba's cache yet (a fresh install): numpy unless the run is large
+# enough for compiling to pay for itself in this run (break-even, as a tiered JIT decides: the compile's CPU against
+# the numpy engine's extra CPU over the kernel's). Measured on scenes/lab.wd's `paper` pipeline (2,263 vertices a
+# trial as `build` projects it, hidden lines removed: `Run.trial_size`), 2026-12-02, the shared 2-core machine, one
+# run each: the built-in loop's compile from an empty cache 43 s of CPU (`python -c "from wiredsl.engine import
+# kernel; kernel.warm()"`: 40.7 s user + 2.3 s system), and `build --format npz` of 300 and 3,000 trials: numpy 2.8 s
+# and 17.5 s, kernel 1.75 s and 3.6 s, so numpy's extra CPU is (17.5 - 2.8 - (3.6 - 1.75)) / 2,700 trials / 2,263
+# vertices = 1.9e-6 s a vertex-trial. (A replay, `--trials N --trial K`, decides as its N-trial run.)
+COMPILE_SECONDS = 43.0
+NUMPY_EXTRA_SECONDS = 1.9e-6  # a vertex-trial
+COLD_KERNEL_PAYS = COMPILE_SECONDS / NUMPY_EXTRA_SECONDS  # vertex-trials: some 10,000 trials of the lab's build
+
+
+def cold_kernel_line(run, trials: int) -> str | None:
+    """Under `--engine auto`, for a run that would use the compiled kernel: when its loop is not in numba's cache
+    yet (`kernel.loop_cached`) and the run is smaller than COLD_KERNEL_PAYS vertex-trials, set the run's engine to
+    numpy (both engines give the same output) and return the one line said on stderr; else None (the kernel)."""
+    if not run.uses_kernel():
+        return None
+    size = run.trial_size()[0]
+    if trials * size >= COLD_KERNEL_PAYS:
+        return None
+    from wiredsl.engine import kernel
+
+    stages = tuple((e.kernel.function, e.kernel.camera, e.kernel.workspace) for e, _ in run.compiled_stages())
+    if kernel.loop_cached(stages):
+        return None
+    run.engine = "numpy"
+    n = int(COLD_KERNEL_PAYS // max(size, 1)) + 1
+    return (f"note: numpy engine for this run (the compiled kernel is not built yet, about {COMPILE_SECONDS:.0f} s "
+            f"of CPU once: a run of {n:,} trials or more of this scene builds it, as does --engine kernel)")

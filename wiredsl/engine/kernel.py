@@ -811,6 +811,27 @@ def announce_compile(batch) -> None:
               file=sys.stderr, flush=True)
 
 
+def loop_cached(stages: tuple[Stage, ...]) -> bool:
+    """Whether the compiled loop that runs `stages` is in numba's on-disk cache for this CPU and numba version, so
+    that running it loads it instead of compiling it: an entry of the loop's index (numba's own file, read as
+    numba reads it: its numba version and the generated file's stamp checked) whose key numba would compute here
+    (the same signature, `magic_tuple` of this CPU and the same bytecode), its data file present. Nothing is
+    compiled; numba's internals moved: True (the kernel as before this check)."""
+    import os
+
+    batch = _compose(stage_table(stages))
+    if batch.signatures:
+        return True
+    try:
+        cache = batch._cache
+        codegen = batch.targetctx.codegen()
+        entries = cache._cache_file._load_index()
+        return any(key == cache._index_key(key[0], codegen) and os.path.exists(cache._cache_file._data_path(name))
+                   for key, name in entries.items())
+    except (AttributeError, TypeError, IndexError):
+        return True
+
+
 def warm(functions: tuple[str, ...] = (), cameras: tuple[bool, ...] = (), workspaces: tuple[str | None, ...] = ()
          ) -> None:
     """Compile (or load from the cache) the kernel of a stage list on a tiny view, e.g. once before parallel test
