@@ -61,7 +61,7 @@ def estimate(fit: dict, key: str) -> str:
     e = next(e for e in fit["estimates"] if e["parameter"] == key)
     scale, unit = (100, "%") if key.startswith("edge_loss") else (1, " px")
     if e["value"] is None:
-        return f"not estimated ({e['note']}): the paper's {scale * e['used']:.3g}{unit}"
+        return f"not estimated ({e['note']}): {scale * e['used']:.3g}{unit} used"
     v = f"{scale * e['value']:.3g}{unit}"
     if e.get("low95") is not None and e.get("high95") is not None:
         v += f" [{scale * e['low95']:.3g}, {scale * e['high95']:.3g}]"

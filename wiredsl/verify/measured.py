@@ -4,7 +4,7 @@ what it was measured from in comments, the spread and correlation clauses of var
 from __future__ import annotations
 
 from wiredsl.language.fmt import format_text
-from wiredsl.verify.fit import Estimate, Fit
+from wiredsl.verify.fit import UNMEASURED, Estimate, Fit
 from wiredsl.verify.variation_fit import clauses
 
 
@@ -24,7 +24,7 @@ def pipeline_text(f: Fit, name: str, provenance: list[str], calibration: str | N
     not `with_calibration` (the images calibrated the rig: their corners already fit it)."""
     def iv(e: Estimate, fmt) -> str:
         if e.value is None:
-            return f"not estimated ({e.note}): the paper's value"
+            return f"not estimated ({e.note}): " + ("not simulated" if e.key in UNMEASURED else "the paper's value")
         span = f", 95% interval [{fmt(e.lo)}, {fmt(e.hi)}]" if e.lo is not None else ""
         return f"{fmt(e.value)}{span}: {e.note}"
 
