@@ -450,3 +450,26 @@ def test_motion_factors_need_a_moving_robot(tmp_path):
     _bad(tmp_path, text + "study s {\n  vary camera.cam.readout values [1ms]\n  measure stereo3d\n}\n",
          "camera.cam.readout", "error[E102]: varying a readout needs the robot's motion, and the scene's path has "
                                "no times")
+
+
+def test_a_rolling_shutters_3d_error_on_the_lab_grows_with_the_robots_speed(tmp_path):
+    """`vary path.speed` with a 30 ms readout and no sync: each faster point's corner error is larger (a rolling
+    shutter skews both images alike, so the error is smaller than a sync's, but it must still grow)."""
+    import json
+
+    text = (ROOT / "scenes/lab.wd").read_text().replace('include "', f'include "{ROOT}/scenes/').replace(
+        'file "lab.info"', f'file "{ROOT}/scenes/lab.info"').replace("step 0.4m", "step 0.4m\n  speed 1m/s").replace(
+        "  k 0.02\n}", "  k 0.02\n  readout 30ms\n}")
+    (tmp_path / "lab.wd").write_text(text)
+    (tmp_path / "study.wd").write_text('wiredsl 1\ninclude "lab.wd"\npipeline still {\n  lateral_shift range 0px\n}\n'
+                                       "study speed {\n  pipeline still\n  vary path.speed values [0.5m/s, 1m/s, "
+                                       "2m/s]\n  trials 1\n  poses [0, 3]\n  measure stereo3d\n}\n")
+    code, err = wiredsl("study", str(tmp_path / "study.wd"), "speed", "-o", str(tmp_path / "out"), "--executor",
+                        "inprocess", "--no-plots")
+    assert code == 0, err
+    table = json.loads((tmp_path / "out" / "table.json").read_text())
+    rows = sorted((r for r in table["rows"] if r["statistic"] == "corner_error"), key=lambda r: r["point"])
+    assert [r["values"]["path.speed"] for r in rows] == [0.5, 1, 2]
+    errors = [r["mean"] for r in rows]
+    print(errors)
+    assert errors[0] > 1e-4 and errors[0] < errors[1] < errors[2], errors
