@@ -384,3 +384,25 @@ def test_the_same_observation_is_cached_and_equals_a_fresh_one(lab):
     for k in range(70):  # bounded: the oldest is dropped
         sim.observe(2, trial=10 + k)
     assert len(sim._seen) == wiredsl.api.OBSERVED and sim.observe(2, trial=1) is not a
+
+
+def test_a_small_simulate_decides_its_engine_as_build_does_and_loads_no_numba(tmp_path):
+    """engine="auto" in the API is build's choice (run.settle_auto_engine): a 3-trial run of the lab is too small
+    for the compiled kernel to pay for loading numba, so it runs on numpy, numba never imported (before, the API
+    ran the kernel for any size, and on a fresh install compiled it first: some 43 s of CPU for one trial), and
+    gives build's values for those trials."""
+    import json
+    import subprocess
+
+    probe = ("import json, sys, numpy as np, wiredsl\n"
+             "lab = wiredsl.compile('scenes/lab.wd')\n"
+             "(b,) = list(wiredsl.simulate(lab, trials=3, seed=11))\n"
+             "np.savez(sys.argv[1], pts=b['pts'], strokes=b['strokes'])\n"
+             "print(json.dumps('numba' in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "api.npz")], cwd=ROOT, capture_output=True,
+                         text=True, check=True)
+    assert json.loads(out.stdout.splitlines()[-1]) is False, out.stderr
+    built = wiredsl.load(build(tmp_path, "--trials", "3", "--seed", "11"), arrays=True)
+    api = np.load(tmp_path / "api.npz")
+    assert np.array_equal(api["strokes"], built["strokes"])
+    assert np.array_equal(api["pts"].astype(np.float32), built["pts"])

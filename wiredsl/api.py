@@ -215,11 +215,14 @@ def _visibility(scene: Scene, visibility: str, views: int):
 
 def _batches(scene: Scene, trials: int, seed: int, pipeline, opts, engine: str, world=None, only: int | None = None
              ) -> Iterator[Batch]:
-    """The run's batches of trials 0..trials-1 (`only`: trial `only` alone, the same draws)."""
+    """The run's batches of trials 0..trials-1 (`only`: trial `only` alone, the same draws); `engine="auto"`
+    decides as build does for a run of `trials` trials (a trial alone: as its run)."""
     from wiredsl import run as runs
     from wiredsl.io.emit import batch_arrays, contours
 
     run = runs.start(scene, _pipeline(scene, pipeline), seed=seed, options=opts, engine=engine, world=world)
+    if engine == "auto":
+        runs.settle_auto_engine(run, trials)  # numpy for a small run, or a large one before the kernel is compiled
     ids, kinds = run.world.feature_ids, feature_kinds(scene)
     if not run.stages:
         out = [(r, {side: _ideal_set(run, r, side) for side in ("left", "right") if getattr(r, side) is not None},

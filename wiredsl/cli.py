@@ -512,10 +512,7 @@ def build(file: str, output: str | None, pipeline_name: str | None, no_effects: 
     replaying_alone = only_trial is not None and not trials_given  # --trial K alone: the kernel, as before
     if engine == "auto" and (forced := runs.numpy_forced(run, len(trial_list))):
         click.echo(forced, err=True)
-    if engine == "auto" and not replaying_alone and not run.kernel_pays(trials if only_trial is not None
-                                                                        else len(trial_list)):
-        run.engine = "numpy"  # a small run (or --trial K of one, given its --trials N): the kernel would not pay
-    if engine == "auto" and not replaying_alone and (cold := runs.cold_kernel_line(
+    if engine == "auto" and not replaying_alone and (cold := runs.settle_auto_engine(
             run, trials if only_trial is not None else len(trial_list))):  # a replay: as its run of --trials N
         click.echo(cold, err=True)  # the kernel is not compiled yet and would not pay for compiling in this run
     shown = only_trial if only_trial is not None else trial_list[0]  # the trial the SVGs show

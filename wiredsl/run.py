@@ -59,13 +59,16 @@ def choose_pipeline(scene: Scene, name: str | None = None, no_effects: bool = Fa
 
 # --visibility auto (the default of `build`, `study`, `export`, the API and the Gymnasium environment): where a
 # scene has faces (hand-written or a mesh's) and the view-points' lists would be computed (`visibility auto`, or no
-# view-points), exact hidden lines when affordable, else the lists with W129. Cost: CPU seconds a view, plus a view
-# and occluding triangle, on the shared 2-core machine, the slowest part measured (benchmarks/meshes.py,
-# 2026-11-26: the 43k-triangle cycloidal gear, 30,535 occluders, 12.4 s a view; the 84k counter 9.7 s for 78,776;
-# and 2026-12-02, loaded: scenes/lab.wd 0.074 s a view for its 12 triangles, bins and 42 features, handheld 0.071,
-# meshes 0.093 for 1,422)
-EXACT_SECONDS_PER_TRIANGLE = 4e-4
-EXACT_SECONDS_PER_VIEW = 0.075
+# view-points), exact hidden lines when affordable, else the lists with W129. The cost of a view, in CPU seconds, from
+# the world's counts: T occluding triangles, L line segments (lines and polylines' pieces), C curves (ellipses and
+# silhouette generators, sampled) and S ruled surfaces (the silhouettes' sides):
+#     EXACT_VIEW + EXACT_TRIANGLE T + EXACT_SEGMENT L sqrt(T) + EXACT_CURVE C sqrt(T) + EXACT_CURVE_SURFACE C S
+# (a segment or a curve meets the triangles in its grid cells, about sqrt(T) of them on a part; a curve's samples
+# meet every surface). Fitted by `python benchmarks/visibility_cost.py --fit` to one view of 12 scenes (the lab,
+# the example scenes, uv spheres of 6k to 101k triangles, the ADIS housing, the bunny, the cycloidal gear and the
+# counter), 2026-12-03, loaded 2-core machine: every scene's estimate within 0.83-1.12 of its CPU, left out of the
+# fit within 0.76-1.62 (the old cost, 4e-4 s a triangle, was 0.4x the gear's and 330x a 407k-triangle sphere's).
+EXACT_VIEW, EXACT_TRIANGLE, EXACT_SEGMENT, EXACT_CURVE, EXACT_CURVE_SURFACE = 0.015, 1.8e-6, 6.4e-6, 6.3e-5, 1.9e-4
 AUTO_EXACT_SECONDS = 60.0  # the estimated CPU up to which auto removes hidden lines exactly
 
 
@@ -80,8 +83,12 @@ REMEDY_CLI = "`--visibility exact` changes the answer (fewer poses with --pose a
 
 
 def exact_seconds(world: World, views: int) -> float:
-    """The estimated CPU of exact hidden lines for `views` views of `world`."""
-    return views * (EXACT_SECONDS_PER_VIEW + len(world.triangles) * EXACT_SECONDS_PER_TRIANGLE)
+    """The estimated CPU of exact hidden lines for `views` views of `world` (the model above)."""
+    T, L = len(world.triangles), len(world.lines)
+    C, S = len(world.ell_c) + len(world.sil_pair), len(world.sil_pair)
+    root = T ** 0.5
+    return views * (EXACT_VIEW + EXACT_TRIANGLE * T + (EXACT_SEGMENT * L + EXACT_CURVE * C) * root
+                    + EXACT_CURVE_SURFACE * C * S)
 
 
 def choose_visibility(scene: Scene, world: World, views: int, remedy: str = REMEDY_CLI) -> VisibilityChoice:
@@ -273,3 +280,15 @@ def cold_kernel_line(run, trials: int) -> str | None:
     n = int(COLD_KERNEL_PAYS // max(size, 1)) + 1
     return (f"note: numpy engine for this run (the compiled kernel is not built yet, about {COMPILE_SECONDS:.0f} s "
             f"of CPU once: a run of {n:,} trials or more of this scene builds it, as does --engine kernel)")
+
+
+def settle_auto_engine(run, trials: int) -> str | None:
+    """What `engine="auto"` means for a run of `trials` trials (a replay's: its run's N), for build and the API
+    alike: numpy where the kernel would not pay for loading numba (`Run.kernel_pays`) or, not compiled yet, for
+    compiling its loop (`cold_kernel_line`, whose line it returns); else the kernel, as `run` has it."""
+    if not run.uses_kernel():
+        return None
+    if not run.kernel_pays(trials):
+        run.engine = "numpy"  # a small run: the kernel would not pay
+        return None
+    return cold_kernel_line(run, trials)
