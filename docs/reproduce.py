@@ -95,6 +95,30 @@ class Context:
         subprocess.run([sys.executable, "-m", "wiredsl", "study", scene, study, "-o", str(out)], cwd=ROOT, check=True)
         return out
 
+    def example(self, command: str, ci_folder: str, result: str) -> Path:
+        """`python SCRIPT ARGS -o DIR`'s output folder, for a script whose `result` (JSON) records its run's `digest`
+        and which gives it as `digest(*parse(ARGS))`: CI's own (reuse/ci_folder) when that digest is the one the
+        script gives ARGS now (the same arguments, scenes, code and wiredsl), else a fresh run."""
+        if command not in self.made:
+            self.made[command] = self._example(command, ci_folder, result)
+        return self.made[command]
+
+    def _example(self, command: str, ci_folder: str, result: str) -> Path:
+        script, *args = command.split()[1:]
+        if self.reuse is not None:
+            r = self.reuse / ci_folder / result
+            if r.is_file():
+                mod = _module(script)
+                if json.loads(r.read_text()).get("digest") == mod.digest(*mod.parse(args)):
+                    print(f"numbers: reusing {r.parent} for {command}", file=sys.stderr)
+                    return r.parent
+                print(f"numbers: {r} is not `{command}` as it is now (its digest differs); running it",
+                      file=sys.stderr)
+        out = self.tmp / Path(script).stem
+        print(f"numbers: {command}", file=sys.stderr)
+        subprocess.run([sys.executable, script, *args, "-o", str(out)], cwd=ROOT, check=True)
+        return out
+
 
     def wiredsl(self, command: str, scene: str, *args: str, page: str | None = None) -> Path:
         """`wiredsl COMMAND SCENE ARGS`'s output folder (build, render); with `page`, SCENE is first written from
@@ -140,6 +164,20 @@ class Context:
             (out / "stdout.txt").write_text(proc.stdout)
             self.made[key] = out
         return self.made[key]
+
+
+class BlockError(Exception):
+    """A block cannot be made here (a plug-in its command needs is not installed, say): the message says why."""
+
+
+def _module(script: str):
+    """The checkout's SCRIPT (a path relative to it) imported as a module."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(Path(script).stem, ROOT / script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 CHESSBOARD = ("wiredsl verify scenes/chessboard.wd --images 'tests/data/opencv_stereo/*.jpg' --poses board --fit "
@@ -543,11 +581,7 @@ CHESSBOARD_FIGURE = "python docs/scripts/chessboard_figure.py"
 
 
 def chessboard_figure(ctx: Context) -> str:
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("chessboard_figure", ROOT / "docs/scripts/chessboard_figure.py")
-    fig = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(fig)
+    fig = _module("docs/scripts/chessboard_figure.py")
     return ("![left01.jpg; the scene rendered from its pose (--no-effects --edges none); the same through the paper "
             "pipeline (--edges step --faces none)](../figures/chessboard_real_and_rendered.png)\n\n"
             + _para(f"Drawn by `{CHESSBOARD_FIGURE}`: `{fig.REAL}` beside `{fig.RENDERS[0]}` and `{fig.RENDERS[1]}` "
@@ -888,6 +922,82 @@ def sobol_sentence(ctx: Context) -> str:
             f"first-order index (those of at least {SOBOL_MIN}): " + "; ".join(parts) + ".\n")
 
 
+CLOSED_LOOP = "python examples/closed_loop/drive_to_bin.py --trials 100"
+
+
+def closed_loop_table(ctx: Context) -> str:
+    """The closed loop's success rate and steps per lateral shift (its closed_loop.json, CI's run reused)."""
+    rows = json.loads((ctx.example(CLOSED_LOOP, "closed_loop", "closed_loop.json") / "closed_loop.json")
+                      .read_text())["rows"]
+    cell = lambda x: "" if x is None else f"{x:.1f}"  # noqa: E731  (no successful trial: no steps)
+    return "\n".join([
+        f"`{CLOSED_LOOP}`, its `closed_loop.json`:", "",
+        "| lateral shift range (px) | " + " | ".join(f"{r['lateral_shift_px']:g}" for r in rows) + " |",
+        "|---|" + "---|" * len(rows),
+        "| success rate | " + " | ".join(f"{r['success_rate']:.2f}" for r in rows) + " |",
+        "| mean steps (successful trials) | " + " | ".join(cell(r["mean_steps"]) for r in rows) + " |"]) + "\n"
+
+
+PNP = ("examples/pnp_plugin/scenes/pnp_lab.wd", "pose_sources", "pnp_study")
+PNP_PLUGIN = ("wiredsl-pnp", "pip install ./examples/pnp_plugin")  # its distribution, and how to install it
+PNP_STATS = [("rotation_error", "the rotation error"), ("position_error", "the position error")]
+
+
+def _words(factor: str) -> str:
+    return factor.rsplit(".", 1)[0].replace("_", " ")
+
+
+def pnp_sobol(ctx: Context) -> str:
+    """The pnp plug-in's Sobol' study: which corner sources its pose errors and its solving depend on."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        version(PNP_PLUGIN[0])
+    except PackageNotFoundError:
+        raise BlockError(f"pnp-sobol needs the plug-in package {PNP_PLUGIN[0]!r}, which is not installed: "
+                         f"{PNP_PLUGIN[1]}") from None
+    sobol = [s for s in json.loads((ctx.study(*PNP) / "table.json").read_text())["sobol"] if s["measure"] == "pnp"]
+
+    def ranked(stat: str) -> list[dict]:
+        return sorted([s for s in sobol if s["statistic"] == stat and s["total_order"] is not None],
+                      key=lambda s: -s["total_order"])
+
+    def listing(got: list[dict]) -> str:
+        named = [f"{_words(s['factor'])} {s['total_order']:.2f}" for s in got]
+        return ", ".join(named[:-1]) + " and " + named[-1]
+
+    def ci(x: list[float]) -> str:
+        return f"{x[0]:.2f} to {x[1]:.2f}"
+
+    by = {stat: ranked(stat) for stat, _ in PNP_STATS}
+    text = [f"From `wiredsl study {PNP[0]} {PNP[1]}`'s `table.json`, the total-order indices of "
+            + ", and of ".join(f"{words} are {listing(by[stat])}" for stat, words in PNP_STATS) + "."]
+    alone = {stat: [s for s in by[stat] if s["first_order_ci"] and s["first_order_ci"][0] > 0] for stat in by}
+    told = "; ".join(f"{s['first_order']:.2f}, {ci(s['first_order_ci'])}, for {words}"
+                     for stat, words in PNP_STATS for s in alone[stat])
+    factors = {s["factor"] for a in alone.values() for s in a}
+    if len(factors) == 1 and all(alone.values()):
+        text.append(f"Only {_words(factors.pop())} has a first-order index whose 95% interval excludes 0 ({told}): "
+                    "it is the only source that moves the errors by itself.")
+    elif factors:
+        text.append(f"The first-order indices whose 95% interval excludes 0: {told}.")
+    else:
+        text.append("No first-order index has a 95% interval that excludes 0.")
+    wide = max((s for a in by.values() for s in a), key=lambda s: s["total_order_ci"][1] - s["total_order_ci"][0])
+    wide_in = next(words for stat, words in PNP_STATS if wide["statistic"] == stat)
+    apart = all(a[0]["total_order_ci"][0] > max(s["total_order_ci"][1] for s in a[1:]) for a in by.values())
+    if apart:
+        text.append("Each error's leading total-order interval lies above the other three's.")
+    else:
+        text.append(f"The total-order intervals overlap (the widest, {_words(wide['factor'])}'s for {wide_in}, "
+                    f"runs from {ci(wide['total_order_ci'])}), so with this few base points the order of the "
+                    "total-order indices is not a finding.")
+    (solved, *_) = ranked("solved")
+    text.append(f"Whether a pose is found at all (`solved`) is driven by {_words(solved['factor'])} (total order "
+                f"{solved['total_order']:.2f}, 95% interval {ci(solved['total_order_ci'])}).")
+    return _para(" ".join(text))
+
+
 def _plot(spec: tuple[str, str, str], name: str) -> Callable[[Context], Path]:
     return lambda ctx: ctx.study(*spec) / "plots" / name
 
@@ -959,6 +1069,8 @@ BLOCKS: dict[str, Block] = {
     "gym-evaluate": Block("docs/tutorials/closed-loop.md", GYM_EVALUATE, gym_evaluate),
     "mesh-noise": Block("docs/how-to/meshes-at-full-size.md", MESH_NOISE, mesh_noise),
     "npz-share": Block("docs/reference/dumps.md", NPZ_SHARE, npz_share),
+    "closed-loop-table": Block("docs/tutorials/closed-loop.md", CLOSED_LOOP, closed_loop_table),
+    "pnp-sobol": Block("docs/reference/plugins.md", f"wiredsl study {PNP[0]} {PNP[1]}", pnp_sobol),
     "study-sources-sobol": Block(
         "docs/tutorials/study.md", "wiredsl study scenes/studies/lab_study.wd sources", sobol_sentence,
         {"docs/figures/study_sources_sobol.png": _plot(SOURCES, "sobol.png")}),
@@ -1136,6 +1248,9 @@ def main(argv: list[str] | None = None) -> int:
             problems = run(ROOT, blocks, Context(a.reuse, Path(tmp)), a.write)
         except subprocess.CalledProcessError as exc:
             print(f"numbers: error: {' '.join(exc.cmd[2:])} exited {exc.returncode}", file=sys.stderr)
+            return 1
+        except BlockError as exc:
+            print(f"numbers: error: {exc}", file=sys.stderr)
             return 1
     for p in problems:
         print(f"numbers: drift: {p}", file=sys.stderr)

@@ -6,6 +6,8 @@ studies (CI runs `docs/reproduce.py --check --reuse build/ci` on its own study o
 from __future__ import annotations
 
 import importlib.util
+import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -131,3 +133,52 @@ def test_every_number_outside_a_block_is_listed():
     """README.md's and docs/'s measured-looking numbers are made by blocks, or listed in the inventory with their
     class (`python docs/reproduce.py --scan`)."""
     assert numbers.scan(ROOT) == []
+
+
+def test_no_number_outside_a_block_is_left_unreviewed():
+    """Issue 35: every measured number of the docs is a block's, or a definition or a machine's figure beside its
+    script; none is listed as measured and not reproduced."""
+    rows = [r for r in (ROOT / numbers.INVENTORY).read_text().splitlines() if r and not r.startswith("#")]
+    assert [r for r in rows if r.startswith("unreviewed\t")] == []
+
+
+def test_the_plugin_block_fails_naming_the_install_when_the_plugin_is_missing(monkeypatch, capsys):
+    import importlib.metadata
+
+    real = importlib.metadata.version
+
+    def version(dist: str) -> str:
+        if dist == numbers.PNP_PLUGIN[0]:
+            raise importlib.metadata.PackageNotFoundError(dist)
+        return real(dist)
+
+    monkeypatch.setattr(importlib.metadata, "version", version)
+    assert numbers.main(["--check", "pnp-sobol"]) == 1
+    err = capsys.readouterr().err
+    assert "numbers: error: pnp-sobol needs the plug-in package 'wiredsl-pnp', which is not installed: pip install " \
+           "./examples/pnp_plugin" in err
+    assert "Traceback" not in err
+
+
+def test_an_example_is_reused_only_when_its_digest_is_the_commands(tmp_path):
+    """Context.example reads CI's run of a script when its result's digest is what the script gives the page's
+    arguments now; other arguments, or a stale digest, or no result run it again."""
+    command = "python examples/closed_loop/drive_to_bin.py --trials 1 --shifts 0 --no-plot"
+    ci = tmp_path / "ci" / "loop"
+    subprocess.run([sys.executable, *command.split()[1:], "-o", str(ci)], cwd=ROOT, check=True, capture_output=True)
+    assert numbers.Context(tmp_path / "ci", tmp_path).example(command, "loop", "closed_loop.json") == ci
+    # another --trials than CI ran: not reused (run afresh, into the context's own folder)
+    other = command.replace("--trials 1", "--trials 2")
+    (tmp_path / "a").mkdir()
+    fresh = numbers.Context(tmp_path / "ci", tmp_path / "a").example(other, "loop", "closed_loop.json")
+    assert fresh != ci and len(json.loads((fresh / "closed_loop.json").read_text())["rows"]) == 1
+    assert json.loads((fresh / "closed_loop.json").read_text())["arguments"]["trials"] == 2
+    # a result from another version of the code (its digest differs): not reused either
+    doc = json.loads((ci / "closed_loop.json").read_text())
+    (ci / "closed_loop.json").write_text(json.dumps({**doc, "digest": "0" * 64}))
+    (tmp_path / "b").mkdir()
+    assert numbers.Context(tmp_path / "ci", tmp_path / "b").example(command, "loop", "closed_loop.json") != ci
+    # none there: run
+    (tmp_path / "c").mkdir()
+    assert numbers.Context(tmp_path / "ci", tmp_path / "c").example(command, "none", "closed_loop.json") \
+        == tmp_path / "c" / "drive_to_bin"

@@ -8,12 +8,14 @@ A trial succeeds when the robot stopped and is truly within `--tolerance` of tha
 
     python examples/closed_loop/drive_to_bin.py --trials 100 --shifts 0,2,4,8,16,32 -o build/closed_loop
 
-writes `closed_loop.json` (success rate and steps per lateral shift) and `closed_loop.png`.
+writes `closed_loop.json` (success rate and steps per lateral shift, with the arguments and the run's `digest`)
+and `closed_loop.png`.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -135,7 +137,20 @@ def shift_ranges(text: str) -> list[float]:
     return values
 
 
-def main(argv=None) -> int:
+RESULT_ARGS = ("trials", "shifts", "stop", "tolerance", "max_steps", "seed")  # what the results depend on
+
+
+def digest(a: argparse.Namespace, scenes: list) -> str:
+    """Identity of a run's results: its arguments, each shift's compiled scene, this script's code and wiredsl's
+    version (docs/reproduce.py reuses CI's run when it is the run the page shows)."""
+    body = {"arguments": {k: getattr(a, k) for k in RESULT_ARGS}, "script": Path(__file__).read_text(),
+            "scenes": [s.model_dump(mode="json", exclude={"source"}) for _, s in scenes],
+            "wiredsl": wiredsl.__version__}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
+def parse(argv=None) -> tuple[argparse.Namespace, list]:
+    """The arguments and each shift's scene, or a usage error (exit 2) before any trial runs."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=positive, default=100)
     ap.add_argument("--shifts", type=shift_ranges, default="0,2,4,8,16,32",
@@ -156,6 +171,11 @@ def main(argv=None) -> int:
         scenes = [(shift, scene_with_shift(shift)) for shift in a.shifts]
     except wiredsl.CompileError as err:
         ap.error(f"--shifts: {err}")
+    return a, scenes
+
+
+def main(argv=None) -> int:
+    a, scenes = parse(argv)
     rows = []
     for shift, scene in scenes:
         sim = wiredsl.Simulator(scene, seed=a.seed, pipeline="drive")
@@ -171,7 +191,9 @@ def main(argv=None) -> int:
               f"steps {rows[-1]['mean_steps'] or float('nan'):.1f}", file=sys.stderr)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    write_atomic(out / "closed_loop.json", json.dumps({"seed": a.seed, "rows": rows}, indent=2, allow_nan=False) + "\n")
+    write_atomic(out / "closed_loop.json", json.dumps({
+        "seed": a.seed, "rows": rows, "arguments": {k: getattr(a, k) for k in RESULT_ARGS},
+        "digest": digest(a, scenes)}, indent=2, allow_nan=False) + "\n")
     if not a.no_plot:
         plot(rows, out / "closed_loop.png")
     return 0
