@@ -444,12 +444,22 @@ def test_bad_motion_factors_are_located(tmp_path, vary, token, message):
 
 
 def test_motion_factors_need_a_moving_robot(tmp_path):
+    """A readout or a sync needs times: the path's `speed`, or a study that varies `path.speed` (which times
+    written poses that declare none); a speed cannot time two poses at one place."""
     text = scene_text(LENSES["pinhole"], "1m/s").replace("  speed 1m/s\n", "").replace("  readout 30ms\n", "")
-    _bad(tmp_path, text + "study s {\n  vary path.speed values [1m/s]\n  measure stereo3d\n}\n", "path.speed",
-         "error[E102]: varying path.speed needs a path of written poses with a 'speed'")
+    study = ("study s {\n  vary path.speed values [1m/s]\n  vary camera.cam.readout values [1ms]\n  measure "
+             "stereo3d\n}\n")
+    (tmp_path / "ok.wd").write_text(text + study)
+    code, err = wiredsl("check", str(tmp_path / "ok.wd"))
+    assert code == 0, err
+    still = text.replace("pose (0.3m, 0.05m) heading 12deg", "pose (0, 0) heading 12deg")
+    _bad(tmp_path, still + study, "path.speed",
+         "error[E102]: varying path.speed needs a path of written poses, no two neighbours at one place")
     _bad(tmp_path, text + "study s {\n  vary camera.cam.readout values [1ms]\n  measure stereo3d\n}\n",
          "camera.cam.readout", "error[E102]: varying a readout needs the robot's motion, and the scene's path has "
                                "no times")
+    _bad(tmp_path, text + "study s {\n  vary rig.sync values [1ms]\n  measure stereo3d\n}\n",
+         "rig.sync", "error[E102]: varying rig.sync needs the robot's motion, and the scene's path has no times")
 
 
 def test_a_rolling_shutters_3d_error_on_the_lab_grows_with_the_robots_speed(tmp_path):

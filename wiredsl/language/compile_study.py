@@ -38,7 +38,7 @@ CAMERA_FACTORS = {
 MAX_SPEED = 100.0  # m/s: as the compiler's `speed` (language/compile.py)
 # Factors of the robot's motion a study may vary, `path.speed` and `rig.sync`: (unit kind, doc).
 MOTION_FACTORS = {
-    "path.speed": ("speed", "the robot's speed along the written poses (their times scale with it)"),
+    "path.speed": ("speed", "the robot's speed along the written poses (each pose's time: its distance over it)"),
     "rig.sync": ("time", "the right camera's exposure time minus the left's"),
 }
 MAX_TRIALS = 10**9  # design points x trials
@@ -85,6 +85,15 @@ def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None,
         pipeline = defaults[0] if defaults else None
 
     kind = first["design"].pos(0) if "design" in first else "grid"
+    if path is not None and path.times is None and path.transforms is None and any(
+            sb.stmt.keyword == "vary" and isinstance(sb.stmt.args[0], ast.Ref)
+            and sb.stmt.args[0].parts == ("path", "speed") for sb in bounds):
+        # `vary path.speed` drives written poses that declare no speed (the lab's): each design point times them
+        # at its own speed (design.scene_at), so the study's readouts and sync have a motion to act on
+        timed = path.timed(1.0)
+        # no two neighbours at one place (1e-9 m at 1 m/s: the compiler's GEOM_EPS)
+        if all(b - a > 1e-9 for a, b in zip(timed.times[:-1], timed.times[1:], strict=True)):
+            path = timed
     factors = []
     labels: dict[str, Span] = {}
     for sb in bounds:
@@ -222,8 +231,9 @@ def _motion_factor(sb: Bound, ref: ast.Ref, kind: str, units: dict[str, str], ou
     span = sb.positional[0].span
     if ref.parts == ("path", "speed"):
         if path is None or path.speed is None:
-            out.error("E102", "varying path.speed needs a path of written poses with a 'speed'", span,
-                      "e.g. speed 0.5m/s in the path's block (a trajectory file's times are its own)")
+            out.error("E102", "varying path.speed needs a path of written poses, no two neighbours at one place",
+                      span, "a trajectory file's times are its own; a robot that turns on the spot needs times per "
+                            "pose")
             return None
         return _values(sb, "path", "speed", "speed", lambda v: None if 0 < v <= MAX_SPEED else
                        f"in (0, {MAX_SPEED:g}] m/s", kind, units, out)
