@@ -186,8 +186,8 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras
     span = sb.positional[0].span
     if isinstance(ref, ast.Ref) and len(ref.parts) == 3 and ref.parts[0] == "camera":
         if ref.parts[2] == "readout" and (path is None or path.times is None):
-            out.error("E102", "varying a readout needs the robot's motion, and the scene's path has no times", span,
-                      "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with timestamps")
+            _no_motion(out, path, "varying a readout needs the robot's motion, and the scene's path has no times",
+                       span, "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with timestamps")
             return None
         return _camera_factor(sb, ref, kind, units, out, cameras)
     if isinstance(ref, ast.Ref) and ref.parts in (("path", "speed"), ("rig", "sync")):
@@ -225,21 +225,30 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras
     return _values(sb, stage, param, value_kind, check, kind, units, out)
 
 
+def _no_motion(out: Collector, path, message: str, span: Span, hint: str) -> None:
+    """E102 for a factor of the robot's motion the path cannot give; held back with the unknown names when there
+    is no path because an include failed (the path may be the missing file's, as the lab study's is)."""
+    if path is None and out.hold_unknown:
+        out.unknown(message, span, hint)
+    else:
+        out.error("E102", message, span, hint)
+
+
 def _motion_factor(sb: Bound, ref: ast.Ref, kind: str, units: dict[str, str], out: Collector, path
                    ) -> Factor | None:
     """`path.speed` (the written poses' speed: their times scale with it) or `rig.sync` (the stereo pair's offset)."""
     span = sb.positional[0].span
     if ref.parts == ("path", "speed"):
         if path is None or path.speed is None:
-            out.error("E102", "varying path.speed needs a path of written poses, no two neighbours at one place",
-                      span, "a trajectory file's times are its own; a robot that turns on the spot needs times per "
-                            "pose")
+            _no_motion(out, path, "varying path.speed needs a path of written poses, no two neighbours at one place",
+                       span, "a trajectory file's times are its own; a robot that turns on the spot needs times per "
+                             "pose")
             return None
         return _values(sb, "path", "speed", "speed", lambda v: None if 0 < v <= MAX_SPEED else
                        f"in (0, {MAX_SPEED:g}] m/s", kind, units, out)
     if path is None or path.times is None:
-        out.error("E102", "varying rig.sync needs the robot's motion, and the scene's path has no times", span,
-                  "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with timestamps")
+        _no_motion(out, path, "varying rig.sync needs the robot's motion, and the scene's path has no times", span,
+                   "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with timestamps")
         return None
     return _values(sb, "rig", "sync", "time", lambda v: None if abs(v) <= 1.0 else "within 1 s", kind, units, out)
 
