@@ -996,6 +996,57 @@ def pnp_sobol(ctx: Context) -> str:
     text.append(f"Whether a pose is found at all (`solved`) is driven by {_words(solved['factor'])} (total order "
                 f"{solved['total_order']:.2f}, 95% interval {ci(solved['total_order_ci'])}).")
     return _para(" ".join(text))
+SPEED = ("scenes/studies/lab_study.wd", "speed", "speed")
+SPEED_MORE = 0.10  # "adds more than 10% to the corner error": the sentence's threshold over the slowest point's
+SPEED_FLAT = 0.02  # recognition "does not limit the speed" while its range over the study is narrower than this
+
+
+def speed_table(ctx: Context) -> str:
+    """The speed study's corner and median 3D errors, in sync and 10 ms late, and the speed each first costs
+    more than SPEED_MORE over the slowest point's corner error."""
+    rows = _rows(ctx.study(*SPEED))
+    speeds = sorted({r["values"]["path.speed"] for r in rows})
+    syncs = sorted({r["values"]["rig.sync"] for r in rows})
+    late = syncs[-1]
+
+    def at(measure: str, stat: str, speed: float, sync: float) -> dict:
+        (r,) = [r for r in rows if (r["measure"], r["statistic"]) == (measure, stat)
+                and r["values"]["path.speed"] == speed and r["values"]["rig.sync"] == sync]
+        return r
+
+    ms = f"{late * 1000:g} ms late"
+    lines = [f"`{BLOCKS['study-speed-table'].command}`, from its `table.csv` (mean ± se over its trials):", "",
+             f"| speed (m/s) | corner error, in sync (m) | corner error, {ms} (m) | median 3D error, in sync (m) | "
+             f"median 3D error, {ms} (m) | corners a view, {ms} | PGH recognition, {ms} |",
+             "|---|---|---|---|---|---|---|"]
+    pm = lambda r: f"{_f3(r['mean'])} ± {_f3(r['sem'])}"  # noqa: E731
+    for v in speeds:
+        lines.append(f"| {v:g} | {pm(at('stereo3d', 'corner_error', v, 0))} | "
+                     f"{pm(at('stereo3d', 'corner_error', v, late))} | {pm(at('stereo3d', 'error_median', v, 0))} | "
+                     f"{pm(at('stereo3d', 'error_median', v, late))} | "
+                     f"{at('stereo3d', 'corners', v, late)['mean']:.2f} | "
+                     f"{at('pgh', 'recognition', v, late)['mean']:.1%} |")
+
+    def first_over(sync: float) -> str:
+        base = at("stereo3d", "corner_error", speeds[0], sync)["mean"]
+        over = [v for v in speeds if at("stereo3d", "corner_error", v, sync)["mean"] > (1 + SPEED_MORE) * base]
+        return f"from {over[0]:g} m/s" if over else f"at none up to {speeds[-1]:g} m/s"
+
+    def times(sync: float) -> float:
+        return at("stereo3d", "corner_error", speeds[-1], sync)["mean"] / at(
+            "stereo3d", "corner_error", speeds[0], sync)["mean"]
+
+    rec = [at("pgh", "recognition", v, s)["mean"] for v in speeds for s in syncs]
+    readout = rows[0]["values"]["camera.cam_l.readout"]
+    end = speeds[-1]
+    limit = (": the 3D data, not recognition, limit the robot's speed" if max(rec) - min(rec) < SPEED_FLAT
+             else "")
+    lines += ["", f"With both cameras in sync, the {readout * 1000:g} ms rolling shutters add more than "
+                  f"{SPEED_MORE:.0%} to the corner error of the slowest point ({speeds[0]:g} m/s) {first_over(0)}, "
+                  f"and {times(0):.2f} times it at {end:g} m/s; with the right camera {ms}, {first_over(late)}, "
+                  f"and {times(late):.2f} times it at {end:g} m/s. PGH recognition stays between {min(rec):.1%} "
+                  f"and {max(rec):.1%} at every speed and offset{limit}."]
+    return "\n".join(lines) + "\n"
 
 
 def _plot(spec: tuple[str, str, str], name: str) -> Callable[[Context], Path]:
@@ -1071,6 +1122,9 @@ BLOCKS: dict[str, Block] = {
     "npz-share": Block("docs/reference/dumps.md", NPZ_SHARE, npz_share),
     "closed-loop-table": Block("docs/tutorials/closed-loop.md", CLOSED_LOOP, closed_loop_table),
     "pnp-sobol": Block("docs/reference/plugins.md", f"wiredsl study {PNP[0]} {PNP[1]}", pnp_sobol),
+    "study-speed-table": Block(
+        "docs/tutorials/path.md", "wiredsl study scenes/studies/lab_study.wd speed", speed_table,
+        {"docs/figures/study_speed_corner_error.png": _plot(SPEED, "stereo3d.corner_error.png")}),
     "study-sources-sobol": Block(
         "docs/tutorials/study.md", "wiredsl study scenes/studies/lab_study.wd sources", sobol_sentence,
         {"docs/figures/study_sources_sobol.png": _plot(SOURCES, "sobol.png")}),

@@ -51,6 +51,30 @@ def test_a_study_plot_over_calibration_sigma_keeps_its_x_label_inside(tmp_path, 
             assert _inside(fig, box), (box, fig.bbox)
 
 
+def test_a_grids_one_valued_factor_is_held_in_the_title_not_drawn(tmp_path, monkeypatch):
+    """The lab's speed study holds both readouts at 30 ms: a factor of one value gets no panel and no legend
+    entry (each was a dot, and every line's label repeated it), and the title says where it is held."""
+    from wiredsl.scene import MeasureUse, Study
+    from wiredsl.study import plots
+
+    plt = plots._pyplot()
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)
+    table = _table(["lateral_shift.range"])
+    table = table.model_copy(update={"factors": ["lateral_shift.range", "camera.cam.readout"], "rows": [
+        r.model_copy(update={"values": {**r.values, "camera.cam.readout": 0.03}}) for r in table.rows]})
+    study = Study(name="s", factors=[{"stage": "lateral_shift", "param": "range", "values": [0, 0.5, 1]},
+                                     {"stage": "camera.cam", "param": "readout", "values": [0.03]}],
+                  measures=[MeasureUse(name="survival")])
+    plots.write_all(table, study, tmp_path)
+    (fig,) = figures
+    drawn = [ax for ax in fig.axes if ax.axison]
+    assert [ax.xaxis.label.get_text().rsplit("\n", 1)[-1] for ax in drawn] == ["lateral_shift.range"]
+    assert drawn[0].get_legend() is None
+    assert fig._suptitle.get_text().endswith("\nheld at camera.cam.readout=0.03 s")
+    assert all(_inside(fig, b) for b in _boxes(fig, [fig._suptitle]))
+
+
 def _sobol_table():
     from wiredsl.io.features import SceneRef
     from wiredsl.study import report

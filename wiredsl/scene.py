@@ -469,6 +469,16 @@ class Path(Node):
                                  "integer nanoseconds (None: the file has no clock, as KITTI poses with a rate)")
     _dump = omitted_when_none("transforms", "times", "start_ns", "speed")
 
+    def timed(self, speed: float) -> Path:
+        """These written poses driven at `speed` (m/s): each pose's time is its distance along the path over the
+        speed (the compiler refuses neighbours at one place: no speed times a turn on the spot)."""
+        import numpy as np
+
+        xy = np.array([p[:2] for p in self.poses], dtype=float)
+        steps = np.hypot(*np.diff(xy, axis=0).T) if len(xy) > 1 else np.zeros(0)
+        return self.model_copy(update={"speed": float(speed),
+                                       "times": [0.0, *(float(t) for t in np.cumsum(steps) / speed)]})
+
     def pose(self, i: int) -> tuple[float, ...]:
         """Pose i as the engine takes it (geometry.world_from_robot): (x, y, heading), or [R | t] row-major."""
         if self.transforms is not None:

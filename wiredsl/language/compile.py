@@ -731,8 +731,7 @@ class Compiler(CameraCompiler):
                                    "speed cannot time them", speed.stmt.keyword_span,
                            "a robot that turns on the spot needs times per pose")
             return None
-        times = [0.0, *(float(t) for t in np.cumsum(steps) / v)]
-        return trusted(Path, name=b.name, poses=poses, times=times, speed=v)
+        return trusted(Path, name=b.name, poses=poses).timed(v)
 
     def _trajectory(self, b: Bound, reads: dict[str, Bound], rig: Rig | None) -> Path | None:
         """A 6-DoF path from a trajectory file: world_from_robot = world_from_file . file_from_body .

@@ -38,7 +38,7 @@ CAMERA_FACTORS = {
 MAX_SPEED = 100.0  # m/s: as the compiler's `speed` (language/compile.py)
 # Factors of the robot's motion a study may vary, `path.speed` and `rig.sync`: (unit kind, doc).
 MOTION_FACTORS = {
-    "path.speed": ("speed", "the robot's speed along the written poses (their times scale with it)"),
+    "path.speed": ("speed", "the robot's speed along the written poses (each pose's time: its distance over it)"),
     "rig.sync": ("time", "the right camera's exposure time minus the left's"),
 }
 MAX_TRIALS = 10**9  # design points x trials
@@ -85,6 +85,15 @@ def compile_study(b: Bound, pipelines: dict[str, Pipeline], n_poses: int | None,
         pipeline = defaults[0] if defaults else None
 
     kind = first["design"].pos(0) if "design" in first else "grid"
+    if path is not None and path.times is None and path.transforms is None and any(
+            sb.stmt.keyword == "vary" and isinstance(sb.stmt.args[0], ast.Ref)
+            and sb.stmt.args[0].parts == ("path", "speed") for sb in bounds):
+        # `vary path.speed` drives written poses that declare no speed (the lab's): each design point times them
+        # at its own speed (design.scene_at), so the study's readouts and sync have a motion to act on
+        timed = path.timed(1.0)
+        # no two neighbours at one place (1e-9 m at 1 m/s: the compiler's GEOM_EPS)
+        if all(b - a > 1e-9 for a, b in zip(timed.times[:-1], timed.times[1:], strict=True)):
+            path = timed
     factors = []
     labels: dict[str, Span] = {}
     for sb in bounds:
@@ -177,8 +186,8 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras
     span = sb.positional[0].span
     if isinstance(ref, ast.Ref) and len(ref.parts) == 3 and ref.parts[0] == "camera":
         if ref.parts[2] == "readout" and (path is None or path.times is None):
-            out.error("E102", "varying a readout needs the robot's motion, and the scene's path has no times", span,
-                      "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with timestamps")
+            _no_motion(out, path, "varying a readout needs the robot's motion, and the scene's path has no times",
+                       span, "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with timestamps")
             return None
         return _camera_factor(sb, ref, kind, units, out, cameras)
     if isinstance(ref, ast.Ref) and ref.parts in (("path", "speed"), ("rig", "sync")):
@@ -216,20 +225,30 @@ def _factor(sb: Bound, kind: str, units: dict[str, str], out: Collector, cameras
     return _values(sb, stage, param, value_kind, check, kind, units, out)
 
 
+def _no_motion(out: Collector, path, message: str, span: Span, hint: str) -> None:
+    """E102 for a factor of the robot's motion the path cannot give; held back with the unknown names when there
+    is no path because an include failed (the path may be the missing file's, as the lab study's is)."""
+    if path is None and out.hold_unknown:
+        out.unknown(message, span, hint)
+    else:
+        out.error("E102", message, span, hint)
+
+
 def _motion_factor(sb: Bound, ref: ast.Ref, kind: str, units: dict[str, str], out: Collector, path
                    ) -> Factor | None:
     """`path.speed` (the written poses' speed: their times scale with it) or `rig.sync` (the stereo pair's offset)."""
     span = sb.positional[0].span
     if ref.parts == ("path", "speed"):
         if path is None or path.speed is None:
-            out.error("E102", "varying path.speed needs a path of written poses with a 'speed'", span,
-                      "e.g. speed 0.5m/s in the path's block (a trajectory file's times are its own)")
+            _no_motion(out, path, "varying path.speed needs a path of written poses, no two neighbours at one place",
+                       span, "a trajectory file's times are its own; a robot that turns on the spot needs times per "
+                             "pose")
             return None
         return _values(sb, "path", "speed", "speed", lambda v: None if 0 < v <= MAX_SPEED else
                        f"in (0, {MAX_SPEED:g}] m/s", kind, units, out)
     if path is None or path.times is None:
-        out.error("E102", "varying rig.sync needs the robot's motion, and the scene's path has no times", span,
-                  "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with timestamps")
+        _no_motion(out, path, "varying rig.sync needs the robot's motion, and the scene's path has no times", span,
+                   "give the path a 'speed' (e.g. speed 0.5m/s), or read a trajectory file with timestamps")
         return None
     return _values(sb, "rig", "sync", "time", lambda v: None if abs(v) <= 1.0 else "within 1 s", kind, units, out)
 

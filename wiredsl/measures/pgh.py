@@ -456,8 +456,9 @@ def _viewpoint_views(run, points: np.ndarray, heading: float, p: PGHParams) -> d
         cache = {}
         _VIEWS[id(run.world)] = (weakref.ref(run.world), cache)
     if key not in cache:
+        # a view-point's ideal view is of a robot standing on it: the path's times (its motion) are not its
         path = scene.path.model_copy(update={"poses": [(float(x), float(y), heading) for x, y in points],
-                                            "transforms": None})
+                                            "transforms": None, "times": None, "speed": None})
         options = dataclasses.replace(run.options, poses=None, right=False)
         results = simulate(scene.model_copy(update={"path": path}), options, run.world)
         cache[key] = [to_imageset(r.left, run.world) for r in results]

@@ -108,8 +108,8 @@ def varies_scene(study: Study) -> bool:
 
 def scene_at(scene: Scene, study: Study, values: np.ndarray) -> Scene:
     """The scene with one design point's camera factors substituted (`k` is TINA's: k1 = -k), and its motion's:
-    `path.speed` scales the written poses' times (each pose's distance over the speed), `rig.sync` sets the
-    offset."""
+    `path.speed` times the written poses (each pose's distance along the path over the speed), `rig.sync` sets
+    the offset."""
     updates: dict[str, dict[str, float]] = {}
     scene_updates: dict = {}
     for f, v in zip(study.factors, values, strict=True):
@@ -118,10 +118,7 @@ def scene_at(scene: Scene, study: Study, values: np.ndarray) -> Scene:
             key, value = ("k1", -float(v)) if f.param == "k" else (f.param, float(v))
             updates.setdefault(name, {})[key] = value
         elif f.stage == "path":
-            path = scene.path
-            scale = path.speed / float(v)
-            scene_updates["path"] = path.model_copy(update={"speed": float(v),
-                                                            "times": [t * scale for t in path.times]})
+            scene_updates["path"] = scene.path.timed(float(v))
         elif f.stage == "rig":
             scene_updates["rig"] = scene.rig.model_copy(update={"sync": float(v)})
     if updates:

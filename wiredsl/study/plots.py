@@ -63,26 +63,32 @@ def write_all(table: StudyTable, study: Study, folder: Path, fmt: str = "png", d
     units = units_of(study) if units is None else units
     written = []
     stats = list(dict.fromkeys((r.measure, r.statistic) for r in table.rows))
+    # a grid's factor of one value (a setting the study holds, as its speed study's 30 ms readouts) has no panel
+    # and no legend entry: the title states it
+    held = [f for f in table.factors if study.design == "grid" and len({r.values[f] for r in table.rows}) == 1]
+    factors = [f for f in table.factors if f not in held]
+    at = ("\nheld at " if held else "") + ", ".join(
+        f"{f}={table.rows[0].values[f]:g}{(' ' + _unit(f)) if _unit(f) else ''}" for f in held)
     for measure, stat in stats:
-        if not table.factors:
+        if not factors:
             break
         rows = [r for r in table.rows if (r.measure, r.statistic) == (measure, stat)]
-        d = len(table.factors)
+        d = len(factors)
         cols = min(d, 4)
         fig, axes = plt.subplots(-(-d // cols), cols, figsize=(4.2 * cols, 3.3 * -(-d // cols)), squeeze=False,
                                  layout="constrained")  # room for every label and the title, none cut or overlapping
         unit = units.get(f"{measure}.{stat}")
         span = statistic_range(unit, [r.mean for r in rows])
-        for ax, f in itertools.zip_longest(axes.ravel(), table.factors):
+        for ax, f in itertools.zip_longest(axes.ravel(), factors):
             if f is None:
                 ax.axis("off")
                 continue
-            (_grid if study.design == "grid" else _scatter)(ax, rows, f, table.factors, span)
+            (_grid if study.design == "grid" else _scatter)(ax, rows, f, factors, span)
             ax.set_xlabel(_label(f), fontsize=8)
             ax.set_ylabel(_words(stat) + (f" ({unit})" if unit else ""))
             ax.grid(alpha=0.3)
         fig.suptitle(f"{_measure_words(measure)}: {_words(stat)}" + (f" ({unit})" if unit else "")
-                     + f"\nmean and 95% band, study {table.study} ({measure}.{stat})", fontsize=10)
+                     + f"\nmean and 95% band, study {table.study} ({measure}.{stat}){at}", fontsize=10)
         name = f"{measure}.{stat}.{fmt}"
         _save(fig, folder / name, fmt, dpi)
         plt.close(fig)
