@@ -996,6 +996,8 @@ def pnp_sobol(ctx: Context) -> str:
     text.append(f"Whether a pose is found at all (`solved`) is driven by {_words(solved['factor'])} (total order "
                 f"{solved['total_order']:.2f}, 95% interval {ci(solved['total_order_ci'])}).")
     return _para(" ".join(text))
+
+
 SPEED = ("scenes/studies/lab_study.wd", "speed", "speed")
 SPEED_MORE = 0.10  # "adds more than 10% to the corner error": the sentence's threshold over the slowest point's
 SPEED_FLAT = 0.02  # recognition "does not limit the speed" while its range over the study is narrower than this
