@@ -60,6 +60,8 @@ CHUNK = 8  # triangles a chunk: the grid bins chunks, so that a view's set-up co
 BUDGET = 64 * 2**20  # bytes of working arrays the tests of one call hold at once (the memory bound, below)
 FACE_PAIR_BYTES = 1024  # working bytes a (query, triangle) pair costs, temporaries included (measured: ~700)
 SURFACE_PAIR_BYTES = 4096  # working bytes a (point, surface) pair costs in the root finder (measured: ~2,600)
+FEW_SURFACES = 16  # up to this many ruled surfaces, a point is paired with each (no grid: its overhead, on the lab's
+#   3, cost more than the pairs it saves; the answer is the same, every pair being tested exactly)
 ARC_PAIR_BYTES = 4096  # working bytes an (arc piece, triangle) pair costs (its conditions, ends and pieces)
 ARC_PIECE = np.pi / 8  # radians of an arc piece whose image box is asked of the grid
 SAMPLE_BYTES = 256  # working bytes a sample point of a feature costs (its point, parameter, row, flags)
@@ -219,9 +221,13 @@ class Eye:
         out = np.zeros(len(P), dtype=bool)
         if len(self.sphere_c) == 0 or len(P) == 0:
             return out
-        step = max(1, BUDGET // SURFACE_PAIR_BYTES)
-        for rows in self._row_blocks(self.sgrid, P, P, len(self.sphere_c), SURFACE_PAIR_BYTES):
-            i_all, k_all = self.sgrid.pairs(P[rows], P[rows])
+        step, S = max(1, BUDGET // SURFACE_PAIR_BYTES), len(self.sphere_c)
+        for rows in self._row_blocks(self.sgrid, P, P, S, SURFACE_PAIR_BYTES):
+            if S <= FEW_SURFACES:  # every pair: the sphere test below culls them as the grid would, at less cost
+                n = rows.stop - rows.start
+                i_all, k_all = np.repeat(np.arange(n), S), np.tile(np.arange(S), n)
+            else:
+                i_all, k_all = self.sgrid.pairs(P[rows], P[rows])
             for at in range(0, len(i_all), step):
                 i, k = i_all[at:at + step] + rows.start, k_all[at:at + step]
                 # only rays that pass through a surface's bounding sphere are solved for
