@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import sys
 import warnings
@@ -406,3 +407,33 @@ def test_a_small_simulate_decides_its_engine_as_build_does_and_loads_no_numba(tm
     api = np.load(tmp_path / "api.npz")
     assert np.array_equal(api["strokes"], built["strokes"])
     assert np.array_equal(api["pts"].astype(np.float32), built["pts"])
+
+
+def test_a_simulator_on_a_fresh_install_observes_on_numpy_and_compiles_nothing(tmp_path):
+    """Simulator(engine="auto") is a stream of one-trial views: with numba's cache empty (a private
+    NUMBA_CACHE_DIR, as on a fresh install) it observes on numpy, so the first `observe` compiles nothing (before,
+    the closed-loop example's first step compiled the kernel: 43 s of CPU, COMPILE_SECONDS), and its batch is
+    engine="kernel"'s (the suite's warm cache) exactly; with the loop cached, auto runs the kernel."""
+    import json
+    import subprocess
+
+    probe = ("import json, sys, numpy as np, wiredsl\n"
+             "lab = wiredsl.compile('scenes/lab.wd')\n"
+             "sim = wiredsl.Simulator(lab, seed=5, pipeline='paper')\n"
+             "b = sim.observe((1.0, 1.2, 0.2), trial=3, step=1)\n"
+             "np.savez(sys.argv[1], pts=b['pts'], strokes=b['strokes'])\n"
+             "print(json.dumps([sim.run.engine, len(sim.run.compiled_stages())]))\n")
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    out = subprocess.run([sys.executable, "-c", probe, str(tmp_path / "auto.npz")], cwd=ROOT, capture_output=True,
+                         text=True, check=True, env=env)
+    engine, compiled = json.loads(out.stdout.splitlines()[-1])
+    assert engine == "numpy" and compiled > 0, out.stderr
+    assert not list((tmp_path / "numba").rglob("*.nbc")), "numba compiled something"
+    lab = wiredsl.compile(ROOT / "scenes" / "lab.wd")
+    warm = wiredsl.Simulator(lab, seed=5, pipeline="paper")
+    assert warm.run.engine in ("auto", "kernel")  # the suite's warm-up compiled the loop
+    kernel = wiredsl.Simulator(lab, seed=5, pipeline="paper", engine="kernel").observe((1.0, 1.2, 0.2), trial=3,
+                                                                                          step=1)
+    auto = np.load(tmp_path / "auto.npz")
+    assert np.array_equal(auto["strokes"], kernel["strokes"])
+    assert np.array_equal(auto["pts"], kernel["pts"])

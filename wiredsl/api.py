@@ -244,6 +244,10 @@ class Simulator:
 
     Draws are keyed by (seed, stage, trial, step, camera), so `observe(i, trial=K)` is exactly what
     `build --seed S` gives pose i of trial K, and a controller that revisits a step sees the same draws.
+
+    `engine="auto"` runs the compiled kernel when numba's cache has its loop for the pipeline's stages (a large
+    `build`, or any run with `engine="kernel"`, compiles it once) and numpy otherwise: a one-trial view costs a few
+    ms more on numpy, where a fresh install's first compile costs tens of seconds. Both give the same output.
     """
 
     def __init__(self, scene: Scene, seed: int, pipeline: Pipeline | str | None = None, *,
@@ -259,6 +263,8 @@ class Simulator:
         self.run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED),
                               options=Options(visibility=mode, right=right), engine=engine, need_path=False,
                               world=world)
+        if engine == "auto":  # a stream of one-trial views: the kernel once numba has it compiled, else numpy
+            runs.cold_kernel_line(self.run, 1)
         self._lists: dict = {}  # view-point masks met so far
         self._occluders = None
         self._seen: OrderedDict = OrderedDict()  # (pose, trial, step) -> Batch: the last OBSERVED observations
