@@ -263,8 +263,8 @@ class Simulator:
         self.run = runs.start(scene, _pipeline(scene, pipeline), seed=_integer("seed", seed, 0, MAX_SEED),
                               options=Options(visibility=mode, right=right), engine=engine, need_path=False,
                               world=world)
-        if engine == "auto":  # a stream of one-trial views: the kernel once numba has it compiled, else numpy
-            runs.cold_kernel_line(self.run, 1)
+        if engine == "auto" and self.run.uses_kernel() and not runs.kernel_compiled(self.run):
+            self.run.engine = "numpy"  # a stream of one-trial views: the kernel once numba has it compiled
         self._lists: dict = {}  # view-point masks met so far
         self._occluders = None
         self._seen: OrderedDict = OrderedDict()  # (pose, trial, step) -> Batch: the last OBSERVED observations

@@ -262,6 +262,15 @@ NUMPY_EXTRA_SECONDS = 1.9e-6  # a vertex-trial
 COLD_KERNEL_PAYS = COMPILE_SECONDS / NUMPY_EXTRA_SECONDS  # vertex-trials: some 10,000 trials of the lab's build
 
 
+def kernel_compiled(run) -> bool:
+    """Whether numba's cache holds the compiled loop of the run's kernel stages (`kernel.loop_cached`): running
+    it loads it instead of compiling it."""
+    from wiredsl.engine import kernel
+
+    return kernel.loop_cached(tuple((e.kernel.function, e.kernel.camera, e.kernel.workspace)
+                                    for e, _ in run.compiled_stages()))
+
+
 def cold_kernel_line(run, trials: int) -> str | None:
     """Under `--engine auto`, for a run that would use the compiled kernel: when its loop is not in numba's cache
     yet (`kernel.loop_cached`) and the run is smaller than COLD_KERNEL_PAYS vertex-trials, set the run's engine to
@@ -269,12 +278,7 @@ def cold_kernel_line(run, trials: int) -> str | None:
     if not run.uses_kernel():
         return None
     size = run.trial_size()[0]
-    if trials * size >= COLD_KERNEL_PAYS:
-        return None
-    from wiredsl.engine import kernel
-
-    stages = tuple((e.kernel.function, e.kernel.camera, e.kernel.workspace) for e, _ in run.compiled_stages())
-    if kernel.loop_cached(stages):
+    if trials * size >= COLD_KERNEL_PAYS or kernel_compiled(run):
         return None
     run.engine = "numpy"
     n = int(COLD_KERNEL_PAYS // max(size, 1)) + 1
