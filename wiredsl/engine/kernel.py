@@ -593,13 +593,13 @@ def _part_meta(frag, closed, whole):
 def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated, t,
                  rolling):
     """Trial t's view before the image stages: the strokes and corners through its cameras (when calibrated; under
-    the view's rolling shutter when rolling[0], its readout, is > 0), cut at invalid vertices and at the image
-    border, or the template's as they are."""
+    the view's rolling shutter when rolling[t, 0], its readout, is > 0: rolling has a row a trial), cut at invalid
+    vertices and at the image border, or the template's as they are."""
     if calibrated:
         pts = np.empty((len(W), 2))
         ok = np.empty(len(W), np.bool_)
-        if rolling[0] > 0:
-            _project_rolling(W, R[t], tv[t], cams[t], folds[t], rolling, pts, ok)
+        if rolling[t, 0] > 0:
+            _project_rolling(W, R[t], tv[t], cams[t], folds[t], rolling[t], pts, ok)
         else:
             _project(W, R[t], tv[t], cams[t], folds[t], pts, ok)
         start, meta = tstart, tmeta
@@ -609,8 +609,8 @@ def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds,
             pts, start, meta = _clip_rect(pts, start, meta, width, height)
         cp = np.empty((len(CW), 2))
         cok = np.empty(len(CW), np.bool_)
-        if rolling[0] > 0:
-            _project_rolling(CW, R[t], tv[t], cams[t], folds[t], rolling, cp, cok)
+        if rolling[t, 0] > 0:
+            _project_rolling(CW, R[t], tv[t], cams[t], folds[t], rolling[t], cp, cok)
         else:
             _project(CW, R[t], tv[t], cams[t], folds[t], cp, cok)
         for c in range(len(CW)):
@@ -660,8 +660,9 @@ def _pack(res, cres):
 def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated,
                params, keys, epipole, right, stats, camera, rolling, codes):
     """Every trial of a batch for one view, the image stages `codes` (indices into the loop's table of stage
-    functions, in order), the view's rolling shutter `rolling` (run_view's row; readout 0: none). Returns packed
-    strokes (pts, start, meta, trial) and corners (corners, fid, trial), strokes and corners ordered by trial.
+    functions, in order), the view's rolling shutter `rolling` (run_view's rows, one a trial; readout 0: none).
+    Returns packed strokes (pts, start, meta, trial) and corners (corners, fid, trial), strokes and corners ordered
+    by trial.
 
     The template of the compiled loop: `compose` compiles it once per table of stage functions, in a module of its
     own, with the line that calls `_stages` replaced by a dispatch on each stage's code to its function, and the
@@ -689,7 +690,8 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
     argument in the one layout it is compiled for (no second compile). `cameras`: per function, whether it takes
     the view's `camera` row (KernelStage.camera), float64 (20,): width, height, then the nominal CAMERA_ROW.
     `workspaces`: per function, its workspace function (KernelStage.workspace) or None. `rolling`: the view's
-    rolling shutter (View.rolling: readout, height, robot origin, v, w) or None."""
+    rolling shutter (View.rolling: readout, height, robot origin, v, w; the origin a trial's each under a
+    jittered sync) or None."""
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
     stages = tuple(zip(functions, tuple(bool(c) for c in cameras) or (False,) * len(functions),
@@ -707,9 +709,19 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
                       bool(calibrated), f2(params, params.shape[-1]),
                       np.ascontiguousarray(keys, dtype=np.uint64).reshape(len(functions), len(folds)),
                       np.ascontiguousarray(epipole, dtype=np.float64).reshape(3), bool(right), stats, camera,
-                      np.zeros(11) if rolling is None else np.array([rolling[0], rolling[1], *rolling[2], *rolling[3],
-                                                                     *rolling[4]], dtype=np.float64),
+                      _rolling_rows(rolling, len(folds)),
                       np.array([table.index(s) for s in stages], dtype=np.int64))
+
+
+def _rolling_rows(rolling, T: int) -> np.ndarray:
+    """The view's rolling shutter (View.rolling, its robot origin (3,) or a trial's each (T, 1, 3)) as a row a
+    trial: readout, height, robot origin (3), v (3), w (3); readout 0: none."""
+    rows = np.zeros((T, 11))
+    if rolling is not None:
+        rows[:, 0], rows[:, 1] = rolling[0], rolling[1]
+        rows[:, 2:5] = np.asarray(rolling[2], dtype=np.float64).reshape(-1, 3)
+        rows[:, 5:8], rows[:, 8:11] = rolling[3], rolling[4]
+    return rows
 
 
 Stage = tuple[str, bool, "str | None"]  # a stage function ("module:attribute"), whether it takes the camera row,

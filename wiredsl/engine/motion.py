@@ -81,6 +81,32 @@ def moved(X: np.ndarray, tau, robot: np.ndarray, v: np.ndarray, w: np.ndarray) -
     return _rotate_back(X - robot - v * tau[..., None], w, tau) + robot
 
 
+def robots_at(pose, v: np.ndarray, w: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`robot_at` for many times tau (T,): the robot's world_from_robot (R (T, 3, 3), t (T, 3)) at each."""
+    tau = np.asarray(tau, dtype=float)
+    R, t = geometry.world_from_robot(pose)
+    E = np.transpose(_rotate_back(np.broadcast_to(np.eye(3), (len(tau), 3, 3)), w, -tau[:, None]), (0, 2, 1))
+    return E @ R, t + v * tau[:, None]
+
+
+def sync_offsets(rig, trials, index: int, seed: int, point: int | None = None) -> np.ndarray:
+    """Each trial's offset of the right camera at path pose `index` under a sync jitter: sync + jitter n, n a
+    standard normal keyed by ("rig.sync", trial, pose, the rig, seed, point): a trial's offset at a pose is its own,
+    whichever trials share its batch."""
+    from wiredsl.effects.base import keyed_normal, stream_key
+
+    trials = np.asarray(trials, dtype=np.int64)
+    keys = stream_key("rig.sync", trials, index, -1, seed, point)
+    return rig.sync + rig.jitter * keyed_normal(keys, np.zeros(len(trials), dtype=np.uint64))
+
+
+def jittered_robots(scene, index: int, trials, seed: int, point: int | None = None):
+    """The right camera's robot pose at path pose `index` for each trial, at its drawn offset (`sync_offsets`):
+    (R (T, 3, 3), t (T, 3))."""
+    vs, ws = velocities_of(scene.path)
+    return robots_at(scene.path.pose(index), vs[index], ws[index], sync_offsets(scene.rig, trials, index, seed, point))
+
+
 def robot_at(pose, v: np.ndarray, w: np.ndarray, tau: float) -> tuple[float, ...]:
     """The robot's pose `tau` seconds after `pose` (moving with v, w): the 12 numbers of its [R | t]."""
     R, t = geometry.world_from_robot(pose)
