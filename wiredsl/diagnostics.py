@@ -328,8 +328,6 @@ CODES: dict[str, str] = {
             '(median pose), or climbs more than it runs: `body` or `world` probably missing'),
     'E151': ('size over a limit (view-points, poses, matrix order, polyline vertices at a tolerance, brackets and '
             'blocks nested over 32 deep, a mesh over 2,000,000 triangles)'),
-    'E152': ("a rolling shutter's row time that does not settle (at build time): the image of a point moves over "
-             'more rows during the readout than the image has (a shorter readout, or a slower robot)'),
     'E160': 'a pipeline order that cannot be honoured',
     'W163': ("calibration_error's sigma far below 1 (under 0.1) on a rig with a declared calibration covariance: "
              'sigma scales its standard deviations, so the draws simulate that fraction of the calibration\'s '

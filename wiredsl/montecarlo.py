@@ -44,6 +44,7 @@ from wiredsl.engine.trials import (
     robot_pose,
     to_imageset,
     trial_cameras,
+    trial_rolling,
     view_maker,
 )
 from wiredsl.engine.world import World
@@ -220,6 +221,12 @@ class Run:
         vertex-trials at least (an `auto` engine's choice for a run of known size)."""
         return self.uses_kernel() and trials * self.trial_size()[0] >= KERNEL_PAYS
 
+    def jittered(self) -> bool:
+        """Whether the rig's sync has a jitter the trials draw (on a path with times): then every trial's views
+        are re-projected, the right camera's at the trial's own offset."""
+        rig, path = self.scene.rig, self.scene.path
+        return rig is not None and rig.jitter > 0 and path is not None and path.times is not None
+
     def calibration_draws(self, batch: Sequence[int]) -> np.ndarray:
         """The batch's calibration perturbations (T, m), each checked: a draw that leaves a camera without a
         positive pixel scale (f ax, f ay), or one over calib.SCALE_LIMIT times the nominal, or anything not
@@ -295,12 +302,22 @@ class Run:
             else:
                 self.trace["reproject"] += 1
                 rigs = checked
+        jitter = self.jittered() and per_trial is None
+        if jitter and rigs is None:  # the nominal rig, every trial re-projected at its own offset
+            rigs = calib.perturbed_rigs(self.scene, np.zeros((len(batch), 0)), [])
         out = []
         # the numpy path with built-in stages only: every view's trials packed in one set, each stage run once
         packed = [] if self.pack and not kernel and all(e.name in BUILTIN for e, _ in self.image_stages) else None
         for j, result in enumerate(base):
             disturbed = {}
             views = {"left": None, "right": None}
+            if jitter:  # the right camera's robot pose at each trial's drawn offset (a path pose's only)
+                from wiredsl.engine import motion
+
+                on_path = 0 <= result.index < len(self.scene.path.poses) and result.pose == self.scene.path.pose(
+                    result.index)
+                rigs["right"]["robots"] = motion.jittered_robots(self.scene, result.index, batch, self.seed,
+                                                                 self.point) if on_path else None
             for side in ("left", "right"):
                 if getattr(result, side) is None:
                     continue
@@ -441,7 +458,7 @@ class Run:
         args = (template.pts, template.start, meta, template.corners, template.corner_fid, W, CW, R_cw, t_cw, cams,
                 folds, cam.width, cam.height, raw, functions, params, keys, epipole, side == "right", stats,
                 tuple(e.kernel.camera for e, _ in stages), self._camera_row(result, side, keep),
-                tuple(e.kernel.workspace for e, _ in stages), view.rolling if raw else None)
+                tuple(e.kernel.workspace for e, _ in stages), trial_rolling(view, rig) if raw else None)
         plugins = self._kernel_rows["plugins"]
         if not plugins:
             pts, start, m, trial, corners, cfid, ctrial = kn.run_view(*args)

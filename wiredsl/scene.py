@@ -429,8 +429,9 @@ class Rig(Node):
     right: Mount
     calibration: Calibration | None = None
     sync: float = Field(0.0, ge=-1, le=1, description="the right camera's exposure time minus the left's (s)")
+    jitter: float = Field(0.0, ge=0, le=1, description="the standard deviation of sync drawn per trial and pose (s)")
 
-    _dump = omitted_when_default(sync=0.0)
+    _dump = omitted_when_default(sync=0.0, jitter=0.0)
 
     def stereo_extrinsics(self):
         """(R, T) numpy arrays from the left camera's frame to the right's, X_r = R X_l + T, from the mounts."""

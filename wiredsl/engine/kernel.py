@@ -320,53 +320,132 @@ def _project(X, R, t, cam, limit, out, ok):
         out[i, 1] = f * ay * yd + cy if good else 0.0
 
 
-ROW_TOL = 1e-9  # motion.ROW_TOL and motion.MAX_ITERATIONS: the rolling-shutter fixed point's stopping rule
-MAX_ITERATIONS = 100
+ROW_TOL = 1e-9  # motion.ROW_TOL, MAX_FIXED, GRID, MAX_BRACKET and CONTRACTION: the row-time solver's rules
+MAX_FIXED = 64
+GRID = 8
+MAX_BRACKET = 192
+CONTRACTION = 0.5
+
+
+@njit(cache=True, error_model="numpy")
+def _row_at(X, i, x, R, t, cam, limit, rolling, k, one, uv, good):
+    """Point i of X imaged from the camera's pose at row x's time (motion.moved, then _project): uv[0], good[0].
+    k: the angular velocity's unit axis and speed."""
+    tau = rolling[0] * x / rolling[1]
+    d0 = X[i, 0] - rolling[2] - rolling[5] * tau  # motion.moved: exp([w] tau)^T (X - robot - v tau) + robot
+    d1 = X[i, 1] - rolling[3] - rolling[6] * tau
+    d2 = X[i, 2] - rolling[4] - rolling[7] * tau
+    if k[3] > 0:
+        theta = -k[3] * tau
+        c, s = math.cos(theta), math.sin(theta)
+        dk = (d0 * k[0] + d1 * k[1] + d2 * k[2]) * (1.0 - c)
+        d0, d1, d2 = (d0 * c + (k[1] * d2 - k[2] * d1) * s + k[0] * dk,
+                      d1 * c + (k[2] * d0 - k[0] * d2) * s + k[1] * dk,
+                      d2 * c + (k[0] * d1 - k[1] * d0) * s + k[2] * dk)
+    one[0, 0], one[0, 1], one[0, 2] = d0 + rolling[2], d1 + rolling[3], d2 + rolling[4]
+    _project(one, R, t, cam, limit, uv, good)
 
 
 @njit(cache=True, error_model="numpy")
 def _project_rolling(X, R, t, cam, limit, rolling, out, ok):
     """_project under a rolling shutter, `rolling` = (readout, height, robot origin (3), v (3), w (3)): each point
-    imaged from the camera's pose at its row's time, motion.rolling_pixels term by term (a point the moved camera
-    does not image is invalid; one whose row does not settle raises)."""
+    imaged from the camera's pose at its row's time, motion.rolling_pixels term by term (its fixed point, grid and
+    Illinois bracket; a point the moved camera does not image is invalid)."""
     _project(X, R, t, cam, limit, out, ok)  # the camera at time 0: which points are valid, and the first rows
-    readout, height = rolling[0], rolling[1]
+    H = rolling[1]
     speed = math.sqrt(rolling[8] * rolling[8] + rolling[9] * rolling[9] + rolling[10] * rolling[10])
-    k0, k1, k2 = (rolling[8] / speed, rolling[9] / speed, rolling[10] / speed) if speed > 0 else (0.0, 0.0, 0.0)
+    k = np.zeros(4)
+    if speed > 0:
+        k[0], k[1], k[2], k[3] = rolling[8] / speed, rolling[9] / speed, rolling[10] / speed, speed
     one = np.empty((1, 3))
     uv = np.empty((1, 2))
     good = np.empty(1, np.bool_)
     for i in range(len(X)):
         if not ok[i]:
             continue
-        row = out[i, 1]
-        settled = False
-        for _ in range(MAX_ITERATIONS):
-            tau = readout * min(max(row, 0.0), height) / height
-            d0 = X[i, 0] - rolling[2] - rolling[5] * tau  # motion.moved: exp([w] tau)^T (X - robot - v tau) + robot
-            d1 = X[i, 1] - rolling[3] - rolling[6] * tau
-            d2 = X[i, 2] - rolling[4] - rolling[7] * tau
-            if speed > 0:
-                theta = -speed * tau
-                c, s = math.cos(theta), math.sin(theta)
-                dk = (d0 * k0 + d1 * k1 + d2 * k2) * (1.0 - c)
-                d0, d1, d2 = (d0 * c + (k1 * d2 - k2 * d1) * s + k0 * dk, d1 * c + (k2 * d0 - k0 * d2) * s + k1 * dk,
-                              d2 * c + (k0 * d1 - k1 * d0) * s + k2 * dk)
-            one[0, 0], one[0, 1], one[0, 2] = d0 + rolling[2], d1 + rolling[3], d2 + rolling[4]
-            _project(one, R, t, cam, limit, uv, good)
+        y0 = out[i, 1]
+        a, ga, b, gb = 0.0, y0, H, 0.0
+        bracket = False
+        if y0 < 0:  # above the image at time 0: its root f(0), unless it comes in faster than the readout sweeps
+            _row_at(X, i, H, R, t, cam, limit, rolling, k, one, uv, good)
+            if not (good[0] and uv[0, 1] - H > 0):
+                continue
+            gb = uv[0, 1] - H
+            bracket = True
+        else:
+            known = False
+            x = min(y0, H)
+            prev = np.inf
+            settled = False
+            for _ in range(MAX_FIXED):  # 1. the fixed point while it contracts
+                _row_at(X, i, x, R, t, cam, limit, rolling, k, one, uv, good)
+                if not good[0]:
+                    ok[i] = False
+                    break
+                y = uv[0, 1]
+                out[i, 0], out[i, 1] = uv[0, 0], y
+                g = y - x
+                step = abs(min(max(y, 0.0), H) - x)
+                if step <= ROW_TOL:
+                    settled = True
+                    break
+                below_b = not known or x < b
+                if g >= 0 and below_b and x > a:
+                    a, ga = x, g
+                if g < 0 and below_b:
+                    b, gb, known = x, g, True
+                    if a >= b:
+                        a, ga = 0.0, y0
+                if step > CONTRACTION * prev:
+                    break
+                prev, x = step, min(max(y, 0.0), H)
+            if not ok[i]:
+                out[i, 0], out[i, 1] = 0.0, 0.0
+                continue
+            if settled:
+                continue
+            if not known:  # 2. the grid beyond the lower end
+                start = a
+                for j in range(1, GRID + 1):
+                    x = H if j == GRID else start + (H - start) * (j / GRID)
+                    _row_at(X, i, x, R, t, cam, limit, rolling, k, one, uv, good)
+                    if not good[0]:
+                        ok[i] = False
+                        break
+                    out[i, 0], out[i, 1] = uv[0, 0], uv[0, 1]
+                    g = uv[0, 1] - x
+                    if g < 0:
+                        b, gb, known = x, g, True
+                        break
+                    a, ga = x, g
+                if not ok[i]:
+                    out[i, 0], out[i, 1] = 0.0, 0.0
+                    continue
+            bracket = known
+        if not bracket:
+            continue
+        sa, sb = ga, gb  # 3. Illinois in [a, b]
+        side = 0
+        for it in range(MAX_BRACKET):
+            c = 0.5 * (a + b) if it % 3 == 2 else (a * sb - b * sa) / (sb - sa)
+            _row_at(X, i, c, R, t, cam, limit, rolling, k, one, uv, good)
             if not good[0]:
                 ok[i] = False
                 break
-            step = abs(min(max(uv[0, 1], 0.0), height) - min(max(row, 0.0), height))
             out[i, 0], out[i, 1] = uv[0, 0], uv[0, 1]
-            row = uv[0, 1]
-            if step <= ROW_TOL:
-                settled = True
+            g = uv[0, 1] - c
+            if abs(g) <= ROW_TOL:
                 break
+            if (g > 0) == (sa > 0):
+                if side == -1:
+                    sb = 0.5 * sb
+                a, sa, side = c, g, -1
+            else:
+                if side == 1:
+                    sa = 0.5 * sa
+                b, sb, side = c, g, 1
         if not ok[i]:
             out[i, 0], out[i, 1] = 0.0, 0.0
-        elif not settled:
-            raise ValueError("rolling shutter: a point's row time did not converge")
 
 
 @njit(cache=True, error_model="numpy")
@@ -514,13 +593,13 @@ def _part_meta(frag, closed, whole):
 def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated, t,
                  rolling):
     """Trial t's view before the image stages: the strokes and corners through its cameras (when calibrated; under
-    the view's rolling shutter when rolling[0], its readout, is > 0), cut at invalid vertices and at the image
-    border, or the template's as they are."""
+    the view's rolling shutter when rolling[t, 0], its readout, is > 0: rolling has a row a trial), cut at invalid
+    vertices and at the image border, or the template's as they are."""
     if calibrated:
         pts = np.empty((len(W), 2))
         ok = np.empty(len(W), np.bool_)
-        if rolling[0] > 0:
-            _project_rolling(W, R[t], tv[t], cams[t], folds[t], rolling, pts, ok)
+        if rolling[t, 0] > 0:
+            _project_rolling(W, R[t], tv[t], cams[t], folds[t], rolling[t], pts, ok)
         else:
             _project(W, R[t], tv[t], cams[t], folds[t], pts, ok)
         start, meta = tstart, tmeta
@@ -530,8 +609,8 @@ def _trial_input(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds,
             pts, start, meta = _clip_rect(pts, start, meta, width, height)
         cp = np.empty((len(CW), 2))
         cok = np.empty(len(CW), np.bool_)
-        if rolling[0] > 0:
-            _project_rolling(CW, R[t], tv[t], cams[t], folds[t], rolling, cp, cok)
+        if rolling[t, 0] > 0:
+            _project_rolling(CW, R[t], tv[t], cams[t], folds[t], rolling[t], cp, cok)
         else:
             _project(CW, R[t], tv[t], cams[t], folds[t], cp, cok)
         for c in range(len(CW)):
@@ -581,8 +660,9 @@ def _pack(res, cres):
 def view_batch(tpts, tstart, tmeta, tcorners, cfid, W, CW, R, tv, cams, folds, width, height, calibrated,
                params, keys, epipole, right, stats, camera, rolling, codes):
     """Every trial of a batch for one view, the image stages `codes` (indices into the loop's table of stage
-    functions, in order), the view's rolling shutter `rolling` (run_view's row; readout 0: none). Returns packed
-    strokes (pts, start, meta, trial) and corners (corners, fid, trial), strokes and corners ordered by trial.
+    functions, in order), the view's rolling shutter `rolling` (run_view's rows, one a trial; readout 0: none).
+    Returns packed strokes (pts, start, meta, trial) and corners (corners, fid, trial), strokes and corners ordered
+    by trial.
 
     The template of the compiled loop: `compose` compiles it once per table of stage functions, in a module of its
     own, with the line that calls `_stages` replaced by a dispatch on each stage's code to its function, and the
@@ -610,7 +690,8 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
     argument in the one layout it is compiled for (no second compile). `cameras`: per function, whether it takes
     the view's `camera` row (KernelStage.camera), float64 (20,): width, height, then the nominal CAMERA_ROW.
     `workspaces`: per function, its workspace function (KernelStage.workspace) or None. `rolling`: the view's
-    rolling shutter (View.rolling: readout, height, robot origin, v, w) or None."""
+    rolling shutter (View.rolling: readout, height, robot origin, v, w; the origin a trial's each under a
+    jittered sync) or None."""
     f2 = lambda a, n: np.ascontiguousarray(a, dtype=np.float64).reshape(-1, n)  # noqa: E731
     i1 = lambda a: np.ascontiguousarray(a, dtype=np.int64).reshape(-1)  # noqa: E731
     stages = tuple(zip(functions, tuple(bool(c) for c in cameras) or (False,) * len(functions),
@@ -628,9 +709,19 @@ def run_view(tpts, tstart, meta, tcorners, cfid, W, CW, R_cw, t_cw, cams, folds,
                       bool(calibrated), f2(params, params.shape[-1]),
                       np.ascontiguousarray(keys, dtype=np.uint64).reshape(len(functions), len(folds)),
                       np.ascontiguousarray(epipole, dtype=np.float64).reshape(3), bool(right), stats, camera,
-                      np.zeros(11) if rolling is None else np.array([rolling[0], rolling[1], *rolling[2], *rolling[3],
-                                                                     *rolling[4]], dtype=np.float64),
+                      _rolling_rows(rolling, len(folds)),
                       np.array([table.index(s) for s in stages], dtype=np.int64))
+
+
+def _rolling_rows(rolling, T: int) -> np.ndarray:
+    """The view's rolling shutter (View.rolling, its robot origin (3,) or a trial's each (T, 1, 3)) as a row a
+    trial: readout, height, robot origin (3), v (3), w (3); readout 0: none."""
+    rows = np.zeros((T, 11))
+    if rolling is not None:
+        rows[:, 0], rows[:, 1] = rolling[0], rolling[1]
+        rows[:, 2:5] = np.asarray(rolling[2], dtype=np.float64).reshape(-1, 3)
+        rows[:, 5:8], rows[:, 8:11] = rolling[3], rolling[4]
+    return rows
 
 
 Stage = tuple[str, bool, "str | None"]  # a stage function ("module:attribute"), whether it takes the camera row,

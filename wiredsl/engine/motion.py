@@ -18,11 +18,13 @@ import math
 
 import numpy as np
 
-from wiredsl.diagnostics import Diagnostic, WiredslError
 from wiredsl.engine import geometry
 
-ROW_TOL = 1e-9  # px: the rolling-shutter fixed point stops when an iteration moves a point's row by no more
-MAX_ITERATIONS = 100
+ROW_TOL = 1e-9  # px: a point's row time is settled when its pixel's row is within this of the row it is read at
+MAX_FIXED = 64  # fixed-point iterations: each kept one halves the step, so 64 reach ROW_TOL from any image's height
+GRID = 8  # rows spread from the bracket's lower end to the image's last row, searched for a sign change of g
+MAX_BRACKET = 192  # Illinois steps, every third a bisection: the bracket halves every three, 2^-64 of it in 192
+CONTRACTION = 0.5  # the fixed point is kept while each step is at most half the one before
 
 
 def _log_rotation(R: np.ndarray) -> np.ndarray:
@@ -79,6 +81,32 @@ def moved(X: np.ndarray, tau, robot: np.ndarray, v: np.ndarray, w: np.ndarray) -
     return _rotate_back(X - robot - v * tau[..., None], w, tau) + robot
 
 
+def robots_at(pose, v: np.ndarray, w: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`robot_at` for many times tau (T,): the robot's world_from_robot (R (T, 3, 3), t (T, 3)) at each."""
+    tau = np.asarray(tau, dtype=float)
+    R, t = geometry.world_from_robot(pose)
+    E = np.transpose(_rotate_back(np.broadcast_to(np.eye(3), (len(tau), 3, 3)), w, -tau[:, None]), (0, 2, 1))
+    return E @ R, t + v * tau[:, None]
+
+
+def sync_offsets(rig, trials, index: int, seed: int, point: int | None = None) -> np.ndarray:
+    """Each trial's offset of the right camera at path pose `index` under a sync jitter: sync + jitter n, n a
+    standard normal keyed by ("rig.sync", trial, pose, the rig, seed, point): a trial's offset at a pose is its own,
+    whichever trials share its batch."""
+    from wiredsl.effects.base import keyed_normal, stream_key
+
+    trials = np.asarray(trials, dtype=np.int64)
+    keys = stream_key("rig.sync", trials, index, -1, seed, point)
+    return rig.sync + rig.jitter * keyed_normal(keys, np.zeros(len(trials), dtype=np.uint64))
+
+
+def jittered_robots(scene, index: int, trials, seed: int, point: int | None = None):
+    """The right camera's robot pose at path pose `index` for each trial, at its drawn offset (`sync_offsets`):
+    (R (T, 3, 3), t (T, 3))."""
+    vs, ws = velocities_of(scene.path)
+    return robots_at(scene.path.pose(index), vs[index], ws[index], sync_offsets(scene.rig, trials, index, seed, point))
+
+
 def robot_at(pose, v: np.ndarray, w: np.ndarray, tau: float) -> tuple[float, ...]:
     """The robot's pose `tau` seconds after `pose` (moving with v, w): the 12 numbers of its [R | t]."""
     R, t = geometry.world_from_robot(pose)
@@ -91,33 +119,129 @@ def rolling_pixels(X: np.ndarray, pixels, readout: float, height: float, robot: 
     """Pixels (..., 2) of world points X (..., 3) under a rolling shutter: row r is exposed at readout r / height
     after the camera's time 0, and each point is imaged from the camera's pose at its own row's time.
 
-    `pixels` maps world points (..., 3), as the camera's pose at time 0 sees them, to pixels (..., 2). The row
-    time is the fixed point of r = row(X seen at readout r / height), iterated from r = row at time 0 until an
-    iteration moves the row by no more than ROW_TOL px, each point on its own (a converged point's row is kept,
-    as a loop a point would give). It converges when q = readout |dr/dt| / height < 1, |dr/dt| the point's image
-    speed across rows: the error then shrinks by q an iteration. A row beyond the image takes the time of the
-    image's nearest row (the map stays bounded where the lens folds or a point nears the camera); points whose
-    pixels are not finite (not imaged) stop at once."""
-    uv = pixels(X)
-    row = uv[..., 1]
-    active = np.isfinite(row)
-    for _ in range(MAX_ITERATIONS):
-        if not active.any():
-            return uv
-        tau = readout * np.clip(np.where(active, row, 0.0), 0.0, height) / height  # rows beyond the image: its ends
-        new = pixels(moved(X, tau, robot, v, w))
+    `pixels` maps world points (..., 3), as the camera's pose at time 0 sees them, to pixels (..., 2). With
+    f(r) = row of X seen at time readout clip(r, 0, H) / H (H the height), the row time solves
+    g(r) = f(r) - r = 0; a root beyond [0, H] is a row beyond the image, which takes the time of the image's
+    nearest row (the map stays bounded where the lens folds or a point nears the camera). g has a root for every
+    point: f(0) when f(0) < 0, f(H) when f(H) > H, and one in [0, H] when g(0) >= 0 >= g(H).
+
+    The solver, each point on its own (`kernel._project_rolling` does the same, term by term):
+    1. From r = f(0), the fixed-point iteration r <- f(clip(r, 0, H)) while it contracts (each step at most
+       CONTRACTION times the one before; for q = readout |dr/dt| / H < 1/2 it always does, the error shrinking by
+       q an iteration), until a step is at most ROW_TOL px. Each evaluated row is a lower (g >= 0) or upper
+       (g < 0) end of a bracket of the earliest root found so far.
+    2. Otherwise, without an upper end, g at GRID rows spread evenly from the lower end to H: the first where
+       g < 0 closes the bracket; none (g(H) >= 0) gives the root f(H) (the point beyond the image's bottom).
+    3. In the bracket, the Illinois method with every third step a bisection, until |g| <= ROW_TOL px.
+    A point above the image when its readout starts (f(0) < 0) has the root f(0), the time 0, unless it comes
+    into the image faster than the readout sweeps (g(H) > 0): then the bracket [0, H] (step 3).
+
+    Convergence: a kept fixed-point step is at most half the one before and the first is at most H, so MAX_FIXED
+    = 64 iterations reach ROW_TOL from any height below 2^33 px; the bracket halves at least every third step,
+    so MAX_BRACKET = 192 steps take it below a double's resolution of any row (2^-64 of H), where |g| is at most
+    (1 + q) times that. Each returned pixel is the exact projection at its row time, its row within ROW_TOL px
+    of the row whose time that is (the bound reached, which the argument excludes, keeps the last estimate).
+
+    Several roots (q > 1 somewhere, a point imaged at two rows): the earliest row is chosen, as a sensor reads
+    top to bottom, the first at which the point is read. The fixed point from f(0) climbs to it where the image
+    moves down (its iterates stay below the earliest root); the grid finds the first sign change at its
+    spacing, (H - lower end) / GRID rows: two roots closer than that (a point whose image grazes the readout's
+    sweep) count as none. A point above the image at both ends of the readout is taken as above it, not
+    searched for a pair of rows in between. Points whose pixels are not finite (not imaged) at a row time stop
+    there (invalid); not imaged at H, a point above the image keeps f(0)."""
+    H = float(height)
+    uv0 = pixels(X)
+    y0 = uv0[..., 1]
+    out = uv0.copy()
+    finite = np.isfinite(y0)
+
+    def at(x, live):  # every point's pixels as seen at row x's time (the live points' matter)
+        return pixels(moved(X, readout * np.where(live, x, 0.0) / H, robot, v, w))
+
+    zeros = np.zeros(y0.shape)
+    with np.errstate(invalid="ignore"):
+        above = finite & (y0 < 0)
+    a, ga, b, gb = zeros.copy(), np.where(finite, y0, 0.0), np.full(y0.shape, H), np.full(y0.shape, np.nan)
+    known = np.zeros(y0.shape, dtype=bool)  # an upper end b (g(b) < 0, or for `above` g(b) > 0) is known
+    bracket = np.zeros(y0.shape, dtype=bool)
+    if above.any():  # coming into the image faster than the readout sweeps: g(0) < 0 < g(H)
+        uv = at(np.full(y0.shape, H), above)
         with np.errstate(invalid="ignore"):
-            step = np.abs(np.clip(new[..., 1], 0.0, height) - np.clip(row, 0.0, height))
-        uv = np.where(active[..., None], new, uv)
-        row = uv[..., 1]
-        active &= np.isfinite(row) & ~(step <= ROW_TOL)
-    if active.any():
-        raise WiredslError([Diagnostic(
-            "error", "E152", f"rolling shutter: the row time of {int(active.sum())} point(s) did not converge in "
-            f"{MAX_ITERATIONS} iterations", None,
-            "the image moves across more rows during the readout than the image has: a shorter readout, or a "
-            "slower robot")])
-    return uv
+            into = above & (uv[..., 1] - H > 0)
+        gb = np.where(into, uv[..., 1] - H, gb)
+        bracket |= into
+
+    x = np.where(finite & ~above, np.minimum(y0, H), 0.0)  # 1. the fixed point
+    prev = np.full(y0.shape, np.inf)
+    live = finite & ~above
+    stalled = np.zeros(y0.shape, dtype=bool)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for _ in range(MAX_FIXED):
+            if not live.any():
+                break
+            uv = at(x, live)
+            y = uv[..., 1]
+            out = np.where(live[..., None], uv, out)
+            seen = live & np.isfinite(y)
+            g = y - x
+            step = np.abs(np.clip(y, 0.0, H) - x)
+            go = seen & ~(step <= ROW_TOL)
+            below_b = ~known | (x < b)
+            up = go & (g >= 0) & below_b & (x > a)
+            a, ga = np.where(up, x, a), np.where(up, g, ga)
+            down = go & (g < 0) & below_b
+            b, gb = np.where(down, x, b), np.where(down, g, gb)
+            known |= down
+            reset = down & (a >= b)  # the lower end kept is beyond the new upper one: row 0's
+            a, ga = np.where(reset, 0.0, a), np.where(reset, y0, ga)
+            stall = go & (step > CONTRACTION * prev)
+            stalled |= stall
+            prev, x = np.where(go, step, prev), np.where(go, np.clip(y, 0.0, H), x)
+            live = go & ~stall
+        stalled |= live  # (the bound, not reached: see the docstring)
+
+        live = stalled & ~known  # 2. the grid: a sign change of g beyond the lower end
+        start = a.copy()
+        for j in range(1, GRID + 1):
+            if not live.any():
+                break
+            x = H if j == GRID else start + (H - start) * (j / GRID)
+            x = np.where(live, x, 0.0)
+            uv = at(x, live)
+            y = uv[..., 1]
+            out = np.where(live[..., None], uv, out)
+            seen = live & np.isfinite(y)
+            g = y - x
+            hit = seen & (g < 0)
+            b, gb = np.where(hit, x, b), np.where(hit, g, gb)
+            known |= hit
+            stay = seen & (g >= 0)
+            a, ga = np.where(stay, x, a), np.where(stay, g, ga)
+            live = stay
+        bracket |= stalled & known
+
+        live = bracket  # 3. Illinois in [a, b], g(a) and g(b) of opposite signs
+        sa, sb = ga.copy(), gb.copy()  # their values, halved where an end is kept twice running
+        side = np.zeros(y0.shape, dtype=np.int64)
+        for k in range(MAX_BRACKET):
+            if not live.any():
+                break
+            c = 0.5 * (a + b) if k % 3 == 2 else (a * sb - b * sa) / (sb - sa)
+            c = np.where(live, c, 0.0)
+            uv = at(c, live)
+            y = uv[..., 1]
+            out = np.where(live[..., None], uv, out)
+            g = y - c
+            go = live & np.isfinite(y) & ~(np.abs(g) <= ROW_TOL)
+            new_a = go & ((g > 0) == (sa > 0))
+            new_b = go & ~new_a
+            sb = np.where(new_a & (side == -1), 0.5 * sb, sb)
+            sa = np.where(new_b & (side == 1), 0.5 * sa, sa)
+            a, sa = np.where(new_a, c, a), np.where(new_a, g, sa)
+            b, sb = np.where(new_b, c, b), np.where(new_b, g, sb)
+            side = np.where(new_a, -1, np.where(new_b, 1, side))
+            live = go
+    return out
 
 
 def view_motions(scene, index: int) -> dict[str, tuple | None]:

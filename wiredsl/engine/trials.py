@@ -114,9 +114,11 @@ def trial_cameras(rig: dict, pose: tuple) -> tuple[np.ndarray, np.ndarray, np.nd
     """Every trial's camera for one side at one pose: R_cw (T, 3, 3), t_cw (T, 3), intrinsics (T, 18) as
     geometry.CAMERA_ROW, and the lens limit (T,) (`geometry.lens_limit`)."""
     p = rig["params"]
-    R_wr, t_wr = geometry.world_from_robot(pose)
-    R_wc = (R_wr[None, :, :, None] * rig["rotation"][:, None, :, :]).sum(axis=2)  # row by row: no BLAS
-    t_wc = (rig["position"][:, None, :] * R_wr[None, :, :]).sum(axis=2) + t_wr
+    robots = rig.get("robots")  # each trial's robot pose (a jittered sync: motion.jittered_robots), or None
+    R_wr, t_wr = geometry.world_from_robot(pose) if robots is None else robots
+    R_wr = R_wr[None] if robots is None else R_wr
+    R_wc = (R_wr[:, :, :, None] * rig["rotation"][:, None, :, :]).sum(axis=2)  # row by row: no BLAS
+    t_wc = (rig["position"][:, None, :] * R_wr).sum(axis=2) + t_wr
     R_cw = np.ascontiguousarray(np.transpose(R_wc, (0, 2, 1)))
     t_cw = -(R_cw * t_wc[:, None, :]).sum(axis=2)
     if "cams" not in rig:  # the same at every pose: once a batch
@@ -172,6 +174,14 @@ def robot_pose(view: View, pose: tuple) -> tuple:
     return pose if view.robot is None else view.robot
 
 
+def trial_rolling(view: View, rig: dict) -> tuple | None:
+    """The view's rolling shutter (View.rolling) for a batch's trials: with a jittered sync, each trial's robot
+    origin (T, 1, 3) at its own offset (`trial_cameras`' robots)."""
+    if view.rolling is None or rig.get("robots") is None:
+        return view.rolling
+    return (*view.rolling[:2], rig["robots"][1][:, None, :], *view.rolling[3:])
+
+
 def reproject(view: View, world: World, rig: dict, pose: tuple, side: str, template: tuple | None = None):
     """Every trial's view under its perturbed camera, at once: the ideal view's strokes before image
     clipping (their world points) projected with per-trial parameters, then cut to the image.
@@ -191,9 +201,10 @@ def projected(view: View, world: World, rig: dict, pose: tuple, side: str, templ
     template, W, CW = template if template is not None else raw_template(view, world)
     R_cw, t_cw, cams, folds = trial_cameras(rig, robot_pose(view, pose))
     T = len(cams)
-    uv, ok = project_trials(W, R_cw, t_cw, cams, folds, view.rolling)
+    rolling = trial_rolling(view, rig)
+    uv, ok = project_trials(W, R_cw, t_cw, cams, folds, rolling)
     cam = rig["camera"]
-    cuv, cok = project_trials(CW, R_cw, t_cw, cams, folds, view.rolling)
+    cuv, cok = project_trials(CW, R_cw, t_cw, cams, folds, rolling)
     cok &= (cuv[:, 0] >= 0) & (cuv[:, 0] <= cam.width) & (cuv[:, 1] >= 0) & (cuv[:, 1] <= cam.height)
     rep = im.replace(template.repeat_trials(T), pts=uv, corners=cuv).take_corners(cok)
     return rep, ok, view_maker(rig, R_cw, t_cw, side)

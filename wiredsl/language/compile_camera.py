@@ -420,6 +420,15 @@ class CameraCompiler:
                 if sync != 0:
                     extra["sync"] = float(sync)
                     self.motion_spans.append((f"the sync of rig '{b.name}'", sb.positional[0].span))
+                if sb.has("jitter"):
+                    jitter, jspan = sb.get("jitter"), sb.span("jitter")
+                    if not 0 <= jitter <= MAX_READOUT:  # also NaN
+                        self.out.error("E110", f"a sync jitter must be in [0, {MAX_READOUT * 1e3:g}] ms, got "
+                                               f"{jitter * 1e3:g} ms", jspan)
+                        return None
+                    if jitter > 0:
+                        extra["jitter"] = float(jitter)
+                        self.motion_spans.append((f"the sync jitter of rig '{b.name}'", jspan))
             else:
                 mount = self._mount(sb)
                 if mount is not None:

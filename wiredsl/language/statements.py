@@ -249,7 +249,11 @@ _RIG = [
         example="right cam_r at (0.1, -0.06, 1.2) looking (1, 0, -0.2)"),
     Sig("sync", "stereo synchronisation: the right camera's exposure time minus the left's; each camera images "
         "the world from the robot's pose at its own time (default 0: both at the pose's time)",
-        (S("time", "offset"),), example="sync 10ms"),
+        (S("time", "offset"),),
+        {"jitter": C("the standard deviation of the offset: each trial and pose draws the right camera's offset "
+                     "from a normal about the declared one (the ideal view keeps the declared offset)",
+                     S("time", "sigma"))},
+        example="sync 10ms jitter 2ms"),
     Sig("calibration", "calibration uncertainty: information matrix (J^T J) or covariance",
         (S("word", "kind", "information", "covariance"),),
         {"order": C("the parameter of each row, e.g. [left.f, left.cx, right.tx]", S("names", "parameters")),
