@@ -4,7 +4,7 @@ sub-frames at most render.SUBFRAME_PX apart, as an exposure is drawn), detected 
 verified and fitted (`verify --fit`); prints the fitted edge loss and lateral shift range (and the approximation
 error) with their 95% intervals, per (blur length, angle to the edge).
 
-    python benchmarks/blur_magnitudes.py [--lengths 0 3 6 9] [--angles 0 45 90] [--seed 39] [--json FILE]
+    python benchmarks/blur_magnitudes.py [--lengths 0 4 8 10] [--angles 0 45 90] [--seed 39] [--json FILE]
 
 The wall: tests/data/verify/fence.wd's ten vertical lines (no corners, no faces), 3 m away, seen by its rig from
 its five poses (ten images a setting), as 12 px step edges of grey 70 on 190 (the verification round trip's
@@ -86,7 +86,7 @@ def table(rows: list[dict]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--lengths", type=float, nargs="+", default=[0, 3, 6, 9])
+    ap.add_argument("--lengths", type=float, nargs="+", default=[0, 4, 8, 10])
     ap.add_argument("--angles", type=float, nargs="+", default=[0, 45, 90])
     ap.add_argument("--seed", type=int, default=39)
     ap.add_argument("--json", default=None, help="also write the rows as JSON here")

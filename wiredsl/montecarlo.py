@@ -161,6 +161,23 @@ class Run:
             self._visible = visibility_masks(self.scene, self.world, self.options)
         return simulate(scene, self.options, self.world, self._visible)
 
+    def moved_views(self):
+        """Context.moved of this run: {pose index: ideal PoseResult} as the robot sees tau s after each pose,
+        computed once per tau (effects.motion_blur); None when no camera exposes over time."""
+        from wiredsl.effects import motion_blur
+
+        if not motion_blur.exposed(self.scene):
+            return None
+        cache = self.__dict__.setdefault("_moved", {})
+
+        def at(tau: float) -> dict:
+            if tau not in cache:
+                cache[tau] = {r.index: r for r in (self.ideal() if tau == 0 else
+                                                   self.project(motion_blur.scene_at(self.scene, tau)))}
+            return cache[tau]
+
+        return at
+
     def ideal(self) -> list[PoseResult]:
         if self._ideal is None:
             self._ideal = self.project(self.scene)
@@ -330,7 +347,7 @@ class Run:
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
                               point=self.point, camera=getattr(nominal[j], side).camera,  # as the fast path's
-                              path_s=self.path_s)
+                              path_s=self.path_s, moved=self.moved_views())
                 for effect, params in self.image_stages[len(compiled):]:
                     self.trace[effect.name] += 1
                     if effect.name in BUILTIN:
@@ -365,7 +382,7 @@ class Run:
         ctx = PackedContext(pose=-1, side="", trials=np.tile(np.asarray(batch, dtype=np.int64), len(views)),
                             seed=self.seed, stats=self.stats, point=self.point, per_view=T,
                             poses=np.repeat(poses, T), cameras=np.repeat(cameras, T), view_epipoles=view_epipoles,
-                            cameras_of_views=[v[6] for v in views], path_s=self.path_s)
+                            cameras_of_views=[v[6] for v in views], path_s=self.path_s, moved=self.moved_views())
         sets = im.concat([v[2] for v in views], T)
         if views[0][4] is not None:  # re-projected: cut to each view's image
             sizes = {(v[5].width, v[5].height) for v in views}

@@ -24,7 +24,7 @@ noise, all in numpy, deterministic for a seed. What it draws:
   exactly) centred on each corner the pipeline kept, where it moved it.
 - **Motion blur**: a camera that declares `exposure` on a path with times is drawn as the mean of sub-frames at
   times spread evenly over the exposure, centred on the pose's time (`exposure_times`), each the scene as the
-  robot moved with its velocities at the pose sees it (engine/motion.py `robot_at`), its pipeline's draws the
+  robot moved with its velocities at the pose sees it (effects/motion_blur.py `scene_at`), its pipeline's draws the
   same (keyed by trial, pose and camera); as many sub-frames as make the image move at most `SUBFRAME_PX` from
   one to the next. `Look.smear` (dx, dy px) smears the drawn features along a known image vector instead, the
   same way (the blur benchmark's blur of known length and direction).
@@ -110,6 +110,7 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
     Before the first image the work is estimated (`estimate`): beyond CPU_BUDGET or MEMORY_BUDGET the render is
     refused (RunSetupError naming --force) unless `force`. A camera with an exposure on a path with times is
     drawn as the mean of its sub-frames (`exposure_times`)."""
+    from wiredsl.effects.motion_blur import scene_at
     from wiredsl.engine.world import build_world
 
     world = world if world is not None else build_world(scene)
@@ -125,7 +126,7 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
         within = [side for side in ("left", "right") if abs(tau) <= exposure[side] / 2]
         if not within or (cameras == "left" and "left" not in within):
             continue
-        for r, side, _, img in _drawn(at_time(scene, tau), world, pipeline, seed, look, poses, cameras, visibility,
+        for r, side, _, img in _drawn(scene_at(scene, tau), world, pipeline, seed, look, poses, cameras, visibility,
                                       force):
             if side in within:
                 n, acc = total.get((r.index, side), (0, 0.0))
@@ -146,25 +147,15 @@ def exposure_times(scene, world, poses=None, visibility: str = "exact") -> np.nd
     exposure = max(scene.camera(getattr(scene.rig, s).camera).exposure for s in ("left", "right"))
     if exposure <= 0:
         return None
-    ends = [{(r.index, side, k): f.points for r, side, view in _views(at_time(scene, tau), world, None, 0, poses,
+    from wiredsl.effects.motion_blur import scene_at
+
+    ends = [{(r.index, side, k): f.points for r, side, view in _views(scene_at(scene, tau), world, None, 0, poses,
                                                                        "both", visibility)
              for k, f in enumerate(view.features)} for tau in (-exposure / 2, exposure / 2)]
     motion = max((float(np.abs(ends[1][k] - p).max(initial=0.0)) for k, p in ends[0].items()
                   if k in ends[1] and ends[1][k].shape == p.shape), default=0.0)
     n = int(min(max(math.ceil(motion / SUBFRAME_PX), 2), MAX_SUBFRAMES))
     return exposure * ((np.arange(n) + 0.5) / n - 0.5)
-
-
-def at_time(scene, tau: float):
-    """The scene with every pose of its path moved `tau` seconds along its own motion (motion.robot_at), its
-    times kept (a rolling shutter and a sync act about each moved pose as about the pose)."""
-    from wiredsl.engine import motion
-
-    path = scene.path
-    v, w = motion.velocities_of(path)
-    transforms = [np.reshape(motion.robot_at(path.pose(i), v[i], w[i], tau), (3, 4)).tolist()
-                  for i in range(len(path.poses))]
-    return scene.model_copy(update={"path": path.model_copy(update={"transforms": transforms})})
 
 
 def _views(scene, world, pipeline, seed, poses, cameras, visibility):
