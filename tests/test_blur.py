@@ -1,10 +1,9 @@
 """Motion blur (issue 39 item 3): a camera's exposure, `wiredsl render`'s smear over it, and the motion_blur effect,
 which reproduces the magnitudes benchmarks/blur_magnitudes.py measured (render, Canny, verify, fit) within their
-intervals. Its table is the benchmark's output (build/blur/rows.json when it ran here, else the docs' table)."""
+intervals. Its table is the benchmark's output, as the path tutorial prints it."""
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from pathlib import Path
@@ -51,10 +50,7 @@ def sets(run: Run, trials) -> list:
 
 
 def measured_rows() -> list[dict]:
-    """The benchmark's rows: its JSON when it ran here, else parsed from the table in docs/tutorials/path.md."""
-    here = Path("build/blur/rows.json")
-    if here.exists():
-        return json.loads(here.read_text())
+    """The benchmark's rows, parsed from its table in docs/tutorials/path.md (docs/reproduce.py's blur-table)."""
     text = Path("docs/tutorials/path.md").read_text()
     block = text[text.index("<!-- numbers: blur-table -->"):]
     num = r"([-\d.e]+|-)"
@@ -171,10 +167,14 @@ def test_render_smears_an_exposed_camera_as_the_closed_form_motion():
         scene, _ = compile_text(text)
         look = render.Look(edges="step", width=6, faces="none", smear=smear)
         (img,) = list(render.render(scene, look=look, poses=(0,), cameras="left"))
+        counts.append(img.subframes)
         return img.pixels.astype(float)
+
+    counts = []
 
     moving = image(wall(90.0, lines=3))
     still = [image(wall(90.0, lines=3, exposure=0.0), (sign * 8.0, 0.0)) for sign in (1, -1)]
     sharp = image(wall(90.0, lines=3, exposure=0.0))
     best = min(np.abs(moving - s).max() for s in still)
     assert best <= 2.0 and np.abs(moving - sharp).max() > 20
+    assert counts[0] == math.ceil(8.0 / render.SUBFRAME_PX) and counts[1:] == [1, 1, 1]  # 0.5 px apart

@@ -94,6 +94,7 @@ class Image:
     R_cw: np.ndarray
     t_cw: np.ndarray
     pixels: np.ndarray  # (height, width) uint8
+    subframes: int = 1  # drawn as the mean of this many sub-frames over its camera's exposure
 
     @property
     def name(self) -> str:
@@ -134,7 +135,7 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
     for r, side, view, img in _drawn(scene, world, pipeline, seed, look, poses, cameras, visibility, force):
         n, acc = total.get((r.index, side), (0, None))
         yield Image(r.index, side, view.camera, np.asarray(view.R_cw), np.asarray(view.t_cw),
-                    finish(acc / n if n else img, look, (seed, r.index, side)))
+                    finish(acc / n if n else img, look, (seed, r.index, side)), max(n, 1))
 
 
 def exposure_times(scene, world, poses=None, visibility: str = "exact") -> np.ndarray | None:
@@ -763,7 +764,8 @@ def manifest(scene, images: list[Image], *, seed: int, pipeline: str | None, loo
     poses: dict[int, dict] = {}
     for im_ in images:
         entry = poses.setdefault(im_.pose, {"index": im_.pose, "pose": list(scene.path.pose(im_.pose)), "images": {}})
-        entry["images"][im_.side] = {"file": im_.name, "R_cw": im_.R_cw.tolist(), "t_cw": im_.t_cw.tolist()}
+        entry["images"][im_.side] = {"file": im_.name, "R_cw": im_.R_cw.tolist(), "t_cw": im_.t_cw.tolist(),
+                                     **({"subframes": im_.subframes} if im_.subframes > 1 else {})}
     return {"document": "render", "tool_version": __version__, "scene": emit.scene_ref(scene).model_dump(mode="json"),
             "seed": seed, "pipeline": pipeline, "blur": look.blur, "noise": look.noise, "edges": look.edges,
             "width": look.width, "ink": look.ink, "background": look.background, "faces": look.faces,
