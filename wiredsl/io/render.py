@@ -24,10 +24,11 @@ noise, all in numpy, deterministic for a seed. What it draws:
   exactly) centred on each corner the pipeline kept, where it moved it.
 - **Motion blur**: a camera that declares `exposure` on a path with times is drawn as the mean of sub-frames at
   times spread evenly over the exposure, centred on the pose's time (`exposure_times`), each the scene as the
-  robot moved with its velocities at the pose sees it (effects/motion_blur.py `scene_at`), its pipeline's draws the
-  same (keyed by trial, pose and camera); as many sub-frames as make the image move at most `SUBFRAME_PX` from
-  one to the next. `Look.smear` (dx, dy px) smears the drawn features along a known image vector instead, the
-  same way (the blur benchmark's blur of known length and direction).
+  robot moved with its velocities at the pose sees it (effects/motion_blur.py `scene_at`), its pipeline's draws
+  the same (keyed by trial, pose and camera) but for `motion_blur`'s, left out (it simulates what is drawn); as
+  many sub-frames as make the image move at most `SUBFRAME_PX` from one to the next. `Look.smear` (dx, dy px)
+  smears the drawn features along a known image vector instead, the same way (the blur benchmark's blur of known
+  length and direction).
 - **Blur** (Gaussian, sigma in px, scipy) then **noise** (Gaussian, in grey levels, drawn with the effects'
   keyed generator: stream `render_noise` of (seed, pose, camera)), then rounding to 0..255.
 
@@ -116,6 +117,8 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
 
     world = world if world is not None else build_world(scene)
     times = exposure_times(scene, world, poses, visibility)
+    if times is not None and pipeline is not None:  # the blur is drawn: the stage that simulates it is left out
+        pipeline = pipeline.model_copy(update={"stages": [s for s in pipeline.stages if s.effect != "motion_blur"]})
     if times is None:
         for r, side, view, img in _drawn(scene, world, pipeline, seed, look, poses, cameras, visibility, force):
             yield Image(r.index, side, view.camera, np.asarray(view.R_cw), np.asarray(view.t_cw),
