@@ -29,7 +29,7 @@ LAB, _, _ = compile_file("scenes/lab.wd")
 WORLD = build_world(LAB)
 ZERO = {"edge_loss": {"fraction": 0}, "lateral_shift": {"range": 0}, "approx_error": {"sigma": 0},
         "corner_loss": {"keep": 1}, "corner_mismatch": {"fraction": 0}, "stereo_mismatch": {"band": 0, "fraction": 0},
-        "calibration_error": {"sigma": 0}, "corner_error": {"sigma": 0}}
+        "calibration_error": {"sigma": 0}, "corner_error": {"sigma": 0}, "motion_blur": {"scale": 0}}
 IMAGE_EFFECTS = [n for n in REGISTRY if n != "calibration_error"]
 
 

@@ -76,7 +76,9 @@ def test_the_kernel_runs_every_effect_by_the_function_the_registry_declares():
     with_kernel = {name: e for name, e in BUILTIN.items() if e.kernel is not None}
     homes = {e.kernel.function for e in with_kernel.values()}
     assert homes == {f"wiredsl.effects.{name}_kernel:stage" for name in with_kernel}
-    assert set(BUILTIN) - set(with_kernel) == {"calibration_error"}  # the kernel's projection, not a stage
+    # calibration_error: the kernel's projection, not a stage; motion_blur: numpy only (no kernel yet, issue 39 item 3:
+    # a pipeline with it runs the stages from it on numpy on either engine, tests/test_blur.py)
+    assert set(BUILTIN) - set(with_kernel) == {"calibration_error", "motion_blur"}
     scene, _, _ = compile_file("scenes/lab.wd")
     world = build_world(scene)
     for name, effect in with_kernel.items():

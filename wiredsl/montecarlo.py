@@ -162,6 +162,23 @@ class Run:
             self._visible = visibility_masks(self.scene, self.world, self.options)
         return simulate(scene, self.options, self.world, self._visible)
 
+    def moved_views(self):
+        """Context.moved of this run: {pose index: ideal PoseResult} as the robot sees tau s after each pose,
+        computed once per tau (effects.motion_blur); None when no camera exposes over time."""
+        from wiredsl.effects import motion_blur
+
+        if not motion_blur.exposed(self.scene):
+            return None
+        cache = self.__dict__.setdefault("_moved", {})
+
+        def at(tau: float) -> dict:
+            if tau not in cache:
+                cache[tau] = {r.index: r for r in (self.ideal() if tau == 0 else
+                                                   self.project(motion_blur.scene_at(self.scene, tau)))}
+            return cache[tau]
+
+        return at
+
     def ideal(self) -> list[PoseResult]:
         if self._ideal is None:
             self._ideal = self.project(self.scene)
@@ -306,6 +323,9 @@ class Run:
         if jitter and rigs is None:  # the nominal rig, every trial re-projected at its own offset
             rigs = calib.perturbed_rigs(self.scene, np.zeros((len(batch), 0)), [])
         out = []
+        # the exposures' ends are known for the path's own poses (a pose projected with `project_pose` has none)
+        ideal = self.ideal() if self.scene.path is not None else []
+        moved = self.moved_views() if all(any(r is p for p in ideal) for r in nominal) else None
         # the numpy path with built-in stages only: every view's trials packed in one set, each stage run once
         packed = [] if self.pack and not kernel and all(e.name in BUILTIN for e, _ in self.image_stages) else None
         for j, result in enumerate(base):
@@ -347,7 +367,7 @@ class Run:
                 ctx = Context(pose=result.index, side=side, trials=np.asarray(batch), seed=self.seed,
                               stats=self.stats, epipole=lambda r=result, s=side: self.epipole(r.pose, s),
                               point=self.point, camera=getattr(nominal[j], side).camera,  # as the fast path's
-                              path_s=self.path_s)
+                              path_s=self.path_s, moved=moved)
                 for effect, params in self.image_stages[len(compiled):]:
                     self.trace[effect.name] += 1
                     if effect.name in BUILTIN:
@@ -370,6 +390,8 @@ class Run:
         T = len(batch)
         for effect, _ in self.image_stages:
             self.trace[effect.name] += len(views)
+        ideal = self.ideal() if self.scene.path is not None else []
+        moved = self.moved_views() if all(any(v[0] is p for p in ideal) for v in views) else None
         poses = np.array([v[0].index for v in views], dtype=np.int64)
         cameras = np.array([CAMERA_INDEX[v[1]] for v in views], dtype=np.int64)
         epipoles = []
@@ -382,7 +404,7 @@ class Run:
         ctx = PackedContext(pose=-1, side="", trials=np.tile(np.asarray(batch, dtype=np.int64), len(views)),
                             seed=self.seed, stats=self.stats, point=self.point, per_view=T,
                             poses=np.repeat(poses, T), cameras=np.repeat(cameras, T), view_epipoles=view_epipoles,
-                            cameras_of_views=[v[6] for v in views], path_s=self.path_s)
+                            cameras_of_views=[v[6] for v in views], path_s=self.path_s, moved=moved)
         sets = im.concat([v[2] for v in views], T)
         if views[0][4] is not None:  # re-projected: cut to each view's image
             sizes = {(v[5].width, v[5].height) for v in views}

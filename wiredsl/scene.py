@@ -405,8 +405,10 @@ class Camera(Node):
     w: float = Field(0.0, description="fov: Devernay and Faugeras's w (rad), in (0, pi)")
     readout: float = Field(0.0, ge=0, le=1, description="rolling shutter: seconds from the first row's exposure "
                            "to the last's, rows top to bottom (0: a global shutter)")
+    exposure: float = Field(0.0, ge=0, le=1, description="motion blur: seconds the shutter is open, centred on the "
+                            "row's (or the pose's) time (0: an instant)")
 
-    _dump = omitted_when_default(xi=0.0, alpha=0.0, beta=1.0, w=0.0, readout=0.0)
+    _dump = omitted_when_default(xi=0.0, alpha=0.0, beta=1.0, w=0.0, readout=0.0, exposure=0.0)
 
 
 class Mount(Node):

@@ -12,13 +12,14 @@ from wiredsl.effects.corner_loss import CornerLoss
 from wiredsl.effects.corner_mismatch import CornerMismatch
 from wiredsl.effects.edge_loss import EdgeLoss
 from wiredsl.effects.lateral_shift import LateralShift
+from wiredsl.effects.motion_blur import MotionBlur
 from wiredsl.effects.stereo_mismatch import StereoMismatch
 from wiredsl.plugins import Registry
 
 BUILTIN: dict[str, type[Effect]] = {
     e.name: e
-    for e in (CalibrationError, EdgeLoss, LateralShift, ApproxError, CornerLoss, CornerError, CornerMismatch,
-              StereoMismatch)
+    for e in (CalibrationError, EdgeLoss, LateralShift, MotionBlur, ApproxError, CornerLoss, CornerError,
+              CornerMismatch, StereoMismatch)
 }
 KINDS = ("length", "angle", "image", "number", "fraction")  # the unit kinds a stage parameter may have
 

@@ -127,6 +127,9 @@ class Context:
     point: int | None = None  # a study's design point: one more key component
     camera: Any = None  # the view's nominal camera (wiredsl.scene.Camera: image size, intrinsics, lens)
     path_s: np.ndarray | None = None  # distance along the run's path at each pose (m; effects.variation)
+    # the ideal views as the robot sees them tau seconds after each pose's time, {path pose index: PoseResult}, of
+    # a run whose robot moves (effects.motion_blur); None: it does not
+    moved: Callable[[float], dict] | None = None
 
     def draws(self, stage: str, batch_index: np.ndarray, per_item: int = 1, normal: bool = False) -> np.ndarray:
         """Draws (n, per_item) for items of trials `batch_index` (n,), sorted: item j of a trial gets the

@@ -22,6 +22,13 @@ noise, all in numpy, deterministic for a seed. What it draws:
   `none` draws no features (the faces alone: a calibration board's squares, say).
 - **Corners** (`corners mark`): a small 2 x 2 checker (a saddle, what Harris and `cornerSubPix` find
   exactly) centred on each corner the pipeline kept, where it moved it.
+- **Motion blur**: a camera that declares `exposure` on a path with times is drawn as the mean of sub-frames at
+  times spread evenly over the exposure, centred on the pose's time (`exposure_times`), each the scene as the
+  robot moved with its velocities at the pose sees it (effects/motion_blur.py `scene_at`), its pipeline's draws
+  the same (keyed by trial, pose and camera) but for `motion_blur`'s, left out (it simulates what is drawn); as
+  many sub-frames as make the image move at most `SUBFRAME_PX` from one to the next. `Look.smear` (dx, dy px)
+  smears the drawn features along a known image vector instead, the same way (the blur benchmark's blur of known
+  length and direction).
 - **Blur** (Gaussian, sigma in px, scipy) then **noise** (Gaussian, in grey levels, drawn with the effects'
   keyed generator: stream `render_noise` of (seed, pose, camera)), then rounding to 0..255.
 
@@ -53,6 +60,10 @@ NOISE_STREAM = "render_noise"
 CONTRAST = 40.0  # grey levels: the least difference of a face's grey from the background's (face_grey)
 PIECE = 3.0  # px: a step's band is clipped (render._clearance) piece by piece, segments cut to at most this long
 MITRE_TURN = 0.5  # rad: a polyline's joins up to this turn are mitred (a curve's chords), sharper ones not (corners)
+# px: motion blur's sub-frames are at most this far apart; their mean is within 0.7% of the contrast of the continuous
+# smear's (a straight step edge smeared 2.5-9 px, against sub-frames 0.02 px apart)
+SUBFRAME_PX = 0.5
+MAX_SUBFRAMES = 512  # a longer smear is drawn with this many sub-frames (2 px apart at 1024 px of motion)
 BACK = 0.8  # reflectance of a board's back (its pattern is printed on the side its z axis points away from)
 
 
@@ -70,6 +81,7 @@ class Look:
     corners: str = "none"  # none | mark
     mark: float = 4.0  # px: half the side of a corner mark
     supersample: int = SUPERSAMPLE  # rays a pixel side for the faces
+    smear: tuple[float, float] = (0.0, 0.0)  # px: the features drawn smeared along this image vector (centred)
     boards: dict = field(default_factory=dict, compare=False)  # face source name -> board (see board_albedo)
 
 
@@ -83,6 +95,7 @@ class Image:
     R_cw: np.ndarray
     t_cw: np.ndarray
     pixels: np.ndarray  # (height, width) uint8
+    subframes: int = 1  # drawn as the mean of this many sub-frames over its camera's exposure
 
     @property
     def name(self) -> str:
@@ -97,13 +110,64 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
     projection) with `seed`, which also keys the noise. Images come pose by pose, left then right.
 
     Before the first image the work is estimated (`estimate`): beyond CPU_BUDGET or MEMORY_BUDGET the render is
-    refused (RunSetupError naming --force) unless `force`."""
+    refused (RunSetupError naming --force) unless `force`. A camera with an exposure on a path with times is
+    drawn as the mean of its sub-frames (`exposure_times`)."""
+    from wiredsl.effects.motion_blur import scene_at
+    from wiredsl.engine.world import build_world
+
+    world = world if world is not None else build_world(scene)
+    times = exposure_times(scene, world, poses, visibility)
+    if times is not None and pipeline is not None:  # the blur is drawn: the stage that simulates it is left out
+        pipeline = pipeline.model_copy(update={"stages": [s for s in pipeline.stages if s.effect != "motion_blur"]})
+    if times is None:
+        for r, side, view, img in _drawn(scene, world, pipeline, seed, look, poses, cameras, visibility, force):
+            yield Image(r.index, side, view.camera, np.asarray(view.R_cw), np.asarray(view.t_cw),
+                        finish(img, look, (seed, r.index, side)))
+        return
+    exposure = {side: scene.camera(getattr(scene.rig, side).camera).exposure for side in ("left", "right")}
+    total: dict = {}
+    for tau in times:  # sub-frames one at a time: the memory of one set of images
+        within = [side for side in ("left", "right") if abs(tau) <= exposure[side] / 2]
+        if not within or (cameras == "left" and "left" not in within):
+            continue
+        for r, side, _, img in _drawn(scene_at(scene, tau), world, pipeline, seed, look, poses, cameras, visibility,
+                                      force):
+            if side in within:
+                n, acc = total.get((r.index, side), (0, 0.0))
+                total[(r.index, side)] = (n + 1, acc + img)
+    for r, side, view, img in _drawn(scene, world, pipeline, seed, look, poses, cameras, visibility, force):
+        n, acc = total.get((r.index, side), (0, None))
+        yield Image(r.index, side, view.camera, np.asarray(view.R_cw), np.asarray(view.t_cw),
+                    finish(acc / n if n else img, look, (seed, r.index, side)), max(n, 1))
+
+
+def exposure_times(scene, world, poses=None, visibility: str = "exact") -> np.ndarray | None:
+    """The sub-frames' times (s, centred on the pose's) of a scene whose cameras expose over time, or None: the
+    midpoints of n equal parts of the longest exposure, n the image motion over it (the largest distance a
+    feature's vertex moves between the exposure's ends, in any view) over SUBFRAME_PX, rounded up (at least 2,
+    at most MAX_SUBFRAMES). A shorter exposure of the other camera is drawn from the sub-frames within it."""
+    if scene.path is None or scene.path.times is None or scene.rig is None:
+        return None
+    exposure = max(scene.camera(getattr(scene.rig, s).camera).exposure for s in ("left", "right"))
+    if exposure <= 0:
+        return None
+    from wiredsl.effects.motion_blur import scene_at
+
+    ends = [{(r.index, side, k): f.points for r, side, view in _views(scene_at(scene, tau), world, None, 0, poses,
+                                                                       "both", visibility)
+             for k, f in enumerate(view.features)} for tau in (-exposure / 2, exposure / 2)]
+    motion = max((float(np.abs(ends[1][k] - p).max(initial=0.0)) for k, p in ends[0].items()
+                  if k in ends[1] and ends[1][k].shape == p.shape), default=0.0)
+    n = int(min(max(math.ceil(motion / SUBFRAME_PX), 2), MAX_SUBFRAMES))
+    return exposure * ((np.arange(n) + 0.5) / n - 0.5)
+
+
+def _views(scene, world, pipeline, seed, poses, cameras, visibility):
+    """(pose result, side, view) of every chosen view, its features trial 0 of `pipeline` (None: ideal)."""
     from wiredsl.engine.simulate import Options
-    from wiredsl.engine.world import build_world, surface_triangles
     from wiredsl.io import emit, viewdep
     from wiredsl.montecarlo import Run
 
-    world = world if world is not None else build_world(scene)
     opts = Options(tolerance=TOLERANCE, visibility=visibility, poses=poses, right=cameras == "both",
                    viewdep=viewdep.of_scene(scene))
     run = Run.create(scene, world, pipeline, seed, opts)  # what wiredsl.run.start makes of these arguments
@@ -113,14 +177,22 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
         results = emit.disturbed_results(batch_out, 0)
     else:
         results = run.ideal()
+    return [(r, side, getattr(r, side)) for r in results for side in ("left", "right")
+            if getattr(r, side) is not None]
+
+
+def _drawn(scene, world, pipeline, seed, look, poses, cameras, visibility, force):
+    """(pose result, side, view, float image before blur and noise) of every chosen view."""
+    from wiredsl.engine.world import surface_triangles
+
+    views = _views(scene, world, pipeline, seed, poses, cameras, visibility)
     tris, face_of = world.triangles, world.triangle_face
     sil, _ = surface_triangles(world)
     tris = np.concatenate([tris, sil]) if len(sil) else tris
     face_of = np.concatenate([face_of, np.full(len(sil), -1)])
     names = list(world.face_src)
     boards = {names.index(k): b for k, b in look.boards.items() if k in names}
-    views = [getattr(r, side) for r in results for side in ("left", "right") if getattr(r, side) is not None]
-    cost = estimate(views, tris, look)
+    cost = estimate([v for _, _, v in views], tris, look)
     if not force and (cost.seconds > CPU_BUDGET or cost.bytes > MEMORY_BUDGET):
         from wiredsl.run import RunSetupError
 
@@ -128,23 +200,25 @@ def render(scene, *, pipeline=None, seed: int = 0, look: Look = Look(), poses=No
                             "take without --force: fewer poses (--pose), a smaller --supersample or --faces none",
                             "--force")
     rays: dict = {}
-    for r in results:
-        for side in ("left", "right"):
-            view = getattr(r, side)
-            if view is None:
-                continue
-            key = id(view.camera)
-            if key not in rays:
-                rays[key] = pixel_rays(view.camera, look.supersample)
-            img = render_view(view.camera, view.R_cw, view.t_cw, view.features, tris, face_of, look,
-                              rays=rays[key], boards=boards, noise_key=(seed, r.index, side))
-            yield Image(r.index, side, view.camera, np.asarray(view.R_cw), np.asarray(view.t_cw), img)
+    for r, side, view in views:
+        key = id(view.camera)
+        if key not in rays:
+            rays[key] = pixel_rays(view.camera, look.supersample)
+        yield r, side, view, draw_view(view.camera, view.R_cw, view.t_cw, view.features, tris, face_of, look,
+                                       rays=rays[key], boards=boards)
 
 
 def render_view(cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, features, tris: np.ndarray, face_of: np.ndarray,
                 look: Look, *, rays=None, boards: dict | None = None, noise_key=None) -> np.ndarray:
     """One camera's image (height, width) uint8: faces `tris` (T, 3, 3, world frame; `face_of` their face
     index, -1 none), then `features` (ImageFeature: strokes of pixels, corners), blur, noise."""
+    return finish(draw_view(cam, R_cw, t_cw, features, tris, face_of, look, rays=rays, boards=boards), look,
+                  noise_key)
+
+
+def draw_view(cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, features, tris: np.ndarray, face_of: np.ndarray,
+              look: Look, *, rays=None, boards: dict | None = None) -> np.ndarray:
+    """render_view's greys (float) before blur and noise."""
     R_cw, t_cw = np.asarray(R_cw, float), np.asarray(t_cw, float)
     img = np.full((cam.height, cam.width), float(look.background))
     if look.faces == "shaded" and len(tris):
@@ -153,12 +227,32 @@ def render_view(cam: Camera, R_cw: np.ndarray, t_cw: np.ndarray, features, tris:
                           look.ink if look.edges != "none" else None)
     if look.edges != "none":
         drawn = [f for f in features if f.kind in ("line", "polyline") and len(f.points) >= 2]
-        cover = stroke_coverage(cam.width, cam.height, [f.points for f in drawn], [f.closed for f in drawn],
-                                look.edges, look.width)
+        cover = smeared_coverage(cam.width, cam.height, [f.points for f in drawn], [f.closed for f in drawn],
+                                 look.edges, look.width, look.smear)
         img = img * (1 - cover) + look.ink * cover
     if look.corners == "mark":
         pts = np.array([f.points[0] for f in features if f.kind == "corner"]).reshape(-1, 2)
         img = draw_marks(img, pts, look.mark, look.ink, 255.0 - look.ink)
+    return img
+
+
+def smeared_coverage(width: int, height: int, strokes: list, closed: list, style: str, w: float,
+                     smear=(0.0, 0.0)) -> np.ndarray:
+    """stroke_coverage averaged over the strokes moved along `smear` (dx, dy px), centred: the midpoints of n equal
+    parts of it, n = its length over SUBFRAME_PX rounded up (at most MAX_SUBFRAMES); no smear: stroke_coverage."""
+    d = np.asarray(smear, dtype=float)
+    length = float(np.hypot(*d))
+    if length == 0:
+        return stroke_coverage(width, height, strokes, closed, style, w)
+    n = int(min(max(math.ceil(length / SUBFRAME_PX), 2), MAX_SUBFRAMES))
+    total = np.zeros((height, width))
+    for s in (np.arange(n) + 0.5) / n - 0.5:
+        total += stroke_coverage(width, height, [np.asarray(p, float) + s * d for p in strokes], closed, style, w)
+    return total / n
+
+
+def finish(img: np.ndarray, look: Look, noise_key=None) -> np.ndarray:
+    """Greys (float) blurred, noised and rounded to uint8."""
     if look.blur > 0:
         from scipy.ndimage import gaussian_filter
 
@@ -673,11 +767,13 @@ def manifest(scene, images: list[Image], *, seed: int, pipeline: str | None, loo
     poses: dict[int, dict] = {}
     for im_ in images:
         entry = poses.setdefault(im_.pose, {"index": im_.pose, "pose": list(scene.path.pose(im_.pose)), "images": {}})
-        entry["images"][im_.side] = {"file": im_.name, "R_cw": im_.R_cw.tolist(), "t_cw": im_.t_cw.tolist()}
+        entry["images"][im_.side] = {"file": im_.name, "R_cw": im_.R_cw.tolist(), "t_cw": im_.t_cw.tolist(),
+                                     **({"subframes": im_.subframes} if im_.subframes > 1 else {})}
     return {"document": "render", "tool_version": __version__, "scene": emit.scene_ref(scene).model_dump(mode="json"),
             "seed": seed, "pipeline": pipeline, "blur": look.blur, "noise": look.noise, "edges": look.edges,
             "width": look.width, "ink": look.ink, "background": look.background, "faces": look.faces,
             "corners": look.corners, "supersample": look.supersample, "visibility": visibility,
+            **({"smear": list(look.smear)} if any(look.smear) else {}),
             "pixel_centres": "integer (OpenCV)",
             "cameras": cams, "poses": [poses[k] for k in sorted(poses)]}
 

@@ -268,6 +268,15 @@ class CameraCompiler:
             if readout > 0:
                 motion["readout"] = float(readout)
                 self.motion_spans.append((f"the readout of camera '{b.name}'", rspan))
+        if "exposure" in s:
+            (exposure, espan) = s["exposure"]
+            if not 0 <= exposure <= MAX_READOUT:  # also NaN
+                self.out.error("E110", f"an exposure time must be in [0, {MAX_READOUT * 1e3:g}] ms, got "
+                                       f"{exposure * 1e3:g} ms", espan)
+                return None
+            if exposure > 0:
+                motion["exposure"] = float(exposure)
+                self.motion_spans.append((f"the exposure of camera '{b.name}'", espan))
         cam = checked(Camera, name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, width=int(w), height=int(h),
                       **lens, **motion)
         span = next((s[k][1] for k in ("distortion", *LENS) if k in s), where)

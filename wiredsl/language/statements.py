@@ -222,6 +222,9 @@ _CAMERA = [
     Sig("readout", "rolling shutter: the time from the first image row's exposure to the last's, rows top to "
         "bottom; each feature point is imaged from the camera's pose at its row's time (default 0: a global "
         "shutter, every row at the pose's time)", (S("time", "readout time"),), example="readout 30ms"),
+    Sig("exposure", "motion blur: the time the shutter is open, centred on the row's (or the pose's) time; "
+        "`wiredsl render` averages the image over it, and the motion_blur stage disturbs the features by the image "
+        "motion over it (default 0: an instant)", (S("time", "exposure time"),), example="exposure 8ms"),
     Sig("read", "take the camera's parameters from a calibration file (OpenCV, ROS, Kalibr, ORB-SLAM, camodocal / "
         "VINS or basalt); "
         "statements beside it override them", (S("str", "path"),),
