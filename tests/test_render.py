@@ -311,8 +311,9 @@ def test_a_scene_compiled_from_text_renders_and_its_digest_is_of_the_compiled_sc
 def test_a_curves_band_is_painted_whole_and_stops_short_of_another_feature():
     """Issue 34 item 5: a circle of radius 20 px drawn as 200 chords (shorter than a pixel's side near none) has
     its 4 px band painted whole all round (the chords' butt-ended bands left a comb of unpainted wedges, each an
-    edge); a thin ellipse's band (inside it, 6 px across) stops halfway to its other half instead of covering
-    that half's edge."""
+    edge); a curve's band lies on its convex side whichever way it runs (render._outside): a thin ellipse's band
+    painted inside it put its inner edge beside the other half, where the verification found it in place of
+    that half when edge_loss had taken it away."""
     a = np.linspace(0, 2 * np.pi, 201)[:-1]
     circle = np.column_stack([50 + 20 * np.cos(a), 50 + 20 * np.sin(a)])
     cover = rd.stroke_coverage(100, 100, [circle], [True], "step", 4.0)
@@ -320,15 +321,20 @@ def test_a_curves_band_is_painted_whole_and_stops_short_of_another_feature():
     for r in (21.0, 23.0, 19.0, 17.0):  # the band is on one side: outside or inside
         band.append(np.mean([cover[int(round(50 + r * np.sin(t))), int(round(50 + r * np.cos(t)))]
                              for t in np.linspace(0, 2 * np.pi, 720)]))
-    assert max(band[:2]) > 0.99 or max(band[2:]) > 0.99, band
+    assert max(band[:2]) > 0.99 and max(band[2:]) < 0.01, band  # outside, all round
     flat = np.column_stack([50 + 30 * np.cos(a), 50 + 1.5 * np.sin(a)])
-    inside_once = False
-    for pts in (flat, flat[::-1]):
-        c = rd.stroke_coverage(100, 100, [pts], [True], "step", 4.0)
-        if c[50, 50] > 0.9:  # the band inside: it fills the middle, never past the other half's edge
-            inside_once = True
-            assert c[47, 50] == 0 and c[53, 50] == 0, c[46:55, 50]
-    assert inside_once
+    covers = [rd.stroke_coverage(100, 100, [pts], [True], "step", 4.0) for pts in (flat, flat[::-1])]
+    for c in covers:
+        assert max(c[49, 50], c[50, 50], c[51, 50]) < 1e-3, c[44:57, 50]  # nothing inside
+        assert c[53, 50] > 0.99 and c[47, 50] > 0.99, c[44:57, 50]  # the band beyond each half
+    assert np.array_equal(covers[0], covers[1])
+    arc = circle[:90]  # an open arc too
+    for pts in (arc, arc[::-1]):
+        c = rd.stroke_coverage(100, 100, [pts], [False], "step", 4.0)
+        assert c[66, 66] > 0.99 and c[62, 62] < 1e-3, np.diag(c)[60:70]  # at 45 deg: 22.6 px out, 17.0 in
+    line = np.array([[10.0, 80.0], [90.0, 80.0]])  # a line keeps its side: (dy, -dx)
+    assert rd.stroke_coverage(100, 100, [line], [False], "step", 4.0)[78, 50] > 0.99
+    assert rd.stroke_coverage(100, 100, [line[::-1]], [False], "step", 4.0)[82, 50] > 0.99
 
 
 def test_faces_keep_their_contrast_against_the_background_and_the_ink():

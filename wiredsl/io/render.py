@@ -15,10 +15,11 @@ noise, all in numpy, deterministic for a seed. What it draws:
 - **Features** (after the pipeline's disturbances when one is given, hidden lines removed by the faces with
   the default `visibility exact`) as strokes whose pixel coverage is the exact box-filter integral across
   the stroke: `step` (the default) paints a band of `width` px on the left of the stroke's direction
-  (image axes: the side of (dy, -dx)), so the feature itself is a single step edge at sub-pixel
-  accuracy, as an object's boundary is in a photograph; the band stops halfway to the next feature on its
-  side (a thin ellipse's other half, a rim beside a silhouette: it never paints over another edge) and is
-  mitred along a curve's chords (painted whole, not as a comb); `line` paints a line of `width` px centred on it;
+  (image axes: the side of (dy, -dx); on a curve, its convex side: `_outside`), so the feature itself is a
+  single step edge at sub-pixel accuracy, as an object's boundary is in a photograph; the band stops halfway
+  to the next feature on its side (a thin ellipse's other half, a rim beside a silhouette: it never paints
+  over another edge) and is mitred along a curve's chords (painted whole, not as a comb); `line` paints a line
+  of `width` px centred on it;
   `none` draws no features (the faces alone: a calibration board's squares, say).
 - **Corners** (`corners mark`): a small 2 x 2 checker (a saddle, what Harris and `cornerSubPix` find
   exactly) centred on each corner the pipeline kept, where it moved it.
@@ -609,7 +610,7 @@ def stroke_coverage(width: int, height: int, strokes: list, closed: list, style:
         if c and len(P) > 2:
             P = np.vstack([P, P[:1]])
         if style == "step" and len(P) >= 2:  # long segments cut into pieces, so that a band is clipped locally
-            P = _pieces(P, PIECE)
+            P = _pieces(_outside(P), PIECE)
         segs.append(np.concatenate([P[:-1], P[1:]], axis=1))
     if not segs:
         return cover
@@ -646,6 +647,27 @@ def stroke_coverage(width: int, height: int, strokes: list, closed: list, style:
         c = _box(s, a_n, B[k]) * _box(t, -cap - E[k, 0], L[k] + cap + E[k, 1])
         np.maximum(cover[y0:y1, x0:x1], c, out=cover[y0:y1, x0:x1])
     return cover
+
+
+CURVE_TURN = math.radians(60.0)  # a stroke that turns more than this in all is a curve (_outside)
+
+
+def _outside(P: np.ndarray) -> np.ndarray:
+    """The polyline P (k, 2), reversed where needed so that a step's band (on the side of (dy, -dx)) lies on a
+    curve's convex side: a stroke of 8 or more vertices that turns one way by more than CURVE_TURN in all (an
+    ellipse, whole or an arc; approx_error's kinks on a straight line turn both ways and leave it as it is).
+    Painted inside, the band of a thin ellipse's near half put its inner edge a pixel or two from where the far
+    half is: where edge_loss took the far half away, the verification found that edge in its place (on the
+    cylinders of the round trip, the gaps of the far rims went unseen: edge loss 0.17 read 0.11)."""
+    if len(P) < 8 or not np.isfinite(P).all():
+        return P
+    t = np.diff(P, axis=0)
+    t = t / np.maximum(np.hypot(t[:, 0], t[:, 1]), 1e-12)[:, None]
+    turn = np.arctan2(t[:-1, 0] * t[1:, 1] - t[:-1, 1] * t[1:, 0], (t[:-1] * t[1:]).sum(axis=1)).sum()
+    if abs(turn) <= CURVE_TURN:
+        return P
+    inward = (t[:-1, 1] * (t[1:, 0] - t[:-1, 0]) - t[:-1, 0] * (t[1:, 1] - t[:-1, 1])).sum()  # (dy, -dx) . dt
+    return P[::-1].copy() if inward > 0 else P
 
 
 def _pieces(P: np.ndarray, most: float) -> np.ndarray:
