@@ -259,24 +259,17 @@ class CameraCompiler:
         if self.out.n_errors != n0 or lens is None:
             return None
         motion = {}
-        if "readout" in s:
-            (readout, rspan) = s["readout"]
-            if not 0 <= readout <= MAX_READOUT:  # also NaN
-                self.out.error("E110", f"a readout time must be in [0, {MAX_READOUT * 1e3:g}] ms, got "
-                                       f"{readout * 1e3:g} ms", rspan)
+        for key, what in (("readout", "a readout"), ("exposure", "an exposure")):
+            if key not in s:
+                continue
+            (value, vspan) = s[key]
+            if not 0 <= value <= MAX_READOUT:  # also NaN
+                self.out.error("E110", f"{what} time must be in [0, {MAX_READOUT * 1e3:g}] ms, got "
+                                       f"{value * 1e3:g} ms", vspan)
                 return None
-            if readout > 0:
-                motion["readout"] = float(readout)
-                self.motion_spans.append((f"the readout of camera '{b.name}'", rspan))
-        if "exposure" in s:
-            (exposure, espan) = s["exposure"]
-            if not 0 <= exposure <= MAX_READOUT:  # also NaN
-                self.out.error("E110", f"an exposure time must be in [0, {MAX_READOUT * 1e3:g}] ms, got "
-                                       f"{exposure * 1e3:g} ms", espan)
-                return None
-            if exposure > 0:
-                motion["exposure"] = float(exposure)
-                self.motion_spans.append((f"the exposure of camera '{b.name}'", espan))
+            if value > 0:
+                motion[key] = float(value)
+                self.motion_spans.append((f"the {key} of camera '{b.name}'", vspan))
         cam = checked(Camera, name=b.name, f=f, ax=ax, ay=ay, cx=cx, cy=cy, k1=k1, width=int(w), height=int(h),
                       **lens, **motion)
         span = next((s[k][1] for k in ("distortion", *LENS) if k in s), where)
